@@ -1,0 +1,40 @@
+"""Make ``progressive_avatars`` importable for scripts, installed or not.
+
+Scripts run as ``python scripts/X.py`` (package installed in the venv, or not) and as
+``blender --background --python scripts/X.py -- args`` (Blender's own Python). In the
+second case nothing is installed, so the repository root is registered as the package.
+Also returns the script's own arguments (after Blender's ``--`` separator when present).
+"""
+
+import importlib.util
+import os
+import sys
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _ensure_package():
+    try:
+        import progressive_avatars  # noqa: F401
+        return
+    except ImportError:
+        pass
+    spec = importlib.util.spec_from_file_location(
+        "progressive_avatars", os.path.join(ROOT, "__init__.py"), submodule_search_locations=[ROOT]
+    )
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["progressive_avatars"] = module
+    spec.loader.exec_module(module)
+
+
+def script_args(argv=None):
+    """The script's arguments: everything after ``--`` under Blender, else argv[1:]."""
+    argv = sys.argv if argv is None else argv
+    if "--" in argv:
+        return argv[argv.index("--") + 1:]
+    if os.path.basename(argv[0]).startswith("blender") or getattr(sys, "_pa_under_blender", False):
+        return []
+    return argv[1:]
+
+
+_ensure_package()
