@@ -1,0 +1,107 @@
+"""A trained avatar: the forest plus one Gaussian per face (numpy only: runs inside Blender).
+
+Per-face residual parameters, in the forest's face order:
+  d_mu [N,3] face-local position offset (units of the face scale), d_log_scale [N,3],
+  d_rot [N,4] wxyz (unnormalised), opacity_logit [N], f_dc [N,3] (SH DC colour).
+Stored as .npz (never pickle).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import binding
+from .forest import Forest, atomic_savez
+
+SH_C0 = 0.28209479177387814
+PARAM_NAMES = ("d_mu", "d_log_scale", "d_rot", "opacity_logit", "f_dc")
+PARAM_WIDTH = {"d_mu": 3, "d_log_scale": 3, "d_rot": 4, "opacity_logit": None, "f_dc": 3}
+
+
+def sigmoid(x):
+    return 1.0 / (1.0 + np.exp(-x))
+
+
+def sh_to_rgb(f_dc):
+    return np.maximum(0.5 + SH_C0 * f_dc, 0.0)
+
+
+@dataclass
+class Avatar:
+    forest: Forest
+    d_mu: np.ndarray
+    d_log_scale: np.ndarray
+    d_rot: np.ndarray
+    opacity_logit: np.ndarray
+    f_dc: np.ndarray
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        N = self.forest.num_faces
+        for name in PARAM_NAMES:
+            arr = np.asarray(getattr(self, name), np.float32)
+            width = PARAM_WIDTH[name]
+            expected = (N,) if width is None else (N, width)
+            if arr.shape != expected:
+                raise ValueError(f"Avatar: {name} has shape {arr.shape}, expected {expected}")
+            if not np.all(np.isfinite(arr)):
+                raise ValueError(f"Avatar: {name} contains NaN or inf")
+            setattr(self, name, arr)
+
+    @classmethod
+    def initial(cls, forest: Forest, color=(0.5, 0.5, 0.5), opacity=0.9, log_scale=0.0) -> "Avatar":
+        N = forest.num_faces
+        rot = np.zeros((N, 4), np.float32)
+        rot[:, 0] = 1
+        f_dc = (np.asarray(color, np.float32) - 0.5) / SH_C0
+        logit = np.log(opacity / (1 - opacity))
+        return cls(forest, np.zeros((N, 3)), np.full((N, 3), log_scale), rot, np.full(N, logit), np.tile(f_dc, (N, 1)))
+
+    @property
+    def num_gaussians(self) -> int:
+        return self.forest.num_faces
+
+    def subset(self, ids) -> dict:
+        return {name: getattr(self, name)[ids] for name in PARAM_NAMES}
+
+    def gaussians(self, vertices: np.ndarray, ids=None, weights=None) -> dict:
+        """World-space, activated Gaussians for one frame's mesh vertices [V,3].
+
+        Returns means, quats (wxyz), scales, opacities, colors (RGB) as float32 numpy.
+        """
+        geo = binding.evaluate(self.forest, vertices, ids=ids, weights=weights)
+        sel = slice(None) if ids is None else np.asarray(ids)
+        means, scales, quats = binding.compose(geo.t, geo.r, geo.s, self.d_mu[sel], self.d_log_scale[sel], self.d_rot[sel])
+        return {
+            "means": means.astype(np.float32),
+            "quats": quats.astype(np.float32),
+            "scales": scales.astype(np.float32),
+            "opacities": sigmoid(self.opacity_logit[sel]).astype(np.float32),
+            "colors": sh_to_rgb(self.f_dc[sel]).astype(np.float32),
+        }
+
+    # -- persistence ----------------------------------------------------------------------
+    def save(self, path) -> None:
+        arrays = self.forest.state()
+        arrays.update({name: getattr(self, name) for name in PARAM_NAMES})
+        import json
+
+        arrays["meta_json"] = np.array(json.dumps(self.meta))
+        atomic_savez(path, **arrays)
+
+    @classmethod
+    def load(cls, path) -> "Avatar":
+        import json
+
+        with np.load(path, allow_pickle=False) as data:
+            forest = Forest.from_state(data, source=str(path))
+            missing = [n for n in PARAM_NAMES if n not in data]
+            if missing:
+                raise ValueError(f"{path}: not an avatar file, missing {missing}")
+            meta = json.loads(str(data["meta_json"])) if "meta_json" in data else {}
+            try:
+                return cls(forest, *(data[n] for n in PARAM_NAMES), meta=meta)
+            except ValueError as exc:
+                raise ValueError(f"{path}: {exc}") from None

@@ -1,0 +1,170 @@
+"""Differentiable forest evaluation and Gaussian composition (torch).
+
+Same formulas and conventions as binding.py (numpy); the two agree to float32 precision.
+Gradients flow to the mesh vertices and to the split logits.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .forest import Forest
+
+
+def quat_normalize(q: torch.Tensor) -> torch.Tensor:
+    return q / torch.linalg.vector_norm(q, dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack([
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    ], dim=-1)
+
+
+def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
+    w, x, y, z = quat_normalize(q).unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], dim=-1).reshape(q.shape[:-1] + (3, 3))
+
+
+def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
+    """Differentiable matrix -> wxyz quaternion (w >= 0), Shepperd's method as in binding.py."""
+    m = R
+    tr = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
+    piv = torch.stack([1 + tr, 1 + 2 * m[..., 0, 0] - tr, 1 + 2 * m[..., 1, 1] - tr, 1 + 2 * m[..., 2, 2] - tr], -1)
+    k = torch.argmax(piv.detach(), dim=-1, keepdim=True)
+    p = 0.5 * torch.sqrt(torch.gather(piv, -1, k)[..., 0].clamp_min(1e-30))
+    inv = 0.25 / p
+    a = m[..., 2, 1] - m[..., 1, 2]
+    b = m[..., 0, 2] - m[..., 2, 0]
+    c = m[..., 1, 0] - m[..., 0, 1]
+    d = m[..., 0, 1] + m[..., 1, 0]
+    e = m[..., 0, 2] + m[..., 2, 0]
+    f = m[..., 1, 2] + m[..., 2, 1]
+    cand = torch.stack([
+        torch.stack([p, a * inv, b * inv, c * inv], -1),
+        torch.stack([a * inv, p, d * inv, e * inv], -1),
+        torch.stack([b * inv, d * inv, p, f * inv], -1),
+        torch.stack([c * inv, e * inv, f * inv, p], -1),
+    ], -2)
+    q = torch.gather(cand, -2, k[..., None].expand(k.shape[:-1] + (1, 4)))[..., 0, :]
+    q = torch.where(q[..., :1] < 0, -q, q)
+    return quat_normalize(q)
+
+
+def _norm(v: torch.Tensor) -> torch.Tensor:
+    # Clamped so the derivative at a zero vector stays finite (0), never NaN.
+    return torch.sqrt((v * v).sum(-1).clamp_min(1e-30))
+
+
+def frames_from_edges(e1: torch.Tensor, e2: torch.Tensor, normal: torch.Tensor | None = None):
+    """Face frames r [...,3,3] and scales s [...] from edges (same rules as binding.py)."""
+    eps = 8 * torch.finfo(e1.dtype).eps
+    tiny = torch.finfo(e1.dtype).tiny
+    n1, n2 = _norm(e1), _norm(e2)
+    has1 = (e1 != 0).any(-1)
+    has2 = (e2 != 0).any(-1)
+    axis_x = torch.zeros_like(e1)
+    axis_x[..., 0] = 1
+    x = torch.where(has1[..., None], e1 / n1[..., None], torch.where(has2[..., None], e2 / n2[..., None], axis_x))
+    own = torch.linalg.cross(x, e2)
+    own_raw = torch.linalg.vector_norm(own.detach(), dim=-1)
+    own_flat = own_raw <= eps * torch.where(has2, n2.detach(), torch.full_like(n2, tiny))
+    own_hat = own / _norm(own)[..., None]
+    if normal is None:
+        y, flat = own_hat, own_flat
+    else:
+        good = (normal != 0).any(-1)
+        n_hat = normal / _norm(normal)[..., None]
+        x_in = x - (x * n_hat).sum(-1, keepdim=True) * n_hat
+        x = torch.where(good[..., None], x_in / _norm(x_in)[..., None], x)
+        y = torch.where(good[..., None], n_hat, own_hat)
+        flat = ~good & own_flat
+    least = torch.argmin(x.detach().abs(), dim=-1)
+    helper = torch.nn.functional.one_hot(least, 3).to(e1.dtype)
+    alt = torch.linalg.cross(x, helper)
+    alt = alt / _norm(alt)[..., None]
+    y = torch.where(flat[..., None], alt, y)
+    z = torch.linalg.cross(x, y)
+    r = torch.stack([x, y, z], dim=-1)
+    s = 0.5 * (torch.where(has1, n1, torch.zeros_like(n1)) + (z * e2).sum(-1).abs())
+    return r, s.clamp_min(1e-10)
+
+
+class TorchForest:
+    """Index tensors of a Forest, for differentiable evaluation of all its faces."""
+
+    def __init__(self, forest: Forest, device="cpu"):
+        self.forest = forest
+        self.device = torch.device(device)
+        as_t = lambda a: torch.as_tensor(np.ascontiguousarray(a), device=self.device)  # noqa: E731
+        self.template_faces = as_t(forest.template_faces.astype(np.int64))
+        self.root = as_t(forest.root)
+        self.levels = []
+        for lvl in range(1, forest.max_level + 1):
+            ids = np.flatnonzero(forest.level == lvl)
+            self.levels.append((as_t(ids), as_t(forest.parent[ids]), as_t(forest.slot[ids].astype(np.int64))))
+
+    @property
+    def num_faces(self) -> int:
+        return self.forest.num_faces
+
+    def weights(self, split_logits: torch.Tensor) -> torch.Tensor:
+        """[N,3,3] geometry weights (numpy Forest.weights' layout), differentiable in the logits."""
+        N, F0 = self.forest.num_faces, self.forest.num_roots
+        dtype = split_logits.dtype
+        bary = torch.softmax(split_logits, dim=-1)
+        base = torch.tensor([[1.0, 0.0, 0.0], [-1.0, 1.0, 0.0], [-1.0, 0.0, 1.0]], dtype=dtype, device=self.device)
+        W = base.expand(N, 3, 3)
+        for ids, parent, slot in self.levels:
+            pw, b = W[parent], bary[parent]
+            w0, d1, d2 = pw[:, 0], pw[:, 1], pw[:, 2]
+            b0, b1, b2 = b[:, 0:1], b[:, 1:2], b[:, 2:3]
+            s = slot[:, None]
+            new_w0 = torch.where(s == 0, w0, torch.where(s == 1, w0 + d1, w0 + d2))
+            new_d1 = torch.where(s == 0, d1, torch.where(s == 1, d2 - d1, -d2))
+            new_d2 = torch.where(s == 0, b1 * d1 + b2 * d2,
+                                 torch.where(s == 1, b2 * d2 - (b0 + b2) * d1, b1 * d1 - (b0 + b1) * d2))
+            W = W.index_copy(0, ids, torch.stack([new_w0, new_d1, new_d2], dim=1))
+        return W
+
+    def evaluate(self, vertices: torch.Tensor, weights: torch.Tensor, ids: torch.Tensor | None = None):
+        """(t, r, s) for faces `ids` (default all) on vertices [V,3] or [T,V,3]."""
+        single = vertices.dim() == 2
+        verts = vertices[None] if single else vertices
+        tri = self.template_faces
+        root = self.root if ids is None else self.root[ids]
+        W = weights if ids is None else weights[ids]
+        W = W.to(verts.dtype)
+        rv0 = verts[:, tri[:, 0]]
+        E1 = (verts[:, tri[:, 1]] - rv0)[:, root]
+        E2 = (verts[:, tri[:, 2]] - rv0)[:, root]
+        normal = torch.linalg.cross(E1, E2)
+        rv0 = rv0[:, root]
+
+        def combine(w):
+            return w[None, :, 1:2] * E1 + w[None, :, 2:3] * E2
+
+        e1, e2 = combine(W[:, 1]), combine(W[:, 2])
+        r, s = frames_from_edges(e1, e2, normal)
+        t = rv0 + combine(W[:, 0]) + (e1 + e2) / 3
+        if single:
+            return t[0], r[0], s[0]
+        return t, r, s
+
+
+def compose(t, r, s, d_mu, d_log_scale, d_rot):
+    """μ = s·r·Δμ + t, S = s·exp(ΔS), R = r ⊗ ΔR (wxyz); see binding.compose."""
+    means = s[..., None] * torch.einsum("...ij,...j->...i", r, d_mu) + t
+    scales = s[..., None] * torch.exp(d_log_scale)
+    quats = quat_multiply(rotmat_to_quat(r), quat_normalize(d_rot))
+    return means, scales, quats

@@ -1,0 +1,191 @@
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings, strategies as st
+from hypothesis.extra.numpy import arrays
+from scipy.spatial.transform import Rotation
+
+from progressive_avatars.core import binding, binding_torch
+from progressive_avatars.core.forest import Forest
+from tests.helpers import random_forest, sphere_mesh
+
+
+def world_frame(v0, v1, v2):
+    """The DESIGN.md formula written out directly on world-space vertices (reference)."""
+    x = (v1 - v0) / np.linalg.norm(v1 - v0)
+    y = np.cross(x, v2 - v0)
+    y /= np.linalg.norm(y)
+    z = -np.cross(y, x) / np.linalg.norm(np.cross(y, x))
+    s = (np.linalg.norm(v1 - v0) + abs(z @ (v2 - v0))) / 2
+    return np.stack([x, y, z], 1), s, (v0 + v1 + v2) / 3
+
+
+def test_evaluate_matches_world_formula_and_face_vertices():
+    rng = np.random.default_rng(0)
+    verts, faces = sphere_mesh(6, 8)
+    verts = verts + rng.normal(0, 0.01, verts.shape)
+    forest = random_forest(faces, rng, depth=3, logit_scale=1.5)
+    geo = binding.evaluate(forest, verts, dtype=np.float64, with_vertices=True)
+    fv = np.einsum("nij,njk->nik", forest.vertex_weights(), verts[faces[forest.root]])
+    np.testing.assert_allclose(geo.vertices, fv, atol=1e-14)
+    for i in rng.choice(forest.num_faces, 30, replace=False):
+        r, s, t = world_frame(*fv[i])
+        np.testing.assert_allclose(geo.r[i], r, atol=1e-9)
+        np.testing.assert_allclose(geo.s[i], s, rtol=1e-9)
+        np.testing.assert_allclose(geo.t[i], t, atol=1e-14)
+    # Proper rotations: orthonormal, det +1.
+    np.testing.assert_allclose(np.einsum("nji,njk->nik", geo.r, geo.r), np.broadcast_to(np.eye(3), geo.r.shape), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(geo.r), 1, atol=1e-12)
+
+
+def test_batch_of_frames_and_subset():
+    rng = np.random.default_rng(1)
+    verts, faces = sphere_mesh(5, 6)
+    forest = random_forest(faces, rng, depth=2)
+    frames = verts[None] * np.array([1.0, 1.1, 0.9])[:, None, None]
+    geo = binding.evaluate(forest, frames, dtype=np.float64)
+    assert geo.t.shape == (3, forest.num_faces, 3) and geo.r.shape == (3, forest.num_faces, 3, 3)
+    ids = np.array([5, 0, forest.num_faces - 1])
+    sub = binding.evaluate(forest, frames[1], ids=ids, dtype=np.float64)
+    np.testing.assert_allclose(sub.t, geo.t[1, ids], atol=1e-15)
+    np.testing.assert_allclose(sub.s, geo.s[1, ids] * 1, rtol=1e-12)
+    with pytest.raises(ValueError, match="needs .* vertices"):
+        binding.evaluate(forest, verts[:3])
+
+
+def test_quaternion_conventions_against_scipy():
+    rng = np.random.default_rng(2)
+    q = rng.normal(size=(200, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    R = Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix()  # scipy is xyzw
+    np.testing.assert_allclose(binding.quat_to_rotmat(q), R, atol=1e-12)
+    back = binding.rotmat_to_quat(R)
+    np.testing.assert_allclose(np.abs(np.sum(back * q, axis=1)), 1, atol=1e-10)
+    # Hamilton product composes rotations: R(a ⊗ b) = R(a) R(b)
+    a, b = q[:100], q[100:]
+    np.testing.assert_allclose(binding.quat_to_rotmat(binding.quat_multiply(a, b)), R[:100] @ R[100:], atol=1e-12)
+    qt = torch.tensor(q)
+    np.testing.assert_allclose(binding_torch.quat_to_rotmat(qt).numpy(), R, atol=1e-12)
+    np.testing.assert_allclose(np.abs((binding_torch.rotmat_to_quat(torch.tensor(R)).numpy() * q).sum(1)), 1, atol=1e-10)
+    # Near-180-degree rotations (w ~ 0) are where naive conversions lose the signs.
+    flip = np.concatenate([np.zeros((50, 1)), rng.normal(size=(50, 3))], 1)
+    flip /= np.linalg.norm(flip, axis=1, keepdims=True)
+    Rf = binding.quat_to_rotmat(flip)
+    for conv in (binding.rotmat_to_quat, lambda m: binding_torch.rotmat_to_quat(torch.tensor(m)).numpy()):
+        np.testing.assert_allclose(binding.quat_to_rotmat(conv(Rf)), Rf, atol=1e-10)
+
+
+def test_compose_matches_independent_covariance_construction():
+    rng = np.random.default_rng(3)
+    verts, faces = sphere_mesh(5, 6)
+    forest = random_forest(faces, rng, depth=2)
+    N = forest.num_faces
+    d_mu, d_ls, d_rot = rng.normal(0, 0.5, (N, 3)), rng.normal(0, 0.5, (N, 3)), rng.normal(size=(N, 4))
+    geo = binding.evaluate(forest, verts, dtype=np.float64)
+    means, scales, quats = binding.compose(geo.t, geo.r, geo.s, d_mu, d_ls, d_rot)
+    for i in rng.choice(N, 20, replace=False):
+        # Independent: the Gaussian's local frame is r · R(ΔR), its covariance R S² Rᵀ.
+        R_local = Rotation.from_quat(d_rot[i, [1, 2, 3, 0]]).as_matrix()
+        Rw = geo.r[i] @ R_local
+        S = geo.s[i] * np.exp(d_ls[i])
+        cov_ref = Rw @ np.diag(S**2) @ Rw.T
+        Rq = binding.quat_to_rotmat(quats[i])
+        np.testing.assert_allclose(Rq @ np.diag(scales[i] ** 2) @ Rq.T, cov_ref, atol=1e-16)
+        np.testing.assert_allclose(means[i], geo.t[i] + geo.s[i] * geo.r[i] @ d_mu[i], atol=1e-15)
+
+
+def test_numpy_and_torch_agree_float32():
+    rng = np.random.default_rng(4)
+    verts, faces = sphere_mesh(8, 10)
+    forest = random_forest(faces, rng, depth=4, logit_scale=1.0)
+    v = verts.astype(np.float32)
+    geo = binding.evaluate(forest, v, dtype=np.float32)
+    tf = binding_torch.TorchForest(forest)
+    W = tf.weights(torch.tensor(forest.split_logits))
+    np.testing.assert_allclose(W.numpy(), forest.weights(), atol=1e-6)
+    t, r, s = tf.evaluate(torch.tensor(v), W)
+    np.testing.assert_allclose(t.numpy(), geo.t, atol=1e-6)
+    np.testing.assert_allclose(r.numpy(), geo.r, atol=2e-5)
+    np.testing.assert_allclose(s.numpy(), geo.s, rtol=2e-5)
+    N = forest.num_faces
+    res = rng.normal(0, 0.3, (N, 3)).astype(np.float32), rng.normal(0, 0.3, (N, 3)).astype(np.float32), rng.normal(size=(N, 4)).astype(np.float32)
+    m_np, s_np, q_np = binding.compose(geo.t, geo.r, geo.s, *res)
+    m_t, s_t, q_t = binding_torch.compose(t, r, s, *map(torch.tensor, res))
+    np.testing.assert_allclose(m_t.numpy(), m_np, atol=1e-6)
+    np.testing.assert_allclose(s_t.numpy(), s_np, rtol=1e-5)
+    np.testing.assert_allclose(np.abs((q_t.numpy() * q_np).sum(-1)), 1, atol=1e-5)
+
+
+def test_torch_gradients_match_finite_differences():
+    rng = np.random.default_rng(5)
+    verts, faces = sphere_mesh(3, 4)
+    forest = random_forest(faces, rng, depth=2, frac=0.5)
+    tf = binding_torch.TorchForest(forest)
+    v = torch.tensor(verts + rng.normal(0, 0.01, verts.shape), requires_grad=True)
+    logits = torch.tensor(rng.normal(0, 1, forest.split_logits.shape), requires_grad=True)
+    N = forest.num_faces
+    d_mu = torch.tensor(rng.normal(0, 0.5, (N, 3)))
+    d_ls = torch.tensor(rng.normal(0, 0.3, (N, 3)))
+    d_rot = torch.tensor(rng.normal(size=(N, 4)))
+    proj = torch.tensor(rng.normal(size=(N, 3 + 3 + 4)))
+
+    def f(v, logits):
+        t, r, s = tf.evaluate(v, tf.weights(logits))
+        m, sc, q = binding_torch.compose(t, r, s, d_mu, d_ls, d_rot)
+        return (torch.cat([m, sc, q * 1e-2], -1) * proj).sum()
+
+    assert torch.autograd.gradcheck(f, (v, logits), eps=1e-7, atol=1e-6, rtol=1e-4)
+
+
+FLOATS = st.floats(-1, 1, allow_nan=False, width=64)
+
+
+@settings(max_examples=60, deadline=None)
+@given(arrays(np.float64, (6, 3), elements=FLOATS), st.integers(0, 4))
+def test_degenerate_triangles_give_finite_deterministic_frames(pts, kind):
+    v0, v1, v2 = pts[:3], pts[3:], pts[::-1][:3].copy()
+    if kind == 0:
+        v1 = v0.copy()  # repeated vertex
+    elif kind == 1:
+        v2 = v0 + 0.5 * (v1 - v0)  # collinear
+    elif kind == 2:
+        v1 = v0.copy(); v2 = v0.copy()  # a point
+    elif kind == 3:
+        v2 = v0 + (v1 - v0) * 1e-200  # tiny, nearly collinear
+    for dtype in (np.float64, np.float32):
+        t, r, s = binding.face_frames(v0.astype(dtype), v1.astype(dtype), v2.astype(dtype))
+        assert np.all(np.isfinite(r)) and np.all(np.isfinite(s)) and np.all(s > 0)
+        # Always a rotation: the fallbacks build an orthonormal frame too.
+        np.testing.assert_allclose(np.einsum("nji,njk->nik", r, r), np.broadcast_to(np.eye(3), r.shape), atol=1e-5)
+        t2, r2, s2 = binding.face_frames(v0.astype(dtype), v1.astype(dtype), v2.astype(dtype))
+        assert np.array_equal(r, r2) and np.array_equal(s, s2)
+    tv = [torch.tensor(a, requires_grad=True) for a in (v0, v1, v2)]
+    r_t, s_t = binding_torch.frames_from_edges(tv[1] - tv[0], tv[2] - tv[0])
+    (r_t.sum() + s_t.sum()).backward()
+    assert all(torch.isfinite(a.grad).all() for a in tv)
+    assert torch.isfinite(r_t).all()
+
+
+def test_float32_precision_at_depth_6_on_a_head_sized_mesh():
+    """float32 vs float64 on the finest faces, relative to each face's own scale."""
+    verts, faces = sphere_mesh(70, 72, radius=0.1)  # ~5k vertices, ~10k faces, metres
+    rng = np.random.default_rng(6)
+    forest = Forest(faces)
+    roots = rng.choice(len(faces), 40, replace=False)
+    current = roots
+    for _ in range(6):
+        current = forest.split(current).ravel()
+    forest.split_logits[:] = rng.normal(0, 1.0, forest.split_logits.shape)
+    finest = np.flatnonzero(forest.level == 6)
+    v32 = (verts + rng.normal(0, 1e-3, verts.shape)).astype(np.float32)
+    W = forest.weights()
+    g32 = binding.evaluate(forest, v32, ids=finest, weights=W, dtype=np.float32, with_vertices=True)
+    g64 = binding.evaluate(forest, v32.astype(np.float64), ids=finest, weights=W, dtype=np.float64, with_vertices=True)
+    scale = g64.s
+    assert np.median(scale) < 1e-3  # typical finest faces are a fraction of a millimetre
+    edge_err = np.abs(g32.edges - g64.edges).max(axis=(1, 2)) / scale
+    frame_err = np.abs(g32.r - g64.r).max(axis=(1, 2))
+    scale_err = np.abs(g32.s - g64.s) / scale
+    worst = max(edge_err.max(), frame_err.max(), scale_err.max())
+    print(f"depth-6 float32 relative error: edges {edge_err.max():.2e}, frames {frame_err.max():.2e}, scales {scale_err.max():.2e}")
+    assert worst < 1e-5

@@ -1,0 +1,127 @@
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from progressive_avatars.core.forest import Forest
+from tests.helpers import random_forest, sphere_mesh
+
+
+def tri_area(v):
+    return 0.5 * np.linalg.norm(np.cross(v[..., 1, :] - v[..., 0, :], v[..., 2, :] - v[..., 0, :]), axis=-1)
+
+
+def face_vertices(forest, verts):
+    W = forest.vertex_weights()  # [N,3 face verts,3 root weights]
+    rv = verts[forest.template_faces[forest.root]]  # [N,3,3]
+    return np.einsum("nij,njk->nik", W, rv)
+
+
+def test_split_structure_and_queries():
+    forest = Forest(np.array([[0, 1, 2], [0, 2, 3]]))
+    kids = forest.split([1])
+    assert kids.tolist() == [[2, 3, 4]]
+    assert forest.parent.tolist() == [-1, -1, 1, 1, 1]
+    assert forest.slot.tolist() == [-1, -1, 0, 1, 2]
+    assert forest.root.tolist() == [0, 1, 1, 1, 1]
+    assert forest.level.tolist() == [0, 0, 1, 1, 1]
+    forest.split([3])
+    assert forest.depth_per_root().tolist() == [0, 2]
+    assert forest.depth_histogram().tolist() == [1, 0, 1]
+    assert forest.leaves().tolist() == [0, 2, 4, 5, 6, 7]
+    assert forest.cumulative(1).tolist() == [0, 1, 2, 3, 4]
+    assert forest.cut(1).tolist() == [0, 2, 3, 4]  # root 0 is a leaf at level 0
+    assert forest.cut(2).tolist() == [0, 2, 4, 5, 6, 7]
+    with pytest.raises(ValueError, match="only leaf faces"):
+        forest.split([1])
+    with pytest.raises(IndexError):
+        forest.split([99])
+
+
+def test_children_tile_parent_exactly():
+    rng = np.random.default_rng(0)
+    verts, faces = sphere_mesh(6, 8)
+    forest = random_forest(faces, rng, depth=4, frac=0.6, logit_scale=2.0)
+    fv = face_vertices(forest, verts)
+    area = tri_area(fv)
+    inner = np.flatnonzero(~forest.is_leaf())
+    child_sum = area[forest.children[inner]].sum(axis=1)
+    np.testing.assert_allclose(child_sum, area[inner], rtol=1e-10, atol=1e-18)
+    # Children share the parent's vertices and the split point.
+    p = fv[inner]
+    c = fv[forest.children[inner]]
+    np.testing.assert_allclose(c[:, 0, :2], p[:, [0, 1]], atol=1e-15)
+    np.testing.assert_allclose(c[:, 1, :2], p[:, [1, 2]], atol=1e-15)
+    np.testing.assert_allclose(c[:, 2, :2], p[:, [2, 0]], atol=1e-15)
+    b = forest.barycentrics()[inner]
+    np.testing.assert_allclose(c[:, 0, 2], np.einsum("ni,nij->nj", b, p), atol=1e-15)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.floats(-60, 60), min_size=3, max_size=3), st.integers(1, 5), st.integers(0, 2**31 - 1))
+def test_weights_stay_on_simplex_for_any_logits(logit, depth, seed):
+    rng = np.random.default_rng(seed)
+    forest = Forest(np.array([[0, 1, 2]]))
+    for _ in range(depth):
+        leaves = forest.leaves()
+        forest.split(leaves[rng.random(len(leaves)) < 0.7] if len(leaves) > 1 else leaves)
+    forest.split_logits[:] = np.asarray(logit) + rng.normal(0, 20, forest.split_logits.shape)
+    b = forest.barycentrics()
+    assert np.all(b >= 0) and np.allclose(b.sum(-1), 1)
+    W = forest.weights()
+    VW = forest.vertex_weights()
+    assert np.all(np.isfinite(W))
+    np.testing.assert_allclose(VW.sum(-1), 1, atol=1e-12)
+    assert VW.min() >= -1e-12
+    np.testing.assert_allclose(W[:, 1:].sum(-1), 0, atol=1e-12)
+
+
+def test_uniform_subdivision_counts():
+    forest = Forest(np.array([[0, 1, 2], [0, 2, 3]])).subdivide_uniform(3)
+    assert forest.level_counts().tolist() == [2, 6, 18, 54]
+    assert forest.num_faces == 80
+
+
+def test_reorder_and_prefix_preserve_geometry():
+    rng = np.random.default_rng(1)
+    verts, faces = sphere_mesh(5, 6)
+    forest = random_forest(faces, rng, depth=3)
+    # Sort by level then reversed index inside a level: parents still precede children.
+    idx = np.arange(forest.num_faces)
+    order = np.lexsort((np.where(forest.level == 0, idx, -idx), forest.level))
+    re = forest.reorder(order)
+    np.testing.assert_allclose(face_vertices(re, verts), face_vertices(forest, verts)[order], atol=1e-15)
+    pre = re.prefix(forest.num_roots + 5)
+    np.testing.assert_allclose(face_vertices(pre, verts), face_vertices(re, verts)[: pre.num_faces], atol=1e-15)
+    with pytest.raises(ValueError, match="permutation"):
+        forest.reorder(order[:-1])
+    with pytest.raises(ValueError, match="roots must stay first"):
+        forest.reorder(order[::-1])
+    swapped = order.copy()
+    last = np.flatnonzero(forest.level[order] == forest.max_level)[0]
+    swapped[[forest.num_roots, last]] = swapped[[last, forest.num_roots]]
+    with pytest.raises(ValueError, match="parent that precedes"):
+        forest.reorder(swapped)
+
+
+def test_save_load_roundtrip(tmp_path):
+    rng = np.random.default_rng(2)
+    _, faces = sphere_mesh(5, 6)
+    forest = random_forest(faces, rng, depth=3)
+    path = tmp_path / "forest.npz"
+    forest.save(path)
+    back = Forest.load(path)
+    for name in ("template_faces", "parent", "slot", "split_logits", "level", "root", "children"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(forest, name))
+    np.savez(tmp_path / "bad.npz", forest_parent=forest.parent)
+    with pytest.raises(ValueError, match="bad.npz: missing forest arrays"):
+        Forest.load(tmp_path / "bad.npz")
+
+
+def test_invalid_structures_are_refused():
+    faces = np.array([[0, 1, 2]])
+    with pytest.raises(ValueError, match="precedes"):
+        Forest(faces, parent=[-1, 5], slot=[-1, 0])
+    with pytest.raises(ValueError, match="same \\(parent, slot\\)"):
+        Forest(faces, parent=[-1, 0, 0], slot=[-1, 0, 0])
+    with pytest.raises(ValueError, match="\\[F,3\\]"):
+        Forest(np.zeros((0, 3)))
