@@ -1,9 +1,43 @@
-"""Thin bpy layer: operators, panels, properties. Maths lives in core/."""
+"""Thin bpy layer: operators, panels, properties, preview. Maths lives in core/."""
+
+# The extension's top package ("bl_ext.<repo>.progressive_avatars" when installed,
+# "progressive_avatars" from a checkout): add-on preferences are keyed by it.
+ADDON_PACKAGE = __package__.rpartition(".")[0] or __package__
+
+
+
+def _load():
+    from . import handlers, operators_avatar, operators_import, operators_train, panels, prefs, properties
+
+    return handlers, operators_avatar, operators_import, operators_train, panels, prefs, properties
+
+
+def _classes():
+    _, ops_avatar, ops_import, ops_train, panels, prefs, properties = _load()
+    return (*properties.classes, *prefs.classes, *ops_import.classes, *ops_avatar.classes, *ops_train.classes,
+            *panels.classes)
 
 
 def register():
-    pass
+    import bpy
+
+    handlers, _, ops_import, _, _, _, properties = _load()
+    for cls in _classes():
+        bpy.utils.register_class(cls)
+    properties.register_props()
+    bpy.types.TOPBAR_MT_file_import.append(ops_import.menu_import)
+    handlers.register()
 
 
 def unregister():
-    pass
+    import bpy
+
+    handlers, _, ops_import, _, _, _, properties = _load()
+    handlers.unregister()
+    bpy.types.TOPBAR_MT_file_import.remove(ops_import.menu_import)
+    properties.unregister_props()
+    for cls in reversed(_classes()):
+        bpy.utils.unregister_class(cls)
+    from . import runtime
+
+    runtime.forget()

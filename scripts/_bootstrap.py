@@ -28,13 +28,17 @@ def _ensure_package():
 
 
 def script_args(argv=None):
-    """The script's arguments: everything after ``--`` under Blender, else argv[1:]."""
+    """The script's arguments: everything after ``--`` under Blender, else argv[1:].
+
+    Under ``blender --background --python X.py`` argv[0] is the Blender binary and every
+    argument before ``--`` is Blender's own; run as ``python X.py`` argv[0] is the script.
+    """
     argv = sys.argv if argv is None else argv
     if "--" in argv:
         return argv[argv.index("--") + 1:]
-    if os.path.basename(argv[0]).startswith("blender") or getattr(sys, "_pa_under_blender", False):
-        return []
-    return argv[1:]
+    if argv and argv[0].endswith(".py"):
+        return argv[1:]
+    return []
 
 
 _ensure_package()

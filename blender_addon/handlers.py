@@ -1,0 +1,77 @@
+"""Keep previews in step with their meshes: new frame, mesh edits, file loads."""
+
+import bpy
+from bpy.app.handlers import persistent
+
+from . import runtime
+
+_busy = False  # our own writes to preview meshes re-enter depsgraph_update_post
+
+
+def _update_scene(scene, depsgraph, only_sources=None):
+    global _busy
+    if _busy:
+        return
+    _busy = True
+    try:
+        for obj in runtime.previews(scene):
+            src = obj.pa_avatar.source
+            if src is None or (only_sources is not None and src.original not in only_sources):
+                continue
+            try:
+                e = runtime.entry(obj)
+                if e is None:
+                    continue
+                count = e.budget.count_for_percent(obj.pa_avatar.budget)
+                if count != obj.pa_avatar.count:  # an animated budget moves without the update callback
+                    runtime.apply_budget(obj, depsgraph=depsgraph)
+                runtime.refresh(obj, depsgraph, count)
+            except Exception as exc:  # a handler must never break playback
+                obj.pa_avatar.status = f"Preview update failed: {exc}"
+    finally:
+        _busy = False
+
+
+@persistent
+def on_frame_change(scene, depsgraph):
+    _update_scene(scene, depsgraph)
+
+
+@persistent
+def on_depsgraph_update(scene, depsgraph):
+    if _busy:
+        return
+    changed = set()
+    for upd in depsgraph.updates:
+        if upd.is_updated_geometry and isinstance(upd.id, bpy.types.Object):
+            changed.add(upd.id.original)
+    if not changed:
+        return
+    sources = {o.pa_avatar.source for o in runtime.previews(scene)} & changed
+    if sources:
+        _update_scene(scene, depsgraph, sources)
+
+
+@persistent
+def on_load_post(*_args):
+    # Caches describe objects of the previous file; they reload lazily from stored paths.
+    runtime.forget()
+
+
+_HANDLERS = (
+    (bpy.app.handlers.frame_change_post, on_frame_change),
+    (bpy.app.handlers.depsgraph_update_post, on_depsgraph_update),
+    (bpy.app.handlers.load_post, on_load_post),
+)
+
+
+def register():
+    for lst, fn in _HANDLERS:
+        if fn not in lst:
+            lst.append(fn)
+
+
+def unregister():
+    for lst, fn in _HANDLERS:
+        while fn in lst:
+            lst.remove(fn)

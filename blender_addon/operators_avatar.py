@@ -1,0 +1,253 @@
+"""Load an avatar onto a mesh, colour faces by depth, export PLY, render splats."""
+
+import os
+import subprocess
+import tempfile
+import urllib.parse
+import urllib.request
+
+import bpy
+import numpy as np
+from bpy_extras.io_utils import ExportHelper, ImportHelper
+
+from ..core import preview_data
+from . import ADDON_PACKAGE, depth, prefs, preview, runtime
+
+
+def _mesh_target(context):
+    obj = context.active_object
+    if obj is not None and obj.pa_avatar.is_preview:
+        obj = obj.pa_avatar.source
+    return obj if obj is not None and obj.type == "MESH" else None
+
+
+def _preview_of(context):
+    obj = context.active_object
+    if obj is None:
+        return None
+    if obj.pa_avatar.is_preview:
+        return obj
+    for child in obj.children:
+        if child.pa_avatar.is_preview:
+            return child
+    return None
+
+
+def _fetch(url) -> str:
+    """Download a stream/avatar URL into the extension's user cache (online access only)."""
+    if not bpy.app.online_access:
+        raise PermissionError("Online access is disabled (Preferences > System > Network)")
+    name = os.path.basename(urllib.parse.urlparse(url).path) or "avatar.bin"
+    try:
+        folder = bpy.utils.extension_path_user(ADDON_PACKAGE, path="downloads", create=True)
+    except (ValueError, AttributeError):  # not installed as an extension
+        folder = tempfile.mkdtemp(prefix="pa_dl_")
+    dest = os.path.join(folder, name)
+    with urllib.request.urlopen(url, timeout=30) as resp, open(dest + ".part", "wb") as fh:
+        while chunk := resp.read(1 << 20):
+            fh.write(chunk)
+    os.replace(dest + ".part", dest)
+    return dest
+
+
+def mesh_faces(me):
+    """Triangle vertex indices [F,3] (quads and n-gons cannot be an avatar's template)."""
+    totals = np.empty(len(me.polygons), np.int32)
+    me.polygons.foreach_get("loop_total", totals)
+    if len(totals) and (totals != 3).any():
+        raise ValueError(f"{me.name} has non-triangle faces; avatars bind to triangle templates")
+    idx = np.empty(len(me.loops), np.int32)
+    me.loops.foreach_get("vertex_index", idx)
+    return idx.reshape(-1, 3)
+
+
+def load_avatar_onto(context, mesh_obj, path, budget=100.0):
+    """Create (or replace) the splat preview of ``mesh_obj`` from an avatar/stream file."""
+    abspath = runtime.resolve(path)
+    avatar, budget_info = preview_data.load_avatar(abspath)
+    preview_data.check_mesh(avatar, budget_info, mesh_faces(mesh_obj.data))
+    for child in list(mesh_obj.children):
+        if child.pa_avatar.is_preview:
+            runtime.forget(child)
+            me = child.data
+            bpy.data.objects.remove(child)
+            if me.users == 0:
+                bpy.data.meshes.remove(me)
+    obj = preview.create_preview_object(f"{mesh_obj.name}_splats", mesh_obj, preview_data.static_attributes(avatar))
+    state = obj.pa_avatar
+    state.is_preview = True
+    state.filepath = path
+    state.source = mesh_obj
+    state.max_level = avatar.forest.max_level
+    runtime.prime(obj, path, avatar, budget_info)
+    state.budget = budget  # its update callback sets the count, readouts and evaluates the frame
+    depth.apply_depth(mesh_obj, avatar.forest)
+    return obj
+
+
+class PA_OT_load_avatar(bpy.types.Operator, ImportHelper):
+    """Load a progressive avatar (stream or .npz) onto the active mesh as a splat preview"""
+
+    bl_idname = "object.progressive_avatars_load"
+    bl_label = "Load Progressive Avatar"
+    bl_options = {"REGISTER", "UNDO"}
+
+    filter_glob: bpy.props.StringProperty(default="*.pavs;*.npz", options={"HIDDEN"})
+    url: bpy.props.StringProperty(name="URL", description="Stream from a URL instead (needs online access)")
+    budget: bpy.props.FloatProperty(name="Budget", subtype="PERCENTAGE", min=0, max=100, default=100)
+
+    @classmethod
+    def poll(cls, context):
+        return _mesh_target(context) is not None
+
+    def execute(self, context):
+        mesh_obj = _mesh_target(context)
+        path = self.filepath
+        try:
+            if self.url:
+                path = _fetch(self.url)
+            obj = load_avatar_onto(context, mesh_obj, path, self.budget)
+        except Exception as exc:
+            self.report({"ERROR"}, f"Cannot load avatar: {exc}")
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"Loaded {obj.pa_avatar.total} Gaussians onto {mesh_obj.name}")
+        return {"FINISHED"}
+
+
+class PA_OT_depth_colors(bpy.types.Operator):
+    """Colour the mesh's faces by the avatar's subdivision depth (Solid mode: Attribute colour)"""
+
+    bl_idname = "object.progressive_avatars_depth_colors"
+    bl_label = "Colour by Depth"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        return _preview_of(context) is not None
+
+    def execute(self, context):
+        obj = _preview_of(context)
+        e = runtime.entry(obj)
+        if e is None:
+            self.report({"ERROR"}, obj.pa_avatar.status or "Avatar not available")
+            return {"CANCELLED"}
+        try:
+            depth.apply_depth(obj.pa_avatar.source, e.avatar.forest)
+        except ValueError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        for area in context.screen.areas if context.screen else ():
+            for space in area.spaces:
+                if space.type == "VIEW_3D":
+                    space.shading.color_type = "VERTEX"
+        return {"FINISHED"}
+
+
+def current_gaussians(context, obj, world=True):
+    """The Gaussians the preview shows now (this frame, this budget), as core arrays."""
+    e = runtime.entry(obj)
+    if e is None:
+        raise RuntimeError(obj.pa_avatar.status or "avatar not available")
+    count = e.budget.count_for_percent(obj.pa_avatar.budget)
+    if not runtime.refresh(obj, context.evaluated_depsgraph_get(), count):
+        raise RuntimeError(obj.pa_avatar.status)
+    ev = e.evaluator
+    static = preview_data.static_attributes(e.avatar)
+    means, quats, scales = ev.means[:count], ev.quats[:count], ev.scales[:count]
+    if world:
+        means, quats, scales = preview_data.transform_gaussians(np.array(obj.matrix_world), means, quats, scales)
+    return {"means": np.array(means), "quats": np.array(quats), "scales": np.array(scales),
+            "opacities": static["opacity"][:count], "colors": static["color"].reshape(-1, 4)[:count, :3]}
+
+
+class PA_OT_export_ply(bpy.types.Operator, ExportHelper):
+    """Export the Gaussians shown now (current frame and budget) as a standard 3DGS PLY"""
+
+    bl_idname = "export_scene.progressive_avatars_ply"
+    bl_label = "Export Splats PLY"
+    filename_ext = ".ply"
+    filter_glob: bpy.props.StringProperty(default="*.ply", options={"HIDDEN"})
+    world_space: bpy.props.BoolProperty(name="World space", default=False,
+                                        description="Blender world space instead of the sequence's own coordinates")
+
+    @classmethod
+    def poll(cls, context):
+        return _preview_of(context) is not None
+
+    def execute(self, context):
+        try:
+            from ..core import ply
+        except ImportError:
+            self.report({"ERROR"}, "This build has no PLY writer (core/ply.py)")
+            return {"CANCELLED"}
+        try:
+            g = current_gaussians(context, _preview_of(context), world=self.world_space)
+            ply.write_ply(bpy.path.abspath(self.filepath), g)
+        except Exception as exc:
+            self.report({"ERROR"}, f"PLY export failed: {exc}")
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"Wrote {len(g['means'])} Gaussians to {self.filepath}")
+        return {"FINISHED"}
+
+
+_LOADER = (
+    "import importlib.util, sys\n"
+    "root = sys.argv[1]\n"
+    "spec = importlib.util.spec_from_file_location('pa_ext', root + '/__init__.py', submodule_search_locations=[root])\n"
+    "m = importlib.util.module_from_spec(spec); sys.modules['pa_ext'] = m; spec.loader.exec_module(m)\n"
+    "from pa_ext.core.preview_data import render_job\n"
+    "render_job(sys.argv[2], sys.argv[3])\n"
+)
+
+
+class PA_OT_render_splats(bpy.types.Operator):
+    """Render the splats with ProgressiveAvatars' own rasteriser (runs the configured Python)"""
+
+    bl_idname = "render.progressive_avatars_splats"
+    bl_label = "Render Splats"
+
+    @classmethod
+    def poll(cls, context):
+        return _preview_of(context) is not None and context.scene.camera is not None
+
+    def execute(self, context):
+        python = prefs.python_path(context)
+        if not python or not os.path.isfile(python):
+            self.report({"ERROR"}, "Set a Python with numba in the add-on preferences to render splats")
+            return {"CANCELLED"}
+        scene = context.scene
+        cam_obj = scene.camera
+        r = scene.render
+        w = int(r.resolution_x * r.resolution_percentage / 100)
+        h = int(r.resolution_y * r.resolution_percentage / 100)
+        try:
+            g = current_gaussians(context, _preview_of(context), world=True)
+            cam = preview_data.camera_from_blender(np.array(cam_obj.matrix_world), cam_obj.data.lens,
+                                                   cam_obj.data.sensor_width, cam_obj.data.shift_x,
+                                                   cam_obj.data.shift_y, w, h, z_up=False)
+        except Exception as exc:
+            self.report({"ERROR"}, f"Render splats: {exc}")
+            return {"CANCELLED"}
+        tmp = tempfile.mkdtemp(prefix="pa_render_")
+        job, out = os.path.join(tmp, "job.npz"), os.path.join(tmp, "image.npy")
+        world = scene.world
+        bg = np.array(world.color[:3] if world else (0, 0, 0), np.float32)
+        np.savez(job, R=cam.R, t=cam.t, intr=np.array([cam.fx, cam.fy, cam.cx, cam.cy]), size=np.array([w, h]),
+                 background=bg, **g)
+        root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+        proc = subprocess.run([python, "-c", _LOADER, root, job, out], capture_output=True, text=True)
+        if proc.returncode != 0 or not os.path.isfile(out):
+            tail = (proc.stderr or proc.stdout).strip().splitlines()[-1:] or ["no output"]
+            self.report({"ERROR"}, f"Splat render failed: {tail[0]}")
+            return {"CANCELLED"}
+        rgba = np.load(out)
+        img = bpy.data.images.get("PA Splats") or bpy.data.images.new("PA Splats", w, h, alpha=True, float_buffer=True)
+        if tuple(img.size) != (w, h):
+            img.scale(w, h)
+        img.pixels.foreach_set(np.ascontiguousarray(rgba[::-1]).ravel())  # Blender rows run bottom-up
+        img.update()
+        self.report({"INFO"}, f"Rendered {len(g['means'])} Gaussians into image 'PA Splats'")
+        return {"FINISHED"}
+
+
+classes = (PA_OT_load_avatar, PA_OT_depth_colors, PA_OT_export_ply, PA_OT_render_splats)

@@ -1,0 +1,92 @@
+"""File > Import: a tracked sequence as a shape-keyed mesh; a dataset's cameras."""
+
+import os
+
+import bpy
+from bpy_extras.io_utils import ImportHelper
+
+from . import prefs, sequence
+
+
+class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
+    """Import a tracked FLAME or mesh sequence as one mesh with a shape key per frame"""
+
+    bl_idname = "import_scene.progressive_avatars_sequence"
+    bl_label = "Import FLAME Sequence"
+    bl_options = {"REGISTER", "UNDO", "PRESET"}
+
+    filter_glob: bpy.props.StringProperty(default="*.npz;*.obj;*.ply", options={"HIDDEN"})
+    whole_folder: bpy.props.BoolProperty(
+        name="Whole folder", default=False,
+        description="Read every OBJ/PLY (or FLAME parameter) file in the chosen file's folder as frames")
+    flame_model: bpy.props.StringProperty(name="FLAME model", subtype="FILE_PATH",
+                                          description="Needed for FLAME parameter files; defaults to the preferences")
+    z_up: bpy.props.BoolProperty(name="Y up to Z up", default=True)
+
+    def execute(self, context):
+        from ..core import data
+
+        path = bpy.path.abspath(self.filepath)
+        if self.whole_folder and os.path.isfile(path):
+            path = os.path.dirname(path)
+        model = bpy.path.abspath(self.flame_model) if self.flame_model else (prefs.flame_model(context) or None)
+        try:
+            seq = data.read_sequence(path, flame_model=model)
+        except Exception as exc:  # the readers' messages name the file and the problem
+            self.report({"ERROR"}, f"Cannot read sequence: {exc}")
+            return {"CANCELLED"}
+        if seq.n_frames == 0:
+            self.report({"ERROR"}, f"{path}: no frames")
+            return {"CANCELLED"}
+        name = os.path.splitext(os.path.basename(path.rstrip("/\\")))[0] or "sequence"
+        for ob in context.selected_objects:
+            ob.select_set(False)
+        obj = sequence.build_sequence_object(context, seq, name, context.scene.frame_start, self.z_up)
+        obj.pa_mesh.sequence_path = self.filepath if not self.whole_folder else path
+        context.view_layer.objects.active = obj
+        obj.select_set(True)
+        self.report({"INFO"}, f"Imported {seq.n_frames} frames, {seq.n_vertices} vertices, {len(seq.faces)} faces")
+        return {"FINISHED"}
+
+
+class PA_OT_import_cameras(bpy.types.Operator):
+    """Add the cameras of a GaussianAvatars/VHAP dataset (transforms_*.json) as Blender cameras"""
+
+    bl_idname = "import_scene.progressive_avatars_cameras"
+    bl_label = "Import Dataset Cameras"
+    bl_options = {"REGISTER", "UNDO"}
+
+    directory: bpy.props.StringProperty(subtype="DIR_PATH")
+    split: bpy.props.StringProperty(name="Split", default="train")
+    z_up: bpy.props.BoolProperty(name="Y up to Z up", default=True)
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def execute(self, context):
+        from ..core import data
+
+        root = bpy.path.abspath(self.directory)
+        try:
+            cams = data.Dataset(root, self.split, flame_model=prefs.flame_model(context) or None).cameras
+        except Exception as exc:
+            self.report({"ERROR"}, f"Cannot read dataset cameras: {exc}")
+            return {"CANCELLED"}
+        settings = None
+        for idx in sorted(cams):
+            _, settings = sequence.add_camera(context, f"cam_{idx:02d}", cams[idx], self.z_up)
+        if settings is not None:
+            r = context.scene.render
+            r.resolution_x, r.resolution_y = settings["resolution"]
+            r.pixel_aspect_x, r.pixel_aspect_y = settings["pixel_aspect"]
+        self.report({"INFO"}, f"Added {len(cams)} cameras")
+        return {"FINISHED"}
+
+
+def menu_import(self, context):
+    self.layout.operator(PA_OT_import_sequence.bl_idname, text="FLAME Sequence (ProgressiveAvatars)")
+    self.layout.operator(PA_OT_import_cameras.bl_idname, text="Dataset Cameras (ProgressiveAvatars)")
+
+
+classes = (PA_OT_import_sequence, PA_OT_import_cameras)

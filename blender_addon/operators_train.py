@@ -1,0 +1,185 @@
+"""Train operator: scripts/train.py in the configured Python (torch is not in Blender)."""
+
+import glob
+import os
+import queue
+import re
+import subprocess
+import threading
+
+import bpy
+
+from . import prefs
+
+_PERCENT = re.compile(r"(\d+(?:\.\d+)?)\s*%")
+_FRACTION = re.compile(r"(?:iter(?:ation)?|it|step)?\s*[=:]?\s*(\d+)\s*/\s*(\d+)", re.IGNORECASE)
+
+
+def parse_progress(line):
+    """Percent done from a progress line ("it 120/3000", "12.5%"), or None."""
+    m = _FRACTION.search(line)
+    if m and int(m.group(2)) > 0:
+        return min(100.0, 100.0 * int(m.group(1)) / int(m.group(2)))
+    m = _PERCENT.search(line)
+    return min(100.0, float(m.group(1))) if m else None
+
+
+def find_result(run_dir):
+    """The newest stream/avatar file a run wrote."""
+    cands = []
+    for pat in ("*.pavs",) if glob.glob(os.path.join(run_dir, "*.pavs")) else ("avatar*.npz",):
+        cands += glob.glob(os.path.join(run_dir, pat)) + glob.glob(os.path.join(run_dir, "*", pat))
+    cands = [c for c in cands if os.path.isfile(c)]
+    return max(cands, key=os.path.getmtime) if cands else None
+
+
+def _command(context):
+    st = context.scene.pa_train
+    python, script = prefs.python_path(context), prefs.train_script(context)
+    if not python or not os.path.isfile(python):
+        raise RuntimeError("Set a Python with torch in the add-on preferences")
+    if not script or not os.path.isfile(script):
+        raise RuntimeError("Set the path of scripts/train.py in the add-on preferences")
+    data, out = bpy.path.abspath(st.data_dir), bpy.path.abspath(st.out_dir)
+    if not os.path.isdir(data):
+        raise RuntimeError(f"Data folder not found: {data}")
+    if not out:
+        raise RuntimeError("Choose a run folder")
+    cmd = [python, "-u", script, "--data", data, "--out", out]
+    if st.preset:
+        cmd += ["--preset", st.preset]
+    cmds = [cmd]
+    # Training writes RUN/avatar.npz in creation order; the importance-ordered stream that
+    # the budget slider needs comes from scripts/export.py, run next when it is there.
+    export = os.path.join(os.path.dirname(script), "export.py")
+    if os.path.isfile(export):
+        cmds.append([python, "-u", export, "--run", out, "--data", data, "--stream", os.path.join(out, "avatar.pavs")])
+    return cmds, out
+
+
+def _finish(op, context, rc, out):
+    st = context.scene.pa_train
+    st.running = False
+    if rc != 0:
+        op.report({"ERROR"}, f"Training failed (exit {rc}): {st.message}")
+        return {"CANCELLED"}
+    st.progress = 100.0
+    result = find_result(out)
+    mesh = context.active_object
+    if result and mesh is not None and mesh.type == "MESH":
+        from .operators_avatar import load_avatar_onto
+
+        try:
+            load_avatar_onto(context, mesh, result)
+        except Exception as exc:
+            op.report({"ERROR"}, f"Trained, but loading {result} failed: {exc}")
+            return {"CANCELLED"}
+    op.report({"INFO"}, f"Training finished: {result or out}")
+    return {"FINISHED"}
+
+
+class PA_OT_train(bpy.types.Operator):
+    """Train an avatar on a dataset in the configured Python; progress shows in the panel"""
+
+    bl_idname = "progressive_avatars.train"
+    bl_label = "Train Avatar"
+
+    _proc = None
+    _timer = None
+    _lines = None
+
+    def execute(self, context):
+        # Blocking path: background mode, where timers (and so the modal path) never run.
+        try:
+            cmds, out = _command(context)
+        except RuntimeError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        st = context.scene.pa_train
+        st.running = True
+        rc = 0
+        for cmd in cmds:
+            proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
+            for line in proc.stdout:
+                self._progress(st, line)
+            rc = proc.wait()
+            if rc != 0:
+                break
+        return _finish(self, context, rc, out)
+
+    def invoke(self, context, event):
+        if bpy.app.background:
+            return self.execute(context)
+        try:
+            self._cmds, self._out = _command(context)
+        except RuntimeError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        st = context.scene.pa_train
+        st.running, st.progress, st.message = True, 0.0, "starting"
+        self._lines = queue.Queue()
+        self._next_process()
+        self._timer = context.window_manager.event_timer_add(0.25, window=context.window)
+        context.window_manager.modal_handler_add(self)
+        return {"RUNNING_MODAL"}
+
+    def _next_process(self):
+        cmd = self._cmds.pop(0)
+        self._proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
+        threading.Thread(target=self._pump, args=(self._proc.stdout, self._lines), daemon=True).start()
+
+    @staticmethod
+    def _pump(stream, q):
+        for line in stream:
+            q.put(line)
+
+    @staticmethod
+    def _progress(st, line):
+        line = line.strip()
+        if line:
+            st.message = line[-200:]
+            p = parse_progress(line)
+            if p is not None:
+                st.progress = p
+
+    def modal(self, context, event):
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}
+        st = context.scene.pa_train
+        while not self._lines.empty():
+            self._progress(st, self._lines.get_nowait())
+        for area in context.screen.areas if context.screen else ():
+            if area.type == "VIEW_3D":
+                area.tag_redraw()
+        if not st.running:  # the Cancel button clears it
+            self._proc.terminate()
+            self._proc.wait()
+            self._stop(context)
+            self.report({"WARNING"}, "Training cancelled")
+            return {"CANCELLED"}
+        rc = self._proc.poll()
+        if rc is None:
+            return {"PASS_THROUGH"}
+        if rc == 0 and self._cmds:
+            self._next_process()
+            return {"PASS_THROUGH"}
+        self._stop(context)
+        return _finish(self, context, rc, self._out)
+
+    def _stop(self, context):
+        context.window_manager.event_timer_remove(self._timer)
+        context.scene.pa_train.running = False
+
+
+class PA_OT_train_cancel(bpy.types.Operator):
+    """Stop the running training"""
+
+    bl_idname = "progressive_avatars.train_cancel"
+    bl_label = "Cancel Training"
+
+    def execute(self, context):
+        context.scene.pa_train.running = False
+        return {"FINISHED"}
+
+
+classes = (PA_OT_train, PA_OT_train_cancel)

@@ -1,0 +1,109 @@
+"""3D View N-panel: sequence, avatar budget, depth legend, export/render, training."""
+
+import bpy
+
+from . import operators_avatar
+
+CATEGORY = "Avatars"
+
+
+class _Base:
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = CATEGORY
+
+
+class PA_PT_main(_Base, bpy.types.Panel):
+    bl_label = "ProgressiveAvatars"
+
+    def draw(self, context):
+        col = self.layout.column(align=True)
+        col.operator("import_scene.progressive_avatars_sequence", icon="IMPORT")
+        col.operator("import_scene.progressive_avatars_cameras", icon="CAMERA_DATA")
+        col.operator("object.progressive_avatars_load", icon="POINTCLOUD_DATA")
+        obj = context.active_object
+        if obj is not None and obj.type == "MESH" and obj.pa_mesh.num_frames:
+            self.layout.label(text=f"{obj.name}: {obj.pa_mesh.num_frames} frames from {obj.pa_mesh.frame_start}")
+
+
+class PA_PT_avatar(_Base, bpy.types.Panel):
+    bl_label = "Avatar"
+    bl_parent_id = "PA_PT_main"
+
+    @classmethod
+    def poll(cls, context):
+        return operators_avatar._preview_of(context) is not None
+
+    def draw(self, context):
+        obj = operators_avatar._preview_of(context)
+        st = obj.pa_avatar
+        lay = self.layout
+        lay.prop(st, "budget", slider=True)
+        grid = lay.grid_flow(columns=2, align=True)
+        grid.label(text="Gaussians")
+        grid.label(text=f"{st.count:,} / {st.total:,}")
+        grid.label(text="Size")
+        grid.label(text=f"{st.megabytes:.2f} MB")
+        grid.label(text="Level reached")
+        grid.label(text=f"{max(st.level_reached, 0)} of {st.max_level}")
+        mod = obj.modifiers.get("PA Splats")
+        if mod is not None and mod.node_group is not None:
+            from .preview import input_identifier
+
+            for name in ("Size", "Detail", "Points Only"):
+                try:
+                    lay.prop(mod, f'["{input_identifier(mod.node_group, name)}"]', text=name)
+                except KeyError:
+                    pass
+        if st.status:
+            lay.label(text=st.status, icon="ERROR")
+        row = lay.row(align=True)
+        row.operator("export_scene.progressive_avatars_ply", icon="EXPORT")
+        row.operator("render.progressive_avatars_splats", icon="RENDER_STILL")
+
+
+class PA_PT_depth(_Base, bpy.types.Panel):
+    bl_label = "Subdivision Depth"
+    bl_parent_id = "PA_PT_main"
+
+    @classmethod
+    def poll(cls, context):
+        return operators_avatar._preview_of(context) is not None
+
+    def draw(self, context):
+        obj = operators_avatar._preview_of(context)
+        lay = self.layout
+        lay.operator("object.progressive_avatars_depth_colors", icon="COLOR")
+        src = obj.pa_avatar.source
+        legend = src.pa_mesh.depth_legend if src is not None else ()
+        total = max(sum(item.faces for item in legend), 1)
+        for item in legend:
+            row = lay.row(align=True)
+            sw = row.row()
+            sw.enabled = False
+            sw.prop(item, "color", text="")
+            bar = "█" * int(round(20 * item.faces / total))
+            row.label(text=f"depth {item.depth}: {item.faces:,}  {bar}")
+
+
+class PA_PT_train(_Base, bpy.types.Panel):
+    bl_label = "Training"
+    bl_parent_id = "PA_PT_main"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        st = context.scene.pa_train
+        lay = self.layout
+        lay.prop(st, "data_dir")
+        lay.prop(st, "out_dir")
+        lay.prop(st, "preset")
+        if st.running:
+            lay.progress(factor=st.progress / 100.0, text=f"{st.progress:.0f}%")
+            lay.operator("progressive_avatars.train_cancel", icon="CANCEL")
+        else:
+            lay.operator("progressive_avatars.train", icon="PLAY")
+        if st.message:
+            lay.label(text=st.message)
+
+
+classes = (PA_PT_main, PA_PT_avatar, PA_PT_depth, PA_PT_train)

@@ -1,0 +1,696 @@
+"""Mesh sequences, sequence readers and dataset loading (layout: docs/DATASET.md).
+
+Sequence readers turn the tracked-geometry formats users have into one ``MeshSequence``
+(fixed faces, per-frame vertices), evaluating only the frames asked for:
+- GaussianAvatars/VHAP per-frame folder ``flame_param/*.npz`` (needs a FLAME model),
+- VHAP ``tracked_flame_params_*.npz`` (T-stacked; needs a FLAME model),
+- NeRSemble benchmark FLAME tracking npz (needs a FLAME model),
+- mesh npz (``vertices`` [T,V,3] + ``faces``), a folder of OBJ/PLY frames (trimesh).
+
+``Dataset`` reads the GaussianAvatars/VHAP ``transforms_{split}.json`` layout in FLAME mode
+(``flame_param_path``) or mesh mode (``mesh_path``), loading images lazily through an LRU cache.
+
+numpy only at module level (this module runs inside Blender): PIL and trimesh are imported
+where images or OBJ/PLY files are read.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+
+from .camera import Camera
+from .flame import FlameModel, flame_forward, load_flame_model
+
+__all__ = [
+    "DataError",
+    "MissingFileError",
+    "MeshSequence",
+    "Sample",
+    "FrameInfo",
+    "Dataset",
+    "read_sequence",
+    "read_flame_param_folder",
+    "read_vhap_tracked",
+    "read_nersemble_tracking",
+    "read_mesh_npz",
+    "read_mesh_folder",
+    "natural_key",
+]
+
+_MESH_EXTS = (".obj", ".ply")
+_IMAGE_EXTS = (".png", ".jpg", ".jpeg")
+
+
+class DataError(ValueError):
+    """Input data is malformed: the message names the file and the problem."""
+
+
+class MissingFileError(DataError, FileNotFoundError):
+    """A file the data refers to does not exist (the message names it)."""
+
+
+def natural_key(name: str):
+    """Sort key that orders 'frame2' before 'frame10'."""
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", os.path.basename(name))]
+
+
+def _check_vertices(v: np.ndarray, source: str, n_vertices: int | None = None) -> np.ndarray:
+    v = np.asarray(v)
+    if v.ndim < 2 or v.shape[-1] != 3:
+        raise DataError(f"{source}: vertices must be [...,V,3], got shape {v.shape}")
+    if n_vertices is not None and v.shape[-2] != n_vertices:
+        raise DataError(f"{source}: {v.shape[-2]} vertices, but the template has {n_vertices}")
+    v = v.astype(np.float32, copy=False)
+    if not np.all(np.isfinite(v)):
+        bad = np.argwhere(~np.isfinite(v).all(axis=-1))[0]
+        raise DataError(f"{source}: vertices contain NaN or inf (first at index {tuple(int(i) for i in bad)})")
+    return v
+
+
+def _check_faces(f, source: str, n_vertices: int) -> np.ndarray:
+    f = np.asarray(f)
+    if f.ndim != 2 or f.shape[1] != 3 or not np.issubdtype(f.dtype, np.integer):
+        raise DataError(f"{source}: faces must be an integer [F,3] array, got {f.dtype} {f.shape}")
+    if f.size and (f.min() < 0 or f.max() >= n_vertices):
+        raise DataError(f"{source}: faces index vertices outside 0..{n_vertices - 1}")
+    return f.astype(np.int32)
+
+
+@dataclass
+class MeshSequence:
+    """A fixed-topology mesh animation: faces int32 [F,3], vertices float32 [T,V,3]."""
+
+    faces: np.ndarray
+    vertices: np.ndarray
+    frame_ids: np.ndarray
+    flame_params: dict | None = None
+    source: str = ""
+
+    def __post_init__(self):
+        src = self.source or "mesh sequence"
+        self.vertices = _check_vertices(self.vertices, src)
+        if self.vertices.ndim != 3:
+            raise DataError(f"{src}: vertices must be [T,V,3], got {self.vertices.shape}")
+        self.faces = _check_faces(self.faces, src, self.vertices.shape[1])
+        self.frame_ids = np.asarray(self.frame_ids, dtype=np.int64).reshape(-1)
+        if self.frame_ids.shape[0] != self.vertices.shape[0]:
+            raise DataError(f"{src}: {self.frame_ids.shape[0]} frame ids for {self.vertices.shape[0]} frames")
+
+    @property
+    def n_frames(self) -> int:
+        return self.vertices.shape[0]
+
+    @property
+    def n_vertices(self) -> int:
+        return self.vertices.shape[1]
+
+
+# --------------------------------------------------------------------------------------
+# Readers
+
+
+def _select(n: int, frames, source: str) -> np.ndarray:
+    """Positions 0..n-1 asked for (None: all), validated."""
+    if frames is None:
+        return np.arange(n)
+    idx = np.asarray(list(frames) if not isinstance(frames, (np.ndarray, range)) else frames, dtype=np.int64).reshape(-1)
+    if idx.size and (idx.min() < -n or idx.max() >= n):
+        raise DataError(f"{source}: frame index out of range for a sequence of {n} frames: {idx.tolist()[:10]}")
+    return np.where(idx < 0, idx + n, idx)
+
+
+def _npz(path: str) -> dict:
+    if not os.path.isfile(path):
+        raise MissingFileError(f"{path}: file not found")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except Exception as exc:
+        raise DataError(f"{path}: not a readable npz of plain arrays ({type(exc).__name__}: {exc})") from exc
+
+
+def _need_model(flame_model, source: str) -> FlameModel:
+    if flame_model is None:
+        raise DataError(f"{source}: FLAME parameters need a FLAME model: pass flame_model= (path to your own "
+                        "generic_model.pkl / flame2023.pkl, or a FlameModel)")
+    return load_flame_model(flame_model)
+
+
+def _ids_from(values, n: int) -> np.ndarray:
+    """Integer frame ids from stored ids (ints or strings with digits), else 0..n-1."""
+    if values is None:
+        return np.arange(n)
+    vals = np.asarray(values).reshape(-1)
+    if vals.shape[0] != n:
+        return np.arange(n)
+    if np.issubdtype(vals.dtype, np.integer):
+        return vals.astype(np.int64)
+    digits = [re.findall(r"\d+", str(v)) for v in vals.tolist()]
+    if all(digits):
+        return np.array([int(d[-1]) for d in digits], dtype=np.int64)
+    return np.arange(n)
+
+
+# Accepted spellings: VHAP writes *_pose, some exports and ANCHORS shorten them.
+_ALIASES = {
+    "rotation": ("rotation", "global_pose", "root_pose"),
+    "translation": ("translation", "transl"),
+    "neck_pose": ("neck_pose", "neck"),
+    "jaw_pose": ("jaw_pose", "jaw"),
+    "eyes_pose": ("eyes_pose", "eyes", "eye_pose"),
+    "shape": ("shape", "betas", "shape_params"),
+    "expr": ("expr", "expression", "expression_params"),
+    "static_offset": ("static_offset",),
+    "dynamic_offset": ("dynamic_offset",),
+}
+_PER_FRAME = ("rotation", "translation", "neck_pose", "jaw_pose", "eyes_pose", "expr", "dynamic_offset")
+
+
+def _flame_keys(d: dict) -> dict:
+    out = {}
+    for key, names in _ALIASES.items():
+        for n in names:
+            if n in d:
+                out[key] = np.asarray(d[n])
+                break
+    return out
+
+
+def _evaluate_flame(params: dict, model: FlameModel, source: str) -> np.ndarray:
+    try:
+        return flame_forward(model, **params)
+    except ValueError as exc:
+        raise DataError(f"{source}: {exc}") from exc
+
+
+def read_flame_param_folder(path, frames=None, flame_model=None) -> MeshSequence:
+    """GaussianAvatars/VHAP per-frame FLAME parameters: ``path/*.npz`` (or ``path/flame_param/*.npz``).
+
+    Each file holds translation (1,3), rotation (1,3), neck_pose (1,3), jaw_pose (1,3),
+    eyes_pose (1,6), shape (300), expr (1,100), static_offset (1,V,3). Frame ids come from
+    the digits in the file names. Only the files of the frames asked for are opened.
+    """
+    path = os.fspath(path)
+    folder = os.path.join(path, "flame_param") if os.path.isdir(os.path.join(path, "flame_param")) else path
+    files = sorted((f for f in os.listdir(folder) if f.endswith(".npz")), key=natural_key)
+    if not files:
+        raise DataError(f"{folder}: no .npz FLAME parameter files")
+    model = _need_model(flame_model, folder)
+    sel = _select(len(files), frames, folder)
+    params = {k: [] for k in _ALIASES}
+    for i in sel.tolist():  # one small file per asked frame; the FLAME evaluation below is batched
+        fp = os.path.join(folder, files[i])
+        d = _flame_keys(_npz(fp))
+        if "expr" not in d and "shape" not in d:
+            raise DataError(f"{fp}: no FLAME parameters (expected keys {', '.join(_ALIASES)})")
+        for k in _ALIASES:
+            params[k].append(d.get(k))
+    stacked = {}
+    for k, vals in params.items():
+        present = [v for v in vals if v is not None]
+        if not present:
+            continue
+        if len(present) != len(vals):
+            raise DataError(f"{folder}: '{k}' is present in some parameter files but not all")
+        if k in ("shape", "static_offset"):
+            stacked[k] = np.asarray(present[0])  # per subject, identical across frames
+        elif k == "dynamic_offset":
+            stacked[k] = np.concatenate([v.reshape((-1,) + v.shape[-2:])[:1] for v in present])
+        else:
+            stacked[k] = np.concatenate([v.reshape(1, -1) for v in present])
+    ids = _ids_from([files[i] for i in sel.tolist()], len(sel))
+    verts = _evaluate_flame(stacked, model, folder) if len(sel) else np.zeros((0, model.n_vertices, 3), np.float32)
+    return MeshSequence(model.faces, verts, ids, stacked, folder)
+
+
+def _read_flame_stacked(path: str, d: dict, frames, flame_model, frame_key: str | None) -> MeshSequence:
+    p = _flame_keys(d)
+    per_frame = [k for k in _PER_FRAME if k in p and p[k].ndim >= 2]
+    if not per_frame:
+        raise DataError(f"{path}: no per-frame FLAME parameters (expected some of {', '.join(_PER_FRAME)})")
+    T = p[per_frame[0]].shape[0]
+    for k in per_frame:
+        if p[k].shape[0] not in (1, T):
+            raise DataError(f"{path}: '{k}' has {p[k].shape[0]} frames, '{per_frame[0]}' has {T}")
+    model = _need_model(flame_model, path)
+    sel = _select(T, frames, path)
+    params = {}
+    for k, v in p.items():
+        params[k] = v[sel] if k in per_frame and v.shape[0] == T else v
+    ids = _ids_from(d.get(frame_key) if frame_key else None, T)[sel]
+    verts = _evaluate_flame(params, model, path) if len(sel) else np.zeros((0, model.n_vertices, 3), np.float32)
+    return MeshSequence(model.faces, verts, ids, params, path)
+
+
+def read_vhap_tracked(path, frames=None, flame_model=None) -> MeshSequence:
+    """VHAP ``tracked_flame_params_*.npz``: rotation, translation, neck_pose, jaw_pose (T,3),
+    eyes_pose (T,6), shape (300), expr (T,100), static_offset (1,V,3), optional timestep_id."""
+    path = os.fspath(path)
+    return _read_flame_stacked(path, _npz(path), frames, flame_model, "timestep_id")
+
+
+def _euler_xyz(angles: np.ndarray) -> np.ndarray:
+    """Intrinsic X-Y-Z Euler angles [T,3] -> rotation matrices [T,3,3] (R = Rx Ry Rz)."""
+    a = np.asarray(angles, np.float64).reshape(-1, 3)
+    c, s = np.cos(a), np.sin(a)
+    o, i = np.zeros(len(a)), np.ones(len(a))
+    rx = np.stack([i, o, o, o, c[:, 0], -s[:, 0], o, s[:, 0], c[:, 0]], -1).reshape(-1, 3, 3)
+    ry = np.stack([c[:, 1], o, s[:, 1], o, i, o, -s[:, 1], o, c[:, 1]], -1).reshape(-1, 3, 3)
+    rz = np.stack([c[:, 2], -s[:, 2], o, s[:, 2], c[:, 2], o, o, o, i], -1).reshape(-1, 3, 3)
+    return rx @ ry @ rz
+
+
+def read_nersemble_tracking(path, frames=None, flame_model=None) -> MeshSequence:
+    """NeRSemble benchmark FLAME tracking npz: shape (1,300), expression (T,100), jaw, neck
+    (T,3), eyes (T,6), rotation (T,3, Euler XYZ), rotation_matrices (T,3,3), translation (T,3),
+    scale, frames (T,). FLAME is evaluated without global rotation/translation; the head is
+    then placed by x_world = scale * R x + translation (the benchmark's model-to-world)."""
+    path = os.fspath(path)
+    d = _npz(path)
+    if "expression" not in d:
+        raise DataError(f"{path}: not a NeRSemble FLAME tracking file (no 'expression' key; has {sorted(d)})")
+    T = d["expression"].shape[0]
+    sel = _select(T, frames, path)
+    model = _need_model(flame_model, path)
+
+    def rows(key, width):
+        if key not in d:
+            return None
+        v = np.asarray(d[key], np.float64).reshape(-1, width)
+        if v.shape[0] not in (1, T):
+            raise DataError(f"{path}: '{key}' has {v.shape[0]} rows, expected 1 or {T}")
+        return v[sel] if v.shape[0] == T else np.broadcast_to(v, (len(sel), width))
+
+    params = {"shape": np.asarray(d["shape"]).reshape(-1, np.asarray(d["shape"]).shape[-1])[:1] if "shape" in d else None,
+              "expr": rows("expression", d["expression"].shape[-1]), "jaw_pose": rows("jaw", 3),
+              "neck_pose": rows("neck", 3), "eyes_pose": rows("eyes", 6)}
+    params = {k: v for k, v in params.items() if v is not None}
+    if "rotation_matrices" in d:
+        R = np.asarray(d["rotation_matrices"], np.float64).reshape(-1, 3, 3)
+        if R.shape[0] != T:
+            raise DataError(f"{path}: rotation_matrices has {R.shape[0]} frames, expression {T}")
+        R = R[sel]
+    elif "rotation" in d:
+        R = _euler_xyz(rows("rotation", 3))
+    else:
+        R = np.broadcast_to(np.eye(3), (len(sel), 3, 3))
+    t = rows("translation", 3)
+    t = np.zeros((len(sel), 3)) if t is None else t
+    scale = float(np.asarray(d["scale"]).reshape(-1)[0]) if "scale" in d else 1.0
+    local = _evaluate_flame(params, model, path).astype(np.float64) if len(sel) else np.zeros((0, model.n_vertices, 3))
+    verts = scale * np.einsum("tab,tvb->tva", R, local) + t[:, None, :]
+    ids = _ids_from(d.get("frames"), T)[sel]
+    params.update(rotation_matrices=R, translation=t, scale=scale)
+    return MeshSequence(model.faces, verts, ids, params, path)
+
+
+def read_mesh_npz(path, frames=None) -> MeshSequence:
+    """Mesh npz: ``vertices`` [T,V,3] (or [V,3], one frame), ``faces`` [F,3], optional ``frame_ids``."""
+    path = os.fspath(path)
+    d = _npz(path)
+    for key in ("vertices", "faces"):
+        if key not in d:
+            raise DataError(f"{path}: mesh npz needs '{key}' (has {sorted(d)})")
+    v = d["vertices"]
+    v = v[None] if v.ndim == 2 else v
+    if v.ndim != 3:
+        raise DataError(f"{path}: 'vertices' must be [T,V,3] or [V,3], got {d['vertices'].shape}")
+    sel = _select(v.shape[0], frames, path)
+    ids = _ids_from(d.get("frame_ids", d.get("frames")), v.shape[0])[sel]
+    return MeshSequence(d["faces"], _check_vertices(v[sel], path), ids, None, path)
+
+
+def _load_mesh_file(path: str):
+    import trimesh  # only this reader needs it
+
+    if not os.path.isfile(path):
+        raise MissingFileError(f"{path}: file not found")
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False, maintain_order=True)
+    except Exception as exc:
+        raise DataError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from exc
+    v = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))))
+    f = np.asarray(getattr(mesh, "faces", np.zeros((0, 3), np.int64)))
+    if v.shape[0] == 0:
+        raise DataError(f"{path}: mesh has no vertices")
+    return v, f
+
+
+def read_mesh_folder(path, frames=None) -> MeshSequence:
+    """A folder of per-frame OBJ/PLY meshes with identical topology, in natural name order.
+    Faces come from the first frame read; only the asked files are opened."""
+    path = os.fspath(path)
+    files = sorted((f for f in os.listdir(path) if f.lower().endswith(_MESH_EXTS)), key=natural_key)
+    if not files:
+        raise DataError(f"{path}: no .obj or .ply files")
+    sel = _select(len(files), frames, path)
+    verts, faces = [], None
+    for i in sel.tolist():  # one file per asked frame
+        fp = os.path.join(path, files[i])
+        v, f = _load_mesh_file(fp)
+        if faces is None:
+            faces = f
+        elif v.shape[0] != verts[0].shape[0]:
+            raise DataError(f"{fp}: {v.shape[0]} vertices, but {files[sel[0]]} has {verts[0].shape[0]}")
+        elif f.shape != faces.shape or not np.array_equal(f, faces):
+            raise DataError(f"{fp}: faces differ from {files[sel[0]]}: frames must share one topology")
+        verts.append(_check_vertices(v, fp))
+    if not verts:
+        v0, faces = _load_mesh_file(os.path.join(path, files[0]))
+        verts_arr = np.zeros((0, v0.shape[0], 3), np.float32)
+    else:
+        verts_arr = np.stack(verts)
+    ids = _ids_from([files[i] for i in sel.tolist()], len(sel))
+    return MeshSequence(faces, verts_arr, ids, None, path)
+
+
+def read_sequence(path, frames=None, flame_model=None) -> MeshSequence:
+    """Read any supported sequence format, detected from the path and the keys it holds.
+
+    ``frames``: positions (0-based, in file/sequence order) to read; None reads all.
+    ``flame_model``: path to the user's FLAME model or a FlameModel (FLAME formats only).
+    """
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise MissingFileError(f"{path}: file or folder not found")
+    if os.path.isdir(path):
+        names = os.listdir(path)
+        for js in ("transforms.json", "transforms_train.json", "transforms_val.json", "transforms_test.json"):
+            if js in names:  # a dataset root: its tracked geometry over the split's timesteps
+                split = None if js == "transforms.json" else js[len("transforms_"):-len(".json")]
+                return Dataset(path, split, flame_model=flame_model).sequence(frames)
+        if os.path.isdir(os.path.join(path, "flame_param")) or any(n.endswith(".npz") for n in names):
+            return read_flame_param_folder(path, frames, flame_model)
+        if any(n.lower().endswith(_MESH_EXTS) for n in names):
+            return read_mesh_folder(path, frames)
+        raise DataError(f"{path}: folder holds neither flame_param/ or *.npz FLAME parameters nor .obj/.ply frames")
+    low = path.lower()
+    if low.endswith(_MESH_EXTS):
+        v, f = _load_mesh_file(path)
+        sel = _select(1, frames, path)
+        return MeshSequence(f, _check_vertices(v, path)[None][sel], _ids_from([os.path.basename(path)], 1)[sel],
+                            None, path)
+    if low.endswith(".npz"):
+        d = _npz(path)
+        if "vertices" in d:
+            return read_mesh_npz(path, frames)
+        if "expression" in d and ("rotation_matrices" in d or "jaw" in d):
+            return read_nersemble_tracking(path, frames, flame_model)
+        if _flame_keys(d):
+            return _read_flame_stacked(path, d, frames, flame_model, "timestep_id")
+        raise DataError(f"{path}: unrecognised npz (keys {sorted(d)}): expected a mesh npz (vertices, faces), "
+                        "VHAP/GaussianAvatars FLAME parameters or a NeRSemble FLAME tracking file")
+    raise DataError(f"{path}: unsupported sequence format (expected .npz, .obj, .ply or a folder of them)")
+
+
+# --------------------------------------------------------------------------------------
+# Dataset
+
+
+@dataclass(frozen=True)
+class FrameInfo:
+    """One row of ``transforms_{split}.json``, resolved (no pixels loaded)."""
+
+    index: int
+    image_path: str
+    mask_path: str | None
+    camera: Camera  # already scaled for the dataset's downscale
+    full_size: tuple  # (w, h) as stored in the JSON
+    timestep_index: int
+    camera_index: int
+    geometry_path: str
+
+
+@dataclass
+class Sample:
+    camera: Camera
+    image: np.ndarray  # float32 [H,W,3] in [0,1]
+    mask: np.ndarray  # float32 [H,W] in [0,1]
+    vertices: np.ndarray  # float32 [V,3]
+    timestep_index: int
+    camera_index: int
+    index: int = -1
+    image_path: str = ""
+
+
+def _resolve(root: str, rel: str) -> str:
+    return os.path.normpath(rel if os.path.isabs(rel) else os.path.join(root, rel))
+
+
+def _find_image(root: str, rel: str, json_path: str, what: str) -> str:
+    p = _resolve(root, rel)
+    if os.path.isfile(p):
+        return p
+    if not os.path.splitext(p)[1]:
+        for ext in _IMAGE_EXTS:
+            if os.path.isfile(p + ext):
+                return p + ext
+    raise MissingFileError(f"{p}: {what} listed in {json_path} not found")
+
+
+class Dataset:
+    """GaussianAvatars/VHAP layout: ``root/transforms_{split}.json`` + images, masks, geometry.
+
+    ``downscale`` divides the image size (2.0: half width and height); intrinsics scale with
+    it. Images are decoded on access and kept in an LRU cache of ``cache_images`` entries
+    (0 disables it); per-timestep vertices are cached without bound (they are small).
+    """
+
+    def __init__(self, root, split: str | None = "train", downscale: float = 1.0, cache_images: int = 256,
+                 flame_model=None):
+        self.root = os.path.abspath(os.fspath(root))
+        self.split = split
+        if not (downscale > 0):
+            raise ValueError(f"downscale must be positive, got {downscale}")
+        self.downscale = float(downscale)
+        self.cache_images = int(cache_images)
+        self._images: OrderedDict[int, tuple] = OrderedDict()
+        self._verts: dict[int, np.ndarray] = {}
+        # split=None reads transforms.json (VHAP's export of every frame).
+        json_path = os.path.join(self.root, "transforms.json" if split is None else f"transforms_{split}.json")
+        if not os.path.isfile(json_path):
+            have = sorted(f for f in os.listdir(self.root) if f.startswith("transforms")) if os.path.isdir(self.root) else []
+            raise MissingFileError(f"{json_path}: split '{split}' not found (present: {have or 'none'})")
+        self.json_path = json_path
+        try:
+            with open(json_path, "r", encoding="utf-8") as f:
+                meta = json.load(f)
+        except json.JSONDecodeError as exc:
+            raise DataError(f"{json_path}: invalid JSON ({exc})") from exc
+        rows = meta.get("frames") if isinstance(meta, dict) else None
+        if not rows:
+            raise DataError(f"{json_path}: no frames (the '{split}' split is empty)")
+        bg = meta.get("background", [1.0, 1.0, 1.0])
+        self.background = np.asarray(bg, np.float32).reshape(-1)
+        if self.background.shape != (3,) or not np.all(np.isfinite(self.background)):
+            raise DataError(f"{json_path}: 'background' must be [r,g,b], got {bg!r}")
+
+        mesh_mode = "mesh_path" in rows[0]
+        self.mode = "mesh" if mesh_mode else "flame"
+        geo_key = "mesh_path" if mesh_mode else "flame_param_path"
+        if not mesh_mode and "flame_param_path" not in rows[0]:
+            raise DataError(f"{json_path}: frame 0 has neither 'mesh_path' nor 'flame_param_path'")
+
+        self.flame_model = None
+        if mesh_mode:
+            canon_path = _resolve(self.root, meta.get("canonical_mesh_path") or "canonical_mesh.npz")
+            d = _npz(canon_path)
+            for key in ("vertices", "faces"):
+                if key not in d:
+                    raise DataError(f"{canon_path}: missing key '{key}' (has {sorted(d)})")
+            self.canonical_vertices = _check_vertices(d["vertices"], canon_path)
+            if self.canonical_vertices.ndim != 2:
+                raise DataError(f"{canon_path}: 'vertices' must be [V,3], got {self.canonical_vertices.shape}")
+            self.faces = _check_faces(d["faces"], canon_path, self.canonical_vertices.shape[0])
+        else:
+            if flame_model is None:
+                raise DataError(f"{json_path}: FLAME-mode dataset (flame_param_path): pass flame_model= "
+                                "(path to your own FLAME model file)")
+            self.flame_model = load_flame_model(flame_model)
+            canon_path = os.path.join(self.root, "canonical_flame_param.npz")
+            self.canonical_vertices = self._flame_vertices(canon_path)
+            self.faces = self.flame_model.faces
+        self.n_vertices = self.canonical_vertices.shape[0]
+
+        frames, cams, geo = [], {}, {}
+        for i, fr in enumerate(rows):
+            where = f"{json_path}: frames[{i}]"
+            for key in ("file_path", "transform_matrix", "timestep_index", "camera_index", geo_key):
+                if key not in fr:
+                    raise DataError(f"{where}: missing key '{key}'")
+            cam_full, full_size = self._camera(fr, meta, where)
+            cam = cam_full if self.downscale == 1.0 else cam_full.scaled(1.0 / self.downscale)
+            img = _find_image(self.root, fr["file_path"], json_path, "image")
+            mask = fr.get("fg_mask_path")
+            mask = _find_image(self.root, mask, json_path, "mask") if mask else None
+            ts, ci = int(fr["timestep_index"]), int(fr["camera_index"])
+            gpath = _resolve(self.root, fr[geo_key])
+            if ts in geo and geo[ts] != gpath:
+                raise DataError(f"{where}: timestep {ts} refers to {gpath}, an earlier frame to {geo[ts]}")
+            geo[ts] = gpath
+            cams.setdefault(ci, cam)
+            frames.append(FrameInfo(i, img, mask, cam, full_size, ts, ci, gpath))
+        self.frames = frames
+        self.cameras = cams
+        self._geometry = geo
+        self.timesteps = np.array(sorted(geo), dtype=np.int64)
+
+    # -- metadata ----------------------------------------------------------------------
+
+    @staticmethod
+    def _camera(fr: dict, meta: dict, where: str):
+        def get(key):
+            return fr[key] if key in fr else meta.get(key)
+
+        w, h = get("w"), get("h")
+        if w is None or h is None:
+            raise DataError(f"{where}: missing image size 'w'/'h' (per frame or at the top level)")
+        w, h = int(w), int(h)
+        fx, fy = get("fl_x"), get("fl_y")
+        if fx is None and get("camera_angle_x") is not None:
+            fx = 0.5 * w / np.tan(0.5 * float(get("camera_angle_x")))
+        if fx is None:
+            raise DataError(f"{where}: missing focal length 'fl_x' (or 'camera_angle_x')")
+        fy = fx if fy is None else fy
+        cx = get("cx")
+        cy = get("cy")
+        cx = w / 2.0 if cx is None else float(cx)
+        cy = h / 2.0 if cy is None else float(cy)
+        c2w = np.asarray(fr["transform_matrix"], dtype=np.float64)
+        if c2w.shape not in ((4, 4), (3, 4)):
+            raise DataError(f"{where}: transform_matrix must be 4x4, got {c2w.shape}")
+        if c2w.shape == (3, 4):
+            c2w = np.vstack([c2w, [0.0, 0.0, 0.0, 1.0]])
+        try:
+            return Camera.from_c2w_opengl(c2w, float(fx), float(fy), cx, cy, w, h), (w, h)
+        except ValueError as exc:
+            raise DataError(f"{where}: {exc}") from exc
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def frame_info(self, i: int) -> FrameInfo:
+        return self.frames[i]
+
+    # -- geometry ----------------------------------------------------------------------
+
+    def _flame_vertices(self, path: str) -> np.ndarray:
+        d = _flame_keys(_npz(path))
+        if not d:
+            raise DataError(f"{path}: no FLAME parameters (expected keys {', '.join(_ALIASES)})")
+        v = _evaluate_flame(d, self.flame_model, path)
+        if v.shape[0] != 1:
+            raise DataError(f"{path}: expected parameters of one frame, got {v.shape[0]}")
+        return _check_vertices(v[0], path)
+
+    def vertices_at(self, timestep_index: int) -> np.ndarray:
+        """Mesh vertices float32 [V,3] of a timestep (cached)."""
+        ts = int(timestep_index)
+        v = self._verts.get(ts)
+        if v is not None:
+            return v
+        if ts not in self._geometry:
+            raise KeyError(f"{self.json_path}: no timestep {ts} in split '{self.split}'")
+        path = self._geometry[ts]
+        if self.mode == "mesh":
+            d = _npz(path)
+            if "vertices" not in d:
+                raise DataError(f"{path}: mesh npz needs 'vertices' [V,3] (has {sorted(d)})")
+            v = _check_vertices(d["vertices"], path, self.n_vertices)
+            if v.ndim != 2:
+                raise DataError(f"{path}: 'vertices' must be [V,3], got {v.shape}")
+        else:
+            v = self._flame_vertices(path)
+            if v.shape[0] != self.n_vertices:
+                raise DataError(f"{path}: {v.shape[0]} vertices, canonical has {self.n_vertices}")
+        self._verts[ts] = v
+        return v
+
+    # -- pixels --------------------------------------------------------------------------
+
+    def _load_pixels(self, info: FrameInfo):
+        from PIL import Image  # decoded on demand only
+
+        cam = info.camera
+        target = (cam.width, cam.height)
+        full = info.full_size
+
+        def read(path, what):
+            try:
+                im = Image.open(path)
+                im.load()
+            except Exception as exc:
+                raise DataError(f"{path}: cannot read {what} ({type(exc).__name__}: {exc})") from exc
+            if im.size != full and im.size != target:
+                want = f"{full[0]}x{full[1]}" + (f" or {target[0]}x{target[1]} (downscaled)" if target != full else "")
+                raise DataError(f"{path}: {what} is {im.size[0]}x{im.size[1]}, {self.json_path} says {want}")
+            return im
+
+        im = read(info.image_path, "image")
+        alpha = None
+        if im.mode in ("RGBA", "LA") or (im.mode == "P" and "transparency" in im.info):
+            im = im.convert("RGBA")
+            alpha = im.getchannel("A")
+        rgb = im.convert("RGB")
+        if rgb.size != target:
+            rgb = rgb.resize(target, Image.Resampling.BOX)
+        image = np.asarray(rgb, dtype=np.float32) / 255.0
+        if info.mask_path is not None:
+            m = read(info.mask_path, "mask")
+            m = m.convert("L")
+        else:
+            m = alpha
+        if m is not None:
+            if m.size != target:
+                m = m.resize(target, Image.Resampling.BOX)
+            mask = np.asarray(m, dtype=np.float32) / 255.0
+        else:
+            mask = np.ones(image.shape[:2], np.float32)
+        if alpha is not None:
+            # Transparent pixels take the dataset background, as the renderer's will.
+            a = np.asarray(alpha.resize(target, Image.Resampling.BOX) if alpha.size != target else alpha,
+                           dtype=np.float32)[..., None] / 255.0
+            image = image * a + self.background * (1.0 - a)
+        return image, mask
+
+    def images(self, i: int):
+        """(image float32 [H,W,3], mask float32 [H,W]) of frame i, through the LRU cache."""
+        hit = self._images.get(i)
+        if hit is not None:
+            self._images.move_to_end(i)
+            return hit
+        pair = self._load_pixels(self.frames[i])
+        if self.cache_images > 0:
+            self._images[i] = pair
+            while len(self._images) > self.cache_images:
+                self._images.popitem(last=False)
+        return pair
+
+    def __getitem__(self, i: int) -> Sample:
+        n = len(self.frames)
+        if not -n <= int(i) < n:
+            raise IndexError(f"{self.json_path}: frame {i} out of range (0..{n - 1})")
+        i = int(i) % n
+        info = self.frames[i]
+        image, mask = self.images(i)
+        return Sample(info.camera, image, mask, self.vertices_at(info.timestep_index), info.timestep_index,
+                      info.camera_index, i, info.image_path)
+
+    def __iter__(self):
+        for i in range(len(self)):
+            yield self[i]
+
+    def sequence(self, frames=None) -> MeshSequence:
+        """The split's geometry as a MeshSequence over its sorted timesteps (``frames``:
+        positions in ``self.timesteps``; None = all)."""
+        ts = self.timesteps[_select(len(self.timesteps), frames, self.json_path)]
+        # One mesh file (or one FLAME evaluation) per timestep, each cached.
+        verts = np.stack([self.vertices_at(t) for t in ts.tolist()]) if len(ts) else \
+            np.zeros((0, self.n_vertices, 3), np.float32)
+        return MeshSequence(self.faces, verts, ts, None, self.json_path)

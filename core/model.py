@@ -1,0 +1,84 @@
+"""The trainable avatar (torch): forest + one Gaussian per face, growable.
+
+Parameters are plain leaf tensors keyed by name so the optimiser state can be grown
+alongside them when faces split.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from . import binding_torch
+from .avatar import PARAM_NAMES, SH_C0, Avatar
+from .forest import Forest
+
+TRAINABLE = PARAM_NAMES + ("split_logits",)
+
+
+class TorchAvatar:
+    def __init__(self, avatar: Avatar, device="cpu"):
+        self.device = torch.device(device)
+        self.forest = avatar.forest
+        self.params = {name: torch.tensor(getattr(avatar, name), device=self.device).requires_grad_(True)
+                       for name in PARAM_NAMES}
+        self.params["split_logits"] = torch.tensor(self.forest.split_logits, device=self.device).requires_grad_(True)
+        self._structure_changed()
+
+    @classmethod
+    def from_template(cls, faces, color=(0.5, 0.5, 0.5), opacity=0.7, log_scale=(np.log(0.5), np.log(0.1), np.log(0.5)),
+                      device="cpu") -> "TorchAvatar":
+        forest = Forest(faces)
+        av = Avatar.initial(forest, color=color, opacity=opacity)
+        av.d_log_scale[:] = np.asarray(log_scale, np.float32)
+        return cls(av, device)
+
+    def _structure_changed(self):
+        self.torch_forest = binding_torch.TorchForest(self.forest, self.device)
+        self.level_ids = [torch.as_tensor(self.forest.cumulative(lvl), device=self.device)
+                          for lvl in range(self.forest.max_level + 1)]
+
+    @property
+    def num_faces(self) -> int:
+        return self.forest.num_faces
+
+    def gaussians(self, vertices: torch.Tensor) -> dict:
+        """Activated world-space Gaussians of every face for one frame's vertices [V,3]."""
+        p = self.params
+        W = self.torch_forest.weights(p["split_logits"])
+        t, r, s = self.torch_forest.evaluate(vertices, W)
+        means, scales, quats = binding_torch.compose(t, r, s, p["d_mu"], p["d_log_scale"], p["d_rot"])
+        return {
+            "means": means,
+            "quats": quats,
+            "scales": scales,
+            "opacities": torch.sigmoid(p["opacity_logit"]),
+            "colors": (0.5 + SH_C0 * p["f_dc"]).clamp_min(0.0),
+        }
+
+    def split(self, face_ids: np.ndarray) -> np.ndarray:
+        """Split leaves; children start as copies of their parent's Gaussian, centred on the child face.
+
+        Returns the new faces' indices (flat). The caller grows the optimiser state.
+        """
+        children = self.forest.split(face_ids)
+        if children.size == 0:
+            return children.ravel()
+        parents = torch.as_tensor(np.repeat(np.unique(np.asarray(face_ids, np.int64)), 3), device=self.device)
+        with torch.no_grad():
+            for name, value in self.params.items():
+                if name == "split_logits":
+                    new = torch.zeros((children.size, 3), dtype=value.dtype, device=self.device)
+                elif name == "d_mu":
+                    new = torch.zeros((children.size, 3), dtype=value.dtype, device=self.device)
+                else:
+                    new = value[parents].clone()
+                self.params[name] = torch.cat([value.detach(), new]).requires_grad_(True)
+        self._structure_changed()
+        return children.ravel()
+
+    def to_avatar(self, meta=None) -> Avatar:
+        arrays = {n: self.params[n].detach().cpu().numpy() for n in PARAM_NAMES}
+        forest = Forest(self.forest.template_faces, self.forest.parent, self.forest.slot,
+                        self.params["split_logits"].detach().cpu().numpy())
+        return Avatar(forest, **arrays, meta=dict(meta or {}))

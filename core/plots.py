@@ -1,0 +1,174 @@
+"""Pictures and Markdown for evaluation reports (matplotlib, imported lazily, Agg backend)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path):
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    _plt().close(fig)
+    return path
+
+
+def psnr_vs_bytes(path, curve, budgets):
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(5.5, 3.6))
+    mb = np.array([c["bytes"] for c in curve]) / 1e6
+    ax.plot(mb, [c["psnr"] for c in curve], "-o", ms=3, label="NVS (stream prefixes)")
+    for key, entry in budgets.items():
+        ax.plot(entry["bytes"] / 1e6, entry["nvs"]["psnr"], "s", color="C1")
+        ax.plot(entry["bytes"] / 1e6, entry["nes"]["psnr"], "^", color="C2")
+        ax.annotate(f"{key}%", (entry["bytes"] / 1e6, entry["nvs"]["psnr"]), textcoords="offset points", xytext=(4, -10), fontsize=7)
+    ax.plot([], [], "s", color="C1", label="NVS at budgets")
+    ax.plot([], [], "^", color="C2", label="NES at budgets")
+    ax.set_xlabel("bytes received (MB)")
+    ax.set_ylabel("PSNR in mask (dB)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title("Quality against transmitted bytes")
+    return _save(fig, path)
+
+
+def budget_strip(path, renderer, info, budgets, view_index=0):
+    """One view rendered at each budget, then the ground truth."""
+    plt = _plt()
+    view = int(renderer.views[min(view_index, len(renderer.views) - 1)])
+    sample = renderer.dataset[view]
+    panels, titles = [], []
+    for b in budgets:
+        n = int(info.count_for_percent(b))
+        image, _ = renderer.render(view, np.arange(n))
+        panels.append(image)
+        titles.append(f"{b:g}% ({n:,} G)")
+    panels.append(sample.image)
+    titles.append("ground truth")
+    fig, axes = plt.subplots(1, len(panels), figsize=(2.0 * len(panels), 2.0 * sample.image.shape[0] / sample.image.shape[1] + 0.4))
+    for ax, im, title in zip(np.atleast_1d(axes), panels, titles):
+        ax.imshow(np.clip(im, 0, 1), interpolation="nearest")
+        ax.set_title(title, fontsize=8)
+        ax.axis("off")
+    return _save(fig, path)
+
+
+def depth_colors(depth: np.ndarray, max_depth: int | None = None) -> np.ndarray:
+    """RGB per depth from a perceptual ramp (viridis), depth 0 darkest."""
+    plt = _plt()
+    top = max(1, int(depth.max()) if max_depth is None else max_depth)
+    return plt.get_cmap("viridis")(np.asarray(depth, float) / top)[..., :3].astype(np.float32)
+
+
+def depth_picture(path, avatar, dataset, views=(0,)):
+    """The base level coloured by each template face's subdivision depth, beside the 100 % render."""
+    from .binding import compose, evaluate
+    from .render import render_numpy
+
+    plt = _plt()
+    depth = avatar.forest.depth_per_root()
+    F0 = avatar.forest.num_roots
+    base = np.arange(F0)
+    n_views = min(3, len(dataset))
+    picks = np.linspace(0, len(dataset) - 1, n_views).astype(int)
+    fig, axes = plt.subplots(2, n_views, figsize=(2.2 * n_views, 5.6), squeeze=False)
+    for col, v in enumerate(picks):
+        info = dataset.frame_info(int(v))
+        verts = dataset.vertices_at(info.timestep_index)
+        geo = evaluate(avatar.forest, verts, ids=base)
+        # Opaque, face-sized discs so the colour reads as a surface.
+        means, scales, quats = compose(geo.t, geo.r, geo.s, np.zeros((F0, 3)), np.log(np.tile([0.55, 0.05, 0.55], (F0, 1))),
+                                       np.tile([1.0, 0, 0, 0], (F0, 1)))
+        img, _, _ = render_numpy(means, quats, scales, np.full(F0, 0.99, np.float32), depth_colors(depth),
+                                 info.camera, np.ones(3, np.float32))
+        full = evaluate(avatar.forest, verts)
+        m2, s2, q2 = compose(full.t, full.r, full.s, avatar.d_mu, avatar.d_log_scale, avatar.d_rot)
+        from .avatar import sh_to_rgb, sigmoid
+
+        ref, _, _ = render_numpy(m2, q2, s2, sigmoid(avatar.opacity_logit), sh_to_rgb(avatar.f_dc), info.camera,
+                                 np.asarray(dataset.background, np.float32))
+        axes[0, col].imshow(np.clip(ref, 0, 1))
+        axes[1, col].imshow(np.clip(img, 0, 1))
+        axes[0, col].axis("off")
+        axes[1, col].axis("off")
+    axes[0, 0].set_title("avatar (100 %)", fontsize=8)
+    axes[1, 0].set_title("subdivision depth per face", fontsize=8)
+    hist = np.bincount(depth, minlength=int(depth.max()) + 1)
+    cols = depth_colors(np.arange(len(hist)), int(depth.max()))
+    handles = [plt.Rectangle((0, 0), 1, 1, color=cols[d]) for d in range(len(hist))]
+    fig.legend(handles, [f"depth {d}: {hist[d]} faces" for d in range(len(hist))], loc="lower center", ncol=2, fontsize=7)
+    return _save(fig, path)
+
+
+def depth_detail_stats(depth: np.ndarray, detail: np.ndarray) -> dict:
+    """How subdivision depth follows appearance detail: rank correlation and mean detail per depth."""
+    from scipy.stats import spearmanr
+
+    rho = spearmanr(depth, detail).correlation
+    q = np.quantile(detail, [0.25, 0.75])
+    return {
+        "spearman": float(rho),
+        "mean_depth_detailed_quartile": float(depth[detail >= q[1]].mean()),
+        "mean_depth_smooth_quartile": float(depth[detail <= q[0]].mean()),
+        "mean_detail_per_depth": {int(d): float(detail[depth == d].mean()) for d in np.unique(depth)},
+    }
+
+
+def psnr_vs_time(path, metrics_log):
+    plt = _plt()
+    with open(metrics_log) as fh:
+        rows = [json.loads(line) for line in fh if line.strip()]
+    ev = [r for r in rows if "val_psnr" in r]
+    tr = [r for r in rows if "train_psnr" in r]
+    fig, ax = plt.subplots(figsize=(5.5, 3.4))
+    if tr:
+        ax.plot([r["seconds"] / 60 for r in tr], [r["train_psnr"] for r in tr], alpha=0.5, label="train (whole image, running mean)")
+    if ev:
+        ax.plot([r["seconds"] / 60 for r in ev], [r["val_psnr"] for r in ev], "-o", ms=3, label="NVS (in mask)")
+    ax.set_xlabel("training time (min)")
+    ax.set_ylabel("PSNR (dB)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    return _save(fig, path)
+
+
+def report_markdown(r: dict) -> str:
+    lines = [f"# Evaluation report", "", f"- run: `{r['run']}`", f"- data: `{r['data']}`",
+             f"- machine: {r['machine']}", f"- date: {r['date']}", f"- command: `{r['command']}`",
+             f"- stream: {r['stream_bytes']:,} bytes, {r['gaussians']:,} Gaussians "
+             f"({r['bytes_per_gaussian']:.1f} B/Gaussian with header), levels {r['level_counts']}", "",
+             "| budget | Gaussians | bytes | NVS PSNR / SSIM | NES PSNR / SSIM | render ms |", "|---|---|---|---|---|---|"]
+    for key, e in r["budgets"].items():
+        lines.append(f"| {key} % | {e['gaussians']:,} | {e['bytes']:,} | {e['nvs']['psnr']:.2f} / {e['nvs']['ssim']:.3f} | "
+                     f"{e['nes']['psnr']:.2f} / {e['nes']['ssim']:.3f} | {e['render_ms']:.1f} |")
+    a = r["ablations"]
+    lines += ["", "## Ablations (NVS PSNR in mask)", ""]
+    ro = a["random_order_25"]
+    lines.append(f"- 25 %: importance-ranked {ro['ranked']['psnr']:.2f} dB vs random order within levels {ro['random']['psnr']:.2f} dB")
+    io = a["importance_only_50"]
+    lines.append(f"- 50 %: levels then importance {io['levels_then_importance']['psnr']:.2f} dB vs importance only {io['importance_only']['psnr']:.2f} dB")
+    q = a["quantisation_100"]
+    lines.append(f"- 100 %: quantised {q['quantised']['psnr']:.3f} dB ({q['bytes_quantised']:,} B) vs float32 "
+                 f"{q['float32']['psnr']:.3f} dB ({q['bytes_float32']:,} B): loss {q['psnr_loss_db']:.3f} dB")
+    lp = a["level_prefixes"]
+    lines.append("- level prefixes: " + ", ".join(f"level ≤{k}: {lp['counts'][k]:,} G, {v['psnr']:.2f} dB" for k, v in lp["nvs"].items()))
+    sd = a["single_asset_vs_discrete"]
+    lines.append(f"- one stream {sd['stream_bytes']:,} B vs separately stored budgets {sd['discrete_sum_bytes']:,} B")
+    for name, c in a.get("compare", {}).items():
+        pref = ", ".join(f"≤{k}: {v['psnr']:.2f}" for k, v in c["level_prefixes_nvs"].items())
+        lines.append(f"- compare `{name}`: {c['gaussians']:,} Gaussians, NVS {c['nvs']['psnr']:.2f} dB (level prefixes {pref})")
+    if "depth_vs_detail" in r:
+        d = r["depth_vs_detail"]
+        lines += ["", f"Depth follows detail: Spearman ρ = {d['spearman']:.3f}; mean depth on the most detailed quarter of "
+                  f"faces {d['mean_depth_detailed_quartile']:.2f} vs smoothest quarter {d['mean_depth_smooth_quartile']:.2f}."]
+    lines += ["", "## Figures", ""] + [f"![{k}]({v})" for k, v in r.get("figures", {}).items()]
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,152 @@
+"""Standard 3DGS PLY export/import (numpy; plyfile only to read files we did not write).
+
+Layout (binary little-endian, float32, one `vertex` element):
+  x y z nx ny nz f_dc_0 f_dc_1 f_dc_2 opacity scale_0 scale_1 scale_2 rot_0 rot_1 rot_2 rot_3
+opacity as a logit, scales as logs, rotation w,x,y,z, colour as SH DC (f_dc = (rgb - 0.5)/C0).
+Read by SuperSplat, Spark, gsplat tooling and Blender's PLY importer. Writing needs numpy only,
+so export works inside Blender, where plyfile is not installed.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from .avatar import SH_C0
+
+PROPERTIES = ("x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
+              "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3")
+VERTEX_DTYPE = np.dtype([(name, "<f4") for name in PROPERTIES])
+_EPS = 1e-7  # keeps logit(0 or 1) and log(0) finite: PLY readers choke on inf
+
+
+def _rows(gaussians: dict) -> np.ndarray:
+    need = ("means", "quats", "scales", "opacities", "colors")
+    missing = [k for k in need if k not in gaussians]
+    if missing:
+        raise ValueError(f"write_ply: gaussians dict misses {missing}")
+    means = np.asarray(gaussians["means"], np.float64).reshape(-1, 3)
+    n = len(means)
+    quats = np.asarray(gaussians["quats"], np.float64).reshape(n, 4)
+    scales = np.asarray(gaussians["scales"], np.float64).reshape(n, 3)
+    opac = np.asarray(gaussians["opacities"], np.float64).reshape(n)
+    colors = np.asarray(gaussians["colors"], np.float64).reshape(n, -1)
+    if colors.shape[1] != 3:
+        raise ValueError(f"write_ply: colors must be RGB [N,3], got {colors.shape}")
+    for name, arr in (("means", means), ("quats", quats), ("scales", scales), ("opacities", opac), ("colors", colors)):
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"write_ply: {name} contains NaN or inf")
+    qn = np.linalg.norm(quats, axis=1, keepdims=True)
+    quats = np.where(qn > 0, quats / np.where(qn > 0, qn, 1), np.array([1.0, 0, 0, 0]))
+    a = np.clip(opac, _EPS, 1 - _EPS)
+    rows = np.zeros(n, VERTEX_DTYPE)
+    for k, c in enumerate("xyz"):
+        rows[c] = means[:, k]
+        rows[f"scale_{k}"] = np.log(np.maximum(scales[:, k], 1e-30))
+        rows[f"f_dc_{k}"] = (colors[:, k] - 0.5) / SH_C0
+    rows["opacity"] = np.log(a / (1 - a))
+    for k in range(4):
+        rows[f"rot_{k}"] = quats[:, k]
+    return rows
+
+
+def ply_header(n: int) -> bytes:
+    lines = ["ply", "format binary_little_endian 1.0", "comment ProgressiveAvatars 3DGS export",
+             f"element vertex {n}"] + [f"property float {p}" for p in PROPERTIES] + ["end_header"]
+    return ("\n".join(lines) + "\n").encode("ascii")
+
+
+def write_ply(path, gaussians: dict) -> int:
+    """Write activated Gaussians (as from Avatar.gaussians) as a standard 3DGS PLY, atomically.
+    Returns the number of Gaussians written."""
+    rows = _rows(gaussians)
+    path = os.fspath(path)
+    tmp = f"{path}.{os.getpid()}.tmp"
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(ply_header(len(rows)))
+            fh.write(rows.tobytes())
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+    return len(rows)
+
+
+def _read_vertices(path: str) -> np.ndarray:
+    """The vertex element as a structured array: plyfile when available (any PLY flavour),
+    else a numpy parser for binary little-endian files with scalar vertex properties."""
+    try:
+        from plyfile import PlyData
+    except ImportError:
+        PlyData = None
+    if PlyData is not None:
+        try:
+            ply = PlyData.read(path)
+        except Exception as exc:  # plyfile raises several types for malformed files
+            raise ValueError(f"{path}: not a readable PLY file: {exc}") from None
+        if "vertex" not in ply:
+            raise ValueError(f"{path}: PLY file has no vertex element")
+        return ply["vertex"].data
+    types = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8", "uchar": "u1", "uint8": "u1",
+             "char": "i1", "int8": "i1", "short": "<i2", "int16": "<i2", "ushort": "<u2", "uint16": "<u2",
+             "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4"}
+    with open(path, "rb") as fh:
+        if fh.readline().strip() != b"ply":
+            raise ValueError(f"{path}: not a PLY file (bad magic)")
+        fmt, count, props, element = None, 0, [], None
+        while True:
+            line = fh.readline()
+            if not line:
+                raise ValueError(f"{path}: PLY header has no end_header")
+            parts = line.decode("ascii", "replace").split()
+            if not parts or parts[0] in ("comment", "obj_info"):
+                continue
+            if parts[0] == "format":
+                fmt = parts[1]
+            elif parts[0] == "element":
+                if element == "vertex":
+                    raise ValueError(f"{path}: only files whose vertex element comes last are supported without plyfile")
+                element = parts[1]
+                if element == "vertex":
+                    count = int(parts[2])
+            elif parts[0] == "property" and element == "vertex":
+                if parts[1] == "list" or parts[1] not in types:
+                    raise ValueError(f"{path}: unsupported vertex property type {parts[1]!r}")
+                props.append((parts[2], types[parts[1]]))
+            elif parts[0] == "end_header":
+                break
+        if fmt != "binary_little_endian" or element != "vertex":
+            raise ValueError(f"{path}: without plyfile only binary little-endian vertex-only PLYs are read")
+        dt = np.dtype(props)
+        buf = fh.read(count * dt.itemsize)
+        if len(buf) < count * dt.itemsize:
+            raise ValueError(f"{path}: truncated: {count} vertices declared, {len(buf) // dt.itemsize} present")
+        return np.frombuffer(buf, dt)
+
+
+def read_ply(path) -> dict:
+    """A 3DGS PLY back as activated Gaussians: means, quats (wxyz, unit), scales, opacities,
+    colors (RGB = max(0.5 + C0·f_dc, 0)); f_rest coefficients, if any, are ignored."""
+    path = os.fspath(path)
+    v = _read_vertices(path)
+    names = v.dtype.names or ()
+    need = [p for p in PROPERTIES if p not in ("nx", "ny", "nz")]
+    missing = [p for p in need if p not in names]
+    if missing:
+        raise ValueError(f"{path}: not a 3DGS PLY, missing vertex properties {missing}")
+    col = lambda *ks: np.stack([np.asarray(v[k], np.float64) for k in ks], axis=1)  # noqa: E731
+    quats = col("rot_0", "rot_1", "rot_2", "rot_3")
+    qn = np.linalg.norm(quats, axis=1, keepdims=True)
+    quats = np.where(qn > 0, quats / np.where(qn > 0, qn, 1), np.array([1.0, 0, 0, 0]))
+    return {
+        "means": col("x", "y", "z").astype(np.float32),
+        "quats": quats.astype(np.float32),
+        "scales": np.exp(col("scale_0", "scale_1", "scale_2")).astype(np.float32),
+        "opacities": (1.0 / (1.0 + np.exp(-np.asarray(v["opacity"], np.float64)))).astype(np.float32),
+        "colors": np.maximum(0.5 + SH_C0 * col("f_dc_0", "f_dc_1", "f_dc_2"), 0.0).astype(np.float32),
+    }

@@ -1,0 +1,355 @@
+"""Arrays the Blender preview needs, computed here so blender_addon/ holds no maths.
+
+numpy only (runs inside Blender's own Python). Everything returns flat, C-contiguous float32
+or int32 arrays shaped for ``foreach_set``:
+- ``SplatEvaluator``: per-frame world Gaussians (means, wxyz quats, scales) of an avatar's
+  faces, with reused buffers (the frame-change handler calls it every frame);
+- ``Budget``: Gaussians / bytes / level reached for a budget percent, taken from the
+  stream's own ``count_for_percent`` when the avatar came from a stream;
+- depth colours and legend for the per-face subdivision depth display;
+- conversions between ``core.camera.Camera`` and Blender camera settings;
+- ``render_job``: the out-of-Blender side of "Render splats" (needs core.render / numba).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import binding
+from .avatar import Avatar, sh_to_rgb, sigmoid
+
+# Blender is Z-up; FLAME/dataset space is Y-up (head looks to +z). Rotating +90° about x
+# maps dataset y to Blender z, so the head stands up and looks to Blender -y (the front view).
+Y_UP_TO_Z_UP = np.array([[1.0, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]])
+
+
+# -- avatars and budgets -------------------------------------------------------------------
+def _stream_module():
+    try:
+        from . import stream
+    except ImportError:
+        return None
+    return stream
+
+
+@dataclass
+class Budget:
+    """How much of an avatar a budget percent includes.
+
+    ``info`` is the stream's header object when the avatar was read from a stream (its
+    ``count_for_percent`` is the single definition of a percent); plain avatar files fall
+    back to the same fraction of Gaussians (there is no byte layout to follow).
+    """
+
+    total: int
+    levels: np.ndarray  # int8 [N], stream order
+    file_bytes: int
+    info: object | None = None
+
+    def count_for_percent(self, percent: float) -> int:
+        p = float(min(max(percent, 0.0), 100.0))
+        if self.info is not None and hasattr(self.info, "count_for_percent"):
+            return int(min(max(int(self.info.count_for_percent(p)), 0), self.total))
+        return int(min(self.total, math.floor(self.total * p / 100.0 + 0.5)))
+
+    def bytes_for_count(self, count: int) -> int:
+        info = self.info
+        for name in ("bytes_for_count", "size_for_count"):
+            if info is not None and hasattr(info, name):
+                return int(getattr(info, name)(int(count)))
+        return int(round(self.file_bytes * count / max(self.total, 1)))
+
+    def level_reached(self, count: int) -> int:
+        return int(self.levels[count - 1]) if count > 0 else -1
+
+
+def load_avatar(path) -> tuple[Avatar, Budget]:
+    """An avatar in stream order from a stream file (.pavs, recognised by its magic) or an
+    avatar .npz, and its budget. Avatar .npz files are taken to be in stream order already
+    (a face's rank is its index)."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{path}: file not found")
+    stream = _stream_module()
+    with open(path, "rb") as fh:
+        head = fh.read(8)
+    info = None
+    if stream is not None and head == stream.MAGIC:
+        info = stream.read_header(path)
+        avatar = stream.read_stream(path)
+        if avatar is None:
+            raise ValueError(f"{path}: the stream holds no complete Gaussian record")
+    else:
+        avatar = Avatar.load(path)
+    budget = Budget(avatar.num_gaussians, avatar.forest.level.copy(), os.path.getsize(path), info)
+    return avatar, budget
+
+
+def check_mesh(avatar: Avatar, budget: Budget, faces) -> None:
+    """Refuse a mesh the avatar was not made for (vertex indices / the stream's template hash)."""
+    faces = np.asarray(faces)
+    need = int(avatar.forest.template_faces.max()) + 1
+    if faces.size and int(faces.max()) + 1 < need:
+        raise ValueError(f"the mesh has {int(faces.max()) + 1} vertices in use; the avatar's template needs {need}")
+    if budget.info is not None:
+        _stream_module().check_template(budget.info, faces)
+    elif faces.shape != avatar.forest.template_faces.shape or not np.array_equal(faces, avatar.forest.template_faces):
+        raise ValueError(f"the mesh's faces {faces.shape} are not the avatar's template {avatar.forest.template_faces.shape}")
+
+
+def static_attributes(avatar: Avatar) -> dict:
+    """Per-Gaussian values that do not change with the frame: activated opacity, RGBA
+    colour, level and rank (stream position)."""
+    n = avatar.num_gaussians
+    rgba = np.ones((n, 4), np.float32)
+    rgba[:, :3] = np.minimum(sh_to_rgb(avatar.f_dc), 1.0)
+    return {
+        "opacity": np.ascontiguousarray(sigmoid(avatar.opacity_logit), np.float32),
+        "color": rgba.ravel(),
+        "level": avatar.forest.level.astype(np.int32),
+        "rank": np.arange(n, dtype=np.int32),
+    }
+
+
+# -- per-frame evaluation ------------------------------------------------------------------
+class SplatEvaluator:
+    """World Gaussians of the first ``count`` faces (stream order) for one frame, fast.
+
+    Same result as ``binding.compose`` on ``binding.FaceEvaluator`` output, written out in
+    float32 on component-major buffers: the generic compose (einsum, stacked quaternion
+    candidates, float64) costs several times the frame budget at 170k Gaussians. Returned
+    arrays are views of reused buffers, [n,3] / [n,4] row-major (ready for foreach_set).
+    """
+
+    def __init__(self, avatar: Avatar, count: int | None = None, weights=None):
+        total = avatar.num_gaussians
+        n = total if count is None else int(min(max(count, 0), total))
+        self.n, self.capacity = n, total
+        ids = None if n == total else np.arange(n)
+        # weights: forest.weights() computed once by the caller; evaluators are rebuilt when
+        # the budget changes and the forest walk is the costly part of building one.
+        self.faces = binding.FaceEvaluator(avatar.forest, ids=ids, weights=weights)
+        sl = slice(0, n)
+        self.d_mu = np.ascontiguousarray(avatar.d_mu[sl].T, np.float32)
+        self.exp_scale = np.ascontiguousarray(np.exp(avatar.d_log_scale[sl]).T, np.float32)
+        self.q_res = np.ascontiguousarray(binding.quat_normalize(avatar.d_rot[sl].astype(np.float64)).T, np.float32)
+        # Full-length outputs (rows past n keep whatever they held): Blender's foreach_set
+        # writes whole attributes, so the caller hands these over without copying.
+        self.means = np.zeros((total, 3), np.float32)
+        self.scales = np.zeros((total, 3), np.float32)
+        self.quats = np.zeros((total, 4), np.float32)
+        self.quats[:, 0] = 1
+        self._a = np.empty((4, n), np.float32)  # frame quaternion, component-major
+        self._tmp = np.empty((3, n), np.float32)
+
+    def __call__(self, vertices):
+        """Evaluate the first n Gaussians on mesh vertices [V,3]; returns full-length
+        (means [N,3], quats [N,4] wxyz, scales [N,3]) whose first n rows are this frame's."""
+        if self.n == 0:
+            return self.means, self.quats, self.scales
+        g = self.faces(np.asarray(vertices, np.float32))
+        n = self.n
+        r = g.r  # [n,3,3] view of a [3,3,n] buffer
+        R = [[r[:, i, j] for j in range(3)] for i in range(3)]
+        t, s = g.t, g.s
+        tmp = self._tmp[0]
+        for i in range(3):
+            acc = self._tmp[1]
+            np.multiply(R[i][0], self.d_mu[0], out=acc)
+            np.multiply(R[i][1], self.d_mu[1], out=tmp)
+            acc += tmp
+            np.multiply(R[i][2], self.d_mu[2], out=tmp)
+            acc += tmp
+            acc *= s
+            acc += t[:, i]
+            self.means[:n, i] = acc
+            np.multiply(self.exp_scale[i], s, out=tmp)
+            self.scales[:n, i] = tmp
+        self._frame_quats(R)
+        a, b = self._a, self.q_res
+        q = self.quats
+        # Hamilton product a ⊗ b, one output component at a time.
+        terms = (
+            ((0, 0, 1), (1, 1, -1), (2, 2, -1), (3, 3, -1)),
+            ((0, 1, 1), (1, 0, 1), (2, 3, 1), (3, 2, -1)),
+            ((0, 2, 1), (1, 3, -1), (2, 0, 1), (3, 1, 1)),
+            ((0, 3, 1), (1, 2, 1), (2, 1, -1), (3, 0, 1)),
+        )
+        acc = self._tmp[1]
+        for k, row in enumerate(terms):
+            acc.fill(0)
+            for ia, ib, sign in row:
+                np.multiply(a[ia], b[ib], out=tmp)
+                if sign > 0:
+                    acc += tmp
+                else:
+                    acc -= tmp
+            q[:n, k] = acc
+        return self.means, self.quats, self.scales
+
+    def _frame_quats(self, R):
+        """Unit quaternions (w ≥ 0) of the face frames.
+
+        Where w ≥ 1/4 (rotations up to ~150°, nearly every face) the trace formula divides by
+        4w and is as accurate as Shepperd's; the rest take Shepperd's method (divide by the
+        largest pivot), computed on that subset only.
+        """
+        out, tmp = self._a, self._tmp[0]
+        m = R
+        np.add(m[0][0], m[1][1], out=tmp)
+        tmp += m[2][2]
+        tmp += 1
+        np.maximum(tmp, 0, out=tmp)
+        w = out[0]
+        np.sqrt(tmp, out=w)
+        w *= 0.5
+        weak = np.flatnonzero(w < 0.25)
+        inv = self._tmp[1]
+        np.maximum(w, 0.25, out=inv)
+        np.divide(0.25, inv, out=inv)
+        for comp, (i1, j1), (i2, j2) in ((1, (2, 1), (1, 2)), (2, (0, 2), (2, 0)), (3, (1, 0), (0, 1))):
+            np.subtract(m[i1][j1], m[i2][j2], out=out[comp])
+            out[comp] *= inv
+        if len(weak):
+            out[:, weak] = self._shepperd_xyz([[m[i][j][weak] for j in range(3)] for i in range(3)])
+
+    @staticmethod
+    def _shepperd_xyz(m):
+        """Quaternions [4,k] of rotations with a small w: divide by the largest of x, y, z."""
+        piv = np.stack([1 + m[0][0] - m[1][1] - m[2][2], 1 - m[0][0] + m[1][1] - m[2][2],
+                        1 - m[0][0] - m[1][1] + m[2][2]])
+        k = np.argmax(piv, axis=0)
+        q = np.empty((4, len(k)), np.float32)
+        a = m[2][1] - m[1][2]
+        b = m[0][2] - m[2][0]
+        c = m[1][0] - m[0][1]
+        d = m[0][1] + m[1][0]
+        e = m[0][2] + m[2][0]
+        f = m[1][2] + m[2][1]
+        # pivot component -> the other three as (component, numerator)
+        rows = {0: ((0, a), (2, d), (3, e)), 1: ((0, b), (1, d), (3, f)), 2: ((0, c), (1, e), (2, f))}
+        for kk, others in rows.items():
+            sel = np.flatnonzero(k == kk)
+            if len(sel) == 0:
+                continue
+            p = 0.5 * np.sqrt(np.maximum(piv[kk, sel], 1e-30))
+            q[kk + 1, sel] = p
+            inv = 0.25 / p
+            for comp, num in others:
+                q[comp, sel] = num[sel] * inv
+        q *= np.where(q[0] < 0, -1, 1).astype(np.float32)
+        return q
+
+
+# -- subdivision depth display -------------------------------------------------------------
+# A perceptual ramp (dark blue → teal → yellow), sampled at depth / max(max_depth, 1).
+_RAMP = np.array([
+    [0.050, 0.030, 0.280],
+    [0.150, 0.300, 0.620],
+    [0.100, 0.600, 0.600],
+    [0.450, 0.800, 0.300],
+    [0.990, 0.900, 0.150],
+], np.float32)
+
+
+def depth_colors(depth: np.ndarray, max_depth: int | None = None) -> np.ndarray:
+    """Linear RGBA colours [F,4] float32 for integer depths (0 = darkest)."""
+    depth = np.asarray(depth, np.float32)
+    top = float(max(depth.max() if depth.size else 0, 1) if max_depth is None else max(max_depth, 1))
+    x = np.clip(depth / top, 0, 1) * (len(_RAMP) - 1)
+    i0 = np.minimum(np.floor(x).astype(np.int64), len(_RAMP) - 2)
+    w = (x - i0)[:, None]
+    rgb = _RAMP[i0] * (1 - w) + _RAMP[i0 + 1] * w
+    return np.concatenate([rgb, np.ones((len(rgb), 1), np.float32)], axis=1).astype(np.float32)
+
+
+def per_corner(values: np.ndarray, loop_totals: np.ndarray) -> np.ndarray:
+    """Repeat per-face rows for each of the face's corners (Blender's corner domain)."""
+    return np.repeat(np.asarray(values), np.asarray(loop_totals, np.int64), axis=0)
+
+
+def depth_legend(depth_per_face: np.ndarray) -> list[tuple[int, int, tuple]]:
+    """(depth, number of template faces, RGB) for every depth 0..max."""
+    depth = np.asarray(depth_per_face, np.int64)
+    top = int(depth.max()) if depth.size else 0
+    hist = np.bincount(depth, minlength=top + 1)
+    cols = depth_colors(np.arange(top + 1), top)
+    return [(d, int(hist[d]), tuple(float(c) for c in cols[d, :3])) for d in range(top + 1)]
+
+
+# -- cameras -------------------------------------------------------------------------------
+def blender_camera(camera, z_up: bool = True, sensor_width: float = 36.0) -> dict:
+    """Blender camera settings reproducing a pinhole ``Camera`` (OpenCV intrinsics).
+
+    Blender cameras look down -z with +y up (the OpenGL convention the dataset's c2w uses).
+    Focal length and shifts are expressed against the larger image side (sensor_fit AUTO
+    semantics); non-square pixels (fx ≠ fy) become a pixel aspect ratio.
+    """
+    w, h = camera.width, camera.height
+    big = float(max(w, h))
+    c2w = camera.c2w_opengl()
+    if z_up:
+        c2w = Y_UP_TO_Z_UP @ c2w
+    # Blender scales x by pixel_aspect_x / pixel_aspect_y; keep fx as the reference.
+    aspect_y = camera.fx / camera.fy
+    f_big = camera.fx if w >= h else camera.fy * aspect_y
+    return {
+        "matrix_world": c2w,
+        "lens": f_big / big * sensor_width,
+        "sensor_width": sensor_width,
+        "sensor_fit": "AUTO",
+        "shift_x": (w / 2.0 - camera.cx) / big,
+        "shift_y": (camera.cy - h / 2.0) / big,
+        "resolution": (int(w), int(h)),
+        "pixel_aspect": (1.0, float(aspect_y)),
+    }
+
+
+def camera_from_blender(matrix_world, lens, sensor_width, shift_x, shift_y, width, height, z_up: bool = True):
+    """The core ``Camera`` seeing what a Blender camera (sensor_fit AUTO, square pixels) sees."""
+    from .camera import Camera
+
+    c2w = np.asarray(matrix_world, np.float64).reshape(4, 4)
+    if z_up:
+        c2w = np.linalg.inv(Y_UP_TO_Z_UP) @ c2w
+    # Remove object scale so R is a rotation.
+    c2w = c2w.copy()
+    c2w[:3, :3] /= np.linalg.norm(c2w[:3, :3], axis=0, keepdims=True)
+    big = float(max(width, height))
+    f = lens / sensor_width * big
+    cx = width / 2.0 - shift_x * big
+    cy = height / 2.0 + shift_y * big
+    return Camera.from_c2w_opengl(c2w, f, f, cx, cy, int(width), int(height))
+
+
+# -- render job (runs in the configured Python, outside Blender) ---------------------------
+def render_job(job_path: str, out_path: str) -> None:
+    """Render the Gaussians saved by the add-on in ``job_path`` (npz) to ``out_path`` (.npy
+    RGBA float32 [H,W,4]) with the core rasteriser."""
+    from .camera import Camera
+    from .render import render_numpy
+
+    with np.load(job_path, allow_pickle=False) as d:
+        cam = Camera(d["R"], d["t"], *[float(x) for x in d["intr"]], int(d["size"][0]), int(d["size"][1]))
+        out = render_numpy(d["means"], d["quats"], d["scales"], d["opacities"], d["colors"], cam,
+                           d["background"])
+    image, alpha = out[0], out[1]
+    rgba = np.concatenate([np.asarray(image, np.float32), np.asarray(alpha, np.float32)[..., None]], -1)
+    np.save(out_path, rgba)
+
+
+def transform_gaussians(matrix, means, quats, scales):
+    """Gaussians carried by an object transform (rotation, uniform scale, translation):
+    Blender object space → world space for export and rendering."""
+    M = np.asarray(matrix, np.float64).reshape(4, 4)
+    A = M[:3, :3]
+    s = float(np.cbrt(abs(np.linalg.det(A)))) or 1.0
+    Rm = A / s
+    q_obj = binding.rotmat_to_quat(Rm[None])[0]
+    means_w = (np.asarray(means, np.float64) @ A.T + M[:3, 3]).astype(np.float32)
+    quats_w = binding.quat_multiply(q_obj[None], np.asarray(quats, np.float64)).astype(np.float32)
+    return means_w, quats_w, (np.asarray(scales, np.float32) * s).astype(np.float32)

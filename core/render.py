@@ -1,0 +1,295 @@
+"""Differentiable Gaussian rasteriser: CPU numba kernels, gsplat on CUDA, one function.
+
+``render`` takes *activated* Gaussians (see docs/ARCHITECTURE.md) and a ``Camera`` and returns a
+``RenderOutput``. On the CPU the forward and backward are the hand-written kernels of
+``render_kernels``; with CUDA tensors and gsplat importable, ``backend="auto"`` uses
+``gsplat.rasterization`` instead. Both follow the same rules (EWA + eps2d dilation without
+opacity compensation, near-plane culling, alpha in [1/255, 0.99], stop at T < 1e-4).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+import torch
+
+from . import render_kernels as rk
+from .camera import Camera
+
+__all__ = ["RenderOutput", "render", "render_numpy", "gsplat_available"]
+
+
+@dataclass
+class RenderOutput:
+    image: torch.Tensor  # [H, W, C], differentiable
+    alpha: torch.Tensor  # [H, W], differentiable
+    means2d: torch.Tensor  # [N, 2]; after backward, .grad is the screen-space positional gradient
+    contrib: Optional[torch.Tensor]  # [N], sum over pixels of alpha*T (no grad)
+    radii: torch.Tensor  # [N] int, 0 = culled / not visible
+    depth: Optional[torch.Tensor] = None  # [H, W], alpha-normalised camera z (0 where alpha = 0)
+
+
+# ----------------------------------------------------------------------------- validation
+
+
+def _shape(x) -> tuple:
+    return tuple(x.shape)
+
+
+def _all_finite(x) -> bool:
+    if isinstance(x, torch.Tensor):
+        return bool(torch.isfinite(x).all())
+    return bool(np.isfinite(x).all())
+
+
+def _validate(means, quats, scales, opacities, colors, background, camera, near, eps2d):
+    """Raise ValueError on anything the kernels must never see; returns (N, C)."""
+    if not isinstance(camera, Camera):
+        raise ValueError(f"render: camera must be a core.camera.Camera, got {type(camera).__name__}")
+    if int(camera.width) <= 0 or int(camera.height) <= 0:
+        raise ValueError(f"render: image size must be positive, got {camera.width}x{camera.height}")
+    if len(_shape(means)) != 2 or _shape(means)[1] != 3:
+        raise ValueError(f"render: means must have shape [N, 3], got {list(_shape(means))}")
+    n = _shape(means)[0]
+    for name, x, tail in (("quats", quats, (4,)), ("scales", scales, (3,)), ("opacities", opacities, ())):
+        if _shape(x) != (n,) + tail:
+            raise ValueError(
+                f"render: {name} must have shape {[n, *tail]} to match means [N={n}, 3], got {list(_shape(x))}")
+    if len(_shape(colors)) != 2 or _shape(colors)[0] != n or _shape(colors)[1] < 1:
+        raise ValueError(f"render: colors must have shape [N={n}, C] with C >= 1, got {list(_shape(colors))}")
+    n_ch = _shape(colors)[1]
+    if background is not None and _shape(background) != (n_ch,):
+        raise ValueError(f"render: background must have shape [{n_ch}] (one value per colour channel), "
+                         f"got {list(_shape(background))}")
+    if not _all_finite(means):
+        raise ValueError("render: means contain NaN or inf")
+    if not _all_finite(quats):
+        raise ValueError("render: quats contain NaN or inf")
+    qnorm = (quats * quats).sum(-1)
+    if n and not bool((qnorm > 1e-24).all()):
+        raise ValueError("render: quats must have non-zero norm")
+    if not _all_finite(scales) or (n and not bool((scales > 0).all())):
+        raise ValueError("render: scales must be finite and > 0 (activated standard deviations)")
+    if not _all_finite(opacities) or (n and not bool(((opacities >= 0) & (opacities <= 1)).all())):
+        raise ValueError("render: opacities must be finite and in [0, 1] (activated, not logits)")
+    if not _all_finite(colors):
+        raise ValueError("render: colors contain NaN or inf")
+    if background is not None and not _all_finite(background):
+        raise ValueError("render: background contains NaN or inf")
+    if not (near > 0 and np.isfinite(near)):
+        raise ValueError(f"render: near must be a positive finite distance, got {near}")
+    if not (eps2d >= 0 and np.isfinite(eps2d)):
+        raise ValueError(f"render: eps2d must be >= 0, got {eps2d}")
+    return n, n_ch
+
+
+# ----------------------------------------------------------------------------- CPU pipeline
+
+
+def _f64(x) -> np.ndarray:
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu().numpy()
+    return np.ascontiguousarray(x, dtype=np.float64)
+
+
+def _camera_args(camera: Camera):
+    return (np.ascontiguousarray(camera.R, np.float64), np.ascontiguousarray(camera.t, np.float64),
+            float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy))
+
+
+def _tiles(camera: Camera):
+    return -(-camera.width // rk.TILE), -(-camera.height // rk.TILE)
+
+
+def _cpu_forward(means, quats, scales, opacities, colors, background, camera, near, eps2d,
+                 means2d_offset=None, with_depth=False):
+    """Numpy float64 forward; returns the outputs and the state the backward needs."""
+    Rc, tc, fx, fy, cx, cy = _camera_args(camera)
+    W, H = camera.width, camera.height
+    lim = rk.fov_limits(W, H, fx, fy, cx, cy)
+    xy, conic, depth, rect, radii, cut = rk.project_forward(
+        means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, lim, W, H, float(near), float(eps2d))
+    if means2d_offset is not None:
+        xy += means2d_offset
+    visible = np.flatnonzero(radii)
+    order = visible[np.argsort(depth[visible], kind="stable")].astype(np.int64)
+    tiles_x, tiles_y = _tiles(camera)
+    tile_start, ids = rk.bin_tiles(rect, order, tiles_x, tiles_y)
+    if with_depth:
+        colors = np.concatenate([colors, depth[:, None]], axis=1)
+        background = np.concatenate([background, [0.0]])
+    image, t_final, last, contrib = rk.raster_forward(
+        tile_start, ids, xy, conic, opacities, cut, colors, rect, background, W, H, tiles_x)
+    state = dict(xy=xy, conic=conic, cut=cut, rect=rect, radii=radii, tile_start=tile_start, ids=ids,
+                 t_final=t_final, last=last, colors=colors, background=background, lim=lim)
+    return image, t_final, contrib, radii, state
+
+
+def _cpu_backward(state, means, quats, scales, opacities, camera, eps2d, grad_image, grad_alpha,
+                  with_depth):
+    Rc, tc, fx, fy, _, _ = _camera_args(camera)
+    tiles_x, _ = _tiles(camera)
+    grads, g_bg = rk.raster_backward(
+        state["tile_start"], state["ids"], state["xy"], state["conic"], opacities, state["cut"], state["colors"],
+        state["rect"], state["background"], state["t_final"], state["last"], grad_image, grad_alpha,
+        camera.width, camera.height, tiles_x)
+    g_uv = np.ascontiguousarray(grads[:, rk.G_U:rk.G_V + 1])
+    g_conic = np.ascontiguousarray(grads[:, rk.G_CA:rk.G_CC + 1])
+    g_colors = grads[:, rk.G_COLOR:]
+    if with_depth:
+        g_depth = np.ascontiguousarray(g_colors[:, -1])
+        g_colors, g_bg = g_colors[:, :-1], g_bg[:-1]
+    else:
+        g_depth = np.zeros(len(means))
+    g_means, g_quats, g_scales = rk.project_backward(
+        means, quats, scales, Rc, tc, fx, fy, state["lim"], float(eps2d), state["radii"], g_uv, g_conic,
+        g_depth)
+    return g_means, g_quats, g_scales, grads[:, rk.G_OPAC], g_colors, g_bg, g_uv
+
+
+class _RasterizeCPU(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, colors, background, means2d, camera, near, eps2d,
+                with_depth):
+        arrays = [_f64(x) for x in (means, quats, scales, opacities, colors, background)]
+        image, t_final, contrib, radii, state = _cpu_forward(
+            *arrays, camera, near, eps2d, means2d_offset=_f64(means2d), with_depth=with_depth)
+        ctx.camera, ctx.eps2d, ctx.with_depth = camera, eps2d, with_depth
+        ctx.arrays, ctx.state = arrays, state
+        dtype, device = means.dtype, means.device
+        out_image = torch.from_numpy(image).to(device=device, dtype=dtype)
+        out_alpha = torch.from_numpy(1.0 - t_final).to(device=device, dtype=dtype)
+        out_contrib = torch.from_numpy(contrib).to(device=device, dtype=dtype)
+        out_radii = torch.from_numpy(radii).to(device=device)
+        ctx.mark_non_differentiable(out_contrib, out_radii)
+        return out_image, out_alpha, out_contrib, out_radii
+
+    @staticmethod
+    def backward(ctx, grad_image, grad_alpha, _grad_contrib, _grad_radii):
+        means, quats, scales, opacities, _, _ = ctx.arrays
+        H, W = ctx.camera.height, ctx.camera.width
+        n_out = ctx.state["colors"].shape[1]
+        g_img = _f64(grad_image) if grad_image is not None else np.zeros((H, W, n_out))
+        g_alpha = _f64(grad_alpha) if grad_alpha is not None else np.zeros((H, W))
+        g_means, g_quats, g_scales, g_opac, g_colors, g_bg, g_uv = _cpu_backward(
+            ctx.state, means, quats, scales, opacities, ctx.camera, ctx.eps2d, g_img, g_alpha, ctx.with_depth)
+        ref = grad_image if grad_image is not None else grad_alpha
+
+        def out(x, i):
+            if not ctx.needs_input_grad[i]:
+                return None
+            return torch.from_numpy(np.ascontiguousarray(x)).to(device=ref.device, dtype=ref.dtype)
+
+        return (out(g_means, 0), out(g_quats, 1), out(g_scales, 2), out(g_opac, 3), out(g_colors, 4),
+                out(g_bg, 5), out(g_uv, 6), None, None, None, None)
+
+
+def render_numpy(means, quats, scales, opacities, colors, camera, background=None, *, near=0.01,
+                 eps2d=0.3):
+    """Forward only, numpy in and out: (image [H,W,C] float32, alpha [H,W] float32, contrib [N])."""
+    _validate(means, quats, scales, opacities, colors, background, camera, near, eps2d)
+    arrays = [_f64(x) for x in (means, quats, scales, opacities, colors)]
+    bg = _f64(background) if background is not None else np.zeros(arrays[4].shape[1])
+    image, t_final, contrib, _, _ = _cpu_forward(*arrays, bg, camera, near, eps2d)
+    return image.astype(np.float32), (1.0 - t_final).astype(np.float32), contrib
+
+
+# ----------------------------------------------------------------------------- gsplat (CUDA)
+
+
+def gsplat_available() -> bool:
+    if not torch.cuda.is_available():
+        return False
+    try:
+        import gsplat  # noqa: F401
+    except Exception:  # any import failure (missing wheel, CUDA build, packaging) means "no gsplat"
+        return False
+    return True
+
+
+def _render_gsplat(means, quats, scales, opacities, colors, background, camera, near, eps2d, return_depth,
+                   compute_contrib):
+    from gsplat import rasterization
+
+    dev, dtype = means.device, means.dtype
+    viewmats = torch.as_tensor(camera.viewmat(), dtype=torch.float32, device=dev)[None]
+    Ks = torch.as_tensor(camera.K(), dtype=torch.float32, device=dev)[None]
+    f32 = [x.float() for x in (means, quats, scales, opacities, colors)]
+    common = dict(viewmats=viewmats, Ks=Ks, width=camera.width, height=camera.height, near_plane=near,
+                  eps2d=eps2d, packed=False, rasterize_mode="classic")
+    n_ch = colors.shape[1]
+    bg = background.float()[None] if background is not None else None
+    if return_depth:
+        bg = torch.cat([bg, bg.new_zeros(1, 1)], dim=1) if bg is not None else None
+    render_colors, render_alphas, meta = rasterization(
+        *f32, backgrounds=bg, render_mode="RGB+ED" if return_depth else "RGB", **common)
+    image = render_colors[0, ..., :n_ch].to(dtype)
+    alpha = render_alphas[0, ..., 0].to(dtype)
+    depth = render_colors[0, ..., n_ch].to(dtype) if return_depth else None
+    n = means.shape[0]
+    # gsplat's projected means are an internal, non-leaf tensor [1, N, 2]. The API promises a
+    # leaf [N, 2] whose .grad is the screen-space gradient, so mirror the gradient into one.
+    means2d = torch.zeros(n, 2, device=dev, dtype=dtype, requires_grad=True)
+    m2d = meta["means2d"]
+    if m2d.requires_grad:
+        def _mirror(grad):
+            g = grad.reshape(-1, n, 2)[0].detach().to(dtype)
+            means2d.grad = g.clone() if means2d.grad is None else means2d.grad + g
+        m2d.register_hook(_mirror)
+    radii = meta["radii"].reshape(n, -1).amax(-1).to(torch.int32) if meta["radii"].numel() else \
+        torch.zeros(n, dtype=torch.int32, device=dev)
+    contrib = None
+    if compute_contrib:
+        # sum_pixels alpha*T is the gradient of the summed image w.r.t. a constant per-Gaussian colour.
+        probe = torch.zeros(n, 1, device=dev, dtype=torch.float32, requires_grad=True)
+        with torch.enable_grad():
+            img, _, _ = rasterization(*[x.detach() for x in f32[:4]], probe, **common)
+            contrib = torch.autograd.grad(img.sum(), probe)[0][:, 0].to(dtype)
+    return RenderOutput(image=image, alpha=alpha, means2d=means2d, contrib=contrib, radii=radii, depth=depth)
+
+
+# ----------------------------------------------------------------------------- public API
+
+
+def render(means, quats, scales, opacities, colors, camera, background=None, *, near=0.01, eps2d=0.3,
+           return_depth=False, backend="auto", compute_contrib=True) -> RenderOutput:
+    """Rasterise activated Gaussians seen by ``camera``.
+
+    means [N,3], quats [N,4] wxyz (normalised here), scales [N,3] > 0 (std-devs, metres),
+    opacities [N] in [0,1], colors [N,C], background [C] (default zeros); torch float32 or
+    float64. Gradients reach every input that requires grad. ``backend``: "auto" (gsplat for
+    CUDA tensors when it imports, else CPU), "cpu" or "gsplat". ``compute_contrib`` only
+    matters for gsplat, where contrib costs one more forward+backward pass (None when False);
+    on the CPU it is free.
+    """
+    if backend not in ("auto", "cpu", "gsplat"):
+        raise ValueError(f"render: backend must be 'auto', 'cpu' or 'gsplat', got {backend!r}")
+    tensors = (means, quats, scales, opacities, colors) + ((background,) if background is not None else ())
+    if not all(isinstance(x, torch.Tensor) for x in tensors):
+        raise ValueError("render: Gaussian parameters must be torch tensors (use render_numpy for numpy)")
+    _validate(means, quats, scales, opacities, colors, background, camera, near, eps2d)
+    use_gsplat = backend == "gsplat" or (backend == "auto" and means.is_cuda and gsplat_available())
+    if use_gsplat:
+        if not (means.is_cuda and gsplat_available()):
+            raise ValueError("render: backend='gsplat' needs CUDA tensors and an importable gsplat")
+        return _render_gsplat(means, quats, scales, opacities, colors, background, camera, near, eps2d,
+                              return_depth, compute_contrib)
+
+    n, n_ch = means.shape[0], colors.shape[1]
+    if background is None:
+        background = torch.zeros(n_ch, dtype=means.dtype, device=means.device)
+    # Only a graph that will be differentiated needs the screen-space gradient leaf.
+    track = torch.is_grad_enabled() and any(x.requires_grad for x in tensors)
+    means2d = torch.zeros(n, 2, dtype=means.dtype, device=means.device, requires_grad=track)
+    image, alpha, contrib, radii = _RasterizeCPU.apply(
+        means, quats, scales, opacities, colors, background, means2d, camera, float(near), float(eps2d),
+        bool(return_depth))
+    depth = None
+    if return_depth:
+        # Channel n_ch carries sum_i z_i alpha_i T_i; dividing by alpha gives the expected z.
+        acc = image[..., n_ch]
+        depth = torch.where(alpha > 1e-10, acc / alpha.clamp_min(1e-10), torch.zeros_like(acc))
+        image = image[..., :n_ch]
+    return RenderOutput(image=image, alpha=alpha, means2d=means2d, contrib=contrib, radii=radii, depth=depth)

@@ -1,0 +1,628 @@
+"""Numba CPU kernels of the tile rasteriser: projection, tile binning, compositing, backward.
+
+Every kernel works on float64 numpy arrays (the caller converts once): the per-pixel work is
+scalar code that does not vectorise, so float64 costs little and keeps the hand-written
+backward close to a float64 reference. Rules shared with gsplat and the dense test
+reference (tests/reference_rasterizer.py), which must stay in step with this file:
+
+- EWA splatting: cov2d = J Rc R S S R^T Rc^T J^T + eps2d*I, with gsplat's clamp of x/z, y/z to
+  1.3x the field of view inside the Jacobian (the mean itself is not clamped). No opacity
+  compensation for the dilation.
+- Culled (radius 0): camera z < near, opacity < 1/255, non-positive det, or no pixel centre
+  where alpha can reach 1/255.
+- Pixel (i, j) is sampled at its centre (i + 0.5, j + 0.5). alpha = min(0.99, o*exp(power));
+  alpha < 1/255 is skipped; a pixel stops *before* the Gaussian that would take its
+  transmittance below 1e-4 (as 3DGS/gsplat do).
+- Per tile, Gaussians are composited in ascending camera z (stable: ties keep index order).
+
+Pixel boxes are exact, not 3-sigma guesses: alpha >= 1/255 needs power >= -ln(255 o), i.e.
+the Mahalanobis radius r <= sqrt(2 ln(255 o)), whose ellipse spans r*sqrt(cov2d_xx) in x.
+So binning never drops a pixel that the dense reference would composite.
+
+Parallel loops never share an accumulator: projection runs over blocks of Gaussians, the
+rasteriser over tiles, and each (tile, Gaussian) pair writes its own slot of a per-intersection
+buffer that a serial pass sums afterwards. No atomics, deterministic sums, and no thread ids
+(get_thread_id would stop numba from caching the kernels). Callers may run the tile loops
+under numba.parallel_chunksize so that threads pick tiles dynamically.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+TILE = 16
+BLOCK = 1024  # Gaussians per parallel work item in the projection kernels
+BIN_CHUNKS = 16  # slices of the depth order binned in parallel
+ALPHA_MIN = 1.0 / 255.0
+ALPHA_MAX = 0.99
+T_MIN = 1e-4
+# Only explicit prange loops run in parallel: numba would otherwise turn every np.zeros and
+# array expression into its own parallel region, and each launch is costly on a busy machine.
+_PARALLEL = dict(prange=True, numpy=False, reduction=False, setitem=False, stencil=False, fusion=False,
+                 comprehension=False, inplace_binop=False)
+# Slack on the pixel box so that rounding can never drop a pixel at the exact boundary.
+_BOX_SLACK = 1.0 + 1e-6
+
+# Gradient record per Gaussian written by raster_backward: d/du, d/dv, d/dconic (a, b, c),
+# d/dopacity, then d/dcolor[0..C).
+G_U, G_V, G_CA, G_CB, G_CC, G_OPAC, G_COLOR = 0, 1, 2, 3, 4, 5, 6
+
+
+def fov_limits(width, height, fx, fy, cx, cy):
+    """gsplat's Jacobian clamp: x/z, y/z kept within the frustum widened by 30 % of tan(fov/2)."""
+    tan_x = 0.5 * width / fx
+    tan_y = 0.5 * height / fy
+    return np.array([
+        cx / fx + 0.3 * tan_x,  # x/z >= -this
+        (width - cx) / fx + 0.3 * tan_x,  # x/z <= this
+        cy / fy + 0.3 * tan_y,
+        (height - cy) / fy + 0.3 * tan_y,
+    ])
+
+
+@njit(cache=True)
+def _camera_factor(q, s, Rc, R, Mc):
+    """Fill R = R(q/|q|) and Mc = Rc R diag(s) (so the camera-space covariance is Mc Mc^T).
+
+    Returns |q| and the normalised quaternion, which the backward needs.
+    """
+    qn = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    w = q[0] / qn
+    x = q[1] / qn
+    y = q[2] / qn
+    z = q[3] / qn
+    R[0, 0] = 1.0 - 2.0 * (y * y + z * z)
+    R[0, 1] = 2.0 * (x * y - w * z)
+    R[0, 2] = 2.0 * (x * z + w * y)
+    R[1, 0] = 2.0 * (x * y + w * z)
+    R[1, 1] = 1.0 - 2.0 * (x * x + z * z)
+    R[1, 2] = 2.0 * (y * z - w * x)
+    R[2, 0] = 2.0 * (x * z - w * y)
+    R[2, 1] = 2.0 * (y * z + w * x)
+    R[2, 2] = 1.0 - 2.0 * (x * x + y * y)
+    for i in range(3):
+        for j in range(3):
+            Mc[i, j] = (Rc[i, 0] * R[0, j] + Rc[i, 1] * R[1, j] + Rc[i, 2] * R[2, j]) * s[j]
+    return qn, w, x, y, z
+
+
+@njit(cache=True)
+def _jacobian(x, y, z, fx, fy, lim):
+    """Non-zero entries of the 2x3 projection Jacobian, and whether x/z, y/z were left unclamped."""
+    rz = 1.0 / z
+    rx = x * rz
+    ry = y * rz
+    kx = min(lim[1], max(-lim[0], rx))
+    ky = min(lim[3], max(-lim[2], ry))
+    return fx * rz, -fx * kx * rz, fy * rz, -fy * ky * rz, kx, ky, kx == rx, ky == ry
+
+
+@njit(cache=True)
+def _project_one(g, means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, lim, width, height, near,
+                 eps2d, R, Mc, xy, conic, depth, rect, radii, cut):
+    """One Gaussian of project_forward (R, Mc: scratch)."""
+    px = Rc[0, 0] * means[g, 0] + Rc[0, 1] * means[g, 1] + Rc[0, 2] * means[g, 2] + tc[0]
+    py = Rc[1, 0] * means[g, 0] + Rc[1, 1] * means[g, 1] + Rc[1, 2] * means[g, 2] + tc[1]
+    pz = Rc[2, 0] * means[g, 0] + Rc[2, 1] * means[g, 1] + Rc[2, 2] * means[g, 2] + tc[2]
+    depth[g] = pz
+    o = opacities[g]
+    if not (pz >= near) or not (o >= ALPHA_MIN):
+        return
+    _camera_factor(quats[g], scales[g], Rc, R, Mc)
+    j00, j02, j11, j12, _, _, _, _ = _jacobian(px, py, pz, fx, fy, lim)
+    a = eps2d
+    b = 0.0
+    c = eps2d
+    for k in range(3):
+        r0 = j00 * Mc[0, k] + j02 * Mc[2, k]
+        r1 = j11 * Mc[1, k] + j12 * Mc[2, k]
+        a += r0 * r0
+        b += r0 * r1
+        c += r1 * r1
+    det = a * c - b * b
+    if not (det > 0.0) or not math.isfinite(det):
+        return
+    u = fx * px / pz + cx
+    v = fy * py / pz + cy
+    level = math.log(255.0 * o)
+    reach = math.sqrt(2.0 * level) * _BOX_SLACK
+    ex = reach * math.sqrt(a)
+    ey = reach * math.sqrt(c)
+    # Pixel centres i + 0.5 inside [u - ex, u + ex]; clamp before int() so huge boxes are safe.
+    lo_x = max(u - ex - 0.5, -1.0)
+    hi_x = min(u + ex - 0.5, float(width))
+    lo_y = max(v - ey - 0.5, -1.0)
+    hi_y = min(v + ey - 0.5, float(height))
+    i0 = max(0, int(math.ceil(lo_x)))
+    i1 = min(width - 1, int(math.floor(hi_x)))
+    j0 = max(0, int(math.ceil(lo_y)))
+    j1 = min(height - 1, int(math.floor(hi_y)))
+    if i0 > i1 or j0 > j1:
+        return
+    xy[g, 0] = u
+    xy[g, 1] = v
+    conic[g, 0] = c / det
+    conic[g, 1] = -b / det
+    conic[g, 2] = a / det
+    rect[g, 0] = i0
+    rect[g, 1] = j0
+    rect[g, 2] = i1
+    rect[g, 3] = j1
+    radii[g] = int(math.ceil(min(max(ex, ey), 1e9)))
+    cut[g] = -level
+
+
+@njit(parallel=_PARALLEL, cache=True)
+def project_forward(means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, lim, width, height,
+                    near, eps2d):
+    """Per Gaussian: 2D mean, conic (inverse cov2d as a, b, c), camera z, pixel box, radius.
+
+    rect[g] = (i0, j0, i1, j1), the inclusive range of pixel columns/rows that can receive
+    alpha >= 1/255, already clipped to the image; radii[g] = 0 marks a culled Gaussian;
+    cut[g] = -ln(255 o), the exponent below which alpha < 1/255.
+    """
+    n = means.shape[0]
+    xy = np.zeros((n, 2))
+    conic = np.zeros((n, 3))
+    depth = np.zeros(n)
+    rect = np.zeros((n, 4), np.int32)
+    radii = np.zeros(n, np.int32)
+    cut = np.zeros(n)
+    for blk in prange((n + BLOCK - 1) // BLOCK):
+        R = np.empty((3, 3))
+        Mc = np.empty((3, 3))
+        for g in range(blk * BLOCK, min(n, (blk + 1) * BLOCK)):
+            _project_one(g, means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, lim, width,
+                         height, near, eps2d, R, Mc, xy, conic, depth, rect, radii, cut)
+    return xy, conic, depth, rect, radii, cut
+
+
+@njit(parallel=_PARALLEL, cache=True)
+def bin_tiles(rect, order, tiles_x, tiles_y):
+    """Counting sort of (tile, Gaussian) pairs into per-tile lists.
+
+    ``order`` holds the visible Gaussians front to back; it is binned in BIN_CHUNKS contiguous
+    slices in parallel, and chunk c's entries precede chunk c+1's inside every tile, so each tile's list
+    stays depth-sorted. Returns tile_start [T+1] and the flat Gaussian ids.
+    """
+    n_tiles = tiles_x * tiles_y
+    m = order.shape[0]
+    n_chunks = BIN_CHUNKS
+    counts = np.zeros((n_chunks, n_tiles), np.int64)
+    for ch in prange(n_chunks):
+        for k in range(m * ch // n_chunks, m * (ch + 1) // n_chunks):
+            g = order[k]
+            for ty in range(rect[g, 1] // TILE, rect[g, 3] // TILE + 1):
+                for tx in range(rect[g, 0] // TILE, rect[g, 2] // TILE + 1):
+                    counts[ch, ty * tiles_x + tx] += 1
+    tile_start = np.empty(n_tiles + 1, np.int64)
+    cursor = np.empty((n_chunks, n_tiles), np.int64)
+    total = 0
+    for t in range(n_tiles):
+        tile_start[t] = total
+        for ch in range(n_chunks):
+            cursor[ch, t] = total
+            total += counts[ch, t]
+    tile_start[n_tiles] = total
+    ids = np.empty(total, np.int32)
+    for ch in prange(n_chunks):
+        for k in range(m * ch // n_chunks, m * (ch + 1) // n_chunks):
+            g = order[k]
+            for ty in range(rect[g, 1] // TILE, rect[g, 3] // TILE + 1):
+                for tx in range(rect[g, 0] // TILE, rect[g, 2] // TILE + 1):
+                    t = ty * tiles_x + tx
+                    ids[cursor[ch, t]] = g
+                    cursor[ch, t] += 1
+    return tile_start, ids
+
+
+@njit(cache=True)
+def _alpha(o, ca, cb, cc, dx, dy, cut):
+    """Alpha of one Gaussian at one pixel and whether it was clamped; 0 when skipped.
+
+    ``cut`` = -ln(255 o): below it alpha < 1/255, so exp is not even evaluated.
+    """
+    power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+    if power < cut or power > 0.0:
+        return 0.0, 0.0, False
+    gauss = math.exp(power)
+    alpha = o * gauss
+    if alpha < ALPHA_MIN:
+        return 0.0, gauss, False
+    if alpha > ALPHA_MAX:
+        return ALPHA_MAX, gauss, True
+    return alpha, gauss, False
+
+
+
+@njit(cache=True)
+def _row_span(dy, u, ca, cb, cc, cut, i0, i1):
+    """Columns of one pixel row whose centres lie on the ellipse's chord power >= cut, within
+    [i0, i1]; empty when first > last. Bounding boxes of thin, tilted splats are mostly empty,
+    so this trims the work per row; the per-pixel alpha test stays authoritative."""
+    # power >= cut  <=>  ca dx^2 + 2 cb dy dx + cc dy^2 + 2 cut <= 0, dx = i + 0.5 - u.
+    half_b = cb * dy
+    disc = half_b * half_b - ca * (cc * dy * dy + 2.0 * cut)
+    if disc < 0.0:
+        return i0, i0 - 1
+    root = math.sqrt(disc)
+    lo = (-half_b - root) / ca + u - 0.5 - 1e-6
+    hi = (-half_b + root) / ca + u - 0.5 + 1e-6
+    lo = max(lo, i0 - 1.0)
+    hi = min(hi, i1 + 1.0)
+    return max(i0, int(math.ceil(lo))), min(i1, int(math.floor(hi)))
+
+
+@njit(cache=True)
+def _tile_bounds(t, tiles_x, width, height):
+    x0 = (t % tiles_x) * TILE
+    y0 = (t // tiles_x) * TILE
+    return x0, y0, min(x0 + TILE, width), min(y0 + TILE, height)
+
+
+@njit(cache=True)
+def _forward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, background, width, height,
+                  tiles_x, T, acc, lst, done, active, contrib_isect, image, t_final, last):
+    """Composite one tile front to back. Each Gaussian visits only the chords of its ellipse
+    inside the tile, and skips rows whose pixels have all stopped (bit masks in ``active``)."""
+    n_ch = colors.shape[1]
+    x0, y0, x1, y1 = _tile_bounds(t, tiles_x, width, height)
+    tw = x1 - x0
+    n_pix = tw * (y1 - y0)
+    for p in range(n_pix):
+        T[p] = 1.0
+        lst[p] = -1
+        done[p] = False
+        for ch in range(n_ch):
+            acc[p, ch] = 0.0
+    for r in range(y1 - y0):
+        active[r] = (1 << tw) - 1
+    n_done = 0
+    for k in range(tile_start[t], tile_start[t + 1]):
+        g = ids[k]
+        i0 = max(rect[g, 0], x0)
+        i1 = min(rect[g, 2], x1 - 1)
+        j0 = max(rect[g, 1], y0)
+        j1 = min(rect[g, 3], y1 - 1)
+        u = xy[g, 0]
+        v = xy[g, 1]
+        ca = conic[g, 0]
+        cb = conic[g, 1]
+        cc = conic[g, 2]
+        o = opacities[g]
+        c_g = cut[g]
+        wsum = 0.0
+        for j in range(j0, j1 + 1):
+            r = j - y0
+            if active[r] == 0:
+                continue
+            dy = j + 0.5 - v
+            a, b = _row_span(dy, u, ca, cb, cc, c_g, i0, i1)
+            if a > b:
+                continue
+            if active[r] & (((1 << (b + 1 - x0)) - 1) ^ ((1 << (a - x0)) - 1)) == 0:
+                continue
+            row = r * tw - x0
+            for i in range(a, b + 1):
+                p = row + i
+                if done[p]:
+                    continue
+                alpha, _, _ = _alpha(o, ca, cb, cc, i + 0.5 - u, dy, c_g)
+                if alpha == 0.0:
+                    continue
+                t_next = T[p] * (1.0 - alpha)
+                if t_next < T_MIN:
+                    done[p] = True
+                    active[r] &= ~(1 << (i - x0))
+                    n_done += 1
+                    continue
+                w = alpha * T[p]
+                for ch in range(n_ch):
+                    acc[p, ch] += w * colors[g, ch]
+                wsum += w
+                T[p] = t_next
+                lst[p] = k
+        contrib_isect[k] = wsum
+        if n_done == n_pix:
+            break
+    for j in range(y0, y1):
+        for i in range(x0, x1):
+            p = (j - y0) * tw + i - x0
+            for ch in range(n_ch):
+                image[j, i, ch] = acc[p, ch] + T[p] * background[ch]
+            t_final[j, i] = T[p]
+            last[j, i] = lst[p]
+
+
+@njit(parallel=_PARALLEL, cache=True)
+def raster_forward(tile_start, ids, xy, conic, opacities, cut, colors, rect, background, width, height,
+                   tiles_x):
+    """Front-to-back compositing, parallel over tiles.
+
+    Returns image [H,W,C] (background included), final transmittance [H,W], the flat index
+    (into ``ids``) of the last Gaussian composited at each pixel (-1: none), and per-Gaussian
+    contribution sum_pixels alpha*T.
+    """
+    n = xy.shape[0]
+    n_ch = colors.shape[1]
+    n_tiles = tile_start.shape[0] - 1
+    image = np.empty((height, width, n_ch))
+    t_final = np.empty((height, width))
+    last = np.empty((height, width), np.int64)
+    contrib_isect = np.zeros(ids.shape[0])  # pairs after a tile's early exit stay 0
+    for t in prange(n_tiles):
+        T = np.empty(TILE * TILE)
+        acc = np.empty((TILE * TILE, n_ch))
+        lst = np.empty(TILE * TILE, np.int64)
+        done = np.empty(TILE * TILE, np.bool_)
+        active = np.empty(TILE, np.int64)
+        _forward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, background, width,
+                      height, tiles_x, T, acc, lst, done, active, contrib_isect, image, t_final, last)
+    contrib = np.zeros(n)
+    for k in range(ids.shape[0]):
+        contrib[ids[k]] += contrib_isect[k]
+    return image, t_final, last, contrib
+
+
+@njit(cache=True)
+def _backward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, background, t_final,
+                   last, grad_image, grad_alpha, width, height, tiles_x, T, behind, gimg, galpha, tfin,
+                   lst, row_last, gcol, grads_isect, gbg):
+    """Back-to-front recomputation of one tile (see raster_backward); rows whose pixels all
+    stopped before Gaussian k are skipped via ``row_last``."""
+    n_ch = colors.shape[1]
+    x0, y0, x1, y1 = _tile_bounds(t, tiles_x, width, height)
+    tw = x1 - x0
+    k_max = -1
+    for j in range(y0, y1):
+        row_last[j - y0] = -1
+        for i in range(x0, x1):
+            p = (j - y0) * tw + i - x0
+            tn = t_final[j, i]
+            T[p] = tn
+            tfin[p] = tn
+            lst[p] = last[j, i]
+            row_last[j - y0] = max(row_last[j - y0], last[j, i])
+            k_max = max(k_max, last[j, i])
+            galpha[p] = grad_alpha[j, i]
+            for ch in range(n_ch):
+                behind[p, ch] = tn * background[ch]
+                gimg[p, ch] = grad_image[j, i, ch]
+                gbg[ch] += grad_image[j, i, ch] * tn
+    for k in range(k_max, tile_start[t] - 1, -1):
+        g = ids[k]
+        i0 = max(rect[g, 0], x0)
+        i1 = min(rect[g, 2], x1 - 1)
+        j0 = max(rect[g, 1], y0)
+        j1 = min(rect[g, 3], y1 - 1)
+        u = xy[g, 0]
+        v = xy[g, 1]
+        ca = conic[g, 0]
+        cb = conic[g, 1]
+        cc = conic[g, 2]
+        o = opacities[g]
+        c_g = cut[g]
+        gu = 0.0
+        gv = 0.0
+        gca = 0.0
+        gcb = 0.0
+        gcc = 0.0
+        go = 0.0
+        for ch in range(n_ch):
+            gcol[ch] = 0.0
+        touched = False
+        for j in range(j0, j1 + 1):
+            if k > row_last[j - y0]:
+                continue
+            dy = j + 0.5 - v
+            a, b = _row_span(dy, u, ca, cb, cc, c_g, i0, i1)
+            row = (j - y0) * tw - x0
+            for i in range(a, b + 1):
+                p = row + i
+                if k > lst[p]:
+                    continue
+                dx = i + 0.5 - u
+                alpha, gauss, clamped = _alpha(o, ca, cb, cc, dx, dy, c_g)
+                if alpha == 0.0:
+                    continue
+                touched = True
+                inv = 1.0 / (1.0 - alpha)
+                T_before = T[p] * inv
+                w = alpha * T_before
+                g_a = galpha[p] * tfin[p] * inv
+                for ch in range(n_ch):
+                    gcol[ch] += w * gimg[p, ch]
+                    g_a += gimg[p, ch] * (colors[g, ch] * T_before - behind[p, ch] * inv)
+                    behind[p, ch] += colors[g, ch] * w
+                T[p] = T_before
+                if clamped:
+                    continue
+                go += gauss * g_a
+                g_pow = alpha * g_a
+                gu += g_pow * (ca * dx + cb * dy)
+                gv += g_pow * (cb * dx + cc * dy)
+                gca -= 0.5 * g_pow * dx * dx
+                gcb -= g_pow * dx * dy
+                gcc -= 0.5 * g_pow * dy * dy
+        if touched:
+            grads_isect[k, G_U] = gu
+            grads_isect[k, G_V] = gv
+            grads_isect[k, G_CA] = gca
+            grads_isect[k, G_CB] = gcb
+            grads_isect[k, G_CC] = gcc
+            grads_isect[k, G_OPAC] = go
+            for ch in range(n_ch):
+                grads_isect[k, G_COLOR + ch] = gcol[ch]
+
+
+@njit(parallel=_PARALLEL, cache=True)
+def raster_backward(tile_start, ids, xy, conic, opacities, cut, colors, rect, background, t_final, last,
+                    grad_image, grad_alpha, width, height, tiles_x):
+    """Back-to-front recomputation per pixel (3DGS): from the saved final T and last index,
+    T before Gaussian i is T_after / (1 - alpha_i), and the colour behind it is accumulated
+    as we go. Per pixel and Gaussian i (C = sum_i c_i a_i T_i + T_N bg, A = 1 - T_N):
+
+      dC/dc_i = a_i T_i
+      dC/da_i = c_i T_i - (colour behind i, background included) / (1 - a_i)
+      dA/da_i = T_N / (1 - a_i)
+
+    then a = o * exp(power) (no gradient where clamped to 0.99) and
+    power = -(ca dx^2 + cc dy^2)/2 - cb dx dy, dx = px - u, dy = py - v.
+    Returns per-Gaussian gradients [N, 6 + C] (layout G_*) and d/dbackground [C].
+    """
+    n = xy.shape[0]
+    n_ch = colors.shape[1]
+    n_tiles = tile_start.shape[0] - 1
+    grads_isect = np.zeros((ids.shape[0], G_COLOR + n_ch))
+    gbg_tile = np.zeros((n_tiles, n_ch))
+    for t in prange(n_tiles):
+        T = np.empty(TILE * TILE)
+        behind = np.empty((TILE * TILE, n_ch))
+        gimg = np.empty((TILE * TILE, n_ch))
+        galpha = np.empty(TILE * TILE)
+        tfin = np.empty(TILE * TILE)
+        lst = np.empty(TILE * TILE, np.int64)
+        row_last = np.empty(TILE, np.int64)
+        gcol = np.empty(n_ch)
+        _backward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, background, t_final,
+                       last, grad_image, grad_alpha, width, height, tiles_x, T, behind, gimg, galpha, tfin,
+                       lst, row_last, gcol, grads_isect, gbg_tile[t])
+    grads = np.zeros((n, G_COLOR + n_ch))
+    for k in range(ids.shape[0]):
+        g = ids[k]
+        for q in range(G_COLOR + n_ch):
+            grads[g, q] += grads_isect[k, q]
+    gbg = np.zeros(n_ch)
+    for t in range(n_tiles):
+        for ch in range(n_ch):
+            gbg[ch] += gbg_tile[t, ch]
+    return grads, gbg
+
+
+@njit(cache=True)
+def _project_backward_one(g, means, quats, scales, Rc, tc, fx, fy, lim, eps2d, grad_uv, grad_conic,
+                          grad_depth, R, Mc, A, GA, GM, g_means, g_quats, g_scales):
+    """One Gaussian of project_backward (R, Mc, A, GA, GM: scratch)."""
+    px = Rc[0, 0] * means[g, 0] + Rc[0, 1] * means[g, 1] + Rc[0, 2] * means[g, 2] + tc[0]
+    py = Rc[1, 0] * means[g, 0] + Rc[1, 1] * means[g, 1] + Rc[1, 2] * means[g, 2] + tc[1]
+    pz = Rc[2, 0] * means[g, 0] + Rc[2, 1] * means[g, 1] + Rc[2, 2] * means[g, 2] + tc[2]
+    qn, qw, qx, qy, qz = _camera_factor(quats[g], scales[g], Rc, R, Mc)
+    j00, j02, j11, j12, kx, ky, x_free, y_free = _jacobian(px, py, pz, fx, fy, lim)
+    a = eps2d
+    b = 0.0
+    c = eps2d
+    for k in range(3):
+        A[0, k] = j00 * Mc[0, k] + j02 * Mc[2, k]
+        A[1, k] = j11 * Mc[1, k] + j12 * Mc[2, k]
+        a += A[0, k] * A[0, k]
+        b += A[0, k] * A[1, k]
+        c += A[1, k] * A[1, k]
+    det = a * c - b * b
+    qa = c / det
+    qb = -b / det
+    qc = a / det
+    ga = grad_conic[g, 0]
+    gb = 0.5 * grad_conic[g, 1]
+    gc = grad_conic[g, 2]
+    # -Q G Q for symmetric 2x2 Q = [[qa, qb], [qb, qc]], G = [[ga, gb], [gb, gc]].
+    m00 = qa * ga + qb * gb
+    m01 = qa * gb + qb * gc
+    m10 = qb * ga + qc * gb
+    m11 = qb * gb + qc * gc
+    s00 = -(m00 * qa + m01 * qb)
+    s01 = -(m00 * qb + m01 * qc)
+    s11 = -(m10 * qb + m11 * qc)
+    for k in range(3):
+        GA[0, k] = 2.0 * (s00 * A[0, k] + s01 * A[1, k])
+        GA[1, k] = 2.0 * (s01 * A[0, k] + s11 * A[1, k])
+    gj00 = GA[0, 0] * Mc[0, 0] + GA[0, 1] * Mc[0, 1] + GA[0, 2] * Mc[0, 2]
+    gj02 = GA[0, 0] * Mc[2, 0] + GA[0, 1] * Mc[2, 1] + GA[0, 2] * Mc[2, 2]
+    gj11 = GA[1, 0] * Mc[1, 0] + GA[1, 1] * Mc[1, 1] + GA[1, 2] * Mc[1, 2]
+    gj12 = GA[1, 0] * Mc[2, 0] + GA[1, 1] * Mc[2, 1] + GA[1, 2] * Mc[2, 2]
+    # dL/dMc = J^T GA has rows (j00 GA0, j11 GA1, j02 GA0 + j12 GA1); dL/dM = Rc^T dL/dMc.
+    for k in range(3):
+        r0 = j00 * GA[0, k]
+        r1 = j11 * GA[1, k]
+        r2 = j02 * GA[0, k] + j12 * GA[1, k]
+        for i in range(3):
+            GM[i, k] = Rc[0, i] * r0 + Rc[1, i] * r1 + Rc[2, i] * r2
+    s = scales[g]
+    for k in range(3):
+        g_scales[g, k] = GM[0, k] * R[0, k] + GM[1, k] * R[1, k] + GM[2, k] * R[2, k]
+    d00 = GM[0, 0] * s[0]
+    d01 = GM[0, 1] * s[1]
+    d02 = GM[0, 2] * s[2]
+    d10 = GM[1, 0] * s[0]
+    d11 = GM[1, 1] * s[1]
+    d12 = GM[1, 2] * s[2]
+    d20 = GM[2, 0] * s[0]
+    d21 = GM[2, 1] * s[1]
+    d22 = GM[2, 2] * s[2]
+    # dR/dq of the rotation in _camera_factor, contracted with dL/dR = (d_ij).
+    gw = 2.0 * (-qz * d01 + qy * d02 + qz * d10 - qx * d12 - qy * d20 + qx * d21)
+    gx = 2.0 * (qy * d01 + qz * d02 + qy * d10 - 2.0 * qx * d11 - qw * d12 + qz * d20
+                + qw * d21 - 2.0 * qx * d22)
+    gy = 2.0 * (-2.0 * qy * d00 + qx * d01 + qw * d02 + qx * d10 + qz * d12 - qw * d20
+                + qz * d21 - 2.0 * qy * d22)
+    gz = 2.0 * (-2.0 * qz * d00 - qw * d01 + qx * d02 + qw * d10 - 2.0 * qz * d11 + qy * d12
+                + qx * d20 + qy * d21)
+    # Through q/|q|: drop the radial part, scale by 1/|q|.
+    dot = gw * qw + gx * qx + gy * qy + gz * qz
+    g_quats[g, 0] = (gw - dot * qw) / qn
+    g_quats[g, 1] = (gx - dot * qx) / qn
+    g_quats[g, 2] = (gy - dot * qy) / qn
+    g_quats[g, 3] = (gz - dot * qz) / qn
+    # Camera-space mean: u = fx x/z + cx, v = fy y/z + cy, J00 = fx/z, J11 = fy/z, and
+    # J02 = -fx kx / z with kx = x/z unless clamped (then kx is a constant); same for y.
+    rz = 1.0 / pz
+    rz2 = rz * rz
+    gu = grad_uv[g, 0]
+    gv = grad_uv[g, 1]
+    gpx = gu * fx * rz
+    gpy = gv * fy * rz
+    gpz = -(gu * fx * px + gv * fy * py) * rz2 - (gj00 * fx + gj11 * fy) * rz2 + grad_depth[g]
+    if x_free:
+        gpx -= gj02 * fx * rz2
+        gpz += gj02 * 2.0 * fx * kx * rz2
+    else:
+        gpz += gj02 * fx * kx * rz2
+    if y_free:
+        gpy -= gj12 * fy * rz2
+        gpz += gj12 * 2.0 * fy * ky * rz2
+    else:
+        gpz += gj12 * fy * ky * rz2
+    for i in range(3):
+        g_means[g, i] = Rc[0, i] * gpx + Rc[1, i] * gpy + Rc[2, i] * gpz
+
+
+@njit(parallel=_PARALLEL, cache=True)
+def project_backward(means, quats, scales, Rc, tc, fx, fy, lim, eps2d, radii, grad_uv, grad_conic,
+                     grad_depth):
+    """Chain rule from (u, v), conic and camera z back to means, quats (wxyz, unnormalised) and scales.
+
+    With A = J Mc (2x3), cov2d = A A^T + eps2d I, conic Q = cov2d^-1:
+      dL/dcov2d = -Q G_Q Q      (G_Q symmetric: the off-diagonal scalar's gradient split in two)
+      dL/dA = 2 dL/dcov2d A,  dL/dJ = dL/dA Mc^T,  dL/dMc = J^T dL/dA
+      Mc = Rc R S:  dL/dM = Rc^T dL/dMc,  dL/dR_ij = dL/dM_ij s_j,  dL/ds_j = sum_i dL/dM_ij R_ij
+    and J depends on the camera-space mean through 1/z and the (possibly clamped) x/z, y/z.
+    Culled Gaussians (radius 0) get zero gradients.
+    """
+    n = means.shape[0]
+    g_means = np.zeros((n, 3))
+    g_quats = np.zeros((n, 4))
+    g_scales = np.zeros((n, 3))
+    for blk in prange((n + BLOCK - 1) // BLOCK):
+        R = np.empty((3, 3))
+        Mc = np.empty((3, 3))
+        A = np.empty((2, 3))
+        GA = np.empty((2, 3))
+        GM = np.empty((3, 3))
+        for g in range(blk * BLOCK, min(n, (blk + 1) * BLOCK)):
+            if radii[g] != 0:
+                _project_backward_one(g, means, quats, scales, Rc, tc, fx, fy, lim, eps2d, grad_uv,
+                                      grad_conic, grad_depth, R, Mc, A, GA, GM, g_means, g_quats,
+                                      g_scales)
+    return g_means, g_quats, g_scales

@@ -1,0 +1,340 @@
+"""Training: adaptive subdivision, multi-level supervision, atomic checkpoints, resume.
+
+One iteration: pick a training view, evaluate every face's Gaussian on that timestep's mesh,
+render the cumulative set of each supervised level, sum the photometric losses, add the
+regularisers, step Adam. Screen-space gradients of the finest render are accumulated on
+leaves; every `grow_every` iterations leaves whose mean gradient exceeds the threshold are
+split, under a depth cap that rises from 1 to `max_depth`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field, replace
+
+import numpy as np
+import torch
+
+from . import losses
+from .avatar import PARAM_NAMES
+from .data import Dataset
+from .forest import Forest, atomic_savez
+from .model import TRAINABLE, TorchAvatar
+from .render import render
+
+
+@dataclass
+class TrainConfig:
+    iterations: int = 4000
+    max_depth: int = 3
+    grow_every: int = 200
+    grow_start: int = 200
+    grow_stop: float = 0.75  # fraction of iterations after which the forest is frozen
+    grad_threshold: float = 1e-3  # mean NDC-space |d loss / d mean2d| that triggers a split
+    max_faces: int = 60000
+    supervision: str = "all"  # all | sampled | finest
+    uniform: bool = False  # ablation: split every leaf when the cap rises, ignore gradients
+    lambda_ssim: float = 0.2
+    position_reg: float = 0.01
+    scale_reg: float = 1.0
+    lr: dict = field(default_factory=lambda: {
+        "split_logits": 1e-2, "d_mu": 5e-3, "d_log_scale": 2e-2, "d_rot": 1e-3,
+        "opacity_logit": 5e-2, "f_dc": 2.5e-3 * 4,
+    })
+    lr_final_ratio: float = 0.01  # position lr decays exponentially to this fraction
+    seed: int = 0
+    downscale: float = 1.0
+    log_every: int = 50
+    eval_every: int = 500
+    eval_views: int = 8
+    checkpoint_every: int = 500
+
+
+PRESETS = {
+    # Seconds: for tests and smoke runs.
+    "tiny": dict(iterations=60, max_depth=2, grow_every=15, grow_start=15, grow_stop=0.8, max_faces=20000,
+                 log_every=10, eval_every=30, eval_views=2, checkpoint_every=20),
+    # The synthetic default on a 2-core CPU (<= 30 min).
+    "cpu": dict(iterations=3000, max_depth=3, grow_every=150, grow_start=150, grow_stop=0.7, max_faces=40000,
+                log_every=25, eval_every=250, eval_views=8, checkpoint_every=250),
+    # GPU, the paper's depth.
+    "paper": dict(iterations=60000, max_depth=4, grow_every=2000, grow_start=2000, grow_stop=0.8, max_faces=250000,
+                  log_every=100, eval_every=5000, eval_views=16, checkpoint_every=5000),
+}
+
+
+def config_for(preset: str, **overrides) -> TrainConfig:
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
+    cfg = replace(TrainConfig(), **PRESETS[preset])
+    return replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
+
+
+class Adam:
+    """Adam with per-row step counts, so rows added by a split start their own bias correction."""
+
+    def __init__(self, params: dict, lrs: dict, betas=(0.9, 0.999), eps=1e-15):
+        self.lrs = dict(lrs)
+        self.betas, self.eps = betas, eps
+        self.m = {k: torch.zeros_like(v) for k, v in params.items()}
+        self.v = {k: torch.zeros_like(v) for k, v in params.items()}
+        self.steps = torch.zeros(len(next(iter(params.values()))), dtype=torch.float64)
+
+    @torch.no_grad()
+    def step(self, params: dict, lr_scale: dict | None = None):
+        b1, b2 = self.betas
+        self.steps += 1
+        c1 = (1 - b1 ** self.steps).to(torch.float32)
+        c2 = (1 - b2 ** self.steps).to(torch.float32)
+        for name, p in params.items():
+            if p.grad is None:
+                continue
+            g = p.grad
+            m, v = self.m[name], self.v[name]
+            m.mul_(b1).add_(g, alpha=1 - b1)
+            v.mul_(b2).addcmul_(g, g, value=1 - b2)
+            shape = (-1,) + (1,) * (p.dim() - 1)
+            denom = (v / c2.view(shape)).sqrt_().add_(self.eps)
+            lr = self.lrs[name] * (lr_scale or {}).get(name, 1.0)
+            p.addcdiv_(m / c1.view(shape), denom, value=-lr)
+            p.grad = None
+
+    def grow(self, params: dict):
+        """Extend the state for rows appended to the parameters (zero moments, zero steps)."""
+        n_old = len(self.steps)
+        for name, p in params.items():
+            extra = p.shape[0] - self.m[name].shape[0]
+            if extra > 0:
+                z = torch.zeros((extra,) + tuple(p.shape[1:]), dtype=p.dtype)
+                self.m[name] = torch.cat([self.m[name], z])
+                self.v[name] = torch.cat([self.v[name], z.clone()])
+        n_new = next(iter(params.values())).shape[0]
+        if n_new > n_old:
+            self.steps = torch.cat([self.steps, torch.zeros(n_new - n_old, dtype=torch.float64)])
+
+
+def _check_finite(it: int, **tensors):
+    for name, t in tensors.items():
+        if t is not None and not torch.isfinite(t).all():
+            raise FloatingPointError(f"iteration {it}: {name} became NaN/inf; training stopped, last checkpoint kept")
+
+
+class Trainer:
+    def __init__(self, data_dir: str, out_dir: str, config: TrainConfig, resume: bool = False):
+        self.data_dir, self.out_dir, self.cfg = data_dir, out_dir, config
+        os.makedirs(out_dir, exist_ok=True)
+        self.train = Dataset(data_dir, "train", downscale=config.downscale, cache_images=100000)
+        try:
+            self.val = Dataset(data_dir, "val", downscale=config.downscale, cache_images=64)
+        except (ValueError, FileNotFoundError):
+            self.val = None
+        self.background = torch.tensor(np.asarray(self.train.background, np.float32))
+        self.ckpt_path = os.path.join(out_dir, "checkpoint.npz")
+        self.log_path = os.path.join(out_dir, "metrics.jsonl")
+        if resume and os.path.exists(self.ckpt_path):
+            self._load_checkpoint()
+        else:
+            self.model = TorchAvatar.from_template(self.train.faces)
+            self.opt = Adam(self.model.params, config.lr)
+            self.rng = np.random.default_rng(config.seed)
+            self.iteration = 0
+            self.elapsed = 0.0
+            self._reset_accumulators()
+            if os.path.exists(self.log_path):
+                os.remove(self.log_path)
+        with open(os.path.join(out_dir, "config.json"), "w") as fh:
+            json.dump({"data": os.path.abspath(data_dir), **asdict(config)}, fh, indent=1)
+
+    # -- growth ---------------------------------------------------------------------------
+    def _reset_accumulators(self):
+        n = self.model.num_faces
+        self.grad_sum = np.zeros(n)
+        self.grad_count = np.zeros(n)
+
+    def depth_cap(self, it: int) -> int:
+        c = self.cfg
+        span = max(1, int(c.grow_stop * c.iterations) - c.grow_start)
+        return int(min(c.max_depth, 1 + (max(0, it - c.grow_start) * c.max_depth) // span))
+
+    def _grow(self, it: int) -> int:
+        c, forest = self.cfg, self.model.forest
+        cap = self.depth_cap(it)
+        leaves = forest.leaves()
+        leaves = leaves[forest.level[leaves] < cap]
+        if c.uniform:
+            pick = leaves[forest.level[leaves] < cap]
+        else:
+            mean = self.grad_sum[leaves] / np.maximum(self.grad_count[leaves], 1)
+            pick = leaves[mean > c.grad_threshold]
+            # Largest gradients first when the face budget would be exceeded.
+            pick = pick[np.argsort(-mean[mean > c.grad_threshold], kind="stable")]
+        room = max(0, (c.max_faces - forest.num_faces) // 3)
+        pick = np.sort(pick[:room])
+        if len(pick):
+            self.model.split(pick)
+            self.opt.grow(self.model.params)
+        self._reset_accumulators()
+        return len(pick)
+
+    # -- one step -------------------------------------------------------------------------
+    def _levels(self) -> list[int]:
+        top = self.model.forest.max_level
+        mode = self.cfg.supervision
+        if mode == "finest" or top == 0:
+            return [top]
+        if mode == "sampled":
+            return sorted({top, int(self.rng.integers(0, top))})
+        return list(range(top + 1))
+
+    def step(self) -> dict:
+        c, it = self.cfg, self.iteration
+        sample = self.train[int(self.rng.integers(len(self.train)))]
+        target = torch.from_numpy(sample.image)
+        g = self.model.gaussians(torch.from_numpy(sample.vertices))
+        levels = self._levels()
+        top = self.model.forest.max_level
+        loss = torch.zeros(())
+        finest = None
+        for lvl in levels:
+            ids = self.model.level_ids[lvl]
+            out = render(g["means"][ids], g["quats"][ids], g["scales"][ids], g["opacities"][ids], g["colors"][ids],
+                         sample.camera, self.background)
+            loss = loss + losses.photometric(out.image, target, c.lambda_ssim)
+            if lvl == top:
+                finest = (ids, out)
+        p = self.model.params
+        loss = loss + c.position_reg * losses.position_reg(p["d_mu"]) + c.scale_reg * losses.scale_reg(p["d_log_scale"])
+        _check_finite(it, loss=loss)
+        loss.backward()
+        for name, t in p.items():
+            _check_finite(it, **{f"gradient of {name}": t.grad})
+        ids, out = finest
+        grad2d = out.means2d.grad
+        if grad2d is not None:
+            # Per-pixel units, independent of image size: normalise by the image extent.
+            norm = torch.linalg.vector_norm(grad2d, dim=-1).numpy() * 0.5 * max(sample.camera.width, sample.camera.height)
+            seen = out.radii.numpy() > 0
+            idx = ids.numpy()[seen]
+            np.add.at(self.grad_sum, idx, norm[seen])
+            np.add.at(self.grad_count, idx, 1)
+        decay = c.lr_final_ratio ** (it / max(1, c.iterations))
+        self.opt.step(p, {"d_mu": decay})
+        for name, t in p.items():
+            _check_finite(it, **{name: t})
+        mse = torch.mean((out.image.detach() - target) ** 2).item()
+        return {"loss": float(loss.item()), "psnr": 10 * math.log10(1 / max(mse, 1e-12))}
+
+    # -- evaluation -----------------------------------------------------------------------
+    @torch.no_grad()
+    def evaluate(self, n_views: int) -> dict:
+        from .metrics import psnr
+
+        if self.val is None:
+            return {}
+        pick = np.linspace(0, len(self.val) - 1, min(n_views, len(self.val))).astype(int)
+        values = []
+        for i in pick:
+            s = self.val[int(i)]
+            g = self.model.gaussians(torch.from_numpy(s.vertices))
+            out = render(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], s.camera, self.background)
+            values.append(psnr(out.image.numpy(), s.image, s.mask))
+        return {"val_psnr": float(np.mean(values))}
+
+    # -- persistence ----------------------------------------------------------------------
+    def _save_checkpoint(self):
+        arrays = self.model.forest.state()
+        for name, t in self.model.params.items():
+            arrays["param_" + name] = t.detach().numpy()
+            arrays["adam_m_" + name] = self.opt.m[name].numpy()
+            arrays["adam_v_" + name] = self.opt.v[name].numpy()
+        arrays["adam_steps"] = self.opt.steps.numpy()
+        arrays["grad_sum"] = self.grad_sum
+        arrays["grad_count"] = self.grad_count
+        arrays["state_json"] = np.array(json.dumps({
+            "iteration": self.iteration, "elapsed": self.elapsed, "rng": self.rng.bit_generator.state,
+        }))
+        atomic_savez(self.ckpt_path, **arrays)
+
+    def _load_checkpoint(self):
+        with np.load(self.ckpt_path, allow_pickle=False) as d:
+            forest = Forest.from_state(d, source=self.ckpt_path)
+            from .avatar import Avatar
+
+            av = Avatar(forest, *(d["param_" + n] for n in PARAM_NAMES))
+            self.model = TorchAvatar(av)
+            with torch.no_grad():
+                self.model.params["split_logits"].copy_(torch.from_numpy(d["param_split_logits"]))
+            self.opt = Adam(self.model.params, self.cfg.lr)
+            for name in TRAINABLE:
+                self.opt.m[name] = torch.from_numpy(d["adam_m_" + name].copy())
+                self.opt.v[name] = torch.from_numpy(d["adam_v_" + name].copy())
+            self.opt.steps = torch.from_numpy(d["adam_steps"].copy())
+            self.grad_sum, self.grad_count = d["grad_sum"].copy(), d["grad_count"].copy()
+            state = json.loads(str(d["state_json"]))
+        self.iteration, self.elapsed = state["iteration"], state["elapsed"]
+        self.rng = np.random.default_rng()
+        self.rng.bit_generator.state = state["rng"]
+        # Drop log lines written after the checkpoint: they will be written again.
+        if os.path.exists(self.log_path):
+            with open(self.log_path) as fh:
+                lines = [ln for ln in fh if json.loads(ln).get("iteration", 0) <= self.iteration]
+            with open(self.log_path, "w") as fh:
+                fh.writelines(lines)
+
+    def _log(self, record: dict):
+        with open(self.log_path, "a") as fh:
+            fh.write(json.dumps(record) + "\n")
+
+    def save_avatar(self) -> str:
+        path = os.path.join(self.out_dir, "avatar.npz")
+        meta = {"data": os.path.abspath(self.data_dir), "iterations": self.iteration, "train_seconds": self.elapsed,
+                "config": asdict(self.cfg)}
+        self.model.to_avatar(meta).save(path)
+        return path
+
+    # -- loop -----------------------------------------------------------------------------
+    def run(self, progress: bool = True, stop_after: int | None = None) -> dict:
+        """Train to the configured iteration count (or `stop_after` more iterations)."""
+        from tqdm import tqdm
+
+        c = self.cfg
+        end = c.iterations if stop_after is None else min(c.iterations, self.iteration + stop_after)
+        bar = tqdm(total=c.iterations, initial=self.iteration, disable=not progress, dynamic_ncols=True,
+                   desc="train")
+        recent = []
+        while self.iteration < end:
+            t0 = time.perf_counter()
+            stats = self.step()
+            self.iteration += 1
+            it = self.iteration
+            grown = 0
+            if (c.uniform or it >= c.grow_start) and it % c.grow_every == 0 and it <= c.grow_stop * c.iterations:
+                grown = self._grow(it)
+            self.elapsed += time.perf_counter() - t0
+            recent.append(stats["psnr"])
+            record = None
+            if it % c.log_every == 0 or it == c.iterations:
+                counts = self.model.forest.level_counts().tolist()
+                record = {"iteration": it, "seconds": round(self.elapsed, 3), "loss": stats["loss"],
+                          "train_psnr": float(np.mean(recent)), "faces": int(sum(counts)), "level_counts": counts}
+                recent = []
+            if it % c.eval_every == 0 or it == c.iterations:
+                record = record or {"iteration": it, "seconds": round(self.elapsed, 3)}
+                record.update(self.evaluate(c.eval_views))
+            if record:
+                self._log(record)
+                bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{record.get('train_psnr', stats['psnr']):.2f}",
+                                levels="/".join(map(str, self.model.forest.level_counts())), refresh=False)
+            if grown:
+                bar.write(f"iteration {it}: split {grown} faces, depth cap {self.depth_cap(it)}, "
+                          f"{self.model.num_faces} Gaussians")
+            bar.update(1)
+            if it % c.checkpoint_every == 0 or it == end:
+                self._save_checkpoint()
+        bar.close()
+        path = self.save_avatar()
+        return {"avatar": path, "iterations": self.iteration, "seconds": self.elapsed,
+                "level_counts": self.model.forest.level_counts().tolist()}

@@ -1,0 +1,170 @@
+"""Benchmark of the Blender extension (bpy module, headless): sequence import, budget slider,
+frame change.
+
+    python scripts/bench_blender.py [--quick]
+
+``run(quick=False)`` returns the Markdown section. Blender runs in a child process (bpy is
+one per process and must see a temporary BLENDER_USER_RESOURCES before it is imported).
+"""
+
+from __future__ import annotations
+
+import _bootstrap  # noqa: F401  (makes progressive_avatars importable, strips Blender's "--")
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+import bench_common
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+def grid_mesh(n_vertices=5023, cols=70):
+    """A wavy sheet with FLAME's vertex count (spare vertices unused) and ~10k triangles."""
+    rows = (n_vertices) // cols
+    y, x = np.mgrid[0:rows, 0:cols].astype(np.float64)
+    v = np.zeros((n_vertices, 3))
+    v[: rows * cols, 0] = x.ravel() * 0.003
+    v[: rows * cols, 1] = y.ravel() * 0.003
+    v[: rows * cols, 2] = 0.01 * np.sin(x.ravel() * 0.2) * np.cos(y.ravel() * 0.15)
+    idx = np.arange(rows * cols).reshape(rows, cols)
+    a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
+    faces = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([b, d, c], -1).reshape(-1, 3)])
+    return v.astype(np.float32), faces.astype(np.int32)
+
+
+def make_inputs(folder, frames, gaussians):
+    from progressive_avatars.core.avatar import Avatar
+    from progressive_avatars.core.forest import Forest
+    from progressive_avatars.core.stream import write_stream
+
+    rng = np.random.default_rng(0)
+    v, f = grid_mesh()
+    t = np.arange(frames, dtype=np.float32)[:, None]
+    verts = np.repeat(v[None], frames, 0)
+    verts[:, :, 2] += 0.005 * np.sin(0.1 * t + v[None, :, 0] * 30)
+    np.savez(os.path.join(folder, "seq.npz"), vertices=verts, faces=f)
+    forest = Forest(f)
+    while forest.num_faces < gaussians:
+        leaves = forest.leaves()
+        need = (gaussians - forest.num_faces) // 3
+        forest.split(leaves[rng.permutation(len(leaves))[: max(need, 1)]])
+    av = Avatar.initial(forest)
+    N = forest.num_faces
+    av.d_mu[:] = rng.normal(0, 0.2, (N, 3))
+    av.d_log_scale[:] = rng.normal(-1, 0.2, (N, 3))
+    av.d_rot[:] = rng.normal(size=(N, 4))
+    av.f_dc[:] = rng.normal(0, 1, (N, 3))
+    write_stream(os.path.join(folder, "avatar.pavs"), av, importance=rng.random(N))
+    return N
+
+
+CHILD = r'''
+import json, os, sys, time
+import numpy as np
+sys.path.insert(0, sys.argv[1])
+import _bootstrap
+import bpy
+import progressive_avatars
+progressive_avatars.register()
+from progressive_avatars.blender_addon import runtime
+folder = sys.argv[2]
+for ob in list(bpy.data.objects):
+    bpy.data.objects.remove(ob)
+R = {}
+t0 = time.perf_counter()
+bpy.ops.import_scene.progressive_avatars_sequence(filepath=os.path.join(folder, "seq.npz"))
+R["import_s"] = time.perf_counter() - t0
+mesh = bpy.context.active_object
+sc = bpy.context.scene
+t0 = time.perf_counter()
+bpy.ops.object.progressive_avatars_load(filepath=os.path.join(folder, "avatar.pavs"), budget=100.0)
+R["load_s"] = time.perf_counter() - t0
+pv = [c for c in mesh.children if c.pa_avatar.is_preview][0]
+st = pv.pa_avatar
+R["gaussians"] = st.total
+
+def timed(fn, repeat=7):
+    ts = []
+    for _ in range(repeat):
+        t = time.perf_counter(); fn(); ts.append(time.perf_counter() - t)
+    ts.sort()
+    return ts[0], ts[len(ts) // 2]
+
+# Slider: the property write (update callback -> modifier input) and, separately, the
+# depsgraph re-evaluation of the Geometry Nodes that follows it.
+vals = iter([90.0, 100.0] * 20)
+R["slider_set"] = timed(lambda: setattr(st, "budget", next(vals)))
+vals = iter([90.0, 100.0] * 20)
+R["slider_set_eval"] = timed(lambda: (setattr(st, "budget", next(vals)), bpy.context.evaluated_depsgraph_get()))
+st.budget = 100.0
+bpy.context.evaluated_depsgraph_get()
+frames = iter(range(sc.frame_start + 1, sc.frame_end))
+R["frame_set"] = timed(lambda: sc.frame_set(next(frames)))
+dg = bpy.context.evaluated_depsgraph_get()
+R["handler"] = timed(lambda: runtime.refresh(pv, dg))
+frames = iter(range(sc.frame_start + 20, sc.frame_end))
+R["frame_set_eval"] = timed(lambda: (sc.frame_set(next(frames)), bpy.context.evaluated_depsgraph_get()))
+pv.hide_viewport = True
+pv.hide_set(True)
+st.budget = 0.0
+bpy.context.evaluated_depsgraph_get()
+frames = iter(range(sc.frame_start + 40, sc.frame_end))
+R["frame_set_mesh_only"] = timed(lambda: sc.frame_set(next(frames)))
+print("PA_BENCH " + json.dumps(R))
+'''
+
+
+def _child(folder):
+    tmp = tempfile.mkdtemp(prefix="pa_bench_user_")
+    env = dict(os.environ, BLENDER_USER_RESOURCES=tmp, BLENDER_USER_CONFIG=os.path.join(tmp, "config"),
+               BLENDER_USER_SCRIPTS=os.path.join(tmp, "scripts"))
+    script = os.path.join(folder, "child.py")
+    with open(script, "w") as fh:
+        fh.write(CHILD)
+    proc = subprocess.run([sys.executable, script, HERE, folder], capture_output=True, text=True, env=env)
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("PA_BENCH ")]
+    if not lines:
+        raise RuntimeError("Blender benchmark child failed:\n" + proc.stdout[-2000:] + proc.stderr[-2000:])
+    return json.loads(lines[-1][len("PA_BENCH "):])
+
+
+def run(quick: bool = False) -> str:
+    frames, gaussians = (100, 20_000) if quick else (1000, 170_000)
+    with tempfile.TemporaryDirectory(prefix="pa_bench_blender_") as folder:
+        t0 = time.perf_counter()
+        n = make_inputs(folder, frames, gaussians)
+        prep = time.perf_counter() - t0
+        r = _child(folder)
+    ms = lambda pair: f"{pair[0] * 1e3:.2f} / {pair[1] * 1e3:.2f}"  # noqa: E731
+    cmd = "python scripts/bench_blender.py" + (" --quick" if quick else "")
+    out = [bench_common.header("Blender extension (bpy 5.0 module, headless)", cmd)]
+    out.append(f"Inputs: {frames}-frame sequence of a 5023-vertex mesh (9660 triangles), avatar stream of "
+               f"{n:,} Gaussians (made in {prep:.1f} s, not timed below). Times best / median of 7.\n")
+    out.append("| step | time | target |\n|---|---|---|")
+    out.append(f"| import sequence ({frames} frames, shape keys + keyframes) | {r['import_s']:.2f} s | ≤ 3 s |")
+    out.append(f"| load avatar ({r['gaussians']:,} Gaussians, decode + preview + depth) | {r['load_s']:.2f} s | |")
+    out.append(f"| budget slider: set property (update → modifier input) | {ms(r['slider_set'])} ms | ≤ 10 ms |")
+    out.append(f"| budget slider + Geometry Nodes re-evaluation | {ms(r['slider_set_eval'])} ms | |")
+    out.append(f"| frame change handler alone (evaluated mesh → forest → attributes) | {ms(r['handler'])} ms | |")
+    out.append(f"| frame change: `frame_set` (shape keys + handler) | {ms(r['frame_set'])} ms | ≤ 30 ms |")
+    out.append(f"| frame change + Geometry Nodes re-evaluation | {ms(r['frame_set_eval'])} ms | |")
+    out.append(f"| frame change, mesh only (preview hidden, budget 0) | {ms(r['frame_set_mesh_only'])} ms | |")
+    out.append("")
+    return "\n".join(out)
+
+
+def _own_args():
+    # _bootstrap.script_args() takes any argv[0] starting with "blender" for the Blender
+    # binary, which this script's own name does.
+    return sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+
+
+if __name__ == "__main__":
+    print(run(quick="--quick" in _own_args()))

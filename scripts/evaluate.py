@@ -1,0 +1,161 @@
+"""Evaluate a trained run at several transmission budgets and write a report.
+
+    python scripts/evaluate.py --run RUN [--data DIR] --out REPORT_DIR [--budgets 5,25,50,100]
+                               [--compare uniform_d2=RUN2 --compare finest_only=RUN3 ...]
+
+Writes REPORT_DIR/report.json, report.md and PNGs: PSNR against bytes, image strips (one
+view at each budget next to the ground truth), subdivision depth on the head, and PSNR
+against training time. Budgets are percentages of the stream's bytes; a budget's Gaussians
+are the stream's whole records within that many bytes.
+"""
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+
+import _bootstrap
+import numpy as np
+
+
+def _levels_prefixes(avatar):
+    """Cumulative level sets as stream prefixes: level l shows faces of level <= l."""
+    level = avatar.forest.level
+    return {int(lvl): int(np.count_nonzero(level <= lvl)) for lvl in range(int(level.max()) + 1)}
+
+
+def _score_prefixes(renderer, counts):
+    return {k: renderer.score(np.arange(n)) for k, n in counts.items()}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--run", required=True)
+    ap.add_argument("--data")
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--budgets", default="5,25,50,100")
+    ap.add_argument("--views", type=int, default=24, help="views per split (spread evenly)")
+    ap.add_argument("--curve-points", type=int, default=20)
+    ap.add_argument("--compare", action="append", default=[], help="NAME=RUN: another run scored at 100 %%")
+    ap.add_argument("--no-progress", action="store_true")
+    args = ap.parse_args(_bootstrap.script_args() if argv is None else argv)
+
+    from progressive_avatars.core import plots, stream
+    from progressive_avatars.core import run as runs
+    from progressive_avatars.core.data import Dataset
+    from progressive_avatars.core.eval import SplitRenderer, importance_only, random_within_levels
+
+    t_start = time.perf_counter()
+    os.makedirs(args.out, exist_ok=True)
+    try:
+        budgets = [float(b) for b in args.budgets.split(",") if b.strip()]
+        if not budgets or any(not 0 < b <= 100 for b in budgets):
+            raise ValueError(f"--budgets must be percentages in (0, 100], got {args.budgets!r}")
+        avatar = runs.load_run_avatar(args.run)
+        data = runs.run_data_dir(args.run, args.data)
+        splits = {"nvs": Dataset(data, "val"), "nes": Dataset(data, "test")}
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    progress = not args.no_progress
+    W = runs.run_importance(args.run, avatar, data, progress=progress)
+    stream_path = os.path.join(args.run, "avatar.pavs")
+    info = stream.write_stream(stream_path, avatar, W, quantize=True, metadata={"run": os.path.abspath(args.run)})
+    lossless_path = os.path.join(args.out, "lossless.pavs")
+    lossless_info = stream.write_stream(lossless_path, avatar, W, quantize=False)
+    streamed = stream.read_stream(stream_path)
+    exact = stream.read_stream(lossless_path)
+    order = stream.stream_order(avatar.forest, W)
+    W_stream = W[order]
+    total_bytes = os.path.getsize(stream_path)
+
+    rend = {k: SplitRenderer(streamed, ds, args.views) for k, ds in splits.items()}
+    report = {"run": os.path.abspath(args.run), "data": os.path.abspath(data), "stream_bytes": total_bytes,
+              "bytes_per_gaussian": total_bytes / streamed.num_gaussians, "gaussians": streamed.num_gaussians,
+              "level_counts": streamed.forest.level_counts().tolist(), "budgets": {}, "ablations": {}}
+    for b in budgets:
+        n = int(info.count_for_percent(b))
+        ids = np.arange(n)
+        entry = {"gaussians": n, "bytes": int(info.bytes_for_count(n))}
+        for k, r in rend.items():
+            entry[k] = r.score(ids)
+        entry["render_ms"] = entry["nvs"]["render_ms"]
+        report["budgets"][f"{b:g}"] = entry
+        if progress:
+            print(f"budget {b:g}%: {n} Gaussians, NVS {entry['nvs']['psnr']:.2f} dB, NES {entry['nes']['psnr']:.2f} dB")
+
+    # PSNR against bytes, many budgets (NVS, fewer views to keep it quick).
+    curve_r = SplitRenderer(streamed, splits["nvs"], max(4, args.views // 2))
+    curve = []
+    for b in np.linspace(100 / args.curve_points, 100, args.curve_points):
+        n = int(info.count_for_percent(b))
+        curve.append({"percent": float(b), "bytes": int(info.bytes_for_count(n)), "gaussians": n,
+                      "psnr": curve_r.score(np.arange(n))["psnr"]})
+    report["curve_nvs"] = curve
+
+    # Ablations on our data.
+    abl = report["ablations"]
+    nvs = rend["nvs"]
+    n25, n50 = int(info.count_for_percent(25)), int(info.count_for_percent(50))
+    rand = random_within_levels(streamed.forest.level, seed=0)[:n25]
+    abl["random_order_25"] = {"ranked": report["budgets"].get("25", {}).get("nvs") or nvs.score(np.arange(n25)),
+                              "random": nvs.score(np.sort(rand)), "gaussians": n25}
+    imp = importance_only(W_stream, streamed.forest.num_roots)[:n50]
+    abl["importance_only_50"] = {"levels_then_importance": nvs.score(np.arange(n50)),
+                                 "importance_only": nvs.score(np.sort(imp)), "gaussians": n50}
+    abl["quantisation_100"] = {"quantised": nvs.score(np.arange(streamed.num_gaussians)),
+                               "float32": SplitRenderer(exact, splits["nvs"], args.views).score(np.arange(exact.num_gaussians)),
+                               "bytes_quantised": total_bytes, "bytes_float32": os.path.getsize(lossless_path)}
+    abl["quantisation_100"]["psnr_loss_db"] = (abl["quantisation_100"]["float32"]["psnr"]
+                                              - abl["quantisation_100"]["quantised"]["psnr"])
+    abl["level_prefixes"] = {"counts": _levels_prefixes(streamed), "nvs": _score_prefixes(nvs, _levels_prefixes(streamed))}
+    sizes = {f"{b:g}": int(info.bytes_for_count(int(info.count_for_percent(b)))) for b in budgets}
+    abl["single_asset_vs_discrete"] = {"stream_bytes": total_bytes, "discrete_sum_bytes": int(sum(sizes.values())),
+                                      "discrete_budgets": sizes}
+    for spec in args.compare:
+        name, _, other = spec.partition("=")
+        other_av = runs.load_run_avatar(other)
+        other_rend = SplitRenderer(other_av, splits["nvs"], args.views)
+        entry = {"run": os.path.abspath(other), "gaussians": other_av.num_gaussians,
+                 "level_counts": other_av.forest.level_counts().tolist(),
+                 "nvs": other_rend.score(np.arange(other_av.num_gaussians))}
+        level = other_av.forest.level
+        entry["level_prefixes_nvs"] = {int(lvl): other_rend.score(np.flatnonzero(level <= lvl))
+                                       for lvl in range(int(level.max()) + 1)}
+        abl.setdefault("compare", {})[name] = entry
+
+    # Detail against depth.
+    detail_path = os.path.join(data, "detail.npz")
+    depth = avatar.forest.depth_per_root()
+    if os.path.exists(detail_path):
+        detail = np.load(detail_path)["face_detail"]
+        if len(detail) == len(depth):
+            report["depth_vs_detail"] = plots.depth_detail_stats(depth, detail)
+
+    # Pictures.
+    figs = {}
+    figs["psnr_vs_bytes"] = plots.psnr_vs_bytes(os.path.join(args.out, "psnr_vs_bytes.png"), curve, report["budgets"])
+    for k, r in rend.items():
+        figs[f"strip_{k}"] = plots.budget_strip(os.path.join(args.out, f"strip_{k}.png"), r, info, budgets)
+    figs["depth"] = plots.depth_picture(os.path.join(args.out, "depth.png"), streamed, splits["nes"])
+    metrics_log = os.path.join(args.run, "metrics.jsonl")
+    if os.path.exists(metrics_log):
+        figs["psnr_vs_time"] = plots.psnr_vs_time(os.path.join(args.out, "psnr_vs_time.png"), metrics_log)
+    report["figures"] = {k: os.path.basename(v) for k, v in figs.items() if v}
+    report["machine"] = f"{platform.node()} ({os.cpu_count()} CPUs, {platform.processor() or platform.machine()})"
+    report["date"] = time.strftime("%Y-%m-%d %H:%M:%S")
+    report["command"] = " ".join(["python", "scripts/evaluate.py"] + (sys.argv[1:] if argv is None else argv))
+    report["seconds"] = time.perf_counter() - t_start
+    with open(os.path.join(args.out, "report.json"), "w") as fh:
+        json.dump(report, fh, indent=1)
+    with open(os.path.join(args.out, "report.md"), "w") as fh:
+        fh.write(plots.report_markdown(report))
+    print(json.dumps({"report": os.path.join(args.out, "report.json"),
+                      "budgets": {k: [v["nvs"]["psnr"], v["nes"]["psnr"]] for k, v in report["budgets"].items()}}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

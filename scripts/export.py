@@ -1,0 +1,63 @@
+"""Export a trained run: the progressive stream, or a standard 3DGS PLY of one frame.
+
+    python scripts/export.py --run RUN --stream OUT.pavs [--lossless]
+    python scripts/export.py --run RUN --ply OUT.ply --budget 25 --frame 0 [--data DIR]
+
+The stream is ordered by importance (computed over the training views, cached in
+RUN/importance.npy). --budget is a percentage of the stream's bytes; --frame a timestep
+index of the dataset (its mesh drives the Gaussians).
+"""
+
+import argparse
+import json
+import os
+import sys
+
+import _bootstrap
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--run", required=True)
+    ap.add_argument("--data", help="dataset folder (default: the one the run trained on)")
+    ap.add_argument("--stream", help="write the progressive stream here")
+    ap.add_argument("--lossless", action="store_true", help="float32 records instead of quantised ones")
+    ap.add_argument("--ply", help="write a 3DGS PLY of one frame here")
+    ap.add_argument("--budget", type=float, default=100.0, help="percent of the stream (PLY export)")
+    ap.add_argument("--frame", type=int, default=0, help="timestep index (PLY export)")
+    ap.add_argument("--max-views", type=int, default=120, help="training views used for importance")
+    args = ap.parse_args(_bootstrap.script_args() if argv is None else argv)
+    if not args.stream and not args.ply:
+        ap.error("nothing to do: give --stream and/or --ply")
+
+    from progressive_avatars.core import run as runs
+    from progressive_avatars.core import stream
+
+    try:
+        avatar = runs.load_run_avatar(args.run)
+        data = runs.run_data_dir(args.run, args.data)
+        W = runs.run_importance(args.run, avatar, data, max_views=args.max_views)
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    stream_path = args.stream or os.path.join(args.run, "avatar.pavs")
+    info = stream.write_stream(stream_path, avatar, W, quantize=not args.lossless,
+                               metadata={"run": os.path.abspath(args.run)})
+    result = {"stream": stream_path, "bytes": os.path.getsize(stream_path), "gaussians": avatar.num_gaussians}
+    if args.ply:
+        from progressive_avatars.core.data import Dataset
+        from progressive_avatars.core.ply import write_ply
+
+        part = stream.read_stream(stream_path, percent=args.budget)
+        ds = Dataset(data, None)
+        if args.frame not in set(int(t) for t in ds.timesteps):
+            print(f"error: {data}: no timestep {args.frame} (have {ds.timesteps[0]}..{ds.timesteps[-1]})", file=sys.stderr)
+            return 2
+        write_ply(args.ply, part.gaussians(ds.vertices_at(args.frame)))
+        result.update(ply=args.ply, ply_gaussians=part.num_gaussians, budget=args.budget, frame=args.frame)
+    print(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,493 @@
+"""The Blender extension end to end, with the bpy module in subprocesses.
+
+bpy is one per process and keeps global state, so every Blender session here runs in its
+own interpreter with BLENDER_USER_RESOURCES/CONFIG/SCRIPTS in a temporary folder (no real
+Blender configuration is read or written). The package is validated and built with
+Blender's own blender_ext.py, installed into the clean Blender and driven through its
+operators; one session prints a JSON report that the tests below assert on.
+"""
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+import textwrap
+import zipfile
+
+import numpy as np
+import pytest
+
+from tests.helpers import random_forest, sphere_mesh
+
+pytestmark = pytest.mark.blender
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+T_FRAMES = 8
+CHECK_FRAMES = (0, 3, 7)
+
+
+def _bpy_dir():
+    spec = importlib.util.find_spec("bpy")
+    if spec is None or not spec.submodule_search_locations:
+        pytest.skip("bpy module not installed")
+    return list(spec.submodule_search_locations)[0]
+
+
+def _blender_ext():
+    return os.path.join(_bpy_dir(), "5.0", "scripts", "addons_core", "bl_pkg", "cli", "blender_ext.py")
+
+
+def _clean_env(tmp):
+    env = dict(os.environ)
+    for key in ("BLENDER_USER_RESOURCES", "BLENDER_USER_CONFIG", "BLENDER_USER_SCRIPTS", "BLENDER_USER_DATAFILES"):
+        env[key] = os.path.join(tmp, key.lower())
+        os.makedirs(env[key], exist_ok=True)
+    env["PYTHONPATH"] = ""
+    return env
+
+
+def make_inputs(folder):
+    """A sphere sequence (mesh npz) and a stream written by core (its template = the mesh)."""
+    from progressive_avatars.core.avatar import Avatar
+    from progressive_avatars.core.stream import write_stream
+
+    rng = np.random.default_rng(7)
+    v, f = sphere_mesh(10, 14, radius=0.1)
+    t = np.arange(T_FRAMES, dtype=np.float64)[:, None, None]
+    wobble = np.sin(3 * v[None, :, 1:2] / 0.1 + t) * 0.01
+    verts = (v[None] * (1 + 0.05 * t) + wobble + rng.normal(0, 1e-3, (T_FRAMES,) + v.shape)).astype(np.float32)
+    seq = os.path.join(folder, "seq.npz")
+    np.savez(seq, vertices=verts, faces=f)
+    forest = random_forest(f, rng, depth=3, frac=0.4)
+    av = Avatar.initial(forest)
+    N = forest.num_faces
+    av.d_mu[:] = rng.normal(0, 0.2, (N, 3))
+    av.d_log_scale[:] = -1.3 + rng.normal(0, 0.2, (N, 3))
+    av.d_rot[:] = rng.normal(size=(N, 4))
+    av.f_dc[:] = rng.normal(0, 1.2, (N, 3))
+    av.opacity_logit[:] = rng.normal(1.5, 0.5, N)
+    stream = os.path.join(folder, "avatar.pavs")
+    write_stream(stream, av, importance=rng.random(N), quantize=False)
+    trainer = os.path.join(folder, "fake_train.py")
+    with open(trainer, "w") as fh:
+        fh.write(textwrap.dedent(f"""
+            import argparse, shutil, os
+            p = argparse.ArgumentParser(); p.add_argument('--data'); p.add_argument('--out'); p.add_argument('--preset')
+            a = p.parse_args(); os.makedirs(a.out, exist_ok=True)
+            for i in range(1, 5):
+                print(f'it {{i}}/4 loss 0.1', flush=True)
+            shutil.copy({stream!r}, os.path.join(a.out, 'avatar.pavs'))
+        """))
+    return seq, stream, trainer, verts
+
+
+SCENARIO = r'''
+import json, os, sys, time, traceback
+import numpy as np
+import bpy
+
+zip_path, seq_path, stream_path, trainer, out = sys.argv[-5:]
+R = {"errors": []}
+
+def section(name):
+    def deco(fn):
+        t0 = time.perf_counter()
+        try:
+            fn()
+        except Exception:
+            R["errors"].append(name + ": " + traceback.format_exc())
+        R.setdefault("seconds", {})[name] = round(time.perf_counter() - t0, 3)
+    return deco
+
+@section("install")
+def _():
+    bpy.ops.extensions.package_install_files(filepath=zip_path, repo="user_default", enable_on_install=True)
+    R["addon_enabled"] = "bl_ext.user_default.progressive_avatars" in bpy.context.preferences.addons
+    R["operators"] = {name: hasattr(getattr(bpy.ops, name.split(".")[0]), name.split(".")[1]) for name in (
+        "import_scene.progressive_avatars_sequence", "import_scene.progressive_avatars_cameras",
+        "object.progressive_avatars_load", "object.progressive_avatars_depth_colors",
+        "export_scene.progressive_avatars_ply", "render.progressive_avatars_splats",
+        "progressive_avatars.train", "progressive_avatars.train_cancel")}
+    R["panels"] = [n for n in ("PA_PT_main", "PA_PT_avatar", "PA_PT_depth", "PA_PT_train") if hasattr(bpy.types, n)]
+    R["import_menu"] = any("progressive_avatars" in getattr(f, "__module__", "")
+                           for f in bpy.types.TOPBAR_MT_file_import._dyn_ui_initialize())
+
+pkg = "bl_ext.user_default.progressive_avatars"
+ext = sys.modules.get(pkg)
+R["extension_dir"] = os.path.dirname(ext.__file__) if ext else None
+
+def verts_of(obj):
+    dg = bpy.context.evaluated_depsgraph_get()
+    me = obj.evaluated_get(dg).data
+    a = np.empty(len(me.vertices) * 3, np.float32)
+    me.vertices.foreach_get("co", a)
+    return a.reshape(-1, 3)
+
+def preview_state(pv):
+    dg = bpy.context.evaluated_depsgraph_get()
+    geo = pv.evaluated_get(dg).evaluated_geometry()  # must outlive the point cloud taken from it
+    ip = geo.instances_pointcloud()
+    n = len(ip.points) if ip is not None else 0
+    pos = np.empty(len(pv.data.vertices) * 3, np.float32)
+    pv.data.attributes["position"].data.foreach_get("vector", pos)
+    rot = np.empty(len(pv.data.vertices) * 4, np.float32)
+    pv.data.attributes["rotation"].data.foreach_get("value", rot)
+    scl = np.empty(len(pv.data.vertices) * 3, np.float32)
+    pv.data.attributes["scale"].data.foreach_get("vector", scl)
+    xf = np.zeros(n * 16, np.float32)
+    if n:
+        ip.attributes["instance_transform"].data.foreach_get("value", xf)
+    return n, pos.reshape(-1, 3), rot.reshape(-1, 4), scl.reshape(-1, 3), xf.reshape(n, 4, 4).transpose(0, 2, 1)
+
+arrays = {}
+for ob in list(bpy.data.objects):  # the factory startup cube/light/camera would enclose the head
+    bpy.data.objects.remove(ob)
+
+@section("import")
+def _():
+    bpy.context.scene.frame_start = 5
+    t0 = time.perf_counter()
+    bpy.ops.import_scene.progressive_avatars_sequence(filepath=seq_path)
+    R["import_seconds"] = time.perf_counter() - t0
+    obj = bpy.context.active_object
+    R["mesh_name"] = obj.name
+    R["frame_range"] = [bpy.context.scene.frame_start, bpy.context.scene.frame_end]
+    R["shape_keys"] = len(obj.data.shape_keys.key_blocks)
+    R["key_values_at_import"] = sorted({round(k.value, 6) for k in obj.data.shape_keys.key_blocks[1:]})
+    for t in __FRAMES__:
+        bpy.context.scene.frame_set(bpy.context.scene.frame_start + t)
+        arrays[f"seq_{t}"] = verts_of(obj)
+
+@section("load")
+def _():
+    mesh = bpy.data.objects[R["mesh_name"]]
+    bpy.context.view_layer.objects.active = mesh
+    res = bpy.ops.object.progressive_avatars_load(filepath=stream_path, budget=25.0)
+    pv = [c for c in mesh.children if c.pa_avatar.is_preview][0]
+    R["preview_name"] = pv.name
+    st = pv.pa_avatar
+    R["load_result"] = list(res)
+    R["at25"] = {"count": st.count, "total": st.total, "mb": st.megabytes, "level": st.level_reached,
+                 "status": st.status}
+    R["at25_instances"] = preview_state(pv)[0]
+    # slider change timing (count within what is evaluated: only the modifier input moves)
+    t0 = time.perf_counter(); st.budget = 20.0; bpy.context.evaluated_depsgraph_get()
+    R["slider_seconds"] = time.perf_counter() - t0
+    st.budget = 25.0
+    for t in (3, 6):
+        bpy.context.scene.frame_set(bpy.context.scene.frame_start + t)
+        n, pos, rot, scl, xf = preview_state(pv)
+        arrays[f"pos_{t}"], arrays[f"rot_{t}"], arrays[f"scl_{t}"], arrays[f"xf_{t}"] = pos, rot, scl, xf
+        R[f"instances_{t}"] = n
+    st.budget = 100.0
+    n, pos, rot, scl, xf = preview_state(pv)
+    R["at100_instances"] = n
+    arrays["pos_100_6"] = pos
+    d = np.empty(len(mesh.data.polygons), np.int32)
+    mesh.data.attributes["pa_depth"].data.foreach_get("value", d)
+    arrays["depth"] = d
+    R["depth_color_domain"] = mesh.data.color_attributes["pa_depth_color"].domain
+    R["active_color"] = mesh.data.color_attributes.active_color_name
+    R["legend"] = [[i.depth, i.faces] for i in mesh.pa_mesh.depth_legend]
+
+@section("export")
+def _():
+    pv = bpy.data.objects[R["preview_name"]]
+    bpy.context.view_layer.objects.active = pv
+    pv.pa_avatar.budget = 50.0
+    bpy.context.scene.frame_set(bpy.context.scene.frame_start + 2)
+    bpy.ops.export_scene.progressive_avatars_ply(filepath=os.path.join(out, "frame.ply"))
+    R["export_count"] = pv.pa_avatar.count
+
+@section("camera")
+def _():
+    cam_mod = sys.modules[pkg + ".core.camera"]
+    seq_mod = sys.modules[pkg + ".blender_addon.sequence"]
+    from bpy_extras.object_utils import world_to_camera_view
+    from mathutils import Vector
+    cam = cam_mod.Camera.look_at([0.1, 0.05, 0.6], [0, 0, 0], [0, 1, 0], 500.0, 500.0, 180.0, 110.0, 320, 240)
+    obj, s = seq_mod.add_camera(bpy.context, "test_cam", cam, z_up=True)
+    bpy.context.scene.render.resolution_x, bpy.context.scene.render.resolution_y = s["resolution"]
+    pts = np.random.default_rng(0).normal(0, 0.05, (20, 3))
+    uv_core, _ = cam.project(pts)
+    z_up = np.array(sys.modules[pkg + ".core.preview_data"].Y_UP_TO_Z_UP)
+    uv_bl = []
+    for p in pts:
+        q = z_up[:3, :3] @ p
+        c = world_to_camera_view(bpy.context.scene, obj, Vector(q.tolist()))
+        uv_bl.append([c.x * 320, (1 - c.y) * 240])
+    R["camera_uv_err"] = float(np.abs(np.array(uv_bl) - uv_core).max())
+    bpy.data.objects.remove(obj)
+
+@section("train")
+def _():
+    prefs = bpy.context.preferences.addons[pkg].preferences
+    prefs.python_path = sys.executable
+    prefs.train_script = trainer
+    st = bpy.context.scene.pa_train
+    st.data_dir = out
+    st.out_dir = os.path.join(out, "run")
+    bpy.context.view_layer.objects.active = bpy.data.objects[R["mesh_name"]]
+    res = bpy.ops.progressive_avatars.train()
+    R["train"] = {"result": list(res), "progress": st.progress, "message": st.message, "running": st.running}
+    pv = [c for c in bpy.data.objects[R["mesh_name"]].children if c.pa_avatar.is_preview][0]
+    R["train"]["loaded"] = os.path.basename(pv.pa_avatar.filepath)
+    R["preview_name"] = pv.name
+
+@section("errors_reported")
+def _():
+    try:
+        bpy.ops.object.progressive_avatars_load(filepath=os.path.join(out, "missing.pavs"))
+        R["missing_file"] = "no error"
+    except RuntimeError as exc:  # operator reports ERROR -> RuntimeError under bpy.ops
+        R["missing_file"] = str(exc).splitlines()[0]
+
+@section("save_reload")
+def _():
+    pv = bpy.data.objects[R["preview_name"]]
+    pv.pa_avatar.budget = 30.0
+    bpy.context.scene.frame_set(bpy.context.scene.frame_start + 1)
+    path = os.path.join(out, "scene.blend")
+    bpy.ops.wm.save_as_mainfile(filepath=path)
+    bpy.ops.wm.open_mainfile(filepath=path)
+    pv = bpy.data.objects[R["preview_name"]]
+    st = pv.pa_avatar
+    R["reload"] = {"budget": st.budget, "count": st.count, "filepath": os.path.basename(st.filepath),
+                   "source": st.source.name if st.source else None, "is_preview": st.is_preview,
+                   "frame": bpy.context.scene.frame_current - bpy.context.scene.frame_start,
+                   "instances": preview_state(pv)[0],
+                   "attributes": sorted(a.name for a in pv.data.attributes if not a.name.startswith("."))}
+    st.budget = 60.0
+    bpy.context.scene.frame_set(bpy.context.scene.frame_start + 4)
+    n, pos, *_ = preview_state(pv)
+    R["reload"]["instances_60"] = n
+    R["reload"]["count_60"] = st.count
+    arrays["reload_pos_4"] = pos
+    mesh = bpy.data.objects[R["mesh_name"]]
+    d = np.empty(len(mesh.data.polygons), np.int32)
+    mesh.data.attributes["pa_depth"].data.foreach_get("value", d)
+    arrays["reload_depth"] = d
+
+@section("render")
+def _():
+    pv = bpy.data.objects[R["preview_name"]]
+    mesh = bpy.data.objects[R["mesh_name"]]
+    mesh.hide_render = True
+    cam = bpy.data.cameras.new("render_cam")
+    cam.lens = 50
+    co = bpy.data.objects.new("render_cam", cam)
+    bpy.context.scene.collection.objects.link(co)
+    co.location = (0.0, -0.75, 0.0)
+    co.rotation_euler = (np.pi / 2, 0.0, 0.0)
+    bpy.context.scene.camera = co
+    world = bpy.data.worlds.new("pa_world"); world.color = (0.0, 0.0, 0.0); bpy.context.scene.world = world
+    bpy.context.scene.view_settings.view_transform = "Standard"
+    bpy.context.scene.render.engine = "CYCLES"
+    bpy.context.scene.cycles.device = "CPU"
+    bpy.context.scene.cycles.samples = 8
+    bpy.context.scene.cycles.use_denoising = False
+    bpy.context.scene.cycles.transparent_max_bounces = 64
+    bpy.context.scene.render.resolution_x, bpy.context.scene.render.resolution_y, bpy.context.scene.render.resolution_percentage = 96, 96, 100
+    bpy.context.scene.render.threads_mode = "FIXED"; bpy.context.scene.render.threads = 2
+    for b in (5, 100):
+        pv.pa_avatar.budget = float(b)
+        bpy.context.scene.render.filepath = os.path.join(out, f"render_{b}.png")
+        t0 = time.perf_counter()
+        bpy.ops.render.render(write_still=True)
+        R[f"render_{b}_seconds"] = time.perf_counter() - t0
+        R[f"render_{b}_count"] = pv.pa_avatar.count
+
+np.savez(os.path.join(out, "arrays.npz"), **arrays)
+print("PA_REPORT " + json.dumps(R, default=str))
+'''.replace("__FRAMES__", repr(CHECK_FRAMES))
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    tmp = str(tmp_path_factory.mktemp("blender"))
+    ext = _blender_ext()
+    validate = subprocess.run([sys.executable, ext, "validate", ROOT], capture_output=True, text=True)
+    dist = os.path.join(tmp, "dist")
+    os.makedirs(dist)
+    build = subprocess.run([sys.executable, ext, "build", "--source-dir", ROOT, "--output-dir", dist],
+                           capture_output=True, text=True)
+    zips = [os.path.join(dist, z) for z in os.listdir(dist) if z.endswith(".zip")]
+    out = os.path.join(tmp, "out")
+    os.makedirs(out)
+    seq, stream, trainer, verts = make_inputs(out)
+    result = {"validate": validate, "build": build, "zips": zips, "out": out, "seq": seq, "stream": stream,
+              "verts": verts, "report": None}
+    if build.returncode != 0 or len(zips) != 1:
+        return result
+    script = os.path.join(tmp, "scenario.py")
+    with open(script, "w") as fh:
+        fh.write(SCENARIO)
+    proc = subprocess.run([sys.executable, script, zips[0], seq, stream, trainer, out], capture_output=True,
+                          text=True, env=_clean_env(tmp), timeout=600)
+    result["proc"] = proc
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("PA_REPORT ")]
+    if lines:
+        result["report"] = json.loads(lines[-1][len("PA_REPORT "):])
+        result["arrays"] = dict(np.load(os.path.join(out, "arrays.npz")))
+    return result
+
+
+def _report(session):
+    if session["report"] is None:
+        proc = session.get("proc")
+        pytest.fail("Blender session produced no report:\n" + (proc.stdout[-3000:] + proc.stderr[-3000:] if proc else
+                                                                 session["build"].stdout + session["build"].stderr))
+    return session["report"]
+
+
+def _no_error(rep, name):
+    errs = [e for e in rep["errors"] if e.startswith(name + ":")]
+    assert not errs, errs[0]
+
+
+def _stream():
+    from progressive_avatars.core import stream
+    return stream
+
+
+def test_manifest_validates_and_builds(session):
+    assert session["validate"].returncode == 0, session["validate"].stdout + session["validate"].stderr
+    assert session["build"].returncode == 0, session["build"].stdout + session["build"].stderr
+    (zp,) = session["zips"]
+    names = zipfile.ZipFile(zp).namelist()
+    assert "blender_manifest.toml" in names and "__init__.py" in names
+    assert "blender_addon/__init__.py" in names and "core/preview_data.py" in names
+    leaked = [n for n in names if n.split("/")[0] in ("tests", "scripts", "docs", ".venv", "runs", ".git")
+              or "__pycache__" in n or n.endswith(".pyc")]
+    assert not leaked, leaked
+
+
+def test_installs_and_enables_in_clean_blender(session):
+    rep = _report(session)
+    _no_error(rep, "install")
+    assert rep["addon_enabled"]
+    assert all(rep["operators"].values()), rep["operators"]
+    assert len(rep["panels"]) == 4
+    assert rep["extension_dir"] and "user_default" in rep["extension_dir"]
+
+
+def test_import_sequence_positions_exact(session):
+    rep = _report(session)
+    _no_error(rep, "import")
+    verts = session["verts"]
+    assert rep["shape_keys"] == T_FRAMES + 1  # Basis + one per frame
+    assert rep["frame_range"] == [5, 5 + T_FRAMES - 1]
+    for t in CHECK_FRAMES:
+        np.testing.assert_allclose(session["arrays"][f"seq_{t}"], verts[t], atol=1e-6, rtol=0)
+
+
+def test_budget_shows_stream_count(session):
+    rep = _report(session)
+    _no_error(rep, "load")
+    info = _stream().read_header(session["stream"])
+    assert rep["at25"]["count"] == info.count_for_percent(25)
+    assert rep["at25_instances"] == info.count_for_percent(25)
+    assert rep["at100_instances"] == info.num_records
+    assert rep["at25"]["total"] == info.num_records
+    assert abs(rep["at25"]["mb"] - info.bytes_for_count(info.count_for_percent(25)) / 1e6) < 1e-9
+    assert rep["at25"]["level"] == int(info.level_of(info.count_for_percent(25) - 1))
+
+
+def test_frames_match_core_evaluation(session):
+    rep = _report(session)
+    _no_error(rep, "load")
+    from progressive_avatars.core.binding import quat_to_rotmat
+
+    av = _stream().read_stream(session["stream"])
+    n = _stream().read_header(session["stream"]).count_for_percent(25)
+    verts = session["verts"]
+    for t in (3, 6):
+        ref = av.gaussians(verts[t])
+        a = session["arrays"]
+        assert rep[f"instances_{t}"] == n
+        np.testing.assert_allclose(a[f"pos_{t}"][:n], ref["means"][:n], atol=1e-5, rtol=0)
+        np.testing.assert_allclose(a[f"scl_{t}"][:n], ref["scales"][:n], atol=1e-6, rtol=1e-5)
+        dots = np.abs(np.sum(a[f"rot_{t}"][:n] * ref["quats"][:n], axis=1))
+        np.testing.assert_allclose(dots, 1.0, atol=1e-5)
+        # What Geometry Nodes instances: rotation·diag(scale), translation = mean.
+        xf = a[f"xf_{t}"]
+        want = quat_to_rotmat(ref["quats"][:n]) * ref["scales"][:n, None, :]
+        np.testing.assert_allclose(xf[:, :3, :3], want, atol=1e-5)
+        np.testing.assert_allclose(xf[:, :3, 3], ref["means"][:n], atol=1e-5)
+    ref = av.gaussians(verts[6])
+    np.testing.assert_allclose(session["arrays"]["pos_100_6"], ref["means"], atol=1e-5, rtol=0)
+
+
+def test_depth_attribute_and_legend(session):
+    rep = _report(session)
+    _no_error(rep, "load")
+    forest = _stream().read_stream(session["stream"]).forest
+    np.testing.assert_array_equal(session["arrays"]["depth"], forest.depth_per_root())
+    assert rep["depth_color_domain"] == "CORNER"
+    assert rep["active_color"] == "pa_depth_color"
+    assert [c for _, c in rep["legend"]] == forest.depth_histogram().tolist()
+
+
+def test_export_ply_current_frame_budget(session):
+    rep = _report(session)
+    _no_error(rep, "export")
+    from progressive_avatars.core.ply import read_ply
+
+    g = read_ply(os.path.join(session["out"], "frame.ply"))
+    av = _stream().read_stream(session["stream"])
+    n = rep["export_count"]
+    assert n == _stream().read_header(session["stream"]).count_for_percent(50)
+    ref = av.gaussians(session["verts"][2])
+    np.testing.assert_allclose(g["means"], ref["means"][:n], atol=1e-5)
+
+
+def test_camera_conversion_projects_like_core(session):
+    rep = _report(session)
+    _no_error(rep, "camera")
+    assert rep["camera_uv_err"] < 1e-3
+
+
+def test_train_operator_runs_script_and_loads_result(session):
+    rep = _report(session)
+    _no_error(rep, "train")
+    assert rep["train"]["result"] == ["FINISHED"]
+    assert rep["train"]["progress"] == 100.0 and not rep["train"]["running"]
+    assert rep["train"]["loaded"] == "avatar.pavs"
+    _no_error(rep, "errors_reported")
+    assert "Cannot load avatar" in rep["missing_file"]
+
+
+def test_save_reload_keeps_state(session):
+    rep = _report(session)
+    _no_error(rep, "save_reload")
+    r = rep["reload"]
+    info = _stream().read_header(session["stream"])
+    assert r["is_preview"] and r["source"] == rep["mesh_name"] and r["filepath"] == "avatar.pavs"
+    assert r["budget"] == pytest.approx(30.0) and r["count"] == info.count_for_percent(30)
+    assert r["instances"] == info.count_for_percent(30)
+    assert {"rotation", "scale", "opacity", "color", "level", "rank"} <= set(r["attributes"])
+    assert r["instances_60"] == r["count_60"] == info.count_for_percent(60)
+    av = _stream().read_stream(session["stream"])
+    n = r["count_60"]
+    np.testing.assert_allclose(session["arrays"]["reload_pos_4"][:n], av.gaussians(session["verts"][4])["means"][:n],
+                               atol=1e-5)
+    np.testing.assert_array_equal(session["arrays"]["reload_depth"], av.forest.depth_per_root())
+
+
+def test_cycles_renders_show_coloured_splats(session):
+    rep = _report(session)
+    _no_error(rep, "render")
+    from PIL import Image
+
+    lit = {}
+    for b in (5, 100):
+        img = np.asarray(Image.open(os.path.join(session["out"], f"render_{b}.png")).convert("RGB"), np.float32) / 255
+        border = np.concatenate([img[0], img[-1], img[:, 0], img[:, -1]])
+        bg = np.median(border, axis=0)
+        assert np.abs(border - bg).max() < 0.1, f"{b}%: the background is not clean"
+        lit[b] = np.abs(img - bg).max(axis=2) > 0.1
+        assert lit[b].mean() > 0.02, f"{b}%: almost nothing visible"
+        chroma = img.max(axis=2) - img.min(axis=2)
+        assert chroma[lit[b]].mean() > 0.08, f"{b}%: splats are not coloured"
+    assert lit[100].mean() > 1.5 * lit[5].mean()

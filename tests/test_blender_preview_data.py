@@ -1,0 +1,84 @@
+"""core/preview_data.py: the numpy side of the Blender preview (no bpy needed)."""
+
+import numpy as np
+import pytest
+
+from progressive_avatars.core import preview_data
+from progressive_avatars.core.avatar import Avatar
+from progressive_avatars.core.binding import quat_to_rotmat
+from progressive_avatars.core.camera import Camera
+from tests.helpers import random_forest, sphere_mesh
+
+
+def _avatar(rng):
+    v, f = sphere_mesh(10, 14)
+    forest = random_forest(f, rng, depth=3, frac=0.5)
+    av = Avatar.initial(forest)
+    N = forest.num_faces
+    av.d_mu[:] = rng.normal(0, 0.4, (N, 3))
+    av.d_log_scale[:] = rng.normal(-1, 0.3, (N, 3))
+    av.d_rot[:] = rng.normal(size=(N, 4))
+    return av, v
+
+
+@pytest.mark.parametrize("q", [[1, 0, 0, 0], [0, 1, 0, 0], [0.1, 0.3, 0.9, 0.2], [0.05, -0.7, 0.1, 0.7]])
+def test_splat_evaluator_matches_core_compose(q):
+    rng = np.random.default_rng(1)
+    av, v = _avatar(rng)
+    verts = (v @ quat_to_rotmat(np.array(q, float)).T).astype(np.float32)  # large rotations: small-w path
+    ref = av.gaussians(verts)
+    for count in (None, av.num_gaussians // 3):
+        ev = preview_data.SplatEvaluator(av, count, av.forest.weights())
+        means, quats, scales = ev(verts)
+        n = ev.n
+        assert means.shape == (av.num_gaussians, 3)
+        np.testing.assert_allclose(means[:n], ref["means"][:n], atol=1e-6)
+        np.testing.assert_allclose(scales[:n], ref["scales"][:n], rtol=1e-5, atol=1e-8)
+        np.testing.assert_allclose(np.abs(np.sum(quats[:n] * ref["quats"][:n], 1)), 1, atol=2e-6)
+
+
+def test_budget_fallback_and_levels():
+    rng = np.random.default_rng(2)
+    av, _ = _avatar(rng)
+    b = preview_data.Budget(av.num_gaussians, av.forest.level.copy(), 1000)
+    assert b.count_for_percent(0) == 0 and b.count_for_percent(100) == av.num_gaussians
+    assert b.count_for_percent(150) == av.num_gaussians
+    n = b.count_for_percent(50)
+    assert b.level_reached(n) == av.forest.level[n - 1]
+    assert b.bytes_for_count(av.num_gaussians) == 1000
+
+
+def test_depth_colours_and_legend():
+    depth = np.array([0, 1, 2, 2, 3, 0])
+    cols = preview_data.depth_colors(depth, 3)
+    assert cols.shape == (6, 4) and cols.dtype == np.float32
+    assert np.all((cols >= 0) & (cols <= 1))
+    assert not np.allclose(cols[0], cols[4])
+    legend = preview_data.depth_legend(depth)
+    assert [(d, n) for d, n, _ in legend] == [(0, 2), (1, 1), (2, 2), (3, 1)]
+    corners = preview_data.per_corner(cols, np.array([3, 3, 4, 3, 3, 3]))
+    assert len(corners) == 19 and np.allclose(corners[6:10], cols[2])
+
+
+def test_blender_camera_round_trip():
+    cam = Camera.look_at([0.2, 0.1, 0.7], [0, 0, 0], [0, 1, 0], 600.0, 600.0, 190.0, 130.0, 320, 240)
+    s = preview_data.blender_camera(cam)
+    back = preview_data.camera_from_blender(s["matrix_world"], s["lens"], s["sensor_width"], s["shift_x"],
+                                            s["shift_y"], *s["resolution"])
+    pts = np.random.default_rng(0).normal(0, 0.1, (10, 3))
+    np.testing.assert_allclose(back.project(pts)[0], cam.project(pts)[0], atol=1e-6)
+
+
+def test_transform_gaussians_rigid():
+    rng = np.random.default_rng(3)
+    av, v = _avatar(rng)
+    g = av.gaussians(v.astype(np.float32))
+    M = np.eye(4)
+    M[:3, :3] = quat_to_rotmat(np.array([0.3, 0.1, 0.8, 0.2])) * 2.0
+    M[:3, 3] = [1, 2, 3]
+    means, quats, scales = preview_data.transform_gaussians(M, g["means"], g["quats"], g["scales"])
+    moved = av.gaussians((v @ M[:3, :3].T + M[:3, 3]).astype(np.float32))
+    np.testing.assert_allclose(means, moved["means"], atol=1e-5)
+    np.testing.assert_allclose(scales, moved["scales"], rtol=1e-4)
+    Rw = quat_to_rotmat(quats)
+    np.testing.assert_allclose(Rw, quat_to_rotmat(moved["quats"]), atol=1e-4)

@@ -1,0 +1,379 @@
+"""Sequence readers and the transforms_*.json dataset loader, on small files written here."""
+
+import json
+import os
+import sys
+
+import numpy as np
+import pytest
+
+from progressive_avatars.core.camera import Camera
+from progressive_avatars.core.data import (DataError, Dataset, MeshSequence, MissingFileError, read_flame_param_folder,
+                                           read_mesh_folder, read_mesh_npz, read_nersemble_tracking, read_sequence,
+                                           read_vhap_tracked)
+from progressive_avatars.core.flame import flame_forward, load_flame_model
+
+sys.path.insert(0, os.path.dirname(__file__))
+from test_flame import N_EXPR, N_SHAPE, N_V, random_params, write_flame_pkl  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def flame_model(tmp_path_factory):
+    path = str(tmp_path_factory.mktemp("flame") / "generic_model.pkl")
+    write_flame_pkl(path)
+    return load_flame_model(path, n_shape=N_SHAPE)
+
+
+def ga_frame(prm, t):
+    """One GaussianAvatars/VHAP per-frame flame_param npz dict from stacked params."""
+    return dict(translation=prm["translation"][t:t + 1], rotation=prm["rotation"][t:t + 1],
+                neck_pose=prm["neck_pose"][t:t + 1], jaw_pose=prm["jaw_pose"][t:t + 1],
+                eyes_pose=prm["eyes_pose"][t:t + 1], shape=prm["shape"], expr=prm["expr"][t:t + 1],
+                static_offset=prm["static_offset"])
+
+
+# ---------------------------------------------------------------------------- sequences
+
+def test_mesh_npz_reader_and_frame_selection(tmp_path):
+    rng = np.random.default_rng(0)
+    v = rng.normal(size=(5, 7, 3)).astype(np.float32)
+    faces = np.array([[0, 1, 2], [2, 3, 4], [4, 5, 6]], np.int64)
+    p = tmp_path / "seq.npz"
+    np.savez(p, vertices=v, faces=faces)
+    seq = read_sequence(p, frames=[3, 1])
+    assert isinstance(seq, MeshSequence) and seq.faces.dtype == np.int32 and seq.vertices.dtype == np.float32
+    np.testing.assert_array_equal(seq.vertices, v[[3, 1]])
+    np.testing.assert_array_equal(seq.frame_ids, [3, 1])
+    assert read_mesh_npz(p).n_frames == 5
+    with pytest.raises(DataError, match=r"seq\.npz.*out of range"):
+        read_mesh_npz(p, frames=[9])
+    v[2, 4, 1] = np.nan
+    np.savez(tmp_path / "nan.npz", vertices=v, faces=faces)
+    with pytest.raises(DataError, match=r"nan\.npz: vertices contain NaN"):
+        read_sequence(tmp_path / "nan.npz")
+    np.savez(tmp_path / "badf.npz", vertices=v[:1, :3], faces=faces)
+    with pytest.raises(DataError, match=r"badf\.npz: faces index"):
+        read_sequence(tmp_path / "badf.npz")
+
+
+def test_mesh_folder_natural_order_and_lazy(tmp_path):
+    trimesh = pytest.importorskip("trimesh")
+    base = trimesh.creation.icosahedron()
+    d = tmp_path / "frames"
+    d.mkdir()
+    for i, name in [(1, "f1.obj"), (2, "f2.ply"), (10, "f10.obj")]:
+        trimesh.Trimesh(base.vertices * i, base.faces, process=False).export(d / name)
+    (d / "f3.obj").write_text("this is not an obj file\nv 1 2\n")  # only read if asked for
+    seq = read_sequence(d, frames=[0, 1, 3])
+    np.testing.assert_array_equal(seq.frame_ids, [1, 2, 10])
+    np.testing.assert_allclose(seq.vertices[2], base.vertices * 10, rtol=1e-6)
+    np.testing.assert_array_equal(seq.faces, base.faces)
+    with pytest.raises(DataError, match="f3.obj"):
+        read_mesh_folder(d, frames=[2])
+    other = trimesh.creation.box()
+    other.export(d / "f11.obj")
+    with pytest.raises(DataError, match=r"f11\.obj: 8 vertices"):
+        read_mesh_folder(d, frames=[0, 4])
+
+
+def test_flame_param_folder(tmp_path, flame_model):
+    prm = random_params(4, seed=3)
+    fp = tmp_path / "flame_param"
+    fp.mkdir()
+    for t in range(4):
+        np.savez(fp / f"{t * 5:05d}.npz", **ga_frame(prm, t))
+    (fp / "00099.npz").write_bytes(b"garbage")  # sorted last; never opened unless asked
+    seq = read_sequence(tmp_path, frames=[2, 0], flame_model=flame_model)
+    want = flame_forward(flame_model, **{k: (v[[2, 0]] if k not in ("shape", "static_offset") else v) for k, v in prm.items()})
+    np.testing.assert_allclose(seq.vertices, want, atol=1e-6)
+    np.testing.assert_array_equal(seq.frame_ids, [10, 0])
+    np.testing.assert_array_equal(seq.faces, flame_model.faces)
+    with pytest.raises(DataError, match="00099.npz"):
+        read_flame_param_folder(fp, frames=[4], flame_model=flame_model)
+    with pytest.raises(DataError, match="need a FLAME model"):
+        read_flame_param_folder(fp, frames=[0])
+
+
+def test_vhap_tracked_matches_per_frame(tmp_path, flame_model):
+    T = 5
+    prm = random_params(T, seed=4)
+    p = tmp_path / "tracked_flame_params_30.npz"
+    np.savez(p, timestep_id=np.array([f"{i:05d}" for i in range(100, 100 + T)]), **prm)
+    seq = read_sequence(p, frames=[4, 1], flame_model=flame_model)
+    np.testing.assert_array_equal(seq.frame_ids, [104, 101])
+    for j, t in enumerate([4, 1]):
+        np.testing.assert_allclose(seq.vertices[j], flame_forward(flame_model, **ga_frame(prm, t))[0], atol=1e-6)
+    # Short key spellings (neck/jaw/eyes) are read too.
+    short = {("neck" if k == "neck_pose" else "jaw" if k == "jaw_pose" else "eyes" if k == "eyes_pose" else k): v
+             for k, v in prm.items()}
+    np.savez(tmp_path / "short.npz", **short)
+    np.testing.assert_allclose(read_vhap_tracked(tmp_path / "short.npz", flame_model=flame_model).vertices,
+                               flame_forward(flame_model, **prm), atol=1e-6)
+    bad = dict(prm, jaw_pose=prm["jaw_pose"][:3])
+    np.savez(tmp_path / "bad.npz", **bad)
+    with pytest.raises(DataError, match=r"bad\.npz: 'jaw_pose' has 3 frames"):
+        read_vhap_tracked(tmp_path / "bad.npz", flame_model=flame_model)
+    wrong_v = dict(prm, static_offset=np.zeros((1, N_V + 3, 3)))
+    np.savez(tmp_path / "wrongv.npz", **wrong_v)
+    with pytest.raises(DataError, match=r"wrongv\.npz: static_offset"):
+        read_vhap_tracked(tmp_path / "wrongv.npz", flame_model=flame_model)
+
+
+def test_nersemble_tracking(tmp_path, flame_model):
+    from scipy.spatial.transform import Rotation
+
+    T = 3
+    rng = np.random.default_rng(5)
+    prm = random_params(T, seed=5)
+    euler = 0.4 * rng.normal(size=(T, 3))
+    R = Rotation.from_euler("XYZ", euler).as_matrix()
+    d = dict(shape=prm["shape"][None], expression=prm["expr"], jaw=prm["jaw_pose"], neck=prm["neck_pose"],
+             eyes=prm["eyes_pose"], rotation=euler, rotation_matrices=R, translation=prm["translation"],
+             scale=np.array([[1.7]]), frames=np.array([7, 8, 9]))
+    np.savez(tmp_path / "tracking.npz", **d)
+    local = flame_forward(flame_model, shape=prm["shape"], expr=prm["expr"], jaw_pose=prm["jaw_pose"],
+                          neck_pose=prm["neck_pose"], eyes_pose=prm["eyes_pose"], dtype=np.float64)
+    want = 1.7 * np.einsum("tab,tvb->tva", R, local) + prm["translation"][:, None]
+    seq = read_sequence(tmp_path / "tracking.npz", flame_model=flame_model)
+    np.testing.assert_allclose(seq.vertices, want, atol=1e-5)
+    np.testing.assert_array_equal(seq.frame_ids, [7, 8, 9])
+    # Without rotation_matrices the Euler angles (intrinsic XYZ) give the same result.
+    del d["rotation_matrices"]
+    np.savez(tmp_path / "euler.npz", **d)
+    np.testing.assert_allclose(read_nersemble_tracking(tmp_path / "euler.npz", frames=[1], flame_model=flame_model)
+                               .vertices[0], want[1], atol=1e-5)
+
+
+def test_read_sequence_errors(tmp_path):
+    with pytest.raises(MissingFileError, match="missing.npz"):
+        read_sequence(tmp_path / "missing.npz")
+    np.savez(tmp_path / "odd.npz", foo=np.zeros(3))
+    with pytest.raises(DataError, match=r"odd\.npz: unrecognised npz"):
+        read_sequence(tmp_path / "odd.npz")
+    (tmp_path / "x.txt").write_text("hi")
+    with pytest.raises(DataError, match=r"x\.txt: unsupported"):
+        read_sequence(tmp_path / "x.txt")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DataError, match="empty: folder holds neither"):
+        read_sequence(tmp_path / "empty")
+
+
+# ---------------------------------------------------------------------------- dataset
+
+OCTA_F = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]], np.int32)
+W, H = 96, 80
+
+
+def octahedron(t):
+    v = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], np.float64)
+    return (0.1 * v * np.array([1.0 + 0.1 * t, 1.2, 0.9]) + np.array([0.01 * t, 0.0, 0.0])).astype(np.float32)
+
+
+def make_cameras():
+    # Off-centre principal points and fx != fy, so an ignored intrinsic shows up as a miss.
+    return {0: Camera.look_at([0.0, 0.05, 0.6], [0, 0, 0], [0, 1, 0], 150.0, 120.0, 26.0, 54.0, W, H),
+            1: Camera.look_at([0.45, -0.05, 0.4], [0, 0, 0], [0, 1, 0], 110.0, 140.0, 68.0, 28.0, W, H)}
+
+
+def raster_mask(cam, verts, faces):
+    """Silhouette of a mesh: pixel centres inside any projected triangle (vectorised)."""
+    uv, _ = cam.project(verts.astype(np.float64))
+    tri = uv[faces]  # [F,3,2]
+    ys, xs = np.mgrid[0:cam.height, 0:cam.width]
+    p = np.stack([xs + 0.5, ys + 0.5], -1).reshape(1, -1, 2)
+    def edge(a, b):
+        return (b[:, None, 0] - a[:, None, 0]) * (p[..., 1] - a[:, None, 1]) - \
+               (b[:, None, 1] - a[:, None, 1]) * (p[..., 0] - a[:, None, 0])
+    e0, e1, e2 = edge(tri[:, 0], tri[:, 1]), edge(tri[:, 1], tri[:, 2]), edge(tri[:, 2], tri[:, 0])
+    inside = ((e0 >= 0) & (e1 >= 0) & (e2 >= 0)) | ((e0 <= 0) & (e1 <= 0) & (e2 <= 0))
+    return inside.any(0).reshape(cam.height, cam.width)
+
+
+def write_mesh_dataset(root, timesteps=(0, 1, 2), split="train", extensionless=False, top_level_intrinsics=False,
+                       background=None):
+    from PIL import Image
+
+    root.mkdir(parents=True, exist_ok=True)
+    for sub in ("images", "fg_masks", "meshes"):
+        (root / sub).mkdir(exist_ok=True)
+    np.savez(root / "canonical_mesh.npz", vertices=octahedron(0), faces=OCTA_F)
+    cams = make_cameras()
+    frames = []
+    for t in timesteps:
+        v = octahedron(t)
+        np.savez(root / "meshes" / f"{t:05d}.npz", vertices=v)
+        for ci, cam in cams.items():
+            m = raster_mask(cam, v, OCTA_F)
+            img = np.where(m[..., None], np.array([200, 60, 30], np.uint8), np.uint8(255)).astype(np.uint8)
+            name = f"{t:05d}_{ci:02d}"
+            Image.fromarray(img).save(root / "images" / f"{name}.png")
+            Image.fromarray((m * 255).astype(np.uint8)).save(root / "fg_masks" / f"{name}.png")
+            fr = dict(file_path=f"images/{name}" + ("" if extensionless else ".png"),
+                      fg_mask_path=f"fg_masks/{name}.png", transform_matrix=cam.c2w_opengl().tolist(),
+                      timestep_index=t, camera_index=ci, mesh_path=f"meshes/{t:05d}.npz")
+            if not top_level_intrinsics:
+                fr.update(fl_x=cam.fx, fl_y=cam.fy, cx=cam.cx, cy=cam.cy, w=W, h=H)
+            frames.append(fr)
+    meta = {"frames": frames}
+    if top_level_intrinsics:  # one shared intrinsic set (camera 0's) as the fallback
+        c = cams[0]
+        meta.update(fl_x=c.fx, fl_y=c.fy, cx=c.cx, cy=c.cy, w=W, h=H)
+        meta["frames"] = [f for f in frames if f["camera_index"] == 0]
+    if background is not None:
+        meta["background"] = background
+    (root / f"transforms_{split}.json").write_text(json.dumps(meta, indent=1))
+    return cams
+
+
+def centroids(v):
+    """Points well inside the (convex) mesh: they project inside its silhouette with margin."""
+    c = v.mean(0)
+    return np.concatenate([c[None], c + 0.6 * (v - c)])
+
+
+def test_dataset_round_trip_cameras_hit_masks(tmp_path):
+    root = tmp_path / "ds"
+    cams = write_mesh_dataset(root, extensionless=True)
+    ds = Dataset(root, "train")
+    assert len(ds) == 6 and ds.mode == "mesh"
+    np.testing.assert_array_equal(ds.timesteps, [0, 1, 2])
+    assert ds.faces.dtype == np.int32 and ds.faces.shape == (8, 3)
+    np.testing.assert_array_equal(ds.canonical_vertices, octahedron(0))
+    np.testing.assert_array_equal(ds.background, [1, 1, 1])
+    for ci, cam in cams.items():
+        c = ds.cameras[ci]
+        np.testing.assert_allclose(c.R, cam.R, atol=1e-12)
+        np.testing.assert_allclose(c.t, cam.t, atol=1e-12)
+        assert (c.fx, c.fy, c.cx, c.cy, c.width, c.height) == (cam.fx, cam.fy, cam.cx, cam.cy, W, H)
+    for s in ds:
+        assert s.image.shape == (H, W, 3) and s.image.dtype == np.float32 and s.mask.shape == (H, W)
+        assert 0.0 <= s.image.min() and s.image.max() <= 1.0
+        np.testing.assert_array_equal(s.vertices, octahedron(s.timestep_index))
+        uv, z = s.camera.project(centroids(s.vertices).astype(np.float64))
+        assert np.all(z > 0)
+        px = np.floor(uv).astype(int)
+        assert np.all(s.mask[px[:, 1], px[:, 0]] == 1.0)
+        # Control: the same camera with a centred principal point misses the silhouette.
+        centred = Camera(s.camera.R, s.camera.t, s.camera.fx, s.camera.fy, W / 2, H / 2, W, H)
+        uvc = np.clip(np.floor(centred.project(centroids(s.vertices).astype(np.float64))[0]).astype(int), 0, [W - 1, H - 1])
+        assert s.mask[uvc[:, 1], uvc[:, 0]].mean() < 0.5
+        # Image pixels: mesh colour inside, white background outside.
+        np.testing.assert_allclose(s.image[s.mask == 0], 1.0)
+    np.testing.assert_array_equal(ds.vertices_at(2), octahedron(2))
+    seq = ds.sequence()
+    assert seq.vertices.shape == (3, 6, 3)
+    seq = read_sequence(root, frames=[2])  # a dataset root reads as its tracked geometry
+    np.testing.assert_array_equal(seq.vertices[0], octahedron(2))
+    np.testing.assert_array_equal(seq.frame_ids, [2])
+
+
+def test_dataset_downscale_and_cache(tmp_path):
+    root = tmp_path / "ds"
+    write_mesh_dataset(root, background=[0.0, 0.5, 1.0])
+    ds = Dataset(root, "train", downscale=2.0, cache_images=2)
+    np.testing.assert_allclose(ds.background, [0, 0.5, 1])
+    s = ds[1]
+    assert s.image.shape == (H // 2, W // 2, 3) and s.camera.width == W // 2
+    assert s.camera.cx == pytest.approx(ds.frames[1].camera.cx) and s.camera.fx == pytest.approx(ds.cameras[1].fx)
+    uv, _ = s.camera.project(centroids(s.vertices).astype(np.float64))
+    px = np.floor(uv).astype(int)
+    assert np.all(s.mask[px[:, 1], px[:, 0]] >= 0.5)
+    # LRU: a hit returns the cached array; the bound evicts the oldest.
+    assert ds[1].image is s.image
+    ds[2], ds[3]
+    assert len(ds._images) == 2 and 1 not in ds._images
+    assert ds[1].image is not s.image
+    ds0 = Dataset(root, "train", cache_images=0)
+    assert ds0[0].image is not ds0[0].image
+
+
+def test_dataset_top_level_intrinsics_fallback(tmp_path):
+    root = tmp_path / "ds"
+    cams = write_mesh_dataset(root, top_level_intrinsics=True)
+    ds = Dataset(root)
+    c = ds.cameras[0]
+    assert (c.fx, c.fy, c.cx, c.cy) == (cams[0].fx, cams[0].fy, cams[0].cx, cams[0].cy)
+
+
+def edit_json(root, split, fn):
+    p = root / f"transforms_{split}.json"
+    meta = json.loads(p.read_text())
+    fn(meta)
+    p.write_text(json.dumps(meta))
+
+
+def test_dataset_bad_inputs(tmp_path):
+    from PIL import Image
+
+    root = tmp_path / "ds"
+    write_mesh_dataset(root)
+    with pytest.raises(MissingFileError, match=r"transforms_val\.json: split 'val' not found"):
+        Dataset(root, "val")
+    (root / "transforms_test.json").write_text(json.dumps({"frames": []}))
+    with pytest.raises(DataError, match=r"transforms_test\.json: no frames"):
+        Dataset(root, "test")
+
+    edit_json(root, "train", lambda m: m["frames"][2].pop("transform_matrix"))
+    with pytest.raises(DataError, match=r"frames\[2\]: missing key 'transform_matrix'"):
+        Dataset(root)
+    write_mesh_dataset(root)
+
+    os.remove(root / "images" / "00001_00.png")
+    with pytest.raises(MissingFileError, match=r"images/00001_00\.png: image listed in .*transforms_train\.json not found"):
+        Dataset(root)
+    write_mesh_dataset(root)
+
+    np.savez(root / "meshes" / "00001.npz", vertices=np.zeros((5, 3), np.float32))
+    ds = Dataset(root)
+    with pytest.raises(DataError, match=r"00001\.npz: 5 vertices, but the template has 6"):
+        ds.vertices_at(1)
+    bad = octahedron(1)
+    bad[3, 0] = np.inf
+    np.savez(root / "meshes" / "00001.npz", vertices=bad)
+    with pytest.raises(DataError, match=r"00001\.npz: vertices contain NaN or inf"):
+        Dataset(root)[2]
+    write_mesh_dataset(root)
+
+    Image.new("RGB", (W + 1, H)).save(root / "images" / "00002_01.png")
+    ds = Dataset(root, downscale=2.0)
+    with pytest.raises(DataError, match=r"00002_01\.png: image is 97x80, .*says 96x80 or 48x40"):
+        ds[5]
+    ds[4]  # other frames still load
+    write_mesh_dataset(root)
+
+    os.remove(root / "canonical_mesh.npz")
+    with pytest.raises(MissingFileError, match=r"canonical_mesh\.npz: file not found"):
+        Dataset(root)
+    write_mesh_dataset(root)
+    edit_json(root, "train", lambda m: [f.pop("w") for f in m["frames"]])
+    with pytest.raises(DataError, match=r"frames\[0\]: missing image size"):
+        Dataset(root)
+
+
+def test_flame_mode_dataset(tmp_path, flame_model):
+    from PIL import Image
+
+    root = tmp_path / "fds"
+    (root / "flame_param").mkdir(parents=True)
+    (root / "images").mkdir()
+    prm = random_params(2, seed=9)
+    canon = ga_frame(prm, 0)
+    canon.update(expr=np.zeros((1, N_EXPR)), jaw_pose=np.zeros((1, 3)), rotation=np.zeros((1, 3)))
+    np.savez(root / "canonical_flame_param.npz", **canon)
+    cam = make_cameras()[0]
+    frames = []
+    for t in range(2):
+        np.savez(root / "flame_param" / f"{t:05d}.npz", **ga_frame(prm, t))
+        Image.new("RGB", (W, H), (255, 255, 255)).save(root / "images" / f"{t}.png")
+        frames.append(dict(file_path=f"images/{t}.png", transform_matrix=cam.c2w_opengl().tolist(), fl_x=cam.fx,
+                           fl_y=cam.fy, cx=cam.cx, cy=cam.cy, w=W, h=H, timestep_index=t, camera_index=0,
+                           flame_param_path=f"flame_param/{t:05d}.npz"))
+    (root / "transforms_train.json").write_text(json.dumps({"frames": frames}))
+    with pytest.raises(DataError, match="FLAME-mode dataset"):
+        Dataset(root)
+    ds = Dataset(root, flame_model=flame_model)
+    assert ds.mode == "flame"
+    np.testing.assert_allclose(ds[1].vertices, flame_forward(flame_model, **ga_frame(prm, 1))[0], atol=1e-6)
+    np.testing.assert_allclose(ds.canonical_vertices, flame_forward(flame_model, **canon)[0], atol=1e-6)
+    np.testing.assert_array_equal(ds.faces, flame_model.faces)
+    np.testing.assert_array_equal(ds[0].mask, 1.0)  # no mask file, no alpha: everything is foreground

@@ -1,0 +1,314 @@
+"""FLAME loading (restricted unpickler) and forward pass, on a small FLAME-format model
+built here: same keys and shape semantics as generic_model.pkl, pickled with chumpy-like
+``Ch`` arrays and a scipy.sparse J_regressor so the real unpickling path runs."""
+
+import contextlib
+import os
+import pickle
+import sys
+import types
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from scipy.spatial.transform import Rotation
+
+from progressive_avatars.core import flame as fl
+from progressive_avatars.core.flame import FlameModelError, UnsafePickleError, flame_forward, load_flame_model
+
+N_V, N_J, N_SHAPE, N_EXPR = 50, 5, 6, 4
+PARENTS = np.array([-1, 0, 1, 1, 1])  # FLAME: global, neck, jaw, eye, eye
+
+
+def make_flame_arrays(seed=0):
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(N_V, 3))
+    v = 0.1 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    faces = np.stack([rng.permutation(N_V)[:3] for _ in range(80)]).astype(np.uint32)
+    shapedirs = 0.01 * rng.normal(size=(N_V, 3, N_SHAPE + N_EXPR))
+    posedirs = 0.005 * rng.normal(size=(N_V, 3, 9 * (N_J - 1)))
+    jr = np.zeros((N_J, N_V))
+    for j in range(N_J):
+        idx = rng.choice(N_V, 4, replace=False)
+        jr[j, idx] = 0.25
+    w = rng.random((N_V, N_J)) ** 3
+    w /= w.sum(1, keepdims=True)
+    kintree = np.stack([np.where(PARENTS < 0, 4294967295, PARENTS), np.arange(N_J)]).astype(np.int64)
+    return dict(v_template=v, f=faces, shapedirs=shapedirs, posedirs=posedirs, J_regressor=jr, weights=w,
+                kintree_table=kintree, bs_style="lbs", bs_type="lrotmin")
+
+
+@contextlib.contextmanager
+def fake_chumpy():
+    """A stand-in ``chumpy.ch.Ch`` importable only while pickling, with chumpy's state layout."""
+
+    class Ch:
+        def __init__(self, x):
+            self.x = np.asarray(x, np.float64)
+
+        def __getstate__(self):
+            # What chumpy's Ch.__getstate__ leaves after dropping _parents and _cache.
+            return {"x": self.x, "_dirty_vars": {"x"}, "_itr": None, "_depends_on_deps": {},
+                    "_make_dense": False, "_make_sparse": False}
+
+    Ch.__module__, Ch.__qualname__ = "chumpy.ch", "Ch"
+    pkg, mod = types.ModuleType("chumpy"), types.ModuleType("chumpy.ch")
+    mod.Ch = Ch
+    pkg.ch = mod
+    saved = {k: sys.modules.get(k) for k in ("chumpy", "chumpy.ch")}
+    sys.modules.update({"chumpy": pkg, "chumpy.ch": mod})
+    try:
+        yield Ch
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                sys.modules.pop(k, None)
+            else:
+                sys.modules[k] = v
+
+
+def write_flame_pkl(path, protocol=2, sparse="csc", seed=0):
+    arrays = make_flame_arrays(seed)
+    with fake_chumpy() as Ch:
+        d = dict(arrays)
+        d["shapedirs"] = Ch(arrays["shapedirs"])
+        d["v_template"] = Ch(arrays["v_template"])
+        d["J_regressor"] = {"csc": sp.csc_matrix, "csr": sp.csr_matrix, "coo": sp.coo_matrix}[sparse](arrays["J_regressor"])
+        with open(path, "wb") as f:
+            pickle.dump(d, f, protocol=protocol)
+    assert "chumpy" not in sys.modules
+    return arrays
+
+
+@pytest.fixture(scope="module")
+def model_and_arrays(tmp_path_factory):
+    path = str(tmp_path_factory.mktemp("flame") / "generic_model.pkl")
+    arrays = write_flame_pkl(path)
+    return load_flame_model(path, n_shape=N_SHAPE), arrays
+
+
+def random_params(T, seed=1, scale=0.3):
+    rng = np.random.default_rng(seed)
+    return dict(shape=rng.normal(size=N_SHAPE), expr=rng.normal(size=(T, N_EXPR)),
+                rotation=scale * rng.normal(size=(T, 3)), neck_pose=scale * rng.normal(size=(T, 3)),
+                jaw_pose=scale * rng.normal(size=(T, 3)), eyes_pose=scale * rng.normal(size=(T, 6)),
+                translation=0.05 * rng.normal(size=(T, 3)), static_offset=0.002 * rng.normal(size=(1, N_V, 3)))
+
+
+# ---------------------------------------------------------------------------- loading
+
+@pytest.mark.parametrize("protocol", [1, 2])
+@pytest.mark.parametrize("sparse", ["csc", "csr", "coo"])
+def test_pickle_with_chumpy_and_sparse_loads(tmp_path, protocol, sparse):
+    path = str(tmp_path / "m.pkl")
+    arrays = write_flame_pkl(path, protocol=protocol, sparse=sparse)
+    m = load_flame_model(path, n_shape=N_SHAPE)
+    np.testing.assert_array_equal(m.v_template, arrays["v_template"])
+    np.testing.assert_array_equal(m.shapedirs, arrays["shapedirs"])
+    np.testing.assert_array_equal(m.J_regressor, arrays["J_regressor"])
+    np.testing.assert_array_equal(m.parents, PARENTS)
+    assert m.faces.dtype == np.int32 and m.faces.shape == (80, 3)
+    assert (m.n_shape, m.n_expr, m.n_joints, m.n_vertices) == (N_SHAPE, N_EXPR, N_J, N_V)
+    assert "chumpy" not in sys.modules  # the loader never needs the real package
+
+
+def test_npz_conversion_round_trip(tmp_path, model_and_arrays):
+    m, _ = model_and_arrays
+    p = str(tmp_path / "flame.npz")
+    m.save_npz(p)
+    m2 = load_flame_model(p)  # n_shape travels in the npz
+    assert m2.n_shape == N_SHAPE
+    prm = random_params(3)
+    np.testing.assert_array_equal(flame_forward(m, **prm), flame_forward(m2, **prm))
+
+
+def test_default_split_caps_at_component_count(tmp_path):
+    path = str(tmp_path / "m.pkl")
+    write_flame_pkl(path)
+    m = load_flame_model(path)  # 300 requested, 10 available: all shape, no expression
+    assert (m.n_shape, m.n_expr) == (N_SHAPE + N_EXPR, 0)
+
+
+@pytest.mark.parametrize("target,expected", [
+    ("os.system", "system"), ("builtins.eval", "builtins.eval"), ("subprocess.Popen", "subprocess.Popen")])
+def test_malicious_pickle_refused_without_side_effect(tmp_path, target, expected):
+    marker = tmp_path / "pwned"
+    cmd = f"touch {marker}"
+
+    class Evil:
+        def __reduce__(self):
+            if target == "os.system":
+                return (os.system, (cmd,))
+            if target == "builtins.eval":
+                return (eval, (f"__import__('os').system({cmd!r})",))
+            import subprocess
+            return (subprocess.Popen, (["touch", str(marker)],))
+
+    arrays = make_flame_arrays()
+    arrays["v_template"] = Evil()
+    path = tmp_path / "evil.pkl"
+    path.write_bytes(pickle.dumps(arrays, protocol=2))
+    with pytest.raises(UnsafePickleError) as ei:
+        load_flame_model(str(path))
+    msg = str(ei.value)
+    assert str(path) in msg and "refused to load global" in msg and expected in msg
+    assert not marker.exists()
+
+
+def test_reconstruct_of_non_array_type_refused(tmp_path):
+    # numpy's _reconstruct is allowed, but only to rebuild ndarrays.
+    payload = b"\x80\x02cnumpy.core.multiarray\n_reconstruct\nc__builtin__\nset\nK\x00\x85U\x01b\x87R."
+    p = tmp_path / "x.pkl"
+    p.write_bytes(payload)
+    with pytest.raises(FlameModelError, match="non-ndarray"):
+        load_flame_model(str(p))
+
+
+def test_model_errors_name_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nope.pkl"):
+        load_flame_model(str(tmp_path / "nope.pkl"))
+    p = tmp_path / "partial.pkl"
+    a = make_flame_arrays()
+    del a["weights"]
+    p.write_bytes(pickle.dumps(a, protocol=2))
+    with pytest.raises(FlameModelError, match=r"partial\.pkl.*missing keys \['weights'\]"):
+        load_flame_model(str(p))
+    p2 = tmp_path / "garbage.pkl"
+    p2.write_bytes(b"\x80\x02not a pickle at all")
+    with pytest.raises(FlameModelError, match="garbage.pkl"):
+        load_flame_model(str(p2))
+    a = make_flame_arrays()
+    a["posedirs"] = a["posedirs"][:, :, :30]
+    p3 = tmp_path / "badpose.pkl"
+    p3.write_bytes(pickle.dumps(a, protocol=2))
+    with pytest.raises(FlameModelError, match=r"badpose\.pkl: posedirs"):
+        load_flame_model(str(p3))
+
+
+# ---------------------------------------------------------------------------- forward
+
+def reference_forward(a, n_shape, prm):
+    """Independent, loop-based LBS written from the FLAME/SMPL equations (test only)."""
+    T = prm["expr"].shape[0]
+    out = np.zeros((T, N_V, 3))
+    for t in range(T):
+        betas = np.concatenate([prm["shape"], prm["expr"][t]])
+        vs = a["v_template"] + prm["static_offset"][0] + np.tensordot(a["shapedirs"], betas, axes=([2], [0]))
+        Jt = a["J_regressor"] @ vs
+        pose = [prm["rotation"][t], prm["neck_pose"][t], prm["jaw_pose"][t], prm["eyes_pose"][t][:3],
+                prm["eyes_pose"][t][3:]]
+        Rs = [Rotation.from_rotvec(p).as_matrix() for p in pose]
+        feat = np.concatenate([(R - np.eye(3)).ravel() for R in Rs[1:]])
+        vp = vs + np.tensordot(a["posedirs"], feat, axes=([2], [0]))
+        G = []
+        for j in range(N_J):
+            L = np.eye(4)
+            L[:3, :3] = Rs[j]
+            L[:3, 3] = Jt[j] - (Jt[PARENTS[j]] if j else 0)
+            G.append(L if j == 0 else G[PARENTS[j]] @ L)
+        for v in range(N_V):
+            M = sum(a["weights"][v, j] * G[j] @ np.block([[np.eye(3), -Jt[j][:, None]], [np.zeros((1, 3)), 1]])
+                    for j in range(N_J))
+            out[t, v] = (M @ np.append(vp[v], 1.0))[:3] + prm["translation"][t]
+    return out
+
+
+def test_forward_matches_independent_reference(model_and_arrays):
+    m, a = model_and_arrays
+    prm = random_params(3)
+    got = flame_forward(m, dtype=np.float64, **prm)
+    np.testing.assert_allclose(got, reference_forward(a, N_SHAPE, prm), atol=1e-12)
+
+
+def test_zero_pose_is_template_plus_blendshapes(model_and_arrays):
+    m, a = model_and_arrays
+    rng = np.random.default_rng(3)
+    shape, expr = rng.normal(size=N_SHAPE), rng.normal(size=(2, N_EXPR))
+    got = flame_forward(m, shape=shape, expr=expr, dtype=np.float64)
+    betas = np.concatenate([np.broadcast_to(shape, (2, N_SHAPE)), expr], 1)
+    want = a["v_template"] + np.einsum("vck,tk->tvc", a["shapedirs"], betas)
+    np.testing.assert_allclose(got, want, atol=1e-12)
+    # Fewer coefficients than the model has are zero-padded.
+    np.testing.assert_allclose(flame_forward(m, shape=shape[:2], dtype=np.float64)[0],
+                               a["v_template"] + a["shapedirs"][:, :, :2] @ shape[:2], atol=1e-12)
+
+
+def test_global_rotation_is_rigid_about_root_joint(model_and_arrays):
+    m, a = model_and_arrays
+    prm = random_params(1)
+    base = dict(shape=prm["shape"], expr=prm["expr"], static_offset=prm["static_offset"])
+    rest = flame_forward(m, dtype=np.float64, **base)[0]
+    r = np.array([0.3, -0.5, 0.2])
+    R = Rotation.from_rotvec(r).as_matrix()
+    t = np.array([0.01, 0.02, -0.03])
+    moved = flame_forward(m, rotation=r, translation=t, dtype=np.float64, **base)[0]
+    j0 = a["J_regressor"][0] @ rest
+    np.testing.assert_allclose(moved, (rest - j0) @ R.T + j0 + t, atol=1e-12)
+    # Rigid: pairwise distances kept.
+    d0 = np.linalg.norm(rest[:, None] - rest[None], axis=-1)
+    d1 = np.linalg.norm(moved[:, None] - moved[None], axis=-1)
+    np.testing.assert_allclose(d0, d1, atol=1e-12)
+
+
+def test_axis_angle_matches_scipy_including_tiny_angles():
+    rng = np.random.default_rng(0)
+    r = np.concatenate([rng.normal(size=(20, 3)), 1e-9 * rng.normal(size=(5, 3)), np.zeros((1, 3)),
+                        np.array([[np.pi, 0, 0]])])
+    np.testing.assert_allclose(fl.axis_angle_to_matrix(r), Rotation.from_rotvec(r).as_matrix(), atol=1e-14)
+
+
+def test_parameter_validation(model_and_arrays):
+    m, _ = model_and_arrays
+    with pytest.raises(ValueError, match="non-zero coefficients"):
+        flame_forward(m, expr=np.ones((1, N_EXPR + 3)))
+    flame_forward(m, expr=np.concatenate([np.ones((1, N_EXPR)), np.zeros((1, 96))], 1))  # zero tail is fine
+    with pytest.raises(ValueError, match="static_offset"):
+        flame_forward(m, static_offset=np.zeros((1, N_V + 1, 3)))
+    with pytest.raises(ValueError, match="number of frames"):
+        flame_forward(m, rotation=np.zeros((3, 3)), jaw_pose=np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="NaN"):
+        flame_forward(m, jaw_pose=np.array([[np.nan, 0, 0]]))
+
+
+def test_chunked_frames_match_single_frames(model_and_arrays):
+    m, _ = model_and_arrays
+    prm = random_params(fl._CHUNK + 5, seed=7)
+    allv = flame_forward(m, **prm)
+    for t in (0, fl._CHUNK - 1, fl._CHUNK, fl._CHUNK + 4):
+        one = {k: (v[t:t + 1] if k not in ("shape", "static_offset") else v) for k, v in prm.items()}
+        np.testing.assert_allclose(flame_forward(m, **one)[0], allv[t], atol=1e-6)
+
+
+# ---------------------------------------------------------------------------- torch twin
+
+def test_torch_agrees_with_numpy_float32(model_and_arrays):
+    torch = pytest.importorskip("torch")
+    from progressive_avatars.core.flame_torch import FlameTorch
+
+    m, _ = model_and_arrays
+    prm = random_params(6, seed=5, scale=0.6)
+    want = flame_forward(m, **prm)
+    layer = FlameTorch(m)
+    got = layer(**{k: torch.as_tensor(v, dtype=torch.float32) for k, v in prm.items()}).numpy()
+    assert got.dtype == np.float32
+    np.testing.assert_allclose(got, want, atol=1e-5)
+    # Zero pose, default arguments.
+    np.testing.assert_allclose(layer().numpy()[0], m.v_template, atol=1e-6)
+
+
+def test_torch_gradients_finite_and_correct(model_and_arrays):
+    torch = pytest.importorskip("torch")
+    from progressive_avatars.core.flame_torch import FlameTorch
+
+    m, _ = model_and_arrays
+    layer = FlameTorch(m, dtype=torch.float64)
+    rng = np.random.default_rng(2)
+    jaw = torch.tensor(0.2 * rng.normal(size=(1, 3)), requires_grad=True)
+    expr = torch.tensor(rng.normal(size=(1, 2)), requires_grad=True)
+    probe = torch.tensor(rng.normal(size=(1, N_V, 3)))  # random projection: one backward pass, full coverage
+    assert torch.autograd.gradcheck(lambda j, e: (layer(jaw_pose=j, expr=e) * probe).sum(), (jaw, expr),
+                                    eps=1e-6, atol=1e-6)
+    # At exactly zero pose (where a naive Rodrigues gives NaN gradients).
+    zero = torch.zeros(1, 3, dtype=torch.float64, requires_grad=True)
+    layer(rotation=zero, neck_pose=zero).sum().backward()
+    assert torch.isfinite(zero.grad).all()

@@ -1,0 +1,309 @@
+"""The differentiable rasteriser (core/render.py) against the dense float64 reference
+(tests/reference_rasterizer.py), finite differences, and itself (contrib, means2d, depth)."""
+
+import os
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+sys.path.insert(0, os.path.dirname(__file__))
+from reference_rasterizer import render_reference  # noqa: E402
+
+from progressive_avatars.core.camera import Camera  # noqa: E402
+from progressive_avatars.core.render import RenderOutput, render, render_numpy  # noqa: E402
+
+W, H = 40, 36  # not multiples of 16: partial tiles on both axes
+
+
+def make_camera():
+    # Slightly rotated, fx != fy, principal point off-centre: intrinsics must all be honoured.
+    a = 0.07
+    R = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
+    R = R @ np.array([[1.0, 0.0, 0.0], [0.0, np.cos(0.05), -np.sin(0.05)], [0.0, np.sin(0.05), np.cos(0.05)]])
+    return Camera(R, np.array([0.03, -0.02, 0.1]), 46.0, 39.0, 17.3, 20.6, W, H)
+
+
+def world_from_camera(cam, pc):
+    return (np.asarray(pc) - cam.t) @ cam.R  # inverse of R p + t
+
+
+def make_scene(seed=0, n=48, dtype=torch.float64, special=True):
+    """Random Gaussians in front of the camera, plus the awkward cases."""
+    rng = np.random.default_rng(seed)
+    cam = make_camera()
+    z = rng.uniform(0.8, 3.0, n)
+    xn = rng.uniform(-0.45, 0.5, n)
+    yn = rng.uniform(-0.55, 0.45, n)
+    pc = np.stack([xn * z, yn * z, z], 1)
+    scales = rng.uniform(0.015, 0.09, (n, 3)) * z[:, None] * 0.6
+    opac = rng.uniform(0.15, 0.9, n)
+    if special:
+        extra_pc, extra_s, extra_o = [], [], []
+
+        def add(p, s, o):
+            extra_pc.append(p), extra_s.append(s), extra_o.append(o)
+
+        add([0.0, 0.0, -0.5], [0.1, 0.1, 0.1], 0.8)  # behind the camera
+        add([0.001, 0.0, 0.0095], [0.004, 0.004, 0.004], 0.5)  # just in front of the near plane: culled
+        add([0.0005, -0.0004, 0.0108], [0.004, 0.003, 0.005], 0.2)  # just behind it: huge on screen
+        add([(16.0 - 17.3) / 46.0 * 1.5, (16.0 - 20.6) / 39.0 * 1.5, 1.5], [0.04, 0.05, 0.03], 0.7)  # tile corner
+        add([0.1, 0.05, 1.2], [0.08, 0.06, 1e-6], 0.8)  # flat
+        add([-0.2, 0.1, 1.1], [1e-6, 0.07, 0.05], 0.6)  # flat, other axis
+        add([0.3, -0.2, 4.0], [6.0, 5.0, 7.0], 0.25)  # huge
+        add([1.6 * 2.0, 0.1, 2.0], [0.9, 0.7, 0.5], 0.6)  # centre outside the clamped FOV, tail visible
+        add([30.0, 0.0, 2.0], [0.05, 0.05, 0.05], 0.9)  # far outside the frustum
+        pc = np.concatenate([pc, np.array(extra_pc)])
+        scales = np.concatenate([scales, np.array(extra_s)])
+        opac = np.concatenate([opac, np.array(extra_o)])
+    m = len(pc)
+    means = world_from_camera(cam, pc)
+    quats = rng.normal(size=(m, 4))
+    colors = rng.uniform(0.0, 1.0, (m, 3))
+    bg = np.array([0.2, 0.5, 0.1])
+    t = [torch.tensor(x, dtype=dtype) for x in (means, quats, scales, opac, colors, bg)]
+    return cam, t
+
+
+def loss_weights(seed, n_ch=3, dtype=torch.float64):
+    g = torch.Generator().manual_seed(seed)
+    return (torch.randn(H, W, n_ch, generator=g, dtype=dtype), torch.randn(H, W, generator=g, dtype=dtype))
+
+
+def rel_err(a, b):
+    return float((a.double() - b.double()).norm() / b.double().norm().clamp_min(1e-30))
+
+
+def leaves(params, dtype=None):
+    return [p.detach().clone().to(dtype or p.dtype).requires_grad_(True) for p in params]
+
+
+NAMES = ["means", "quats", "scales", "opacities", "colors", "background"]
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_forward_matches_reference(dtype):
+    cam, params = make_scene(0, dtype=dtype)
+    out = render(*params[:5], cam, params[5])
+    assert isinstance(out, RenderOutput)
+    assert out.image.shape == (H, W, 3) and out.image.dtype == dtype
+    assert out.alpha.shape == (H, W) and out.contrib.shape == (len(params[0]),)
+    ref_img, ref_alpha, ref_contrib = render_reference(*[p.double() for p in params[:5]], cam,
+                                                       params[5].double())
+    assert float((out.image.double() - ref_img).abs().max()) <= 1e-4
+    assert float((out.alpha.double() - ref_alpha).abs().max()) <= 1e-4
+    assert torch.allclose(out.contrib.double(), ref_contrib, rtol=1e-4, atol=1e-4)
+    assert torch.isfinite(out.image).all()
+    # The scene really exercises the special cases.
+    radii = out.radii.numpy()
+    n = len(radii) - 9
+    assert radii[n] == 0 and radii[n + 1] == 0 and radii[n + 8] == 0  # behind, before near, outside
+    assert radii[n + 2] > 20 and radii[n + 6] > 20  # near-plane and huge Gaussians cover the image
+    assert (radii[:n] > 0).sum() > n // 2
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_gradients_match_reference_autograd(dtype):
+    cam, params = make_scene(1, dtype=dtype)
+    wi, wa = loss_weights(3, dtype=dtype)
+    ours = leaves(params)
+    out = render(*ours[:5], cam, ours[5])
+    ((out.image * wi).sum() + (out.alpha * wa).sum()).backward()
+
+    ref = leaves(params, torch.float64)
+    m2d = torch.zeros(len(params[0]), 2, dtype=torch.float64, requires_grad=True)
+    img, alpha, _ = render_reference(*ref[:5], cam, ref[5], means2d=m2d)
+    ((img * wi.double()).sum() + (alpha * wa.double()).sum()).backward()
+    for name, a, b in zip(NAMES, ours, ref):
+        assert a.grad is not None and torch.isfinite(a.grad).all(), name
+        assert rel_err(a.grad, b.grad) <= 1e-3, (name, rel_err(a.grad, b.grad))
+    assert out.means2d.grad is not None
+    assert rel_err(out.means2d.grad, m2d.grad) <= 1e-3
+
+
+def test_gradients_match_finite_differences():
+    cam, params = make_scene(2, n=24)
+    wi, wa = loss_weights(5)
+    ours = leaves(params)
+    out = render(*ours[:5], cam, ours[5])
+    ((out.image * wi).sum() + (out.alpha * wa).sum()).backward()
+
+    rng = np.random.default_rng(0)
+    for k, name in enumerate(NAMES[:5]):
+        analytic, numeric = [], []
+        flat = params[k].reshape(-1)
+        for idx in rng.choice(flat.numel(), size=min(24, flat.numel()), replace=False):
+            h = 1e-6 * max(abs(float(flat[idx])), 1e-3)  # relative step: some scales are 1e-6
+            vals = []
+            for sign in (1.0, -1.0):
+                ps = [p.clone() for p in params]
+                ps[k].view(-1)[idx] += sign * h
+                img, alpha = _forward64(ps, cam)
+                vals.append(float((img * wi).sum() + (alpha * wa).sum()))
+            numeric.append((vals[0] - vals[1]) / (2 * h))
+            analytic.append(float(ours[k].grad.reshape(-1)[idx]))
+        err = np.linalg.norm(np.subtract(analytic, numeric)) / max(np.linalg.norm(numeric), 1e-30)
+        assert err <= 1e-3, (name, err)
+
+
+def _forward64(ps, cam):
+    with torch.no_grad():
+        out = render(*ps[:5], cam, ps[5])
+    return out.image.double(), out.alpha.double()
+
+
+def test_early_termination_matches_reference():
+    # Many nearly opaque layers over a patch: pixels reach T < 1e-4 and stop.
+    rng = np.random.default_rng(4)
+    cam = make_camera()
+    n = 40
+    z = np.linspace(1.0, 2.0, n)
+    pc = np.stack([rng.uniform(-0.05, 0.05, n) * z, rng.uniform(-0.05, 0.05, n) * z, z], 1)
+    params = [torch.tensor(x) for x in (world_from_camera(cam, pc), rng.normal(size=(n, 4)),
+                                         rng.uniform(0.1, 0.2, (n, 3)) * z[:, None], rng.uniform(0.6, 0.95, n),
+                                         rng.uniform(0, 1, (n, 3)), np.array([0.3, 0.3, 0.3]))]
+    wi, wa = loss_weights(7)
+    ours = leaves(params)
+    out = render(*ours[:5], cam, ours[5])
+    assert float(out.alpha.detach().max()) > 1 - 1e-3  # the stop rule is exercised
+    ((out.image * wi).sum() + (out.alpha * wa).sum()).backward()
+    ref = leaves(params)
+    img, alpha, _ = render_reference(*ref[:5], cam, ref[5])
+    assert float((out.image - img).detach().abs().max()) <= 1e-4
+    ((img * wi).sum() + (alpha * wa).sum()).backward()
+    for name, a, b in zip(NAMES, ours, ref):
+        assert rel_err(a.grad, b.grad) <= 1e-3, name
+
+
+def test_contrib_is_gradient_of_image_wrt_constant_colour():
+    cam, params = make_scene(3)
+    probe = torch.zeros(len(params[0]), 1, dtype=torch.float64, requires_grad=True)
+    out = render(*params[:4], probe, cam)
+    out.image.sum().backward()
+    assert torch.allclose(out.contrib, probe.grad[:, 0], rtol=1e-9, atol=1e-12)
+    assert not out.contrib.requires_grad
+    assert float(out.contrib.sum()) > 0
+    culled = out.radii == 0
+    assert torch.all(out.contrib[culled] == 0)
+
+
+def test_depth_matches_reference():
+    cam, params = make_scene(5)
+    ours = leaves(params)
+    out = render(*ours[:5], cam, ours[5], return_depth=True)
+    assert out.depth.shape == (H, W)
+    wd = loss_weights(9)[1]
+    (out.depth * wd).sum().backward()
+
+    ref = leaves(params)
+    z = ref[0] @ torch.as_tensor(cam.R).T[:, 2] + float(cam.t[2])
+    img, alpha, _ = render_reference(ref[0], ref[1], ref[2], ref[3], z[:, None], cam)
+    depth = torch.where(alpha > 1e-10, img[..., 0] / alpha.clamp_min(1e-10), torch.zeros_like(alpha))
+    assert float((out.depth - depth).detach().abs().max()) <= 1e-6
+    (depth * wd).sum().backward()
+    for name, a, b in zip(NAMES[:4], ours, ref):
+        assert rel_err(a.grad, b.grad) <= 1e-3, name
+
+
+def test_render_numpy_and_partial_requires_grad():
+    cam, params = make_scene(6, dtype=torch.float32)
+    img, alpha, contrib = render_numpy(*[p.numpy() for p in params[:5]], cam, params[5].numpy())
+    out = render(*params[:5], cam, params[5])
+    assert img.dtype == np.float32 and np.abs(img - out.image.numpy()).max() < 1e-6
+    assert np.abs(alpha - out.alpha.numpy()).max() < 1e-6
+    assert np.allclose(contrib, out.contrib.numpy(), atol=1e-5)
+    # Only colours require grad: the others get none, nothing breaks.
+    colors = params[4].clone().requires_grad_(True)
+    out = render(*params[:4], colors, cam)
+    out.image.sum().backward()
+    assert colors.grad is not None and params[0].grad is None
+
+
+def test_empty_and_degenerate_scenes_are_finite():
+    cam = make_camera()
+    empty = [torch.zeros(0, 3), torch.zeros(0, 4), torch.zeros(0, 3), torch.zeros(0), torch.zeros(0, 3)]
+    bg = torch.tensor([0.1, 0.2, 0.3])
+    out = render(*empty, cam, bg)
+    assert torch.allclose(out.image, bg.expand(H, W, 3)) and float(out.alpha.abs().max()) == 0
+    # Everything culled or extreme still gives finite values and gradients.
+    cam, params = make_scene(8, n=4)
+    ps = leaves(params)
+    with torch.no_grad():
+        ps[2][:] = torch.tensor([1e-7, 1e-7, 1e-7], dtype=torch.float64)
+        ps[2][0] = torch.tensor([1e4, 1e4, 1e-9], dtype=torch.float64)
+    out = render(*ps[:5], cam, ps[5])
+    (out.image.sum() + out.alpha.sum()).backward()
+    for p in ps:
+        assert torch.isfinite(p.grad).all()
+
+
+def test_backend_auto_falls_back_to_cpu_without_cuda():
+    cam, params = make_scene(0, n=5, special=False)
+    a = render(*params[:5], cam, params[5], backend="auto").image
+    b = render(*params[:5], cam, params[5], backend="cpu").image
+    assert torch.equal(a, b)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_gsplat_matches_cpu():
+    pytest.importorskip("gsplat")
+    cam, params = make_scene(0, dtype=torch.float32)
+    cpu = render(*params[:5], cam, params[5], backend="cpu")
+    gpu_params = leaves([p.cuda() for p in params])
+    gpu = render(*gpu_params[:5], cam, gpu_params[5], backend="gsplat")
+    assert float((gpu.image.detach().cpu() - cpu.image).abs().mean()) <= 1e-3
+    assert float((gpu.alpha.detach().cpu() - cpu.alpha).abs().mean()) <= 1e-3
+    assert torch.allclose(gpu.contrib.cpu(), cpu.contrib, rtol=0.05, atol=0.05)
+    gpu.image.sum().backward()
+    assert gpu.means2d.grad is not None and gpu.means2d.grad.shape == (len(params[0]), 2)
+
+
+def _bad(**changes):
+    cam, params = make_scene(0, n=6, special=False)
+    kw = dict(zip(NAMES[:5], params[:5]), camera=cam, background=params[5])
+    kw.update(changes)
+    return kw
+
+
+@pytest.mark.parametrize("changes, message", [
+    (lambda kw: {"means": kw["means"].clone().index_fill_(0, torch.tensor([1]), float("nan"))},
+     "means contain NaN or inf"),
+    (lambda kw: {"means": kw["means"].clone().index_fill_(0, torch.tensor([2]), float("inf"))},
+     "means contain NaN or inf"),
+    (lambda kw: {"scales": kw["scales"].clone().index_fill_(0, torch.tensor([0]), 0.0)}, "scales must be"),
+    (lambda kw: {"scales": -kw["scales"]}, "scales must be"),
+    (lambda kw: {"opacities": kw["opacities"] + 1.0}, "opacities must be"),
+    (lambda kw: {"opacities": -kw["opacities"]}, "opacities must be"),
+    (lambda kw: {"quats": torch.zeros_like(kw["quats"])}, "quats must have non-zero norm"),
+    (lambda kw: {"quats": kw["quats"][:-1]}, "quats must have shape"),
+    (lambda kw: {"colors": kw["colors"][:-1]}, "colors must have shape"),
+    (lambda kw: {"means": kw["means"][:, :2]}, "means must have shape"),
+    (lambda kw: {"opacities": kw["opacities"][:, None]}, "opacities must have shape"),
+    (lambda kw: {"background": torch.zeros(4, dtype=torch.float64)}, "background must have shape"),
+    (lambda kw: {"camera": "not a camera"}, "camera must be"),
+])
+def test_bad_input_raises_clear_value_error(changes, message):
+    kw = _bad()
+    kw.update(changes(kw))
+    with pytest.raises(ValueError, match=message):
+        render(**kw)
+
+
+def test_zero_size_image_and_bad_options_raise():
+    kw = _bad()
+    cam = make_camera()
+    object.__setattr__(cam, "width", 0)  # Camera refuses this itself; render must too
+    kw["camera"] = cam
+    with pytest.raises(ValueError, match="image size must be positive"):
+        render(**kw)
+    with pytest.raises(ValueError, match="image size must be positive"):
+        render_numpy(*[kw[k].numpy() for k in NAMES[:5]], cam)
+    with pytest.raises(ValueError, match="backend must be"):
+        render(**_bad(), backend="vulkan")
+    with pytest.raises(ValueError, match="near must be"):
+        render(**_bad(), near=0.0)
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="needs CUDA"):
+            render(**_bad(), backend="gsplat")

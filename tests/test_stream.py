@@ -1,0 +1,429 @@
+"""The progressive stream (core/stream.py) against itself and against docs/FORMAT.md."""
+
+import os
+import struct
+import zlib
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings, strategies as st
+
+from progressive_avatars.core import stream as S
+from progressive_avatars.core.avatar import SH_C0, Avatar, sigmoid, sh_to_rgb
+from progressive_avatars.core.forest import Forest
+from tests.helpers import random_forest, sphere_mesh
+
+PARAMS = ("d_mu", "d_log_scale", "d_rot", "opacity_logit", "f_dc")
+
+
+def make_avatar(seed=0, n_lat=4, n_lon=6, depth=3, frac=0.5):
+    rng = np.random.default_rng(seed)
+    verts, faces = sphere_mesh(n_lat, n_lon)
+    forest = random_forest(faces, rng, depth=depth, frac=frac)
+    N = forest.num_faces
+    av = Avatar(forest, rng.normal(0, 0.4, (N, 3)), rng.normal(-1.0, 0.6, (N, 3)), rng.normal(size=(N, 4)),
+                rng.normal(0, 2.0, N), rng.normal(0, 1.0, (N, 3)), meta={"name": "test", "stream": "stale"})
+    return verts, av, rng.random(N)
+
+
+@pytest.fixture(scope="module")
+def small():
+    verts, av, imp = make_avatar()
+    data = S.encode_stream(av, imp, records_per_block=8, metadata={"k": [1, 2]})
+    full = S.read_stream(data)
+    return verts, av, imp, data, full
+
+
+def fields(avatar):
+    d = {n: getattr(avatar, n) for n in PARAMS}
+    d.update(parent=avatar.forest.parent, slot=avatar.forest.slot, split_logits=avatar.forest.split_logits)
+    return d
+
+
+def assert_prefix(avatar, full, n):
+    """`avatar` holds exactly the first n records of `full` (None when n == 0)."""
+    if n == 0:
+        assert avatar is None
+        return
+    assert avatar is not None and avatar.num_gaussians == n
+    a, b = fields(avatar), fields(full)
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k][:n], err_msg=k)
+    p = avatar.forest.parent
+    assert np.all(p[p >= 0] < np.flatnonzero(p >= 0))  # parents precede children
+
+
+# -- format constants (FORMAT.md) ---------------------------------------------------------
+def test_format_constants_match_document():
+    doc = open(os.path.join(os.path.dirname(__file__), "..", "docs", "FORMAT.md"), encoding="utf-8").read()
+    assert S.MAGIC == bytes.fromhex("504156530D0A1A0A")
+    assert S.FIXED_SIZE == 56 and S.QUANT_RECORD == 23 and S.LOSSLESS_RECORD == 73
+    offs = {n: S.QUANT_DTYPE.fields[n][1] for n in S.QUANT_DTYPE.names}
+    assert offs == {"geo": 0, "rot": 8, "parent": 12, "ls": 15, "opa": 18, "col": 19, "crc": 22}
+    offs = {n: S.LOSSLESS_DTYPE.fields[n][1] for n in S.LOSSLESS_DTYPE.names}
+    assert offs == {"link": 0, "split_logits": 4, "d_mu": 16, "d_log_scale": 28, "d_rot": 40,
+                    "opacity_logit": 56, "f_dc": 60, "crc": 72}
+    assert S._crc8_bytewise(b"123456789") == 0xF4 and "0xF4" in doc
+    assert S.crc8(np.frombuffer(b"123456789", np.uint8))[0] == 0xF4
+    assert zlib.crc32(b"123456789") == 0xCBF43926 and "0xCBF43926" in doc
+    rows = np.random.default_rng(1).integers(0, 256, (50, 72), dtype=np.uint8)
+    assert [S._crc8_bytewise(r.tobytes()) for r in rows] == S.crc8(rows).tolist()
+
+
+def test_header_layout_is_the_documented_one(small):
+    _, av, _, data, _ = small
+    magic, version, flags, hsize, N, F0, R, B, L, res, thash, M, T = struct.unpack_from("<8sHHIIIHHHH16sII", data)
+    assert (magic, version, flags, R, B, N, F0) == (S.MAGIC, 1, S.FLAG_TEMPLATE, 23, 8, av.num_gaussians, av.forest.num_roots)
+    assert thash == S.template_hash(av.forest.template_faces)
+    assert thash == __import__("hashlib").sha256(av.forest.template_faces.astype("<i4").tobytes()).digest()[:16]
+    assert hsize == 56 + 4 * L + 72 + T + M + 4
+    assert struct.unpack_from("<I", data, hsize - 4)[0] == zlib.crc32(data[: hsize - 4])
+    info = S.read_header(data)
+    assert len(data) == info.total_bytes == hsize + N * 23 + 4 * -(-N // B)
+    # first block CRC as documented: crc32(u32 header_crc || u32 0 || records)
+    blk = data[hsize: hsize + 8 * 23]
+    want = zlib.crc32(struct.pack("<II", info.header_crc, 0) + blk)
+    assert struct.unpack_from("<I", data, hsize + 8 * 23)[0] == want
+    assert info.level_counts == tuple(av.forest.level_counts())
+    assert info.metadata == {"name": "test", "k": [1, 2]}  # the stale "stream" key is dropped
+
+
+# -- order --------------------------------------------------------------------------------
+def test_stream_order_levels_then_importance():
+    _, av, imp = make_avatar(3)
+    f = av.forest
+    imp = np.round(imp * 4) / 4  # plenty of ties
+    order = S.stream_order(f, imp)
+    assert np.array_equal(np.sort(order), np.arange(f.num_faces))
+    assert np.array_equal(order[: f.num_roots], np.arange(f.num_roots))
+    lv = f.level[order]
+    assert np.all(np.diff(lv) >= 0)
+    for level in range(1, f.max_level + 1):
+        sel = order[lv == level]
+        key = list(zip(-imp[sel], sel))
+        assert key == sorted(key)
+    f2 = f.reorder(order)  # parents before children, roots first
+    assert np.all(f2.parent[f2.num_roots:] < np.arange(f2.num_roots, f2.num_faces))
+    # None: index order within each level
+    o = S.stream_order(f)
+    assert np.array_equal(o, np.lexsort((np.arange(f.num_faces), f.level)))
+    with pytest.raises(ValueError, match="NaN"):
+        S.stream_order(f, np.full(f.num_faces, np.nan))
+    with pytest.raises(ValueError, match="values"):
+        S.stream_order(f, imp[:-1])
+
+
+# -- round trips --------------------------------------------------------------------------
+def test_lossless_roundtrip_is_exact(tmp_path):
+    verts, av, imp = make_avatar(1)
+    p = tmp_path / "a.pavs"
+    info = S.write_stream(p, av, imp, quantize=False)
+    out = S.read_stream(p)
+    o = info.order
+    ref = av.forest.reorder(o)
+    assert info.lossless and info.record_size == 73
+    for n in PARAMS:
+        np.testing.assert_array_equal(getattr(out, n), getattr(av, n)[o])
+    np.testing.assert_array_equal(out.forest.parent, ref.parent)
+    np.testing.assert_array_equal(out.forest.slot, ref.slot)
+    np.testing.assert_array_equal(out.forest.split_logits, ref.split_logits)
+    np.testing.assert_array_equal(out.forest.template_faces, av.forest.template_faces)
+    assert out.meta["stream"]["records"] == av.num_gaussians and out.meta["name"] == "test"
+
+
+def test_quantised_roundtrip_error_bounds(tmp_path):
+    verts, av, imp = make_avatar(2, n_lat=6, n_lon=8)
+    info = S.write_stream(tmp_path / "q.pavs", av, imp)
+    out = S.read_stream(tmp_path / "q.pavs")
+    o = info.order
+    ref = Avatar(av.forest.reorder(o), *(getattr(av, n)[o] for n in PARAMS))
+    q = info.quant.astype(np.float64).reshape(3, 2, 3)
+    step_mu = (q[0, 1] - q[0, 0]) / 4095
+    step_ls = (q[1, 1] - q[1, 0]) / 255
+    step_c = (q[2, 1] - q[2, 0]) / 255
+    assert np.all(np.abs(out.d_mu - ref.d_mu) <= step_mu / 2 + 1e-6)
+    assert np.all(np.abs(out.d_log_scale - ref.d_log_scale) <= step_ls / 2 + 1e-6)
+    assert np.all(np.abs(sigmoid(out.opacity_logit) - sigmoid(ref.opacity_logit)) <= 1 / 512 + 1e-6)
+    assert np.all(np.abs(sh_to_rgb(out.f_dc) - sh_to_rgb(ref.f_dc)) <= step_c / 2 + 1e-5)
+    qa = ref.d_rot / np.linalg.norm(ref.d_rot, axis=1, keepdims=True)
+    assert np.allclose(np.linalg.norm(out.d_rot, axis=1), 1, atol=1e-5)
+    assert np.all(np.abs(np.sum(qa * out.d_rot, axis=1)) > 1 - 2e-6)  # < ~0.2 degrees
+    assert np.all(np.abs(out.forest.barycentrics() - ref.forest.barycentrics()) <= 1 / 4095 + 1e-6)
+    np.testing.assert_array_equal(out.forest.parent, ref.forest.parent)
+    # world space: errors small against each face's scale
+    from progressive_avatars.core import binding
+
+    g1, g0 = out.gaussians(verts), ref.gaussians(verts)
+    s = binding.evaluate(ref.forest, verts).s
+    rel = np.linalg.norm(g1["means"] - g0["means"], axis=1) / s
+    assert np.max(rel) < 0.02 and np.median(rel) < 0.005
+    assert np.max(np.abs(np.log(g1["scales"] / g0["scales"]))) < step_ls.max() / 2 + 0.02
+    assert info.bytes_per_gaussian < 24 + info.header_size / info.num_records
+
+
+def test_quantiser_edge_values():
+    verts, faces = sphere_mesh(3, 4)
+    forest = Forest(faces)
+    forest.split([0, 1])
+    N = forest.num_faces
+    forest.split_logits[:] = np.array([0.0, -50.0, 50.0])  # a vertex of the simplex
+    rot = np.zeros((N, 4))
+    rot[1] = [0, 0, 0, -2]  # largest negative
+    rot[2] = [0.5, 0.5, 0.5, 0.5]  # ties
+    av = Avatar(forest, np.zeros((N, 3)), np.full((N, 3), -2.0), rot, np.r_[np.full(N - 1, 30.0), -30.0],
+                np.full((N, 3), -5.0))  # constant fields: zero-width ranges, colours below 0
+    out = S.read_stream(S.encode_stream(av))
+    assert np.all(np.isfinite(out.forest.split_logits))
+    assert np.allclose(out.forest.barycentrics(), av.forest.barycentrics(), atol=1e-6)
+    assert np.all(out.d_mu == 0) and np.all(out.d_log_scale == -2.0)
+    assert np.allclose(out.d_rot[0], [1, 0, 0, 0], atol=1e-3) and np.allclose(np.abs(out.d_rot[1]), [0, 0, 0, 1], atol=1e-3)
+    assert np.allclose(np.abs(out.d_rot[2]), 0.5, atol=1e-3)
+    assert np.all(sh_to_rgb(out.f_dc) == 0)
+    a = sigmoid(out.opacity_logit)
+    assert a[0] > 0.99 and a[-1] < 0.003
+
+
+# -- the any-prefix property --------------------------------------------------------------
+def test_every_byte_prefix_yields_exactly_the_whole_verified_records(small):
+    _, av, _, data, full = small
+    info = S.read_header(data)
+    for k in range(len(data) + 1):
+        got = S.read_stream(data[:k])
+        n = info.count_for_bytes(k) if k >= info.header_size else 0
+        assert_prefix(got, full, n)
+    assert info.count_for_bytes(len(data)) == av.num_gaussians
+
+
+def test_reader_random_chunks_matches_prefixes(small):
+    _, av, _, data, full = small
+    info = S.read_header(data)
+    rng = np.random.default_rng(7)
+    for trial in range(6):
+        r = S.StreamReader(source="chunks")
+        pos = 0
+        while pos < len(data):
+            step = int(rng.integers(1, 3 if trial == 0 else 400))
+            got = r.feed(data[pos: pos + step])
+            before = info.count_for_bytes(pos) if pos >= info.header_size else 0
+            pos = min(len(data), pos + step)
+            n = info.count_for_bytes(pos) if pos >= info.header_size else 0
+            assert r.num_gaussians == n and got == n - before
+            if r.header is not None:
+                assert len(r._pending) < info.block_bytes + step  # never re-buffers old blocks
+            if trial == 1 or pos == len(data) or rng.random() < 0.05:
+                assert_prefix(r.avatar(), full, n)
+        assert r.complete and r.header == info
+        with pytest.raises(ValueError, match="after the end"):
+            r.feed(b"x")
+
+
+def test_every_single_byte_flip_is_detected(small):
+    _, _, _, data, full = small
+    info = S.read_header(data)
+    rng = np.random.default_rng(3)
+    for j in range(len(data)):
+        bad = bytearray(data)
+        bad[j] ^= int(rng.integers(1, 256))
+        with pytest.raises(ValueError):
+            S.read_stream(bytes(bad))
+        # truncated after the flip: an error, or (flip in the unverifiable tail) a clean prefix
+        k = int(rng.integers(j + 1, len(data) + 1))
+        try:
+            got = S.read_stream(bytes(bad[:k]))
+        except ValueError:
+            continue
+        n = info.count_for_bytes(k) if k >= info.header_size else 0
+        assert_prefix(got, full, n)
+        # only bytes after the last whole record (a partial record or block CRC) may go unseen
+        assert k < info.header_size or j >= info.bytes_for_count(n), f"flip at {j} undetected with prefix {k}"
+
+
+def test_corrupt_block_and_record_errors_name_the_place(small):
+    _, _, _, data, _ = small
+    info = S.read_header(data)
+    bad = bytearray(data)
+    off = info.record_offset(20) + 3  # record 20: block 2 (8 records per block)
+    bad[off] ^= 0x10
+    with pytest.raises(ValueError, match=r"block 2 .*CRC-32"):
+        S.read_stream(bytes(bad))
+    # inside an incomplete block only the record's CRC-8 can tell
+    end = info.record_offset(22)
+    with pytest.raises(ValueError, match=r"record 20 .*CRC-8"):
+        S.read_stream(bytes(bad[:end]))
+    r = S.StreamReader()
+    with pytest.raises(ValueError):
+        r.feed(bytes(bad[:end]))
+    assert r.num_gaussians == 20  # everything verified before the bad record is kept
+    with pytest.raises(ValueError, match="already failed"):
+        r.feed(b"\0")
+
+
+def test_header_errors(small, tmp_path):
+    _, _, _, data, _ = small
+    with pytest.raises(ValueError, match="bad magic"):
+        S.read_stream(b"PAVX")
+    with pytest.raises(ValueError, match="bad magic"):
+        S.read_stream(b"GIF89a" + data[6:])
+    assert S.read_stream(data[:5]) is None  # truncation is not an error
+    H = S.read_header(data).header_size
+    bad = bytearray(data)
+    bad[H - 10] ^= 1  # inside the metadata
+    with pytest.raises(ValueError, match="header checksum"):
+        S.read_stream(bytes(bad))
+    v2 = bytearray(data)
+    v2[8:10] = struct.pack("<H", 2)
+    with pytest.raises(ValueError, match="version 2"):
+        S.read_stream(bytes(v2))
+    fl = bytearray(data)
+    fl[10:12] = struct.pack("<H", 0x80 | S.FLAG_TEMPLATE)
+    with pytest.raises(ValueError, match="flags"):
+        S.read_stream(bytes(fl))
+    with pytest.raises(ValueError, match="after the end"):
+        S.read_stream(data + b"\0")
+    p = tmp_path / "t.pavs"
+    p.write_bytes(data[: H + 100])
+    assert S.read_stream(p).num_gaussians == S.read_header(data).count_for_bytes(H + 100)
+    with pytest.raises(ValueError, match="truncated inside the stream header"):
+        S.read_header(data[: H - 1])
+
+
+def test_structurally_invalid_records_are_refused():
+    """A well-checksummed record that breaks the forest rules (a buggy writer) is refused."""
+    _, av, imp = make_avatar(4)
+    data = bytearray(S.encode_stream(av, imp, records_per_block=4))
+    info = S.read_header(bytes(data))
+    i = info.num_template_faces + 2
+    o = info.record_offset(i)
+    rec = bytearray(data[o: o + 23])
+    rec[12:15] = (i + 5).to_bytes(3, "little")  # parent after the child
+    rec[22] = S._crc8_bytewise(bytes(rec[:22]))
+    data[o: o + 23] = rec
+    with pytest.raises(ValueError, match=f"record {i} is structurally invalid"):
+        S.read_stream(bytes(data[: o + 23]))  # block incomplete: CRC-8 passes, structure fails
+
+
+# -- template binding ---------------------------------------------------------------------
+def test_template_mismatch_is_refused(tmp_path):
+    verts, av, imp = make_avatar(5)
+    faces = av.forest.template_faces
+    p = tmp_path / "n.pavs"
+    info = S.write_stream(p, av, imp, embed_template=False)
+    assert not info.template_embedded
+    other = faces.copy()
+    other[[0, 1]] = other[[1, 0]]
+    with pytest.raises(ValueError, match="template mismatch"):
+        S.check_template(info, other)
+    with pytest.raises(ValueError, match="template mismatch"):
+        S.check_template(info, faces[:-1])
+    with pytest.raises(ValueError, match="template mismatch"):
+        S.read_stream(p, template_faces=other)
+    with pytest.raises(ValueError, match="does not embed its template"):
+        S.read_stream(p)
+    S.check_template(info, faces)
+    out = S.read_stream(p, template_faces=faces)
+    emb = S.read_stream(S.encode_stream(av, imp))
+    for n in PARAMS:
+        np.testing.assert_array_equal(getattr(out, n), getattr(emb, n))
+    assert S.read_header(p).total_bytes < S.read_header(S.encode_stream(av, imp)).total_bytes
+
+
+def test_partial_base_level():
+    _, av, imp = make_avatar(6)
+    data = S.encode_stream(av, imp)
+    full = S.read_stream(data)
+    out = S.read_stream(data, max_gaussians=5)
+    assert out.num_gaussians == 5 and out.forest.num_roots == 5
+    np.testing.assert_array_equal(out.forest.template_faces, av.forest.template_faces[:5])
+    assert out.meta["stream"]["base_complete"] is False
+    assert S.read_stream(data, max_gaussians=av.forest.num_roots).meta["stream"]["base_complete"] is True
+    np.testing.assert_array_equal(out.d_mu, full.d_mu[:5])
+
+
+# -- budgets ------------------------------------------------------------------------------
+def test_budgets(small, tmp_path):
+    _, av, _, data, full = small
+    info = S.read_header(data)
+    p = tmp_path / "b.pavs"
+    p.write_bytes(data)
+    N = av.num_gaussians
+    assert info.count_for_percent(100) == N and info.count_for_percent(0) == 0
+    assert S.read_stream(p, percent=0) is None
+    for pct in (5, 25, 50, 77.7, 100):
+        n = info.count_for_percent(pct)
+        assert n == info.count_for_bytes(int(pct / 100 * info.total_bytes))
+        assert_prefix(S.read_stream(p, percent=pct), full, n)
+        assert_prefix(S.read_stream(data, percent=pct), full, n)
+        assert info.count_for_percent(info.percent_for_count(n)) >= n
+    counts = [info.count_for_percent(x) for x in np.linspace(0, 100, 101)]
+    assert counts == sorted(counts)
+    for n in range(N + 1):
+        k = info.bytes_for_count(n)
+        assert info.count_for_bytes(k) >= n and (n == 0 or info.count_for_bytes(k - 1) < n)
+    assert_prefix(S.read_stream(p, max_bytes=info.bytes_for_count(40)), full, 40)
+    assert_prefix(S.read_stream(p, max_gaussians=41), full, 41)
+    assert_prefix(S.read_stream(p, max_gaussians=41, max_bytes=info.bytes_for_count(30), percent=100), full, 30)
+    assert info.base_bytes == info.bytes_for_count(info.num_template_faces)
+    with pytest.raises(ValueError):
+        S.read_stream(p, percent=101)
+    with pytest.raises(ValueError):
+        S.read_stream(p, max_bytes=-1)
+
+
+def test_budget_reads_only_what_it_needs(tmp_path):
+    """A budgeted read verifies the block of its last record, not the file's tail."""
+    _, av, imp = make_avatar(8)
+    data = bytearray(S.encode_stream(av, imp, records_per_block=8))
+    info = S.read_header(bytes(data))
+    data[-3] ^= 0xFF  # damage the last block
+    p = tmp_path / "c.pavs"
+    p.write_bytes(bytes(data))
+    assert S.read_stream(p, max_gaussians=16).num_gaussians == 16
+    with pytest.raises(ValueError):
+        S.read_stream(p)
+    assert info.block_end_for_count(16) == info.header_size + 2 * info.block_bytes
+
+
+# -- writing ------------------------------------------------------------------------------
+def test_write_is_atomic(tmp_path, monkeypatch):
+    _, av, imp = make_avatar(9)
+    p = tmp_path / "s.pavs"
+    S.write_stream(p, av, imp)
+    before = p.read_bytes()
+
+    def boom(*a, **k):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(S.os, "replace", boom)
+    with pytest.raises(OSError):
+        S.write_stream(p, av, imp, quantize=False)
+    assert p.read_bytes() == before
+    assert os.listdir(tmp_path) == ["s.pavs"]
+    monkeypatch.undo()
+    with pytest.raises(ValueError, match="JSON"):
+        S.write_stream(p, av, imp, metadata={"x": object()})
+    assert p.read_bytes() == before
+
+
+# -- property test ------------------------------------------------------------------------
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 10_000), depth=st.integers(0, 3), frac=st.floats(0.1, 1.0),
+       quantize=st.booleans(), block=st.integers(1, 40), cut=st.floats(0, 1), chunk=st.integers(1, 700))
+def test_property_random_forests(seed, depth, frac, quantize, block, cut, chunk):
+    verts, av, imp = make_avatar(seed, n_lat=3, n_lon=4, depth=depth, frac=frac)
+    data = S.encode_stream(av, imp, quantize=quantize, records_per_block=block)
+    info = S.read_header(data)
+    full = S.read_stream(data)
+    assert full.num_gaussians == av.num_gaussians
+    if not quantize:
+        for n in PARAMS:
+            np.testing.assert_array_equal(getattr(full, n), getattr(av, n)[S.stream_order(av.forest, imp)])
+    k = int(cut * len(data))
+    n = info.count_for_bytes(k)
+    assert_prefix(S.read_stream(data[:k]), full, n)
+    r = S.StreamReader()
+    for i in range(0, k, chunk):
+        r.feed(data[i: min(k, i + chunk)])
+    assert r.num_gaussians == n
+    assert_prefix(r.avatar(), full, n)
+    g = full.gaussians(verts)
+    assert all(np.all(np.isfinite(v)) for v in g.values())

@@ -1,0 +1,149 @@
+"""The synthetic default dataset: template, rig, appearance detail and the written files."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+import trimesh
+from PIL import Image
+
+from progressive_avatars.core import synthetic as S
+from progressive_avatars.core.camera import Camera
+
+
+@pytest.fixture(scope="module")
+def template():
+    return S.head_template()
+
+
+def _face_regions(v, f):
+    c = v[f].mean(axis=1)
+    x, y, z = c.T
+    eyes = (z > 0.06) & (np.abs(y - 0.018) < 0.008) & (np.abs(np.abs(x) - 0.032) < 0.012)
+    mouth = (z > 0.06) & (np.abs(y - S.MOUTH_Y) < 0.008) & (np.abs(x) < 0.022)
+    back = (z < -0.05) & (y > -0.05)
+    cheeks = (z > 0.03) & (np.abs(np.abs(x) - 0.05) < 0.01) & (np.abs(y + 0.025) < 0.01)
+    scalp = (y > 0.09)
+    return dict(eyes=eyes, mouth=mouth, back=back, cheeks=cheeks, scalp=scalp)
+
+
+def test_template_watertight_sized_and_uneven(template):
+    v, f = template
+    assert v.dtype == np.float32 and f.dtype == np.int32
+    assert 2000 <= len(f) <= 6000
+    mesh = trimesh.Trimesh(v, f, process=False)
+    assert mesh.is_watertight and mesh.is_winding_consistent
+    assert mesh.volume > 0  # outward winding
+    lo, hi = mesh.bounds
+    assert 0.08 < hi[0] < 0.1 and hi[1] > 0.1 and lo[1] < -0.2 and hi[2] > 0.1  # head, neck, nose
+    area = mesh.area_faces
+    r = _face_regions(v, f)
+    for name in ("eyes", "mouth", "back"):
+        assert r[name].sum() > 20, name
+    fine = np.median(area[r["eyes"] | r["mouth"]])
+    assert np.median(area[r["back"]]) > 3.0 * fine
+    assert np.degrees(mesh.face_angles.min()) > 1.0  # no slivers
+
+
+def test_rig_smooth_finite_and_jaw_opens(template):
+    v, _ = template
+    assert np.array_equal(S.pose_head(v, S.neutral_params()), v)
+    # lowest frontal vertex of the face (above the throat)
+    chin = np.argmin(np.where((v[:, 2] > 0.06) & (np.abs(v[:, 0]) < 0.01) & (v[:, 1] > -0.14), v[:, 1], np.inf))
+    assert -0.13 < v[chin, 1] < -0.09
+    opened = S.pose_head(v, {"jaw": 1.0})
+    assert opened[chin, 1] < v[chin, 1] - 0.01
+    forehead = np.argmax(np.where(v[:, 2] > 0.05, v[:, 1], -np.inf))
+    assert np.allclose(opened[forehead], v[forehead], atol=1e-6)
+    full = {"jaw": 1.0, "blink": 1.0, "smile": 1.0, "rotation": (25.0, 15.0, 10.0), "translation": (0.02, 0.01, 0.0)}
+    prev = S.pose_head(v, S.neutral_params())
+    for a in np.linspace(0.05, 1.0, 20):  # small parameter steps move vertices by small amounts
+        p = {"jaw": a, "blink": a, "smile": a, "rotation": tuple(a * np.array(full["rotation"])),
+             "translation": tuple(a * np.array(full["translation"]))}
+        cur = S.pose_head(v, p)
+        assert np.all(np.isfinite(cur))
+        assert np.abs(cur - prev).max() < 0.012
+        prev = cur
+    for smile in (-1.0, 1.0):
+        assert np.all(np.isfinite(S.pose_head(v, {"smile": smile})))
+    # sequences are smooth in time and the test sequence differs from all training ones
+    seq = [S.sequence_params(0, k, 8) for k in range(8)]
+    jaws = np.array([p["jaw"] for p in seq])
+    assert np.abs(np.diff(jaws)).max() < 0.6 and jaws.max() > 0.5
+
+
+def test_detail_higher_on_scalp_eyes_lips_than_cheeks(template):
+    v, f = template
+    d = S.face_detail(v, f)
+    assert d.shape == (len(f),) and d.dtype == np.float32 and np.all(np.isfinite(d))
+    r = _face_regions(v, f)
+    cheeks = np.mean(d[r["cheeks"]])
+    for name in ("scalp", "eyes", "mouth"):
+        assert np.mean(d[r[name]]) > 4.0 * cheeks, name
+
+
+def test_tiny_dataset(tmp_path):
+    out = tmp_path / "ds"
+    summary = S.make_dataset(out, resolution=32, cameras=4, sequences=2, frames=2, progress=False)
+    assert summary["images"] == 2 * 2 * 4
+    v, f = S.head_template()
+    with np.load(out / "canonical_mesh.npz") as z:
+        assert z["faces"].dtype == np.int32 and z["vertices"].dtype == np.float32
+        assert z["vertices"].shape == v.shape and np.array_equal(z["faces"], f)
+    with np.load(out / "detail.npz") as z:
+        assert z["face_detail"].shape == (len(f),)
+    docs = {}
+    for split in ("train", "val", "test", ""):
+        name = f"transforms_{split}.json" if split else "transforms.json"
+        with open(out / name) as fh:
+            docs[split] = json.load(fh)
+        assert docs[split]["background"] == [1.0, 1.0, 1.0]
+        assert isinstance(docs[split]["sequences"], list)
+    held = S.held_out_camera(4)
+    train, val, test = docs["train"]["frames"], docs["val"]["frames"], docs["test"]["frames"]
+    # 1 training sequence x 2 frames x 3 cameras; held-out camera on training timesteps; test sequence x all cameras
+    assert len(train) == 1 * 2 * 3 and len(val) == 1 * 2 * 1 and len(test) == 1 * 2 * 4
+    assert len(docs[""]["frames"]) == 16
+    assert all(fr["camera_index"] != held and fr["sequence"] == 0 for fr in train)
+    assert all(fr["camera_index"] == held and fr["sequence"] == 0 for fr in val)
+    assert all(fr["sequence"] == 1 for fr in test) and {fr["camera_index"] for fr in test} == set(range(4))
+    assert sorted(fr["timestep_index"] for fr in docs[""]["frames"])[::4] == [0, 1, 2, 3]
+
+    facing_hits = []
+    for fr in docs[""]["frames"]:
+        for key in ("file_path", "fg_mask_path", "mesh_path"):
+            assert os.path.exists(out / fr[key]), fr[key]
+        assert fr["file_path"] == f"images/{fr['timestep_index']:05d}_{fr['camera_index']:02d}.png"
+        img = np.asarray(Image.open(out / fr["file_path"]))
+        mask = np.asarray(Image.open(out / fr["fg_mask_path"]))
+        assert img.shape == (fr["h"], fr["w"], 3) and img.dtype == np.uint8
+        assert mask.shape == (fr["h"], fr["w"]) and mask.dtype == np.uint8
+        assert (fr["w"], fr["h"]) == (22, 32) and isinstance(fr["cx"], float)
+        assert 0 < mask.mean() / 255 < 0.8 and len(np.unique(mask)) > 2  # anti-aliased coverage
+        assert np.all(img[mask == 0] == 255)  # composited over white
+        cam = Camera.from_c2w_opengl(fr["transform_matrix"], fr["fl_x"], fr["fl_y"], fr["cx"], fr["cy"], fr["w"], fr["h"])
+        with np.load(out / fr["mesh_path"]) as z:
+            verts = z["vertices"]
+        assert verts.shape == v.shape
+        vn = S.vertex_normals(verts, f)
+        facing = np.einsum("nd,nd->n", vn, cam.center - verts) > 0
+        uv, depth = cam.project(verts[facing])
+        assert np.all(depth > 0)
+        i, j = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
+        inside = (i >= 0) & (i < fr["w"]) & (j >= 0) & (j < fr["h"])
+        assert inside.mean() > 0.98
+        facing_hits.append((mask[j[inside], i[inside]] > 0).mean())
+    assert np.mean(facing_hits) > 0.97
+
+
+def test_render_views_pixel_centres_and_coverage(template):
+    v, f = template
+    cams = S.make_cameras(2, resolution=24)
+    images, masks = S.render_views(v, f, cams, supersample=1)
+    assert images.shape == (2, 24, 16, 3) and masks.shape == (2, 24, 16)
+    assert set(np.unique(masks)) <= {0.0, 1.0}
+    origins, dirs = S.camera_rays(cams[0], 1)
+    uv, _ = cams[0].project(origins[0, 0] + dirs * 1.0)
+    j, i = np.mgrid[0:24, 0:16]
+    assert np.allclose(uv[..., 0], i + 0.5) and np.allclose(uv[..., 1], j + 0.5)
