@@ -25,7 +25,7 @@ class _Entry:
 
     def evaluator_for(self, count):
         if self.evaluator is None or self.evaluator.n != count:
-            self.evaluator = preview_data.SplatEvaluator(self.avatar, count, self.weights)
+            self.evaluator = preview_data.splat_evaluator(self.avatar, count, self.weights)
         return self.evaluator
 
 

@@ -66,18 +66,22 @@ class Avatar:
     def subset(self, ids) -> dict:
         return {name: getattr(self, name)[ids] for name in PARAM_NAMES}
 
+    def evaluator(self, ids=None, weights=None, capacity=None) -> binding.GaussianEvaluator:
+        """A per-frame evaluator of this avatar's Gaussians (faces `ids`, default all)."""
+        return binding.GaussianEvaluator(self.forest, self.d_mu, self.d_log_scale, self.d_rot, ids=ids,
+                                         weights=weights, capacity=capacity)
+
     def gaussians(self, vertices: np.ndarray, ids=None, weights=None) -> dict:
         """World-space, activated Gaussians for one frame's mesh vertices [V,3].
 
         Returns means, quats (wxyz), scales, opacities, colors (RGB) as float32 numpy.
         """
-        geo = binding.evaluate(self.forest, vertices, ids=ids, weights=weights)
         sel = slice(None) if ids is None else np.asarray(ids)
-        means, scales, quats = binding.compose(geo.t, geo.r, geo.s, self.d_mu[sel], self.d_log_scale[sel], self.d_rot[sel])
+        means, quats, scales = self.evaluator(ids=ids, weights=weights)(vertices)
         return {
-            "means": means.astype(np.float32),
-            "quats": quats.astype(np.float32),
-            "scales": scales.astype(np.float32),
+            "means": means.copy(),
+            "quats": quats.copy(),
+            "scales": scales.copy(),
             "opacities": sigmoid(self.opacity_logit[sel]).astype(np.float32),
             "colors": sh_to_rgb(self.f_dc[sel]).astype(np.float32),
         }

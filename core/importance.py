@@ -8,9 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .avatar import Avatar
-from .binding import FaceEvaluator, compose
-from .avatar import sigmoid, sh_to_rgb
+from .avatar import Avatar, sh_to_rgb, sigmoid
 
 
 def view_subset(n_views: int, max_views: int | None) -> np.ndarray:
@@ -26,15 +24,14 @@ def face_importance(avatar: Avatar, dataset, max_views: int | None = 120, progre
 
     from .render import render_numpy
 
-    evaluator = FaceEvaluator(avatar.forest)
+    evaluator = avatar.evaluator()
     opac = sigmoid(avatar.opacity_logit)
     rgb = sh_to_rgb(avatar.f_dc)
     W = np.zeros(avatar.num_gaussians)
     bg = np.asarray(dataset.background, np.float32)
     for i in tqdm(view_subset(len(dataset), max_views), desc="importance", disable=not progress):
         info = dataset.frame_info(int(i))
-        geo = evaluator(dataset.vertices_at(info.timestep_index))
-        means, scales, quats = compose(geo.t, geo.r, geo.s, avatar.d_mu, avatar.d_log_scale, avatar.d_rot)
+        means, quats, scales = evaluator(dataset.vertices_at(info.timestep_index))
         _, _, contrib = render_numpy(means, quats, scales, opac, rgb, info.camera, bg)
         W += contrib
     return W

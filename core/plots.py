@@ -63,10 +63,10 @@ def budget_strip(path, renderer, info, budgets, view_index=0):
 
 
 def depth_colors(depth: np.ndarray, max_depth: int | None = None) -> np.ndarray:
-    """RGB per depth from a perceptual ramp (viridis), depth 0 darkest."""
-    plt = _plt()
-    top = max(1, int(depth.max()) if max_depth is None else max_depth)
-    return plt.get_cmap("viridis")(np.asarray(depth, float) / top)[..., :3].astype(np.float32)
+    """RGB per depth, the same ramp as the Blender depth display (core.preview_data)."""
+    from .preview_data import depth_colors as rgba
+
+    return rgba(depth, max_depth)[:, :3]
 
 
 def depth_picture(path, avatar, dataset, views=(0,)):
@@ -123,19 +123,28 @@ def depth_detail_stats(depth: np.ndarray, detail: np.ndarray) -> dict:
     }
 
 
-def psnr_vs_time(path, metrics_log):
-    plt = _plt()
+def read_log(metrics_log) -> list[dict]:
     with open(metrics_log) as fh:
-        rows = [json.loads(line) for line in fh if line.strip()]
-    ev = [r for r in rows if "val_psnr" in r]
-    tr = [r for r in rows if "train_psnr" in r]
+        return [json.loads(line) for line in fh if line.strip()]
+
+
+def seconds_to_reach(rows: list[dict], target: float):
+    """Training seconds at the first evaluation whose NVS PSNR reaches `target` (None if never)."""
+    for r in rows:
+        if r.get("val_psnr", -np.inf) >= target:
+            return r["seconds"]
+    return None
+
+
+def psnr_vs_time(path, logs: dict):
+    """NVS PSNR against training time for one or more runs ({name: metrics.jsonl})."""
+    plt = _plt()
     fig, ax = plt.subplots(figsize=(5.5, 3.4))
-    if tr:
-        ax.plot([r["seconds"] / 60 for r in tr], [r["train_psnr"] for r in tr], alpha=0.5, label="train (whole image, running mean)")
-    if ev:
-        ax.plot([r["seconds"] / 60 for r in ev], [r["val_psnr"] for r in ev], "-o", ms=3, label="NVS (in mask)")
+    for name, log in logs.items():
+        ev = [r for r in read_log(log) if "val_psnr" in r]
+        ax.plot([r["seconds"] / 60 for r in ev], [r["val_psnr"] for r in ev], "-o", ms=3, label=name)
     ax.set_xlabel("training time (min)")
-    ax.set_ylabel("PSNR (dB)")
+    ax.set_ylabel("NVS PSNR in mask (dB)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     return _save(fig, path)
@@ -166,6 +175,10 @@ def report_markdown(r: dict) -> str:
     for name, c in a.get("compare", {}).items():
         pref = ", ".join(f"≤{k}: {v['psnr']:.2f}" for k, v in c["level_prefixes_nvs"].items())
         lines.append(f"- compare `{name}`: {c['gaussians']:,} Gaussians, NVS {c['nvs']['psnr']:.2f} dB (level prefixes {pref})")
+    if "time_to_psnr" in r:
+        t = r["time_to_psnr"]
+        lines.append(f"- training seconds to first reach {t['target']:.2f} dB NVS: "
+                     + ", ".join(f"`{k}` {v:.0f} s" if v is not None else f"`{k}` never" for k, v in t["seconds"].items()))
     if "depth_vs_detail" in r:
         d = r["depth_vs_detail"]
         lines += ["", f"Depth follows detail: Spearman ρ = {d['spearman']:.3f}; mean depth on the most detailed quarter of "

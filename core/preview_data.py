@@ -2,8 +2,8 @@
 
 numpy only (runs inside Blender's own Python). Everything returns flat, C-contiguous float32
 or int32 arrays shaped for ``foreach_set``:
-- ``SplatEvaluator``: per-frame world Gaussians (means, wxyz quats, scales) of an avatar's
-  faces, with reused buffers (the frame-change handler calls it every frame);
+- ``splat_evaluator``: core's GaussianEvaluator sized for foreach_set (the frame-change
+  handler calls it every frame);
 - ``Budget``: Gaussians / bytes / level reached for a budget percent, taken from the
   stream's own ``count_for_percent`` when the avatar came from a stream;
 - depth colours and legend for the per-face subdivision depth display;
@@ -116,133 +116,15 @@ def static_attributes(avatar: Avatar) -> dict:
 
 
 # -- per-frame evaluation ------------------------------------------------------------------
-class SplatEvaluator:
-    """World Gaussians of the first ``count`` faces (stream order) for one frame, fast.
-
-    Same result as ``binding.compose`` on ``binding.FaceEvaluator`` output, written out in
-    float32 on component-major buffers: the generic compose (einsum, stacked quaternion
-    candidates, float64) costs several times the frame budget at 170k Gaussians. Returned
-    arrays are views of reused buffers, [n,3] / [n,4] row-major (ready for foreach_set).
-    """
-
-    def __init__(self, avatar: Avatar, count: int | None = None, weights=None):
-        total = avatar.num_gaussians
-        n = total if count is None else int(min(max(count, 0), total))
-        self.n, self.capacity = n, total
-        ids = None if n == total else np.arange(n)
-        # weights: forest.weights() computed once by the caller; evaluators are rebuilt when
-        # the budget changes and the forest walk is the costly part of building one.
-        self.faces = binding.FaceEvaluator(avatar.forest, ids=ids, weights=weights)
-        sl = slice(0, n)
-        self.d_mu = np.ascontiguousarray(avatar.d_mu[sl].T, np.float32)
-        self.exp_scale = np.ascontiguousarray(np.exp(avatar.d_log_scale[sl]).T, np.float32)
-        self.q_res = np.ascontiguousarray(binding.quat_normalize(avatar.d_rot[sl].astype(np.float64)).T, np.float32)
-        # Full-length outputs (rows past n keep whatever they held): Blender's foreach_set
-        # writes whole attributes, so the caller hands these over without copying.
-        self.means = np.zeros((total, 3), np.float32)
-        self.scales = np.zeros((total, 3), np.float32)
-        self.quats = np.zeros((total, 4), np.float32)
-        self.quats[:, 0] = 1
-        self._a = np.empty((4, n), np.float32)  # frame quaternion, component-major
-        self._tmp = np.empty((3, n), np.float32)
-
-    def __call__(self, vertices):
-        """Evaluate the first n Gaussians on mesh vertices [V,3]; returns full-length
-        (means [N,3], quats [N,4] wxyz, scales [N,3]) whose first n rows are this frame's."""
-        if self.n == 0:
-            return self.means, self.quats, self.scales
-        g = self.faces(np.asarray(vertices, np.float32))
-        n = self.n
-        r = g.r  # [n,3,3] view of a [3,3,n] buffer
-        R = [[r[:, i, j] for j in range(3)] for i in range(3)]
-        t, s = g.t, g.s
-        tmp = self._tmp[0]
-        for i in range(3):
-            acc = self._tmp[1]
-            np.multiply(R[i][0], self.d_mu[0], out=acc)
-            np.multiply(R[i][1], self.d_mu[1], out=tmp)
-            acc += tmp
-            np.multiply(R[i][2], self.d_mu[2], out=tmp)
-            acc += tmp
-            acc *= s
-            acc += t[:, i]
-            self.means[:n, i] = acc
-            np.multiply(self.exp_scale[i], s, out=tmp)
-            self.scales[:n, i] = tmp
-        self._frame_quats(R)
-        a, b = self._a, self.q_res
-        q = self.quats
-        # Hamilton product a ⊗ b, one output component at a time.
-        terms = (
-            ((0, 0, 1), (1, 1, -1), (2, 2, -1), (3, 3, -1)),
-            ((0, 1, 1), (1, 0, 1), (2, 3, 1), (3, 2, -1)),
-            ((0, 2, 1), (1, 3, -1), (2, 0, 1), (3, 1, 1)),
-            ((0, 3, 1), (1, 2, 1), (2, 1, -1), (3, 0, 1)),
-        )
-        acc = self._tmp[1]
-        for k, row in enumerate(terms):
-            acc.fill(0)
-            for ia, ib, sign in row:
-                np.multiply(a[ia], b[ib], out=tmp)
-                if sign > 0:
-                    acc += tmp
-                else:
-                    acc -= tmp
-            q[:n, k] = acc
-        return self.means, self.quats, self.scales
-
-    def _frame_quats(self, R):
-        """Unit quaternions (w ≥ 0) of the face frames.
-
-        Where w ≥ 1/4 (rotations up to ~150°, nearly every face) the trace formula divides by
-        4w and is as accurate as Shepperd's; the rest take Shepperd's method (divide by the
-        largest pivot), computed on that subset only.
-        """
-        out, tmp = self._a, self._tmp[0]
-        m = R
-        np.add(m[0][0], m[1][1], out=tmp)
-        tmp += m[2][2]
-        tmp += 1
-        np.maximum(tmp, 0, out=tmp)
-        w = out[0]
-        np.sqrt(tmp, out=w)
-        w *= 0.5
-        weak = np.flatnonzero(w < 0.25)
-        inv = self._tmp[1]
-        np.maximum(w, 0.25, out=inv)
-        np.divide(0.25, inv, out=inv)
-        for comp, (i1, j1), (i2, j2) in ((1, (2, 1), (1, 2)), (2, (0, 2), (2, 0)), (3, (1, 0), (0, 1))):
-            np.subtract(m[i1][j1], m[i2][j2], out=out[comp])
-            out[comp] *= inv
-        if len(weak):
-            out[:, weak] = self._shepperd_xyz([[m[i][j][weak] for j in range(3)] for i in range(3)])
-
-    @staticmethod
-    def _shepperd_xyz(m):
-        """Quaternions [4,k] of rotations with a small w: divide by the largest of x, y, z."""
-        piv = np.stack([1 + m[0][0] - m[1][1] - m[2][2], 1 - m[0][0] + m[1][1] - m[2][2],
-                        1 - m[0][0] - m[1][1] + m[2][2]])
-        k = np.argmax(piv, axis=0)
-        q = np.empty((4, len(k)), np.float32)
-        a = m[2][1] - m[1][2]
-        b = m[0][2] - m[2][0]
-        c = m[1][0] - m[0][1]
-        d = m[0][1] + m[1][0]
-        e = m[0][2] + m[2][0]
-        f = m[1][2] + m[2][1]
-        # pivot component -> the other three as (component, numerator)
-        rows = {0: ((0, a), (2, d), (3, e)), 1: ((0, b), (1, d), (3, f)), 2: ((0, c), (1, e), (2, f))}
-        for kk, others in rows.items():
-            sel = np.flatnonzero(k == kk)
-            if len(sel) == 0:
-                continue
-            p = 0.5 * np.sqrt(np.maximum(piv[kk, sel], 1e-30))
-            q[kk + 1, sel] = p
-            inv = 0.25 / p
-            for comp, num in others:
-                q[comp, sel] = num[sel] * inv
-        q *= np.where(q[0] < 0, -1, 1).astype(np.float32)
-        return q
+def splat_evaluator(avatar: Avatar, count: int | None = None, weights=None) -> binding.GaussianEvaluator:
+    """Per-frame world Gaussians of the first ``count`` faces (stream order), outputs sized for
+    the whole avatar so the frame handler can foreach_set full attributes without copies."""
+    total = avatar.num_gaussians
+    n = total if count is None else int(min(max(count, 0), total))
+    ids = None if n == total else np.arange(n)
+    # weights: forest.weights() computed once by the caller; evaluators are rebuilt when the
+    # budget changes and the forest walk is the costly part of building one.
+    return avatar.evaluator(ids=ids, weights=weights, capacity=total)
 
 
 # -- subdivision depth display -------------------------------------------------------------

@@ -9,14 +9,22 @@ opacity compensation, near-plane culling, alpha in [1/255, 0.99], stop at T < 1e
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from typing import Optional
 
-import numpy as np
-import torch
+# numba's parallel kernels run on the OpenMP runtime that torch also loads. Its default
+# barrier spinning starves the thread being waited for when the machine is shared: a
+# 256x256/40k forward+backward measured ~100 ms with PASSIVE and ~650 ms without, on 2 busy
+# cores. The runtime reads this once, when first loaded (usually by `import torch`), so it
+# only helps if this module is imported first; entry points should set it themselves.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from . import render_kernels as rk
-from .camera import Camera
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from . import render_kernels as rk  # noqa: E402
+from .camera import Camera  # noqa: E402
 
 __all__ = ["RenderOutput", "render", "render_numpy", "gsplat_available"]
 
@@ -25,7 +33,7 @@ __all__ = ["RenderOutput", "render", "render_numpy", "gsplat_available"]
 class RenderOutput:
     image: torch.Tensor  # [H, W, C], differentiable
     alpha: torch.Tensor  # [H, W], differentiable
-    means2d: torch.Tensor  # [N, 2]; after backward, .grad is the screen-space positional gradient
+    means2d: torch.Tensor  # [N, 2]; after backward, .grad = dL/d(projected mean) in pixels (densification)
     contrib: Optional[torch.Tensor]  # [N], sum over pixels of alpha*T (no grad)
     radii: torch.Tensor  # [N] int, 0 = culled / not visible
     depth: Optional[torch.Tensor] = None  # [H, W], alpha-normalised camera z (0 where alpha = 0)
@@ -158,6 +166,7 @@ class _RasterizeCPU(torch.autograd.Function):
             *arrays, camera, near, eps2d, means2d_offset=_f64(means2d), with_depth=with_depth)
         ctx.camera, ctx.eps2d, ctx.with_depth = camera, eps2d, with_depth
         ctx.arrays, ctx.state = arrays, state
+        ctx.kinds = [(x.dtype, x.device) for x in (means, quats, scales, opacities, colors, background, means2d)]
         dtype, device = means.dtype, means.device
         out_image = torch.from_numpy(image).to(device=device, dtype=dtype)
         out_alpha = torch.from_numpy(1.0 - t_final).to(device=device, dtype=dtype)
@@ -175,12 +184,12 @@ class _RasterizeCPU(torch.autograd.Function):
         g_alpha = _f64(grad_alpha) if grad_alpha is not None else np.zeros((H, W))
         g_means, g_quats, g_scales, g_opac, g_colors, g_bg, g_uv = _cpu_backward(
             ctx.state, means, quats, scales, opacities, ctx.camera, ctx.eps2d, g_img, g_alpha, ctx.with_depth)
-        ref = grad_image if grad_image is not None else grad_alpha
 
         def out(x, i):
             if not ctx.needs_input_grad[i]:
                 return None
-            return torch.from_numpy(np.ascontiguousarray(x)).to(device=ref.device, dtype=ref.dtype)
+            dtype, device = ctx.kinds[i]
+            return torch.from_numpy(np.ascontiguousarray(x)).to(device=device, dtype=dtype)
 
         return (out(g_means, 0), out(g_quats, 1), out(g_scales, 2), out(g_opac, 3), out(g_colors, 4),
                 out(g_bg, 5), out(g_uv, 6), None, None, None, None)
@@ -189,6 +198,8 @@ class _RasterizeCPU(torch.autograd.Function):
 def render_numpy(means, quats, scales, opacities, colors, camera, background=None, *, near=0.01,
                  eps2d=0.3):
     """Forward only, numpy in and out: (image [H,W,C] float32, alpha [H,W] float32, contrib [N])."""
+    means, quats, scales, opacities, colors = (np.asarray(x) for x in (means, quats, scales, opacities, colors))
+    background = None if background is None else np.asarray(background)
     _validate(means, quats, scales, opacities, colors, background, camera, near, eps2d)
     arrays = [_f64(x) for x in (means, quats, scales, opacities, colors)]
     bg = _f64(background) if background is not None else np.zeros(arrays[4].shape[1])

@@ -6,9 +6,9 @@ a checksummed header, then fixed-size records (one Gaussian per forest face) in 
 that end with a CRC-32, each record also ending with a CRC-8 so that every whole record of a
 truncated stream can be verified.
 
-Decoding is vectorised: records are viewed with a structured dtype (np.frombuffer) and
-decoded with lookup tables; the only Python loops run per block (CRC-32) or per byte
-column of a record (CRC-8 of an incomplete block), never per record.
+Decoding is vectorised: records are viewed with a structured dtype and every field is decoded
+by whole-array operations over all new records; the only Python loops run per block (CRC-32)
+or per level, never per record.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .avatar import SH_C0, Avatar
+from .avatar import PARAM_NAMES, SH_C0, Avatar
 from .forest import Forest
 
 MAGIC = b"PAVS\r\n\x1a\n"
@@ -47,19 +47,22 @@ QUANT_DTYPE = np.dtype({
     "offsets": [0, 8, 12, 15, 18, 19, 22],
     "itemsize": QUANT_RECORD,
 })
-# The same record seen as aligned-width words for fast decoding: the halves of `geo`, and the
-# u24 parent read as a u32 whose top byte (the first log-scale code) is masked off.
-_QUANT_VIEW = np.dtype({
-    "names": ["g_lo", "g_hi", "rot", "p32", "ls", "opa", "col"],
-    "formats": ["<u4", "<u4", "<u4", "<u4", ("u1", 3), "u1", ("u1", 3)],
-    "offsets": [0, 4, 8, 12, 15, 18, 19],
-    "itemsize": QUANT_RECORD,
-})
 LOSSLESS_DTYPE = np.dtype({
     "names": ["link", "split_logits", "d_mu", "d_log_scale", "d_rot", "opacity_logit", "f_dc", "crc"],
     "formats": ["<u4", ("<f4", 3), ("<f4", 3), ("<f4", 3), ("<f4", 4), "<f4", ("<f4", 3), "u1"],
     "offsets": [0, 4, 16, 28, 40, 56, 60, 72],
     "itemsize": LOSSLESS_RECORD,
+})
+# The quantised record as (possibly unaligned, overlapping) little words, one per code, so that
+# every code is one load plus at most one shift or mask, vectorised over a whole record range:
+# mx = u16@0 & 0xFFF, my = u16@1 >> 4, mz = u16@3 & 0xFFF, b0 = u16@4 >> 4, b1 = u16@6 & 0xFFF,
+# top = u8@7 >> 4 (slot, reserved bits), r0 = u16@8 & 0x3FF, r1 = (u16@9 >> 2) & 0x3FF,
+# r2 = (u16@10 >> 4) & 0x3FF, big = u8@11 >> 6, parent = u32@12 & 0xFFFFFF (FORMAT.md 3.1).
+_QUANT_WORDS = np.dtype({
+    "names": ["mx", "my", "mz", "b0", "b1", "top", "r0", "r1", "r2", "big", "p32", "ls", "opa", "col"],
+    "formats": ["<u2", "<u2", "<u2", "<u2", "<u2", "u1", "<u2", "<u2", "<u2", "u1", "<u4", ("u1", 3), "u1", ("u1", 3)],
+    "offsets": [0, 1, 3, 4, 6, 7, 8, 9, 10, 11, 12, 15, 18, 19],
+    "itemsize": QUANT_RECORD,
 })
 assert QUANT_DTYPE.itemsize == QUANT_RECORD and LOSSLESS_DTYPE.itemsize == LOSSLESS_RECORD
 
@@ -125,6 +128,7 @@ _ROT_LO = np.float32(-_SQRT1_2)
 _OPA_ALPHA = (np.arange(256) + 0.5) / 256.0
 _OPA_LUT = np.log(_OPA_ALPHA / (1.0 - _OPA_ALPHA)).astype(np.float32)
 _BARY_LUT = np.log(np.maximum(np.arange(4096, dtype=np.float64), 2.0 ** -20) / 4095.0).astype(np.float32)
+_BARY_LUT_REV = np.ascontiguousarray(_BARY_LUT[::-1])  # [s] = _BARY_LUT[4095 - s]
 _ROT_OTHERS = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]], np.intp)
 
 
@@ -574,23 +578,115 @@ def encode_stream(avatar: Avatar, importance=None, **kwargs) -> bytes:
 
 
 # -- reader -------------------------------------------------------------------------------
+# -- reader -------------------------------------------------------------------------------
 class _Grow:
-    """A growing array with amortised doubling (first axis)."""
+    """A growing array (first axis) with amortised doubling, capped at `limit` rows.
 
-    def __init__(self, shape_tail, dtype, fill=None):
-        self.tail, self.dtype, self.fill = tuple(shape_tail), dtype, fill
+    `hand_out()` gives the current array away (an Avatar keeps views of it): the next
+    `reserve()` then copies the valid rows (`size`) to a fresh array, so that nothing the
+    reader does later changes what it handed out (copy on write)."""
+
+    def __init__(self, shape_tail, dtype, limit, fill=None):
+        self.tail, self.dtype, self.fill, self.limit = tuple(shape_tail), dtype, fill, max(int(limit), 1)
         self.data = np.empty((0,) + self.tail, dtype)
+        self.size = 0
+        self.shared = False
 
-    def reserve(self, n, limit=None):
+    def reserve(self, n) -> np.ndarray:
+        """data with at least n rows, owned by the reader (safe to write)."""
         cap = len(self.data)
-        if n <= cap:
-            return
-        new = max(n, 2 * cap, 1024)
-        if limit is not None:
-            new = max(n, min(new, limit))
-        arr = np.empty((new,) + self.tail, self.dtype) if self.fill is None else np.full((new,) + self.tail, self.fill, self.dtype)
-        arr[:cap] = self.data
-        self.data = arr
+        if n <= cap and not self.shared:
+            return self.data
+        new = cap if n <= cap else max(n, min(max(2 * cap, 4096), self.limit))
+        if self.fill is None:
+            arr = np.empty((new,) + self.tail, self.dtype)
+        elif self.fill == 0:
+            arr = np.zeros((new,) + self.tail, self.dtype)  # calloc: no pass over the memory
+        else:
+            arr = np.full((new,) + self.tail, self.fill, self.dtype)
+        keep = min(self.size, cap) if self.shared else cap  # handed out: only the valid rows matter
+        arr[:keep] = self.data[:keep]
+        self.data, self.shared = arr, False
+        return arr
+
+    def hand_out(self, n) -> np.ndarray:
+        self.shared = True
+        return self.data[:n]
+
+
+# Records per vectorised run in checking and decoding: large enough that numpy's per-call
+# overhead vanishes, small enough that temporaries stay in cache and are reused by the C
+# allocator instead of being page-faulted in afresh (which cost more than the arithmetic).
+_RUN = 32768
+
+_COLUMNS = (  # name, row shape, dtype; widest first so every column stays aligned
+    ("parent", (), np.int64), ("split_logits", (3,), np.float32), ("d_mu", (3,), np.float32),
+    ("d_log_scale", (3,), np.float32), ("d_rot", (4,), np.float32), ("opacity_logit", (), np.float32),
+    ("f_dc", (3,), np.float32), ("slot", (), np.int8),
+)
+
+
+def _carve(spec, n):
+    """Arrays of n rows for each (name, row shape, dtype) of spec, carved from ONE allocation.
+
+    One large block is reused by the C allocator from one decode to the next, whereas many
+    medium-sized ones tend to be returned to the OS and page-faulted in again, which cost
+    more than the decoding itself."""
+    sizes = [n * int(np.prod(tail, dtype=np.int64)) * np.dtype(dt).itemsize for _, tail, dt in spec]
+    buf = np.empty(sum(sizes), np.uint8)
+    out, off = {}, 0
+    for (name, tail, dt), size in zip(spec, sizes):
+        out[name] = buf[off: off + size].view(dt).reshape((n,) + tuple(tail))
+        off += size
+    return out
+
+
+class _Columns:
+    """The reader's per-record outputs (parent, slot, decoded parameters) in one allocation,
+    grown by amortised doubling up to `limit` rows. `hand_out()` gives the current arrays
+    away (an Avatar keeps views of them); the next `reserve()` then copies the valid rows to a
+    fresh allocation, so nothing the reader does later changes what it handed out."""
+
+    def __init__(self, limit):
+        self.limit = max(int(limit), 1)
+        self.cap = 0
+        self.cols = _carve(_COLUMNS, 0)
+        self.valid = {name: 0 for name, _, _ in _COLUMNS}  # rows holding data, per column
+        self.shared = False
+
+    def reserve(self, n) -> dict:
+        if n <= self.cap and not self.shared:
+            return self.cols
+        new = self.cap if n <= self.cap else max(n, min(max(2 * self.cap, 4096), self.limit))
+        cols = _carve(_COLUMNS, new)
+        for name, arr in self.cols.items():
+            k = self.valid[name]
+            cols[name][:k] = arr[:k]
+        self.cols, self.cap, self.shared = cols, new, False
+        return cols
+
+    def hand_out(self, name, n) -> np.ndarray:
+        self.shared = True
+        return self.cols[name][:n]
+
+
+def _trusted_forest(template_faces, parent, slot, split_logits, children, level, root) -> Forest:
+    """A Forest from arrays the stream reader has already checked against every rule that
+    Forest._derive enforces (roots first, parents precede children in the previous level,
+    slots 0..2 and unique), with children/level/root derived from the stream's level ranges:
+    skips rebuilding and re-validating the same structure a second time. Equal to
+    Forest(template_faces, parent, slot, split_logits) (tests/test_stream.py checks it)."""
+    if template_faces.min() < 0:
+        raise ValueError("Forest: template faces hold negative vertex indices")
+    f = Forest.__new__(Forest)
+    f.template_faces = template_faces
+    f.parent = parent
+    f.slot = slot
+    f.split_logits = split_logits
+    f.children = children
+    f.level = level
+    f.root = root
+    return f
 
 
 class StreamReader:
@@ -600,8 +696,7 @@ class StreamReader:
     def __init__(self, template_faces=None, *, source: str = "<stream>"):
         self.source = source
         self._given_template = None if template_faces is None else np.asarray(template_faces, np.int32)
-        self._pending = bytearray()  # bytes from the start of the current incomplete block (or header)
-        self._offset = 0  # stream offset of _pending[0]
+        self._pending = bytearray()  # the header so far, then the bytes of the current incomplete block
         self.header: StreamInfo | None = None
         self._n = 0  # available records
         self._decoded = 0  # records decoded into parameter arrays
@@ -639,102 +734,148 @@ class StreamReader:
             self._fail(ValueError(f"{self.source}: {len(mv)} unexpected bytes after the end of the stream "
                                   f"(offset {self.bytes_received - len(mv)})"))
         try:
-            if self._pending:
-                self._pending += mv
-                if self.header is None and len(self._pending) < self._header_need():
+            if self.header is None:
+                if self._pending:
+                    self._pending += mv
+                    buf = bytes(self._pending)
+                else:
+                    buf = mv
+                _check_magic(buf, self.source)
+                if len(buf) < FIXED_SIZE or len(buf) < _parse_fixed(buf, self.source)["header_size"]:
+                    if buf is mv:
+                        self._pending = bytearray(mv)
                     return 0
-                # A copy, so that no view of the bytearray outlives this call (exceptions keep
-                # frames alive); the pending part is at most one block plus this chunk.
-                used = self._process(bytes(self._pending))
-                del self._pending[:used]
-            else:
-                used = self._process(mv)
-                self._pending = bytearray(mv[used:])
-            self._offset += used
+                header = _parse_header(buf, self.source)
+                self._start(header)
+                self._pending = bytearray()
+                mv = memoryview(buf)[header.header_size:]
+            if len(mv):
+                self._consume(mv)
         except ValueError as exc:
             self._fail(exc)
         return self._n - before
-
-    def _header_need(self) -> int:
-        """Bytes the header phase needs before parsing is worth trying (checks the magic)."""
-        _check_magic(self._pending, self.source)
-        if len(self._pending) < FIXED_SIZE:
-            return FIXED_SIZE
-        return _parse_fixed(self._pending, self.source)["header_size"]
 
     def _fail(self, exc):
         self.error = exc
         raise exc
 
-    def _process(self, buf) -> int:
-        """Consume what can be verified from buf (stream offset self._offset); returns bytes
-        consumed up to the end of the last complete block (the incomplete block stays pending)."""
-        pos = 0
-        if self.header is None:
-            _check_magic(buf, self.source)
-            if len(buf) < FIXED_SIZE:
-                return 0
-            H = _parse_fixed(buf, self.source)["header_size"]
-            if len(buf) < H:
-                return 0
-            self._start(_parse_header(buf, self.source))
-            pos = H
+    def _block_error(self, bi, nbytes):
         h = self.header
-        B, R = h.records_per_block, h.record_size
-        S = h.block_bytes
-        nblocks = h.num_blocks
-        # Whole blocks: verify each CRC-32 (loop per block), then take their records in one go.
-        first = self._block
-        full_left = nblocks - first - (1 if h.num_records % B else 0)  # full-size blocks not yet verified
-        m = min(max(full_left, 0), (len(buf) - pos) // S)
-        if m:
-            self._verify_blocks(buf, pos, first, m, S, B * R)
-            arr = np.frombuffer(buf, np.uint8, m * S, pos).reshape(m, S)[:, : B * R]
-            self._accept(arr.reshape(m * B, R), first * B, verified=True)
-            del arr
-            pos += m * S
-            self._block = first + m
-        # The short last block, if complete.
-        if self._block == nblocks - 1 and h.num_records % B:
-            nrec = h.num_records - self._block * B
-            size = nrec * R + 4
-            if len(buf) - pos >= size:
-                self._verify_blocks(buf, pos, self._block, 1, size, nrec * R)
-                arr = np.frombuffer(buf, np.uint8, nrec * R, pos).reshape(nrec, R)
-                self._accept(arr, self._block * B, verified=True)
-                del arr
-                pos += size
-                self._block += 1
-        if self._block >= nblocks:
-            if len(buf) > pos:
-                raise ValueError(f"{self.source}: {len(buf) - pos} unexpected bytes after the end of the stream "
-                                 f"(offset {self._offset + pos})")
-            return pos
-        # Records of the incomplete block: each verified by its own CRC-8.
-        nrec = min(B, h.num_records - self._block * B)
-        whole = min((len(buf) - pos) // R, nrec)
-        start = self._block * B
-        if start + whole > self._n:
-            skip = self._n - start
-            arr = np.frombuffer(buf, np.uint8, (whole - skip) * R, pos + skip * R).reshape(whole - skip, R)
-            self._accept(arr, self._n, verified=False)
-            del arr
-        return pos
+        o = h.header_size + bi * h.block_bytes
+        return ValueError(f"{self.source}: block {bi} (records {bi * h.records_per_block}.."
+                          f"{min(h.num_records, (bi + 1) * h.records_per_block) - 1}, bytes "
+                          f"{o}..{o + nbytes + 3}) fails its CRC-32: corrupted")
 
-    def _verify_blocks(self, buf, pos, first, m, stride, nbytes):
+    def _block_crc(self, bi, data) -> int:
+        return zlib.crc32(data, zlib.crc32(bi.to_bytes(4, "little"), self._crc_seed))
+
+    def _consume(self, mv):
+        """Verify what mv (the bytes after those already fed) completes: the pending block,
+        whole blocks straight from mv (no copy of the chunk besides its records), the short
+        last block, then the whole records of the new incomplete block by their CRC-8. All
+        newly verified records then pass the structural checks in one batch."""
         h = self.header
-        prefix = struct.pack("<I", h.header_crc)
-        trailers = np.frombuffer(buf, np.uint8, m * stride, pos).reshape(m, stride)[:, nbytes:nbytes + 4]
-        stored = np.ascontiguousarray(trailers).view("<u4").ravel()
-        del trailers
-        for j in range(m):  # per block (B records each)
-            o = pos + j * stride
-            crc = zlib.crc32(buf[o: o + nbytes], zlib.crc32(prefix + struct.pack("<I", first + j)))
-            if crc != stored[j]:
-                bi = first + j
-                raise ValueError(f"{self.source}: block {bi} (records {bi * h.records_per_block}.."
-                                 f"{min(h.num_records, (bi + 1) * h.records_per_block) - 1}, bytes "
-                                 f"{self._offset + o}..{self._offset + o + nbytes + 3}) fails its CRC-32: corrupted")
+        B, R, S, N = h.records_per_block, h.record_size, h.block_bytes, h.num_records
+        nblocks = h.num_blocks
+        a = self._n  # first record not yet available
+        end = a  # records [a, end) are checksum-verified and copied into self._raw
+        err = None
+        raw = self._raw
+        raw.reserve(min(N, self._block * B + (len(self._pending) + len(mv)) // R))  # once per feed
+        pend = self._pending
+        if pend:  # complete the pending block from the head of mv
+            bi = self._block
+            nrec = min(B, N - bi * B)
+            need = nrec * R + 4 - len(pend)
+            if len(mv) < need:
+                pend += mv
+                mv = mv[:0]
+            else:
+                pend += mv[:need]
+                mv = mv[need:]
+                blk = bytes(pend)
+                pend.clear()
+                if self._block_crc(bi, blk[: nrec * R]) != int.from_bytes(blk[nrec * R:], "little"):
+                    err = self._block_error(bi, nrec * R)
+                else:
+                    i0 = bi * B
+                    lo = max(end, i0)
+                    dst = raw.reserve(i0 + nrec)
+                    dst[lo: i0 + nrec] = np.frombuffer(blk, np.uint8, (i0 + nrec - lo) * R, (lo - i0) * R).reshape(-1, R)
+                    end = i0 + nrec
+                    self._block = bi + 1
+        if err is None and not pend:
+            # Whole full-size blocks straight from mv: one CRC-32 per block, one copy for all.
+            bi = self._block
+            full_left = nblocks - bi - (1 if N % B else 0)
+            m = min(max(full_left, 0), len(mv) // S)
+            if m:
+                BR = B * R
+                blocks = np.frombuffer(mv, np.uint8, m * S).reshape(m, S)
+                stored = blocks[:, BR:].copy().view("<u4").ravel().tolist()
+                seed = self._crc_seed
+                crc32 = zlib.crc32
+                good = m
+                for j in range(m):  # per block (B records each)
+                    o = j * S
+                    if crc32(mv[o: o + BR], crc32((bi + j).to_bytes(4, "little"), seed)) != stored[j]:
+                        good = j
+                        err = self._block_error(bi + j, BR)
+                        break
+                if good:
+                    i0 = bi * B
+                    dst = raw.reserve(i0 + good * B)
+                    dst[i0: i0 + good * B].reshape(good, B, R)[...] = blocks[:good, :BR].reshape(good, B, R)
+                    end = i0 + good * B
+                    self._block = bi + good
+                del blocks
+                mv = mv[m * S:]
+            # The short last block, if it is complete.
+            bi = self._block
+            if err is None and bi == nblocks - 1 and N % B:
+                nrec = N - bi * B
+                size = nrec * R + 4
+                if len(mv) >= size:
+                    if self._block_crc(bi, mv[: nrec * R]) != int.from_bytes(mv[nrec * R: size], "little"):
+                        err = self._block_error(bi, nrec * R)
+                    else:
+                        i0 = bi * B
+                        dst = raw.reserve(N)
+                        dst[i0:N] = np.frombuffer(mv, np.uint8, nrec * R).reshape(nrec, R)
+                        end = N
+                        self._block = nblocks
+                        mv = mv[size:]
+            if err is None:
+                if self._block >= nblocks:
+                    if len(mv):
+                        err = ValueError(f"{self.source}: {len(mv)} unexpected bytes after the end of the stream "
+                                         f"(offset {h.total_bytes})")
+                else:
+                    pend += mv
+        if err is None and pend and self._block < nblocks:
+            # Whole records of the incomplete block: each verified by its own CRC-8.
+            bi = self._block
+            i0 = bi * B
+            hi = i0 + min(len(pend) // R, B, N - i0)
+            lo = max(end, i0)
+            if hi > lo:
+                dst = raw.reserve(hi)
+                rows = dst[lo:hi]
+                rows[...] = np.frombuffer(bytes(pend[(lo - i0) * R: (hi - i0) * R]), np.uint8).reshape(-1, R)
+                ok = crc8(rows[:, :-1]) == rows[:, -1]
+                if not ok.all():
+                    bad = lo + int(np.argmin(ok))
+                    err = ValueError(f"{self.source}: record {bad} (offset {h.record_offset(bad)}, block "
+                                     f"{bad // B}) fails its CRC-8: corrupted")
+                    hi = bad
+                end = max(end, hi)
+        if end > a:
+            k, problem = self._check(a, end)
+            self._n = a + k
+            if problem is not None:
+                raise ValueError(f"{self.source}: {problem} at offset {h.record_offset(a + k)}")
+        if err is not None:
+            raise err
 
     def _start(self, header: StreamInfo):
         if self._given_template is not None:
@@ -742,154 +883,108 @@ class StreamReader:
         self.header = header
         R = header.record_size
         N = header.num_records
-        self._raw = _Grow((R,), np.uint8)
-        self._parent = _Grow((), np.int64)
-        self._slot = _Grow((), np.int8)
-        self._child = _Grow((), np.int32, fill=-1)  # record index per (parent, slot); N < 2^30
+        self._crc_seed = zlib.crc32(struct.pack("<I", header.header_crc))
+        self._raw = _Grow((R,), np.uint8, N)  # verified record bytes (decoding is lazy)
+        self._child = _Grow((), np.int32, 3 * N, fill=0)  # 1 + record index per parent*3 + slot; N < 2^30
         self._level_starts = np.concatenate([[0], header.level_ends()]).astype(np.int64)
-        self._limit = N
-        self._params = {
-            "split_logits": _Grow((3,), np.float32), "d_mu": _Grow((3,), np.float32),
-            "d_log_scale": _Grow((3,), np.float32), "d_rot": _Grow((4,), np.float32),
-            "opacity_logit": _Grow((), np.float32), "f_dc": _Grow((3,), np.float32),
-        }
+        self._cols = _Columns(N)
+
+    def _check(self, i0: int, i1: int):
+        """_check_range over cache-sized runs of records (temporaries stay small and reused)."""
+        self._cols.reserve(i1)
+        self._child.reserve(3 * i1)
+        for c0 in range(i0, i1, _RUN):
+            c1 = min(i1, c0 + _RUN)
+            k, problem = self._check_range(c0, c1)
+            if problem is not None:
+                return c0 - i0 + k, problem
+        return i1 - i0, None
+
+    def _check_range(self, i0: int, i1: int):
+        """Structural rules of FORMAT.md section 3 for the checksum-verified records i0..i1-1
+        (in self._raw), vectorised over the batch; stores their parent and slot and claims
+        their (parent, slot). Returns (how many records from i0 pass, problem or None)."""
+        h = self.header
+        n = i1 - i0
+        rows = self._raw.data[i0:i1]
+        cols = self._cols.reserve(i1)
+        par = cols["parent"][i0:i1]
+        slt = cols["slot"][i0:i1]
+        if h.lossless:
+            link = rows[:, :4].copy().view("<u4")[:, 0]
+            np.bitwise_and(link, np.uint32(LOSSLESS_ROOT), out=par)
+            np.right_shift(link, np.uint32(30), out=slt, casting="unsafe")
+            bad = ~np.all(np.isfinite(rows[:, 4:72].copy().view("<f4")), axis=1)
+            bad |= slt == 3  # (cannot happen: two bits; kept for symmetry)
+            root_val = LOSSLESS_ROOT
+        else:
+            rec = rows.view(_QUANT_WORDS)[:, 0]
+            np.bitwise_and(rec["p32"], np.uint32(QUANT_ROOT), out=par)
+            top = rec["top"]
+            np.right_shift(top, np.uint8(4), out=slt, casting="unsafe")
+            bad = top >= np.uint8(0x30)  # slot 3 or a reserved bit set
+            s = np.right_shift(rec["b0"], np.uint16(4))
+            s += rec["b1"] & np.uint16(0xFFF)
+            bad |= s > np.uint16(4095)  # beta0 + beta1 <= 4095
+            root_val = QUANT_ROOT
+        nr = max(0, min(n, h.num_template_faces - i0))  # records of this batch that must be roots
+        if nr:
+            bad[:nr] |= (par[:nr] != root_val) | (slt[:nr] != 0)
+        # A non-root's parent lies in the previous level's index range (so before the child).
+        starts = self._level_starts
+        l_first = int(np.searchsorted(starts, i0 + nr, side="right")) - 1
+        l_last = int(np.searchsorted(starts, i1 - 1, side="right")) - 1
+        for lv in range(max(l_first, 1), l_last + 1):  # per level this batch touches
+            x, y = max(int(starts[lv]), i0) - i0, min(int(starts[lv + 1]), i1) - i0
+            off = par[x:y] - starts[lv - 1]
+            bad[x:y] |= off.view(np.uint64) >= np.uint64(starts[lv] - starts[lv - 1])
+        k, problem = n, None
+        if bad.any():
+            k = int(np.argmax(bad))
+            problem = f"record {i0 + k} is structurally invalid (parent/slot/level/root marker/reserved bits/values)"
+        # (parent, slot) must be unique: scatter the record indices, read them back.
+        if k > nr:
+            keys = par[nr:k] * 3
+            keys += slt[nr:k]
+            ids = np.arange(i0 + nr + 1, i0 + k + 1, dtype=np.int32)  # stored as index + 1 (0: free)
+            child = self._child.reserve(3 * (i0 + k))
+            old = child.take(keys)
+            child[keys] = ids
+            if old.max() > 0 or not np.array_equal(child.take(keys), ids):
+                # The offender is a record whose key an earlier one (any batch) already holds.
+                first = np.zeros(len(keys), bool)
+                first[np.unique(keys, return_index=True)[1]] = True
+                k = nr + int(np.argmax((old > 0) | ~first))
+                problem = f"record {i0 + k} reuses the child slot of an earlier record"
+        if nr:
+            par[:nr] = -1
+            slt[:nr] = -1
+        self._raw.size = i0 + k
+        self._cols.valid["parent"] = self._cols.valid["slot"] = i0 + k
+        return k, problem
 
     def _record_offset(self, i) -> int:
         return self.header.record_offset(int(i))
 
-    def _accept(self, rows: np.ndarray, i0: int, verified: bool):
-        """Structural checks and storage for records i0.. (rows [n,R] uint8, checksum pending
-        unless `verified`). Records before i0 + len(rows) that were already accepted are skipped."""
-        h = self.header
-        skip = max(0, self._n - i0)
-        rows = rows[skip:]
-        i0 += skip
-        n = len(rows)
-        if n == 0:
-            return
-        bad_at = n
-        if not verified:
-            ok = crc8(rows[:, :-1]) == rows[:, -1]
-            if not ok.all():
-                bad_at = int(np.argmin(ok))
-        rows = rows[:bad_at]
-        k = len(rows)
-        idx = np.arange(i0, i0 + k, dtype=np.int64)
-        problem = None
-        if k:
-            if h.lossless:
-                rec = rows.view(LOSSLESS_DTYPE)[:, 0] if rows.flags.c_contiguous else np.ascontiguousarray(rows).view(LOSSLESS_DTYPE)[:, 0]
-                link = rec["link"].astype(np.int64)
-                parent = link & LOSSLESS_ROOT
-                slot = (link >> 30).astype(np.int8)
-                root_mark = parent == LOSSLESS_ROOT
-                floats = np.ascontiguousarray(rows[:, 4:72]).view("<f4")
-                finite = np.all(np.isfinite(floats), axis=1)
-                extra_bad = ~finite
-            else:
-                rec = (rows if rows.flags.c_contiguous else np.ascontiguousarray(rows)).view(_QUANT_VIEW)[:, 0]
-                parent = (rec["p32"] & np.uint32(0xFFFFFF)).astype(np.int64)
-                g_hi = rec["g_hi"]
-                slot = ((g_hi >> np.uint32(28)) & np.uint32(3)).astype(np.int8)
-                extra_bad = ((g_hi >> np.uint32(30)) != 0) | (
-                    ((g_hi >> np.uint32(4)) & np.uint32(4095)) + ((g_hi >> np.uint32(16)) & np.uint32(4095)) > 4095)
-                root_mark = parent == QUANT_ROOT
-            # Roots come first; a non-root's parent must lie in the previous level's index range
-            # (which also puts it before the child). Loop over the levels this batch touches.
-            starts = self._level_starts
-            nr = max(0, min(k, h.num_template_faces - i0))
-            bad = extra_bad | (slot == 3)
-            bad[:nr] |= ~root_mark[:nr] | (slot[:nr] != 0)
-            l_first = int(np.searchsorted(starts, i0 + nr, side="right")) - 1
-            l_last = int(np.searchsorted(starts, i0 + k - 1, side="right")) - 1
-            for lv in range(max(l_first, 1), l_last + 1):
-                a, b = max(int(starts[lv]), i0) - i0, min(int(starts[lv + 1]), i0 + k) - i0
-                pp = parent[a:b]
-                bad[a:b] |= (pp < starts[lv - 1]) | (pp >= starts[lv])
-            if bad.any():
-                k = int(np.argmax(bad))
-                problem = f"record {i0 + k} is structurally invalid (parent/slot/level/root marker/reserved bits/values)"
-            # (parent, slot) must be unique: scatter the record indices, read them back.
-            if k > nr:
-                keys = parent[nr:k] * 3 + slot[nr:k]
-                ids = idx[nr:k]
-                self._child.reserve(int(keys.max()) + 1)
-                taken = self._child.data[keys] >= 0
-                self._child.data[keys] = ids
-                dup = taken | (self._child.data[keys] != ids)
-                if dup.any():
-                    k = nr + int(np.argmax(dup))
-                    problem = f"record {i0 + k} reuses the child slot of an earlier record"
-            if k:
-                end = i0 + k
-                for g, vals in ((self._raw, rows[:k]), (self._parent, np.where(root_mark[:k], -1, parent[:k])),
-                                (self._slot, np.where(root_mark[:k], -1, slot[:k]))):
-                    g.reserve(end, self._limit)
-                    g.data[i0:end] = vals
-                self._n = end
-        if problem is not None:
-            raise ValueError(f"{self.source}: {problem} at offset {self._record_offset(i0 + k)}")
-        if bad_at < n:
-            i = i0 + bad_at
-            raise ValueError(f"{self.source}: record {i} (offset {self._record_offset(i)}, block "
-                             f"{i // h.records_per_block}) fails its CRC-8: corrupted")
-
     # -- decoding -------------------------------------------------------------------------
     def _decode(self):
-        """Decode parameters of records not yet decoded (lazily: feed() only verifies).
-        Writes straight into the output columns; every operation runs over all new records."""
-        a, b = self._decoded, self._n
-        if b <= a:
-            return
-        h = self.header
-        for g in self._params.values():
-            g.reserve(b, self._limit)
-        P = {name: g.data[a:b] for name, g in self._params.items()}
-        raw = self._raw.data[a:b]
-        if h.lossless:
-            rec = raw.view(LOSSLESS_DTYPE)[:, 0]
-            for name, dst in P.items():
-                dst[...] = rec[name]
-            self._decoded = b
-            return
-        st = self._steps
-        # Transpose the fields once into contiguous rows: every later operation then runs on
-        # aligned, unit-stride data (several times faster than on 23-byte-strided fields).
-        g_lo, g_hi, rot = np.ascontiguousarray(raw[:, :12]).view("<u4").T.copy()
-        tail = raw[:, 15:22].T.copy()  # log-scale codes, opacity code, colour codes
-        m12 = np.uint32(4095)
-        f32 = np.float32
-        lo, step = st["mu"]
-        mu = P["d_mu"]
-        mu[:, 0] = (g_lo & m12).astype(f32) * step[0] + lo[0]
-        mu[:, 1] = ((g_lo >> np.uint32(12)) & m12).astype(f32) * step[1] + lo[1]
-        mu[:, 2] = (((g_lo >> np.uint32(24)) | (g_hi << np.uint32(8))) & m12).astype(f32) * step[2] + lo[2]
-        b0 = ((g_hi >> np.uint32(4)) & m12).astype(np.int32)
-        b1 = ((g_hi >> np.uint32(16)) & m12).astype(np.int32)
-        sl = P["split_logits"]
-        sl[:, 0] = _BARY_LUT[b0]
-        sl[:, 1] = _BARY_LUT[b1]
-        sl[:, 2] = _BARY_LUT[4095 - b0 - b1]
-        v0 = (rot & np.uint32(1023)).astype(f32) * _ROT_STEP + _ROT_LO
-        v1 = ((rot >> np.uint32(10)) & np.uint32(1023)).astype(f32) * _ROT_STEP + _ROT_LO
-        v2 = ((rot >> np.uint32(20)) & np.uint32(1023)).astype(f32) * _ROT_STEP + _ROT_LO
-        big = (rot >> np.uint32(30)).astype(np.int8)
-        w = np.sqrt(np.maximum(f32(1) - (v0 * v0 + v1 * v1 + v2 * v2), f32(0)))
-        q = P["d_rot"]
-        # Slot j holds the largest if big == j, else v_{j-1} when big < j, else v_j.
-        q[:, 0] = np.where(big == 0, w, v0)
-        q[:, 1] = np.where(big == 1, w, np.where(big < 1, v0, v1))
-        q[:, 2] = np.where(big == 2, w, np.where(big < 2, v1, v2))
-        q[:, 3] = np.where(big == 3, w, v2)
-        lo, step = st["ls"]
-        out = P["d_log_scale"]
-        for k in range(3):  # over the three axes
-            out[:, k] = tail[k].astype(f32) * step[k] + lo[k]
-        P["opacity_logit"][...] = _OPA_LUT[tail[3]]
-        lo, step = st["fdc"]
-        out = P["f_dc"]
-        for k in range(3):
-            out[:, k] = tail[4 + k].astype(f32) * step[k] + lo[k]
+        """Decode the parameters of all available records (lazily: feed() only verifies),
+        straight into the output columns; every operation runs over all new records."""
+        b = self._n
+        a = self._decoded
+        cols = self._cols.reserve(b)  # (copies if handed out)
+        if b > a:
+            raw = self._raw.data[a:b]
+            out = {name: cols[name][a:b] for name in PARAM_NAMES + ("split_logits",)}
+            if self.header.lossless:
+                rec = raw.view(LOSSLESS_DTYPE)[:, 0]
+                for name, dst in out.items():
+                    dst[...] = rec[name]
+            else:
+                for c0 in range(0, b - a, _RUN):  # cache-sized runs: small, reused temporaries
+                    _decode_quantised(raw[c0: c0 + _RUN], {k: v[c0: c0 + _RUN] for k, v in out.items()}, self._steps)
+        for name in PARAM_NAMES + ("split_logits",):
+            self._cols.valid[name] = b
         self._decoded = b
 
     @property
@@ -902,14 +997,13 @@ class StreamReader:
         """Decoded arrays of the first n available records (views; do not modify)."""
         self._decode()
         n = self._n if n is None else max(0, min(int(n), self._n))
-        out = {name: g.data[:n] for name, g in self._params.items()}
-        out["parent"] = self._parent.data[:n]
-        out["slot"] = self._slot.data[:n]
-        return out
+        cols = self._cols.reserve(n)
+        return {name: cols[name][:n] for name in ("split_logits",) + PARAM_NAMES + ("parent", "slot")}
 
     def avatar(self, n=None) -> Avatar | None:
         """An Avatar of the first n available Gaussians (all if None), faces in stream order;
-        None when no record is available yet."""
+        None when no record is available yet. The avatar owns its arrays: the reader hands its
+        decoded columns over and copies them only if it has to write to them again."""
         if self.header is None or self._n == 0:
             return None
         n = self._n if n is None else max(0, min(int(n), self._n))
@@ -919,16 +1013,125 @@ class StreamReader:
         if tmpl is None:
             raise ValueError(f"{self.source}: the stream does not embed its template; pass template_faces "
                              f"(a mesh with topology hash {self.header.template_hash_hex})")
-        a = self.arrays(n)
+        self._decode()
         h = self.header
         F0 = h.num_template_faces
-        forest = Forest(tmpl[: min(n, F0)], a["parent"], a["slot"], a["split_logits"])
+        c = self._cols
+        forest = self._forest(tmpl, n)
         meta = dict(h.metadata)
         meta["stream"] = {"records": n, "total_records": h.num_records, "base_complete": n >= F0,
                           "lossless": h.lossless, "template_hash": h.template_hash_hex,
                           "bytes": h.bytes_for_count(n), "total_bytes": h.total_bytes}
-        return Avatar(forest, a["d_mu"].copy(), a["d_log_scale"].copy(), a["d_rot"].copy(),
-                      a["opacity_logit"].copy(), a["f_dc"].copy(), meta=meta)
+        return Avatar(forest, *(c.hand_out(name, n) for name in PARAM_NAMES), meta=meta)
+
+    def _forest(self, tmpl, n) -> Forest:
+        """The forest of the first n records, from the structure _check verified."""
+        h = self.header
+        F0 = h.num_template_faces
+        nroot = min(n, F0)
+        arr = _carve((("children", (3,), np.int64), ("root", (), np.int64), ("level", (), np.int8)), n)
+        children, root, level = arr["children"], arr["root"], arr["level"]
+        np.subtract(self._child.reserve(3 * n)[: 3 * n], 1, out=children.reshape(-1))
+        if n < h.num_records:
+            children[children >= n] = -1  # children that are not part of the prefix
+        root[:nroot] = np.arange(nroot)
+        parent = self._cols.hand_out("parent", n)
+        starts = self._level_starts
+        for lv in range(len(starts) - 1):  # per level
+            x, y = int(starts[lv]), min(int(starts[lv + 1]), n)
+            if x >= y:
+                break
+            level[x:y] = lv
+            if lv:
+                np.take(root, parent[x:y], out=root[x:y])
+        return _trusted_forest(np.array(tmpl[:nroot], np.int32), parent, self._cols.hand_out("slot", n),
+                               self._cols.hand_out("split_logits", n), children, level, root)
+
+
+def _decode_quantised(raw, out, steps):
+    """FORMAT.md 3.1 for records raw [n,23] into the float32 columns of `out`, in float32
+    arithmetic as specified (products and sums separately rounded). Every operation is one
+    whole-column pass (1-D, so numpy's inner loops run over all records, never over 3)."""
+    rec = raw.view(_QUANT_WORDS)[:, 0]
+    n = len(rec)
+    f32 = np.float32
+    mul, add, take = np.multiply, np.add, np.take
+    m12, m10 = np.uint16(0xFFF), np.uint16(0x3FF)
+    t16 = np.empty(n, np.uint16)
+    ix = np.empty(n, np.intp)  # table indices (intp: np.take then needs no conversion)
+    # positions (12-bit affine codes)
+    lo, step = steps["mu"]
+    mu = out["d_mu"]
+    for k, (op, field, arg) in enumerate(((np.bitwise_and, "mx", m12), (np.right_shift, "my", np.uint16(4)),
+                                          (np.bitwise_and, "mz", m12))):
+        c = mu[:, k]
+        mul(op(rec[field], arg, out=t16), step[k], out=c)
+        add(c, lo[k], out=c)
+    # split logits: beta0, beta1 and beta2 = 4095 - beta0 - beta1 through the log table
+    sl = out["split_logits"]
+    np.right_shift(rec["b0"], np.uint16(4), out=ix)
+    take(_BARY_LUT, ix, out=sl[:, 0], mode="clip")
+    b1 = np.bitwise_and(rec["b1"], m12, out=t16)
+    take(_BARY_LUT, b1.astype(np.intp), out=sl[:, 1], mode="clip")
+    ix += b1
+    take(_BARY_LUT_REV, ix, out=sl[:, 2], mode="clip")
+    # rotation: the three smallest components, the largest from the unit norm
+    v = np.empty((3, n), f32)
+    np.bitwise_and(rec["r0"], m10, out=t16)
+    mul(t16, _ROT_STEP, out=v[0])
+    np.right_shift(rec["r1"], np.uint16(2), out=t16)
+    mul(np.bitwise_and(t16, m10, out=t16), _ROT_STEP, out=v[1])
+    np.right_shift(rec["r2"], np.uint16(4), out=t16)
+    mul(np.bitwise_and(t16, m10, out=t16), _ROT_STEP, out=v[2])
+    v += _ROT_LO
+    v0, v1, v2 = v
+    w = mul(v0, v0)
+    t = mul(v1, v1)
+    w += t
+    mul(v2, v2, out=t)
+    w += t
+    np.subtract(f32(1), w, out=w)
+    np.maximum(w, f32(0), out=w)
+    np.sqrt(w, out=w)
+    # Place: slot `big` takes w, the others v0, v1, v2 in order. Selecting by multiplying with
+    # 0/1 masks is exact here (x·1 = x, x·0 = ±0, x + ±0 = x; all values finite, none -0,
+    # w >= 0) and several times faster than np.where.
+    big = np.right_shift(rec["big"], np.uint8(6))
+    e = np.empty((4, n), f32)
+    for j in range(4):
+        np.equal(big, np.uint8(j), out=e[j])
+    q = out["d_rot"]
+    c = q[:, 0]  # big == 0 ? w : v0
+    mul(w, e[0], out=c)
+    mul(v0, np.subtract(f32(1), e[0], out=t), out=t)
+    c += t
+    c = q[:, 1]  # big == 0 ? v0 : big == 1 ? w : v1
+    mul(v0, e[0], out=c)
+    mul(w, e[1], out=t)
+    c += t
+    mul(v1, add(e[2], e[3], out=t), out=t)
+    c += t
+    c = q[:, 2]  # big <= 1 ? v1 : big == 2 ? w : v2
+    mul(v1, add(e[0], e[1], out=t), out=t)
+    mul(w, e[2], out=c)
+    c += t
+    mul(v2, e[3], out=t)
+    c += t
+    c = q[:, 3]  # big == 3 ? w : v2
+    mul(w, e[3], out=c)
+    mul(v2, np.subtract(f32(1), e[3], out=t), out=t)
+    c += t
+    # log-scales and colours (8-bit affine codes), opacity (table)
+    for name, field, key in (("d_log_scale", "ls", "ls"), ("f_dc", "col", "fdc")):
+        lo, step = steps[key]
+        codes = rec[field]
+        dst = out[name]
+        for k in range(3):
+            c = dst[:, k]
+            mul(codes[:, k], step[k], out=c)
+            add(c, lo[k], out=c)
+    ix[...] = rec["opa"]
+    take(_OPA_LUT, ix, out=out["opacity_logit"], mode="clip")
 
 
 def read_stream(source, *, percent=None, max_bytes=None, max_gaussians=None, template_faces=None) -> Avatar | None:

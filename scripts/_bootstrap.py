@@ -12,6 +12,10 @@ import sys
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
+# OpenMP threads that spin while waiting starve numba's kernels on a small machine (a 256²
+# render went from ~100 ms to ~650 ms); the policy only counts if set before torch loads.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 
 def _ensure_package():
     try:

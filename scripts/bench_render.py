@@ -8,16 +8,20 @@ and time/error against the dense float64 reference of the tests.
 
 from __future__ import annotations
 
-import _bootstrap  # noqa: F401  (makes progressive_avatars importable, strips Blender's "--")
-
-import datetime
 import os
-import platform
-import resource
-import sys
-import time
 
-import numpy as np
+# Before torch loads OpenMP: see core/render.py (spinning workers starve each other on a busy box).
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import _bootstrap  # noqa: E402,F401  (makes progressive_avatars importable, strips Blender's "--")
+
+import datetime  # noqa: E402
+import platform  # noqa: E402
+import resource  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -86,10 +90,13 @@ def _timed(fn, repeats):
     return best * 1e3
 
 
-def bench_scene(width, height, n, repeats=3):
+def bench_scene(width, height, n, repeats=3, threads=None):
+    import numba
     import torch
 
     from progressive_avatars.core.render import render
+
+    numba.set_num_threads(threads or numba.config.NUMBA_NUM_THREADS)
 
     cam = head_camera(width, height)
     params = [torch.from_numpy(x) for x in head_scene(n)]
@@ -119,9 +126,11 @@ def bench_scene(width, height, n, repeats=3):
     fwd_bwd()
     peak = _rss_peak_mb()
     visible = int((out.radii > 0).sum())
-    return dict(width=width, height=height, n=n, visible=visible, fwd_ms=fwd_ms, bwd_ms=bwd_ms,
+    threads = numba.get_num_threads()
+    numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+    return dict(width=width, height=height, n=n, threads=threads, visible=visible, fwd_ms=fwd_ms, bwd_ms=bwd_ms,
                 total_ms=total_ms, rss_base_mb=base, rss_peak_mb=peak, peak_exact=exact,
-                coverage=float(out.alpha.mean()))
+                coverage=float(out.alpha.detach().mean()))
 
 
 def bench_reference(width=64, height=64, n=500, repeats=3):
@@ -151,7 +160,7 @@ def bench_reference(width=64, height=64, n=500, repeats=3):
 
     out = ours()
     img = ref()
-    err = float((out.image.double() - img.detach()).abs().max())
+    err = float((out.image.detach().double() - img.detach()).abs().max())
     t_ours = _timed(ours, repeats)
     t_ref = _timed(ref, repeats)
     return dict(width=width, height=height, n=n, ours_ms=t_ours, ref_ms=t_ref, max_err=err)
@@ -162,7 +171,8 @@ def run(quick: bool = False) -> str:
     import torch
 
     sizes = [(256, 256, 40_000)] if quick else [(256, 256, 40_000), (802, 550, 170_000)]
-    rows = [bench_scene(w, h, n, repeats=2 if quick else 3) for w, h, n in sizes]
+    thread_counts = sorted({1, numba.config.NUMBA_NUM_THREADS})
+    rows = [bench_scene(w, h, n, repeats=2 if quick else 5, threads=t) for w, h, n in sizes for t in thread_counts]
     ref = bench_reference(repeats=2 if quick else 3)
     cmd = "python scripts/bench_render.py" + (" --quick" if quick else "")
     mem_note = ("peak RSS from /proc/self/status VmHWM, reset through /proc/self/clear_refs before one "
@@ -177,15 +187,20 @@ def run(quick: bool = False) -> str:
         f"{os.cpu_count()} logical CPUs, numba {numba.__version__} with {numba.get_num_threads()} threads "
         f"({numba.threading_layer()}), torch {torch.__version__}, Python {platform.python_version()}",
         "- scene: Gaussians on an ellipsoid (semi-axes 85/110/95 mm) at ~1 m, scales 1-3 mm (one axis "
-        "x0.2), opacity U(0.2, 0.98), float32 tensors; times are the best of several runs after a warm-up",
+        "x0.2), opacity U(0.2, 0.98), float32 tensors; times are the best of several runs after a warm-up "
+        f"(OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')})",
         f"- memory: {mem_note}; the baseline is the RSS before that call",
+        f"- load average when the section was written: {', '.join(f'{x:.1f}' for x in os.getloadavg())} "
+        f"(the machine is shared; more than {os.cpu_count()} means other processes competed for the cores)",
         "",
-        "| image | Gaussians (visible) | forward ms | backward ms | fwd+bwd ms | RSS before MB | peak RSS MB |",
-        "|---|---|---|---|---|---|---|",
+        "| image | Gaussians (not culled) | numba threads | forward ms | backward ms | fwd+bwd ms | RSS before MB "
+        "| peak RSS MB |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        lines.append(f"| {r['width']}x{r['height']} | {r['n']:,} ({r['visible']:,}) | {r['fwd_ms']:.1f} | "
-                     f"{r['bwd_ms']:.1f} | {r['total_ms']:.1f} | {r['rss_base_mb']:.0f} | {r['rss_peak_mb']:.0f} |")
+        lines.append(f"| {r['width']}x{r['height']} | {r['n']:,} ({r['visible']:,}) | {r['threads']} "
+                     f"| {r['fwd_ms']:.1f} | {r['bwd_ms']:.1f} | {r['total_ms']:.1f} | {r['rss_base_mb']:.0f} "
+                     f"| {r['rss_peak_mb']:.0f} |")
     lines += [
         "",
         f"Against the dense float64 torch reference (tests/reference_rasterizer.py), {ref['width']}x"

@@ -140,9 +140,16 @@ def main(argv=None):
     for k, r in rend.items():
         figs[f"strip_{k}"] = plots.budget_strip(os.path.join(args.out, f"strip_{k}.png"), r, info, budgets)
     figs["depth"] = plots.depth_picture(os.path.join(args.out, "depth.png"), streamed, splits["nes"])
-    metrics_log = os.path.join(args.run, "metrics.jsonl")
-    if os.path.exists(metrics_log):
-        figs["psnr_vs_time"] = plots.psnr_vs_time(os.path.join(args.out, "psnr_vs_time.png"), metrics_log)
+    logs = {"this run": os.path.join(args.run, "metrics.jsonl")}
+    logs.update({spec.partition("=")[0]: os.path.join(spec.partition("=")[2], "metrics.jsonl") for spec in args.compare})
+    logs = {k: v for k, v in logs.items() if os.path.exists(v)}
+    if logs:
+        figs["psnr_vs_time"] = plots.psnr_vs_time(os.path.join(args.out, "psnr_vs_time.png"), logs)
+        rows = {k: plots.read_log(v) for k, v in logs.items()}
+        finals = [max(r.get("val_psnr", -np.inf) for r in rs) for rs in rows.values()]
+        target = min(finals) - 0.5  # a level every run reaches, so the times compare
+        report["time_to_psnr"] = {"target": float(target),
+                                  "seconds": {k: plots.seconds_to_reach(rs, target) for k, rs in rows.items()}}
     report["figures"] = {k: os.path.basename(v) for k, v in figs.items() if v}
     report["machine"] = f"{platform.node()} ({os.cpu_count()} CPUs, {platform.processor() or platform.machine()})"
     report["date"] = time.strftime("%Y-%m-%d %H:%M:%S")

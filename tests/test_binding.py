@@ -189,3 +189,25 @@ def test_float32_precision_at_depth_6_on_a_head_sized_mesh():
     worst = max(edge_err.max(), frame_err.max(), scale_err.max())
     print(f"depth-6 float32 relative error: edges {edge_err.max():.2e}, frames {frame_err.max():.2e}, scales {scale_err.max():.2e}")
     assert worst < 1e-5
+
+
+def test_gaussian_evaluator_matches_generic_compose_including_large_rotations():
+    rng = np.random.default_rng(7)
+    verts, faces = sphere_mesh(6, 8)
+    forest = random_forest(faces, rng, depth=3)
+    N = forest.num_faces
+    d_mu, d_ls, d_rot = rng.normal(0, 0.5, (N, 3)), rng.normal(0, 0.3, (N, 3)), rng.normal(size=(N, 4))
+    for q in ([1, 0, 0, 0], [0, 1, 0, 0], [0.05, -0.7, 0.1, 0.7]):  # w ~ 0 exercises the Shepperd subset
+        v = verts @ binding.quat_to_rotmat(np.array(q, float)).T
+        geo = binding.evaluate(forest, v, dtype=np.float64)
+        m_ref, s_ref, q_ref = binding.compose(geo.t, geo.r, geo.s, d_mu, d_ls, d_rot)
+        ids = np.arange(0, N, 2)
+        for sel in (None, ids):
+            ev = binding.GaussianEvaluator(forest, d_mu, d_ls, d_rot, ids=sel, capacity=N + 5)
+            means, quats, scales = ev(v.astype(np.float32))
+            pick = slice(None) if sel is None else sel
+            n = ev.n
+            assert means.shape == (N + 5, 3)
+            np.testing.assert_allclose(means[:n], m_ref[pick], atol=1e-6)
+            np.testing.assert_allclose(scales[:n], s_ref[pick], rtol=1e-5)
+            np.testing.assert_allclose(np.abs(np.sum(quats[:n] * q_ref[pick], 1)), 1, atol=2e-6)

@@ -1,6 +1,8 @@
 """core/preview_data.py: the numpy side of the Blender preview (no bpy needed)."""
 
 import numpy as np
+
+from progressive_avatars.core import binding
 import pytest
 
 from progressive_avatars.core import preview_data
@@ -26,9 +28,12 @@ def test_splat_evaluator_matches_core_compose(q):
     rng = np.random.default_rng(1)
     av, v = _avatar(rng)
     verts = (v @ quat_to_rotmat(np.array(q, float)).T).astype(np.float32)  # large rotations: small-w path
-    ref = av.gaussians(verts)
+    # Reference: the generic float64 path (evaluate + compose), not the evaluator under test.
+    geo = binding.evaluate(av.forest, verts.astype(np.float64), dtype=np.float64)
+    m, s, qq = binding.compose(geo.t, geo.r, geo.s, av.d_mu, av.d_log_scale, av.d_rot)
+    ref = {"means": m, "scales": s, "quats": qq}
     for count in (None, av.num_gaussians // 3):
-        ev = preview_data.SplatEvaluator(av, count, av.forest.weights())
+        ev = preview_data.splat_evaluator(av, count, av.forest.weights())
         means, quats, scales = ev(verts)
         n = ev.n
         assert means.shape == (av.num_gaussians, 3)

@@ -122,6 +122,26 @@ def test_gradients_match_reference_autograd(dtype):
     assert rel_err(out.means2d.grad, m2d.grad) <= 1e-3
 
 
+@pytest.mark.parametrize("seed, size", [(10, (40, 36)), (11, (17, 50)), (12, (33, 16)), (13, (64, 9))])
+def test_random_scenes_match_reference(seed, size):
+    # Other image shapes (single tile rows/columns, partial tiles) and denser scenes.
+    cam, params = make_scene(seed, n=80)
+    w, h = size
+    cam = Camera(cam.R, cam.t, cam.fx * w / W, cam.fy * h / H, cam.cx * w / W + 0.37, cam.cy * h / H - 0.21, w, h)
+    g = torch.Generator().manual_seed(seed)
+    wi, wa = torch.randn(h, w, 3, generator=g, dtype=torch.float64), torch.randn(h, w, generator=g, dtype=torch.float64)
+    ours = leaves(params)
+    out = render(*ours[:5], cam, ours[5])
+    ((out.image * wi).sum() + (out.alpha * wa).sum()).backward()
+    ref = leaves(params)
+    img, alpha, contrib = render_reference(*ref[:5], cam, ref[5])
+    assert float((out.image - img).detach().abs().max()) <= 1e-10
+    assert torch.allclose(out.contrib, contrib, atol=1e-10)
+    ((img * wi).sum() + (alpha * wa).sum()).backward()
+    for name, a, b in zip(NAMES, ours, ref):
+        assert rel_err(a.grad, b.grad) <= 1e-6, name
+
+
 def test_gradients_match_finite_differences():
     cam, params = make_scene(2, n=24)
     wi, wa = loss_weights(5)

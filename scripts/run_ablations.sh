@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# The paper's training ablations on the synthetic default, then one report comparing them:
+#   uniform subdivision to depth 2 and 3, finest-level-only supervision, sampled-level
+#   supervision, against the adaptive multi-level run of scripts/run_demo.sh.
+# Runs two trainings at a time, single-threaded each (2 cores). Outputs under runs/.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/setup_env.sh
+PY=.venv/bin/python
+PRESET=${PRESET:-cpu}
+DATA=${DATA:-runs/synthetic}
+MAIN=${MAIN:-runs/avatar_$PRESET}
+export NUMBA_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
+[ -f "$DATA/transforms_train.json" ] || $PY scripts/make_synthetic.py --out "$DATA"
+train() {  # name, extra args...
+  local name=$1; shift
+  [ -f "runs/$name/avatar.npz" ] || $PY scripts/train.py --data "$DATA" --out "runs/$name" --preset "$PRESET" --resume --no-progress "$@" > "runs/$name.log" 2>&1
+}
+mkdir -p runs
+train "avatar_$PRESET" & train uniform_d2 --uniform --max-depth 2 --max-faces 1000000 & wait
+train finest_only --supervision finest & train sampled --supervision sampled & wait
+train uniform_d3 --uniform --max-depth 3 --max-faces 1000000
+$PY scripts/evaluate.py --run "$MAIN" --out "runs/report_$PRESET" \
+  --compare uniform_d2=runs/uniform_d2 --compare uniform_d3=runs/uniform_d3 \
+  --compare finest_only=runs/finest_only --compare sampled=runs/sampled
+echo "report: runs/report_$PRESET/report.md"
