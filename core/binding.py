@@ -84,6 +84,15 @@ def _unit(v: np.ndarray, n: np.ndarray) -> np.ndarray:
     return v / np.where(n > 0, n, 1)[..., None]
 
 
+def _unit_norm(v: np.ndarray):
+    """(unit vector, length), scaled by the largest component first so tiny vectors (whose
+    squares underflow in float32) still normalise to length 1."""
+    m = np.max(np.abs(v), axis=-1)
+    u = v / np.where(m > 0, m, 1)[..., None]
+    n = np.sqrt(np.sum(u * u, axis=-1))
+    return _unit(u, n), n * m
+
+
 def frames_from_edges(e1: np.ndarray, e2: np.ndarray, normal: np.ndarray | None = None):
     """Face frames r [...,3,3] and scales s [...] from edges e1 = v1 - v0, e2 = v2 - v0.
 
@@ -93,32 +102,29 @@ def frames_from_edges(e1: np.ndarray, e2: np.ndarray, normal: np.ndarray | None 
     """
     dtype = e1.dtype
     eps = 8 * np.finfo(dtype).eps
-    n1 = np.linalg.norm(e1, axis=-1)
-    n2 = np.linalg.norm(e2, axis=-1)
+    u1, n1 = _unit_norm(e1)
+    u2, n2 = _unit_norm(e2)
     axis_x = np.zeros_like(e1)
     axis_x[..., 0] = 1
-    x = np.where((n1 > 0)[..., None], _unit(e1, n1), np.where((n2 > 0)[..., None], _unit(e2, n2), axis_x))
-    own = np.cross(x, e2)
-    own_n = np.linalg.norm(own, axis=-1)
+    x = np.where((n1 > 0)[..., None], u1, np.where((n2 > 0)[..., None], u2, axis_x))
+    own_hat, own_n = _unit_norm(np.cross(x, e2))
     own_flat = own_n <= eps * np.maximum(n2, np.finfo(dtype).tiny)
     if normal is None:
-        y, flat = _unit(own, own_n), own_flat
+        y, flat = own_hat, own_flat
     else:
         # Remove the tiny out-of-plane part rounding leaves in x, so r stays orthonormal.
-        nn = np.linalg.norm(normal, axis=-1)
+        n_hat, nn = _unit_norm(normal)
         good = nn > 0
-        n_hat = _unit(normal, nn)
         x_in = x - np.sum(x * n_hat, axis=-1, keepdims=True) * n_hat
-        x = np.where(good[..., None], _unit(x_in, np.linalg.norm(x_in, axis=-1)), x)
+        x = np.where(good[..., None], _unit_norm(x_in)[0], x)
         # A face whose edges vanish inside a good root still takes the root's normal.
-        y = np.where(good[..., None], n_hat, _unit(own, own_n))
+        y = np.where(good[..., None], n_hat, own_hat)
         flat = ~good & own_flat
     # Fallback normal: perpendicular to x, built from the world axis least aligned with x.
     least = np.argmin(np.abs(x), axis=-1)
     helper = np.zeros_like(x)
     np.put_along_axis(helper, least[..., None], 1, axis=-1)
-    alt = np.cross(x, helper)
-    alt = _unit(alt, np.linalg.norm(alt, axis=-1))
+    alt = _unit_norm(np.cross(x, helper))[0]
     y = np.where(flat[..., None], alt, y)
     z = np.cross(x, y)
     r = np.stack([x, y, z], axis=-1)

@@ -62,8 +62,11 @@ def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
 
 
 def _norm(v: torch.Tensor) -> torch.Tensor:
-    # Clamped so the derivative at a zero vector stays finite (0), never NaN.
-    return torch.sqrt((v * v).sum(-1).clamp_min(1e-30))
+    # Scaled by the largest component (tiny float32 vectors would underflow when squared),
+    # and clamped so the derivative at a zero vector stays finite (0), never NaN.
+    m = v.detach().abs().amax(-1).clamp_min(torch.finfo(v.dtype).tiny)
+    u = v / m[..., None]
+    return torch.sqrt((u * u).sum(-1).clamp_min(1e-30)) * m
 
 
 def frames_from_edges(e1: torch.Tensor, e2: torch.Tensor, normal: torch.Tensor | None = None):

@@ -597,7 +597,7 @@ class _Grow:
         cap = len(self.data)
         if n <= cap and not self.shared:
             return self.data
-        new = cap if n <= cap else max(n, min(max(2 * cap, 4096), self.limit))
+        new = cap if n <= cap else max(n, min(max(2 * cap, _FIRST_CAP), self.limit))
         if self.fill is None:
             arr = np.empty((new,) + self.tail, self.dtype)
         elif self.fill == 0:
@@ -618,6 +618,11 @@ class _Grow:
 # overhead vanishes, small enough that temporaries stay in cache and are reused by the C
 # allocator instead of being page-faulted in afresh (which cost more than the arithmetic).
 _RUN = 32768
+# First allocation of the reader's growing arrays, in rows (records, or table entries): the
+# whole stream at once when it is not huge (one allocation, no regrowth and copies while a
+# stream arrives in small chunks); beyond, amortised doubling. Untouched capacity costs no
+# memory on the usual virtual-memory systems.
+_FIRST_CAP = 1 << 20
 
 _COLUMNS = (  # name, row shape, dtype; widest first so every column stays aligned
     ("parent", (), np.int64), ("split_logits", (3,), np.float32), ("d_mu", (3,), np.float32),
@@ -657,7 +662,7 @@ class _Columns:
     def reserve(self, n) -> dict:
         if n <= self.cap and not self.shared:
             return self.cols
-        new = self.cap if n <= self.cap else max(n, min(max(2 * self.cap, 4096), self.limit))
+        new = self.cap if n <= self.cap else max(n, min(max(2 * self.cap, _FIRST_CAP), self.limit))
         cols = _carve(_COLUMNS, new)
         for name, arr in self.cols.items():
             k = self.valid[name]
@@ -687,6 +692,32 @@ def _trusted_forest(template_faces, parent, slot, split_logits, children, level,
     f.level = level
     f.root = root
     return f
+
+
+def _trusted_avatar(forest, params, meta) -> Avatar:
+    """An Avatar from float32 arrays of the right shapes known to be finite (what
+    Avatar.__post_init__ would check, at a full pass over every array). Equal to
+    Avatar(forest, *params, meta=meta) (tests/test_stream.py checks it)."""
+    av = Avatar.__new__(Avatar)
+    av.forest = forest
+    for name, arr in zip(PARAM_NAMES, params):
+        setattr(av, name, arr)
+    av.meta = meta
+    return av
+
+
+def _block_seeds(header_crc: int, n: int) -> np.ndarray:
+    """zlib.crc32(u32(header_crc) ‖ u32(i)) for every block index i < n, vectorised: over
+    messages of a fixed length the CRC is affine over GF(2), so the CRC of index i is the
+    CRC of index 0 xor one constant per set bit of i."""
+    pre = struct.pack("<I", header_crc)
+    base = zlib.crc32(pre + bytes(4))
+    i = np.arange(n, dtype=np.uint32)
+    out = np.full(n, base, np.uint32)
+    for k in range(max(n - 1, 0).bit_length()):  # per bit of the index
+        d = np.uint32(zlib.crc32(pre + (1 << k).to_bytes(4, "little")) ^ base)
+        out ^= ((i >> np.uint32(k)) & np.uint32(1)) * d
+    return out
 
 
 class StreamReader:
@@ -766,8 +797,14 @@ class StreamReader:
                           f"{min(h.num_records, (bi + 1) * h.records_per_block) - 1}, bytes "
                           f"{o}..{o + nbytes + 3}) fails its CRC-32: corrupted")
 
+    def _seeds(self, first, m) -> list:
+        """CRC-32 state after u32(header_crc) ‖ u32(block index), for blocks first..first+m-1."""
+        if self._seed_table is not None:
+            return self._seed_table[first: first + m].tolist()
+        return [zlib.crc32(bi.to_bytes(4, "little"), self._crc_seed) for bi in range(first, first + m)]
+
     def _block_crc(self, bi, data) -> int:
-        return zlib.crc32(data, zlib.crc32(bi.to_bytes(4, "little"), self._crc_seed))
+        return zlib.crc32(data, self._seeds(bi, 1)[0])
 
     def _consume(self, mv):
         """Verify what mv (the bytes after those already fed) completes: the pending block,
@@ -813,15 +850,12 @@ class StreamReader:
                 BR = B * R
                 blocks = np.frombuffer(mv, np.uint8, m * S).reshape(m, S)
                 stored = blocks[:, BR:].copy().view("<u4").ravel().tolist()
-                seed = self._crc_seed
                 crc32 = zlib.crc32
+                crcs = [crc32(mv[o: o + BR], seed) for o, seed in zip(range(0, m * S, S), self._seeds(bi, m))]
                 good = m
-                for j in range(m):  # per block (B records each)
-                    o = j * S
-                    if crc32(mv[o: o + BR], crc32((bi + j).to_bytes(4, "little"), seed)) != stored[j]:
-                        good = j
-                        err = self._block_error(bi + j, BR)
-                        break
+                if crcs != stored:
+                    good = next(j for j in range(m) if crcs[j] != stored[j])
+                    err = self._block_error(bi + good, BR)
                 if good:
                     i0 = bi * B
                     dst = raw.reserve(i0 + good * B)
@@ -884,6 +918,10 @@ class StreamReader:
         R = header.record_size
         N = header.num_records
         self._crc_seed = zlib.crc32(struct.pack("<I", header.header_crc))
+        self._seed_table = _block_seeds(header.header_crc, header.num_blocks) if header.num_blocks <= 1 << 20 else None
+        # Every decoded value is finite (so the Avatar need not scan for NaN/inf): lossless
+        # floats are checked per record; quantised ones are affine in bounded codes.
+        self._finite = header.lossless or bool(np.all(np.abs(header.quant) <= 1e30))
         self._raw = _Grow((R,), np.uint8, N)  # verified record bytes (decoding is lazy)
         self._child = _Grow((), np.int32, 3 * N, fill=0)  # 1 + record index per parent*3 + slot; N < 2^30
         self._level_starts = np.concatenate([[0], header.level_ends()]).astype(np.int64)
@@ -1022,7 +1060,10 @@ class StreamReader:
         meta["stream"] = {"records": n, "total_records": h.num_records, "base_complete": n >= F0,
                           "lossless": h.lossless, "template_hash": h.template_hash_hex,
                           "bytes": h.bytes_for_count(n), "total_bytes": h.total_bytes}
-        return Avatar(forest, *(c.hand_out(name, n) for name in PARAM_NAMES), meta=meta)
+        params = [c.hand_out(name, n) for name in PARAM_NAMES]
+        if self._finite:
+            return _trusted_avatar(forest, params, meta)
+        return Avatar(forest, *params, meta=meta)
 
     def _forest(self, tmpl, n) -> Forest:
         """The forest of the first n records, from the structure _check verified."""
