@@ -13,7 +13,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import binding
-from .forest import Forest, atomic_savez
+from .atomic import atomic_savez
+from .forest import Forest
 
 SH_C0 = 0.28209479177387814
 PARAM_NAMES = ("d_mu", "d_log_scale", "d_rot", "opacity_logit", "f_dc")

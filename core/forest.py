@@ -13,9 +13,9 @@ barycentrics are softmax(split_logits): they can never leave the simplex.
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
+
+from .atomic import atomic_savez
 
 FORMAT_VERSION = 1
 
@@ -244,14 +244,3 @@ class Forest:
     def load(cls, path) -> "Forest":
         with np.load(path, allow_pickle=False) as data:
             return cls.from_state(data, source=str(path))
-
-
-def atomic_savez(path, **arrays) -> None:
-    """np.savez to a temporary file, then rename: a crash never leaves a half-written file."""
-    path = os.fspath(path)
-    tmp = path + ".tmp"
-    with open(tmp, "wb") as fh:
-        np.savez(fh, **arrays)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)

@@ -13,6 +13,7 @@ import os
 
 import numpy as np
 
+from .atomic import atomic_open
 from .avatar import SH_C0
 
 PROPERTIES = ("x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
@@ -62,18 +63,9 @@ def write_ply(path, gaussians: dict) -> int:
     Returns the number of Gaussians written."""
     rows = _rows(gaussians)
     path = os.fspath(path)
-    tmp = f"{path}.{os.getpid()}.tmp"
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(ply_header(len(rows)))
-            fh.write(rows.tobytes())
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
+    with atomic_open(path) as fh:
+        fh.write(ply_header(len(rows)))
+        fh.write(rows.tobytes())
     return len(rows)
 
 

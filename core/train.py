@@ -21,7 +21,8 @@ import torch
 from . import losses
 from .avatar import PARAM_NAMES
 from .data import Dataset
-from .forest import Forest, atomic_savez
+from .atomic import atomic_savez
+from .forest import Forest
 from .model import TRAINABLE, TorchAvatar
 from .render import render
 

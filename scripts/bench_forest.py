@@ -31,25 +31,6 @@ def grown_forest(faces, target, rng):
     return f
 
 
-def precision_depth6(rng):
-    from progressive_avatars.core import binding
-    from progressive_avatars.core.forest import Forest
-
-    verts, faces = sphere(70, 72)
-    forest = Forest(faces)
-    current = rng.choice(len(faces), 40, replace=False)
-    for _ in range(6):
-        current = forest.split(current).ravel()
-    forest.split_logits[:] = rng.normal(0, 1.0, forest.split_logits.shape)
-    finest = np.flatnonzero(forest.level == 6)
-    v32 = (verts + rng.normal(0, 1e-3, verts.shape)).astype(np.float32)
-    W = forest.weights()
-    g32 = binding.evaluate(forest, v32, ids=finest, weights=W, dtype=np.float32, with_vertices=True)
-    g64 = binding.evaluate(forest, v32.astype(np.float64), ids=finest, weights=W, dtype=np.float64, with_vertices=True)
-    s = g64.s
-    return (np.abs(g32.edges - g64.edges).max(axis=(1, 2)) / s).max(), np.abs(g32.r - g64.r).max(), (np.abs(g32.s - g64.s) / s).max(), len(faces), np.median(s)
-
-
 def run(quick=False) -> str:
     from progressive_avatars.core import binding
 
@@ -76,10 +57,12 @@ def run(quick=False) -> str:
         ev = binding.FaceEvaluator(f)
         lo, _ = best_of(lambda: ev(v), repeat=20, warmup=2)
         out.append(f"| {d} | {f.num_faces:,} | {lo * 1e3:.2f} |")
-    e, r, s, nroot, med = precision_depth6(rng)
-    out += ["", f"Precision, float32 vs float64 at depth 6 ({nroot} root faces, metres; median finest face scale "
-            f"{med * 1e3:.3f} mm), max relative to each face's own scale: edges {e:.1e}, frames {r:.1e}, scales {s:.1e} "
-            "(target 1e-5).", ""]
+    from tests.helpers import depth6_precision
+
+    p = depth6_precision(rng)
+    out += ["", f"Precision, float32 vs float64 at depth 6 ({p['roots']} root faces, metres; median finest face scale "
+            f"{p['median_scale'] * 1e3:.3f} mm), max relative to each face's own scale: edges {p['edges']:.1e}, "
+            f"frames {p['frames']:.1e}, scales {p['scales']:.1e} (target 1e-5).", ""]
     return "\n".join(out)
 
 

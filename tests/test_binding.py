@@ -7,7 +7,7 @@ from scipy.spatial.transform import Rotation
 
 from progressive_avatars.core import binding, binding_torch
 from progressive_avatars.core.forest import Forest
-from tests.helpers import random_forest, sphere_mesh
+from tests.helpers import depth6_precision, random_forest, sphere_mesh
 
 
 def world_frame(v0, v1, v2):
@@ -174,46 +174,7 @@ def test_degenerate_triangles_give_finite_deterministic_frames(pts, kind):
 
 def test_float32_precision_at_depth_6_on_a_head_sized_mesh():
     """float32 vs float64 on the finest faces, relative to each face's own scale."""
-    verts, faces = sphere_mesh(70, 72, radius=0.1)  # ~5k vertices, ~10k faces, metres
-    rng = np.random.default_rng(6)
-    forest = Forest(faces)
-    roots = rng.choice(len(faces), 40, replace=False)
-    current = roots
-    for _ in range(6):
-        current = forest.split(current).ravel()
-    forest.split_logits[:] = rng.normal(0, 1.0, forest.split_logits.shape)
-    finest = np.flatnonzero(forest.level == 6)
-    v32 = (verts + rng.normal(0, 1e-3, verts.shape)).astype(np.float32)
-    W = forest.weights()
-    g32 = binding.evaluate(forest, v32, ids=finest, weights=W, dtype=np.float32, with_vertices=True)
-    g64 = binding.evaluate(forest, v32.astype(np.float64), ids=finest, weights=W, dtype=np.float64, with_vertices=True)
-    scale = g64.s
-    assert np.median(scale) < 1e-3  # typical finest faces are a fraction of a millimetre
-    edge_err = np.abs(g32.edges - g64.edges).max(axis=(1, 2)) / scale
-    frame_err = np.abs(g32.r - g64.r).max(axis=(1, 2))
-    scale_err = np.abs(g32.s - g64.s) / scale
-    worst = max(edge_err.max(), frame_err.max(), scale_err.max())
-    print(f"depth-6 float32 relative error: edges {edge_err.max():.2e}, frames {frame_err.max():.2e}, scales {scale_err.max():.2e}")
-    assert worst < 1e-5
-
-
-def test_gaussian_evaluator_matches_generic_compose_including_large_rotations():
-    rng = np.random.default_rng(7)
-    verts, faces = sphere_mesh(6, 8)
-    forest = random_forest(faces, rng, depth=3)
-    N = forest.num_faces
-    d_mu, d_ls, d_rot = rng.normal(0, 0.5, (N, 3)), rng.normal(0, 0.3, (N, 3)), rng.normal(size=(N, 4))
-    for q in ([1, 0, 0, 0], [0, 1, 0, 0], [0.05, -0.7, 0.1, 0.7]):  # w ~ 0 exercises the Shepperd subset
-        v = verts @ binding.quat_to_rotmat(np.array(q, float)).T
-        geo = binding.evaluate(forest, v, dtype=np.float64)
-        m_ref, s_ref, q_ref = binding.compose(geo.t, geo.r, geo.s, d_mu, d_ls, d_rot)
-        ids = np.arange(0, N, 2)
-        for sel in (None, ids):
-            ev = binding.GaussianEvaluator(forest, d_mu, d_ls, d_rot, ids=sel, capacity=N + 5)
-            means, quats, scales = ev(v.astype(np.float32))
-            pick = slice(None) if sel is None else sel
-            n = ev.n
-            assert means.shape == (N + 5, 3)
-            np.testing.assert_allclose(means[:n], m_ref[pick], atol=1e-6)
-            np.testing.assert_allclose(scales[:n], s_ref[pick], rtol=1e-5)
-            np.testing.assert_allclose(np.abs(np.sum(quats[:n] * q_ref[pick], 1)), 1, atol=2e-6)
+    err = depth6_precision(np.random.default_rng(6))
+    assert err["median_scale"] < 1e-3  # typical finest faces are a fraction of a millimetre
+    print(f"depth-6 float32 relative error: {err}")
+    assert max(err["edges"], err["frames"], err["scales"]) < 1e-5
