@@ -13,6 +13,7 @@ or per level, never per record.
 
 from __future__ import annotations
 
+import bisect
 import hashlib
 import json
 import math
@@ -23,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .atomic import atomic_open
 from .avatar import PARAM_NAMES, SH_C0, Avatar
 from .forest import Forest
 
@@ -550,18 +552,8 @@ def write_stream(path, avatar: Avatar, importance=None, *, quantize: bool = True
         parts.append(struct.pack("<I", crc))
     data = b"".join(parts)
     assert len(data) == info.total_bytes
-    path = os.fspath(path)
-    tmp = f"{path}.{os.getpid()}.tmp"
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
+    with atomic_open(path) as fh:
+        fh.write(data)
     info.order = order
     return info
 
@@ -578,40 +570,27 @@ def encode_stream(avatar: Avatar, importance=None, **kwargs) -> bytes:
 
 
 # -- reader -------------------------------------------------------------------------------
-# -- reader -------------------------------------------------------------------------------
 class _Grow:
-    """A growing array (first axis) with amortised doubling, capped at `limit` rows.
-
-    `hand_out()` gives the current array away (an Avatar keeps views of it): the next
-    `reserve()` then copies the valid rows (`size`) to a fresh array, so that nothing the
-    reader does later changes what it handed out (copy on write)."""
+    """A reader-private growing array (first axis): amortised doubling capped at `limit`
+    rows, starting at _FIRST_CAP rows; zero-initialised (calloc) when `fill` is 0."""
 
     def __init__(self, shape_tail, dtype, limit, fill=None):
         self.tail, self.dtype, self.fill, self.limit = tuple(shape_tail), dtype, fill, max(int(limit), 1)
         self.data = np.empty((0,) + self.tail, dtype)
-        self.size = 0
-        self.shared = False
 
     def reserve(self, n) -> np.ndarray:
-        """data with at least n rows, owned by the reader (safe to write)."""
+        """data with at least n rows (existing rows kept)."""
         cap = len(self.data)
-        if n <= cap and not self.shared:
+        if n <= cap:
             return self.data
-        new = cap if n <= cap else max(n, min(max(2 * cap, _FIRST_CAP), self.limit))
+        new = max(n, min(max(2 * cap, _FIRST_CAP), self.limit))
         if self.fill is None:
             arr = np.empty((new,) + self.tail, self.dtype)
-        elif self.fill == 0:
-            arr = np.zeros((new,) + self.tail, self.dtype)  # calloc: no pass over the memory
         else:
-            arr = np.full((new,) + self.tail, self.fill, self.dtype)
-        keep = min(self.size, cap) if self.shared else cap  # handed out: only the valid rows matter
-        arr[:keep] = self.data[:keep]
-        self.data, self.shared = arr, False
+            arr = np.zeros((new,) + self.tail, self.dtype)  # calloc: no pass over the memory
+        arr[:cap] = self.data
+        self.data = arr
         return arr
-
-    def hand_out(self, n) -> np.ndarray:
-        self.shared = True
-        return self.data[:n]
 
 
 # Records per vectorised run in checking and decoding: large enough that numpy's per-call
@@ -649,8 +628,9 @@ def _carve(spec, n):
 class _Columns:
     """The reader's per-record outputs (parent, slot, decoded parameters) in one allocation,
     grown by amortised doubling up to `limit` rows. `hand_out()` gives the current arrays
-    away (an Avatar keeps views of them); the next `reserve()` then copies the valid rows to a
-    fresh allocation, so nothing the reader does later changes what it handed out."""
+    away (an Avatar keeps views of them and may edit them): the next `reserve()` then starts
+    a fresh allocation with nothing valid, which the reader fills again from its verified
+    bytes (never from the handed-out arrays)."""
 
     def __init__(self, limit):
         self.limit = max(int(limit), 1)
@@ -664,9 +644,12 @@ class _Columns:
             return self.cols
         new = self.cap if n <= self.cap else max(n, min(max(2 * self.cap, _FIRST_CAP), self.limit))
         cols = _carve(_COLUMNS, new)
-        for name, arr in self.cols.items():
-            k = self.valid[name]
-            cols[name][:k] = arr[:k]
+        if self.shared:
+            self.valid = dict.fromkeys(self.valid, 0)
+        else:
+            for name, arr in self.cols.items():
+                k = self.valid[name]
+                cols[name][:k] = arr[:k]
         self.cols, self.cap, self.shared = cols, new, False
         return cols
 
@@ -766,16 +749,17 @@ class StreamReader:
                                   f"(offset {self.bytes_received - len(mv)})"))
         try:
             if self.header is None:
-                if self._pending:
+                buf = mv
+                if self._pending:  # (checked in place: no copy per call while the header trickles in)
                     self._pending += mv
-                    buf = bytes(self._pending)
-                else:
-                    buf = mv
+                    buf = self._pending
                 _check_magic(buf, self.source)
                 if len(buf) < FIXED_SIZE or len(buf) < _parse_fixed(buf, self.source)["header_size"]:
                     if buf is mv:
                         self._pending = bytearray(mv)
                     return 0
+                if buf is self._pending:
+                    buf = bytes(buf)
                 header = _parse_header(buf, self.source)
                 self._start(header)
                 self._pending = bytearray()
@@ -925,11 +909,12 @@ class StreamReader:
         self._raw = _Grow((R,), np.uint8, N)  # verified record bytes (decoding is lazy)
         self._child = _Grow((), np.int32, 3 * N, fill=0)  # 1 + record index per parent*3 + slot; N < 2^30
         self._level_starts = np.concatenate([[0], header.level_ends()]).astype(np.int64)
+        self._starts_list = [int(x) for x in self._level_starts]
         self._cols = _Columns(N)
 
     def _check(self, i0: int, i1: int):
         """_check_range over cache-sized runs of records (temporaries stay small and reused)."""
-        self._cols.reserve(i1)
+        self._reserve_cols(i1)
         self._child.reserve(3 * i1)
         for c0 in range(i0, i1, _RUN):
             c1 = min(i1, c0 + _RUN)
@@ -944,23 +929,13 @@ class StreamReader:
         their (parent, slot). Returns (how many records from i0 pass, problem or None)."""
         h = self.header
         n = i1 - i0
-        rows = self._raw.data[i0:i1]
-        cols = self._cols.reserve(i1)
-        par = cols["parent"][i0:i1]
-        slt = cols["slot"][i0:i1]
+        rows, rec, par, slt = self._structure(i0, i1, self._cols.cols)
         if h.lossless:
-            link = rows[:, :4].copy().view("<u4")[:, 0]
-            np.bitwise_and(link, np.uint32(LOSSLESS_ROOT), out=par)
-            np.right_shift(link, np.uint32(30), out=slt, casting="unsafe")
-            bad = ~np.all(np.isfinite(rows[:, 4:72].copy().view("<f4")), axis=1)
-            bad |= slt == 3  # (cannot happen: two bits; kept for symmetry)
+            bad = ~np.all(np.isfinite(rows[:, 4:72].copy().view("<f4")), axis=1)  # finite floats
+            bad |= slt == 3  # two link bits: slot 3 is possible, and invalid
             root_val = LOSSLESS_ROOT
         else:
-            rec = rows.view(_QUANT_WORDS)[:, 0]
-            np.bitwise_and(rec["p32"], np.uint32(QUANT_ROOT), out=par)
-            top = rec["top"]
-            np.right_shift(top, np.uint8(4), out=slt, casting="unsafe")
-            bad = top >= np.uint8(0x30)  # slot 3 or a reserved bit set
+            bad = rec["top"] >= np.uint8(0x30)  # slot 3 or a reserved bit set
             s = np.right_shift(rec["b0"], np.uint16(4))
             s += rec["b1"] & np.uint16(0xFFF)
             bad |= s > np.uint16(4095)  # beta0 + beta1 <= 4095
@@ -969,12 +944,12 @@ class StreamReader:
         if nr:
             bad[:nr] |= (par[:nr] != root_val) | (slt[:nr] != 0)
         # A non-root's parent lies in the previous level's index range (so before the child).
-        starts = self._level_starts
-        l_first = int(np.searchsorted(starts, i0 + nr, side="right")) - 1
-        l_last = int(np.searchsorted(starts, i1 - 1, side="right")) - 1
+        starts = self._starts_list
+        l_first = bisect.bisect_right(starts, i0 + nr) - 1
+        l_last = bisect.bisect_right(starts, i1 - 1) - 1
         for lv in range(max(l_first, 1), l_last + 1):  # per level this batch touches
-            x, y = max(int(starts[lv]), i0) - i0, min(int(starts[lv + 1]), i1) - i0
-            off = par[x:y] - starts[lv - 1]
+            x, y = max(starts[lv], i0) - i0, min(starts[lv + 1], i1) - i0
+            off = np.subtract(par[x:y], starts[lv - 1])
             bad[x:y] |= off.view(np.uint64) >= np.uint64(starts[lv] - starts[lv - 1])
         k, problem = n, None
         if bad.any():
@@ -988,7 +963,7 @@ class StreamReader:
             child = self._child.reserve(3 * (i0 + k))
             old = child.take(keys)
             child[keys] = ids
-            if old.max() > 0 or not np.array_equal(child.take(keys), ids):
+            if old.max() > 0 or (child.take(keys) != ids).any():
                 # The offender is a record whose key an earlier one (any batch) already holds.
                 first = np.zeros(len(keys), bool)
                 first[np.unique(keys, return_index=True)[1]] = True
@@ -997,9 +972,44 @@ class StreamReader:
         if nr:
             par[:nr] = -1
             slt[:nr] = -1
-        self._raw.size = i0 + k
         self._cols.valid["parent"] = self._cols.valid["slot"] = i0 + k
         return k, problem
+
+    def _reserve_cols(self, n) -> dict:
+        """Output columns for n records, owned by the reader. After a hand-out they are fresh:
+        parent/slot of the available records are derived again from the verified bytes, and
+        the parameters will be decoded again."""
+        c = self._cols
+        if n <= c.cap and not c.shared:
+            return c.cols
+        was_shared = c.shared
+        cols = c.reserve(n)
+        if was_shared:
+            self._decoded = 0
+            for c0 in range(0, self._n, _RUN):
+                self._structure(c0, min(self._n, c0 + _RUN), cols)
+            nr = min(self._n, self.header.num_template_faces)
+            cols["parent"][:nr] = -1
+            cols["slot"][:nr] = -1
+            c.valid["parent"] = c.valid["slot"] = self._n
+        return cols
+
+    def _structure(self, i0, i1, cols):
+        """parent and slot columns of records i0..i1-1 from their bytes;
+        roots are left as stored (the caller checks and marks them). Returns the rows, the
+        quantised record view (None when lossless) and the two column slices."""
+        rows = self._raw.data[i0:i1]
+        par, slt = cols["parent"][i0:i1], cols["slot"][i0:i1]
+        if self.header.lossless:
+            link = rows[:, :4].copy().view("<u4")[:, 0]
+            np.bitwise_and(link, np.uint32(LOSSLESS_ROOT), out=par)
+            np.right_shift(link, np.uint32(30), out=slt, casting="unsafe")
+            rec = None
+        else:
+            rec = rows.view(_QUANT_WORDS)[:, 0]
+            np.bitwise_and(rec["p32"], np.uint32(QUANT_ROOT), out=par)
+            np.right_shift(rec["top"], np.uint8(4), out=slt, casting="unsafe")
+        return rows, rec, par, slt
 
     def _record_offset(self, i) -> int:
         return self.header.record_offset(int(i))
@@ -1009,8 +1019,8 @@ class StreamReader:
         """Decode the parameters of all available records (lazily: feed() only verifies),
         straight into the output columns; every operation runs over all new records."""
         b = self._n
+        cols = self._reserve_cols(b)  # (may reset _decoded after a hand-out)
         a = self._decoded
-        cols = self._cols.reserve(b)  # (copies if handed out)
         if b > a:
             raw = self._raw.data[a:b]
             out = {name: cols[name][a:b] for name in PARAM_NAMES + ("split_logits",)}
@@ -1035,7 +1045,7 @@ class StreamReader:
         """Decoded arrays of the first n available records (views; do not modify)."""
         self._decode()
         n = self._n if n is None else max(0, min(int(n), self._n))
-        cols = self._cols.reserve(n)
+        cols = self._reserve_cols(n)
         return {name: cols[name][:n] for name in ("split_logits",) + PARAM_NAMES + ("parent", "slot")}
 
     def avatar(self, n=None) -> Avatar | None:

@@ -1,5 +1,6 @@
 """The progressive stream (core/stream.py) against itself and against docs/FORMAT.md."""
 
+import math
 import os
 import struct
 import zlib
@@ -183,6 +184,157 @@ def test_quantiser_edge_values():
     assert a[0] > 0.99 and a[-1] < 0.003
 
 
+# -- decoding pinned against an independent, per-record decoder ---------------------------
+def _slow_decode(rec: bytes, quant) -> dict:
+    """FORMAT.md 3.1 for one quantised record, written from the document with Python ints
+    and numpy float32 scalars (one rounding per operation), sharing nothing with the reader."""
+    f32 = np.float32
+    geo, rot = int.from_bytes(rec[0:8], "little"), int.from_bytes(rec[8:12], "little")
+    parent = int.from_bytes(rec[12:15], "little")
+    q = np.asarray(quant, np.float64).reshape(3, 2, 3)
+
+    def affine(code, lo32, step32):
+        return f32(lo32 + f32(f32(code) * step32))
+
+    mu = [affine((geo >> (12 * k)) & 0xFFF, f32(q[0, 0, k]), f32((q[0, 1, k] - q[0, 0, k]) / 4095)) for k in range(3)]
+    b0, b1 = (geo >> 36) & 0xFFF, (geo >> 48) & 0xFFF
+    split = [f32(math.log(max(b, 2.0 ** -20) / 4095)) for b in (b0, b1, 4095 - b0 - b1)]
+    v = [affine((rot >> (10 * k)) & 0x3FF, f32(-1 / math.sqrt(2)), f32(math.sqrt(2) / 1023)) for k in range(3)]
+    s = f32(f32(f32(v[0] * v[0]) + f32(v[1] * v[1])) + f32(v[2] * v[2]))
+    w = np.sqrt(max(f32(f32(1) - s), f32(0)))
+    d_rot = v[:]
+    d_rot.insert(rot >> 30, w)
+    ls = [affine(rec[15 + k], f32(q[1, 0, k]), f32((q[1, 1, k] - q[1, 0, k]) / 255)) for k in range(3)]
+    alpha = (rec[18] + 0.5) / 256
+    fdc = [affine(rec[19 + k], f32((q[2, 0, k] - 0.5) / SH_C0), f32((q[2, 1, k] - q[2, 0, k]) / (255 * SH_C0)))
+           for k in range(3)]
+    root = parent == 0xFFFFFF
+    return {"d_mu": mu, "split_logits": split, "d_rot": d_rot, "d_log_scale": ls,
+            "opacity_logit": [f32(math.log(alpha / (1 - alpha)))], "f_dc": fdc,
+            "parent": [-1 if root else parent], "slot": [-1 if root else (geo >> 60) & 3]}
+
+
+def test_decoded_records_match_an_independent_slow_decode():
+    _, av, imp = make_avatar(11, n_lat=5, n_lon=7)
+    data = S.encode_stream(av, imp, records_per_block=16)
+    info = S.read_header(data)
+    out = S.read_stream(data)
+    r = S.StreamReader()
+    for i in range(0, len(data), 97):
+        r.feed(data[i: i + 97])
+    chunked = r.avatar()
+    got = {**fields(out), **{n: getattr(out, n) for n in PARAMS}}
+    got_c = {**fields(chunked), **{n: getattr(chunked, n) for n in PARAMS}}
+    bigs = set()
+    for i in range(info.num_records):
+        o = info.record_offset(i)
+        rec = data[o: o + 23]
+        want = _slow_decode(rec, info.quant)
+        bigs.add(int.from_bytes(rec[8:12], "little") >> 30)
+        for name, vals in want.items():
+            dt = np.int64 if name == "parent" else np.int8 if name == "slot" else np.float32
+            w = np.asarray(vals, dt)
+            for g in (got, got_c):  # bit for bit (float32 patterns, not just values)
+                assert np.atleast_1d(g[name][i]).astype(dt).tobytes() == w.tobytes(), (i, name, g[name][i], w)
+    assert bigs == {0, 1, 2, 3}  # every placement of the largest rotation component exercised
+
+
+def test_trusted_forest_and_avatar_equal_the_validated_constructors():
+    """The reader builds Forest and Avatar without re-deriving and re-validating what it has
+    already checked; the result must be what the public constructors would build."""
+    import dataclasses
+
+    _, av, imp = make_avatar(12)
+    data = S.encode_stream(av, imp, records_per_block=8)
+    info = S.read_header(data)
+    F0 = info.num_template_faces
+    r = S.StreamReader()
+    r.feed(data)
+    for n in sorted({1, F0 - 1, F0, F0 + 1, info.level_ends()[1], info.num_records - 1, info.num_records}):
+        a = r.avatar(n)
+        ref_f = Forest(a.forest.template_faces, a.forest.parent, a.forest.slot, a.forest.split_logits)
+        assert set(vars(a.forest)) == set(vars(ref_f))
+        for k, v in vars(ref_f).items():
+            got = getattr(a.forest, k)
+            assert got.dtype == v.dtype and got.shape == v.shape and np.array_equal(got, v), (n, k)
+        ref = Avatar(ref_f, *(getattr(a, name) for name in PARAMS), meta=a.meta)
+        assert {f.name for f in dataclasses.fields(Avatar)} == set(vars(a)) == set(vars(ref))
+        for name in PARAMS:
+            got, want = getattr(a, name), getattr(ref, name)
+            assert got.dtype == want.dtype == np.float32 and got.shape == want.shape
+            np.testing.assert_array_equal(got, want)
+    assert r.avatar(F0 - 1).forest.num_roots == F0 - 1
+
+
+def test_avatars_own_their_arrays():
+    """The reader hands its decoded columns to an Avatar without copying; later feeds, later
+    avatars and edits of a handed-out avatar must not affect one another."""
+    _, av, imp = make_avatar(13)
+    data = S.encode_stream(av, imp, records_per_block=8)
+    full = S.read_stream(data)
+    r = S.StreamReader()
+    half = len(data) // 2
+    r.feed(data[:half])
+    a1 = r.avatar()
+    n1 = a1.num_gaussians
+    snap = {k: v.copy() for k, v in fields(a1).items()}
+    for name in PARAMS + ("split_logits",):
+        arr = a1.forest.split_logits if name == "split_logits" else getattr(a1, name)
+        arr[...] = 7.0  # the user edits the avatar in place
+    a1.forest.parent[...] = 5
+    a2 = r.avatar()
+    assert_prefix(a2, full, n1)
+    r.feed(data[half:])
+    a3 = r.avatar()
+    assert_prefix(a3, full, full.num_gaussians)
+    assert_prefix(r.avatar(n1), full, n1)
+    a3.d_mu[...] = 3.0
+    assert_prefix(r.avatar(), full, full.num_gaussians)
+    np.testing.assert_array_equal(a2.d_mu, snap["d_mu"] if "d_mu" in snap else full.d_mu[:n1])
+    assert np.all(a1.d_mu == 7.0)
+
+
+@pytest.mark.parametrize("quantize", [True, False])
+def test_runs_and_growth_paths(monkeypatch, quantize):
+    """Streams longer than one vectorised run and than the first allocation (shrunk here so a
+    small stream crosses both many times) decode the same, whole or chunked."""
+    _, av, imp = make_avatar(14, n_lat=5, n_lon=7)
+    data = S.encode_stream(av, imp, quantize=quantize, records_per_block=5)
+    full = S.read_stream(data)
+    info = S.read_header(data)
+    monkeypatch.setattr(S, "_RUN", 7)
+    monkeypatch.setattr(S, "_FIRST_CAP", 3)
+    assert_prefix(S.read_stream(data), full, full.num_gaussians)
+    for step in (1, 23, 64, 1000):
+        r = S.StreamReader()
+        for i in range(0, len(data), step):
+            r.feed(data[i: i + step])
+            if (i // step) % 17 == 0:
+                n = info.count_for_bytes(min(len(data), i + step))
+                assert r.num_gaussians == n
+                assert_prefix(r.avatar(), full, n)
+        assert_prefix(r.avatar(), full, full.num_gaussians)
+
+
+def test_duplicate_child_slot_names_the_second_record():
+    _, av, imp = make_avatar(15)
+    data = bytearray(S.encode_stream(av, imp, records_per_block=4))
+    info = S.read_header(bytes(data))
+    lv1 = info.level_ends()[0]
+    i, j = lv1 + 1, lv1 + 2  # two level-1 records: give j the (parent, slot) of i
+    oi, oj = info.record_offset(i), info.record_offset(j)
+    ri, rj = bytearray(data[oi: oi + 23]), bytearray(data[oj: oj + 23])
+    rj[12:15] = ri[12:15]
+    geo = int.from_bytes(rj[0:8], "little") & ~(3 << 60) | (int.from_bytes(ri[0:8], "little") & (3 << 60))
+    rj[0:8] = geo.to_bytes(8, "little")
+    rj[22] = S._crc8_bytewise(bytes(rj[:22]))
+    data[oj: oj + 23] = rj
+    r = S.StreamReader()
+    with pytest.raises(ValueError, match=f"record {j} reuses the child slot"):
+        r.feed(bytes(data[: oj + 23]))  # j's block incomplete: its CRC-8 passes
+    assert r.num_gaussians == j  # i and everything before it stay available
+
+
 # -- the any-prefix property --------------------------------------------------------------
 def test_every_byte_prefix_yields_exactly_the_whole_verified_records(small):
     _, av, _, data, full = small
@@ -300,6 +452,15 @@ def test_structurally_invalid_records_are_refused():
     data[o: o + 23] = rec
     with pytest.raises(ValueError, match=f"record {i} is structurally invalid"):
         S.read_stream(bytes(data[: o + 23]))  # block incomplete: CRC-8 passes, structure fails
+    # lossless: the link's two slot bits can say 3, which no face has
+    data = bytearray(S.encode_stream(av, imp, quantize=False, records_per_block=4))
+    o = S.read_header(bytes(data)).record_offset(i)
+    rec = bytearray(data[o: o + 73])
+    rec[3] |= 0xC0
+    rec[72] = S._crc8_bytewise(bytes(rec[:72]))
+    data[o: o + 73] = rec
+    with pytest.raises(ValueError, match=f"record {i} is structurally invalid"):
+        S.read_stream(bytes(data[: o + 73]))
 
 
 # -- template binding ---------------------------------------------------------------------
