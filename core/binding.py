@@ -20,6 +20,7 @@ import numpy as np
 from .forest import Forest
 
 MIN_SCALE = 1e-10  # metres; keeps degenerate faces' Gaussians valid (positive scale)
+MIN_EDGE = 1e-15  # metres; shorter edges count as zero (their direction, and its gradient, is noise)
 
 
 # -- quaternions --------------------------------------------------------------------------
@@ -106,15 +107,15 @@ def frames_from_edges(e1: np.ndarray, e2: np.ndarray, normal: np.ndarray | None 
     u2, n2 = _unit_norm(e2)
     axis_x = np.zeros_like(e1)
     axis_x[..., 0] = 1
-    x = np.where((n1 > 0)[..., None], u1, np.where((n2 > 0)[..., None], u2, axis_x))
+    x = np.where((n1 > MIN_EDGE)[..., None], u1, np.where((n2 > MIN_EDGE)[..., None], u2, axis_x))
     own_hat, own_n = _unit_norm(np.cross(x, e2))
-    own_flat = own_n <= eps * np.maximum(n2, np.finfo(dtype).tiny)
+    own_flat = (n2 <= MIN_EDGE) | (own_n <= eps * n2)
     if normal is None:
         y, flat = own_hat, own_flat
     else:
         # Remove the tiny out-of-plane part rounding leaves in x, so r stays orthonormal.
         n_hat, nn = _unit_norm(normal)
-        good = nn > 0
+        good = nn > MIN_EDGE * MIN_EDGE
         x_in = x - np.sum(x * n_hat, axis=-1, keepdims=True) * n_hat
         x = np.where(good[..., None], _unit_norm(x_in)[0], x)
         # A face whose edges vanish inside a good root still takes the root's normal.

@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from .binding import MIN_EDGE
 from .forest import Forest
 
 
@@ -69,25 +70,32 @@ def _norm(v: torch.Tensor) -> torch.Tensor:
     return torch.sqrt((u * u).sum(-1).clamp_min(1e-30)) * m
 
 
+def _safe_unit(v: torch.Tensor, n: torch.Tensor, ok: torch.Tensor) -> torch.Tensor:
+    # torch.where still backpropagates 0 * d(branch): dividing by a denormal length in the
+    # unselected branch would make that 0 * inf = NaN, so masked-out rows divide by 1.
+    return v / torch.where(ok, n, torch.ones_like(n))[..., None]
+
+
 def frames_from_edges(e1: torch.Tensor, e2: torch.Tensor, normal: torch.Tensor | None = None):
     """Face frames r [...,3,3] and scales s [...] from edges (same rules as binding.py)."""
     eps = 8 * torch.finfo(e1.dtype).eps
-    tiny = torch.finfo(e1.dtype).tiny
     n1, n2 = _norm(e1), _norm(e2)
-    has1 = (e1 != 0).any(-1)
-    has2 = (e2 != 0).any(-1)
+    has1 = n1.detach() > MIN_EDGE
+    has2 = n2.detach() > MIN_EDGE
     axis_x = torch.zeros_like(e1)
     axis_x[..., 0] = 1
-    x = torch.where(has1[..., None], e1 / n1[..., None], torch.where(has2[..., None], e2 / n2[..., None], axis_x))
+    x = torch.where(has1[..., None], _safe_unit(e1, n1, has1),
+                    torch.where(has2[..., None], _safe_unit(e2, n2, has2), axis_x))
     own = torch.linalg.cross(x, e2)
-    own_raw = torch.linalg.vector_norm(own.detach(), dim=-1)
-    own_flat = own_raw <= eps * torch.where(has2, n2.detach(), torch.full_like(n2, tiny))
-    own_hat = own / _norm(own)[..., None]
+    own_n = _norm(own)
+    own_flat = ~has2 | (own_n.detach() <= eps * n2.detach())
+    own_hat = _safe_unit(own, own_n, ~own_flat)
     if normal is None:
         y, flat = own_hat, own_flat
     else:
-        good = (normal != 0).any(-1)
-        n_hat = normal / _norm(normal)[..., None]
+        nn = _norm(normal)
+        good = nn.detach() > MIN_EDGE * MIN_EDGE
+        n_hat = _safe_unit(normal, nn, good)
         x_in = x - (x * n_hat).sum(-1, keepdim=True) * n_hat
         x = torch.where(good[..., None], x_in / _norm(x_in)[..., None], x)
         y = torch.where(good[..., None], n_hat, own_hat)

@@ -10,7 +10,7 @@ fi
 stamp=.venv/.installed-$(sha1sum pyproject.toml | cut -c1-12)
 if [ ! -f "$stamp" ]; then
   # torch first and pinned: an unpinned resolution pulls several GB of CUDA packages.
-  .venv/bin/pip install --disable-pip-version-check -q "torch==2.13.0"
-  .venv/bin/pip install --disable-pip-version-check -q -e ".[dev]"
+  .venv/bin/pip install --disable-pip-version-check -q "torch==2.13.0" 2> >(grep -v "is ignored: it is neither" >&2)
+  .venv/bin/pip install --disable-pip-version-check -q -e ".[dev]" 2> >(grep -v "is ignored: it is neither" >&2)
   touch "$stamp"
 fi

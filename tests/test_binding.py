@@ -148,6 +148,7 @@ TINY_EDGE[0, 0] = 1.24094292e-22  # float32 squares underflow: once gave |x| = 0
 @given(arrays(np.float64, (6, 3), elements=FLOATS), st.integers(0, 4))
 @example(TINY_EDGE, 0)
 @example(TINY_EDGE, 4)
+@example(np.pad([[5e-324]], ((0, 5), (0, 2))), 0)  # the smallest double: once gave an infinite gradient
 def test_degenerate_triangles_give_finite_deterministic_frames(pts, kind):
     v0, v1, v2 = pts[:3], pts[3:], pts[::-1][:3].copy()
     if kind == 0:
