@@ -60,7 +60,7 @@ PRESETS = {
                  log_every=10, eval_every=30, eval_views=2, checkpoint_every=20),
     # The synthetic default on a 2-core CPU (<= 30 min).
     "cpu": dict(iterations=4000, max_depth=3, grow_every=150, grow_start=150, grow_stop=0.7, max_faces=40000,
-                grad_threshold=4e-4, log_every=25, eval_every=250, eval_views=8, checkpoint_every=250),
+                grad_threshold=2e-4, log_every=25, eval_every=250, eval_views=8, checkpoint_every=250),
     # GPU, the paper's depth.
     "paper": dict(iterations=60000, max_depth=4, grow_every=2000, grow_start=2000, grow_stop=0.8, max_faces=250000,
                   log_every=100, eval_every=5000, eval_views=16, checkpoint_every=5000),

@@ -29,8 +29,9 @@ def report_section(report_dir: str) -> str:
         r = json.load(fh)
     md_path = os.path.join(report_dir, "report.md")
     body = open(md_path).read().split("\n", 1)[1] if os.path.exists(md_path) else ""
-    rel = os.path.relpath(report_dir, os.path.join(_bootstrap.ROOT, "docs"))
-    body = body.replace("](", f"]({rel}/") if not rel.startswith("..") else body
+    rel = os.path.relpath(os.path.abspath(report_dir), os.path.join(_bootstrap.ROOT, "docs"))
+    if not rel.startswith(".."):  # pictures inside docs/ are linked; elsewhere they are not in the repo
+        body = body.replace("](", f"]({rel}/")
     return f"## Training and evaluation (from `{report_dir}/report.json`)\n{body}"
 
 

@@ -13,7 +13,9 @@ import argparse
 import json
 import os
 import platform
+import shutil
 import sys
+import tempfile
 import time
 
 import _bootstrap
@@ -63,8 +65,9 @@ def main(argv=None):
     W = runs.run_importance(args.run, avatar, data, progress=progress)
     stream_path = os.path.join(args.run, "avatar.pavs")
     info = stream.write_stream(stream_path, avatar, W, quantize=True, metadata={"run": os.path.abspath(args.run)})
-    lossless_path = os.path.join(args.out, "lossless.pavs")
-    lossless_info = stream.write_stream(lossless_path, avatar, W, quantize=False)
+    scratch = tempfile.mkdtemp(prefix="pa_eval_")
+    lossless_path = os.path.join(scratch, "lossless.pavs")  # only to measure what quantisation costs
+    stream.write_stream(lossless_path, avatar, W, quantize=False)
     streamed = stream.read_stream(stream_path)
     exact = stream.read_stream(lossless_path)
     order = stream.stream_order(avatar.forest, W)
@@ -155,6 +158,7 @@ def main(argv=None):
     report["date"] = time.strftime("%Y-%m-%d %H:%M:%S")
     report["command"] = " ".join(["python", "scripts/evaluate.py"] + (sys.argv[1:] if argv is None else argv))
     report["seconds"] = time.perf_counter() - t_start
+    shutil.rmtree(scratch, ignore_errors=True)
     with open(os.path.join(args.out, "report.json"), "w") as fh:
         json.dump(report, fh, indent=1)
     with open(os.path.join(args.out, "report.md"), "w") as fh:
