@@ -101,12 +101,18 @@ def check_mesh(avatar: Avatar, budget: Budget, faces) -> None:
         raise ValueError(f"the mesh's faces {faces.shape} are not the avatar's template {avatar.forest.template_faces.shape}")
 
 
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """sRGB-encoded values (what the avatar learned from PNG images) to linear light."""
+    c = np.clip(c, 0.0, 1.0)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
 def static_attributes(avatar: Avatar) -> dict:
     """Per-Gaussian values that do not change with the frame: activated opacity, RGBA
-    colour, level and rank (stream position)."""
+    colour (linear, as Blender's colour attributes are), level and rank (stream position)."""
     n = avatar.num_gaussians
     rgba = np.ones((n, 4), np.float32)
-    rgba[:, :3] = np.minimum(sh_to_rgb(avatar.f_dc), 1.0)
+    rgba[:, :3] = srgb_to_linear(sh_to_rgb(avatar.f_dc))
     return {
         "opacity": np.ascontiguousarray(sigmoid(avatar.opacity_logit), np.float32),
         "color": rgba.ravel(),
