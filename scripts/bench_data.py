@@ -6,6 +6,11 @@ Without --data a small mesh-mode dataset is written to a temporary folder. ``run
 a Markdown section (machine, command, date, table) for the benchmark report.
 """
 
+import os as _os
+import sys as _sys
+
+# Blender's --python does not put the script's folder on sys.path; plain python does.
+_sys.path.insert(0, _os.path.dirname(_os.path.abspath(__file__)))
 import _bootstrap  # noqa: F401  (makes progressive_avatars importable; must come first)
 
 import argparse

@@ -3,6 +3,11 @@
     python scripts/bench_forest.py
 """
 
+import os as _os
+import sys as _sys
+
+# Blender's --python does not put the script's folder on sys.path; plain python does.
+_sys.path.insert(0, _os.path.dirname(_os.path.abspath(__file__)))
 import _bootstrap  # noqa: F401
 import numpy as np
 from bench_common import best_of, header

@@ -13,6 +13,11 @@ import os
 # Before torch loads OpenMP: see core/render.py (spinning workers starve each other on a busy box).
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+import os as _os
+import sys as _sys
+
+# Blender's --python does not put the script's folder on sys.path; plain python does.
+_sys.path.insert(0, _os.path.dirname(_os.path.abspath(__file__)))
 import _bootstrap  # noqa: E402,F401  (makes progressive_avatars importable, strips Blender's "--")
 
 import datetime  # noqa: E402

@@ -9,6 +9,11 @@ sizes and speeds depend on the counts, not on the values.
 
 from __future__ import annotations
 
+import os as _os
+import sys as _sys
+
+# Blender's --python does not put the script's folder on sys.path; plain python does.
+_sys.path.insert(0, _os.path.dirname(_os.path.abspath(__file__)))
 import _bootstrap  # noqa: F401  (makes progressive_avatars importable, strips Blender's "--")
 
 import datetime

@@ -11,6 +11,11 @@ process with a temporary BLENDER_USER_RESOURCES (the bpy module is one per proce
 
 from __future__ import annotations
 
+import os as _os
+import sys as _sys
+
+# Blender's --python does not put the script's folder on sys.path; plain python does.
+_sys.path.insert(0, _os.path.dirname(_os.path.abspath(__file__)))
 import _bootstrap  # noqa: F401
 
 import argparse

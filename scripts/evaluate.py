@@ -18,6 +18,11 @@ import sys
 import tempfile
 import time
 
+import os as _os
+import sys as _sys
+
+# Blender's --python does not put the script's folder on sys.path; plain python does.
+_sys.path.insert(0, _os.path.dirname(_os.path.abspath(__file__)))
 import _bootstrap
 import numpy as np
 

@@ -13,6 +13,11 @@ import json
 import os
 import sys
 
+import os as _os
+import sys as _sys
+
+# Blender's --python does not put the script's folder on sys.path; plain python does.
+_sys.path.insert(0, _os.path.dirname(_os.path.abspath(__file__)))
 import _bootstrap
 
 
