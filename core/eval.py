@@ -67,6 +67,6 @@ def random_within_levels(level: np.ndarray, seed: int = 0) -> np.ndarray:
     return np.lexsort((keys, level))
 
 
-def importance_only(importance: np.ndarray, num_roots: int) -> np.ndarray:
+def importance_only(importance: np.ndarray) -> np.ndarray:
     """Faces by descending importance ignoring levels (the 'importance-only' ablation)."""
     return np.argsort(-importance, kind="stable")

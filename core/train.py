@@ -166,7 +166,7 @@ class Trainer:
         leaves = forest.leaves()
         leaves = leaves[forest.level[leaves] < cap]
         if c.uniform:
-            pick = leaves[forest.level[leaves] < cap]
+            pick = leaves
         else:
             mean = self.grad_sum[leaves] / np.maximum(self.grad_count[leaves], 1)
             pick = leaves[mean > c.grad_threshold]

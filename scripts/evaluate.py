@@ -110,7 +110,7 @@ def main(argv=None):
     rand = random_within_levels(streamed.forest.level, seed=0)[:n25]
     abl["random_order_25"] = {"ranked": report["budgets"].get("25", {}).get("nvs") or nvs.score(np.arange(n25)),
                               "random": nvs.score(np.sort(rand)), "gaussians": n25}
-    imp = importance_only(W_stream, streamed.forest.num_roots)[:n50]
+    imp = importance_only(W_stream)[:n50]
     abl["importance_only_50"] = {"levels_then_importance": nvs.score(np.arange(n50)),
                                  "importance_only": nvs.score(np.sort(imp)), "gaussians": n50}
     abl["quantisation_100"] = {"quantised": nvs.score(np.arange(streamed.num_gaussians)),
