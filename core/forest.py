@@ -96,10 +96,6 @@ class Forest:
         self.level = level
         self.root = root
 
-    @classmethod
-    def from_template(cls, faces) -> "Forest":
-        return cls(faces)
-
     @property
     def num_roots(self) -> int:
         return len(self.template_faces)
