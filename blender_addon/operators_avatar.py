@@ -73,7 +73,8 @@ def load_avatar_onto(context, mesh_obj, path, budget=100.0):
             bpy.data.objects.remove(child)
             if me.users == 0:
                 bpy.data.meshes.remove(me)
-    obj = preview.create_preview_object(f"{mesh_obj.name}_splats", mesh_obj, preview_data.static_attributes(avatar))
+    static = preview_data.static_attributes(avatar, preview_data.preview_order(avatar))
+    obj = preview.create_preview_object(f"{mesh_obj.name}_splats", mesh_obj, static)
     state = obj.pa_avatar
     state.is_preview = True
     state.filepath = path
@@ -152,8 +153,9 @@ def current_gaussians(context, obj, world=True):
     if not runtime.refresh(obj, context.evaluated_depsgraph_get(), count):
         raise RuntimeError(obj.pa_avatar.status)
     ev = e.evaluator
-    static = preview_data.static_attributes(e.avatar)
-    means, quats, scales = ev.means[:count], ev.quats[:count], ev.scales[:count]
+    static = preview_data.static_attributes(e.avatar)  # stream order
+    points = e.point_of_rank[:count]  # the preview rows of ranks 0..count-1
+    means, quats, scales = ev.means[points], ev.quats[points], ev.scales[points]
     if world:
         means, quats, scales = preview_data.transform_gaussians(np.array(obj.matrix_world), means, quats, scales)
     return {"means": np.array(means), "quats": np.array(quats), "scales": np.array(scales),

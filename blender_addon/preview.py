@@ -1,7 +1,8 @@
 """The splat preview: a point per Gaussian carrying its attributes, drawn by Geometry Nodes.
 
-Points are in stream order; the modifier deletes those whose rank reaches the "Count" input,
-so moving the budget slider only sets one modifier input. Each remaining point instances
+Points are grouped by root face (the layout the per-frame evaluator writes fastest); their
+"rank" attribute is their stream position, and the modifier deletes those whose rank reaches
+the "Count" input, so moving the budget slider only sets one modifier input. Each remaining point instances
 an ico-sphere of radius 3 (3σ), rotated by the point's quaternion and scaled by its
 scale; the material reads colour and opacity from the instance and fades the sphere with a
 Gaussian profile of the view-projected radius.

@@ -18,6 +18,8 @@ class _Entry:
         self.path = path
         self.avatar, self.budget = loaded or preview_data.load_avatar(path)
         self.weights = self.avatar.forest.weights()
+        self.order = preview_data.preview_order(self.avatar)  # stream rank of each preview point
+        self.point_of_rank = np.argsort(self.order)
         self.evaluator = None
         self.n_vertices = int(self.avatar.forest.template_faces.max()) + 1
         self.valid = 0  # preview points whose positions match the last evaluated frame
@@ -25,7 +27,7 @@ class _Entry:
 
     def evaluator_for(self, count):
         if self.evaluator is None or self.evaluator.n != count:
-            self.evaluator = preview_data.splat_evaluator(self.avatar, count, self.weights)
+            self.evaluator = preview_data.splat_evaluator(self.avatar, count, self.weights, self.order)
         return self.evaluator
 
 

@@ -67,10 +67,11 @@ class Avatar:
     def subset(self, ids) -> dict:
         return {name: getattr(self, name)[ids] for name in PARAM_NAMES}
 
-    def evaluator(self, ids=None, weights=None, capacity=None) -> binding.GaussianEvaluator:
-        """A per-frame evaluator of this avatar's Gaussians (faces `ids`, default all)."""
+    def evaluator(self, ids=None, weights=None, capacity=None, rows=None) -> binding.GaussianEvaluator:
+        """A per-frame evaluator of this avatar's Gaussians (faces `ids`, default all; output
+        rows `rows`, default 0..n-1)."""
         return binding.GaussianEvaluator(self.forest, self.d_mu, self.d_log_scale, self.d_rot, ids=ids,
-                                         weights=weights, capacity=capacity)
+                                         weights=weights, capacity=capacity, rows=rows)
 
     def gaussians(self, vertices: np.ndarray, ids=None, weights=None) -> dict:
         """World-space, activated Gaussians for one frame's mesh vertices [V,3].

@@ -53,6 +53,56 @@ def test_batch_of_frames_and_subset():
         binding.evaluate(forest, verts[:3])
 
 
+def test_evaluator_row_orders_and_chunks_agree_exactly():
+    """Root-grouped ids (np.repeat gather), any other order (np.take) and any chunk size give
+    the same numbers, including faces under collapsed roots (the 3D fallback path)."""
+    rng = np.random.default_rng(11)
+    verts, faces = sphere_mesh(6, 9)
+    verts = verts + rng.normal(0, 0.01, verts.shape)
+    verts[faces[3, 1]] = verts[faces[3, 0]]  # collapsed roots: a repeated vertex
+    forest = random_forest(faces, rng, depth=3, logit_scale=1.5)
+    whole = binding.FaceEvaluator(forest, chunk=10**6)(verts)
+    grouped = binding.root_grouped(forest)
+    assert np.all(np.diff(forest.root[grouped]) >= 0) and np.array_equal(np.sort(grouped), np.arange(forest.num_faces))
+    shuffled = rng.permutation(forest.num_faces)[: forest.num_faces // 2]
+    for ids in (grouped, shuffled, binding.root_grouped(forest, shuffled)):
+        for chunk in (7, 64, 10**6):
+            g = binding.FaceEvaluator(forest, ids=ids, chunk=chunk)(verts, with_vertices=True)
+            assert np.array_equal(g.t, whole.t[ids]) and np.array_equal(g.r, whole.r[ids])
+            assert np.array_equal(g.s, whole.s[ids])
+            assert np.all(np.isfinite(g.r)) and np.all(g.s > 0)
+
+
+def test_gaussian_evaluator_matches_compose_in_any_row_layout():
+    """The fused evaluator (root frame ⊗ in-plane half angle) against evaluate + compose in
+    float64, for forest order, shuffled subsets written to spread-out rows, and collapsed
+    roots and faces (the general-path fallback)."""
+    rng = np.random.default_rng(12)
+    verts, faces = sphere_mesh(7, 9)
+    verts = verts + rng.normal(0, 0.01, verts.shape)
+    verts[faces[5, 2]] = verts[faces[5, 0]]  # collapsed roots
+    forest = random_forest(faces, rng, depth=3, logit_scale=2.0)
+    N = forest.num_faces
+    d_mu, d_ls, d_rot = rng.normal(0, 0.5, (N, 3)), rng.normal(-1, 0.3, (N, 3)), rng.normal(size=(N, 4))
+    geo = binding.evaluate(forest, verts, dtype=np.float64)
+    ref_m, ref_s, ref_q = binding.compose(geo.t, geo.r, geo.s, d_mu, d_ls, d_rot)
+    ids = rng.permutation(N)[: N // 2]
+    rows = rng.choice(3 * N, len(ids), replace=False)
+    cases = [(None, None, None, np.arange(N)), (ids, None, None, ids), (ids, rows, 3 * N, ids),
+             (binding.root_grouped(forest), None, None, binding.root_grouped(forest))]
+    for case_ids, case_rows, cap, faces_of_rows in cases:
+        ev = binding.GaussianEvaluator(forest, d_mu, d_ls, d_rot, ids=case_ids, rows=case_rows, capacity=cap, chunk=50)
+        means, quats, scales = ev(verts.astype(np.float32))
+        at = np.arange(len(faces_of_rows)) if case_rows is None else case_rows
+        assert means.shape[0] == (cap or len(faces_of_rows))
+        np.testing.assert_allclose(means[at], ref_m[faces_of_rows], atol=2e-6)
+        np.testing.assert_allclose(scales[at], ref_s[faces_of_rows], rtol=2e-5, atol=1e-9)
+        np.testing.assert_allclose(np.abs(np.sum(quats[at] * ref_q[faces_of_rows], 1)), 1, atol=2e-6)
+        np.testing.assert_allclose(np.linalg.norm(quats[at], axis=1), 1, atol=1e-6)
+    with pytest.raises(ValueError, match="one output row per face"):
+        binding.GaussianEvaluator(forest, d_mu, d_ls, d_rot, ids=ids, rows=rows[:3])
+
+
 def test_quaternion_conventions_against_scipy():
     rng = np.random.default_rng(2)
     q = rng.normal(size=(200, 4))

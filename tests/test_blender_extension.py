@@ -138,7 +138,14 @@ def preview_state(pv):
     xf = np.zeros(n * 16, np.float32)
     if n:
         ip.attributes["instance_transform"].data.foreach_get("value", xf)
-    return n, pos.reshape(-1, 3), rot.reshape(-1, 4), scl.reshape(-1, 3), xf.reshape(n, 4, 4).transpose(0, 2, 1)
+    # Points are laid out by root face; the rank attribute is their stream position. Return
+    # everything in stream order (instances: the points with rank < n, in point order).
+    rank = np.empty(len(pv.data.vertices), np.int32)
+    pv.data.attributes["rank"].data.foreach_get("value", rank)
+    by_rank = np.argsort(rank)
+    inst = np.argsort(rank[rank < n])
+    xf = xf.reshape(n, 4, 4).transpose(0, 2, 1)[inst]
+    return n, pos.reshape(-1, 3)[by_rank], rot.reshape(-1, 4)[by_rank], scl.reshape(-1, 3)[by_rank], xf
 
 arrays = {}
 for ob in list(bpy.data.objects):  # the factory startup cube/light/camera would enclose the head

@@ -32,14 +32,17 @@ def test_splat_evaluator_matches_core_compose(q):
     geo = binding.evaluate(av.forest, verts.astype(np.float64), dtype=np.float64)
     m, s, qq = binding.compose(geo.t, geo.r, geo.s, av.d_mu, av.d_log_scale, av.d_rot)
     ref = {"means": m, "scales": s, "quats": qq}
-    for count in (None, av.num_gaussians // 3):
-        ev = preview_data.splat_evaluator(av, count, av.forest.weights())
+    layouts = (None, preview_data.preview_order(av))  # stream order; grouped by root (Blender's)
+    for (count, order) in [(c, o) for c in (None, av.num_gaussians // 3) for o in layouts]:
+        ev = preview_data.splat_evaluator(av, count, av.forest.weights(), order)
         means, quats, scales = ev(verts)
         n = ev.n
         assert means.shape == (av.num_gaussians, 3)
-        np.testing.assert_allclose(means[:n], ref["means"][:n], atol=1e-6)
-        np.testing.assert_allclose(scales[:n], ref["scales"][:n], rtol=1e-5, atol=1e-8)
-        np.testing.assert_allclose(np.abs(np.sum(quats[:n] * ref["quats"][:n], 1)), 1, atol=2e-6)
+        rows = np.arange(n) if order is None else np.argsort(order)[:n]  # the rows of ranks 0..n-1
+        np.testing.assert_allclose(means[rows], ref["means"][:n], atol=1e-6)
+        np.testing.assert_allclose(scales[rows], ref["scales"][:n], rtol=1e-5, atol=1e-8)
+        np.testing.assert_allclose(np.abs(np.sum(quats[rows] * ref["quats"][:n], 1)), 1, atol=2e-6)
+        np.testing.assert_allclose(np.linalg.norm(quats[rows], axis=1), 1, atol=1e-6)
 
 
 def test_budget_fallback_and_levels():
