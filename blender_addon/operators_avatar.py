@@ -11,6 +11,7 @@ import numpy as np
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
 from ..core import preview_data
+from ..core.avatar import sh_to_rgb, sigmoid
 from . import ADDON_PACKAGE, depth, prefs, preview, runtime
 
 
@@ -153,13 +154,16 @@ def current_gaussians(context, obj, world=True):
     if not runtime.refresh(obj, context.evaluated_depsgraph_get(), count):
         raise RuntimeError(obj.pa_avatar.status)
     ev = e.evaluator
-    static = preview_data.static_attributes(e.avatar)  # stream order
     points = e.point_of_rank[:count]  # the preview rows of ranks 0..count-1
     means, quats, scales = ev.means[points], ev.quats[points], ev.scales[points]
     if world:
         means, quats, scales = preview_data.transform_gaussians(np.array(obj.matrix_world), means, quats, scales)
+    # The model's own colours (sRGB-encoded, what it was trained on), not the preview's linear
+    # display colours: export and rendering must reproduce the trained avatar.
+    av = e.avatar
     return {"means": np.array(means), "quats": np.array(quats), "scales": np.array(scales),
-            "opacities": static["opacity"][:count], "colors": static["color"].reshape(-1, 4)[:count, :3]}
+            "opacities": sigmoid(av.opacity_logit[:count]).astype(np.float32),
+            "colors": sh_to_rgb(av.f_dc[:count]).astype(np.float32)}
 
 
 class PA_OT_export_ply(bpy.types.Operator, ExportHelper):
@@ -246,6 +250,7 @@ class PA_OT_render_splats(bpy.types.Operator):
         img = bpy.data.images.get("PA Splats") or bpy.data.images.new("PA Splats", w, h, alpha=True, float_buffer=True)
         if tuple(img.size) != (w, h):
             img.scale(w, h)
+        rgba[..., :3] = preview_data.srgb_to_linear(rgba[..., :3])  # float images hold scene-linear values
         img.pixels.foreach_set(np.ascontiguousarray(rgba[::-1]).ravel())  # Blender rows run bottom-up
         img.update()
         self.report({"INFO"}, f"Rendered {len(g['means'])} Gaussians into image 'PA Splats'")

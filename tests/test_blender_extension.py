@@ -305,6 +305,42 @@ def _():
         R[f"render_{b}_seconds"] = time.perf_counter() - t0
         R[f"render_{b}_count"] = pv.pa_avatar.count
 
+@section("render_splats")
+def _():
+    pv = bpy.data.objects[R["preview_name"]]
+    bpy.context.preferences.addons[pkg].preferences.python_path = sys.executable  # has numba
+    bpy.context.view_layer.objects.active = pv
+    pv.pa_avatar.budget = 50.0
+    bpy.context.scene.frame_set(bpy.context.scene.frame_start + 3)
+    bpy.context.scene.render.resolution_x, bpy.context.scene.render.resolution_y = 80, 64
+    res = bpy.ops.render.progressive_avatars_splats()
+    img = bpy.data.images["PA Splats"]
+    px = np.empty(img.size[0] * img.size[1] * 4, np.float32)
+    img.pixels.foreach_get(px)
+    arrays["splats_image"] = px.reshape(img.size[1], img.size[0], 4)[::-1]  # rows top-down
+    co = bpy.context.scene.camera
+    R["splats"] = {"result": list(res), "count": pv.pa_avatar.count, "preview_matrix": [list(r) for r in pv.matrix_world],
+                   "camera_matrix": [list(r) for r in co.matrix_world], "lens": co.data.lens,
+                   "sensor": co.data.sensor_width, "shift": [co.data.shift_x, co.data.shift_y], "size": list(img.size),
+                   "frame": bpy.context.scene.frame_current - bpy.context.scene.frame_start}
+
+@section("mesh_edit")
+def _():
+    # A deformation that is neither a shape key nor the frame: a modifier added to the mesh.
+    # The depsgraph handler must carry the preview along with the evaluated (deformed) mesh.
+    mesh = bpy.data.objects[R["mesh_name"]]
+    pv = bpy.data.objects[R["preview_name"]]
+    pv.pa_avatar.budget = 100.0
+    mod = mesh.modifiers.new("bend", "SIMPLE_DEFORM")
+    mod.deform_method, mod.angle = "TWIST", 0.8
+    bpy.context.view_layer.update()
+    arrays["edit_verts"] = verts_of(mesh)
+    arrays["edit_pos"] = preview_state(pv)[1]
+    mesh.modifiers.remove(mod)
+    bpy.context.view_layer.update()
+    arrays["unedit_pos"] = preview_state(pv)[1]
+    arrays["unedit_verts"] = verts_of(mesh)
+
 np.savez(os.path.join(out, "arrays.npz"), **arrays)
 print("PA_REPORT " + json.dumps(R, default=str))
 '''.replace("__FRAMES__", repr(CHECK_FRAMES))
@@ -447,6 +483,9 @@ def test_export_ply_current_frame_budget(session):
     assert n == _stream().read_header(session["stream"]).count_for_percent(50)
     ref = av.gaussians(session["verts"][2])
     np.testing.assert_allclose(g["means"], ref["means"][:n], atol=1e-5)
+    # The model's own colours and opacities (once the preview's linear display colours leaked in).
+    np.testing.assert_allclose(g["colors"], ref["colors"][:n], atol=1e-5)
+    np.testing.assert_allclose(g["opacities"], ref["opacities"][:n], atol=1e-5)
 
 
 def test_camera_conversion_projects_like_core(session):
@@ -498,3 +537,39 @@ def test_cycles_renders_show_coloured_splats(session):
         chroma = img.max(axis=2) - img.min(axis=2)
         assert chroma[lit[b]].mean() > 0.08, f"{b}%: splats are not coloured"
     assert lit[100].mean() > 1.5 * lit[5].mean()
+
+
+def test_render_splats_operator_matches_core_render(session):
+    rep = _report(session)
+    _no_error(rep, "render_splats")
+    from progressive_avatars.core import preview_data
+    from progressive_avatars.core.render import render_numpy
+
+    r = rep["splats"]
+    assert r["result"] == ["FINISHED"]
+    av = _stream().read_stream(session["stream"])
+    n = r["count"]
+    assert n == _stream().read_header(session["stream"]).count_for_percent(50)
+    g = av.gaussians(session["verts"][r["frame"]], ids=np.arange(n))
+    means, quats, scales = preview_data.transform_gaussians(np.array(r["preview_matrix"]), g["means"], g["quats"], g["scales"])
+    w, h = r["size"]
+    cam = preview_data.camera_from_blender(np.array(r["camera_matrix"]), r["lens"], r["sensor"], *r["shift"], w, h,
+                                           z_up=False)
+    image, alpha = render_numpy(means, quats, scales, g["opacities"], g["colors"], cam, np.zeros(3, np.float32))[:2]
+    got = session["arrays"]["splats_image"]
+    assert alpha.max() > 0.5 and (alpha > 0.01).mean() > 0.05  # the head is in view, not a blank frame
+    # Rendered with the model's (sRGB) colours, stored scene-linear as Blender float images are.
+    np.testing.assert_allclose(got[..., :3], preview_data.srgb_to_linear(image), atol=1e-4)
+    np.testing.assert_allclose(got[..., 3], alpha, atol=1e-4)
+
+
+def test_preview_follows_a_modifier_deformation(session):
+    """Whatever Blender evaluates: a modifier added to the mesh moves the preview (the
+    depsgraph handler), and removing it moves it back."""
+    rep = _report(session)
+    _no_error(rep, "mesh_edit")
+    av = _stream().read_stream(session["stream"])
+    a = session["arrays"]
+    assert np.abs(a["edit_verts"] - a["unedit_verts"]).max() > 1e-3  # the twist really deformed the mesh
+    np.testing.assert_allclose(a["edit_pos"], av.gaussians(a["edit_verts"])["means"], atol=1e-5)
+    np.testing.assert_allclose(a["unedit_pos"], av.gaussians(a["unedit_verts"])["means"], atol=1e-5)
