@@ -4,7 +4,6 @@ import os
 import subprocess
 import tempfile
 import urllib.parse
-import urllib.request
 
 import bpy
 import numpy as np
@@ -34,21 +33,40 @@ def _preview_of(context):
     return None
 
 
-def _fetch(url) -> str:
-    """Download a stream/avatar URL into the extension's user cache (online access only)."""
+def _fetch(url):
+    """Stream an avatar from a URL into the extension's user cache (online access only),
+    verifying it as it arrives (core/http_stream). A transfer that stalls or is cut keeps its
+    verified prefix, itself a valid (shorter) stream. Returns (path, message or "")."""
     if not bpy.app.online_access:
         raise PermissionError("Online access is disabled (Preferences > System > Network)")
-    name = os.path.basename(urllib.parse.urlparse(url).path) or "avatar.bin"
+    from ..core import http_stream
+    from ..core.stream import StreamReader
+
+    name = os.path.basename(urllib.parse.urlparse(url).path) or "avatar.pavs"
     try:
         folder = bpy.utils.extension_path_user(ADDON_PACKAGE, path="downloads", create=True)
     except (ValueError, AttributeError):  # not installed as an extension
         folder = tempfile.mkdtemp(prefix="pa_dl_")
     dest = os.path.join(folder, name)
-    with urllib.request.urlopen(url, timeout=30) as resp, open(dest + ".part", "wb") as fh:
-        while chunk := resp.read(1 << 20):
+    part = dest + ".part"
+
+    class _Tee(StreamReader):  # the bytes go to the file as they are fed
+        def feed(self, chunk):
             fh.write(chunk)
-    os.replace(dest + ".part", dest)
-    return dest
+            return super().feed(chunk)
+
+    with open(part, "wb") as fh:
+        res = http_stream.fetch_stream(url, reader=_Tee(source=url), timeout=30.0)
+    n = res.num_gaussians
+    if n == 0:
+        os.remove(part)
+        raise RuntimeError(f"no complete Gaussian from {url}: {res.status} {res.message}".strip())
+    if not res.reader.complete:  # keep exactly the verified records
+        with open(part, "r+b") as fh:
+            fh.truncate(res.reader.header.bytes_for_count(n))
+    os.replace(part, dest)
+    note = "" if res.reader.complete else f"partial stream ({res.status}: {res.message}); kept {n} verified Gaussians"
+    return dest, note
 
 
 def mesh_faces(me):
@@ -106,12 +124,15 @@ class PA_OT_load_avatar(bpy.types.Operator, ImportHelper):
         mesh_obj = _mesh_target(context)
         path = self.filepath
         try:
+            note = ""
             if self.url:
-                path = _fetch(self.url)
+                path, note = _fetch(self.url)
             obj = load_avatar_onto(context, mesh_obj, path, self.budget)
         except Exception as exc:
             self.report({"ERROR"}, f"Cannot load avatar: {exc}")
             return {"CANCELLED"}
+        if note:
+            self.report({"WARNING"}, note)
         self.report({"INFO"}, f"Loaded {obj.pa_avatar.total} Gaussians onto {mesh_obj.name}")
         return {"FINISHED"}
 

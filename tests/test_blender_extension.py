@@ -341,6 +341,44 @@ def _():
     arrays["unedit_pos"] = preview_state(pv)[1]
     arrays["unedit_verts"] = verts_of(mesh)
 
+@section("url")
+def _():
+    import http.server, threading
+    data = open(stream_path, "rb").read()
+
+    class Handler(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):
+            body = data if self.path == "/avatar.pavs" else data[: len(data) // 2]  # /cut.pavs: dies midway
+            self.send_response(200)
+            self.send_header("Content-Length", str(len(data)))
+            self.end_headers()
+            self.wfile.write(body)
+            self.wfile.flush()
+            self.close_connection = True
+
+        def log_message(self, *args):
+            pass
+
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    base = f"http://127.0.0.1:{srv.server_address[1]}"
+    mesh = bpy.data.objects[R["mesh_name"]]
+    bpy.context.view_layer.objects.active = mesh
+    bpy.context.preferences.system.use_online_access = False
+    try:
+        bpy.ops.object.progressive_avatars_load(url=base + "/avatar.pavs")
+        R["url_offline"] = "no error"
+    except RuntimeError as exc:
+        R["url_offline"] = str(exc).splitlines()[0]
+    bpy.context.preferences.system.use_online_access = True
+    R["url"] = {}
+    for name in ("avatar.pavs", "cut.pavs"):
+        res = bpy.ops.object.progressive_avatars_load(url=f"{base}/{name}", budget=100.0)
+        pv = [c for c in mesh.children if c.pa_avatar.is_preview][0]
+        R["url"][name] = {"result": list(res), "total": pv.pa_avatar.total, "count": pv.pa_avatar.count,
+                          "instances": preview_state(pv)[0], "file": os.path.getsize(bpy.path.abspath(pv.pa_avatar.filepath))}
+    srv.shutdown()
+
 np.savez(os.path.join(out, "arrays.npz"), **arrays)
 print("PA_REPORT " + json.dumps(R, default=str))
 '''.replace("__FRAMES__", repr(CHECK_FRAMES))
@@ -573,3 +611,19 @@ def test_preview_follows_a_modifier_deformation(session):
     assert np.abs(a["edit_verts"] - a["unedit_verts"]).max() > 1e-3  # the twist really deformed the mesh
     np.testing.assert_allclose(a["edit_pos"], av.gaussians(a["edit_verts"])["means"], atol=1e-5)
     np.testing.assert_allclose(a["unedit_pos"], av.gaussians(a["unedit_verts"])["means"], atol=1e-5)
+
+
+def test_url_streaming_keeps_the_verified_prefix(session):
+    """Load from a loopback HTTP server: refused while online access is off; a whole stream
+    loads whole; a connection cut midway keeps exactly the verified records."""
+    rep = _report(session)
+    _no_error(rep, "url")
+    assert "Online access is disabled" in rep["url_offline"]
+    info = _stream().read_header(session["stream"])
+    whole, cut = rep["url"]["avatar.pavs"], rep["url"]["cut.pavs"]
+    assert whole["result"] == ["FINISHED"] and whole["total"] == whole["instances"] == info.num_records
+    assert whole["file"] == info.total_bytes
+    half = info.total_bytes // 2
+    n = max(k for k in range(info.num_records + 1) if info.bytes_for_count(k) <= half)
+    assert cut["result"] == ["FINISHED"] and cut["total"] == cut["instances"] == n > 0
+    assert cut["file"] == info.bytes_for_count(n)
