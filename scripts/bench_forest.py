@@ -44,7 +44,7 @@ def run(quick=False) -> str:
     v = verts.astype(np.float32)
     out = [header("Forest evaluation (numpy, one frame)", "python scripts/bench.py --only forest"),
            f"Template: UV sphere, {len(verts)} vertices, {len(faces)} faces, radius 0.1 m. Time = `FaceEvaluator(forest, ids)(vertices)`"
-           " (centroids, frames, scales of every face), min and median of 30 runs. Rows in root-grouped order"
+           " (centroids, frames, scales of every face), min and median of 60 runs. Rows in root-grouped order"
            " (`ids = binding.root_grouped(forest)`, what the Blender preview uses) and in the forest's own order.\n",
            "| faces | max level | root-grouped min / median ms | forest order min / median ms |", "|---|---|---|---|"]
     for target in ([20000, 170000] if quick else [20000, 50000, 100000, 170000, 300000]):
@@ -52,7 +52,7 @@ def run(quick=False) -> str:
         cells = []
         for ids in (binding.root_grouped(f), None):
             ev = binding.FaceEvaluator(f, ids=ids)
-            lo, med = best_of(lambda: ev(v), repeat=30, warmup=3)
+            lo, med = best_of(lambda: ev(v), repeat=60, warmup=3)
             cells.append(f"{lo * 1e3:.2f} / {med * 1e3:.2f}")
         out.append(f"| {f.num_faces:,} | {f.max_level} | {cells[0]} | {cells[1]} |")
     out += ["", "Depth (uniform subdivision of 600 root faces):", "", "| depth | faces | min ms |", "|---|---|---|"]
