@@ -425,6 +425,8 @@ class GaussianEvaluator(_PlaneEvaluator):
         out_rows = np.arange(n) if rows is None else np.asarray(rows, np.int64)
         if out_rows.shape != (n,):
             raise ValueError(f"GaussianEvaluator: rows must give one output row per face ({n}), got {out_rows.shape}")
+        if n and (out_rows.min() < 0 or len(np.unique(out_rows)) != n):
+            raise ValueError("GaussianEvaluator: rows must be distinct non-negative row numbers")
         self.rows = np.ascontiguousarray(out_rows[order])  # output row of each evaluated face
         # Writes go to a slice where a chunk's rows are consecutive (root-grouped ids in
         # output order: the Blender preview's layout), else they scatter (much slower when the
@@ -451,7 +453,8 @@ class GaussianEvaluator(_PlaneEvaluator):
         self.quats[:, 0] = 1
 
     def __call__(self, vertices):
-        """Returns (means, quats, scales) for mesh vertices [V,3]; rows [0, n) are this frame's."""
+        """Returns (means, quats, scales) for mesh vertices [V,3]; this frame's Gaussians are in
+        the rows given (default [0, n)); other rows keep what they held."""
         if self.n == 0:
             return self.means, self.quats, self.scales
         pack, good, rv0, E1, E2 = self._roots(vertices)

@@ -101,6 +101,8 @@ def test_gaussian_evaluator_matches_compose_in_any_row_layout():
         np.testing.assert_allclose(np.linalg.norm(quats[at], axis=1), 1, atol=1e-6)
     with pytest.raises(ValueError, match="one output row per face"):
         binding.GaussianEvaluator(forest, d_mu, d_ls, d_rot, ids=ids, rows=rows[:3])
+    with pytest.raises(ValueError, match="distinct"):
+        binding.GaussianEvaluator(forest, d_mu, d_ls, d_rot, ids=ids[:2], rows=[4, 4])
 
 
 def test_quaternion_conventions_against_scipy():
