@@ -52,32 +52,30 @@ def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
 
 
 def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
-    """Rotation matrices [...,3,3] -> unit quaternions wxyz with w >= 0.
+    """Rotation matrices [...,3,3] -> unit quaternions wxyz with w >= 0."""
+    q = _quat_rows([[R[..., i, j] for j in range(3)] for i in range(3)])
+    return np.ascontiguousarray(np.moveaxis(q, 0, -1))
 
-    Shepperd's method: of the four algebraic forms, use the one whose pivot component is
-    largest, so no division by a near-zero component ever happens.
-    """
-    m = R
-    tr = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
-    piv = np.stack([1 + tr, 1 + 2 * m[..., 0, 0] - tr, 1 + 2 * m[..., 1, 1] - tr, 1 + 2 * m[..., 2, 2] - tr], -1)
-    k = np.argmax(piv, axis=-1)
-    p = 0.5 * np.sqrt(np.maximum(np.take_along_axis(piv, k[..., None], -1)[..., 0], 1e-30))
+
+def _quat_rows(R) -> np.ndarray:
+    """Shepperd's method on matrix entries given as arrays R[i][j] (any shape, any float
+    dtype; the GaussianEvaluator passes component-major rows): unit wxyz quaternions
+    [4,...] with w >= 0. Of the four algebraic forms it uses the one whose pivot component is
+    largest, so no division by a near-zero component ever happens."""
+    tr = R[0][0] + R[1][1] + R[2][2]
+    piv = np.stack([1 + tr, 1 + R[0][0] - R[1][1] - R[2][2], 1 - R[0][0] + R[1][1] - R[2][2],
+                    1 - R[0][0] - R[1][1] + R[2][2]])
+    k = np.argmax(piv, axis=0)
+    p = 0.5 * np.sqrt(np.maximum(np.take_along_axis(piv, k[None], 0)[0], 1e-30))
     inv = 0.25 / p
-    a = m[..., 2, 1] - m[..., 1, 2]
-    b = m[..., 0, 2] - m[..., 2, 0]
-    c = m[..., 1, 0] - m[..., 0, 1]
-    d = m[..., 0, 1] + m[..., 1, 0]
-    e = m[..., 0, 2] + m[..., 2, 0]
-    f = m[..., 1, 2] + m[..., 2, 1]
-    cand = np.stack([
-        np.stack([p, a * inv, b * inv, c * inv], -1),
-        np.stack([a * inv, p, d * inv, e * inv], -1),
-        np.stack([b * inv, d * inv, p, f * inv], -1),
-        np.stack([c * inv, e * inv, f * inv, p], -1),
-    ], -2)
-    q = np.take_along_axis(cand, k[..., None, None], -2)[..., 0, :]
-    q = np.where(q[..., :1] < 0, -q, q)
-    return quat_normalize(q)
+    a, b, c = R[2][1] - R[1][2], R[0][2] - R[2][0], R[1][0] - R[0][1]
+    d, e, f = R[0][1] + R[1][0], R[0][2] + R[2][0], R[1][2] + R[2][1]
+    cand = np.stack([[p, a * inv, b * inv, c * inv], [a * inv, p, d * inv, e * inv],
+                     [b * inv, d * inv, p, f * inv], [c * inv, e * inv, f * inv, p]])  # [4 pivots, 4, ...]
+    q = np.take_along_axis(cand, k[None, None], 0)[0]
+    q *= np.where(q[0] < 0, -1, 1).astype(q.dtype)
+    q /= np.sqrt(np.sum(q * q, axis=0))
+    return q
 
 
 # -- face frames --------------------------------------------------------------------------
@@ -380,26 +378,6 @@ class FaceEvaluator(_PlaneEvaluator):
         return FaceGeometry(tv, rv, sv, fv, fe)
 
 
-def _rotmat_rows_to_quat(R, out):
-    """Shepperd's method on component-major rows: R[i][j] [n] -> unit wxyz quaternions into
-    out [4,n] (float32 throughout; the pivot is the largest component, so no division by a
-    small number)."""
-    tr = R[0][0] + R[1][1] + R[2][2]
-    piv = np.stack([1 + tr, 1 + R[0][0] - R[1][1] - R[2][2], 1 - R[0][0] + R[1][1] - R[2][2],
-                    1 - R[0][0] - R[1][1] + R[2][2]])
-    k = np.argmax(piv, axis=0)
-    p = 0.5 * np.sqrt(np.maximum(np.take_along_axis(piv, k[None], 0)[0], 1e-30))
-    inv = 0.25 / p
-    a, b, c = R[2][1] - R[1][2], R[0][2] - R[2][0], R[1][0] - R[0][1]
-    d, e, f = R[0][1] + R[1][0], R[0][2] + R[2][0], R[1][2] + R[2][1]
-    cand = np.stack([[p, a * inv, b * inv, c * inv], [a * inv, p, d * inv, e * inv],
-                     [b * inv, d * inv, p, f * inv], [c * inv, e * inv, f * inv, p]])  # [4 pivots, 4, n]
-    q = np.take_along_axis(cand, k[None, None], 0)[0]
-    q *= np.where(q[0] < 0, -1, 1).astype(q.dtype)
-    q /= np.sqrt(np.sum(q * q, axis=0))
-    out[:] = q
-
-
 class GaussianEvaluator(_PlaneEvaluator):
     """World Gaussians (means, wxyz quats, scales) of a fixed set of faces, frame after frame.
 
@@ -459,7 +437,7 @@ class GaussianEvaluator(_PlaneEvaluator):
             return self.means, self.quats, self.scales
         pack, good, rv0, E1, E2 = self._roots(vertices)
         R = [[pack[3 + 3 * j + i] for j in range(3)] for i in range(3)]  # columns x, normal, z
-        _rotmat_rows_to_quat(R, pack[15:19])
+        pack[15:19] = _quat_rows(R)
         outputs = (self.means, self.quats, self.scales) if self._reorder is None else self._reorder[2]
         for (sl, runs), target in zip(self._chunks, self._targets):
             m = sl.stop - sl.start
