@@ -21,17 +21,32 @@ class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
         description="Read every OBJ/PLY (or FLAME parameter) file in the chosen file's folder as frames")
     flame_model: bpy.props.StringProperty(name="FLAME model", subtype="FILE_PATH",
                                           description="Needed for FLAME parameter files; defaults to the preferences")
+    as_rig: bpy.props.BoolProperty(
+        name="As FLAME rig", default=False,
+        description="FLAME parameter files only: import expression and pose-corrective shape keys and a keyed "
+                    "armature instead of one shape key per frame, so expressions and joints can be edited")
     z_up: bpy.props.BoolProperty(name="Y up to Z up", default=True)
 
     def execute(self, context):
-        from ..core import data
+        from ..core import data, flame, flame_rig
 
         path = bpy.path.abspath(self.filepath)
         if self.whole_folder and os.path.isfile(path):
             path = os.path.dirname(path)
         model = bpy.path.abspath(self.flame_model) if self.flame_model else (prefs.flame_model(context) or None)
+        if self.as_rig and not model:
+            self.report({"ERROR"}, "Import as FLAME rig needs a FLAME model file (operator option or add-on preferences)")
+            return {"CANCELLED"}
         try:
-            seq = data.read_sequence(path, flame_model=model)
+            rig = None
+            if self.as_rig:
+                seq = data.read_flame_track(path)
+                try:
+                    rig = flame_rig.build_flame_rig(flame.load_flame_model(model), seq.params)
+                except ValueError as exc:  # parameters that do not fit the model
+                    raise data.DataError(f"{path}: {exc}") from exc
+            else:
+                seq = data.read_sequence(path, flame_model=model)
         except Exception as exc:  # the readers' messages name the file and the problem
             self.report({"ERROR"}, f"Cannot read sequence: {exc}")
             return {"CANCELLED"}
@@ -41,11 +56,19 @@ class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
         name = os.path.splitext(os.path.basename(path.rstrip("/\\")))[0] or "sequence"
         for ob in context.selected_objects:
             ob.select_set(False)
-        obj = sequence.build_sequence_object(context, seq, name, context.scene.frame_start, self.z_up)
+        if rig is not None:
+            from . import rig as rig_builder
+
+            obj, _ = rig_builder.build_rig_objects(context, rig, name, context.scene.frame_start, self.z_up)
+            if rig.ignored:
+                self.report({"WARNING"}, f"Not representable in a rig, left out: {', '.join(rig.ignored)} "
+                                         "(import without 'As FLAME rig' to keep them)")
+        else:
+            obj = sequence.build_sequence_object(context, seq, name, context.scene.frame_start, self.z_up)
         obj.pa_mesh.sequence_path = self.filepath if not self.whole_folder else path
         context.view_layer.objects.active = obj
         obj.select_set(True)
-        self.report({"INFO"}, f"Imported {seq.n_frames} frames, {seq.n_vertices} vertices, {len(seq.faces)} faces")
+        self.report({"INFO"}, f"Imported {seq.n_frames} frames, {len(obj.data.vertices)} vertices, {len(obj.data.polygons)} faces")
         return {"FINISHED"}
 
 

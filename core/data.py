@@ -35,6 +35,8 @@ __all__ = [
     "FrameInfo",
     "Dataset",
     "read_sequence",
+    "read_flame_track",
+    "FlameTrack",
     "read_flame_param_folder",
     "read_vhap_tracked",
     "read_nersemble_tracking",
@@ -109,6 +111,21 @@ class MeshSequence:
     @property
     def n_vertices(self) -> int:
         return self.vertices.shape[1]
+
+
+@dataclass
+class FlameTrack:
+    """FLAME parameters of a tracked sequence, not evaluated: what a rig is built from.
+    ``params`` as :func:`flame.flame_forward` takes them (NeRSemble files add their
+    placement: ``rotation_matrices`` [T,3,3], ``translation`` [T,3], ``scale``)."""
+
+    params: dict
+    frame_ids: np.ndarray
+    source: str = ""
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.frame_ids)
 
 
 # --------------------------------------------------------------------------------------
@@ -189,19 +206,20 @@ def _evaluate_flame(params: dict, model: FlameModel, source: str) -> np.ndarray:
         raise DataError(f"{source}: {exc}") from exc
 
 
-def read_flame_param_folder(path, frames=None, flame_model=None) -> MeshSequence:
+def read_flame_param_folder(path, frames=None, flame_model=None, evaluate=True):
     """GaussianAvatars/VHAP per-frame FLAME parameters: ``path/*.npz`` (or ``path/flame_param/*.npz``).
 
     Each file holds translation (1,3), rotation (1,3), neck_pose (1,3), jaw_pose (1,3),
     eyes_pose (1,6), shape (300), expr (1,100), static_offset (1,V,3). Frame ids come from
     the digits in the file names. Only the files of the frames asked for are opened.
+    ``evaluate=False`` returns the parameters (:class:`FlameTrack`) without a model.
     """
     path = os.fspath(path)
     folder = os.path.join(path, "flame_param") if os.path.isdir(os.path.join(path, "flame_param")) else path
     files = sorted((f for f in os.listdir(folder) if f.endswith(".npz")), key=natural_key)
     if not files:
         raise DataError(f"{folder}: no .npz FLAME parameter files")
-    model = _need_model(flame_model, folder)
+    model = _need_model(flame_model, folder) if evaluate else None
     sel = _select(len(files), frames, folder)
     params = {k: [] for k in _ALIASES}
     for i in sel.tolist():  # one small file per asked frame; the FLAME evaluation below is batched
@@ -225,11 +243,13 @@ def read_flame_param_folder(path, frames=None, flame_model=None) -> MeshSequence
         else:
             stacked[k] = np.concatenate([v.reshape(1, -1) for v in present])
     ids = _ids_from([files[i] for i in sel.tolist()], len(sel))
+    if not evaluate:
+        return FlameTrack(stacked, ids, folder)
     verts = _evaluate_flame(stacked, model, folder) if len(sel) else np.zeros((0, model.n_vertices, 3), np.float32)
     return MeshSequence(model.faces, verts, ids, stacked, folder)
 
 
-def _read_flame_stacked(path: str, d: dict, frames, flame_model, frame_key: str | None) -> MeshSequence:
+def _read_flame_stacked(path: str, d: dict, frames, flame_model, frame_key: str | None, evaluate=True):
     p = _flame_keys(d)
     per_frame = [k for k in _PER_FRAME if k in p and p[k].ndim >= 2]
     if not per_frame:
@@ -238,21 +258,23 @@ def _read_flame_stacked(path: str, d: dict, frames, flame_model, frame_key: str 
     for k in per_frame:
         if p[k].shape[0] not in (1, T):
             raise DataError(f"{path}: '{k}' has {p[k].shape[0]} frames, '{per_frame[0]}' has {T}")
-    model = _need_model(flame_model, path)
+    model = _need_model(flame_model, path) if evaluate else None
     sel = _select(T, frames, path)
     params = {}
     for k, v in p.items():
         params[k] = v[sel] if k in per_frame and v.shape[0] == T else v
     ids = _ids_from(d.get(frame_key) if frame_key else None, T)[sel]
+    if not evaluate:
+        return FlameTrack(params, ids, path)
     verts = _evaluate_flame(params, model, path) if len(sel) else np.zeros((0, model.n_vertices, 3), np.float32)
     return MeshSequence(model.faces, verts, ids, params, path)
 
 
-def read_vhap_tracked(path, frames=None, flame_model=None) -> MeshSequence:
+def read_vhap_tracked(path, frames=None, flame_model=None, evaluate=True):
     """VHAP ``tracked_flame_params_*.npz``: rotation, translation, neck_pose, jaw_pose (T,3),
     eyes_pose (T,6), shape (300), expr (T,100), static_offset (1,V,3), optional timestep_id."""
     path = os.fspath(path)
-    return _read_flame_stacked(path, _npz(path), frames, flame_model, "timestep_id")
+    return _read_flame_stacked(path, _npz(path), frames, flame_model, "timestep_id", evaluate)
 
 
 def _euler_xyz(angles: np.ndarray) -> np.ndarray:
@@ -266,7 +288,7 @@ def _euler_xyz(angles: np.ndarray) -> np.ndarray:
     return rx @ ry @ rz
 
 
-def read_nersemble_tracking(path, frames=None, flame_model=None) -> MeshSequence:
+def read_nersemble_tracking(path, frames=None, flame_model=None, evaluate=True):
     """NeRSemble benchmark FLAME tracking npz: shape (1,300), expression (T,100), jaw, neck
     (T,3), eyes (T,6), rotation (T,3, Euler XYZ), rotation_matrices (T,3,3), translation (T,3),
     scale, frames (T,). FLAME is evaluated without global rotation/translation; the head is
@@ -277,7 +299,7 @@ def read_nersemble_tracking(path, frames=None, flame_model=None) -> MeshSequence
         raise DataError(f"{path}: not a NeRSemble FLAME tracking file (no 'expression' key; has {sorted(d)})")
     T = d["expression"].shape[0]
     sel = _select(T, frames, path)
-    model = _need_model(flame_model, path)
+    model = _need_model(flame_model, path) if evaluate else None
 
     def rows(key, width):
         if key not in d:
@@ -303,9 +325,11 @@ def read_nersemble_tracking(path, frames=None, flame_model=None) -> MeshSequence
     t = rows("translation", 3)
     t = np.zeros((len(sel), 3)) if t is None else t
     scale = float(np.asarray(d["scale"]).reshape(-1)[0]) if "scale" in d else 1.0
+    ids = _ids_from(d.get("frames"), T)[sel]
+    if not evaluate:
+        return FlameTrack(dict(params, rotation_matrices=R, translation=t, scale=scale), ids, path)
     local = _evaluate_flame(params, model, path).astype(np.float64) if len(sel) else np.zeros((0, model.n_vertices, 3))
     verts = scale * np.einsum("tab,tvb->tva", R, local) + t[:, None, :]
-    ids = _ids_from(d.get("frames"), T)[sel]
     params.update(rotation_matrices=R, translation=t, scale=scale)
     return MeshSequence(model.faces, verts, ids, params, path)
 
@@ -376,6 +400,21 @@ def read_sequence(path, frames=None, flame_model=None) -> MeshSequence:
     ``frames``: positions (0-based, in file/sequence order) to read; None reads all.
     ``flame_model``: path to the user's FLAME model or a FlameModel (FLAME formats only).
     """
+    return _read(path, frames, flame_model, True)
+
+
+def read_flame_track(path, frames=None) -> FlameTrack:
+    """The FLAME parameters of a VHAP, GaussianAvatars (flame_param folder) or NeRSemble
+    tracking file, unevaluated; a clear error for mesh sequences and datasets."""
+    return _read(path, frames, None, False)
+
+
+def _not_flame(path):
+    raise DataError(f"{path}: holds meshes, not FLAME parameters; a rig needs a VHAP, GaussianAvatars "
+                    "flame_param or NeRSemble tracking file")
+
+
+def _read(path, frames, flame_model, evaluate):
     path = os.fspath(path)
     if not os.path.exists(path):
         raise MissingFileError(f"{path}: file or folder not found")
@@ -383,14 +422,21 @@ def read_sequence(path, frames=None, flame_model=None) -> MeshSequence:
         names = os.listdir(path)
         for js in ("transforms.json", "transforms_train.json", "transforms_val.json", "transforms_test.json"):
             if js in names:  # a dataset root: its tracked geometry over the split's timesteps
+                if not evaluate:
+                    raise DataError(f"{path}: a dataset folder; for FLAME parameters point to its flame_param "
+                                    "folder or a tracked-parameter npz")
                 split = None if js == "transforms.json" else js[len("transforms_"):-len(".json")]
                 return Dataset(path, split, flame_model=flame_model).sequence(frames)
         if os.path.isdir(os.path.join(path, "flame_param")) or any(n.endswith(".npz") for n in names):
-            return read_flame_param_folder(path, frames, flame_model)
+            return read_flame_param_folder(path, frames, flame_model, evaluate)
         if any(n.lower().endswith(_MESH_EXTS) for n in names):
+            if not evaluate:
+                _not_flame(path)
             return read_mesh_folder(path, frames)
         raise DataError(f"{path}: folder holds neither flame_param/ or *.npz FLAME parameters nor .obj/.ply frames")
     low = path.lower()
+    if not evaluate and low.endswith(_MESH_EXTS):
+        _not_flame(path)
     if low.endswith(_MESH_EXTS):
         v, f = _load_mesh_file(path)
         sel = _select(1, frames, path)
@@ -399,11 +445,13 @@ def read_sequence(path, frames=None, flame_model=None) -> MeshSequence:
     if low.endswith(".npz"):
         d = _npz(path)
         if "vertices" in d:
+            if not evaluate:
+                _not_flame(path)
             return read_mesh_npz(path, frames)
         if "expression" in d and ("rotation_matrices" in d or "jaw" in d):
-            return read_nersemble_tracking(path, frames, flame_model)
+            return read_nersemble_tracking(path, frames, flame_model, evaluate)
         if _flame_keys(d):
-            return _read_flame_stacked(path, d, frames, flame_model, "timestep_id")
+            return _read_flame_stacked(path, d, frames, flame_model, "timestep_id", evaluate)
         raise DataError(f"{path}: unrecognised npz (keys {sorted(d)}): expected a mesh npz (vertices, faces), "
                         "VHAP/GaussianAvatars FLAME parameters or a NeRSemble FLAME tracking file")
     raise DataError(f"{path}: unsupported sequence format (expected .npz, .obj, .ply or a folder of them)")

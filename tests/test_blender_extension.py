@@ -82,12 +82,29 @@ def make_inputs(folder):
     return seq, stream, trainer, verts
 
 
+def make_rig_inputs(folder):
+    """A small FLAME-format model (npz) and a VHAP tracked-parameter file for it."""
+    sys.path.insert(0, os.path.dirname(__file__))
+    from test_flame import N_SHAPE, make_flame_arrays, random_params
+
+    from progressive_avatars.core.flame import _model_from_mapping
+
+    model = _model_from_mapping(make_flame_arrays(seed=3), "test model", N_SHAPE)
+    model_path = os.path.join(folder, "flame_model.npz")
+    model.save_npz(model_path)
+    prm = random_params(T_FRAMES, seed=11, scale=0.4)
+    prm["expr"][2, 1] = 14.0  # beyond Blender's slider range: stored scaled
+    params_path = os.path.join(folder, "tracked_flame_params.npz")
+    np.savez(params_path, **prm)
+    return model_path, params_path
+
+
 SCENARIO = r'''
 import json, os, sys, time, traceback
 import numpy as np
 import bpy
 
-zip_path, seq_path, stream_path, trainer, out = sys.argv[-5:]
+zip_path, seq_path, stream_path, trainer, out, flame_path, params_path = sys.argv[-7:]
 R = {"errors": []}
 
 def section(name):
@@ -379,6 +396,53 @@ def _():
                           "instances": preview_state(pv)[0], "file": os.path.getsize(bpy.path.abspath(pv.pa_avatar.filepath))}
     srv.shutdown()
 
+@section("rig")
+def _():
+    for ob in bpy.context.selected_objects:
+        ob.select_set(False)
+    try:
+        bpy.ops.import_scene.progressive_avatars_sequence(filepath=seq_path, as_rig=True, flame_model=flame_path)
+        R["rig_mesh_sequence"] = "no error"
+    except RuntimeError as exc:
+        R["rig_mesh_sequence"] = str(exc).splitlines()[0]
+    bpy.context.scene.frame_start = 3
+    t0 = time.perf_counter()
+    res = bpy.ops.import_scene.progressive_avatars_sequence(filepath=params_path, as_rig=True, flame_model=flame_path)
+    R["rig_seconds"] = time.perf_counter() - t0
+    obj = bpy.context.active_object
+    arm = obj.parent
+    key = obj.data.shape_keys
+    drivers = key.animation_data.drivers
+    R["rig"] = {"result": list(res), "keys": [k.name for k in key.key_blocks], "bones": [b.name for b in arm.data.bones],
+                "groups": [g.name for g in obj.vertex_groups], "modifiers": [m.type for m in obj.modifiers],
+                "drivers": len(drivers), "simple": all(d.driver.is_simple_expression and d.driver.is_valid for d in drivers),
+                "rest": [[list(row) for row in b.matrix_local] for b in arm.data.bones], "frame_range": [bpy.context.scene.frame_start, bpy.context.scene.frame_end]}
+    w = np.zeros((len(obj.data.vertices), len(obj.vertex_groups)), np.float32)
+    for g in obj.vertex_groups:  # test-side read-back only
+        for i in range(len(obj.data.vertices)):
+            try:
+                w[i, g.index] = g.weight(i)
+            except RuntimeError:
+                pass
+    arrays["rig_weights"] = w
+    for t in __FRAMES__:
+        bpy.context.scene.frame_set(3 + t)
+        arrays[f"rig_{t}"] = verts_of(obj)
+    # Artist edits at frame 3+3: an expression coefficient and the jaw's rotation (its
+    # pose-corrective keys follow the bone through their drivers).
+    def curve(owner, path, index=0):
+        return owner.animation_data.action.fcurve_ensure_for_datablock(owner, path, index=index)
+    fc = curve(key, 'key_blocks["expr_000"].value')
+    fc.keyframe_points[3].co[1] = 2.5
+    fc.update()
+    q = [0.9, 0.3, -0.2, 0.25]
+    for c in range(4):
+        fc = curve(arm, 'pose.bones["jaw"].rotation_quaternion', c)
+        fc.keyframe_points[3].co[1] = q[c]
+        fc.update()
+    bpy.context.scene.frame_set(3 + 3)
+    arrays["rig_edit_3"] = verts_of(obj)
+
 np.savez(os.path.join(out, "arrays.npz"), **arrays)
 print("PA_REPORT " + json.dumps(R, default=str))
 '''.replace("__FRAMES__", repr(CHECK_FRAMES))
@@ -397,14 +461,16 @@ def session(tmp_path_factory):
     out = os.path.join(tmp, "out")
     os.makedirs(out)
     seq, stream, trainer, verts = make_inputs(out)
+    flame_path, params_path = make_rig_inputs(out)
     result = {"validate": validate, "build": build, "zips": zips, "out": out, "seq": seq, "stream": stream,
-              "verts": verts, "report": None}
+              "verts": verts, "flame": flame_path, "params": params_path, "report": None}
     if build.returncode != 0 or len(zips) != 1:
         return result
     script = os.path.join(tmp, "scenario.py")
     with open(script, "w") as fh:
         fh.write(SCENARIO)
-    proc = subprocess.run([sys.executable, script, zips[0], seq, stream, trainer, out], capture_output=True,
+    proc = subprocess.run([sys.executable, script, zips[0], seq, stream, trainer, out, flame_path, params_path],
+                          capture_output=True,
                           text=True, env=_clean_env(tmp), timeout=600)
     result["proc"] = proc
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("PA_REPORT ")]
@@ -461,6 +527,40 @@ def test_import_sequence_positions_exact(session):
     assert rep["frame_range"] == [5, 5 + T_FRAMES - 1]
     for t in CHECK_FRAMES:
         np.testing.assert_allclose(session["arrays"][f"seq_{t}"], verts[t], atol=1e-6, rtol=0)
+
+
+def test_import_flame_rig(session):
+    """As a FLAME rig: the evaluated mesh equals FLAME at every checked frame; edits to an
+    expression key and to the jaw bone give what core's rig model says (whose equality with
+    FLAME is pinned in test_flame_rig); weights, keys, bones and drivers are what was built."""
+    rep = _report(session)
+    _no_error(rep, "rig")
+    from progressive_avatars.core.flame import flame_forward, load_flame_model
+    from progressive_avatars.core.flame_rig import build_flame_rig
+
+    model = load_flame_model(session["flame"])
+    prm = dict(np.load(session["params"]))
+    rig = build_flame_rig(model, prm)
+    r = rep["rig"]
+    assert "holds meshes, not FLAME parameters" in rep["rig_mesh_sequence"]
+    assert r["result"] == ["FINISHED"] and r["modifiers"] == ["ARMATURE"]
+    assert r["keys"] == ["Basis"] + rig.expr_key_names() + rig.pose_key_names()
+    assert r["bones"] == ["root", "neck", "jaw", "eye_0", "eye_1"] and r["groups"] == r["bones"]
+    assert r["drivers"] == 9 * 4 and r["simple"]  # evaluated without Python (no auto-exec needed)
+    assert r["frame_range"] == [3, 3 + T_FRAMES - 1]
+    for k, m in enumerate(r["rest"]):  # bones rest unrotated at FLAME's joints
+        np.testing.assert_allclose(np.array(m)[:3, :3], np.eye(3), atol=1e-6)
+        np.testing.assert_allclose(np.array(m)[:3, 3], rig.rest_joints[k], atol=1e-6)
+    np.testing.assert_allclose(session["arrays"]["rig_weights"], model.weights, atol=1e-6)
+    assert rig.expr_scale[1] > 1  # the 14.0 coefficient went through a scaled key
+    want = flame_forward(model, **prm)
+    for t in CHECK_FRAMES:
+        np.testing.assert_allclose(session["arrays"][f"rig_{t}"], want[t], atol=2e-6, rtol=0)
+    rig.expr_values[3, 0] = 2.5
+    rig.quaternions[3, 2] = [0.9, 0.3, -0.2, 0.25]
+    edited = rig.vertices(frames=[3])[0]
+    assert np.abs(edited - want[3]).max() > 1e-3  # the edit is visible
+    np.testing.assert_allclose(session["arrays"]["rig_edit_3"], edited, atol=2e-6, rtol=0)
 
 
 def test_budget_shows_stream_count(session):

@@ -377,3 +377,23 @@ def test_flame_mode_dataset(tmp_path, flame_model):
     np.testing.assert_allclose(ds.canonical_vertices, flame_forward(flame_model, **canon)[0], atol=1e-6)
     np.testing.assert_array_equal(ds.faces, flame_model.faces)
     np.testing.assert_array_equal(ds[0].mask, 1.0)  # no mask file, no alpha: everything is foreground
+
+
+def test_flame_track_reads_parameters_without_a_model(tmp_path, flame_model):
+    from progressive_avatars.core.data import read_flame_track
+
+    prm = random_params(4, seed=8)
+    np.savez(tmp_path / "tracked.npz", **prm)
+    track = read_flame_track(tmp_path / "tracked.npz", frames=[3, 1])
+    assert track.n_frames == 2
+    np.testing.assert_array_equal(track.params["expr"], prm["expr"][[3, 1]])
+    np.testing.assert_allclose(flame_forward(flame_model, **track.params),
+                               read_sequence(tmp_path / "tracked.npz", frames=[3, 1], flame_model=flame_model).vertices)
+    fp = tmp_path / "ga" / "flame_param"
+    fp.mkdir(parents=True)
+    for t in range(4):
+        np.savez(fp / f"{t:05d}.npz", **ga_frame(prm, t))
+    np.testing.assert_array_equal(read_flame_track(tmp_path / "ga").params["jaw_pose"], prm["jaw_pose"])
+    np.savez(tmp_path / "mesh.npz", vertices=np.zeros((2, 3, 3)), faces=np.array([[0, 1, 2]]))
+    with pytest.raises(DataError, match=r"mesh\.npz: holds meshes, not FLAME parameters"):
+        read_flame_track(tmp_path / "mesh.npz")
