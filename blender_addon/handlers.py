@@ -58,7 +58,16 @@ def on_load_post(*_args):
     runtime.forget()
 
 
+@persistent
+def on_undo_redo(*_args):
+    # Undo restores preview attributes as they were at that step; points the cache counted
+    # as evaluated since may hold another frame's positions, so nothing is trusted past it.
+    runtime.invalidate()
+
+
 _HANDLERS = (
+    (bpy.app.handlers.undo_post, on_undo_redo),
+    (bpy.app.handlers.redo_post, on_undo_redo),
     (bpy.app.handlers.frame_change_post, on_frame_change),
     (bpy.app.handlers.depsgraph_update_post, on_depsgraph_update),
     (bpy.app.handlers.load_post, on_load_post),

@@ -65,6 +65,12 @@ def forget(obj=None):
         _cache.pop(obj.session_uid, None)
 
 
+def invalidate():
+    """Keep decoded avatars but treat every preview point as needing evaluation."""
+    for e in _cache.values():
+        e.valid = 0
+
+
 def previews(scene):
     return [o for o in scene.objects if o.pa_avatar.is_preview and o.type == "MESH"]
 

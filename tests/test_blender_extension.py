@@ -396,6 +396,28 @@ def _():
                           "instances": preview_state(pv)[0], "file": os.path.getsize(bpy.path.abspath(pv.pa_avatar.filepath))}
     srv.shutdown()
 
+@section("undo")
+def _():
+    # Undo brings back preview attributes as they were at the step; whatever the cache had
+    # evaluated since must not be trusted (points past the step's budget hold an old frame).
+    mesh = bpy.data.objects[R["mesh_name"]]
+    pv = [c for c in mesh.children if c.pa_avatar.is_preview][0]
+    name = pv.name
+    sc = bpy.context.scene
+    pv.pa_avatar.budget = 100.0
+    sc.frame_set(sc.frame_start + 1)
+    pv.pa_avatar.budget = 30.0
+    sc.frame_set(sc.frame_start + 5)
+    bpy.ops.ed.undo_push(message="budget 30 at frame 5")
+    pv.pa_avatar.budget = 100.0
+    bpy.ops.ed.undo_push(message="budget 100")
+    bpy.ops.ed.undo()
+    pv, sc = bpy.data.objects[name], bpy.context.scene  # undo replaced the Python objects
+    R["undo"] = {"budget": pv.pa_avatar.budget, "frame": sc.frame_current - sc.frame_start,
+                 "file": bpy.path.abspath(pv.pa_avatar.filepath)}
+    pv.pa_avatar.budget = 100.0
+    arrays["undo_pos"] = preview_state(pv)[1]
+
 @section("rig")
 def _():
     for ob in bpy.context.selected_objects:
@@ -561,6 +583,15 @@ def test_import_flame_rig(session):
     edited = rig.vertices(frames=[3])[0]
     assert np.abs(edited - want[3]).max() > 1e-3  # the edit is visible
     np.testing.assert_allclose(session["arrays"]["rig_edit_3"], edited, atol=2e-6, rtol=0)
+
+
+def test_undo_leaves_no_stale_points(session):
+    rep = _report(session)
+    _no_error(rep, "undo")
+    assert rep["undo"]["budget"] == 30.0
+    av = _stream().read_stream(rep["undo"]["file"])  # the last URL load: a cut stream
+    ref = av.gaussians(session["verts"][rep["undo"]["frame"]])
+    np.testing.assert_allclose(session["arrays"]["undo_pos"], ref["means"], atol=1e-5, rtol=0)
 
 
 def test_budget_shows_stream_count(session):
