@@ -2,7 +2,8 @@
 
 Per-face residual parameters, in the forest's face order:
   d_mu [N,3] face-local position offset (units of the face scale), d_log_scale [N,3],
-  d_rot [N,4] wxyz (unnormalised), opacity_logit [N], f_dc [N,3] (SH DC colour).
+  d_rot [N,4] wxyz (unnormalised), opacity_logit [N], f_dc [N,3] (SH DC colour),
+  f_rest [N,K,3] (higher SH bands, K = 0, 3, 8 or 15 for degree 0..3; core/sh.py).
 Stored as .npz (never pickle).
 """
 
@@ -12,11 +13,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import binding
+from . import binding, sh
 from .atomic import atomic_savez
 from .forest import Forest
-
-SH_C0 = 0.28209479177387814
+from .sh import SH_C0
 PARAM_NAMES = ("d_mu", "d_log_scale", "d_rot", "opacity_logit", "f_dc")
 PARAM_WIDTH = {"d_mu": 3, "d_log_scale": 3, "d_rot": 4, "opacity_logit": None, "f_dc": 3}
 
@@ -38,9 +38,17 @@ class Avatar:
     opacity_logit: np.ndarray
     f_dc: np.ndarray
     meta: dict = field(default_factory=dict)
+    f_rest: np.ndarray | None = None
 
     def __post_init__(self):
         N = self.forest.num_faces
+        rest = np.zeros((N, 0, 3), np.float32) if self.f_rest is None else np.asarray(self.f_rest, np.float32)
+        if rest.ndim != 3 or rest.shape[0] != N or rest.shape[2] != 3:
+            raise ValueError(f"Avatar: f_rest has shape {rest.shape}, expected [{N},K,3]")
+        sh.degree_of(rest.shape[1])
+        if not np.all(np.isfinite(rest)):
+            raise ValueError("Avatar: f_rest contains NaN or inf")
+        self.f_rest = rest
         for name in PARAM_NAMES:
             arr = np.asarray(getattr(self, name), np.float32)
             width = PARAM_WIDTH[name]
@@ -64,6 +72,22 @@ class Avatar:
     def num_gaussians(self) -> int:
         return self.forest.num_faces
 
+    @property
+    def sh_degree(self) -> int:
+        rest = getattr(self, "f_rest", None)  # (stream-built avatars may not set it)
+        return 0 if rest is None else sh.degree_of(rest.shape[1])
+
+    def colors(self, ids=None, means=None, camera_center=None) -> np.ndarray:
+        """RGB [n,3] of faces ``ids``: view-dependent when the avatar has SH bands and the
+        Gaussians' means and a camera centre are given, else the DC colour."""
+        sel = slice(None) if ids is None else np.asarray(ids)
+        if self.sh_degree == 0 or means is None or camera_center is None:
+            return sh_to_rgb(self.f_dc[sel]).astype(np.float32)
+        d = np.asarray(means, np.float64) - np.asarray(camera_center, np.float64).reshape(1, 3)
+        d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+        rgb = sh.sh_rgb(self.f_dc[sel].astype(np.float64), self.f_rest[sel].astype(np.float64), d, np.stack)
+        return np.maximum(rgb, 0.0).astype(np.float32)
+
     def subset(self, ids) -> dict:
         return {name: getattr(self, name)[ids] for name in PARAM_NAMES}
 
@@ -73,10 +97,11 @@ class Avatar:
         return binding.GaussianEvaluator(self.forest, self.d_mu, self.d_log_scale, self.d_rot, ids=ids,
                                          weights=weights, capacity=capacity, rows=rows)
 
-    def gaussians(self, vertices: np.ndarray, ids=None, weights=None) -> dict:
+    def gaussians(self, vertices: np.ndarray, ids=None, weights=None, camera_center=None) -> dict:
         """World-space, activated Gaussians for one frame's mesh vertices [V,3].
 
-        Returns means, quats (wxyz), scales, opacities, colors (RGB) as float32 numpy.
+        Returns means, quats (wxyz), scales, opacities, colors (RGB) as float32 numpy; colours
+        are seen from ``camera_center`` when the avatar has SH bands (DC otherwise).
         """
         sel = slice(None) if ids is None else np.asarray(ids)
         means, quats, scales = self.evaluator(ids=ids, weights=weights)(vertices)
@@ -85,13 +110,15 @@ class Avatar:
             "quats": quats.copy(),
             "scales": scales.copy(),
             "opacities": sigmoid(self.opacity_logit[sel]).astype(np.float32),
-            "colors": sh_to_rgb(self.f_dc[sel]).astype(np.float32),
+            "colors": self.colors(ids, means, camera_center),
         }
 
     # -- persistence ----------------------------------------------------------------------
     def save(self, path) -> None:
         arrays = self.forest.state()
         arrays.update({name: getattr(self, name) for name in PARAM_NAMES})
+        if self.sh_degree:
+            arrays["f_rest"] = self.f_rest
         import json
 
         arrays["meta_json"] = np.array(json.dumps(self.meta))
@@ -108,6 +135,7 @@ class Avatar:
                 raise ValueError(f"{path}: not an avatar file, missing {missing}")
             meta = json.loads(str(data["meta_json"])) if "meta_json" in data else {}
             try:
-                return cls(forest, *(data[n] for n in PARAM_NAMES), meta=meta)
+                return cls(forest, *(data[n] for n in PARAM_NAMES), meta=meta,
+                           f_rest=data["f_rest"] if "f_rest" in data else None)
             except ValueError as exc:
                 raise ValueError(f"{path}: {exc}") from None

@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from . import binding_torch
-from .avatar import PARAM_NAMES, SH_C0, Avatar
+from . import binding_torch, sh
+from .avatar import PARAM_NAMES, Avatar
 from .forest import Forest
 
 TRAINABLE = PARAM_NAMES + ("split_logits",)
@@ -23,15 +23,23 @@ class TorchAvatar:
         self.params = {name: torch.tensor(getattr(avatar, name), device=self.device).requires_grad_(True)
                        for name in PARAM_NAMES}
         self.params["split_logits"] = torch.tensor(self.forest.split_logits, device=self.device).requires_grad_(True)
+        if avatar.sh_degree:
+            self.params["f_rest"] = torch.tensor(avatar.f_rest, device=self.device).requires_grad_(True)
+        self.active_sh_degree = avatar.sh_degree  # training raises it band by band
         self._structure_changed()
 
     @classmethod
     def from_template(cls, faces, color=(0.5, 0.5, 0.5), opacity=0.7, log_scale=(np.log(0.5), np.log(0.1), np.log(0.5)),
-                      device="cpu") -> "TorchAvatar":
+                      device="cpu", sh_degree: int = 0) -> "TorchAvatar":
         forest = Forest(faces)
         av = Avatar.initial(forest, color=color, opacity=opacity)
         av.d_log_scale[:] = np.asarray(log_scale, np.float32)
+        av.f_rest = np.zeros((forest.num_faces, sh.num_rest(sh_degree), 3), np.float32)
         return cls(av, device)
+
+    @property
+    def sh_degree(self) -> int:
+        return sh.degree_of(self.params["f_rest"].shape[1]) if "f_rest" in self.params else 0
 
     def _structure_changed(self):
         self.torch_forest = binding_torch.TorchForest(self.forest, self.device)
@@ -42,18 +50,26 @@ class TorchAvatar:
     def num_faces(self) -> int:
         return self.forest.num_faces
 
-    def gaussians(self, vertices: torch.Tensor) -> dict:
-        """Activated world-space Gaussians of every face for one frame's vertices [V,3]."""
+    def gaussians(self, vertices: torch.Tensor, camera_center=None) -> dict:
+        """Activated world-space Gaussians of every face for one frame's vertices [V,3];
+        colours seen from ``camera_center`` up to the active SH degree."""
         p = self.params
         W = self.torch_forest.weights(p["split_logits"])
         t, r, s = self.torch_forest.evaluate(vertices, W)
         means, scales, quats = binding_torch.compose(t, r, s, p["d_mu"], p["d_log_scale"], p["d_rot"])
+        degree = min(self.active_sh_degree, self.sh_degree) if camera_center is not None else 0
+        if degree:
+            c = torch.as_tensor(np.asarray(camera_center), dtype=means.dtype, device=means.device).reshape(1, 3)
+            d = torch.nn.functional.normalize(means - c, dim=1, eps=1e-12)
+            rgb = sh.sh_rgb(p["f_dc"], p["f_rest"], d, torch.stack, degree)
+        else:
+            rgb = 0.5 + sh.SH_C0 * p["f_dc"]
         return {
             "means": means,
             "quats": quats,
             "scales": scales,
             "opacities": torch.sigmoid(p["opacity_logit"]),
-            "colors": (0.5 + SH_C0 * p["f_dc"]).clamp_min(0.0),
+            "colors": rgb.clamp_min(0.0),
         }
 
     def split(self, face_ids: np.ndarray) -> np.ndarray:
@@ -81,4 +97,5 @@ class TorchAvatar:
         arrays = {n: self.params[n].detach().cpu().numpy() for n in PARAM_NAMES}
         forest = Forest(self.forest.template_faces, self.forest.parent, self.forest.slot,
                         self.params["split_logits"].detach().cpu().numpy())
-        return Avatar(forest, **arrays, meta=dict(meta or {}))
+        rest = self.params["f_rest"].detach().cpu().numpy() if "f_rest" in self.params else None
+        return Avatar(forest, **arrays, meta=dict(meta or {}), f_rest=rest)

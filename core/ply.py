@@ -1,7 +1,9 @@
 """Standard 3DGS PLY export/import (numpy; plyfile only to read files we did not write).
 
 Layout (binary little-endian, float32, one `vertex` element):
-  x y z nx ny nz f_dc_0 f_dc_1 f_dc_2 opacity scale_0 scale_1 scale_2 rot_0 rot_1 rot_2 rot_3
+  x y z nx ny nz f_dc_0 f_dc_1 f_dc_2 [f_rest_0 .. f_rest_{3K-1}] opacity scale_0 scale_1 scale_2
+  rot_0 rot_1 rot_2 rot_3
+(f_rest only for avatars with SH bands: K per channel, all of red's first, as 3DGS writes them)
 opacity as a logit, scales as logs, rotation w,x,y,z, colour as SH DC (f_dc = (rgb - 0.5)/C0).
 Read by SuperSplat, Spark, gsplat tooling and Blender's PLY importer. Writing needs numpy only,
 so export works inside Blender, where plyfile is not installed.
@@ -19,6 +21,11 @@ from .avatar import SH_C0
 PROPERTIES = ("x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
               "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3")
 VERTEX_DTYPE = np.dtype([(name, "<f4") for name in PROPERTIES])
+
+
+def _properties(k_rest: int) -> tuple:
+    i = PROPERTIES.index("opacity")
+    return PROPERTIES[:i] + tuple(f"f_rest_{j}" for j in range(3 * k_rest)) + PROPERTIES[i:]
 _EPS = 1e-7  # keeps logit(0 or 1) and log(0) finite: PLY readers choke on inf
 
 
@@ -35,13 +42,21 @@ def _rows(gaussians: dict) -> np.ndarray:
     colors = np.asarray(gaussians["colors"], np.float64).reshape(n, -1)
     if colors.shape[1] != 3:
         raise ValueError(f"write_ply: colors must be RGB [N,3], got {colors.shape}")
-    for name, arr in (("means", means), ("quats", quats), ("scales", scales), ("opacities", opac), ("colors", colors)):
+    rest = np.asarray(gaussians.get("sh_rest", np.zeros((n, 0, 3))), np.float64)
+    if rest.ndim != 3 or rest.shape[0] != n or rest.shape[2] != 3:
+        raise ValueError(f"write_ply: sh_rest must be [N,K,3], got {rest.shape}")
+    for name, arr in (("means", means), ("quats", quats), ("scales", scales), ("opacities", opac), ("colors", colors),
+                      ("sh_rest", rest)):
         if not np.all(np.isfinite(arr)):
             raise ValueError(f"write_ply: {name} contains NaN or inf")
     qn = np.linalg.norm(quats, axis=1, keepdims=True)
     quats = np.where(qn > 0, quats / np.where(qn > 0, qn, 1), np.array([1.0, 0, 0, 0]))
     a = np.clip(opac, _EPS, 1 - _EPS)
-    rows = np.zeros(n, VERTEX_DTYPE)
+    K = rest.shape[1]
+    rows = np.zeros(n, np.dtype([(name, "<f4") for name in _properties(K)]))
+    for c in range(3):
+        for k in range(K):
+            rows[f"f_rest_{c * K + k}"] = rest[:, k, c]
     for k, c in enumerate("xyz"):
         rows[c] = means[:, k]
         rows[f"scale_{k}"] = np.log(np.maximum(scales[:, k], 1e-30))
@@ -52,9 +67,9 @@ def _rows(gaussians: dict) -> np.ndarray:
     return rows
 
 
-def ply_header(n: int) -> bytes:
+def ply_header(n: int, k_rest: int = 0) -> bytes:
     lines = ["ply", "format binary_little_endian 1.0", "comment ProgressiveAvatars 3DGS export",
-             f"element vertex {n}"] + [f"property float {p}" for p in PROPERTIES] + ["end_header"]
+             f"element vertex {n}"] + [f"property float {p}" for p in _properties(k_rest)] + ["end_header"]
     return ("\n".join(lines) + "\n").encode("ascii")
 
 
@@ -64,7 +79,7 @@ def write_ply(path, gaussians: dict) -> int:
     rows = _rows(gaussians)
     path = os.fspath(path)
     with atomic_open(path) as fh:
-        fh.write(ply_header(len(rows)))
+        fh.write(ply_header(len(rows), (len(rows.dtype.names) - len(PROPERTIES)) // 3))
         fh.write(rows.tobytes())
     return len(rows)
 
@@ -123,7 +138,7 @@ def _read_vertices(path: str) -> np.ndarray:
 
 def read_ply(path) -> dict:
     """A 3DGS PLY back as activated Gaussians: means, quats (wxyz, unit), scales, opacities,
-    colors (RGB = max(0.5 + C0·f_dc, 0)); f_rest coefficients, if any, are ignored."""
+    colors (RGB = max(0.5 + C0·f_dc, 0)) and sh_rest [N,K,3] (K = 0 without f_rest_* fields)."""
     path = os.fspath(path)
     v = _read_vertices(path)
     names = v.dtype.names or ()
@@ -135,7 +150,14 @@ def read_ply(path) -> dict:
     quats = col("rot_0", "rot_1", "rot_2", "rot_3")
     qn = np.linalg.norm(quats, axis=1, keepdims=True)
     quats = np.where(qn > 0, quats / np.where(qn > 0, qn, 1), np.array([1.0, 0, 0, 0]))
+    n_rest = sum(1 for nm in names if nm.startswith("f_rest_"))
+    if n_rest % 3 or any(f"f_rest_{j}" not in names for j in range(n_rest)):
+        raise ValueError(f"{path}: f_rest_* properties must be f_rest_0..f_rest_(3K-1), got {n_rest}")
+    K = n_rest // 3
+    rest = np.stack([col(*(f"f_rest_{c * K + k}" for c in range(3))) for k in range(K)], axis=1) if K else \
+        np.zeros((len(v), 0, 3))
     return {
+        "sh_rest": rest.astype(np.float32),
         "means": col("x", "y", "z").astype(np.float32),
         "quats": quats.astype(np.float32),
         "scales": np.exp(col("scale_0", "scale_1", "scale_2")).astype(np.float32),

@@ -52,4 +52,5 @@ def run_importance(run: str, avatar: Avatar, data: str, max_views: int | None = 
 
 def reordered(avatar: Avatar, order: np.ndarray) -> Avatar:
     """The avatar with faces permuted (new face i = old face order[i])."""
-    return Avatar(avatar.forest.reorder(order), *(getattr(avatar, n)[order] for n in PARAM_NAMES), meta=avatar.meta)
+    return Avatar(avatar.forest.reorder(order), *(getattr(avatar, n)[order] for n in PARAM_NAMES), meta=avatar.meta,
+                  f_rest=avatar.f_rest[order])

@@ -507,10 +507,16 @@ def _quant_table(av: Avatar) -> np.ndarray:
 
 
 def write_stream(path, avatar: Avatar, importance=None, *, quantize: bool = True, metadata=None,
-                 embed_template: bool = True, records_per_block: int = DEFAULT_BLOCK) -> StreamInfo:
+                 embed_template: bool = True, records_per_block: int = DEFAULT_BLOCK,
+                 drop_sh: bool = False) -> StreamInfo:
     """Write `avatar` as a stream (atomically). Returns its header; `.order` maps stream index
-    to the avatar's face index."""
+    to the avatar's face index. Records carry the DC colour only: an avatar with higher SH
+    bands is refused unless ``drop_sh`` (then the metadata says which degree was dropped)."""
     forest = avatar.forest
+    if avatar.sh_degree and not drop_sh:
+        raise ValueError(f"write_stream: the avatar has SH degree {avatar.sh_degree}; stream records carry the "
+                         "DC colour only (docs/FORMAT.md). Pass drop_sh=True (export.py --drop-sh) to stream "
+                         "its view-independent colour, or export a PLY to keep every band")
     N, F0 = forest.num_faces, forest.num_roots
     if not 1 <= int(records_per_block) <= 0xFFFF:
         raise ValueError(f"write_stream: records_per_block must be in [1, 65535], got {records_per_block}")
@@ -522,6 +528,8 @@ def write_stream(path, avatar: Avatar, importance=None, *, quantize: bool = True
     av = Avatar(f2, *(getattr(avatar, n)[order] for n in ("d_mu", "d_log_scale", "d_rot", "opacity_logit", "f_dc")))
 
     meta = {k: v for k, v in dict(avatar.meta or {}).items() if k != "stream"}
+    if avatar.sh_degree:
+        meta["sh_degree_dropped"] = avatar.sh_degree
     meta.update(metadata or {})
     try:
         meta_blob = json.dumps(meta, sort_keys=True, allow_nan=False).encode("utf-8") if meta else b""
@@ -686,6 +694,7 @@ def _trusted_avatar(forest, params, meta) -> Avatar:
     for name, arr in zip(PARAM_NAMES, params):
         setattr(av, name, arr)
     av.meta = meta
+    av.f_rest = np.zeros((forest.num_faces, 0, 3), np.float32)  # the format carries SH degree 0
     return av
 
 

@@ -23,7 +23,7 @@ from .avatar import PARAM_NAMES
 from .data import Dataset
 from .atomic import atomic_savez
 from .forest import Forest
-from .model import TRAINABLE, TorchAvatar
+from .model import TorchAvatar
 from .render import render
 
 
@@ -38,12 +38,14 @@ class TrainConfig:
     max_faces: int = 60000
     supervision: str = "all"  # all | sampled | finest
     uniform: bool = False  # ablation: split every leaf when the cap rises, ignore gradients
+    sh_degree: int = 0  # view-dependent colour bands (0..3); the stream carries degree 0
+    sh_every: int = 1000  # one more active SH band every this many iterations (as 3DGS)
     lambda_ssim: float = 0.2
     position_reg: float = 0.01
     scale_reg: float = 1.0
     lr: dict = field(default_factory=lambda: {
         "split_logits": 1e-2, "d_mu": 5e-3, "d_log_scale": 2e-2, "d_rot": 1e-3,
-        "opacity_logit": 5e-2, "f_dc": 2.5e-3 * 4,
+        "opacity_logit": 5e-2, "f_dc": 2.5e-3 * 4, "f_rest": 2.5e-3 * 4 / 20,
     })
     lr_final_ratio: float = 0.01  # position lr decays exponentially to this fraction
     seed: int = 0
@@ -57,7 +59,7 @@ class TrainConfig:
 PRESETS = {
     # Seconds: for tests and smoke runs.
     "tiny": dict(iterations=60, max_depth=2, grow_every=15, grow_start=15, grow_stop=0.8, max_faces=20000,
-                 log_every=10, eval_every=30, eval_views=2, checkpoint_every=20),
+                 log_every=10, eval_every=30, eval_views=2, checkpoint_every=20, sh_every=20),
     # The synthetic default on a 2-core CPU (<= 30 min).
     "cpu": dict(iterations=4000, max_depth=3, grow_every=150, grow_start=150, grow_stop=0.7, max_faces=40000,
                 grad_threshold=2e-4, log_every=25, eval_every=250, eval_views=8, checkpoint_every=250),
@@ -138,7 +140,7 @@ class Trainer:
         if resume and os.path.exists(self.ckpt_path):
             self._load_checkpoint()
         else:
-            self.model = TorchAvatar.from_template(self.train.faces)
+            self.model = TorchAvatar.from_template(self.train.faces, sh_degree=config.sh_degree)
             self.opt = Adam(self.model.params, config.lr)
             self.rng = np.random.default_rng(config.seed)
             self.iteration = 0
@@ -194,7 +196,8 @@ class Trainer:
         c, it = self.cfg, self.iteration
         sample = self.train[int(self.rng.integers(len(self.train)))]
         target = torch.from_numpy(sample.image)
-        g = self.model.gaussians(torch.from_numpy(sample.vertices))
+        self.model.active_sh_degree = min(c.sh_degree, it // max(1, c.sh_every))
+        g = self.model.gaussians(torch.from_numpy(sample.vertices), sample.camera.center)
         levels = self._levels()
         top = self.model.forest.max_level
         loss = torch.zeros(())
@@ -239,7 +242,7 @@ class Trainer:
         values = []
         for i in pick:
             s = self.val[int(i)]
-            g = self.model.gaussians(torch.from_numpy(s.vertices))
+            g = self.model.gaussians(torch.from_numpy(s.vertices), s.camera.center)
             out = render(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], s.camera, self.background)
             values.append(psnr(out.image.numpy(), s.image, s.mask))
         return {"val_psnr": float(np.mean(values))}
@@ -264,12 +267,16 @@ class Trainer:
             forest = Forest.from_state(d, source=self.ckpt_path)
             from .avatar import Avatar
 
-            av = Avatar(forest, *(d["param_" + n] for n in PARAM_NAMES))
+            av = Avatar(forest, *(d["param_" + n] for n in PARAM_NAMES),
+                        f_rest=d["param_f_rest"] if "param_f_rest" in d else None)
+            if av.sh_degree != self.cfg.sh_degree:
+                raise ValueError(f"{self.ckpt_path}: checkpoint has SH degree {av.sh_degree}, the configuration "
+                                 f"{self.cfg.sh_degree}; resume with the same --sh-degree")
             self.model = TorchAvatar(av)
             with torch.no_grad():
                 self.model.params["split_logits"].copy_(torch.from_numpy(d["param_split_logits"]))
             self.opt = Adam(self.model.params, self.cfg.lr)
-            for name in TRAINABLE:
+            for name in self.model.params:
                 self.opt.m[name] = torch.from_numpy(d["adam_m_" + name].copy())
                 self.opt.v[name] = torch.from_numpy(d["adam_v_" + name].copy())
             self.opt.steps = torch.from_numpy(d["adam_steps"].copy())

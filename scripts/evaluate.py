@@ -69,10 +69,14 @@ def main(argv=None):
     progress = not args.no_progress
     W = runs.run_importance(args.run, avatar, data, progress=progress)
     stream_path = os.path.join(args.run, "avatar.pavs")
-    info = stream.write_stream(stream_path, avatar, W, quantize=True, metadata={"run": os.path.abspath(args.run)})
+    if avatar.sh_degree:
+        print(f"note: the avatar has SH degree {avatar.sh_degree}; the stream (and so this report) carries its "
+              "DC colour only", file=sys.stderr)
+    info = stream.write_stream(stream_path, avatar, W, quantize=True, metadata={"run": os.path.abspath(args.run)},
+                               drop_sh=True)
     scratch = tempfile.mkdtemp(prefix="pa_eval_")
     lossless_path = os.path.join(scratch, "lossless.pavs")  # only to measure what quantisation costs
-    stream.write_stream(lossless_path, avatar, W, quantize=False)
+    stream.write_stream(lossless_path, avatar, W, quantize=False, drop_sh=True)
     streamed = stream.read_stream(stream_path)
     exact = stream.read_stream(lossless_path)
     order = stream.stream_order(avatar.forest, W)

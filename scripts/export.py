@@ -31,6 +31,8 @@ def main(argv=None):
     ap.add_argument("--budget", type=float, default=100.0, help="percent of the stream (PLY export)")
     ap.add_argument("--frame", type=int, default=0, help="timestep index (PLY export)")
     ap.add_argument("--max-views", type=int, default=120, help="training views used for importance")
+    ap.add_argument("--drop-sh", action="store_true",
+                    help="stream an avatar trained with SH degree > 0 (records carry its DC colour only)")
     args = ap.parse_args(_bootstrap.script_args() if argv is None else argv)
     if not args.stream and not args.ply:
         ap.error("nothing to do: give --stream and/or --ply")
@@ -46,19 +48,28 @@ def main(argv=None):
         print(f"error: {exc}", file=sys.stderr)
         return 2
     stream_path = args.stream or os.path.join(args.run, "avatar.pavs")
-    info = stream.write_stream(stream_path, avatar, W, quantize=not args.lossless,
-                               metadata={"run": os.path.abspath(args.run)})
+    try:
+        info = stream.write_stream(stream_path, avatar, W, quantize=not args.lossless,
+                                   metadata={"run": os.path.abspath(args.run)}, drop_sh=args.drop_sh)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     result = {"stream": stream_path, "bytes": os.path.getsize(stream_path), "gaussians": avatar.num_gaussians}
     if args.ply:
         from progressive_avatars.core.data import Dataset
         from progressive_avatars.core.ply import write_ply
+        from progressive_avatars.core.sh import SH_C0
 
         part = stream.read_stream(stream_path, percent=args.budget)
         ds = Dataset(data, None)
         if args.frame not in set(int(t) for t in ds.timesteps):
             print(f"error: {data}: no timestep {args.frame} (have {ds.timesteps[0]}..{ds.timesteps[-1]})", file=sys.stderr)
             return 2
-        write_ply(args.ply, part.gaussians(ds.vertices_at(args.frame)))
+        g = part.gaussians(ds.vertices_at(args.frame))
+        if avatar.sh_degree:  # every band, from the trained avatar's faces of this prefix
+            g["sh_rest"] = avatar.f_rest[info.order[: part.num_gaussians]]
+            g["colors"] = (0.5 + SH_C0 * avatar.f_dc[info.order[: part.num_gaussians]]).clip(0, None)
+        write_ply(args.ply, g)
         result.update(ply=args.ply, ply_gaussians=part.num_gaussians, budget=args.budget, frame=args.frame)
     print(json.dumps(result))
     return 0

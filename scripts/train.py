@@ -33,6 +33,8 @@ def main(argv=None):
     ap.add_argument("--grad-threshold", type=float)
     ap.add_argument("--max-faces", type=int)
     ap.add_argument("--seed", type=int)
+    ap.add_argument("--sh-degree", type=int, choices=[0, 1, 2, 3],
+                    help="view-dependent colour bands (default 0; the stream carries the DC colour only)")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(_bootstrap.script_args() if argv is None else argv)
 
@@ -40,7 +42,8 @@ def main(argv=None):
 
     cfg = config_for(args.preset, iterations=args.iterations, max_depth=args.max_depth,
                      supervision=args.supervision, uniform=args.uniform or None,
-                     grad_threshold=args.grad_threshold, max_faces=args.max_faces, seed=args.seed)
+                     grad_threshold=args.grad_threshold, max_faces=args.max_faces, seed=args.seed,
+                     sh_degree=args.sh_degree)
     try:
         trainer = Trainer(args.data, args.out, cfg, resume=args.resume)
     except (ValueError, FileNotFoundError) as exc:

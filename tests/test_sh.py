@@ -1,0 +1,118 @@
+"""Spherical-harmonic colour (degree 0..3): the basis, the avatar, PLY, stream and training."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from progressive_avatars.core import sh
+from progressive_avatars.core.avatar import Avatar
+from progressive_avatars.core.ply import read_ply, write_ply
+from progressive_avatars.core.stream import read_stream, write_stream
+from tests.helpers import random_forest, sphere_mesh
+
+
+def fibonacci_sphere(n):
+    i = np.arange(n) + 0.5
+    z = 1 - 2 * i / n
+    phi = np.pi * (1 + 5 ** 0.5) * i
+    r = np.sqrt(1 - z * z)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], 1)
+
+
+def test_basis_is_orthonormal_over_the_sphere():
+    d = fibonacci_sphere(200_000)
+    Y = np.concatenate([np.full((len(d), 1), sh.SH_C0), sh.rest_basis(d, 3, np.stack)], 1)  # [n,16]
+    gram = 4 * np.pi * (Y.T @ Y) / len(d)
+    np.testing.assert_allclose(gram, np.eye(16), atol=2e-3)
+    assert [sh.num_rest(k) for k in range(4)] == [0, 3, 8, 15]
+    with pytest.raises(ValueError, match="0..3"):
+        sh.num_rest(4)
+
+
+def test_numpy_and_torch_agree_and_degrees_truncate():
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(50, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    dc, rest = rng.normal(size=(50, 3)), rng.normal(size=(50, 15, 3))
+    a = sh.sh_rgb(dc, rest, d, np.stack)
+    b = sh.sh_rgb(torch.tensor(dc), torch.tensor(rest), torch.tensor(d), torch.stack).numpy()
+    np.testing.assert_allclose(a, b, atol=1e-12)
+    np.testing.assert_allclose(sh.sh_rgb(dc, rest, d, np.stack, degree=1), sh.sh_rgb(dc, rest[:, :3], d, np.stack))
+    np.testing.assert_allclose(sh.sh_rgb(dc, rest, d, np.stack, degree=0), 0.5 + sh.SH_C0 * dc)
+
+
+def sh_avatar(degree=2, seed=1):
+    rng = np.random.default_rng(seed)
+    v, f = sphere_mesh(6, 8, radius=0.1)
+    forest = random_forest(f, rng, depth=2, frac=0.5)
+    av = Avatar.initial(forest)
+    N = forest.num_faces
+    av.f_dc[:] = rng.normal(0, 0.5, (N, 3))
+    av.f_rest = rng.normal(0, 0.3, (N, sh.num_rest(degree), 3)).astype(np.float32)
+    return v, Avatar(forest, av.d_mu, av.d_log_scale, av.d_rot, av.opacity_logit, av.f_dc, f_rest=av.f_rest)
+
+
+def test_avatar_colours_depend_on_the_view_and_survive_save(tmp_path):
+    v, av = sh_avatar()
+    assert av.sh_degree == 2
+    front = av.gaussians(v, camera_center=[0, 0, 1.0])["colors"]
+    side = av.gaussians(v, camera_center=[1.0, 0, 0])["colors"]
+    assert np.abs(front - side).max() > 0.05
+    means = av.gaussians(v)["means"]
+    d = means - np.array([0, 0, 1.0])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    want = np.maximum(sh.sh_rgb(av.f_dc.astype(np.float64), av.f_rest.astype(np.float64), d, np.stack), 0)
+    np.testing.assert_allclose(front, want, atol=1e-5)
+    av.save(tmp_path / "a.npz")
+    back = Avatar.load(tmp_path / "a.npz")
+    np.testing.assert_array_equal(back.f_rest, av.f_rest)
+    with pytest.raises(ValueError, match="not a whole degree"):
+        Avatar(av.forest, av.d_mu, av.d_log_scale, av.d_rot, av.opacity_logit, av.f_dc,
+               f_rest=np.zeros((av.num_gaussians, 4, 3)))
+
+
+def test_ply_carries_every_band_in_3dgs_order(tmp_path):
+    plyfile = pytest.importorskip("plyfile")
+    v, av = sh_avatar(degree=3)
+    g = av.gaussians(v)
+    g["sh_rest"] = av.f_rest
+    write_ply(tmp_path / "sh.ply", g)
+    el = plyfile.PlyData.read(str(tmp_path / "sh.ply"))["vertex"]
+    names = [p.name for p in el.properties]
+    assert names[6:9] == ["f_dc_0", "f_dc_1", "f_dc_2"] and names[9:54] == [f"f_rest_{i}" for i in range(45)]
+    assert names[54] == "opacity"
+    np.testing.assert_allclose(el["f_rest_16"], av.f_rest[:, 1, 1], atol=1e-7)  # green, second coefficient
+    np.testing.assert_allclose(read_ply(tmp_path / "sh.ply")["sh_rest"], av.f_rest, atol=1e-7)
+
+
+def test_stream_takes_the_dc_colour_only_when_told(tmp_path):
+    v, av = sh_avatar()
+    with pytest.raises(ValueError, match="SH degree 2.*drop_sh"):
+        write_stream(tmp_path / "s.pavs", av)
+    assert not (tmp_path / "s.pavs").exists()
+    info = write_stream(tmp_path / "s.pavs", av, quantize=False, drop_sh=True)
+    back = read_stream(tmp_path / "s.pavs")
+    assert back.sh_degree == 0 and back.meta["sh_degree_dropped"] == 2
+    np.testing.assert_array_equal(back.f_dc, av.f_dc[info.order])
+
+
+def test_training_with_sh_bands(tiny_dataset, tmp_path):
+    from progressive_avatars.core.train import Trainer, config_for
+
+    cfg = config_for("tiny", iterations=30, sh_degree=2, sh_every=10, checkpoint_every=15, eval_every=1000)
+    tr = Trainer(tiny_dataset, str(tmp_path / "run"), cfg)
+    tr.run(progress=False, stop_after=15)
+    assert tr.model.active_sh_degree == 1
+    resumed = Trainer(tiny_dataset, str(tmp_path / "run"), cfg, resume=True)
+    resumed.run(progress=False)
+    assert resumed.model.active_sh_degree == 2
+    av = Avatar.load(tmp_path / "run" / "avatar.npz")
+    assert av.sh_degree == 2 and np.all(np.isfinite(av.f_rest))
+    assert np.abs(av.f_rest[:, :3]).max() > 1e-4  # the first band learned something
+    assert np.abs(av.f_rest[:, 3:]).max() > 0  # the second band was active for its last iterations
+    cfg_json = json.load(open(tmp_path / "run" / "config.json"))
+    assert cfg_json["sh_degree"] == 2
+    with pytest.raises(ValueError, match="SH degree 2.*configuration 0"):
+        Trainer(tiny_dataset, str(tmp_path / "run"), config_for("tiny", iterations=30), resume=True)
