@@ -32,6 +32,17 @@ def run_data_dir(run: str, data: str | None = None) -> str:
     raise ValueError(f"{run}: no --data given and no config.json naming the dataset")
 
 
+def run_flame_model(run: str, flame_model: str | None = None) -> str | None:
+    """The FLAME model a run trained with (FLAME-mode datasets), unless one is given."""
+    if flame_model:
+        return flame_model
+    cfg = os.path.join(run, "config.json")
+    if os.path.exists(cfg):
+        with open(cfg) as fh:
+            return json.load(fh).get("flame_model")
+    return None
+
+
 def run_importance(run: str, avatar: Avatar, data: str, max_views: int | None = 120, progress=True) -> np.ndarray:
     """Importance per face, computed once per trained avatar and cached in the run folder."""
     path = os.path.join(run, "importance.npy")
@@ -43,7 +54,8 @@ def run_importance(run: str, avatar: Avatar, data: str, max_views: int | None = 
     from .data import Dataset
     from .importance import face_importance
 
-    W = face_importance(avatar, Dataset(data, "train"), max_views=max_views, progress=progress)
+    W = face_importance(avatar, Dataset(data, "train", flame_model=run_flame_model(run)), max_views=max_views,
+                        progress=progress)
     tmp = path + ".tmp.npy"
     np.save(tmp, W)
     os.replace(tmp, path)

@@ -40,6 +40,7 @@ class TrainConfig:
     uniform: bool = False  # ablation: split every leaf when the cap rises, ignore gradients
     sh_degree: int = 0  # view-dependent colour bands (0..3); the stream carries degree 0
     sh_every: int = 1000  # one more active SH band every this many iterations (as 3DGS)
+    flame_model: str | None = None  # the user's FLAME model, for FLAME-mode datasets (flame_param_path)
     lambda_ssim: float = 0.2
     position_reg: float = 0.01
     scale_reg: float = 1.0
@@ -129,9 +130,11 @@ class Trainer:
     def __init__(self, data_dir: str, out_dir: str, config: TrainConfig, resume: bool = False):
         self.data_dir, self.out_dir, self.cfg = data_dir, out_dir, config
         os.makedirs(out_dir, exist_ok=True)
-        self.train = Dataset(data_dir, "train", downscale=config.downscale, cache_images=100000)
+        self.train = Dataset(data_dir, "train", downscale=config.downscale, cache_images=100000,
+                             flame_model=config.flame_model)
         try:
-            self.val = Dataset(data_dir, "val", downscale=config.downscale, cache_images=64)
+            self.val = Dataset(data_dir, "val", downscale=config.downscale, cache_images=64,
+                               flame_model=config.flame_model)
         except (ValueError, FileNotFoundError):
             self.val = None
         self.background = torch.tensor(np.asarray(self.train.background, np.float32))

@@ -41,6 +41,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run", required=True)
     ap.add_argument("--data")
+    ap.add_argument("--flame-model", help="FLAME model for FLAME-mode datasets (default: the run's)")
     ap.add_argument("--out", required=True)
     ap.add_argument("--budgets", default="5,25,50,100")
     ap.add_argument("--views", type=int, default=24, help="views per split (spread evenly)")
@@ -62,7 +63,8 @@ def main(argv=None):
             raise ValueError(f"--budgets must be percentages in (0, 100], got {args.budgets!r}")
         avatar = runs.load_run_avatar(args.run)
         data = runs.run_data_dir(args.run, args.data)
-        splits = {"nvs": Dataset(data, "val"), "nes": Dataset(data, "test")}
+        fm = runs.run_flame_model(args.run, args.flame_model)
+        splits = {"nvs": Dataset(data, "val", flame_model=fm), "nes": Dataset(data, "test", flame_model=fm)}
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -25,6 +25,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run", required=True)
     ap.add_argument("--data", help="dataset folder (default: the one the run trained on)")
+    ap.add_argument("--flame-model", help="FLAME model for FLAME-mode datasets (default: the run's)")
     ap.add_argument("--stream", help="write the progressive stream here")
     ap.add_argument("--lossless", action="store_true", help="float32 records instead of quantised ones")
     ap.add_argument("--ply", help="write a 3DGS PLY of one frame here")
@@ -61,7 +62,7 @@ def main(argv=None):
         from progressive_avatars.core.sh import SH_C0
 
         part = stream.read_stream(stream_path, percent=args.budget)
-        ds = Dataset(data, None)
+        ds = Dataset(data, None, flame_model=runs.run_flame_model(args.run, args.flame_model))
         if args.frame not in set(int(t) for t in ds.timesteps):
             print(f"error: {data}: no timestep {args.frame} (have {ds.timesteps[0]}..{ds.timesteps[-1]})", file=sys.stderr)
             return 2

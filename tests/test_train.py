@@ -128,3 +128,53 @@ def test_train_script_runs_as_blender_would(tiny_dataset, tmp_path):
                          cwd=str(tmp_path), env=dict(os.environ, PYTHONPATH=""))
     assert out.returncode == 0, out.stderr[-2000:]
     assert Avatar.load(run / "avatar.npz").num_gaussians > 0
+
+
+def test_flame_mode_dataset_trains_and_exports(tiny_dataset, tmp_path):
+    """A GaussianAvatars FLAME-mode dataset (flame_param_path per frame): train.py takes
+    --flame-model, the run remembers it, export.py finds it there."""
+    import shutil
+
+    sys.path.insert(0, os.path.dirname(__file__))
+    from test_flame import N_SHAPE, make_flame_arrays, random_params
+
+    from progressive_avatars.core.flame import _model_from_mapping
+
+    root = tmp_path / "flame_ds"
+    shutil.copytree(tiny_dataset, root)
+    model = _model_from_mapping(make_flame_arrays(seed=2), "test model", N_SHAPE)
+    model.v_template *= 1.2  # head-sized (the synthetic head spans ~0.25 m)
+    model_path = str(tmp_path / "flame_model.npz")
+    model.save_npz(model_path)
+    (root / "flame_param").mkdir()
+    prm = random_params(64, seed=3, scale=0.05)
+    one = lambda t: {k: (v if k in ("shape", "static_offset") else v[t:t + 1]) for k, v in prm.items()}  # noqa: E731
+    np.savez(root / "canonical_flame_param.npz", **one(0))
+    timesteps = set()
+    for split in ("train", "val", "test"):
+        js = root / f"transforms_{split}.json"
+        meta = json.loads(js.read_text())
+        for fr in meta["frames"]:
+            fr.pop("mesh_path", None)
+            ts = int(fr["timestep_index"])
+            fr["flame_param_path"] = f"flame_param/{ts:05d}.npz"
+            timesteps.add(ts)
+        js.write_text(json.dumps(meta))
+    for ts in timesteps:
+        np.savez(root / "flame_param" / f"{ts:05d}.npz", **one(ts % 64))
+    run = tmp_path / "run"
+    env = dict(os.environ, PYTHONPATH="")
+    base = [sys.executable, os.path.join(ROOT, "scripts", "train.py"), "--data", str(root), "--out", str(run),
+            "--preset", "tiny", "--iterations", "8", "--no-progress"]
+    out = subprocess.run(base, capture_output=True, text=True, timeout=600, env=env)
+    assert out.returncode == 2 and "flame_model" in out.stderr  # FLAME mode without a model: a clear error
+    out = subprocess.run(base + ["--flame-model", model_path], capture_output=True, text=True, timeout=600, env=env)
+    assert out.returncode == 0, out.stderr[-2000:]
+    av = Avatar.load(run / "avatar.npz")
+    assert av.forest.num_roots == len(model.faces) and np.all(np.isfinite(av.d_mu))
+    assert json.loads((run / "config.json").read_text())["flame_model"] == model_path
+    out = subprocess.run([sys.executable, os.path.join(ROOT, "scripts", "export.py"), "--run", str(run), "--ply",
+                          str(tmp_path / "f.ply"), "--frame", str(min(timesteps)), "--max-views", "4"],
+                         capture_output=True, text=True, timeout=600, env=env)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert json.loads(out.stdout.splitlines()[-1])["ply_gaussians"] == av.num_gaussians
