@@ -637,6 +637,18 @@ class Dataset:
             raise DataError(f"{path}: expected parameters of one frame, got {v.shape[0]}")
         return _check_vertices(v[0], path)
 
+    def flame_params_at(self, timestep_index: int) -> dict:
+        """The tracked FLAME parameters of a timestep (FLAME mode), as stored."""
+        ts = int(timestep_index)
+        if self.mode != "flame":
+            raise DataError(f"{self.json_path}: a mesh-mode dataset has no FLAME parameters")
+        if ts not in self._geometry:
+            raise KeyError(f"{self.json_path}: no timestep {ts} in split '{self.split}'")
+        d = _flame_keys(_npz(self._geometry[ts]))
+        if not d:
+            raise DataError(f"{self._geometry[ts]}: no FLAME parameters (expected keys {', '.join(_ALIASES)})")
+        return d
+
     def vertices_at(self, timestep_index: int) -> np.ndarray:
         """Mesh vertices float32 [V,3] of a timestep (cached)."""
         ts = int(timestep_index)

@@ -41,12 +41,14 @@ class TrainConfig:
     sh_degree: int = 0  # view-dependent colour bands (0..3); the stream carries degree 0
     sh_every: int = 1000  # one more active SH band every this many iterations (as 3DGS)
     flame_model: str | None = None  # the user's FLAME model, for FLAME-mode datasets (flame_param_path)
+    refine_flame: bool = False  # learn per-timestep expression/pose/translation corrections (FLAME mode)
     lambda_ssim: float = 0.2
     position_reg: float = 0.01
     scale_reg: float = 1.0
     lr: dict = field(default_factory=lambda: {
         "split_logits": 1e-2, "d_mu": 5e-3, "d_log_scale": 2e-2, "d_rot": 1e-3,
         "opacity_logit": 5e-2, "f_dc": 2.5e-3 * 4, "f_rest": 2.5e-3 * 4 / 20,
+        "flame_expr": 1e-3, "flame_pose": 1e-5, "flame_translation": 1e-6,
     })
     lr_final_ratio: float = 0.01  # position lr decays exponentially to this fraction
     seed: int = 0
@@ -138,6 +140,14 @@ class Trainer:
         except (ValueError, FileNotFoundError):
             self.val = None
         self.background = torch.tensor(np.asarray(self.train.background, np.float32))
+        self.refiner = None
+        if config.refine_flame:
+            if self.train.mode != "flame":
+                raise ValueError(f"{data_dir}: FLAME refinement needs a FLAME-mode dataset (flame_param_path "
+                                 "frames) and --flame-model")
+            from .flame_refine import FlameRefiner
+
+            self.refiner = FlameRefiner(self.train, config.lr)
         self.ckpt_path = os.path.join(out_dir, "checkpoint.npz")
         self.log_path = os.path.join(out_dir, "metrics.jsonl")
         if resume and os.path.exists(self.ckpt_path):
@@ -200,7 +210,7 @@ class Trainer:
         sample = self.train[int(self.rng.integers(len(self.train)))]
         target = torch.from_numpy(sample.image)
         self.model.active_sh_degree = min(c.sh_degree, it // max(1, c.sh_every))
-        g = self.model.gaussians(torch.from_numpy(sample.vertices), sample.camera.center)
+        g = self.model.gaussians(self._vertices(sample), sample.camera.center)
         levels = self._levels()
         top = self.model.forest.max_level
         loss = torch.zeros(())
@@ -218,6 +228,10 @@ class Trainer:
         loss.backward()
         for name, t in p.items():
             _check_finite(it, **{f"gradient of {name}": t.grad})
+        if self.refiner is not None:
+            _check_finite(it, **self.refiner.gradients())
+            self.refiner.step()
+            _check_finite(it, **self.refiner.corrections())
         ids, out = finest
         grad2d = out.means2d.grad
         if grad2d is not None:
@@ -234,6 +248,11 @@ class Trainer:
         mse = torch.mean((out.image.detach() - target) ** 2).item()
         return {"loss": float(loss.item()), "psnr": 10 * math.log10(1 / max(mse, 1e-12))}
 
+    def _vertices(self, sample) -> torch.Tensor:
+        if self.refiner is not None and self.refiner.has(sample.timestep_index):
+            return self.refiner.vertices(sample.timestep_index)
+        return torch.from_numpy(sample.vertices)
+
     # -- evaluation -----------------------------------------------------------------------
     @torch.no_grad()
     def evaluate(self, n_views: int) -> dict:
@@ -245,7 +264,7 @@ class Trainer:
         values = []
         for i in pick:
             s = self.val[int(i)]
-            g = self.model.gaussians(torch.from_numpy(s.vertices), s.camera.center)
+            g = self.model.gaussians(self._vertices(s), s.camera.center)
             out = render(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], s.camera, self.background)
             values.append(psnr(out.image.numpy(), s.image, s.mask))
         return {"val_psnr": float(np.mean(values))}
@@ -258,6 +277,8 @@ class Trainer:
             arrays["adam_m_" + name] = self.opt.m[name].numpy()
             arrays["adam_v_" + name] = self.opt.v[name].numpy()
         arrays["adam_steps"] = self.opt.steps.numpy()
+        if self.refiner is not None:
+            arrays.update(self.refiner.state())
         arrays["grad_sum"] = self.grad_sum
         arrays["grad_count"] = self.grad_count
         arrays["state_json"] = np.array(json.dumps({
@@ -284,6 +305,8 @@ class Trainer:
                 self.opt.v[name] = torch.from_numpy(d["adam_v_" + name].copy())
             self.opt.steps = torch.from_numpy(d["adam_steps"].copy())
             self.grad_sum, self.grad_count = d["grad_sum"].copy(), d["grad_count"].copy()
+            if self.refiner is not None:
+                self.refiner.load_state(d, self.ckpt_path)
             state = json.loads(str(d["state_json"]))
         self.iteration, self.elapsed = state["iteration"], state["elapsed"]
         self.rng = np.random.default_rng()
@@ -304,6 +327,8 @@ class Trainer:
         meta = {"data": os.path.abspath(self.data_dir), "iterations": self.iteration, "train_seconds": self.elapsed,
                 "config": asdict(self.cfg)}
         self.model.to_avatar(meta).save(path)
+        if self.refiner is not None:
+            atomic_savez(os.path.join(self.out_dir, "flame_refined.npz"), **self.refiner.refined_arrays())
         return path
 
     # -- loop -----------------------------------------------------------------------------

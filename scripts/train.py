@@ -35,6 +35,8 @@ def main(argv=None):
     ap.add_argument("--seed", type=int)
     ap.add_argument("--flame-model", help="your FLAME model file (generic_model.pkl / flame2023.pkl / .npz), "
                                           "for FLAME-mode datasets (flame_param_path)")
+    ap.add_argument("--refine-flame", action="store_true",
+                    help="learn per-timestep corrections of the tracked FLAME expression, pose and translation")
     ap.add_argument("--sh-degree", type=int, choices=[0, 1, 2, 3],
                     help="view-dependent colour bands (default 0; the stream carries the DC colour only)")
     ap.add_argument("--no-progress", action="store_true")
@@ -45,7 +47,7 @@ def main(argv=None):
     cfg = config_for(args.preset, iterations=args.iterations, max_depth=args.max_depth,
                      supervision=args.supervision, uniform=args.uniform or None,
                      grad_threshold=args.grad_threshold, max_faces=args.max_faces, seed=args.seed,
-                     sh_degree=args.sh_degree,
+                     sh_degree=args.sh_degree, refine_flame=args.refine_flame or None,
                      flame_model=_os.path.abspath(args.flame_model) if args.flame_model else None)
     try:
         trainer = Trainer(args.data, args.out, cfg, resume=args.resume)

@@ -130,9 +130,8 @@ def test_train_script_runs_as_blender_would(tiny_dataset, tmp_path):
     assert Avatar.load(run / "avatar.npz").num_gaussians > 0
 
 
-def test_flame_mode_dataset_trains_and_exports(tiny_dataset, tmp_path):
-    """A GaussianAvatars FLAME-mode dataset (flame_param_path per frame): train.py takes
-    --flame-model, the run remembers it, export.py finds it there."""
+def _flame_mode_dataset(tiny_dataset, tmp_path):
+    """A FLAME-mode copy of the tiny dataset (its images, a small FLAME-format model's geometry)."""
     import shutil
 
     sys.path.insert(0, os.path.dirname(__file__))
@@ -162,6 +161,13 @@ def test_flame_mode_dataset_trains_and_exports(tiny_dataset, tmp_path):
         js.write_text(json.dumps(meta))
     for ts in timesteps:
         np.savez(root / "flame_param" / f"{ts:05d}.npz", **one(ts % 64))
+    return root, model, model_path, sorted(timesteps), one
+
+
+def test_flame_mode_dataset_trains_and_exports(tiny_dataset, tmp_path):
+    """A GaussianAvatars FLAME-mode dataset (flame_param_path per frame): train.py takes
+    --flame-model, the run remembers it, export.py finds it there."""
+    root, model, model_path, timesteps, _ = _flame_mode_dataset(tiny_dataset, tmp_path)
     run = tmp_path / "run"
     env = dict(os.environ, PYTHONPATH="")
     base = [sys.executable, os.path.join(ROOT, "scripts", "train.py"), "--data", str(root), "--out", str(run),
@@ -178,3 +184,27 @@ def test_flame_mode_dataset_trains_and_exports(tiny_dataset, tmp_path):
                          capture_output=True, text=True, timeout=600, env=env)
     assert out.returncode == 0, out.stderr[-2000:]
     assert json.loads(out.stdout.splitlines()[-1])["ply_gaussians"] == av.num_gaussians
+
+
+def test_flame_refinement_learns_resumes_and_is_saved(tiny_dataset, tmp_path):
+    root, model, model_path, timesteps, one = _flame_mode_dataset(tiny_dataset, tmp_path)
+    cfg = config_for("tiny", iterations=16, grow_every=8, grow_start=8, checkpoint_every=8, eval_every=1000,
+                     flame_model=model_path, refine_flame=True)
+    full = Trainer(str(root), str(tmp_path / "full"), cfg)
+    full.run(progress=False)
+    part = Trainer(str(root), str(tmp_path / "part"), cfg)
+    part.run(progress=False, stop_after=8)
+    resumed = Trainer(str(root), str(tmp_path / "part"), cfg, resume=True)
+    resumed.run(progress=False)
+    a = np.load(tmp_path / "full" / "flame_refined.npz")
+    b = np.load(tmp_path / "part" / "flame_refined.npz")
+    for k in ("correction_expr", "correction_pose", "correction_translation"):
+        assert np.all(np.isfinite(a[k])) and np.abs(a[k]).max() > 0, k  # it learnt something
+        np.testing.assert_allclose(a[k], b[k], atol=1e-7, err_msg=k)  # and resumed to the same result
+    assert np.abs(a["correction_expr"]).max() < 16 * 1e-3 * 1.01  # Adam moves at most lr per step
+    train_ts = set(full.train.timesteps.tolist())
+    np.testing.assert_array_equal(a["timesteps"], sorted(train_ts))
+    t0 = int(a["timesteps"][0])
+    np.testing.assert_allclose(a["expr"][0], one(t0 % 64)["expr"][0] + a["correction_expr"][0], atol=1e-6)
+    with pytest.raises(ValueError, match="FLAME-mode dataset"):
+        Trainer(tiny_dataset, str(tmp_path / "mesh"), config_for("tiny", refine_flame=True))
