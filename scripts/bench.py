@@ -38,12 +38,12 @@ def report_section(report_dir: str) -> str:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--only", help="comma-separated sections: " + ",".join(SECTIONS))
+    ap.add_argument("--only", help="comma-separated sections: " + ",".join(SECTIONS) + " (none: only --report)")
     ap.add_argument("--report", action="append", default=[], help="evaluation report folder(s) to include")
     ap.add_argument("--out", default=os.path.join(_bootstrap.ROOT, "docs", "BENCHMARKS.md"))
     args = ap.parse_args(_bootstrap.script_args() if argv is None else argv)
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-    wanted = SECTIONS if not args.only else [s.strip() for s in args.only.split(",")]
+    wanted = SECTIONS if not args.only else [s.strip() for s in args.only.split(",") if s.strip() not in ("", "none")]
     parts = {}
     # Keep sections from an earlier run when only some are re-measured.
     cache = args.out + ".sections.json"
