@@ -23,8 +23,7 @@ _R_MINUS_I = {
 
 
 def _keyed_curve(action, owner, path, index, frames, values, interp):
-    fc = action.fcurve_ensure_for_datablock(owner, path, index=index) if hasattr(action, "fcurve_ensure_for_datablock") \
-        else action.fcurves.new(path, index=index)
+    fc = sequence._fcurve(action, owner, path, index)
     n = len(frames)
     fc.keyframe_points.add(n)
     co = np.empty(2 * n, np.float32)

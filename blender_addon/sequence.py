@@ -23,10 +23,10 @@ def build_mesh(name, vertices0, faces):
     return me
 
 
-def _fcurve(action, key, path):
+def _fcurve(action, owner, path, index=0):
     if hasattr(action, "fcurve_ensure_for_datablock"):  # Blender 4.4+ (layered actions)
-        return action.fcurve_ensure_for_datablock(key, path)
-    return action.fcurves.new(path)
+        return action.fcurve_ensure_for_datablock(owner, path, index=index)
+    return action.fcurves.new(path, index=index)
 
 
 def add_sequence_keys(obj, vertices, frame_start):

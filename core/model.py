@@ -13,9 +13,6 @@ from . import binding_torch, sh
 from .avatar import PARAM_NAMES, Avatar
 from .forest import Forest
 
-TRAINABLE = PARAM_NAMES + ("split_logits",)
-
-
 class TorchAvatar:
     def __init__(self, avatar: Avatar, device="cpu"):
         self.device = torch.device(device)

@@ -48,11 +48,6 @@ def rest_basis(dirs, degree: int, stack):
     return stack(out, 1) if out else dirs[:, :0]
 
 
-def view_dirs(means, center, normalize):
-    """Unit directions camera centre -> Gaussian; ``normalize(v)`` divides rows by their norm."""
-    return normalize(means - center)
-
-
 def sh_rgb(f_dc, f_rest, dirs, stack, degree: int | None = None):
     """RGB [N,3] (before clamping) from f_dc [N,3], f_rest [N,K,3] and unit dirs [N,3], using the
     first num_rest(degree) coefficients (all when degree is None)."""

@@ -59,7 +59,7 @@ def main(argv=None):
     if args.ply:
         from progressive_avatars.core.data import Dataset
         from progressive_avatars.core.ply import write_ply
-        from progressive_avatars.core.sh import SH_C0
+        from progressive_avatars.core.avatar import sh_to_rgb
 
         part = stream.read_stream(stream_path, percent=args.budget)
         ds = Dataset(data, None, flame_model=runs.run_flame_model(args.run, args.flame_model))
@@ -69,7 +69,7 @@ def main(argv=None):
         g = part.gaussians(ds.vertices_at(args.frame))
         if avatar.sh_degree:  # every band, from the trained avatar's faces of this prefix
             g["sh_rest"] = avatar.f_rest[info.order[: part.num_gaussians]]
-            g["colors"] = (0.5 + SH_C0 * avatar.f_dc[info.order[: part.num_gaussians]]).clip(0, None)
+            g["colors"] = sh_to_rgb(avatar.f_dc[info.order[: part.num_gaussians]])
         write_ply(args.ply, g)
         result.update(ply=args.ply, ply_gaussians=part.num_gaussians, budget=args.budget, frame=args.frame)
     print(json.dumps(result))
