@@ -128,12 +128,24 @@ def read_log(metrics_log) -> list[dict]:
         return [json.loads(line) for line in fh if line.strip()]
 
 
-def seconds_to_reach(rows: list[dict], target: float):
-    """Training seconds at the first evaluation whose NVS PSNR reaches `target` (None if never)."""
+def seconds_to_reach(rows: list[dict], target: float, key: str = "seconds"):
+    """Training seconds (or iterations, key="iteration") at the first evaluation whose NVS
+    PSNR reaches `target` (None if never)."""
     for r in rows:
         if r.get("val_psnr", -np.inf) >= target:
-            return r["seconds"]
+            return r[key]
     return None
+
+
+def training_summary(rows: list[dict], tail: int = 4) -> dict:
+    """Iterations and seconds of a run's metrics log, and the spread of its last `tail`
+    validation PSNRs: how much the score moves between evaluations near the end, a yardstick
+    for differences between runs."""
+    vals = [r["val_psnr"] for r in rows if "val_psnr" in r][-tail:]
+    last = rows[-1] if rows else {}
+    return {"iterations": last.get("iteration"), "seconds": last.get("seconds"),
+            "val_tail_mean": float(np.mean(vals)) if vals else None,
+            "val_tail_sd": float(np.std(vals, ddof=1)) if len(vals) > 1 else None, "val_tail_n": len(vals)}
 
 
 def psnr_vs_time(path, logs: dict):
@@ -154,7 +166,12 @@ def report_markdown(r: dict) -> str:
     lines = [f"# Evaluation report", "", f"- run: `{r['run']}`", f"- data: `{r['data']}`",
              f"- machine: {r['machine']}", f"- date: {r['date']}", f"- command: `{r['command']}`",
              f"- stream: {r['stream_bytes']:,} bytes, {r['gaussians']:,} Gaussians "
-             f"({r['bytes_per_gaussian']:.1f} B/Gaussian with header), levels {r['level_counts']}", "",
+             f"({r['bytes_per_gaussian']:.1f} B/Gaussian with header), levels {r['level_counts']}"]
+    own = r.get("training", {}).get("this run", {})
+    if own.get("seconds") is not None:
+        lines.append(f"- training (from the run's metrics log): {own['iterations']} iterations, "
+                     f"{own['seconds']:.0f} s wall time ({own['seconds'] / 60:.1f} min)")
+    lines += ["",
              "| budget | Gaussians | bytes | NVS PSNR / SSIM | NES PSNR / SSIM | render ms |", "|---|---|---|---|---|---|"]
     for key, e in r["budgets"].items():
         lines.append(f"| {key} % | {e['gaussians']:,} | {e['bytes']:,} | {e['nvs']['psnr']:.2f} / {e['nvs']['ssim']:.3f} | "
@@ -172,13 +189,29 @@ def report_markdown(r: dict) -> str:
     lines.append("- level prefixes: " + ", ".join(f"level ≤{k}: {lp['counts'][k]:,} G, {v['psnr']:.2f} dB" for k, v in lp["nvs"].items()))
     sd = a["single_asset_vs_discrete"]
     lines.append(f"- one stream {sd['stream_bytes']:,} B vs separately stored budgets {sd['discrete_sum_bytes']:,} B")
-    for name, c in a.get("compare", {}).items():
-        pref = ", ".join(f"≤{k}: {v['psnr']:.2f}" for k, v in c["level_prefixes_nvs"].items())
-        lines.append(f"- compare `{name}`: {c['gaussians']:,} Gaussians, NVS {c['nvs']['psnr']:.2f} dB (level prefixes {pref})")
-    if "time_to_psnr" in r:
-        t = r["time_to_psnr"]
-        lines.append(f"- training seconds to first reach {t['target']:.2f} dB NVS: "
-                     + ", ".join(f"`{k}` {v:.0f} s" if v is not None else f"`{k}` never" for k, v in t["seconds"].items()))
+    if a.get("compare"):
+        t = r.get("time_to_psnr", {})
+        train = r.get("training", {})
+        lines += ["", "Other runs on the same views (100 %; level prefixes are NVS PSNR of levels ≤ k). *val tail*: "
+                  "mean ± sd of the last evaluations in the run's training log (8 views each): how much a run's "
+                  "score moves near the end of training. Training seconds depend on what else ran on the machine.", "",
+                  f"| run | Gaussians | NVS PSNR | Δ vs this run | level prefixes | val tail | iterations / seconds "
+                  f"to {t.get('target', float('nan')):.2f} dB | training s |", "|---|---|---|---|---|---|---|---|"]
+        main_psnr = r["budgets"]["100"]["nvs"]["psnr"] if "100" in r["budgets"] else None
+        entries = {"this run": {"gaussians": r["gaussians"], "nvs": {"psnr": main_psnr},
+                                "level_prefixes_nvs": lp["nvs"]}} if main_psnr is not None else {}
+        entries.update(a["compare"])
+        for name, c in entries.items():
+            pref = ", ".join(f"≤{k}: {v['psnr']:.2f}" for k, v in c["level_prefixes_nvs"].items())
+            tr = train.get(name, {})
+            tail = (f"{tr['val_tail_mean']:.2f} ± {tr['val_tail_sd']:.2f}" if tr.get("val_tail_sd") is not None else "")
+            it, sec = t.get("iterations", {}).get(name), t.get("seconds", {}).get(name)
+            reach = "never" if it is None and name in t.get("iterations", {}) else (f"{it} / {sec:.0f}" if it is not None else "")
+            secs = f"{tr['seconds']:.0f}" if tr.get("seconds") is not None else ""
+            delta = c["nvs"]["psnr"] - main_psnr if main_psnr is not None else float("nan")
+            lines.append(f"| `{name}` | {c['gaussians']:,} | {c['nvs']['psnr']:.2f} | {delta:+.2f} | {pref} | {tail} | "
+                         f"{reach} | {secs} |")
+        lines.append("")
     if "depth_vs_detail" in r:
         d = r["depth_vs_detail"]
         lines += ["", f"Depth follows detail: Spearman ρ = {d['spearman']:.3f}; mean depth on the most detailed quarter of "

@@ -1,8 +1,12 @@
 #!/usr/bin/env bash
-# The paper's training ablations on the synthetic default, then one report comparing them:
-#   uniform subdivision to depth 2 and 3, finest-level-only supervision, sampled-level
-#   supervision, against the adaptive multi-level run of scripts/run_demo.sh.
-# Runs two trainings at a time, single-threaded each (2 cores). Outputs under runs/.
+# The paper's training ablations on the synthetic default, then one report comparing them
+# with the adaptive multi-level run of scripts/run_demo.sh:
+#   uniform subdivision to depth 2 and 3 (all levels supervised, and depth 2 with sampled
+#   levels), finest-level-only and sampled-level supervision, the default with another seed
+#   (how far two runs of the same method land apart), and both supervisions with a doubled
+#   growth threshold (fewer Gaussians).
+# Runs two trainings at a time, single-threaded each (2 cores): about 1.5 h on 2 cores.
+# Outputs under runs/; a finished run is skipped, an interrupted one resumes.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup_env.sh
@@ -19,8 +23,14 @@ train() {  # name, extra args...
 mkdir -p runs
 train "avatar_$PRESET" & train uniform_d2 --uniform --max-depth 2 --max-faces 1000000 & wait
 train finest_only --supervision finest & train sampled --supervision sampled & wait
-train uniform_d3 --uniform --max-depth 3 --max-faces 1000000
-$PY scripts/evaluate.py --run "$MAIN" --out "runs/report_$PRESET" \
+train uniform_d3 --uniform --max-depth 3 --max-faces 1000000 & train seed1 --seed 1 & wait
+train uniform_d2_sampled --uniform --max-depth 2 --max-faces 1000000 --supervision sampled & \
+  train all_eps4e-4 --grad-threshold 4e-4 & wait
+train sampled_eps4e-4 --supervision sampled --grad-threshold 4e-4
+$PY scripts/evaluate.py --run "$MAIN" --out "runs/report_$PRESET" --no-progress \
+  --compare seed1=runs/seed1 \
   --compare uniform_d2=runs/uniform_d2 --compare uniform_d3=runs/uniform_d3 \
-  --compare finest_only=runs/finest_only --compare sampled=runs/sampled
+  --compare uniform_d2_sampled=runs/uniform_d2_sampled \
+  --compare finest_only=runs/finest_only --compare sampled=runs/sampled \
+  --compare all_eps4e-4=runs/all_eps4e-4 --compare sampled_eps4e-4=runs/sampled_eps4e-4
 echo "report: runs/report_$PRESET/report.md"

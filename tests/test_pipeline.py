@@ -38,7 +38,7 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
 
     report_dir = tmp_path / "report"
     run_script("evaluate.py", "--run", tiny_run, "--out", str(report_dir), "--budgets", "25,100", "--views", "2",
-               "--curve-points", "3", "--no-progress")
+               "--curve-points", "3", "--no-progress", "--compare", f"again={tiny_run}")
     rep = json.load(open(report_dir / "report.json"))
     assert set(rep["budgets"]) == {"25", "100"}
     full = rep["budgets"]["100"]
@@ -49,7 +49,17 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
     assert abs(rep["ablations"]["quantisation_100"]["psnr_loss_db"]) < 0.5
     for png in ("psnr_vs_bytes.png", "strip_nvs.png", "strip_nes.png", "depth.png", "psnr_vs_time.png"):
         assert (report_dir / png).stat().st_size > 1000, png
-    assert "| 100 % |" in (report_dir / "report.md").read_text()
+    md = (report_dir / "report.md").read_text()
+    assert "| 100 % |" in md
+    # A compared run (here the same run, unquantised and in training order) scores within the
+    # quantisation loss, and the training summary comes from the run's metrics log.
+    again = rep["ablations"]["compare"]["again"]
+    assert again["gaussians"] == trained.num_gaussians
+    assert abs(again["nvs"]["psnr"] - full["nvs"]["psnr"]) < 0.5
+    own = rep["training"]["this run"]
+    assert own["iterations"] == 60 and own["seconds"] > 0
+    assert rep["training"]["again"] == own
+    assert "| `again` |" in md and "| `this run` |" in md and "wall time" in md
 
 
 def test_scripts_report_bad_input(tmp_path):
