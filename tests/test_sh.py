@@ -116,3 +116,29 @@ def test_training_with_sh_bands(tiny_dataset, tmp_path):
     assert cfg_json["sh_degree"] == 2
     with pytest.raises(ValueError, match="SH degree 2.*configuration 0"):
         Trainer(tiny_dataset, str(tmp_path / "run"), config_for("tiny", iterations=30), resume=True)
+    # export.py on the SH run: the stream needs --drop-sh (said clearly), the PLY then carries
+    # every band of the trained avatar, in 3DGS order, readable by plyfile.
+    import subprocess
+    import sys
+
+    from plyfile import PlyData
+
+    from tests.test_pipeline import ENV, ROOT, run_script
+
+    run = str(tmp_path / "run")
+    args = ["--run", run, "--stream", str(tmp_path / "s.pavs"), "--ply", str(tmp_path / "f.ply"), "--max-views", "4"]
+    refused = subprocess.run([sys.executable, f"{ROOT}/scripts/export.py", *args], capture_output=True, text=True,
+                             timeout=600, env=ENV)
+    assert refused.returncode == 2 and "--drop-sh" in refused.stderr and not (tmp_path / "s.pavs").exists()
+    res = run_script("export.py", *args, "--drop-sh")
+    assert res["ply_gaussians"] == av.num_gaussians
+    vert = PlyData.read(str(tmp_path / "f.ply"))["vertex"]
+    K = av.f_rest.shape[1]
+    assert K == 8 and [n for n in vert.data.dtype.names if n.startswith("f_rest_")] == [f"f_rest_{j}" for j in range(3 * K)]
+    rest = np.stack([np.stack([vert[f"f_rest_{c * K + k}"] for c in range(3)], 1) for k in range(K)], 1)
+    # Same rows as the trained avatar's bands, in stream order (compare as sorted row sets).
+    def rows(a):
+        a = a.reshape(len(a), -1)
+        return a[np.lexsort(a.T[::-1])]
+    np.testing.assert_array_equal(rows(rest), rows(av.f_rest))
+    np.testing.assert_array_equal(read_ply(tmp_path / "f.ply")["sh_rest"], rest)
