@@ -149,16 +149,28 @@ def training_summary(rows: list[dict], tail: int = 4) -> dict:
 
 
 def psnr_vs_time(path, logs: dict):
-    """NVS PSNR against training time for one or more runs ({name: metrics.jsonl})."""
+    """NVS PSNR against training time for one or more runs ({name: metrics.jsonl}), and a
+    second panel against iterations zoomed on the plateau (time depends on the machine's
+    load; iterations do not)."""
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(5.5, 3.4))
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(10, 3.6))
+    tops = []
     for name, log in logs.items():
         ev = [r for r in read_log(log) if "val_psnr" in r]
-        ax.plot([r["seconds"] / 60 for r in ev], [r["val_psnr"] for r in ev], "-o", ms=3, label=name)
+        y = [r["val_psnr"] for r in ev]
+        line, = ax.plot([r["seconds"] / 60 for r in ev], y, "-o", ms=3, label=name)
+        ax2.plot([r["iteration"] for r in ev], y, "-o", ms=3, color=line.get_color())
+        tops.append(max(y, default=np.nan))
     ax.set_xlabel("training time (min)")
     ax.set_ylabel("NVS PSNR in mask (dB)")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    ax2.set_xlabel("iteration")
+    top = np.nanmax(tops) if tops and np.isfinite(tops).any() else None
+    if top is not None:
+        ax2.set_ylim(top - 1.0, top + 0.1)
+    ax2.set_title("plateau", fontsize=9)
+    for a in (ax, ax2):
+        a.grid(alpha=0.3)
+    ax.legend(fontsize=7)
     return _save(fig, path)
 
 

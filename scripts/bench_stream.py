@@ -59,7 +59,7 @@ def run(quick: bool = False) -> str:
     from progressive_avatars.core import stream as S
 
     verts, av, imp = build_avatar(quick)
-    reps = 3 if quick else 9
+    reps = 3 if quick else 25
     lines = []
     rows = []
     with tempfile.TemporaryDirectory() as d:
