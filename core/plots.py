@@ -206,7 +206,9 @@ def report_markdown(r: dict) -> str:
         train = r.get("training", {})
         lines += ["", "Other runs on the same views (100 %; level prefixes are NVS PSNR of levels ≤ k). *val tail*: "
                   "mean ± sd of the last evaluations in the run's training log (8 views each): how much a run's "
-                  "score moves near the end of training. Training seconds depend on what else ran on the machine.", "",
+                  "score moves near the end of training. Training seconds depend on what else ran on the machine. "
+                  "This run is scored from its quantised stream, the others from their float32 avatars (the "
+                  "quantisation loss is in the list above).", "",
                   f"| run | Gaussians | NVS PSNR | Δ vs this run | level prefixes | val tail | iterations / seconds "
                   f"to {t.get('target', float('nan')):.2f} dB | training s |", "|---|---|---|---|---|---|---|---|"]
         main_psnr = r["budgets"]["100"]["nvs"]["psnr"] if "100" in r["budgets"] else None
