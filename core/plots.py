@@ -128,9 +128,9 @@ def read_log(metrics_log) -> list[dict]:
         return [json.loads(line) for line in fh if line.strip()]
 
 
-def seconds_to_reach(rows: list[dict], target: float, key: str = "seconds"):
-    """Training seconds (or iterations, key="iteration") at the first evaluation whose NVS
-    PSNR reaches `target` (None if never)."""
+def first_reaching(rows: list[dict], target: float, key: str) -> float | None:
+    """`key` ("seconds" or "iteration") of the first evaluation whose NVS PSNR reaches
+    `target` (None if never)."""
     for r in rows:
         if r.get("val_psnr", -np.inf) >= target:
             return r[key]
@@ -219,8 +219,8 @@ def report_markdown(r: dict) -> str:
             pref = ", ".join(f"≤{k}: {v['psnr']:.2f}" for k, v in c["level_prefixes_nvs"].items())
             tr = train.get(name, {})
             tail = (f"{tr['val_tail_mean']:.2f} ± {tr['val_tail_sd']:.2f}" if tr.get("val_tail_sd") is not None else "")
-            it, sec = t.get("iterations", {}).get(name), t.get("seconds", {}).get(name)
-            reach = "never" if it is None and name in t.get("iterations", {}) else (f"{it} / {sec:.0f}" if it is not None else "")
+            its = t.get("iterations", {})
+            reach = "" if name not in its else "never" if its[name] is None else f"{its[name]} / {t['seconds'][name]:.0f}"
             secs = f"{tr['seconds']:.0f}" if tr.get("seconds") is not None else ""
             delta = c["nvs"]["psnr"] - main_psnr if main_psnr is not None else float("nan")
             lines.append(f"| `{name}` | {c['gaussians']:,} | {c['nvs']['psnr']:.2f} | {delta:+.2f} | {pref} | {tail} | "

@@ -163,8 +163,8 @@ def main(argv=None):
         finals = [max(r.get("val_psnr", -np.inf) for r in rs) for rs in rows.values()]
         target = min(finals) - 0.5  # a level every run reaches, so the times compare
         report["time_to_psnr"] = {"target": float(target),
-                                  "seconds": {k: plots.seconds_to_reach(rs, target) for k, rs in rows.items()},
-                                  "iterations": {k: plots.seconds_to_reach(rs, target, "iteration") for k, rs in rows.items()}}
+                                  "seconds": {k: plots.first_reaching(rs, target, "seconds") for k, rs in rows.items()},
+                                  "iterations": {k: plots.first_reaching(rs, target, "iteration") for k, rs in rows.items()}}
         report["training"] = {k: plots.training_summary(rs) for k, rs in rows.items()}
     report["figures"] = {k: os.path.basename(v) for k, v in figs.items() if v}
     report["machine"] = f"{platform.node()} ({os.cpu_count()} CPUs, {platform.processor() or platform.machine()})"
