@@ -42,6 +42,9 @@ class TrainConfig:
     sh_every: int = 1000  # one more active SH band every this many iterations (as 3DGS)
     flame_model: str | None = None  # the user's FLAME model, for FLAME-mode datasets (flame_param_path)
     refine_flame: bool = False  # learn per-timestep expression/pose/translation corrections (FLAME mode)
+    # w_l of the multi-level loss, by level index; levels past the end take the last entry
+    # (empty: every level 1).
+    level_weights: tuple = ()
     lambda_ssim: float = 0.2
     position_reg: float = 0.01
     scale_reg: float = 1.0
@@ -76,7 +79,16 @@ def config_for(preset: str, **overrides) -> TrainConfig:
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
     cfg = replace(TrainConfig(), **PRESETS[preset])
-    return replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
+    cfg = replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
+    w = tuple(float(x) for x in cfg.level_weights)
+    if any(not math.isfinite(x) or x < 0 for x in w) or (w and max(w) == 0):
+        raise ValueError(f"level weights must be finite, >= 0 and not all 0, got {list(w)}")
+    return replace(cfg, level_weights=w)
+
+
+def level_weight(cfg: TrainConfig, level: int) -> float:
+    w = cfg.level_weights
+    return float(w[min(level, len(w) - 1)]) if w else 1.0
 
 
 class Adam:
@@ -219,7 +231,9 @@ class Trainer:
             ids = self.model.level_ids[lvl]
             out = render(g["means"][ids], g["quats"][ids], g["scales"][ids], g["opacities"][ids], g["colors"][ids],
                          sample.camera, self.background)
-            loss = loss + losses.photometric(out.image, target, c.lambda_ssim)
+            w = level_weight(c, lvl)
+            if w:
+                loss = loss + w * losses.photometric(out.image, target, c.lambda_ssim)
             if lvl == top:
                 finest = (ids, out)
         p = self.model.params

@@ -30,6 +30,8 @@ def main(argv=None):
     ap.add_argument("--max-depth", type=int)
     ap.add_argument("--supervision", choices=["all", "sampled", "finest"])
     ap.add_argument("--uniform", action="store_true", help="ablation: uniform subdivision to --max-depth")
+    ap.add_argument("--level-weights", type=_weights, metavar="W0,W1,...",
+                    help="per-level loss weights by level index; later levels take the last (default all 1)")
     ap.add_argument("--grad-threshold", type=float)
     ap.add_argument("--max-faces", type=int)
     ap.add_argument("--seed", type=int)
@@ -44,12 +46,12 @@ def main(argv=None):
 
     from progressive_avatars.core.train import Trainer, config_for
 
-    cfg = config_for(args.preset, iterations=args.iterations, max_depth=args.max_depth,
-                     supervision=args.supervision, uniform=args.uniform or None,
-                     grad_threshold=args.grad_threshold, max_faces=args.max_faces, seed=args.seed,
-                     sh_degree=args.sh_degree, refine_flame=args.refine_flame or None,
-                     flame_model=_os.path.abspath(args.flame_model) if args.flame_model else None)
     try:
+        cfg = config_for(args.preset, iterations=args.iterations, max_depth=args.max_depth,
+                         supervision=args.supervision, level_weights=args.level_weights, uniform=args.uniform or None,
+                         grad_threshold=args.grad_threshold, max_faces=args.max_faces, seed=args.seed,
+                         sh_degree=args.sh_degree, refine_flame=args.refine_flame or None,
+                         flame_model=_os.path.abspath(args.flame_model) if args.flame_model else None)
         trainer = Trainer(args.data, args.out, cfg, resume=args.resume)
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -57,6 +59,13 @@ def main(argv=None):
     summary = trainer.run(progress=not args.no_progress)
     print(json.dumps(summary))
     return 0
+
+
+def _weights(text):
+    try:
+        return tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
 
 
 if __name__ == "__main__":

@@ -114,6 +114,39 @@ def test_bad_preset_and_data_errors(tmp_path):
     assert out.returncode == 2 and "error:" in out.stderr and "nope" in out.stderr
 
 
+def test_level_weights_scale_each_level_loss(tiny_dataset, tmp_path):
+    from progressive_avatars.core import losses
+    from progressive_avatars.core.train import level_weight
+
+    def first_step(name, weights):
+        cfg = config_for("tiny", level_weights=weights, eval_every=10**6, checkpoint_every=10**6)
+        tr = Trainer(tiny_dataset, str(tmp_path / name), cfg)
+        p = tr.model.params
+        with torch.no_grad():
+            reg = (cfg.position_reg * losses.position_reg(p["d_mu"]) + cfg.scale_reg * losses.scale_reg(p["d_log_scale"])).item()
+        assert tr.model.forest.max_level == 0  # the first step supervises level 0 only
+        return tr.step()["loss"], reg
+
+    base, reg = first_step("w1", None)
+    tripled, reg3 = first_step("w3", (3.0,))
+    zero, reg0 = first_step("w0", (0.0, 1.0))
+    assert reg == reg3 == reg0
+    photo = base - reg
+    assert photo > 0.01
+    assert tripled - reg == pytest.approx(3 * photo, rel=1e-5)
+    assert zero == pytest.approx(reg, abs=1e-7)  # level 0 weighted 0: only the regularisers remain
+    cfg = config_for("tiny", level_weights=(0.25, 0.5, 1.0))
+    assert [level_weight(cfg, lv) for lv in range(5)] == [0.25, 0.5, 1.0, 1.0, 1.0]
+    assert level_weight(config_for("tiny"), 3) == 1.0
+    for bad in ((-1.0,), (0.0, 0.0), (float("nan"),)):
+        with pytest.raises(ValueError, match="level weights"):
+            config_for("tiny", level_weights=bad)
+    out = subprocess.run([sys.executable, os.path.join(ROOT, "scripts", "train.py"), "--data", tiny_dataset,
+                          "--out", str(tmp_path / "r"), "--preset", "tiny", "--level-weights", "1,-2"],
+                         capture_output=True, text=True)
+    assert out.returncode == 2 and "level weights" in out.stderr
+
+
 def test_train_script_runs_as_blender_would(tiny_dataset, tmp_path):
     """`blender --background --python scripts/train.py -- ARGS`: bpy loaded, Blender's argv, args after --."""
     pytest.importorskip("bpy")
