@@ -174,11 +174,49 @@ def psnr_vs_time(path, logs: dict):
     return _save(fig, path)
 
 
+def quality_vs_gaussians(path, report: dict):
+    """NVS PSNR against Gaussian count: this run's stream prefixes (budgets and level sets)
+    and each compared run's level prefixes (levels <= 0, 1, ...), so runs meet at equal
+    counts. None without compared runs."""
+    a = report["ablations"]
+    if not a.get("compare"):
+        return None
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.2, 3.8))
+    b = sorted(report["budgets"].values(), key=lambda e: e["gaussians"])
+    ax.plot([e["gaussians"] for e in b], [e["nvs"]["psnr"] for e in b], "-o", color="k", lw=2, ms=5,
+            label="this run: stream budgets (quantised)", zorder=5)
+    lp = a["level_prefixes"]
+    ax.plot([lp["counts"][k] for k in lp["nvs"]], [v["psnr"] for v in lp["nvs"].values()], "s", color="k", ms=5,
+            mfc="none", label="this run: level prefixes", zorder=5)
+    for i, (name, c) in enumerate(a["compare"].items()):
+        counts = np.cumsum(c["level_counts"])
+        pts = sorted((int(counts[int(k)]), v["psnr"]) for k, v in c["level_prefixes_nvs"].items())
+        x, y = zip(*pts)
+        line, = ax.plot(x, y, "--", marker=".", ms=5, lw=1, color=f"C{i % 10}", label=name)
+        ax.plot(x[-1], y[-1], "D", ms=5, color=line.get_color())
+    ax.set_xscale("log")
+    lo = min(e["nvs"]["psnr"] for e in b if e["gaussians"] >= lp["counts"].get(0, 0))
+    top = max([e["nvs"]["psnr"] for e in b] + [c["nvs"]["psnr"] for c in a["compare"].values()])
+    ax.set_ylim(max(lo - 0.5, top - 6.0), top + 0.3)
+    ax.set_xlabel("Gaussians rendered (log)")
+    ax.set_ylabel("NVS PSNR in mask (dB)")
+    ax.set_title("Quality against Gaussians (diamonds: other runs in full)", fontsize=9)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7, loc="lower right")
+    return _save(fig, path)
+
+
 def report_markdown(r: dict) -> str:
-    lines = [f"# Evaluation report", "", f"- run: `{r['run']}`", f"- data: `{r['data']}`",
+    ds = r.get("data_summary") or {}
+    about = (f" ({ds['width']}x{ds['height']} px images, tracked template {ds['faces']:,} faces)"
+             if {"width", "height", "faces"} <= set(ds) else "")
+    lines = [f"# Evaluation report", "", f"- run: `{r['run']}`", f"- data: `{r['data']}`{about}",
              f"- machine: {r['machine']}", f"- date: {r['date']}", f"- command: `{r['command']}`",
              f"- stream: {r['stream_bytes']:,} bytes, {r['gaussians']:,} Gaussians "
              f"({r['bytes_per_gaussian']:.1f} B/Gaussian with header), levels {r['level_counts']}"]
+    if r.get("about"):
+        lines += ["", r["about"]]
     own = r.get("training", {}).get("this run", {})
     if own.get("seconds") is not None:
         lines.append(f"- training (from the run's metrics log): {own['iterations']} iterations, "

@@ -37,6 +37,16 @@ def _score_prefixes(renderer, counts):
     return {k: renderer.score(np.arange(n)) for k, n in counts.items()}
 
 
+def _data_summary(data) -> dict | None:
+    """Image size and template of a dataset written by make_synthetic.py (None for others)."""
+    path = os.path.join(data, "summary.json")
+    if not os.path.exists(path):
+        return None
+    with open(path) as fh:
+        s = json.load(fh)
+    return {k: s[k] for k in ("width", "height", "faces", "vertices", "cameras", "timesteps") if k in s}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run", required=True)
@@ -47,6 +57,7 @@ def main(argv=None):
     ap.add_argument("--views", type=int, default=24, help="views per split (spread evenly)")
     ap.add_argument("--curve-points", type=int, default=20)
     ap.add_argument("--compare", action="append", default=[], help="NAME=RUN: another run scored at 100 %%")
+    ap.add_argument("--about", default="", help="a sentence on what this report compares (printed under its header)")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(_bootstrap.script_args() if argv is None else argv)
 
@@ -86,7 +97,9 @@ def main(argv=None):
     total_bytes = os.path.getsize(stream_path)
 
     rend = {k: SplitRenderer(streamed, ds, args.views) for k, ds in splits.items()}
-    report = {"run": os.path.abspath(args.run), "data": os.path.abspath(data), "stream_bytes": total_bytes,
+    report = {"run": os.path.abspath(args.run), "data": os.path.abspath(data), "data_summary": _data_summary(data),
+              "about": args.about,
+              "stream_bytes": total_bytes,
               "bytes_per_gaussian": total_bytes / streamed.num_gaussians, "gaussians": streamed.num_gaussians,
               "level_counts": streamed.forest.level_counts().tolist(), "budgets": {}, "ablations": {}}
     for b in budgets:
@@ -166,6 +179,7 @@ def main(argv=None):
                                   "seconds": {k: plots.first_reaching(rs, target, "seconds") for k, rs in rows.items()},
                                   "iterations": {k: plots.first_reaching(rs, target, "iteration") for k, rs in rows.items()}}
         report["training"] = {k: plots.training_summary(rs) for k, rs in rows.items()}
+    figs["quality_vs_gaussians"] = plots.quality_vs_gaussians(os.path.join(args.out, "quality_vs_gaussians.png"), report)
     report["figures"] = {k: os.path.basename(v) for k, v in figs.items() if v}
     report["machine"] = f"{platform.node()} ({os.cpu_count()} CPUs, {platform.processor() or platform.machine()})"
     report["date"] = time.strftime("%Y-%m-%d %H:%M:%S")

@@ -32,6 +32,9 @@ def main(argv=None):
     ap.add_argument("--frames", type=int, default=8, help="frames per sequence")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--supersample", type=int, default=2, help="samples per pixel axis (anti-aliasing)")
+    ap.add_argument("--template-subdivisions", type=int, default=4,
+                    help="icosphere subdivisions of the tracked template: 4 = 5120 faces (default), "
+                         "3 = 1280 (coarser than the imaged surface, which stays at 4)")
     ap.add_argument("--contact-sheet", default=None, help="also copy the contact sheet PNG here")
     ap.add_argument("--closeup", default=None, help="also render a frontal close-up strip PNG here")
     ap.add_argument("--closeup-height", type=int, default=384)
@@ -40,7 +43,8 @@ def main(argv=None):
 
     summary = synthetic.make_dataset(args.out, resolution=args.resolution, cameras=args.cameras,
                                      sequences=args.sequences, frames=args.frames, seed=args.seed,
-                                     progress=not args.quiet, supersample=args.supersample)
+                                     progress=not args.quiet, supersample=args.supersample,
+                                     template_subdivisions=args.template_subdivisions)
     sheet = synthetic.contact_sheet(args.out, os.path.join(args.out, "contact_sheet.png"))
     if args.contact_sheet:
         os.makedirs(os.path.dirname(os.path.abspath(args.contact_sheet)), exist_ok=True)

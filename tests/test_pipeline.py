@@ -38,7 +38,8 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
 
     report_dir = tmp_path / "report"
     run_script("evaluate.py", "--run", tiny_run, "--out", str(report_dir), "--budgets", "25,100", "--views", "2",
-               "--curve-points", "3", "--no-progress", "--compare", f"again={tiny_run}")
+               "--curve-points", "3", "--no-progress", "--compare", f"again={tiny_run}",
+               "--about", "The tiny run against itself.")
     rep = json.load(open(report_dir / "report.json"))
     assert set(rep["budgets"]) == {"25", "100"}
     full = rep["budgets"]["100"]
@@ -47,10 +48,15 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
         assert np.isfinite(full[key]["psnr"]) and 0 < full[key]["ssim"] <= 1
     assert rep["budgets"]["25"]["bytes"] < full["bytes"] <= rep["stream_bytes"]
     assert abs(rep["ablations"]["quantisation_100"]["psnr_loss_db"]) < 0.5
-    for png in ("psnr_vs_bytes.png", "strip_nvs.png", "strip_nes.png", "depth.png", "psnr_vs_time.png"):
+    for png in ("psnr_vs_bytes.png", "strip_nvs.png", "strip_nes.png", "depth.png", "psnr_vs_time.png",
+                "quality_vs_gaussians.png"):
         assert (report_dir / png).stat().st_size > 1000, png
     md = (report_dir / "report.md").read_text()
     assert "| 100 % |" in md
+    # The tiny dataset's own summary (make_synthetic) is named in the report.
+    ds = rep["data_summary"]
+    assert "\nThe tiny run against itself.\n" in md
+    assert ds["faces"] == len(trained.forest.template_faces) and f"template {ds['faces']:,} faces" in md
     # A compared run (here the same run, unquantised and in training order) scores within the
     # quantisation loss, and the training summary comes from the run's metrics log.
     again = rep["ablations"]["compare"]["again"]
