@@ -83,6 +83,27 @@ def test_detail_higher_on_scalp_eyes_lips_than_cheeks(template):
         assert np.mean(d[r[name]]) > 4.0 * cheeks, name
 
 
+def test_coarse_template_dataset_tracks_the_same_imaged_head(tmp_path):
+    """--template-subdivisions 3: a 1280-face tracked mesh whose vertices are a subset of the
+    imaged 5120-face surface in every frame (same rig), and the very same images."""
+    kw = dict(resolution=24, cameras=2, sequences=2, frames=2, progress=False)
+    S.make_dataset(tmp_path / "fine", **kw)
+    summary = S.make_dataset(tmp_path / "coarse", template_subdivisions=3, **kw)
+    assert summary["faces"] == 1280 and summary["vertices"] == 642
+    with np.load(tmp_path / "coarse" / "canonical_mesh.npz") as z:
+        assert z["faces"].shape == (1280, 3) and z["faces"].max() == 641
+    with np.load(tmp_path / "coarse" / "detail.npz") as z:
+        assert z["face_detail"].shape == (1280,)
+    for T in range(4):
+        with np.load(tmp_path / "coarse" / "meshes" / f"{T:05d}.npz") as c, \
+                np.load(tmp_path / "fine" / "meshes" / f"{T:05d}.npz") as f:
+            assert np.array_equal(c["vertices"], f["vertices"][:642])
+    for name in sorted(os.listdir(tmp_path / "fine" / "images")):
+        a = np.asarray(Image.open(tmp_path / "fine" / "images" / name))
+        b = np.asarray(Image.open(tmp_path / "coarse" / "images" / name))
+        assert np.array_equal(a, b), name
+
+
 def test_tiny_dataset(tmp_path):
     out = tmp_path / "ds"
     summary = S.make_dataset(out, resolution=32, cameras=4, sequences=2, frames=2, progress=False)
