@@ -249,8 +249,10 @@ class Trainer:
         ids, out = finest
         grad2d = out.means2d.grad
         if grad2d is not None:
-            # Per-pixel units, independent of image size: normalise by the image extent.
-            norm = torch.linalg.vector_norm(grad2d, dim=-1).numpy() * 0.5 * max(sample.camera.width, sample.camera.height)
+            # Per-pixel units, independent of image size: normalise by the image extent; and of
+            # the level's loss weight, so the growth threshold means the same whatever w_l.
+            scale = 0.5 * max(sample.camera.width, sample.camera.height) / max(level_weight(c, top), 1e-12)
+            norm = torch.linalg.vector_norm(grad2d, dim=-1).numpy() * scale
             seen = out.radii.numpy() > 0
             idx = ids.numpy()[seen]
             np.add.at(self.grad_sum, idx, norm[seen])
