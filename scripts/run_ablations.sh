@@ -9,17 +9,12 @@
 # Outputs under runs/; a finished run is skipped, an interrupted one resumes.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/setup_env.sh
-PY=.venv/bin/python
 PRESET=${PRESET:-cpu}
 DATA=${DATA:-runs/synthetic}
 MAIN=${MAIN:-runs/avatar_$PRESET}
-export NUMBA_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
+OUT=runs
+source scripts/_train_many.sh
 [ -f "$DATA/transforms_train.json" ] || $PY scripts/make_synthetic.py --out "$DATA"
-train() {  # name, extra args...
-  local name=$1; shift
-  [ -f "runs/$name/avatar.npz" ] || $PY scripts/train.py --data "$DATA" --out "runs/$name" --preset "$PRESET" --resume --no-progress "$@" > "runs/$name.log" 2>&1
-}
 mkdir -p runs
 train "avatar_$PRESET" & train uniform_d2 --uniform --max-depth 2 --max-faces 1000000 & wait
 train finest_only --supervision finest & train sampled --supervision sampled & wait

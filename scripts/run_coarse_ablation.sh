@@ -11,16 +11,11 @@
 # Outputs under runs/coarse/; a finished run is skipped, an interrupted one resumes.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/setup_env.sh
-PY=.venv/bin/python
+PRESET=cpu
 DATA=${DATA:-runs/synthetic_coarse}
 OUT=runs/coarse
-export NUMBA_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
+source scripts/_train_many.sh
 [ -f "$DATA/transforms_train.json" ] || $PY scripts/make_synthetic.py --out "$DATA" --template-subdivisions 3 --quiet
-train() {  # name, extra args...
-  local name=$1; shift
-  [ -f "$OUT/$name/avatar.npz" ] || $PY scripts/train.py --data "$DATA" --out "$OUT/$name" --preset cpu --resume --no-progress "$@" > "$OUT/$name.log" 2>&1
-}
 mkdir -p "$OUT"
 train adaptive & train uniform_d2 --uniform --max-depth 2 --max-faces 1000000 & wait
 train uniform_d3 --uniform --max-depth 3 --max-faces 1000000 & train adaptive_seed1 --seed 1 & wait
