@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 
@@ -148,18 +149,92 @@ def training_summary(rows: list[dict], tail: int = 4) -> dict:
             "val_tail_sd": float(np.std(vals, ddof=1)) if len(vals) > 1 else None, "val_tail_n": len(vals)}
 
 
+def seed_group(name: str) -> str:
+    """The group a run belongs to: its name without a trailing "_seed<k>" (seed 0 has none)."""
+    return re.sub(r"_seed\d+$", "", name)
+
+
+def _seed_of(name: str) -> int:
+    m = re.search(r"_seed(\d+)$", name)
+    return int(m.group(1)) if m else 0
+
+
+def seed_pairs(runs: dict) -> list[dict]:
+    """Paired differences between seed groups (see seed_groups): for two groups, the NVS PSNR
+    differences of their runs with the same seed (the seed draws the training views' order, so
+    a pair differs by the method more than by luck), over the seeds both have (two or more)."""
+    by = {}
+    for name, e in runs.items():
+        by.setdefault(seed_group(name), {})[_seed_of(name)] = e["nvs"]["psnr"]
+    by = {g: v for g, v in by.items() if len(v) >= 2}
+    out = []
+    names = list(by)
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            seeds = sorted(set(by[a]) & set(by[b]))
+            if len(seeds) < 2:
+                continue
+            d = np.array([by[a][k] - by[b][k] for k in seeds])
+            out.append({"a": a, "b": b, "seeds": seeds, "diffs": d.tolist(), "mean": float(d.mean()),
+                        "sd": float(d.std(ddof=1))})
+    return out
+
+
+def seed_groups(runs: dict) -> dict:
+    """Mean and spread over seeds: runs ({name: {"gaussians", "nvs": {"psnr"},
+    "level_prefixes_nvs"}}) whose names differ only by a "_seed<k>" suffix form a group; groups
+    of two or more runs get the mean and sample sd of NVS PSNR and Gaussians, and the mean of
+    each level prefix's PSNR (levels every run of the group has)."""
+    by = {}
+    for name, e in runs.items():
+        by.setdefault(seed_group(name), []).append((name, e))
+    out = {}
+    for group, members in by.items():
+        if len(members) < 2:
+            continue
+        psnr = np.array([e["nvs"]["psnr"] for _, e in members], np.float64)
+        gs = np.array([e["gaussians"] for _, e in members], np.float64)
+        levels = set.intersection(*(set(map(str, e["level_prefixes_nvs"])) for _, e in members))
+        prefixes = {k: float(np.mean([{str(a): b for a, b in e["level_prefixes_nvs"].items()}[k]["psnr"]
+                                       for _, e in members])) for k in sorted(levels, key=int)}
+        out[group] = {"runs": [n for n, _ in members], "n": len(members),
+                      "nvs_psnr_mean": float(psnr.mean()), "nvs_psnr_sd": float(psnr.std(ddof=1)),
+                      "nvs_psnr_min": float(psnr.min()), "nvs_psnr_max": float(psnr.max()),
+                      "gaussians_mean": float(gs.mean()), "gaussians_sd": float(gs.std(ddof=1)),
+                      "level_prefixes_nvs_mean": prefixes}
+    return out
+
+
+def _group_styles(names) -> dict:
+    """{name: (colour, legend label or None)}: runs that differ only by seed share a colour and
+    one legend entry ("NAME (k seeds)"); a run alone keeps its own name."""
+    names = list(names)
+    size = {}
+    for n in names:
+        size[seed_group(n)] = size.get(seed_group(n), 0) + 1
+    colour, out = {}, {}
+    for n in names:
+        g = seed_group(n)
+        first = g not in colour
+        colour.setdefault(g, f"C{len(colour) % 10}")
+        out[n] = (colour[g], (f"{g} ({size[g]} seeds)" if size[g] > 1 else n) if first else None)
+    return out
+
+
 def psnr_vs_time(path, logs: dict):
     """NVS PSNR against training time for one or more runs ({name: metrics.jsonl}), and a
     second panel against iterations zoomed on the plateau (time depends on the machine's
     load; iterations do not)."""
     plt = _plt()
-    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(10, 3.6))
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11.5, 3.6))
     tops = []
+    style = _group_styles(logs)
     for name, log in logs.items():
         ev = [r for r in read_log(log) if "val_psnr" in r]
         y = [r["val_psnr"] for r in ev]
-        line, = ax.plot([r["seconds"] / 60 for r in ev], y, "-o", ms=3, label=name)
-        ax2.plot([r["iteration"] for r in ev], y, "-o", ms=3, color=line.get_color())
+        colour, label = style[name]
+        ax.plot([r["seconds"] / 60 for r in ev], y, "-o", ms=3, color=colour, label=label)
+        ax2.plot([r["iteration"] for r in ev], y, "-o", ms=3, color=colour)
         tops.append(max(y, default=np.nan))
     ax.set_xlabel("training time (min)")
     ax.set_ylabel("NVS PSNR in mask (dB)")
@@ -170,7 +245,7 @@ def psnr_vs_time(path, logs: dict):
     ax2.set_title("plateau", fontsize=9)
     for a in (ax, ax2):
         a.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+    ax2.legend(*ax.get_legend_handles_labels(), fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     return _save(fig, path)
 
 
@@ -189,12 +264,14 @@ def quality_vs_gaussians(path, report: dict):
     lp = a["level_prefixes"]
     ax.plot([lp["counts"][k] for k in lp["nvs"]], [v["psnr"] for v in lp["nvs"].values()], "s", color="k", ms=5,
             mfc="none", label="this run: level prefixes", zorder=5)
-    for i, (name, c) in enumerate(a["compare"].items()):
+    style = _group_styles(a["compare"])
+    for name, c in a["compare"].items():
+        colour, label = style[name]
         counts = np.cumsum(c["level_counts"])
         pts = sorted((int(counts[int(k)]), v["psnr"]) for k, v in c["level_prefixes_nvs"].items())
         x, y = zip(*pts)
-        line, = ax.plot(x, y, "--", marker=".", ms=5, lw=1, color=f"C{i % 10}", label=name)
-        ax.plot(x[-1], y[-1], "D", ms=5, color=line.get_color())
+        ax.plot(x, y, "--", marker=".", ms=5, lw=1, color=colour, label=label)
+        ax.plot(x[-1], y[-1], "D", ms=5, color=colour)
     ax.set_xscale("log")
     top = max([e["nvs"]["psnr"] for e in b] + [c["nvs"]["psnr"] for c in a["compare"].values()])
     ax.set_ylim(top - 6.0, top + 0.3)  # the level-0 prefixes and the plateau; tiny budgets fall off
@@ -253,6 +330,7 @@ def report_markdown(r: dict) -> str:
                                 "level_prefixes_nvs": lp["nvs"]}} if main_psnr is not None else {}
         entries.update(a["compare"])
         for name, c in entries.items():
+            label = f"`{r['name']}` (this run)" if name == "this run" and r.get("name") else f"`{name}`"
             pref = ", ".join(f"≤{k}: {v['psnr']:.2f}" for k, v in c["level_prefixes_nvs"].items())
             tr = train.get(name, {})
             tail = (f"{tr['val_tail_mean']:.2f} ± {tr['val_tail_sd']:.2f}" if tr.get("val_tail_sd") is not None else "")
@@ -260,8 +338,30 @@ def report_markdown(r: dict) -> str:
             reach = "" if name not in its else "never" if its[name] is None else f"{its[name]} / {t['seconds'][name]:.0f}"
             secs = f"{tr['seconds']:.0f}" if tr.get("seconds") is not None else ""
             delta = c["nvs"]["psnr"] - main_psnr if main_psnr is not None else float("nan")
-            lines.append(f"| `{name}` | {c['gaussians']:,} | {c['nvs']['psnr']:.2f} | {delta:+.2f} | {pref} | {tail} | "
+            lines.append(f"| {label} | {c['gaussians']:,} | {c['nvs']['psnr']:.2f} | {delta:+.2f} | {pref} | {tail} | "
                          f"{reach} | {secs} |")
+        lines.append("")
+    if r.get("seed_groups"):
+        lines += ["", "Runs that differ only by their seed (`NAME_seed<k>`; the run named without a suffix is seed 0): "
+                  "mean ± sd over seeds (sample sd), the range, and the mean level-prefix PSNRs. "
+                  "All scored from float32 avatars.", "",
+                  "| runs | seeds | Gaussians | NVS PSNR mean ± sd | min .. max | level prefixes (mean) |",
+                  "|---|---|---|---|---|---|"]
+        for group, g in r["seed_groups"].items():
+            pref = ", ".join(f"≤{k}: {v:.2f}" for k, v in g["level_prefixes_nvs_mean"].items())
+            lines.append(f"| `{group}` | {g['n']} | {g['gaussians_mean']:,.0f} ± {g['gaussians_sd']:,.0f} | "
+                         f"{g['nvs_psnr_mean']:.3f} ± {g['nvs_psnr_sd']:.3f} | {g['nvs_psnr_min']:.2f} .. "
+                         f"{g['nvs_psnr_max']:.2f} | {pref} |")
+        lines.append("")
+    if r.get("seed_pairs"):
+        lines += ["", "Paired by seed (the seed draws the sequence of training views, so with all levels "
+                  "supervised two runs with the same seed see the same views in the same order): NVS PSNR of "
+                  "the first minus the second, per seed and mean ± sd.", "",
+                  "| first | second | seeds | difference per seed (dB) | mean ± sd (dB) |", "|---|---|---|---|---|"]
+        for p in r["seed_pairs"]:
+            per = ", ".join(f"{d:+.3f}" for d in p["diffs"])
+            lines.append(f"| `{p['a']}` | `{p['b']}` | {', '.join(map(str, p['seeds']))} | {per} | "
+                         f"{p['mean']:+.3f} ± {p['sd']:.3f} |")
         lines.append("")
     if "depth_vs_detail" in r:
         d = r["depth_vs_detail"]

@@ -57,6 +57,8 @@ def main(argv=None):
     ap.add_argument("--views", type=int, default=24, help="views per split (spread evenly)")
     ap.add_argument("--curve-points", type=int, default=20)
     ap.add_argument("--compare", action="append", default=[], help="NAME=RUN: another run scored at 100 %%")
+    ap.add_argument("--name", default="", help="this run's name for grouping with compared runs of other seeds "
+                    "(NAME_seed1=RUN ...): the report then gives mean ± sd over the seeds")
     ap.add_argument("--about", default="", help="a sentence on what this report compares (printed under its header)")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(_bootstrap.script_args() if argv is None else argv)
@@ -98,7 +100,7 @@ def main(argv=None):
 
     rend = {k: SplitRenderer(streamed, ds, args.views) for k, ds in splits.items()}
     report = {"run": os.path.abspath(args.run), "data": os.path.abspath(data), "data_summary": _data_summary(data),
-              "about": args.about,
+              "about": args.about, "name": args.name,
               "stream_bytes": total_bytes,
               "bytes_per_gaussian": total_bytes / streamed.num_gaussians, "gaussians": streamed.num_gaussians,
               "level_counts": streamed.forest.level_counts().tolist(), "budgets": {}, "ablations": {}}
@@ -132,8 +134,9 @@ def main(argv=None):
     imp = importance_only(W_stream)[:n50]
     abl["importance_only_50"] = {"levels_then_importance": nvs.score(np.arange(n50)),
                                  "importance_only": nvs.score(np.sort(imp)), "gaussians": n50}
+    exact_nvs = SplitRenderer(exact, splits["nvs"], args.views)
     abl["quantisation_100"] = {"quantised": nvs.score(np.arange(streamed.num_gaussians)),
-                               "float32": SplitRenderer(exact, splits["nvs"], args.views).score(np.arange(exact.num_gaussians)),
+                               "float32": exact_nvs.score(np.arange(exact.num_gaussians)),
                                "bytes_quantised": total_bytes, "bytes_float32": os.path.getsize(lossless_path)}
     abl["quantisation_100"]["psnr_loss_db"] = (abl["quantisation_100"]["float32"]["psnr"]
                                               - abl["quantisation_100"]["quantised"]["psnr"])
@@ -152,6 +155,12 @@ def main(argv=None):
         entry["level_prefixes_nvs"] = {int(lvl): other_rend.score(np.flatnonzero(level <= lvl))
                                        for lvl in range(int(level.max()) + 1)}
         abl.setdefault("compare", {})[name] = entry
+    grouped = dict(abl.get("compare", {}))
+    if args.name:  # this run joins its seeds' group, scored like them from its float32 avatar
+        grouped = {args.name: {"gaussians": avatar.num_gaussians, "nvs": abl["quantisation_100"]["float32"],
+                               "level_prefixes_nvs": _score_prefixes(exact_nvs, _levels_prefixes(exact))}, **grouped}
+    report["seed_groups"] = plots.seed_groups(grouped)
+    report["seed_pairs"] = plots.seed_pairs(grouped)
 
     # Detail against depth.
     detail_path = os.path.join(data, "detail.npz")

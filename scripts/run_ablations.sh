@@ -23,7 +23,7 @@ train uniform_d2_sampled --uniform --max-depth 2 --max-faces 1000000 --supervisi
   train all_eps4e-4 --grad-threshold 4e-4 & wait
 train sampled_eps4e-4 --supervision sampled --grad-threshold 4e-4
 $PY scripts/evaluate.py --run "$MAIN" --out "runs/report_$PRESET" --no-progress \
-  --compare seed1=runs/seed1 \
+  --compare adaptive_seed1=runs/seed1 --name adaptive \
   --compare uniform_d2=runs/uniform_d2 --compare uniform_d3=runs/uniform_d3 \
   --compare uniform_d2_sampled=runs/uniform_d2_sampled \
   --compare finest_only=runs/finest_only --compare sampled=runs/sampled \

@@ -6,8 +6,9 @@
 # saturates the 88x128 images and every method ties (docs/BENCHMARKS.md).
 #   adaptive (the cpu preset, seeds 0 and 1, and at half the growth threshold), uniform
 #   subdivision to depth 2 and 3, finest-level-only supervision, and multi-level supervision
-#   with the coarser levels weighted 0.1 and 0.3 (the finest 1), uniform runs with 0.3 too;
-#   then one report. Two trainings at a time, single-threaded each: about 1 h on 2 cores.
+#   with the coarser levels weighted 0.1 and 0.3 (the finest 1), uniform runs with 0.3 too, and
+#   those three runs with seeds 1 and 2 as well; then one report. Two trainings at a time,
+#   single-threaded each: about 1.5 h on 2 cores.
 # Outputs under runs/coarse/; a finished run is skipped, an interrupted one resumes.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -23,11 +24,21 @@ train finest_only --supervision finest & train adaptive_eps1e-4 --grad-threshold
 train adaptive_w0.1 --level-weights 0.1,0.1,0.1,1 & train adaptive_w0.3 --level-weights 0.3,0.3,0.3,1 & wait
 train uniform_d2_w0.3 --uniform --max-depth 2 --max-faces 1000000 --level-weights 0.3,0.3,1 & \
   train uniform_d3_w0.3 --uniform --max-depth 3 --max-faces 1000000 --level-weights 0.3,0.3,0.3,1 & wait
+# Seeds 1 and 2 of the three w = 0.3 runs: the spread between seeds, against which the
+# adaptive/uniform differences are read.
+for s in 1 2; do
+  train adaptive_w0.3_seed$s --seed $s --level-weights 0.3,0.3,0.3,1 & \
+    train uniform_d3_w0.3_seed$s --seed $s --uniform --max-depth 3 --max-faces 1000000 --level-weights 0.3,0.3,0.3,1 & wait
+done
+train uniform_d2_w0.3_seed1 --seed 1 --uniform --max-depth 2 --max-faces 1000000 --level-weights 0.3,0.3,1 & \
+  train uniform_d2_w0.3_seed2 --seed 2 --uniform --max-depth 2 --max-faces 1000000 --level-weights 0.3,0.3,1 & wait
 $PY scripts/evaluate.py --run "$OUT/adaptive" --out runs/report_coarse --no-progress \
   --compare adaptive_seed1="$OUT/adaptive_seed1" --compare adaptive_eps1e-4="$OUT/adaptive_eps1e-4" \
   --compare uniform_d2="$OUT/uniform_d2" --compare uniform_d3="$OUT/uniform_d3" \
   --compare finest_only="$OUT/finest_only" \
   --compare adaptive_w0.1="$OUT/adaptive_w0.1" --compare adaptive_w0.3="$OUT/adaptive_w0.3" \
   --compare uniform_d2_w0.3="$OUT/uniform_d2_w0.3" --compare uniform_d3_w0.3="$OUT/uniform_d3_w0.3" \
-  --about "The synthetic head tracked by a coarser template: 1280 faces (icosphere 3) while the images are ray-cast from the 5120-face surface. Adaptive subdivision (this run: the cpu preset; also a second seed and half the growth threshold) against uniform subdivision to depth 2 and 3, finest-level-only supervision, and level weights w_l = 0.1 or 0.3 for the coarser levels and 1 for the finest, for adaptive and (0.3) uniform runs (scripts/run_coarse_ablation.sh)."
+  $(for s in 1 2; do for r in adaptive_w0.3 uniform_d2_w0.3 uniform_d3_w0.3; do
+      echo --compare ${r}_seed$s="$OUT/${r}_seed$s"; done; done) --name adaptive \
+  --about "The synthetic head tracked by a coarser template: 1280 faces (icosphere 3) while the images are ray-cast from the 5120-face surface. Adaptive subdivision (this run: the cpu preset; also a second seed and half the growth threshold) against uniform subdivision to depth 2 and 3, finest-level-only supervision, and level weights w_l = 0.1 or 0.3 for the coarser levels and 1 for the finest, for adaptive and (0.3) uniform runs, the three w = 0.3 runs with seeds 0, 1 and 2 (scripts/run_coarse_ablation.sh)."
 echo "report: runs/report_coarse/report.md"

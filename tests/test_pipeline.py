@@ -6,6 +6,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ENV = dict(os.environ, NUMBA_NUM_THREADS="1", OMP_NUM_THREADS="1")
@@ -39,6 +40,7 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
     report_dir = tmp_path / "report"
     run_script("evaluate.py", "--run", tiny_run, "--out", str(report_dir), "--budgets", "25,100", "--views", "2",
                "--curve-points", "3", "--no-progress", "--compare", f"again={tiny_run}",
+               "--compare", f"tiny_seed1={tiny_run}", "--name", "tiny",
                "--about", "The tiny run against itself.")
     rep = json.load(open(report_dir / "report.json"))
     assert set(rep["budgets"]) == {"25", "100"}
@@ -65,7 +67,42 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
     own = rep["training"]["this run"]
     assert own["iterations"] == 60 and own["seconds"] > 0
     assert rep["training"]["again"] == own
-    assert "| `again` |" in md and "| `this run` |" in md and "wall time" in md
+    assert "| `again` |" in md and "| `tiny` (this run) |" in md and "wall time" in md
+    # --name puts this run (scored from its float32 avatar) in a group with "tiny_seed1" (the
+    # same run again): two identical scores, so the mean is that score and the spread 0.
+    g = rep["seed_groups"]["tiny"]
+    assert g["runs"] == ["tiny", "tiny_seed1"] and set(rep["seed_groups"]) == {"tiny"}
+    assert g["nvs_psnr_mean"] == pytest.approx(rep["ablations"]["quantisation_100"]["float32"]["psnr"], abs=1e-9)
+    assert g["nvs_psnr_sd"] == pytest.approx(0.0, abs=1e-9) and g["gaussians_mean"] == trained.num_gaussians
+    assert f"| `tiny` | 2 | {trained.num_gaussians:,} ± 0 | {g['nvs_psnr_mean']:.3f} ± 0.000 |" in md
+
+
+def test_seed_groups():
+    from progressive_avatars.core.plots import seed_group, seed_groups, seed_pairs
+
+    def run(psnr, gaussians, prefixes):
+        return {"gaussians": gaussians, "nvs": {"psnr": psnr},
+                "level_prefixes_nvs": {k: {"psnr": v} for k, v in enumerate(prefixes)}}
+
+    assert seed_group("a_w0.3_seed12") == "a_w0.3" and seed_group("seed1") == "seed1" and seed_group("a_seedx") == "a_seedx"
+    g = seed_groups({"a": run(24.0, 100, [20.0, 23.0, 24.0]), "a_seed1": run(25.0, 110, [21.0, 24.0]),
+                     "a_seed2": run(26.0, 120, [22.0, 25.0, 26.0]), "b": run(30.0, 5, [30.0])})
+    assert set(g) == {"a"}  # a group needs two runs
+    a = g["a"]
+    assert a["n"] == 3 and a["runs"] == ["a", "a_seed1", "a_seed2"]
+    assert a["nvs_psnr_mean"] == pytest.approx(25.0) and a["nvs_psnr_sd"] == pytest.approx(1.0)
+    assert (a["nvs_psnr_min"], a["nvs_psnr_max"]) == (24.0, 26.0)
+    assert a["gaussians_mean"] == pytest.approx(110) and a["gaussians_sd"] == pytest.approx(10)
+    assert a["level_prefixes_nvs_mean"] == pytest.approx({"0": 21.0, "1": 24.0})  # levels all three have
+
+    # Paired differences: only over the seeds both groups have, and only with two or more.
+    runs = {"a": run(24.0, 1, [24.0]), "a_seed1": run(25.0, 1, [25.0]), "a_seed2": run(26.0, 1, [26.0]),
+            "b": run(23.5, 1, [23.5]), "b_seed2": run(25.0, 1, [25.0]),
+            "c": run(20.0, 1, [20.0]), "c_seed5": run(20.0, 1, [20.0])}
+    pairs = seed_pairs(runs)
+    assert [(p["a"], p["b"], p["seeds"]) for p in pairs] == [("a", "b", [0, 2])]
+    assert pairs[0]["diffs"] == pytest.approx([0.5, 1.0]) and pairs[0]["mean"] == pytest.approx(0.75)
+    assert pairs[0]["sd"] == pytest.approx(np.std([0.5, 1.0], ddof=1))
 
 
 def test_scripts_report_bad_input(tmp_path):
