@@ -159,14 +159,19 @@ def _seed_of(name: str) -> int:
     return int(m.group(1)) if m else 0
 
 
+def _seed_members(runs) -> dict:
+    """{group: [(name, entry), ...]} in the runs' order (see seed_group)."""
+    by = {}
+    for name in runs:
+        by.setdefault(seed_group(name), []).append((name, runs[name]))
+    return by
+
+
 def seed_pairs(runs: dict) -> list[dict]:
     """Paired differences between seed groups (see seed_groups): for two groups, the NVS PSNR
     differences of their runs with the same seed (the seed draws the training views' order, so
     a pair differs by the method more than by luck), over the seeds both have (two or more)."""
-    by = {}
-    for name, e in runs.items():
-        by.setdefault(seed_group(name), {})[_seed_of(name)] = e["nvs"]["psnr"]
-    by = {g: v for g, v in by.items() if len(v) >= 2}
+    by = {g: {_seed_of(n): e["nvs"]["psnr"] for n, e in m} for g, m in _seed_members(runs).items() if len(m) >= 2}
     out = []
     names = list(by)
     for i, a in enumerate(names):
@@ -185,11 +190,8 @@ def seed_groups(runs: dict) -> dict:
     "level_prefixes_nvs"}}) whose names differ only by a "_seed<k>" suffix form a group; groups
     of two or more runs get the mean and sample sd of NVS PSNR and Gaussians, and the mean of
     each level prefix's PSNR (levels every run of the group has)."""
-    by = {}
-    for name, e in runs.items():
-        by.setdefault(seed_group(name), []).append((name, e))
     out = {}
-    for group, members in by.items():
+    for group, members in _seed_members(runs).items():
         if len(members) < 2:
             continue
         psnr = np.array([e["nvs"]["psnr"] for _, e in members], np.float64)
@@ -209,9 +211,7 @@ def _group_styles(names) -> dict:
     """{name: (colour, legend label or None)}: runs that differ only by seed share a colour and
     one legend entry ("NAME (k seeds)"); a run alone keeps its own name."""
     names = list(names)
-    size = {}
-    for n in names:
-        size[seed_group(n)] = size.get(seed_group(n), 0) + 1
+    size = {g: len(m) for g, m in _seed_members(dict.fromkeys(names)).items()}
     colour, out = {}, {}
     for n in names:
         g = seed_group(n)
