@@ -29,13 +29,14 @@ from .avatar import PARAM_NAMES, SH_C0, Avatar
 from .forest import Forest
 
 MAGIC = b"PAVS\r\n\x1a\n"
-VERSION = 1
+VERSION = 2  # what the writer writes
+READ_VERSIONS = (1, 2)  # what the reader reads (1: smallest-three rotations, FORMAT.md 7)
 FLAG_LOSSLESS = 1
 FLAG_TEMPLATE = 2
 KNOWN_FLAGS = FLAG_LOSSLESS | FLAG_TEMPLATE
 FIXED_HEADER = struct.Struct("<8sHHIIIHHHH16sII")
 FIXED_SIZE = FIXED_HEADER.size  # 56
-QUANT_TABLE_SIZE = 18 * 4
+QUANT_TABLE_SIZE = {1: 18 * 4, 2: 26 * 4}  # by version
 MAX_HEADER = 256 << 20
 DEFAULT_BLOCK = 256
 QUANT_RECORD = 23
@@ -59,11 +60,13 @@ LOSSLESS_DTYPE = np.dtype({
 # every code is one load plus at most one shift or mask, vectorised over a whole record range:
 # mx = u16@0 & 0xFFF, my = u16@1 >> 4, mz = u16@3 & 0xFFF, b0 = u16@4 >> 4, b1 = u16@6 & 0xFFF,
 # top = u8@7 >> 4 (slot, reserved bits), r0 = u16@8 & 0x3FF, r1 = (u16@9 >> 2) & 0x3FF,
-# r2 = (u16@10 >> 4) & 0x3FF, big = u8@11 >> 6, parent = u32@12 & 0xFFFFFF (FORMAT.md 3.1).
+# r2 = (u16@10 >> 4) & 0x3FF, big = u8@11 >> 6 (version 1), rq = u8[4]@8 (version 2),
+# parent = u32@12 & 0xFFFFFF (FORMAT.md 3.1).
 _QUANT_WORDS = np.dtype({
-    "names": ["mx", "my", "mz", "b0", "b1", "top", "r0", "r1", "r2", "big", "p32", "ls", "opa", "col"],
-    "formats": ["<u2", "<u2", "<u2", "<u2", "<u2", "u1", "<u2", "<u2", "<u2", "u1", "<u4", ("u1", 3), "u1", ("u1", 3)],
-    "offsets": [0, 1, 3, 4, 6, 7, 8, 9, 10, 11, 12, 15, 18, 19],
+    "names": ["mx", "my", "mz", "b0", "b1", "top", "r0", "r1", "r2", "big", "rq", "p32", "ls", "opa", "col"],
+    "formats": ["<u2", "<u2", "<u2", "<u2", "<u2", "u1", "<u2", "<u2", "<u2", "u1", ("u1", 4), "<u4", ("u1", 3), "u1",
+                ("u1", 3)],
+    "offsets": [0, 1, 3, 4, 6, 7, 8, 9, 10, 11, 8, 12, 15, 18, 19],
     "itemsize": QUANT_RECORD,
 })
 assert QUANT_DTYPE.itemsize == QUANT_RECORD and LOSSLESS_DTYPE.itemsize == LOSSLESS_RECORD
@@ -125,24 +128,40 @@ def template_hash(faces) -> bytes:
 
 # -- decoding constants (FORMAT.md 3.1: float32 arithmetic, bit-exact in any IEEE-754 reader) --
 _SQRT1_2 = 1.0 / math.sqrt(2.0)
-_ROT_STEP = np.float32(2.0 * _SQRT1_2 / 1023.0)
+_ROT_STEP = np.float32(2.0 * _SQRT1_2 / 1023.0)  # version 1 rotations
 _ROT_LO = np.float32(-_SQRT1_2)
 _OPA_ALPHA = (np.arange(256) + 0.5) / 256.0
 _OPA_LUT = np.log(_OPA_ALPHA / (1.0 - _OPA_ALPHA)).astype(np.float32)
 _BARY_LUT = np.log(np.maximum(np.arange(4096, dtype=np.float64), 2.0 ** -20) / 4095.0).astype(np.float32)
 _BARY_LUT_REV = np.ascontiguousarray(_BARY_LUT[::-1])  # [s] = _BARY_LUT[4095 - s]
-_ROT_OTHERS = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]], np.intp)
+
+
+def quant_ranges(quant) -> dict:
+    """The header's quantisation table as {field: (lo, hi)} float64 arrays: mu, ls, c (3 each)
+    and, from version 2 (26 floats instead of 18), rot (4: w, x, y, z)."""
+    q = np.asarray(quant, np.float64).ravel()
+    if len(q) not in (18, 26):
+        raise ValueError(f"quantisation table of {len(q)} floats (expected 18 or 26)")
+    out = {name: (q[6 * k: 6 * k + 3], q[6 * k + 3: 6 * k + 6]) for k, name in enumerate(("mu", "ls", "c"))}
+    if len(q) == 26:
+        out["rot"] = (q[18:22], q[22:26])
+    return out
 
 
 def quant_steps(quant) -> dict:
-    """Per-field (lo, step) float32 pairs of FORMAT.md 3.1 from the header's 18 floats."""
-    q = np.asarray(quant, np.float64).reshape(3, 2, 3)
-    lo, hi = q[:, 0], q[:, 1]
-    return {
-        "mu": (lo[0].astype(np.float32), ((hi[0] - lo[0]) / 4095.0).astype(np.float32)),
-        "ls": (lo[1].astype(np.float32), ((hi[1] - lo[1]) / 255.0).astype(np.float32)),
-        "fdc": (((lo[2] - 0.5) / SH_C0).astype(np.float32), ((hi[2] - lo[2]) / (255.0 * SH_C0)).astype(np.float32)),
+    """Per-field (lo, step) float32 pairs of FORMAT.md 3.1 from the header's table."""
+    r = quant_ranges(quant)
+    (mu_lo, mu_hi), (ls_lo, ls_hi), (c_lo, c_hi) = r["mu"], r["ls"], r["c"]
+    f32 = np.float32
+    out = {
+        "mu": (mu_lo.astype(f32), ((mu_hi - mu_lo) / 4095.0).astype(f32)),
+        "ls": (ls_lo.astype(f32), ((ls_hi - ls_lo) / 255.0).astype(f32)),
+        "fdc": (((c_lo - 0.5) / SH_C0).astype(f32), ((c_hi - c_lo) / (255.0 * SH_C0)).astype(f32)),
     }
+    if "rot" in r:
+        lo, hi = r["rot"]
+        out["rot"] = (lo.astype(f32), ((hi - lo) / 255.0).astype(f32))
+    return out
 
 
 def _f32_floor(x):
@@ -295,7 +314,7 @@ def _encode_header(info: StreamInfo, template_blob: bytes, meta_blob: bytes) -> 
         meta_blob,
     ]
     size = FIXED_SIZE + 4 * L + len(parts[2]) + len(template_blob) + len(meta_blob) + 4
-    parts[0] = FIXED_HEADER.pack(MAGIC, VERSION, info.flags, size, info.num_records, info.num_template_faces,
+    parts[0] = FIXED_HEADER.pack(MAGIC, info.version, info.flags, size, info.num_records, info.num_template_faces,
                                  info.record_size, info.records_per_block, L, 0, info.template_hash,
                                  len(meta_blob), len(template_blob))
     body = b"".join(parts)
@@ -314,8 +333,9 @@ def _check_magic(buf, source: str) -> None:
 def _parse_fixed(buf, source: str):
     _check_magic(buf, source)
     (magic, version, flags, hsize, N, F0, R, B, L, reserved, thash, M, T) = FIXED_HEADER.unpack_from(buf, 0)
-    if version != VERSION:
-        raise ValueError(f"{source}: stream format version {version} is not supported (this reader: {VERSION})")
+    if version not in READ_VERSIONS:
+        raise ValueError(f"{source}: stream format version {version} is not supported (this reader: "
+                         f"{', '.join(map(str, READ_VERSIONS))})")
     if flags & ~KNOWN_FLAGS:
         raise ValueError(f"{source}: unknown header flags 0x{flags:04x} at offset 10")
     lossless = bool(flags & FLAG_LOSSLESS)
@@ -333,7 +353,7 @@ def _parse_fixed(buf, source: str):
         problems.append(f"records_per_block={B}, num_levels={L}, reserved={reserved}")
     if bool(T) != bool(flags & FLAG_TEMPLATE):
         problems.append(f"template length {T} disagrees with flag bit 1")
-    expect = FIXED_SIZE + 4 * L + (0 if lossless else QUANT_TABLE_SIZE) + T + M + 4
+    expect = FIXED_SIZE + 4 * L + (0 if lossless else QUANT_TABLE_SIZE[version]) + T + M + 4
     if hsize != expect or hsize > MAX_HEADER:
         problems.append(f"header size {hsize} (fields imply {expect}, limit {MAX_HEADER})")
     if problems:
@@ -360,10 +380,10 @@ def _parse_header(buf, source: str) -> StreamInfo:
                          f"F0={f['num_template_faces']}")
     quant = None
     if not f["flags"] & FLAG_LOSSLESS:
-        quant = np.frombuffer(bytes(buf[pos: pos + QUANT_TABLE_SIZE]), "<f4").astype(np.float32)
-        pos += QUANT_TABLE_SIZE
-        lo, hi = quant.reshape(3, 2, 3)[:, 0], quant.reshape(3, 2, 3)[:, 1]
-        if not np.all(np.isfinite(quant)) or np.any(lo > hi):
+        size = QUANT_TABLE_SIZE[f["version"]]
+        quant = np.frombuffer(bytes(buf[pos: pos + size]), "<f4").astype(np.float32)
+        pos += size
+        if not np.all(np.isfinite(quant)) or any(np.any(lo > hi) for lo, hi in quant_ranges(quant).values()):
             raise ValueError(f"{source}: invalid quantisation ranges in the header: {quant.tolist()}")
     template = None
     if f["T"]:
@@ -443,7 +463,7 @@ def stream_order(forest: Forest, importance=None) -> np.ndarray:
 def _quantize_records(av: Avatar, bary: np.ndarray, quant: np.ndarray) -> np.ndarray:
     N = av.num_gaussians
     rec = np.zeros(N, QUANT_DTYPE)
-    q = quant.astype(np.float64).reshape(3, 2, 3)
+    q = quant_ranges(quant)
 
     def codes(x, lo, hi, levels):
         span = hi - lo
@@ -451,7 +471,7 @@ def _quantize_records(av: Avatar, bary: np.ndarray, quant: np.ndarray) -> np.nda
         c = np.rint((np.clip(x, lo, hi) - lo) / safe * (levels - 1))
         return np.where(span > 0, c, 0).astype(np.uint64)
 
-    mu = codes(av.d_mu.astype(np.float64), q[0, 0], q[0, 1], 4096)
+    mu = codes(av.d_mu.astype(np.float64), *q["mu"], 4096)
     b0 = np.rint(bary[:, 0] * 4095).astype(np.int64)
     b1 = np.minimum(np.rint(bary[:, 1] * 4095).astype(np.int64), 4095 - b0)
     slot = np.maximum(av.forest.slot.astype(np.int64), 0).astype(np.uint64)
@@ -459,22 +479,16 @@ def _quantize_records(av: Avatar, bary: np.ndarray, quant: np.ndarray) -> np.nda
                   | (b0.astype(np.uint64) << np.uint64(36)) | (b1.astype(np.uint64) << np.uint64(48))
                   | (slot << np.uint64(60)))
 
-    r = av.d_rot.astype(np.float64)
-    n = np.linalg.norm(r, axis=1, keepdims=True)
-    r = np.where(n > 0, r / np.where(n > 0, n, 1.0), np.array([1.0, 0, 0, 0]))
-    m = np.argmax(np.abs(r), axis=1)
-    r = np.where(np.take_along_axis(r, m[:, None], 1) < 0, -r, r)
-    v = np.take_along_axis(r, _ROT_OTHERS[m], 1)
-    rc = np.clip(np.rint((v / _SQRT1_2 + 1.0) * 1023.0 / 2.0), 0, 1023).astype(np.uint32)
-    rec["rot"] = rc[:, 0] | (rc[:, 1] << np.uint32(10)) | (rc[:, 2] << np.uint32(20)) | (m.astype(np.uint32) << np.uint32(30))
+    rc = codes(_unit_quaternions(av.d_rot), *q["rot"], 256).astype(np.uint32)
+    rec["rot"] = rc[:, 0] | (rc[:, 1] << np.uint32(8)) | (rc[:, 2] << np.uint32(16)) | (rc[:, 3] << np.uint32(24))
 
     parent = np.where(av.forest.parent >= 0, av.forest.parent, QUANT_ROOT).astype(np.uint32)
     rec["parent"] = np.stack([parent & 0xFF, (parent >> 8) & 0xFF, (parent >> 16) & 0xFF], 1).astype(np.uint8)
-    rec["ls"] = codes(av.d_log_scale.astype(np.float64), q[1, 0], q[1, 1], 256).astype(np.uint8)
+    rec["ls"] = codes(av.d_log_scale.astype(np.float64), *q["ls"], 256).astype(np.uint8)
     alpha = 1.0 / (1.0 + np.exp(-av.opacity_logit.astype(np.float64)))
     rec["opa"] = np.minimum(np.floor(alpha * 256.0), 255).astype(np.uint8)
     c = 0.5 + SH_C0 * av.f_dc.astype(np.float64)
-    rec["col"] = codes(c, q[2, 0], q[2, 1], 256).astype(np.uint8)
+    rec["col"] = codes(c, *q["c"], 256).astype(np.uint8)
     raw = rec.view(np.uint8).reshape(N, QUANT_RECORD)
     rec["crc"] = crc8(raw[:, :QUANT_RECORD - 1])
     return rec
@@ -495,11 +509,22 @@ def _lossless_records(av: Avatar) -> np.ndarray:
     return rec
 
 
+def _unit_quaternions(d_rot) -> np.ndarray:
+    """Rotations as coded (FORMAT.md 3.1): unit length, w >= 0 (q and -q are one rotation;
+    this halves w's range), a zero quaternion read as the identity."""
+    r = np.asarray(d_rot, np.float64)
+    n = np.linalg.norm(r, axis=1, keepdims=True)
+    r = np.where(n > 0, r / np.where(n > 0, n, 1.0), np.array([1.0, 0, 0, 0]))
+    return np.where(r[:, :1] < 0, -r, r)
+
+
 def _quant_table(av: Avatar) -> np.ndarray:
     c = 0.5 + SH_C0 * av.f_dc.astype(np.float64)
     c_lo = np.maximum(c.min(0), 0.0)
     c_hi = np.maximum(c.max(0), c_lo)
-    parts = [av.d_mu.min(0), av.d_mu.max(0), av.d_log_scale.min(0), av.d_log_scale.max(0), c_lo, c_hi]
+    r = _unit_quaternions(av.d_rot)
+    parts = [av.d_mu.min(0), av.d_mu.max(0), av.d_log_scale.min(0), av.d_log_scale.max(0), c_lo, c_hi,
+             r.min(0), r.max(0)]
     table = []
     for i, p in enumerate(parts):
         table.append(_f32_floor(p) if i % 2 == 0 else _f32_ceil(p))
@@ -1126,9 +1151,8 @@ def _decode_quantised(raw, out, steps, scratch):
     the last operation."""
     rec = raw.view(_QUANT_WORDS)[:, 0]
     n = len(rec)
-    f32 = np.float32
     mul, add, take = np.multiply, np.add, np.take
-    m12, m10 = np.uint16(0xFFF), np.uint16(0x3FF)
+    m12 = np.uint16(0xFFF)
     f = scratch["f"][:, :n]
     t16 = scratch["t16"][:n]
     ix, ix2 = scratch["ix"][:, :n]
@@ -1156,7 +1180,32 @@ def _decode_quantised(raw, out, steps, scratch):
     ix += ix2
     take(_BARY_LUT_REV, ix, out=g, mode="wrap")
     sl[:, 2] = g
-    # rotation: the three smallest components, the largest from the unit norm
+    # log-scales, colours and (version 2) rotations w x y z: 8-bit affine codes
+    affine8 = [("d_log_scale", "ls", "ls"), ("f_dc", "col", "fdc")]
+    if "rot" in steps:
+        affine8.append(("d_rot", "rq", "rot"))
+    else:
+        _decode_rotation_v1(rec, out["d_rot"], f, t16, scratch)
+    for name, field, key in affine8:
+        lo, step = steps[key]
+        codes = rec[field]
+        dst = out[name]
+        for k in range(len(lo)):
+            a[...] = codes[:, k]
+            mul(a, step[k], out=a)
+            add(a, lo[k], out=dst[:, k])
+    # opacity (table)
+    ix[...] = rec["opa"]
+    take(_OPA_LUT, ix, out=out["opacity_logit"], mode="wrap")  # u8 codes: always in the table
+
+
+def _decode_rotation_v1(rec, q, f, t16, scratch):
+    """Version 1 rotations (FORMAT.md 7): the three smallest components (10 bit each), the
+    largest from the unit norm, placed at the index the record names."""
+    n = len(rec)
+    f32 = np.float32
+    mul, add = np.multiply, np.add
+    m10 = np.uint16(0x3FF)
     v0, v1, v2, w, t, u = f
     for v, field, shift in ((v0, "r0", 0), (v1, "r1", 2), (v2, "r2", 4)):
         np.right_shift(rec[field], np.uint16(shift), out=t16)
@@ -1179,7 +1228,6 @@ def _decode_quantised(raw, out, steps, scratch):
     for j in range(4):
         np.equal(big, np.uint8(j), out=e[j])
     e0, e1, e2, e3 = e
-    q = out["d_rot"]
     mul(w, e0, out=t)  # big == 0 ? w : v0
     np.subtract(f32(1), e0, out=u)
     mul(v0, u, out=u)
@@ -1200,17 +1248,6 @@ def _decode_quantised(raw, out, steps, scratch):
     np.subtract(f32(1), e3, out=u)
     mul(v2, u, out=u)
     add(t, u, out=q[:, 3])
-    # log-scales and colours (8-bit affine codes), opacity (table)
-    for name, field, key in (("d_log_scale", "ls", "ls"), ("f_dc", "col", "fdc")):
-        lo, step = steps[key]
-        codes = rec[field]
-        dst = out[name]
-        for k in range(3):
-            a[...] = codes[:, k]
-            mul(a, step[k], out=a)
-            add(a, lo[k], out=dst[:, k])
-    ix[...] = rec["opa"]
-    take(_OPA_LUT, ix, out=out["opacity_logit"], mode="wrap")  # u8 codes: always in the table
 
 
 def read_stream(source, *, percent=None, max_bytes=None, max_gaussians=None, template_faces=None) -> Avatar | None:

@@ -74,10 +74,10 @@ def test_format_constants_match_document():
 def test_header_layout_is_the_documented_one(small):
     _, av, _, data, _ = small
     magic, version, flags, hsize, N, F0, R, B, L, res, thash, M, T = struct.unpack_from("<8sHHIIIHHHH16sII", data)
-    assert (magic, version, flags, R, B, N, F0) == (S.MAGIC, 1, S.FLAG_TEMPLATE, 23, 8, av.num_gaussians, av.forest.num_roots)
+    assert (magic, version, flags, R, B, N, F0) == (S.MAGIC, 2, S.FLAG_TEMPLATE, 23, 8, av.num_gaussians, av.forest.num_roots)
     assert thash == S.template_hash(av.forest.template_faces)
     assert thash == __import__("hashlib").sha256(av.forest.template_faces.astype("<i4").tobytes()).digest()[:16]
-    assert hsize == 56 + 4 * L + 72 + T + M + 4
+    assert hsize == 56 + 4 * L + 104 + T + M + 4
     assert struct.unpack_from("<I", data, hsize - 4)[0] == zlib.crc32(data[: hsize - 4])
     info = S.read_header(data)
     assert len(data) == info.total_bytes == hsize + N * 23 + 4 * -(-N // B)
@@ -138,17 +138,27 @@ def test_quantised_roundtrip_error_bounds(tmp_path):
     out = S.read_stream(tmp_path / "q.pavs")
     o = info.order
     ref = Avatar(av.forest.reorder(o), *(getattr(av, n)[o] for n in PARAMS))
-    q = info.quant.astype(np.float64).reshape(3, 2, 3)
+    q = info.quant.astype(np.float64)
+    assert len(q) == 26 and np.array_equal(q[:18].reshape(3, 2, 3), np.stack([
+        [S._f32_floor(ref.d_mu.min(0)), S._f32_ceil(ref.d_mu.max(0))],
+        [S._f32_floor(ref.d_log_scale.min(0)), S._f32_ceil(ref.d_log_scale.max(0))],
+        q[12:18].reshape(2, 3)]))
+    q = q[:18].reshape(3, 2, 3)
     step_mu = (q[0, 1] - q[0, 0]) / 4095
     step_ls = (q[1, 1] - q[1, 0]) / 255
     step_c = (q[2, 1] - q[2, 0]) / 255
+    r_lo, r_hi = info.quant[18:22].astype(np.float64), info.quant[22:26].astype(np.float64)
     assert np.all(np.abs(out.d_mu - ref.d_mu) <= step_mu / 2 + 1e-6)
     assert np.all(np.abs(out.d_log_scale - ref.d_log_scale) <= step_ls / 2 + 1e-6)
     assert np.all(np.abs(sigmoid(out.opacity_logit) - sigmoid(ref.opacity_logit)) <= 1 / 512 + 1e-6)
     assert np.all(np.abs(sh_to_rgb(out.f_dc) - sh_to_rgb(ref.f_dc)) <= step_c / 2 + 1e-5)
     qa = ref.d_rot / np.linalg.norm(ref.d_rot, axis=1, keepdims=True)
-    assert np.allclose(np.linalg.norm(out.d_rot, axis=1), 1, atol=1e-5)
-    assert np.all(np.abs(np.sum(qa * out.d_rot, axis=1)) > 1 - 2e-6)  # < ~0.2 degrees
+    qa *= np.where(qa[:, :1] < 0, -1, 1)  # coded with w >= 0
+    assert np.all(qa.min(0) >= r_lo) and np.all(qa.max(0) <= r_hi) and np.all(r_lo[0] >= 0)
+    assert np.all(np.abs(out.d_rot - qa) <= (r_hi - r_lo) / 510 + 1e-6)  # half a step per component
+    qo = out.d_rot / np.linalg.norm(out.d_rot, axis=1, keepdims=True)
+    angle = 2 * np.degrees(np.arccos(np.minimum(np.abs(np.sum(qa * qo, axis=1)), 1)))
+    assert angle.max() < 0.82 and np.median(angle) < 0.5  # FORMAT.md 3.1: at most 0.82 degrees
     assert np.all(np.abs(out.forest.barycentrics() - ref.forest.barycentrics()) <= 1 / 4095 + 1e-6)
     np.testing.assert_array_equal(out.forest.parent, ref.forest.parent)
     # world space: errors small against each face's scale
@@ -169,8 +179,9 @@ def test_quantiser_edge_values():
     N = forest.num_faces
     forest.split_logits[:] = np.array([0.0, -50.0, 50.0])  # a vertex of the simplex
     rot = np.zeros((N, 4))
-    rot[1] = [0, 0, 0, -2]  # largest negative
-    rot[2] = [0.5, 0.5, 0.5, 0.5]  # ties
+    rot[1] = [0, 0, 0, -2]  # w = 0: kept as it is
+    rot[2] = [0.5, 0.5, 0.5, 0.5]  # w half-way between two codes
+    rot[3] = [-1.2, 0, 1.6, 0]  # w < 0: coded as -q, the same rotation
     av = Avatar(forest, np.zeros((N, 3)), np.full((N, 3), -2.0), rot, np.r_[np.full(N - 1, 30.0), -30.0],
                 np.full((N, 3), -5.0))  # constant fields: zero-width ranges, colours below 0
     out = S.read_stream(S.encode_stream(av))
@@ -178,20 +189,24 @@ def test_quantiser_edge_values():
     assert np.allclose(out.forest.barycentrics(), av.forest.barycentrics(), atol=1e-6)
     assert np.all(out.d_mu == 0) and np.all(out.d_log_scale == -2.0)
     assert np.allclose(out.d_rot[0], [1, 0, 0, 0], atol=1e-3) and np.allclose(np.abs(out.d_rot[1]), [0, 0, 0, 1], atol=1e-3)
-    assert np.allclose(np.abs(out.d_rot[2]), 0.5, atol=1e-3)
+    assert np.allclose(out.d_rot[2], 0.5, atol=1 / 510 + 1e-6)
+    assert np.allclose(out.d_rot[3], [0.6, 0, -0.8, 0], atol=2 / 510 + 1e-6)
     assert np.all(sh_to_rgb(out.f_dc) == 0)
     a = sigmoid(out.opacity_logit)
     assert a[0] > 0.99 and a[-1] < 0.003
 
 
 # -- decoding pinned against an independent, per-record decoder ---------------------------
-def _slow_decode(rec: bytes, quant) -> dict:
-    """FORMAT.md 3.1 for one quantised record, written from the document with Python ints
-    and numpy float32 scalars (one rounding per operation), sharing nothing with the reader."""
+def _slow_decode(rec: bytes, quant, version=2) -> dict:
+    """FORMAT.md 3.1 (and section 7 for version 1 rotations) for one quantised record, written
+    from the document with Python ints and numpy float32 scalars (one rounding per operation),
+    sharing nothing with the reader."""
     f32 = np.float32
     geo, rot = int.from_bytes(rec[0:8], "little"), int.from_bytes(rec[8:12], "little")
     parent = int.from_bytes(rec[12:15], "little")
-    q = np.asarray(quant, np.float64).reshape(3, 2, 3)
+    quant = np.asarray(quant, np.float64)
+    assert len(quant) == {1: 18, 2: 26}[version]
+    q = quant[:18].reshape(3, 2, 3)
 
     def affine(code, lo32, step32):
         return f32(lo32 + f32(f32(code) * step32))
@@ -199,11 +214,14 @@ def _slow_decode(rec: bytes, quant) -> dict:
     mu = [affine((geo >> (12 * k)) & 0xFFF, f32(q[0, 0, k]), f32((q[0, 1, k] - q[0, 0, k]) / 4095)) for k in range(3)]
     b0, b1 = (geo >> 36) & 0xFFF, (geo >> 48) & 0xFFF
     split = [f32(math.log(max(b, 2.0 ** -20) / 4095)) for b in (b0, b1, 4095 - b0 - b1)]
-    v = [affine((rot >> (10 * k)) & 0x3FF, f32(-1 / math.sqrt(2)), f32(math.sqrt(2) / 1023)) for k in range(3)]
-    s = f32(f32(f32(v[0] * v[0]) + f32(v[1] * v[1])) + f32(v[2] * v[2]))
-    w = np.sqrt(max(f32(f32(1) - s), f32(0)))
-    d_rot = v[:]
-    d_rot.insert(rot >> 30, w)
+    if version == 1:  # smallest three, 10 bits each; the largest from the unit norm
+        v = [affine((rot >> (10 * k)) & 0x3FF, f32(-1 / math.sqrt(2)), f32(math.sqrt(2) / 1023)) for k in range(3)]
+        s = f32(f32(f32(v[0] * v[0]) + f32(v[1] * v[1])) + f32(v[2] * v[2]))
+        w = np.sqrt(max(f32(f32(1) - s), f32(0)))
+        d_rot = v[:]
+        d_rot.insert(rot >> 30, w)
+    else:  # w x y z, 8 bits each, ranges r_lo[4] r_hi[4]
+        d_rot = [affine(rec[8 + k], f32(quant[18 + k]), f32((quant[22 + k] - quant[18 + k]) / 255)) for k in range(4)]
     ls = [affine(rec[15 + k], f32(q[1, 0, k]), f32((q[1, 1, k] - q[1, 0, k]) / 255)) for k in range(3)]
     alpha = (rec[18] + 0.5) / 256
     fdc = [affine(rec[19 + k], f32((q[2, 0, k] - 0.5) / SH_C0), f32((q[2, 1, k] - q[2, 0, k]) / (255 * SH_C0)))
@@ -225,18 +243,40 @@ def test_decoded_records_match_an_independent_slow_decode():
     chunked = r.avatar()
     got = {**fields(out), **{n: getattr(out, n) for n in PARAMS}}
     got_c = {**fields(chunked), **{n: getattr(chunked, n) for n in PARAMS}}
-    bigs = set()
+    assert info.version == 2
+    _assert_slow_decode(data, info, (got, got_c))
+
+
+def _assert_slow_decode(data, info, decoded):
+    """Every record of `data` decodes in each of `decoded` bit for bit as _slow_decode says."""
     for i in range(info.num_records):
         o = info.record_offset(i)
-        rec = data[o: o + 23]
-        want = _slow_decode(rec, info.quant)
-        bigs.add(int.from_bytes(rec[8:12], "little") >> 30)
+        want = _slow_decode(data[o: o + 23], info.quant, info.version)
         for name, vals in want.items():
             dt = np.int64 if name == "parent" else np.int8 if name == "slot" else np.float32
             w = np.asarray(vals, dt)
-            for g in (got, got_c):  # bit for bit (float32 patterns, not just values)
+            for g in decoded:  # bit for bit (float32 patterns, not just values)
                 assert np.atleast_1d(g[name][i]).astype(dt).tobytes() == w.tobytes(), (i, name, g[name][i], w)
+
+
+def test_version_1_streams_still_read():
+    """tests/data/stream_v1.pavs was written by the version 1 writer (smallest-three
+    rotations, 18-float quantisation table); this reader decodes it as FORMAT.md 7 says."""
+    data = open(os.path.join(os.path.dirname(__file__), "data", "stream_v1.pavs"), "rb").read()
+    info = S.read_header(data)
+    assert (info.version, info.num_records, len(info.quant)) == (1, 557, 18)
+    M, T = struct.unpack_from("<II", data, 48)
+    assert info.header_size == 56 + 4 * info.num_levels + 72 + T + M + 4
+    out = S.read_stream(data)
+    r = S.StreamReader()
+    for i in range(0, len(data), 101):
+        r.feed(data[i: i + 101])
+    decoded = [{**fields(a), **{n: getattr(a, n) for n in PARAMS}} for a in (out, r.avatar())]
+    _assert_slow_decode(data, info, decoded)
+    bigs = {int.from_bytes(data[info.record_offset(i) + 8: info.record_offset(i) + 12], "little") >> 30
+            for i in range(info.num_records)}
     assert bigs == {0, 1, 2, 3}  # every placement of the largest rotation component exercised
+    assert np.allclose(np.linalg.norm(out.d_rot, axis=1), 1, atol=1e-5)
 
 
 def test_trusted_forest_and_avatar_equal_the_validated_constructors():
@@ -422,10 +462,15 @@ def test_header_errors(small, tmp_path):
     bad[H - 10] ^= 1  # inside the metadata
     with pytest.raises(ValueError, match="header checksum"):
         S.read_stream(bytes(bad))
-    v2 = bytearray(data)
-    v2[8:10] = struct.pack("<H", 2)
-    with pytest.raises(ValueError, match="version 2"):
-        S.read_stream(bytes(v2))
+    for v in (0, 3):
+        bad = bytearray(data)
+        bad[8:10] = struct.pack("<H", v)
+        with pytest.raises(ValueError, match=f"version {v} is not supported"):
+            S.read_stream(bytes(bad))
+    v1 = bytearray(data)  # a version 1 header is 32 bytes shorter (no rotation ranges)
+    v1[8:10] = struct.pack("<H", 1)
+    with pytest.raises(ValueError, match="header size"):
+        S.read_stream(bytes(v1))
     fl = bytearray(data)
     fl[10:12] = struct.pack("<H", 0x80 | S.FLAG_TEMPLATE)
     with pytest.raises(ValueError, match="flags"):
