@@ -45,14 +45,42 @@ def build_avatar(quick: bool):
     return verts, av, rng.random(N)
 
 
-def _times(fn, reps):
-    """(best, median) wall seconds of reps calls."""
-    ts = []
-    for _ in range(reps):
-        t = time.perf_counter()
+def _times(fns: dict, reps: int) -> dict:
+    """{key: (best, median) wall seconds} of reps calls of each function, after one warm-up
+    call each. The repetitions go round-robin over all functions, so that a slow spell of a
+    shared machine lands on every measurement alike instead of on whichever ran then."""
+    for fn in fns.values():
         fn()
-        ts.append(time.perf_counter() - t)
-    return min(ts), float(np.median(ts))
+    ts = {k: [] for k in fns}
+    for _ in range(reps):
+        for k, fn in fns.items():
+            t = time.perf_counter()
+            fn()
+            ts[k].append(time.perf_counter() - t)
+    return {k: (min(v), float(np.median(v))) for k, v in ts.items()}
+
+
+def _readers(S, data: bytes, faces) -> dict:
+    """The four measured ways of reading `data` (a function per stream: no shared loop variables)."""
+
+    def verify():
+        S.StreamReader(faces).feed(data)
+
+    def verify_decode():
+        r = S.StreamReader(faces)
+        r.feed(data)
+        r.arrays()
+
+    def chunked():
+        r = S.StreamReader(faces)
+        for i in range(0, len(data), 65536):
+            r.feed(data[i:i + 65536])
+        r.avatar()
+
+    def full():
+        S.read_stream(data, template_faces=faces)
+
+    return {"v": verify, "vd": verify_decode, "c": chunked, "f": full}
 
 
 def run(quick: bool = False) -> str:
@@ -76,28 +104,15 @@ def run(quick: bool = False) -> str:
                 with open(p, "rb") as fh:
                     data = fh.read()
                 results[(quant, embed)] = (info, data, wt)
+        fns = {}
+        for (quant, embed), (info, data, wt) in results.items():
+            faces = av.forest.template_faces if not embed else None
+            for name, fn in _readers(S, data, faces).items():
+                fns[(quant, embed, name)] = fn
+        times = _times(fns, reps)
         for (quant, embed), (info, data, wt) in results.items():
             mb = len(data) / 1e6
-            faces = av.forest.template_faces if not embed else None
-
-            def verify():
-                S.StreamReader(faces).feed(data)
-
-            def verify_decode():
-                r = S.StreamReader(faces)
-                r.feed(data)
-                r.arrays()
-
-            def chunked():
-                r = S.StreamReader(faces)
-                for i in range(0, len(data), 65536):
-                    r.feed(data[i:i + 65536])
-                r.avatar()
-
-            def full():
-                S.read_stream(data, template_faces=faces)
-
-            t_v, t_vd, t_c, t_f = (_times(f, reps) for f in (verify, verify_decode, chunked, full))
+            t_v, t_vd, t_c, t_f = (times[(quant, embed, name)] for name in ("v", "vd", "c", "f"))
             base = info.base_bytes
             rate = " / ".join  # best / median
             rows.append(

@@ -7,8 +7,9 @@
 #   adaptive (the cpu preset, seeds 0 and 1, and at half the growth threshold), uniform
 #   subdivision to depth 2 and 3, finest-level-only supervision, and multi-level supervision
 #   with the coarser levels weighted 0.1 and 0.3 (the finest 1), uniform runs with 0.3 too, and
-#   those three runs with seeds 1 and 2 as well; then one report. Two trainings at a time,
-#   single-threaded each: about 1.5 h on 2 cores.
+#   those three runs with seeds 1 and 2 as well, adaptive at w = 0.3 with half the growth
+#   threshold (seeds 0-2); then one report. Two trainings at a time,
+#   single-threaded each: about 1.75 h on 2 cores.
 # Outputs under runs/coarse/; a finished run is skipped, an interrupted one resumes.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -32,6 +33,11 @@ for s in 1 2; do
 done
 train uniform_d2_w0.3_seed1 --seed 1 --uniform --max-depth 2 --max-faces 1000000 --level-weights 0.3,0.3,1 & \
   train uniform_d2_w0.3_seed2 --seed 2 --uniform --max-depth 2 --max-faces 1000000 --level-weights 0.3,0.3,1 & wait
+# Half the growth threshold at w = 0.3, seeds 0-2: a second point on adaptive's
+# quality-vs-Gaussians curve, still well under uniform depth 3's count.
+W3="--grad-threshold 1e-4 --level-weights 0.3,0.3,0.3,1"
+train adaptive_w0.3_eps1e-4 $W3 & train adaptive_w0.3_eps1e-4_seed1 --seed 1 $W3 & wait
+train adaptive_w0.3_eps1e-4_seed2 --seed 2 $W3
 $PY scripts/evaluate.py --run "$OUT/adaptive" --out runs/report_coarse --no-progress \
   --compare adaptive_seed1="$OUT/adaptive_seed1" --compare adaptive_eps1e-4="$OUT/adaptive_eps1e-4" \
   --compare uniform_d2="$OUT/uniform_d2" --compare uniform_d3="$OUT/uniform_d3" \
@@ -39,6 +45,8 @@ $PY scripts/evaluate.py --run "$OUT/adaptive" --out runs/report_coarse --no-prog
   --compare adaptive_w0.1="$OUT/adaptive_w0.1" --compare adaptive_w0.3="$OUT/adaptive_w0.3" \
   --compare uniform_d2_w0.3="$OUT/uniform_d2_w0.3" --compare uniform_d3_w0.3="$OUT/uniform_d3_w0.3" \
   $(for s in 1 2; do for r in adaptive_w0.3 uniform_d2_w0.3 uniform_d3_w0.3; do
-      echo --compare ${r}_seed$s="$OUT/${r}_seed$s"; done; done) --name adaptive \
-  --about "The synthetic head tracked by a coarser template: 1280 faces (icosphere 3) while the images are ray-cast from the 5120-face surface. Adaptive subdivision (this run: the cpu preset; also a second seed and half the growth threshold) against uniform subdivision to depth 2 and 3, finest-level-only supervision, and level weights w_l = 0.1 or 0.3 for the coarser levels and 1 for the finest, for adaptive and (0.3) uniform runs, the three w = 0.3 runs with seeds 0, 1 and 2 (scripts/run_coarse_ablation.sh)."
+      echo --compare ${r}_seed$s="$OUT/${r}_seed$s"; done; done) \
+  $(for r in adaptive_w0.3_eps1e-4 adaptive_w0.3_eps1e-4_seed1 adaptive_w0.3_eps1e-4_seed2; do
+      echo --compare $r="$OUT/$r"; done) --name adaptive \
+  --about "The synthetic head tracked by a coarser template: 1280 faces (icosphere 3) while the images are ray-cast from the 5120-face surface. Adaptive subdivision (this run: the cpu preset; also a second seed and half the growth threshold) against uniform subdivision to depth 2 and 3, finest-level-only supervision, and level weights w_l = 0.1 or 0.3 for the coarser levels and 1 for the finest, for adaptive and (0.3) uniform runs, the three w = 0.3 runs with seeds 0, 1 and 2, and adaptive at w = 0.3 with half the growth threshold, seeds 0, 1 and 2 (scripts/run_coarse_ablation.sh)."
 echo "report: runs/report_coarse/report.md"
