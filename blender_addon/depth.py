@@ -3,7 +3,7 @@ mode (face-domain colours do not show there), and a legend stored on the object.
 
 import numpy as np
 
-from ..core import preview_data
+from ..core.bridge import preview as preview_data
 
 DEPTH_ATTR = "pa_depth"
 COLOR_ATTR = "pa_depth_color"

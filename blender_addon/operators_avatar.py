@@ -9,8 +9,8 @@ import bpy
 import numpy as np
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
-from ..core import preview_data
-from ..core.avatar import sh_to_rgb, sigmoid
+from ..core.bridge import preview as preview_data
+from ..core.avatar.avatar import sh_to_rgb, sigmoid
 from . import ADDON_PACKAGE, depth, prefs, preview, runtime
 
 
@@ -39,8 +39,8 @@ def _fetch(url):
     verified prefix, itself a valid (shorter) stream. Returns (path, message or "")."""
     if not bpy.app.online_access:
         raise PermissionError("Online access is disabled (Preferences > System > Network)")
-    from ..core import http_stream
-    from ..core.stream import StreamReader
+    from ..core.stream import http as http_stream
+    from ..core.stream.format import StreamReader
 
     name = os.path.basename(urllib.parse.urlparse(url).path) or "avatar.pavs"
     try:
@@ -203,9 +203,9 @@ class PA_OT_export_ply(bpy.types.Operator, ExportHelper):
 
     def execute(self, context):
         try:
-            from ..core import ply
+            from ..core.io import ply
         except ImportError:
-            self.report({"ERROR"}, "This build has no PLY writer (core/ply.py)")
+            self.report({"ERROR"}, "This build has no PLY writer (core/io/ply.py)")
             return {"CANCELLED"}
         try:
             g = current_gaussians(context, _preview_of(context), world=self.world_space)

@@ -28,7 +28,9 @@ class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
     z_up: bpy.props.BoolProperty(name="Y up to Z up", default=True)
 
     def execute(self, context):
-        from ..core import data, flame, flame_rig
+        from ..core.io import data
+        from ..core.flame import model as flame
+        from ..core.flame import rig as flame_rig
 
         path = bpy.path.abspath(self.filepath)
         if self.whole_folder and os.path.isfile(path):
@@ -88,7 +90,7 @@ class PA_OT_import_cameras(bpy.types.Operator):
         return {"RUNNING_MODAL"}
 
     def execute(self, context):
-        from ..core import data
+        from ..core.io import data
 
         root = bpy.path.abspath(self.directory)
         try:

@@ -9,7 +9,7 @@ expression sliders or the bone rotations gives FLAME's own result.
 import bpy
 import numpy as np
 
-from ..core import preview_data
+from ..core.bridge import preview as preview_data
 from . import sequence
 
 # Entry (a, b) of R - I from a quaternion (w, x, y, z), normalised so that interpolated

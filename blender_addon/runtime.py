@@ -9,7 +9,7 @@ import os
 import bpy
 import numpy as np
 
-from ..core import preview_data
+from ..core.bridge import preview as preview_data
 from . import preview
 
 

@@ -3,7 +3,7 @@
 import bpy
 import numpy as np
 
-from ..core import preview_data
+from ..core.bridge import preview as preview_data
 
 
 def _keyframe_interp(name):

@@ -19,6 +19,7 @@ import traceback
 import _bootstrap
 
 SECTIONS = ["forest", "render", "data", "data_gen", "stream", "blender"]
+ORDER = SECTIONS + ["gpu"]
 
 
 def report_section(report_dir: str) -> str:
@@ -35,21 +36,45 @@ def report_section(report_dir: str) -> str:
     return f"## Training and evaluation (from `{report_dir}/report.json`)\n{body}"
 
 
+HEADINGS = {  # how each section's heading starts, to read the current page back into sections
+    "forest": "## Forest evaluation", "render": "## CPU rasteriser", "data": "## Dataset loading",
+    "data_gen": "## Synthetic dataset generation", "stream": "## Stream benchmark", "blender": "## Blender extension",
+    "gpu": "## GPU:",
+}
+
+
+def read_sections(path: str) -> dict:
+    """The sections of an existing BENCHMARKS.md, keyed as this script keys them: a report's own
+    ## headings (ablations, figures) stay inside its section. The page is the only record, so
+    re-measuring one section on a fresh machine keeps the others."""
+    if not os.path.exists(path):
+        return {}
+    parts, key = {}, None
+    for line in open(path).read().split("\n"):
+        if line.startswith("## "):
+            found = next((k for k, h in HEADINGS.items() if line.startswith(h)), None)
+            if found is None and line.startswith("## Training and evaluation (from `"):
+                found = "report:" + line.split("`")[1].rsplit("/report.json", 1)[0]
+            if found is not None:
+                key = found
+                parts[key] = []
+        if key is not None:
+            parts[key].append(line)
+    return {k: "\n".join(v).rstrip("\n") for k, v in parts.items()}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--only", help="comma-separated sections: " + ",".join(SECTIONS) + " (none: only --report)")
     ap.add_argument("--report", action="append", default=[], help="evaluation report folder(s) to include")
+    ap.add_argument("--section", action="append", default=[], metavar="NAME=FILE",
+                    help="a section measured elsewhere (e.g. gpu=DIR/gpu.md from scripts/bench_gpu.py on a CUDA machine)")
     ap.add_argument("--out", default=os.path.join(_bootstrap.ROOT, "docs", "BENCHMARKS.md"))
     args = ap.parse_args(_bootstrap.script_args() if argv is None else argv)
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
     wanted = SECTIONS if not args.only else [s.strip() for s in args.only.split(",") if s.strip() not in ("", "none")]
-    parts = {}
-    # Keep sections from an earlier run when only some are re-measured.
-    cache = args.out + ".sections.json"
-    if os.path.exists(cache):
-        with open(cache) as fh:
-            parts = json.load(fh)
+    parts = read_sections(args.out)  # sections not re-measured now are kept as they are
     for name in wanted:
         t0 = time.perf_counter()
         try:
@@ -60,13 +85,14 @@ def main(argv=None):
         print(f"{name}: {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     for rep in args.report:
         parts["report:" + rep] = report_section(rep)
-    with open(cache + ".tmp", "w") as fh:
-        json.dump(parts, fh)
-    os.replace(cache + ".tmp", cache)
+    for spec in args.section:
+        name, _, path = spec.partition("=")
+        with open(path) as fh:
+            parts[name] = fh.read().rstrip("\n")
     head = ("# Benchmarks\n\nEvery figure on this page is written by `python scripts/bench.py` (sections list their own "
             "machine, command and date). Speed is always reported with the accuracy it kept. The machine is a shared "
             "2-core VM: other work on it shows up as noise, so minima are given beside medians.\n\n")
-    order = [s for s in SECTIONS if s in parts] + [k for k in parts if k not in SECTIONS]  # reports as first added
+    order = [s for s in ORDER if s in parts] + [k for k in parts if k not in ORDER]  # reports as first added
     text = head + "\n\n".join(parts[k] for k in order if parts[k]) + "\n"
     with open(args.out + ".tmp", "w") as fh:
         fh.write(text)

@@ -45,9 +45,9 @@ def grid_mesh(n_vertices=5023, cols=70):
 
 
 def make_inputs(folder, frames, gaussians):
-    from progressive_avatars.core.avatar import Avatar
-    from progressive_avatars.core.forest import Forest
-    from progressive_avatars.core.stream import write_stream
+    from progressive_avatars.core.avatar.avatar import Avatar
+    from progressive_avatars.core.avatar.forest import Forest
+    from progressive_avatars.core.stream.format import write_stream
 
     rng = np.random.default_rng(0)
     v, f = grid_mesh()
@@ -73,7 +73,7 @@ def make_inputs(folder, frames, gaussians):
 def make_rig_inputs(folder, frames):
     """A FLAME-sized model (5023 vertices, 300 shape + 100 expression components, 5 joints;
     random bases, not FLAME's) and a VHAP-style tracked sequence for it. Returns the params."""
-    from progressive_avatars.core.flame import FlameModel
+    from progressive_avatars.core.flame.model import FlameModel
 
     rng = np.random.default_rng(1)
     v, f = grid_mesh()
@@ -196,7 +196,7 @@ def run(quick: bool = False) -> str:
         model, prm = make_rig_inputs(folder, 1000)
         prep = time.perf_counter() - t0
         r = _child(folder)
-        from progressive_avatars.core.flame import flame_forward
+        from progressive_avatars.core.flame.model import flame_forward
 
         sel = r["rig_check_frames"]
         want = flame_forward(model, **{k: (v[sel] if k != "shape" else v) for k, v in prm.items()})

@@ -1,4 +1,4 @@
-"""Benchmark of synthetic dataset generation (core/synthetic.py).
+"""Benchmark of synthetic dataset generation (core/synthetic/head.py).
 
     python scripts/bench_data_gen.py [--quick]
 
@@ -22,7 +22,7 @@ import sys as _sys
 _sys.path.insert(0, _os.path.dirname(_os.path.abspath(__file__)))
 import _bootstrap
 
-from progressive_avatars.core import synthetic
+from progressive_avatars.core.synthetic import head as synthetic
 
 
 def _machine() -> str:

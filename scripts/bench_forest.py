@@ -19,13 +19,13 @@ def sphere(n_lat, n_lon, radius=0.1):
 
     sys.path.insert(0, os.path.dirname(_bootstrap.ROOT))
     sys.path.insert(0, _bootstrap.ROOT)
-    from tests.helpers import sphere_mesh
+    from progressive_avatars.core.synthetic.shapes import sphere_mesh
 
     return sphere_mesh(n_lat, n_lon, radius)
 
 
 def grown_forest(faces, target, rng):
-    from progressive_avatars.core.forest import Forest
+    from progressive_avatars.core.avatar.forest import Forest
 
     f = Forest(faces)
     while f.num_faces < target:
@@ -37,7 +37,7 @@ def grown_forest(faces, target, rng):
 
 
 def run(quick=False) -> str:
-    from progressive_avatars.core import binding
+    from progressive_avatars.core.avatar import binding
 
     rng = np.random.default_rng(0)
     verts, faces = sphere(70, 72)  # ~5k vertices, ~10k faces: FLAME-sized
@@ -56,7 +56,7 @@ def run(quick=False) -> str:
             cells.append(f"{lo * 1e3:.2f} / {med * 1e3:.2f}")
         out.append(f"| {f.num_faces:,} | {f.max_level} | {cells[0]} | {cells[1]} |")
     out += ["", "Depth (uniform subdivision of 600 root faces):", "", "| depth | faces | min ms |", "|---|---|---|"]
-    from progressive_avatars.core.forest import Forest
+    from progressive_avatars.core.avatar.forest import Forest
 
     roots = rng.choice(len(faces), 600, replace=False)
     f = Forest(faces)
@@ -66,7 +66,7 @@ def run(quick=False) -> str:
         ev = binding.FaceEvaluator(f, ids=binding.root_grouped(f))
         lo, _ = best_of(lambda: ev(v), repeat=20, warmup=2)
         out.append(f"| {d} | {f.num_faces:,} | {lo * 1e3:.2f} |")
-    from tests.helpers import depth6_precision
+    from progressive_avatars.core.synthetic.shapes import depth6_precision
 
     p = depth6_precision(rng)
     out += ["", f"Precision, float32 vs float64 at depth 6 ({p['roots']} root faces, metres; median finest face scale "

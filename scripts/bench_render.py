@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import os
 
-# Before torch loads OpenMP: see core/render.py (spinning workers starve each other on a busy box).
+# Before torch loads OpenMP: see core/render/rasterize.py (spinning workers starve each other on a busy box).
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import os as _os
@@ -46,7 +46,7 @@ def head_scene(n, seed=0):
 
 
 def head_camera(width, height):
-    from progressive_avatars.core.camera import Camera
+    from progressive_avatars.core.geometry.camera import Camera
 
     f = 3.0 * height  # the 0.22 m tall head fills about two thirds of the image height at 1 m
     return Camera.look_at([0.05, 0.02, 1.0], [0, 0, 0], [0, 1, 0], f * 1.02, f, width * 0.52, height * 0.49,
@@ -99,7 +99,7 @@ def bench_scene(width, height, n, repeats=3, threads=None):
     import numba
     import torch
 
-    from progressive_avatars.core.render import render
+    from progressive_avatars.core.render.rasterize import render
 
     numba.set_num_threads(threads or numba.config.NUMBA_NUM_THREADS)
 
@@ -141,10 +141,9 @@ def bench_scene(width, height, n, repeats=3, threads=None):
 def bench_reference(width=64, height=64, n=500, repeats=3):
     import torch
 
-    sys.path.insert(0, os.path.join(ROOT, "tests"))
-    from reference_rasterizer import render_reference
+    from progressive_avatars.core.render.reference import render_reference
 
-    from progressive_avatars.core.render import render
+    from progressive_avatars.core.render.rasterize import render
 
     cam = head_camera(width, height)
     params = [torch.from_numpy(x) for x in head_scene(n, seed=1)]
@@ -208,7 +207,7 @@ def run(quick: bool = False) -> str:
                      f"| {r['rss_peak_mb']:.0f} |")
     lines += [
         "",
-        f"Against the dense float64 torch reference (tests/reference_rasterizer.py), {ref['width']}x"
+        f"Against the dense float64 torch reference (core/render/reference.py), {ref['width']}x"
         f"{ref['height']}, {ref['n']} Gaussians, forward+backward: ours {ref['ours_ms']:.1f} ms, reference "
         f"{ref['ref_ms']:.1f} ms (x{ref['ref_ms'] / ref['ours_ms']:.1f}); max abs image error "
         f"{ref['max_err']:.2e}.",

@@ -27,9 +27,9 @@ import numpy as np
 
 
 def build_avatar(quick: bool):
-    from progressive_avatars.core.avatar import Avatar
-    from progressive_avatars.core.forest import Forest
-    from tests.helpers import sphere_mesh
+    from progressive_avatars.core.avatar.avatar import Avatar
+    from progressive_avatars.core.avatar.forest import Forest
+    from progressive_avatars.core.synthetic.shapes import sphere_mesh
 
     rng = np.random.default_rng(0)
     verts, faces = sphere_mesh(80, 64) if not quick else sphere_mesh(30, 32)  # 10,112 / 1,856 faces
@@ -85,7 +85,7 @@ def _readers(S, data: bytes, faces) -> dict:
 
 def run(quick: bool = False) -> str:
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    from progressive_avatars.core import stream as S
+    from progressive_avatars.core.stream import format as S
 
     verts, av, imp = build_avatar(quick)
     reps = 3 if quick else 25
@@ -133,7 +133,7 @@ def run(quick: bool = False) -> str:
         npv = "?"
     cmd = "python scripts/bench_stream.py" + (" --quick" if quick else "")
     lines += [
-        "## Stream benchmark (core/stream.py, docs/FORMAT.md)",
+        "## Stream benchmark (core/stream/format.py, docs/FORMAT.md)",
         "",
         f"- date: {datetime.datetime.now().isoformat(timespec='seconds')}",
         f"- command: `{cmd}`",

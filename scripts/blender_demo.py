@@ -33,10 +33,11 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 def builtin_inputs(folder, frames=24, seed=0):
     """The synthetic head posed over `frames` frames, and a stream of Gaussians on it coloured
     by the head's procedural albedo (a stand-in when no trained run exists)."""
-    from progressive_avatars.core import binding, synthetic
-    from progressive_avatars.core.avatar import SH_C0, Avatar
-    from progressive_avatars.core.forest import Forest
-    from progressive_avatars.core.stream import write_stream
+    from progressive_avatars.core.avatar import binding
+    from progressive_avatars.core.synthetic import head as synthetic
+    from progressive_avatars.core.avatar.avatar import SH_C0, Avatar
+    from progressive_avatars.core.avatar.forest import Forest
+    from progressive_avatars.core.stream.format import write_stream
 
     rng = np.random.default_rng(seed)
     v, f = synthetic.head_template(4)
@@ -87,7 +88,7 @@ bpy.ops.object.progressive_avatars_load(filepath=args["stream"], budget=25.0)
 pv = [c for c in mesh.children if c.pa_avatar.is_preview][0]
 cam_obj = None
 if args.get("camera"):
-    from progressive_avatars.core.camera import Camera
+    from progressive_avatars.core.geometry.camera import Camera
     c = args["camera"]
     cam_obj, s = seq_mod.add_camera(bpy.context, "dataset_cam", Camera(np.array(c["R"]), np.array(c["t"]), *c["intr"]))
 if cam_obj is None:
@@ -144,7 +145,7 @@ def main(argv=None):
     stream = find_stream(args.run) if args.run else None
     camera = None
     if stream and args.data:
-        from progressive_avatars.core import data
+        from progressive_avatars.core.io import data
 
         ds = data.Dataset(args.data, "test") if os.path.exists(os.path.join(args.data, "transforms_test.json")) \
             else data.Dataset(args.data, "train")

@@ -63,10 +63,11 @@ def main(argv=None):
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(_bootstrap.script_args() if argv is None else argv)
 
-    from progressive_avatars.core import plots, stream
-    from progressive_avatars.core import run as runs
-    from progressive_avatars.core.data import Dataset
-    from progressive_avatars.core.eval import SplitRenderer, importance_only, random_within_levels
+    from progressive_avatars.core.evaluate import plots
+    from progressive_avatars.core.stream import format as stream
+    from progressive_avatars.core.io import run as runs
+    from progressive_avatars.core.io.data import Dataset
+    from progressive_avatars.core.evaluate.sweep import SplitRenderer, importance_only, random_within_levels
 
     t_start = time.perf_counter()
     os.makedirs(args.out, exist_ok=True)

@@ -38,8 +38,8 @@ def main(argv=None):
     if not args.stream and not args.ply:
         ap.error("nothing to do: give --stream and/or --ply")
 
-    from progressive_avatars.core import run as runs
-    from progressive_avatars.core import stream
+    from progressive_avatars.core.io import run as runs
+    from progressive_avatars.core.stream import format as stream
 
     try:
         avatar = runs.load_run_avatar(args.run)
@@ -57,9 +57,9 @@ def main(argv=None):
         return 2
     result = {"stream": stream_path, "bytes": os.path.getsize(stream_path), "gaussians": avatar.num_gaussians}
     if args.ply:
-        from progressive_avatars.core.data import Dataset
-        from progressive_avatars.core.ply import write_ply
-        from progressive_avatars.core.avatar import sh_to_rgb
+        from progressive_avatars.core.io.data import Dataset
+        from progressive_avatars.core.io.ply import write_ply
+        from progressive_avatars.core.avatar.avatar import sh_to_rgb
 
         part = stream.read_stream(stream_path, percent=args.budget)
         ds = Dataset(data, None, flame_model=runs.run_flame_model(args.run, args.flame_model))

@@ -20,7 +20,7 @@ import sys as _sys
 _sys.path.insert(0, _os.path.dirname(_os.path.abspath(__file__)))
 import _bootstrap
 
-from progressive_avatars.core import synthetic
+from progressive_avatars.core.synthetic import head as synthetic
 
 
 def main(argv=None):

@@ -44,7 +44,7 @@ def main(argv=None):
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(_bootstrap.script_args() if argv is None else argv)
 
-    from progressive_avatars.core.train import Trainer, config_for
+    from progressive_avatars.core.train.trainer import Trainer, config_for
 
     try:
         cfg = config_for(args.preset, iterations=args.iterations, max_depth=args.max_depth,

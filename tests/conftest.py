@@ -6,7 +6,7 @@ import pytest
 @pytest.fixture(scope="session")
 def tiny_dataset(tmp_path_factory):
     """A small synthetic multi-view head dataset, generated once per test session."""
-    from progressive_avatars.core.synthetic import make_dataset
+    from progressive_avatars.core.synthetic.head import make_dataset
 
     out = tmp_path_factory.mktemp("synthetic")
     make_dataset(str(out), resolution=40, cameras=5, sequences=3, frames=2, seed=0, progress=False)
@@ -16,7 +16,7 @@ def tiny_dataset(tmp_path_factory):
 @pytest.fixture(scope="session")
 def tiny_run(tiny_dataset, tmp_path_factory):
     """A run trained with the tiny preset on the tiny dataset (shared by stream/eval tests)."""
-    from progressive_avatars.core.train import Trainer, config_for
+    from progressive_avatars.core.train.trainer import Trainer, config_for
 
     out = str(tmp_path_factory.mktemp("run"))
     Trainer(tiny_dataset, out, config_for("tiny")).run(progress=False)

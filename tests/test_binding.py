@@ -5,8 +5,9 @@ from hypothesis import example, given, settings, strategies as st
 from hypothesis.extra.numpy import arrays
 from scipy.spatial.transform import Rotation
 
-from progressive_avatars.core import binding, binding_torch
-from progressive_avatars.core.forest import Forest
+from progressive_avatars.core.avatar import binding
+from progressive_avatars.core.train import binding_torch
+from progressive_avatars.core.avatar.forest import Forest
 from tests.helpers import depth6_precision, random_forest, sphere_mesh
 
 

@@ -49,8 +49,8 @@ def _clean_env(tmp):
 
 def make_inputs(folder):
     """A sphere sequence (mesh npz) and a stream written by core (its template = the mesh)."""
-    from progressive_avatars.core.avatar import Avatar
-    from progressive_avatars.core.stream import write_stream
+    from progressive_avatars.core.avatar.avatar import Avatar
+    from progressive_avatars.core.stream.format import write_stream
 
     rng = np.random.default_rng(7)
     v, f = sphere_mesh(10, 14, radius=0.1)
@@ -84,10 +84,9 @@ def make_inputs(folder):
 
 def make_rig_inputs(folder):
     """A small FLAME-format model (npz) and a VHAP tracked-parameter file for it."""
-    sys.path.insert(0, os.path.dirname(__file__))
-    from test_flame import N_SHAPE, make_flame_arrays, random_params
+    from tests.test_flame import N_SHAPE, make_flame_arrays, random_params
 
-    from progressive_avatars.core.flame import _model_from_mapping
+    from progressive_avatars.core.flame.model import _model_from_mapping
 
     model = _model_from_mapping(make_flame_arrays(seed=3), "test model", N_SHAPE)
     model_path = os.path.join(folder, "flame_model.npz")
@@ -226,7 +225,7 @@ def _():
 
 @section("camera")
 def _():
-    cam_mod = sys.modules[pkg + ".core.camera"]
+    cam_mod = sys.modules[pkg + ".core.geometry.camera"]
     seq_mod = sys.modules[pkg + ".blender_addon.sequence"]
     from bpy_extras.object_utils import world_to_camera_view
     from mathutils import Vector
@@ -235,7 +234,7 @@ def _():
     bpy.context.scene.render.resolution_x, bpy.context.scene.render.resolution_y = s["resolution"]
     pts = np.random.default_rng(0).normal(0, 0.05, (20, 3))
     uv_core, _ = cam.project(pts)
-    z_up = np.array(sys.modules[pkg + ".core.preview_data"].Y_UP_TO_Z_UP)
+    z_up = np.array(sys.modules[pkg + ".core.bridge.preview"].Y_UP_TO_Z_UP)
     uv_bl = []
     for p in pts:
         q = z_up[:3, :3] @ p
@@ -516,7 +515,7 @@ def _no_error(rep, name):
 
 
 def _stream():
-    from progressive_avatars.core import stream
+    from progressive_avatars.core.stream import format as stream
     return stream
 
 
@@ -526,7 +525,7 @@ def test_manifest_validates_and_builds(session):
     (zp,) = session["zips"]
     names = zipfile.ZipFile(zp).namelist()
     assert "blender_manifest.toml" in names and "__init__.py" in names
-    assert "blender_addon/__init__.py" in names and "core/preview_data.py" in names
+    assert "blender_addon/__init__.py" in names and "core/bridge/preview.py" in names
     leaked = [n for n in names if n.split("/")[0] in ("tests", "scripts", "docs", ".venv", "runs", ".git")
               or "__pycache__" in n or n.endswith(".pyc")]
     assert not leaked, leaked
@@ -557,8 +556,8 @@ def test_import_flame_rig(session):
     FLAME is pinned in test_flame_rig); weights, keys, bones and drivers are what was built."""
     rep = _report(session)
     _no_error(rep, "rig")
-    from progressive_avatars.core.flame import flame_forward, load_flame_model
-    from progressive_avatars.core.flame_rig import build_flame_rig
+    from progressive_avatars.core.flame.model import flame_forward, load_flame_model
+    from progressive_avatars.core.flame.rig import build_flame_rig
 
     model = load_flame_model(session["flame"])
     prm = dict(np.load(session["params"]))
@@ -609,7 +608,7 @@ def test_budget_shows_stream_count(session):
 def test_frames_match_core_evaluation(session):
     rep = _report(session)
     _no_error(rep, "load")
-    from progressive_avatars.core.binding import quat_to_rotmat
+    from progressive_avatars.core.avatar.binding import quat_to_rotmat
 
     av = _stream().read_stream(session["stream"])
     n = _stream().read_header(session["stream"]).count_for_percent(25)
@@ -644,7 +643,7 @@ def test_depth_attribute_and_legend(session):
 def test_export_ply_current_frame_budget(session):
     rep = _report(session)
     _no_error(rep, "export")
-    from progressive_avatars.core.ply import read_ply
+    from progressive_avatars.core.io.ply import read_ply
 
     g = read_ply(os.path.join(session["out"], "frame.ply"))
     av = _stream().read_stream(session["stream"])
@@ -711,8 +710,8 @@ def test_cycles_renders_show_coloured_splats(session):
 def test_render_splats_operator_matches_core_render(session):
     rep = _report(session)
     _no_error(rep, "render_splats")
-    from progressive_avatars.core import preview_data
-    from progressive_avatars.core.render import render_numpy
+    from progressive_avatars.core.bridge import preview as preview_data
+    from progressive_avatars.core.render.rasterize import render_numpy
 
     r = rep["splats"]
     assert r["result"] == ["FINISHED"]

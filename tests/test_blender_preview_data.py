@@ -1,14 +1,14 @@
-"""core/preview_data.py: the numpy side of the Blender preview (no bpy needed)."""
+"""core/bridge/preview.py: the numpy side of the Blender preview (no bpy needed)."""
 
 import numpy as np
 
-from progressive_avatars.core import binding
+from progressive_avatars.core.avatar import binding
 import pytest
 
-from progressive_avatars.core import preview_data
-from progressive_avatars.core.avatar import Avatar
-from progressive_avatars.core.binding import quat_to_rotmat
-from progressive_avatars.core.camera import Camera
+from progressive_avatars.core.bridge import preview as preview_data
+from progressive_avatars.core.avatar.avatar import Avatar
+from progressive_avatars.core.avatar.binding import quat_to_rotmat
+from progressive_avatars.core.geometry.camera import Camera
 from tests.helpers import random_forest, sphere_mesh
 
 

@@ -7,14 +7,13 @@ import sys
 import numpy as np
 import pytest
 
-from progressive_avatars.core.camera import Camera
-from progressive_avatars.core.data import (DataError, Dataset, MeshSequence, MissingFileError, read_flame_param_folder,
+from progressive_avatars.core.geometry.camera import Camera
+from progressive_avatars.core.io.data import (DataError, Dataset, MeshSequence, MissingFileError, read_flame_param_folder,
                                            read_mesh_folder, read_mesh_npz, read_nersemble_tracking, read_sequence,
                                            read_vhap_tracked)
-from progressive_avatars.core.flame import flame_forward, load_flame_model
+from progressive_avatars.core.flame.model import flame_forward, load_flame_model
 
-sys.path.insert(0, os.path.dirname(__file__))
-from test_flame import N_EXPR, N_SHAPE, N_V, random_params, write_flame_pkl  # noqa: E402
+from tests.test_flame import N_EXPR, N_SHAPE, N_V, random_params, write_flame_pkl  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -380,7 +379,7 @@ def test_flame_mode_dataset(tmp_path, flame_model):
 
 
 def test_flame_track_reads_parameters_without_a_model(tmp_path, flame_model):
-    from progressive_avatars.core.data import read_flame_track
+    from progressive_avatars.core.io.data import read_flame_track
 
     prm = random_params(4, seed=8)
     np.savez(tmp_path / "tracked.npz", **prm)

@@ -13,8 +13,8 @@ import pytest
 import scipy.sparse as sp
 from scipy.spatial.transform import Rotation
 
-from progressive_avatars.core import flame as fl
-from progressive_avatars.core.flame import FlameModelError, UnsafePickleError, flame_forward, load_flame_model
+from progressive_avatars.core.flame import model as fl
+from progressive_avatars.core.flame.model import FlameModelError, UnsafePickleError, flame_forward, load_flame_model
 
 N_V, N_J, N_SHAPE, N_EXPR = 50, 5, 6, 4
 PARENTS = np.array([-1, 0, 1, 1, 1])  # FLAME: global, neck, jaw, eye, eye
@@ -283,7 +283,7 @@ def test_chunked_frames_match_single_frames(model_and_arrays):
 
 def test_torch_agrees_with_numpy_float32(model_and_arrays):
     torch = pytest.importorskip("torch")
-    from progressive_avatars.core.flame_torch import FlameTorch
+    from progressive_avatars.core.train.flame_torch import FlameTorch
 
     m, _ = model_and_arrays
     prm = random_params(6, seed=5, scale=0.6)
@@ -298,7 +298,7 @@ def test_torch_agrees_with_numpy_float32(model_and_arrays):
 
 def test_torch_gradients_finite_and_correct(model_and_arrays):
     torch = pytest.importorskip("torch")
-    from progressive_avatars.core.flame_torch import FlameTorch
+    from progressive_avatars.core.train.flame_torch import FlameTorch
 
     m, _ = model_and_arrays
     layer = FlameTorch(m, dtype=torch.float64)

@@ -11,11 +11,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from progressive_avatars.core.flame import _model_from_mapping, flame_forward
-from progressive_avatars.core.flame_rig import SLIDER_LIMIT, build_flame_rig
+from progressive_avatars.core.flame.model import _model_from_mapping, flame_forward
+from progressive_avatars.core.flame.rig import SLIDER_LIMIT, build_flame_rig
 
-sys.path.insert(0, os.path.dirname(__file__))
-from test_flame import N_EXPR, N_SHAPE, make_flame_arrays, random_params  # noqa: E402
+from tests.test_flame import N_EXPR, N_SHAPE, make_flame_arrays, random_params  # noqa: E402
 
 MODEL = _model_from_mapping(make_flame_arrays(seed=5), "test model", N_SHAPE)
 

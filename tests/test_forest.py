@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from progressive_avatars.core.forest import Forest
+from progressive_avatars.core.avatar.forest import Forest
 from tests.helpers import random_forest, sphere_mesh
 
 

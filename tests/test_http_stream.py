@@ -1,4 +1,4 @@
-"""Progressive HTTP download (core/http_stream.py) against real local servers."""
+"""Progressive HTTP download (core/stream/http.py) against real local servers."""
 
 import re
 import threading
@@ -8,8 +8,8 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 import numpy as np
 import pytest
 
-from progressive_avatars.core import http_stream as H
-from progressive_avatars.core import stream as S
+from progressive_avatars.core.stream import http as H
+from progressive_avatars.core.stream import format as S
 from tests.test_stream import assert_prefix, make_avatar
 
 

@@ -22,8 +22,8 @@ def run_script(name, *args):
 def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
     from plyfile import PlyData
 
-    from progressive_avatars.core import stream
-    from progressive_avatars.core.avatar import Avatar
+    from progressive_avatars.core.stream import format as stream
+    from progressive_avatars.core.avatar.avatar import Avatar
 
     res = run_script("export.py", "--run", tiny_run, "--stream", str(tmp_path / "a.pavs"), "--ply", str(tmp_path / "f.ply"),
                      "--budget", "100", "--frame", "0", "--max-views", "8")
@@ -78,7 +78,7 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
 
 
 def test_seed_groups():
-    from progressive_avatars.core.plots import seed_group, seed_groups, seed_pairs
+    from progressive_avatars.core.evaluate.plots import seed_group, seed_groups, seed_pairs
 
     def run(psnr, gaussians, prefixes):
         return {"gaussians": gaussians, "nvs": {"psnr": psnr},

@@ -1,4 +1,4 @@
-"""Standard 3DGS PLY export (core/ply.py)."""
+"""Standard 3DGS PLY export (core/io/ply.py)."""
 
 import os
 import subprocess
@@ -8,8 +8,8 @@ import textwrap
 import numpy as np
 import pytest
 
-from progressive_avatars.core import ply as P
-from progressive_avatars.core.avatar import Avatar
+from progressive_avatars.core.io import ply as P
+from progressive_avatars.core.avatar.avatar import Avatar
 from tests.helpers import random_forest, sphere_mesh
 
 

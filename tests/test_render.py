@@ -1,5 +1,5 @@
-"""The differentiable rasteriser (core/render.py) against the dense float64 reference
-(tests/reference_rasterizer.py), finite differences, and itself (contrib, means2d, depth)."""
+"""The differentiable rasteriser (core/render/rasterize.py) against the dense float64 reference
+(core/render/reference.py), finite differences, and itself (contrib, means2d, depth)."""
 
 import os
 import sys
@@ -8,11 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-sys.path.insert(0, os.path.dirname(__file__))
-from reference_rasterizer import render_reference  # noqa: E402
+from progressive_avatars.core.render.reference import render_reference  # noqa: E402
 
-from progressive_avatars.core.camera import Camera  # noqa: E402
-from progressive_avatars.core.render import RenderOutput, render, render_numpy  # noqa: E402
+from progressive_avatars.core.geometry.camera import Camera  # noqa: E402
+from progressive_avatars.core.render.rasterize import RenderOutput, render, render_numpy  # noqa: E402
 
 W, H = 40, 36  # not multiples of 16: partial tiles on both axes
 

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from progressive_avatars.core import sh
-from progressive_avatars.core.avatar import Avatar
-from progressive_avatars.core.ply import read_ply, write_ply
-from progressive_avatars.core.stream import read_stream, write_stream
+from progressive_avatars.core.geometry import sh
+from progressive_avatars.core.avatar.avatar import Avatar
+from progressive_avatars.core.io.ply import read_ply, write_ply
+from progressive_avatars.core.stream.format import read_stream, write_stream
 from tests.helpers import random_forest, sphere_mesh
 
 
@@ -99,7 +99,7 @@ def test_stream_takes_the_dc_colour_only_when_told(tmp_path):
 
 
 def test_training_with_sh_bands(tiny_dataset, tmp_path):
-    from progressive_avatars.core.train import Trainer, config_for
+    from progressive_avatars.core.train.trainer import Trainer, config_for
 
     cfg = config_for("tiny", iterations=30, sh_degree=2, sh_every=10, checkpoint_every=15, eval_every=1000)
     tr = Trainer(tiny_dataset, str(tmp_path / "run"), cfg)

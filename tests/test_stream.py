@@ -1,4 +1,4 @@
-"""The progressive stream (core/stream.py) against itself and against docs/FORMAT.md."""
+"""The progressive stream (core/stream/format.py) against itself and against docs/FORMAT.md."""
 
 import math
 import os
@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from progressive_avatars.core import stream as S
-from progressive_avatars.core.avatar import SH_C0, Avatar, sigmoid, sh_to_rgb
-from progressive_avatars.core.forest import Forest
+from progressive_avatars.core.stream import format as S
+from progressive_avatars.core.avatar.avatar import SH_C0, Avatar, sigmoid, sh_to_rgb
+from progressive_avatars.core.avatar.forest import Forest
 from tests.helpers import random_forest, sphere_mesh
 
 PARAMS = ("d_mu", "d_log_scale", "d_rot", "opacity_logit", "f_dc")
@@ -162,7 +162,7 @@ def test_quantised_roundtrip_error_bounds(tmp_path):
     assert np.all(np.abs(out.forest.barycentrics() - ref.forest.barycentrics()) <= 1 / 4095 + 1e-6)
     np.testing.assert_array_equal(out.forest.parent, ref.forest.parent)
     # world space: errors small against each face's scale
-    from progressive_avatars.core import binding
+    from progressive_avatars.core.avatar import binding
 
     g1, g0 = out.gaussians(verts), ref.gaussians(verts)
     s = binding.evaluate(ref.forest, verts).s

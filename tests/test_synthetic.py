@@ -8,8 +8,8 @@ import pytest
 import trimesh
 from PIL import Image
 
-from progressive_avatars.core import synthetic as S
-from progressive_avatars.core.camera import Camera
+from progressive_avatars.core.synthetic import head as S
+from progressive_avatars.core.geometry.camera import Camera
 
 
 @pytest.fixture(scope="module")

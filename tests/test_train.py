@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from progressive_avatars.core.avatar import Avatar
-from progressive_avatars.core.train import Adam, Trainer, config_for
+from progressive_avatars.core.avatar.avatar import Avatar
+from progressive_avatars.core.train.trainer import Adam, Trainer, config_for
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -83,7 +83,7 @@ def test_adam_grows_with_new_rows():
 
 def test_extreme_expressions_stay_finite(tiny_dataset, tmp_path):
     """10x the tiny preset's iterations on exaggerated meshes (crumpled, repeated vertices) never goes NaN."""
-    from progressive_avatars.core.data import Dataset
+    from progressive_avatars.core.io.data import Dataset
 
     iterations = 10 * config_for("tiny").iterations
     tr = Trainer(tiny_dataset, str(tmp_path / "x"), config_for("tiny", iterations=iterations, eval_every=10**6,
@@ -115,8 +115,8 @@ def test_bad_preset_and_data_errors(tmp_path):
 
 
 def test_level_weights_scale_each_level_loss(tiny_dataset, tmp_path):
-    from progressive_avatars.core import losses
-    from progressive_avatars.core.train import level_weight
+    from progressive_avatars.core.train import losses
+    from progressive_avatars.core.train.trainer import level_weight
 
     def first_step(name, weights):
         cfg = config_for("tiny", level_weights=weights, eval_every=10**6, checkpoint_every=10**6)
@@ -169,10 +169,9 @@ def _flame_mode_dataset(tiny_dataset, tmp_path):
     """A FLAME-mode copy of the tiny dataset (its images, a small FLAME-format model's geometry)."""
     import shutil
 
-    sys.path.insert(0, os.path.dirname(__file__))
-    from test_flame import N_SHAPE, make_flame_arrays, random_params
+    from tests.test_flame import N_SHAPE, make_flame_arrays, random_params
 
-    from progressive_avatars.core.flame import _model_from_mapping
+    from progressive_avatars.core.flame.model import _model_from_mapping
 
     root = tmp_path / "flame_ds"
     shutil.copytree(tiny_dataset, root)

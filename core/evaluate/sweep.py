@@ -2,7 +2,7 @@
 
 An avatar here is in STREAM ORDER (core.stream.read_stream), so the Gaussians of a budget
 are a prefix: faces [0, count). Metrics are PSNR/SSIM inside the foreground mask and on the
-whole image (core.metrics), on the dataset's val (novel view, NVS) and test (novel
+whole image (core.train.metrics), on the dataset's val (novel view, NVS) and test (novel
 expression, NES) splits.
 """
 
@@ -12,16 +12,16 @@ import time
 
 import numpy as np
 
-from . import metrics
-from .avatar import Avatar, sh_to_rgb, sigmoid
-from .binding import compose, evaluate
+from ..train import metrics
+from ..avatar.avatar import Avatar, sh_to_rgb, sigmoid
+from ..avatar.binding import compose, evaluate
 
 
 class SplitRenderer:
     """Renders face subsets of one avatar on the views of one dataset split."""
 
     def __init__(self, avatar: Avatar, dataset, max_views: int | None = 32):
-        from .importance import view_subset
+        from ..render.importance import view_subset
 
         self.avatar, self.dataset = avatar, dataset
         self.views = view_subset(len(dataset), max_views)
@@ -31,7 +31,7 @@ class SplitRenderer:
         self.bg = np.asarray(dataset.background, np.float32)
 
     def render(self, view: int, ids: np.ndarray):
-        from .render import render_numpy
+        from ..render.rasterize import render_numpy
 
         info = self.dataset.frame_info(int(view))
         verts = self.dataset.vertices_at(info.timestep_index)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .atomic import atomic_savez
+from ..io.atomic import atomic_savez
 
 FORMAT_VERSION = 1
 

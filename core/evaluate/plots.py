@@ -64,16 +64,16 @@ def budget_strip(path, renderer, info, budgets, view_index=0):
 
 
 def depth_colors(depth: np.ndarray, max_depth: int | None = None) -> np.ndarray:
-    """RGB per depth, the same ramp as the Blender depth display (core.preview_data)."""
-    from .preview_data import depth_colors as rgba
+    """RGB per depth, the same ramp as the Blender depth display (core.bridge.preview)."""
+    from ..bridge.preview import depth_colors as rgba
 
     return rgba(depth, max_depth)[:, :3]
 
 
 def depth_picture(path, avatar, dataset, views=(0,)):
     """The base level coloured by each template face's subdivision depth, beside the 100 % render."""
-    from .binding import compose, evaluate
-    from .render import render_numpy
+    from ..avatar.binding import compose, evaluate
+    from ..render.rasterize import render_numpy
 
     plt = _plt()
     depth = avatar.forest.depth_per_root()
@@ -93,7 +93,7 @@ def depth_picture(path, avatar, dataset, views=(0,)):
                                  info.camera, np.ones(3, np.float32))
         full = evaluate(avatar.forest, verts)
         m2, s2, q2 = compose(full.t, full.r, full.s, avatar.d_mu, avatar.d_log_scale, avatar.d_rot)
-        from .avatar import sh_to_rgb, sigmoid
+        from ..avatar.avatar import sh_to_rgb, sigmoid
 
         ref, _, _ = render_numpy(m2, q2, s2, sigmoid(avatar.opacity_logit), sh_to_rgb(avatar.f_dc), info.camera,
                                  np.asarray(dataset.background, np.float32))

@@ -24,8 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .camera import Camera
-from .flame import FlameModel, flame_forward, load_flame_model
+from ..geometry.camera import Camera
+from ..flame.model import FlameModel, flame_forward, load_flame_model
 
 __all__ = [
     "DataError",

@@ -28,7 +28,7 @@ import time
 import numpy as np
 import trimesh
 
-from .camera import Camera
+from ..geometry.camera import Camera
 
 # Aspect ratio of NeRSemble frames (width:height = 550:802).
 ASPECT = 550.0 / 802.0

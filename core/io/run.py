@@ -12,7 +12,7 @@ import os
 
 import numpy as np
 
-from .avatar import PARAM_NAMES, Avatar
+from ..avatar.avatar import PARAM_NAMES, Avatar
 
 
 def load_run_avatar(run: str) -> Avatar:
@@ -52,7 +52,7 @@ def run_importance(run: str, avatar: Avatar, data: str, max_views: int | None = 
         if W.shape == (avatar.num_gaussians,):
             return W
     from .data import Dataset
-    from .importance import face_importance
+    from ..render.importance import face_importance
 
     W = face_importance(avatar, Dataset(data, "train", flame_model=run_flame_model(run)), max_views=max_views,
                         progress=progress)

@@ -23,8 +23,8 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from . import render_kernels as rk  # noqa: E402
-from .camera import Camera  # noqa: E402
+from . import kernels as rk  # noqa: E402
+from ..geometry.camera import Camera  # noqa: E402
 
 __all__ = ["RenderOutput", "render", "render_numpy", "gsplat_available"]
 
@@ -55,7 +55,7 @@ def _all_finite(x) -> bool:
 def _validate(means, quats, scales, opacities, colors, background, camera, near, eps2d):
     """Raise ValueError on anything the kernels must never see; returns (N, C)."""
     if not isinstance(camera, Camera):
-        raise ValueError(f"render: camera must be a core.camera.Camera, got {type(camera).__name__}")
+        raise ValueError(f"render: camera must be a core.geometry.camera.Camera, got {type(camera).__name__}")
     if int(camera.width) <= 0 or int(camera.height) <= 0:
         raise ValueError(f"render: image size must be positive, got {camera.width}x{camera.height}")
     if len(_shape(means)) != 2 or _shape(means)[1] != 3:

@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .binding import MIN_EDGE
-from .forest import Forest
+from ..avatar.binding import MIN_EDGE
+from ..avatar.forest import Forest
 
 
 def quat_normalize(q: torch.Tensor) -> torch.Tensor:

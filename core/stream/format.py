@@ -24,9 +24,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .atomic import atomic_open
-from .avatar import PARAM_NAMES, SH_C0, Avatar
-from .forest import Forest
+from ..io.atomic import atomic_open
+from ..avatar.avatar import PARAM_NAMES, SH_C0, Avatar
+from ..avatar.forest import Forest
 
 MAGIC = b"PAVS\r\n\x1a\n"
 VERSION = 2  # what the writer writes

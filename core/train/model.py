@@ -9,9 +9,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from . import binding_torch, sh
-from .avatar import PARAM_NAMES, Avatar
-from .forest import Forest
+from . import binding_torch
+from ..geometry import sh
+from ..avatar.avatar import PARAM_NAMES, Avatar
+from ..avatar.forest import Forest
 
 class TorchAvatar:
     def __init__(self, avatar: Avatar, device="cpu"):

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .avatar import Avatar, sh_to_rgb, sigmoid
+from ..avatar.avatar import Avatar, sh_to_rgb, sigmoid
 
 
 def view_subset(n_views: int, max_views: int | None) -> np.ndarray:
@@ -22,7 +22,7 @@ def face_importance(avatar: Avatar, dataset, max_views: int | None = 120, progre
     """Importance per face [N] (float64) summed over (a spread subset of) the dataset's views."""
     from tqdm import tqdm
 
-    from .render import render_numpy
+    from .rasterize import render_numpy
 
     evaluator = avatar.evaluator()
     opac = sigmoid(avatar.opacity_logit)

@@ -7,7 +7,7 @@ or int32 arrays shaped for ``foreach_set``:
 - ``Budget``: Gaussians / bytes / level reached for a budget percent, taken from the
   stream's own ``count_for_percent`` when the avatar came from a stream;
 - depth colours and legend for the per-face subdivision depth display;
-- conversions between ``core.camera.Camera`` and Blender camera settings;
+- conversions between ``core.geometry.camera.Camera`` and Blender camera settings;
 - ``render_job``: the out-of-Blender side of "Render splats" (needs core.render / numba).
 """
 
@@ -19,8 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import binding
-from .avatar import Avatar, sh_to_rgb, sigmoid
+from ..avatar import binding
+from ..avatar.avatar import Avatar, sh_to_rgb, sigmoid
 
 # Blender is Z-up; FLAME/dataset space is Y-up (head looks to +z). Rotating +90° about x
 # maps dataset y to Blender z, so the head stands up and looks to Blender -y (the front view).
@@ -30,7 +30,7 @@ Y_UP_TO_Z_UP = np.array([[1.0, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 
 # -- avatars and budgets -------------------------------------------------------------------
 def _stream_module():
     try:
-        from . import stream
+        from ..stream import format as stream
     except ImportError:
         return None
     return stream
@@ -212,7 +212,7 @@ def blender_camera(camera, z_up: bool = True, sensor_width: float = 36.0) -> dic
 
 def camera_from_blender(matrix_world, lens, sensor_width, shift_x, shift_y, width, height, z_up: bool = True):
     """The core ``Camera`` seeing what a Blender camera (sensor_fit AUTO, square pixels) sees."""
-    from .camera import Camera
+    from ..geometry.camera import Camera
 
     c2w = np.asarray(matrix_world, np.float64).reshape(4, 4)
     if z_up:
@@ -231,8 +231,8 @@ def camera_from_blender(matrix_world, lens, sensor_width, shift_x, shift_y, widt
 def render_job(job_path: str, out_path: str) -> None:
     """Render the Gaussians saved by the add-on in ``job_path`` (npz) to ``out_path`` (.npy
     RGBA float32 [H,W,4]) with the core rasteriser."""
-    from .camera import Camera
-    from .render import render_numpy
+    from ..geometry.camera import Camera
+    from ..render.rasterize import render_numpy
 
     with np.load(job_path, allow_pickle=False) as d:
         cam = Camera(d["R"], d["t"], *[float(x) for x in d["intr"]], int(d["size"][0]), int(d["size"][1]))

@@ -1,7 +1,7 @@
 """Dense float64 torch rasteriser: the tests' reference for values and gradients.
 
 Every Gaussian is evaluated at every pixel and composited in depth order, with the rules of
-core/render_kernels.py (EWA + eps2d, gsplat's Jacobian clamp, near culling, alpha in
+core/render/kernels.py (EWA + eps2d, gsplat's Jacobian clamp, near culling, alpha in
 [1/255, 0.99], stop before T would drop below 1e-4). Autograd gives the gradients.
 Memory is O(N * H * W): small scenes only.
 """

@@ -3,7 +3,7 @@
 Every kernel works on float64 numpy arrays (the caller converts once): the per-pixel work is
 scalar code that does not vectorise, so float64 costs little and keeps the hand-written
 backward close to a float64 reference. Rules shared with gsplat and the dense test
-reference (tests/reference_rasterizer.py), which must stay in step with this file:
+reference (core/render/reference.py), which must stay in step with this file:
 
 - EWA splatting: cov2d = J Rc R S S R^T Rc^T J^T + eps2d*I, with gsplat's clamp of x/z, y/z to
   1.3x the field of view inside the Jacobian (the mean itself is not clamped). No opacity

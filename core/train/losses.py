@@ -1,4 +1,4 @@
-"""Training losses in torch: L1, SSIM (same window as core.metrics), regularisers."""
+"""Training losses in torch: L1, SSIM (same window as core.train.metrics), regularisers."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ def _window(channels: int, device, dtype):
 
 
 def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Mean SSIM of two [H,W,C] images (valid window positions, as core.metrics.ssim)."""
+    """Mean SSIM of two [H,W,C] images (valid window positions, as core.train.metrics.ssim)."""
     x = a.permute(2, 0, 1)[None]
     y = b.permute(2, 0, 1)[None]
     C = x.shape[1]

@@ -17,7 +17,7 @@ import time
 from dataclasses import dataclass, field
 from urllib.parse import urljoin, urlsplit
 
-from .stream import StreamReader
+from .format import StreamReader
 
 COMPLETE = "complete"  # the whole stream arrived and verified
 BUDGET = "budget"  # stopped at the requested budget (everything inside it verified)

@@ -16,7 +16,7 @@ import os
 import numpy as np
 
 from .atomic import atomic_open
-from .avatar import SH_C0
+from ..avatar.avatar import SH_C0
 
 PROPERTIES = ("x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
               "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3")

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .flame import FlameModel, load_flame_model
+from ..flame.model import FlameModel, load_flame_model
 
 __all__ = ["axis_angle_to_matrix_torch", "FlameTorch"]
 

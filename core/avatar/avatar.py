@@ -3,7 +3,7 @@
 Per-face residual parameters, in the forest's face order:
   d_mu [N,3] face-local position offset (units of the face scale), d_log_scale [N,3],
   d_rot [N,4] wxyz (unnormalised), opacity_logit [N], f_dc [N,3] (SH DC colour),
-  f_rest [N,K,3] (higher SH bands, K = 0, 3, 8 or 15 for degree 0..3; core/sh.py).
+  f_rest [N,K,3] (higher SH bands, K = 0, 3, 8 or 15 for degree 0..3; core/geometry/sh.py).
 Stored as .npz (never pickle).
 """
 
@@ -13,10 +13,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import binding, sh
-from .atomic import atomic_savez
+from . import binding
+from ..geometry import sh
+from ..io.atomic import atomic_savez
 from .forest import Forest
-from .sh import SH_C0
+from ..geometry.sh import SH_C0
 PARAM_NAMES = ("d_mu", "d_log_scale", "d_rot", "opacity_logit", "f_dc")
 PARAM_WIDTH = {"d_mu": 3, "d_log_scale": 3, "d_rot": 4, "opacity_logit": None, "f_dc": 3}
 

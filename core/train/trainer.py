@@ -19,12 +19,12 @@ import numpy as np
 import torch
 
 from . import losses
-from .avatar import PARAM_NAMES
-from .data import Dataset
-from .atomic import atomic_savez
-from .forest import Forest
+from ..avatar.avatar import PARAM_NAMES
+from ..io.data import Dataset
+from ..io.atomic import atomic_savez
+from ..avatar.forest import Forest
 from .model import TorchAvatar
-from .render import render
+from ..render.rasterize import render
 
 
 @dataclass
@@ -305,7 +305,7 @@ class Trainer:
     def _load_checkpoint(self):
         with np.load(self.ckpt_path, allow_pickle=False) as d:
             forest = Forest.from_state(d, source=self.ckpt_path)
-            from .avatar import Avatar
+            from ..avatar.avatar import Avatar
 
             av = Avatar(forest, *(d["param_" + n] for n in PARAM_NAMES),
                         f_rest=d["param_f_rest"] if "param_f_rest" in d else None)

@@ -1,0 +1,1 @@
+"""Metrics, budget sweeps, reports and plots. Reporting tier (numpy, matplotlib, numba render)."""

@@ -1,0 +1,1 @@
+"""FLAME model loading (restricted unpickler), forward and rig. Blender tier: numpy and stdlib only."""

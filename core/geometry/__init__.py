@@ -1,0 +1,1 @@
+"""Geometry helpers: cameras, rotations, spherical harmonics. Blender tier: numpy and stdlib only."""

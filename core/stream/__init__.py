@@ -1,0 +1,1 @@
+"""The progressive stream: format, writer, readers, HTTP client. Blender tier: numpy and stdlib only."""

@@ -1,0 +1,1 @@
+"""The synthetic head dataset (not shipped in the extension). Reporting tier (numpy, trimesh)."""

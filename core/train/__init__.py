@@ -1,0 +1,1 @@
+"""Training: trainable avatar, losses, growth, supervision, checkpoints. Training tier (torch, numba)."""

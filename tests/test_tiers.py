@@ -1,0 +1,94 @@
+"""The product's central rule: what Blender imports never pulls in torch, numba or any package
+a stock Blender lacks. Every Blender-tier module is imported in a fresh process with those
+packages blocked, and ruff's banned-module-level-imports rule checks the same per folder."""
+
+import os
+import shutil
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+BLOCKED = ("torch", "numba", "trimesh", "PIL", "scipy", "matplotlib", "plyfile")
+BLENDER_TIER = ("geometry", "avatar", "stream", "io", "flame", "bridge")
+
+# Run in a subprocess: a blocked name must fail at import wherever it is imported from.
+IMPORT_ALL = textwrap.dedent("""
+    import importlib, importlib.abc, os, pkgutil, sys
+    BLOCKED = {blocked!r}
+
+    class Block(importlib.abc.MetaPathFinder):
+        def find_spec(self, name, path=None, target=None):
+            if name.split(".")[0] in BLOCKED:
+                raise ImportError(f"blocked in the Blender tier: {{name}}")
+            return None
+
+    for name in list(sys.modules):
+        if name.split(".")[0] in BLOCKED:
+            del sys.modules[name]
+    sys.meta_path.insert(0, Block())
+    import progressive_avatars.core as core
+    names = []
+    for pkg in {tier!r}:
+        mod = importlib.import_module("progressive_avatars.core." + pkg)
+        names.append(mod.__name__)
+        for info in pkgutil.iter_modules(mod.__path__, mod.__name__ + "."):
+            names.append(info.name)
+    if {with_bpy!r}:
+        import bpy  # noqa: F401
+        addon = importlib.import_module("progressive_avatars.blender_addon")
+        for info in pkgutil.iter_modules(addon.__path__, addon.__name__ + "."):
+            names.append(info.name)
+    for name in names:
+        importlib.import_module(name)
+    leaked = sorted(n for n in sys.modules if n.split(".")[0] in BLOCKED)
+    assert not leaked, leaked
+    print("imported", len(names))
+""")
+
+
+def _run(with_bpy):
+    code = IMPORT_ALL.format(blocked=BLOCKED, tier=BLENDER_TIER, with_bpy=with_bpy)
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=ROOT)
+
+
+def test_blender_tier_imports_without_training_packages():
+    out = _run(with_bpy=False)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert int(out.stdout.split()[-1]) >= 15  # every Blender-tier module was imported
+
+
+@pytest.mark.slow
+@pytest.mark.blender
+def test_blender_addon_imports_without_training_packages():
+    pytest.importorskip("bpy")
+    out = _run(with_bpy=True)
+    assert out.returncode == 0, out.stdout + out.stderr
+
+
+def test_tier_folders_say_their_tier():
+    for pkg in os.listdir(os.path.join(ROOT, "core")):
+        init = os.path.join(ROOT, "core", pkg, "__init__.py")
+        if os.path.isfile(init):
+            doc = open(init).read()
+            assert "tier" in doc.lower(), f"{init}: the package docstring must name its tier"
+
+
+def test_ruff_bans_training_imports_in_the_blender_tier(tmp_path):
+    """The lint rule (pyproject [tool.ruff]) catches a module-level torch import in a Blender-tier
+    module and nowhere else; the tree itself is clean."""
+    ruff = shutil.which("ruff") or os.path.join(os.path.dirname(sys.executable), "ruff")
+    if not os.path.exists(ruff):
+        pytest.skip("ruff is not installed")
+    clean = subprocess.run([ruff, "check", "--select", "TID253", "."], cwd=ROOT, capture_output=True, text=True)
+    assert clean.returncode == 0, clean.stdout + clean.stderr
+    bad = os.path.join(ROOT, "core", "stream", "_tier_probe.py")
+    try:
+        with open(bad, "w") as fh:
+            fh.write("import torch  # noqa: F401\n")
+        caught = subprocess.run([ruff, "check", "--select", "TID253", bad], cwd=ROOT, capture_output=True, text=True)
+    finally:
+        os.remove(bad)
+    assert caught.returncode != 0 and "torch" in caught.stdout, caught.stdout
