@@ -16,6 +16,7 @@ import numpy as np
 from . import binding, sh
 from .atomic import atomic_savez
 from .forest import Forest
+from .safe_io import check_npz, loads_json
 from .sh import SH_C0
 PARAM_NAMES = ("d_mu", "d_log_scale", "d_rot", "opacity_logit", "f_dc")
 PARAM_WIDTH = {"d_mu": 3, "d_log_scale": 3, "d_rot": 4, "opacity_logit": None, "f_dc": 3}
@@ -128,12 +129,13 @@ class Avatar:
     def load(cls, path) -> "Avatar":
         import json
 
+        check_npz(path, allow_text=("meta_json",))  # bounded before numpy allocates
         with np.load(path, allow_pickle=False) as data:
             forest = Forest.from_state(data, source=str(path))
             missing = [n for n in PARAM_NAMES if n not in data]
             if missing:
                 raise ValueError(f"{path}: not an avatar file, missing {missing}")
-            meta = json.loads(str(data["meta_json"])) if "meta_json" in data else {}
+            meta = loads_json(str(data["meta_json"]), f"{path}: meta_json") if "meta_json" in data else {}
             try:
                 return cls(forest, *(data[n] for n in PARAM_NAMES), meta=meta,
                            f_rest=data["f_rest"] if "f_rest" in data else None)

@@ -26,6 +26,7 @@ import numpy as np
 
 from .camera import Camera
 from .flame import FlameModel, flame_forward, load_flame_model
+from .safe_io import check_npz
 
 __all__ = [
     "DataError",
@@ -146,6 +147,7 @@ def _npz(path: str) -> dict:
     if not os.path.isfile(path):
         raise MissingFileError(f"{path}: file not found")
     try:
+        check_npz(path)  # headers first: a forged element count is refused before allocation
         with np.load(path, allow_pickle=False) as z:
             return {k: z[k] for k in z.files}
     except Exception as exc:

@@ -27,6 +27,7 @@ import numpy as np
 from .atomic import atomic_open
 from .avatar import PARAM_NAMES, SH_C0, Avatar
 from .forest import Forest
+from .safe_io import loads_json
 
 MAGIC = b"PAVS\r\n\x1a\n"
 VERSION = 2  # what the writer writes
@@ -403,7 +404,7 @@ def _parse_header(buf, source: str) -> StreamInfo:
     meta = {}
     if f["M"]:
         try:
-            meta = json.loads(bytes(buf[pos: pos + f["M"]]).decode("utf-8"))
+            meta = loads_json(bytes(buf[pos: pos + f["M"]]).decode("utf-8"), f"{source}: metadata")
         except (UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise ValueError(f"{source}: metadata is not valid UTF-8 JSON: {exc}") from None
         if not isinstance(meta, dict):
