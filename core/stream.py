@@ -1004,6 +1004,11 @@ class StreamReader:
                 first[np.unique(keys, return_index=True)[1]] = True
                 k = nr + int(np.argmax((old > 0) | ~first))
                 problem = f"record {i0 + k} reuses the child slot of an earlier record"
+                # The scatter above also wrote the refused record and those after it: put the
+                # table back and claim only the kept records' slots, so the kept prefix's
+                # forest keeps every child link (the duplicate overwrote its earlier twin's).
+                child[keys] = old
+                child[keys[: k - nr]] = ids[: k - nr]
         if nr:
             par[:nr] = -1
             slt[:nr] = -1

@@ -319,3 +319,36 @@ def test_fuzz_stream_reader_refuses_cleanly(edits, cut):
     if av is not None:
         g = av.gaussians(verts)
         assert all(np.all(np.isfinite(v)) for v in g.values())
+
+
+# -- stream: the prefix kept after a refused duplicate ---------------------------------------
+@pytest.mark.parametrize("block", [4, 64])
+def test_refused_duplicate_keeps_a_correct_forest(block):
+    from tests.test_stream import assert_prefix, make_avatar
+
+    _, av, imp = make_avatar(15)
+    clean = S.encode_stream(av, imp, records_per_block=block)
+    data = bytearray(clean)
+    info = S.read_header(clean)
+    full = S.read_stream(clean)
+    lv1 = info.level_ends()[0]
+    i, j = lv1 + 1, lv1 + 2  # two level-1 records: give j the (parent, slot) of i
+    oi, oj = info.record_offset(i), info.record_offset(j)
+    R = info.record_size
+    ri, rj = bytearray(data[oi: oi + R]), bytearray(data[oj: oj + R])
+    rj[12:15] = ri[12:15]
+    geo = int.from_bytes(rj[0:8], "little") & ~(3 << 60) | (int.from_bytes(ri[0:8], "little") & (3 << 60))
+    rj[0:8] = geo.to_bytes(8, "little")
+    rj[R - 1] = S._crc8_bytewise(bytes(rj[:R - 1]))
+    data[oj: oj + R] = rj
+    r = S.StreamReader()
+    with pytest.raises(ValueError, match=f"record {j} reuses the child slot"):
+        r.feed(bytes(data[: oj + R]))
+    assert r.num_gaussians == j
+    kept = r.avatar()
+    assert_prefix(kept, full, j)
+    # The kept forest is the clean prefix's forest: i keeps its place as its parent's child.
+    ref = S.read_stream(clean[: info.bytes_for_count(j)])
+    np.testing.assert_array_equal(kept.forest.children, ref.forest.children)
+    p = int(kept.forest.parent[i])
+    assert i in kept.forest.children[p]
