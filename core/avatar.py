@@ -20,6 +20,8 @@ from .safe_io import check_npz, loads_json
 from .sh import SH_C0
 PARAM_NAMES = ("d_mu", "d_log_scale", "d_rot", "opacity_logit", "f_dc")
 PARAM_WIDTH = {"d_mu": 3, "d_log_scale": 3, "d_rot": 4, "opacity_logit": None, "f_dc": 3}
+# exp(88.73) overflows float32: a residual log-scale at or above this is an infinite scale.
+LOG_SCALE_MAX = float(np.log(np.finfo(np.float32).max))
 
 
 def sigmoid(x):
@@ -59,6 +61,10 @@ class Avatar:
             if not np.all(np.isfinite(arr)):
                 raise ValueError(f"Avatar: {name} contains NaN or inf")
             setattr(self, name, arr)
+        if self.d_log_scale.size and self.d_log_scale.max() >= LOG_SCALE_MAX:
+            i = int(np.argmax(self.d_log_scale.max(axis=1)))
+            raise ValueError(f"Avatar: d_log_scale of face {i} is {float(self.d_log_scale[i].max()):g}, at or above "
+                             f"{LOG_SCALE_MAX:.2f} (its scale would be infinite)")
 
     @classmethod
     def initial(cls, forest: Forest, color=(0.5, 0.5, 0.5), opacity=0.9, log_scale=0.0) -> "Avatar":
