@@ -352,3 +352,11 @@ def test_refused_duplicate_keeps_a_correct_forest(block):
     np.testing.assert_array_equal(kept.forest.children, ref.forest.children)
     p = int(kept.forest.parent[i])
     assert i in kept.forest.children[p]
+
+
+def test_dataset_json_nesting_bounded(tmp_path):
+    from progressive_avatars.core.data import DataError, Dataset
+
+    (tmp_path / "transforms_train.json").write_text('{"frames": ' + "[" * 3000 + "]" * 3000 + "}")
+    with pytest.raises(DataError, match=r"transforms_train\.json: invalid JSON.*nested 3001 levels"):
+        Dataset(str(tmp_path), "train")
