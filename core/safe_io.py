@@ -24,16 +24,19 @@ MAX_NPZ_ELEMENTS = 4 * MAX_ARRAY_ELEMENTS
 # Deeper JSON than this is refused before parsing (Python's parser recurses per level).
 MAX_JSON_DEPTH = 64
 
-_NUMERIC_KINDS = "biuf"  # bool, signed, unsigned, float (complex, object, strings are not data)
+# Object arrays need pickle (refused by np.load(allow_pickle=False) anyway) and structured
+# (void) ones are not data any reader here uses: both are refused from the header.
+_REFUSED_KINDS = "OV"
 
 
 def check_npz(path, *, max_elements: int = MAX_ARRAY_ELEMENTS, max_total: int = MAX_NPZ_ELEMENTS,
               allow_text: tuple = ()) -> dict:
     """Read every member's npy header of the npz ``path`` and refuse, before anything is
-    allocated, members that are not plain numeric arrays, that declare more than
-    ``max_elements`` elements (``max_total`` over the file), or that declare more bytes than
-    the archive stores. Members named in ``allow_text`` may be unicode strings (JSON blobs).
-    Returns {member name: (shape, dtype)}."""
+    allocated, object or structured members, members that declare more than
+    ``max_elements`` elements (``max_total`` over the file), or more bytes than the archive
+    stores. Strings (e.g. a JSON blob, FLAME's ``bs_style``) are allowed: the reader decides
+    what it uses. ``allow_text`` is accepted for readability at call sites (members that
+    are meant to be text). Returns {member name: (shape, dtype)}."""
     out = {}
     total = 0
     try:
@@ -54,9 +57,8 @@ def check_npz(path, *, max_elements: int = MAX_ARRAY_ELEMENTS, max_total: int = 
                         raise ValueError(f"unknown npy version {version}")
             except (ValueError, OSError, EOFError, zipfile.BadZipFile, RuntimeError, NotImplementedError) as exc:
                 raise ValueError(f"{path}: member '{name}' has no valid npy header ({exc})") from None
-            text = dtype.kind == "U" and name in allow_text
-            if dtype.kind not in _NUMERIC_KINDS and not text:
-                raise ValueError(f"{path}: member '{name}' has dtype {dtype}; only plain numeric arrays are read")
+            if dtype.kind in _REFUSED_KINDS or dtype.hasobject:
+                raise ValueError(f"{path}: member '{name}' has dtype {dtype}; only plain arrays are read")
             count = 1
             for s in shape:
                 count *= int(s)  # Python ints: no overflow

@@ -349,6 +349,9 @@ class Trainer:
         atomic_savez(self.ckpt_path, **arrays)
 
     def _load_checkpoint(self):
+        from .safe_io import check_npz
+
+        check_npz(self.ckpt_path, allow_text=("state_json",))
         with np.load(self.ckpt_path, allow_pickle=False) as d:
             forest = Forest.from_state(d, source=self.ckpt_path)
             from .avatar import Avatar

@@ -360,3 +360,12 @@ def test_dataset_json_nesting_bounded(tmp_path):
     (tmp_path / "transforms_train.json").write_text('{"frames": ' + "[" * 3000 + "]" * 3000 + "}")
     with pytest.raises(DataError, match=r"transforms_train\.json: invalid JSON.*nested 3001 levels"):
         Dataset(str(tmp_path), "train")
+
+
+def test_flame_npz_with_string_members_still_loads(tmp_path):
+    # A user's conversion (np.savez of every key) keeps bs_style / bs_type as unicode arrays.
+    arrays = make_flame_arrays()
+    p = tmp_path / "converted.npz"
+    np.savez(p, **{k: np.asarray(v) for k, v in arrays.items()})
+    m = load_flame_model(str(p))
+    np.testing.assert_array_equal(m.v_template, arrays["v_template"])
