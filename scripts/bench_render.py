@@ -23,7 +23,6 @@ import _bootstrap  # noqa: E402,F401  (makes progressive_avatars importable, str
 import datetime  # noqa: E402
 import platform  # noqa: E402
 import resource  # noqa: E402
-import sys  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402

@@ -37,6 +37,10 @@ def main(argv=None):
     args = ap.parse_args(_bootstrap.script_args() if argv is None else argv)
     if not args.stream and not args.ply:
         ap.error("nothing to do: give --stream and/or --ply")
+    if not (0.0 < args.budget <= 100.0):  # also refuses nan (every comparison is False)
+        ap.error(f"--budget is a percentage of the stream's bytes in (0, 100], got {args.budget}")
+    if args.max_views < 1:
+        ap.error(f"--max-views must be at least 1, got {args.max_views}")
 
     from progressive_avatars.core.io import run as runs
     from progressive_avatars.core.stream import format as stream
@@ -62,6 +66,10 @@ def main(argv=None):
         from progressive_avatars.core.avatar.avatar import sh_to_rgb
 
         part = stream.read_stream(stream_path, percent=args.budget)
+        if part is None:
+            print(f"error: --budget {args.budget}% of {stream_path} holds no whole Gaussian (the base level needs "
+                  f"{100.0 * info.base_bytes / info.total_bytes:.2f}%); give a larger budget", file=sys.stderr)
+            return 2
         ds = Dataset(data, None, flame_model=runs.run_flame_model(args.run, args.flame_model))
         if args.frame not in set(int(t) for t in ds.timesteps):
             print(f"error: {data}: no timestep {args.frame} (have {ds.timesteps[0]}..{ds.timesteps[-1]})", file=sys.stderr)

@@ -52,13 +52,31 @@ def main(argv=None):
                          grad_threshold=args.grad_threshold, max_faces=args.max_faces, seed=args.seed,
                          sh_degree=args.sh_degree, refine_flame=args.refine_flame or None,
                          flame_model=_os.path.abspath(args.flame_model) if args.flame_model else None)
-        trainer = Trainer(args.data, args.out, cfg, resume=args.resume)
+        trainer = Trainer(args.data, args.out, cfg, resume=args.resume, progress=not args.no_progress)
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    summary = trainer.run(progress=not args.no_progress)
+    except OSError as exc:
+        print(f"error: {_os_error(exc)}", file=sys.stderr)
+        return 2
+    try:
+        summary = trainer.run(progress=not args.no_progress)
+    except FloatingPointError as exc:  # NaN/inf: the message says training stopped, checkpoint kept
+        print(f"error: {exc}", file=sys.stderr)
+        return 3
+    except OSError as exc:
+        print(f"error: {_os_error(exc)}; training stopped, the last checkpoint in {args.out} is kept "
+              "(free space, then --resume)", file=sys.stderr)
+        return 3
     print(json.dumps(summary))
     return 0
+
+
+def _os_error(exc: OSError) -> str:
+    import errno
+
+    what = {errno.ENOSPC: "disk full", errno.EDQUOT: "disk quota exceeded"}.get(exc.errno, type(exc).__name__)
+    return f"{what}: {exc.strerror or exc} ({exc.filename or 'writing the run folder'})"
 
 
 def _weights(text):

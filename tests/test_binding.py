@@ -7,7 +7,6 @@ from scipy.spatial.transform import Rotation
 
 from progressive_avatars.core.avatar import binding
 from progressive_avatars.core.train import binding_torch
-from progressive_avatars.core.avatar.forest import Forest
 from tests.helpers import depth6_precision, random_forest, sphere_mesh
 
 

@@ -2,8 +2,6 @@
 Blender by evaluating it the way Blender does (tests/test_blender_extension.py checks that
 Blender agrees)."""
 
-import os
-import sys
 
 import numpy as np
 import pytest

@@ -1,8 +1,6 @@
 """The differentiable rasteriser (core/render/rasterize.py) against the dense float64 reference
 (core/render/reference.py), finite differences, and itself (contrib, means2d, depth)."""
 
-import os
-import sys
 
 import numpy as np
 import pytest

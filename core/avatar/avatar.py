@@ -18,8 +18,11 @@ from ..geometry import sh
 from ..io.atomic import atomic_savez
 from .forest import Forest
 from ..geometry.sh import SH_C0
+from ..io.safe_io import check_npz, loads_json
 PARAM_NAMES = ("d_mu", "d_log_scale", "d_rot", "opacity_logit", "f_dc")
 PARAM_WIDTH = {"d_mu": 3, "d_log_scale": 3, "d_rot": 4, "opacity_logit": None, "f_dc": 3}
+# exp(88.73) overflows float32: a residual log-scale at or above this is an infinite scale.
+LOG_SCALE_MAX = float(np.log(np.finfo(np.float32).max))
 
 
 def sigmoid(x):
@@ -59,6 +62,10 @@ class Avatar:
             if not np.all(np.isfinite(arr)):
                 raise ValueError(f"Avatar: {name} contains NaN or inf")
             setattr(self, name, arr)
+        if self.d_log_scale.size and self.d_log_scale.max() >= LOG_SCALE_MAX:
+            i = int(np.argmax(self.d_log_scale.max(axis=1)))
+            raise ValueError(f"Avatar: d_log_scale of face {i} is {float(self.d_log_scale[i].max()):g}, at or above "
+                             f"{LOG_SCALE_MAX:.2f} (its scale would be infinite)")
 
     @classmethod
     def initial(cls, forest: Forest, color=(0.5, 0.5, 0.5), opacity=0.9, log_scale=0.0) -> "Avatar":
@@ -127,14 +134,14 @@ class Avatar:
 
     @classmethod
     def load(cls, path) -> "Avatar":
-        import json
 
+        check_npz(path, allow_text=("meta_json",))  # bounded before numpy allocates
         with np.load(path, allow_pickle=False) as data:
             forest = Forest.from_state(data, source=str(path))
             missing = [n for n in PARAM_NAMES if n not in data]
             if missing:
                 raise ValueError(f"{path}: not an avatar file, missing {missing}")
-            meta = json.loads(str(data["meta_json"])) if "meta_json" in data else {}
+            meta = loads_json(str(data["meta_json"]), f"{path}: meta_json") if "meta_json" in data else {}
             try:
                 return cls(forest, *(data[n] for n in PARAM_NAMES), meta=meta,
                            f_rest=data["f_rest"] if "f_rest" in data else None)

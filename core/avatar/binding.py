@@ -25,10 +25,16 @@ MIN_EDGE = 1e-15  # metres; shorter edges count as zero (their direction, and it
 
 # -- quaternions --------------------------------------------------------------------------
 def quat_normalize(q: np.ndarray) -> np.ndarray:
-    n = np.linalg.norm(q, axis=-1, keepdims=True)
-    identity = np.zeros_like(q)
+    """Unit quaternions; scaled by the largest component first, so a norm of 1e154 (whose
+    square overflows) or 1e-200 (underflows) still normalises to the right rotation. Only
+    an exactly zero quaternion, which has no direction, becomes the identity."""
+    q = np.asarray(q)
+    m = np.max(np.abs(q), axis=-1, keepdims=True)
+    u = q / np.where(m > 0, m, 1)
+    n = np.sqrt(np.sum(u * u, axis=-1, keepdims=True))
+    identity = np.zeros_like(u)
     identity[..., 0] = 1
-    return np.where(n > 0, q / np.where(n > 0, n, 1), identity)
+    return np.where(n > 0, u / np.where(n > 0, n, 1), identity)
 
 
 def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -146,6 +152,18 @@ class FaceGeometry:
     edges: np.ndarray | None = None  # [T,n,2,3] v1 - v0, v2 - v0 (precise), with the vertices
 
 
+def _scaled_norm_rows(v, out, tmp):
+    """Column lengths of component-major rows v [3,n] into out [n], squaring v / max|v|
+    (tmp [3,n] is scratch) so that neither huge nor tiny vectors over- or underflow."""
+    np.abs(v, out=tmp)
+    m = tmp.max(axis=0)
+    m_safe = np.where(m > 0, m, 1)
+    np.divide(v, m_safe, out=tmp)
+    np.einsum("ij,ij->j", tmp, tmp, out=out)
+    np.sqrt(out, out=out)
+    out *= m
+
+
 def _cross_rows(a, b, out, tmp):
     """out = a × b for component-major [3,n] rows, with a scratch row tmp [n]."""
     for k, (i, j) in enumerate(((1, 2), (2, 0), (0, 1))):
@@ -228,7 +246,8 @@ class _PlaneEvaluator:
         if self._pack is None:
             self._pack = np.empty((self.ROOT_ROWS, F0), self.dtype)
             self._root_tmp = np.empty((3, F0), self.dtype)
-        pack, (t0, t1, t2) = self._pack, self._root_tmp
+            self._root_scr = np.empty((3, F0), self.dtype)
+        pack, (t0, t1, t2), scr = self._pack, self._root_tmp, self._root_scr
         eps = 8 * np.finfo(self.dtype).eps
         vt = np.ascontiguousarray(verts.T)  # [3,V]: rows are contiguous, so are the gathers below
         v0, xr, nh, zr = pack[0:3], pack[3:6], pack[6:9], pack[9:12]
@@ -240,15 +259,15 @@ class _PlaneEvaluator:
         E2 = np.take(vt, tri[2], axis=1)
         E2 -= v0
         _cross_rows(E1, E2, nh, t0)  # the normal, unnormalised
-        np.einsum("ij,ij->j", E1, E1, out=L)
-        np.sqrt(L, out=L)
-        np.einsum("ij,ij->j", nh, nh, out=t1)
-        np.sqrt(t1, out=t1)  # |normal|
-        np.einsum("ij,ij->j", E2, E2, out=t2)
-        np.sqrt(t2, out=t2)  # |E2|
-        np.multiply(t2, L, out=t2)
+        # Lengths scaled by the largest component before squaring, as in the torch path: the
+        # normal is quadratic in the edges, so at absurd unit scales its square over- or
+        # underflows float32 (1e20 m edges: inf; 1e-12 m: 0) and the frame would be garbage.
+        _scaled_norm_rows(E1, L, scr)
+        _scaled_norm_rows(nh, t1, scr)  # |normal|
+        _scaled_norm_rows(E2, t2, scr)  # |E2|
         t2 *= eps
-        good = (L > 0) & (t1 > t2)
+        # |normal| > eps |E1| |E2|, divided through by |E1| so the product cannot overflow.
+        good = (L > 0) & (t1 / np.where(L > 0, L, 1) > t2)
         L_safe = L
         if not good.all():
             L_safe = np.where(good, L, 1)

@@ -238,5 +238,8 @@ class Forest:
 
     @classmethod
     def load(cls, path) -> "Forest":
+        from ..io.safe_io import check_npz
+
+        check_npz(path)  # bounded before numpy allocates
         with np.load(path, allow_pickle=False) as data:
             return cls.from_state(data, source=str(path))

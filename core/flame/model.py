@@ -27,6 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..io.safe_io import MAX_ARRAY_ELEMENTS, check_npz
+
 __all__ = [
     "FlameModelError",
     "UnsafePickleError",
@@ -98,24 +100,114 @@ def _stub_class(base: type, module: str, name: str) -> type:
     return cls
 
 
-# Resolved from live objects so numpy 1.x (numpy.core) and 2.x (numpy._core) both work
-# without touching the deprecated module path.
-_NP_RECONSTRUCT = np.empty(0).__reduce__()[0]
-_NP_SCALAR = np.float64(0).__reduce__()[0]
+# Array payloads are rebuilt here from checked parts, never by numpy's own unpickling: a
+# pickled ``numpy.dtype`` state can set the object flag so that raw bytes are read as
+# object pointers (memory corruption), and ``_reconstruct``/``scalar`` accept any dtype.
+# So ``numpy.dtype`` resolves to a recorder that becomes a plain numeric dtype only, arrays
+# are built from their raw bytes after the shape and byte count are checked, and sizes are
+# bounded (safe_io.MAX_ARRAY_ELEMENTS) before anything is allocated.
+_DTYPE_SPEC = re.compile(r"^[<>|=]?(b1|\?|[iuf][1248]|f16|[bBhHiIlLqQefdg])$")
+_MAX_DIMS = 32
+
+
+class _DtypeSpec:
+    """What ``numpy.dtype(spec, align, copy)`` plus its BUILD state asked for."""
+
+    def __init__(self, spec=None, align=False, copy=False):
+        self.spec = spec.decode("latin1") if isinstance(spec, bytes) else spec
+        self.state = None
+
+    def __setstate__(self, state):
+        self.state = state
+
+    def resolve(self) -> np.dtype:
+        spec = self.spec
+        if not isinstance(spec, str) or not _DTYPE_SPEC.match(spec):
+            raise pickle.UnpicklingError(f"array dtype {spec!r} refused: only plain numeric dtypes are read")
+        dt = np.dtype(spec)
+        st = self.state
+        if st is not None:
+            # (version, byteorder, subdescr, names, fields, elsize, alignment, flags): only the
+            # byte order is taken; anything structured or flagged is refused, not trusted.
+            if not isinstance(st, tuple) or len(st) < 2 or any(x is not None for x in st[2:5]):
+                raise pickle.UnpicklingError(f"array dtype {spec!r} with a structured or unknown state refused")
+            order = st[1].decode("latin1") if isinstance(st[1], bytes) else st[1]
+            if order in ("<", ">"):
+                dt = dt.newbyteorder(order)
+            elif order not in ("|", "="):
+                raise pickle.UnpicklingError(f"array dtype byte order {order!r} refused")
+        if dt.kind not in "biuf":
+            raise pickle.UnpicklingError(f"array dtype {dt} refused: only plain numeric dtypes are read")
+        return dt
+
+
+def _as_dtype(d) -> np.dtype:
+    if isinstance(d, _DtypeSpec):
+        return d.resolve()
+    if isinstance(d, (str, bytes)):
+        return _DtypeSpec(d).resolve()
+    raise pickle.UnpicklingError(f"array payload with a non-dtype descriptor {type(d).__name__}")
+
+
+def _checked_shape(shape) -> tuple:
+    if isinstance(shape, int):
+        shape = (shape,)
+    if not isinstance(shape, tuple) or len(shape) > _MAX_DIMS or not all(
+            isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape):
+        raise pickle.UnpicklingError(f"array shape {shape!r} refused")
+    count = 1
+    for s in shape:
+        count *= s
+    if count > MAX_ARRAY_ELEMENTS:
+        raise pickle.UnpicklingError(f"array of {count} elements refused (bound {MAX_ARRAY_ELEMENTS})")
+    return shape
+
+
+def _array_from_bytes(raw, dtype: np.dtype, shape: tuple, fortran: bool) -> np.ndarray:
+    if isinstance(raw, str):  # Python 2 str payloads, decoded as latin1
+        raw = raw.encode("latin1")
+    if not isinstance(raw, (bytes, bytearray, memoryview)):
+        raise pickle.UnpicklingError(f"array payload of type {type(raw).__name__} refused (object arrays are not read)")
+    raw = bytes(raw)
+    want = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    if len(raw) != want:
+        raise pickle.UnpicklingError(f"array payload holds {len(raw)} bytes, shape {shape} of {dtype} needs {want}")
+    return np.frombuffer(raw, dtype=dtype).reshape(shape, order="F" if fortran else "C").copy()
+
+
+class _NdarrayToken:
+    """Stands for ``numpy.ndarray`` in a pickle: only a marker for ``_reconstruct``, not callable."""
+
+
+class _ArrayStub:
+    """An ndarray being unpickled: ``_reconstruct`` makes it, BUILD hands it the state, from
+    which a checked plain array is built at once."""
+
+    def __init__(self):
+        self.array = None
+
+    def __setstate__(self, state):
+        if not isinstance(state, tuple) or len(state) not in (4, 5):
+            raise pickle.UnpicklingError("array state refused")
+        shape, dtype, fortran, raw = state[-4:]
+        self.array = _array_from_bytes(raw, _as_dtype(dtype), _checked_shape(shape), bool(fortran))
 
 
 def _np_frombuffer(buf, dtype, shape, order):
     # What numpy's own pickle protocol-5 helper does, minus anything but plain arrays.
-    if not isinstance(dtype, np.dtype):
-        raise pickle.UnpicklingError("array payload with a non-dtype descriptor")
-    arr = np.frombuffer(bytes(buf), dtype=dtype)
-    return arr.reshape(shape, order=order).copy()
+    return _array_from_bytes(buf, _as_dtype(dtype), _checked_shape(shape), order == "F")
 
 
 def _np_reconstruct(subtype, shape, dtype):
-    if subtype is not np.ndarray:
+    if subtype is not _NdarrayToken:
         raise pickle.UnpicklingError(f"array reconstruction of a non-ndarray type {subtype!r}")
-    return _NP_RECONSTRUCT(subtype, shape, dtype)
+    return _ArrayStub()
+
+
+def _np_scalar(dtype, data=None):
+    dt = _as_dtype(dtype)
+    arr = _array_from_bytes(data if data is not None else b"", dt, (), False)
+    return arr[()]
 
 
 def _codecs_encode(obj, encoding="utf-8", errors="strict"):
@@ -139,14 +231,11 @@ _SPARSE_NAME = re.compile(r"^(csc|csr|coo)_(matrix|array)$")
 def _allowed_global(module: str, name: str):
     """The object a pickle may reference as ``module.name``, or None when refused."""
     if module in _NUMPY_MODULES:
-        return {"_reconstruct": _np_reconstruct, "scalar": _NP_SCALAR}.get(name)
+        return {"_reconstruct": _np_reconstruct, "scalar": _np_scalar}.get(name)
     if module in ("numpy.core.numeric", "numpy._core.numeric") and name == "_frombuffer":
         return _np_frombuffer
     if module == "numpy":
-        return {"ndarray": np.ndarray, "dtype": np.dtype}.get(name)
-    if module == "numpy.dtypes":
-        cls = getattr(np.dtypes, name, None) if hasattr(np, "dtypes") else None
-        return cls if isinstance(cls, type) and issubclass(cls, np.dtype) else None
+        return {"ndarray": _NdarrayToken, "dtype": _DtypeSpec}.get(name)
     if module == "_codecs" and name == "encode":
         return _codecs_encode
     if module in ("copy_reg", "copyreg") and name == "_reconstructor":
@@ -200,48 +289,112 @@ def restricted_load(path: str):
         raise FlameModelError(f"{path}: not a readable FLAME pickle ({type(exc).__name__}: {exc})") from exc
 
 
-def _sparse_to_dense(stub: _SparseStub, source: str, key: str) -> np.ndarray:
+def _sparse_to_dense(stub: _SparseStub, source: str, key: str, depth: int) -> np.ndarray:
     st = stub.state if isinstance(stub.state, dict) else {}
     shape = st.get("_shape", st.get("shape"))
     kind = stub.origin.rsplit(".", 1)[-1][:3]
     if shape is None:
         raise FlameModelError(f"{source}: sparse '{key}' ({stub.origin}) has no shape in its pickled state")
-    shape = tuple(int(s) for s in shape)
-    out = np.zeros(shape, dtype=np.float64)
+    # The shape is checked before the dense array exists: a forged (1e6, 1e6) is refused here.
+    try:
+        shape = tuple(int(s) for s in shape)
+    except (TypeError, ValueError, OverflowError):
+        raise FlameModelError(f"{source}: sparse '{key}' ({stub.origin}) has a malformed shape") from None
+    if len(shape) != 2 or min(shape) < 0 or shape[0] * shape[1] > MAX_ARRAY_ELEMENTS:
+        raise FlameModelError(f"{source}: sparse '{key}' ({stub.origin}) declares shape {shape}: refused "
+                              f"(two dimensions, at most {MAX_ARRAY_ELEMENTS} elements dense)")
+    part = lambda name: _to_array(st[name], source, f"{key}.{name}", depth + 1)  # noqa: E731
     try:
         if kind in ("csc", "csr"):
-            data = np.asarray(st["data"], np.float64)
-            indices = np.asarray(st["indices"], np.int64)
-            indptr = np.asarray(st["indptr"], np.int64)
-            major = np.repeat(np.arange(len(indptr) - 1), np.diff(indptr))
+            data, indices, indptr = part("data"), part("indices").astype(np.int64), part("indptr").astype(np.int64)
+            n_major = shape[1] if kind == "csc" else shape[0]
+            if indptr.shape != (n_major + 1,) or indptr[0] != 0 or np.any(np.diff(indptr) < 0) \
+                    or indptr[-1] != len(indices) or len(indices) != len(data):
+                raise ValueError("inconsistent indptr / indices / data")
+            major = np.repeat(np.arange(n_major), np.diff(indptr))
             rows, cols = (indices, major) if kind == "csc" else (major, indices)
         else:
             coords = st.get("coords")
             rows, cols = (coords if coords is not None else (st["row"], st["col"]))
-            rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
-            data = np.asarray(st["data"], np.float64)
+            rows = _to_array(rows, source, key, depth + 1).astype(np.int64)
+            cols = _to_array(cols, source, key, depth + 1).astype(np.int64)
+            data = part("data")
+        data = data.astype(np.float64)
+        if not (rows.shape == cols.shape == data.shape and rows.ndim == 1):
+            raise ValueError("row, column and data lengths differ")
+        if len(rows) and (rows.min() < 0 or rows.max() >= shape[0] or cols.min() < 0 or cols.max() >= shape[1]):
+            raise ValueError(f"an index lies outside the shape {shape}")
+        out = np.zeros(shape, dtype=np.float64)
         np.add.at(out, (rows, cols), data)  # duplicates sum, as in scipy
-    except (KeyError, IndexError, ValueError) as exc:
+    except (KeyError, IndexError, ValueError, TypeError) as exc:
         raise FlameModelError(f"{source}: sparse '{key}' ({stub.origin}) is malformed: {exc}") from exc
     return out
 
 
-def _to_array(value, source: str, key: str):
-    """Plain numpy array from an unpickled value (ndarray, chumpy stand-in, sparse stand-in)."""
+_MAX_NESTING = 40  # stand-ins inside stand-ins, lists inside lists: more is a hostile file
+
+
+def _list_elements(value, source: str, key: str) -> int:
+    """Leaf count of nested lists/tuples, shared sublists counted once per reference but
+    walked once (memo), refusing self-references and nesting deeper than _MAX_NESTING."""
+    memo: dict[int, int] = {}
+    stack = [(value, 0, False)]
+    active: set[int] = set()
+    while stack:
+        node, depth, done = stack.pop()
+        if done:
+            active.discard(id(node))
+            memo[id(node)] = sum(memo[id(c)] if isinstance(c, (list, tuple)) else 1 for c in node)
+            if memo[id(node)] > MAX_ARRAY_ELEMENTS:
+                raise FlameModelError(f"{source}: '{key}' holds more than {MAX_ARRAY_ELEMENTS} list elements")
+            continue
+        if id(node) in memo:
+            continue
+        if id(node) in active:
+            raise FlameModelError(f"{source}: '{key}' is a list that contains itself")
+        if depth > _MAX_NESTING:
+            raise FlameModelError(f"{source}: '{key}' nests lists more than {_MAX_NESTING} deep")
+        active.add(id(node))
+        stack.append((node, depth, True))
+        stack.extend((c, depth + 1, False) for c in node if isinstance(c, (list, tuple)))
+    return memo[id(value)]
+
+
+def _to_array(value, source: str, key: str, depth: int = 0):
+    """Plain numeric numpy array from an unpickled value (array, chumpy stand-in, sparse
+    stand-in, nested lists of numbers); anything else is refused with FlameModelError."""
+    if depth > _MAX_NESTING:
+        raise FlameModelError(f"{source}: '{key}' nests stand-ins more than {_MAX_NESTING} deep (or refers to itself)")
+    if isinstance(value, _ArrayStub):
+        if value.array is None:
+            raise FlameModelError(f"{source}: '{key}' is an array without its data")
+        return value.array
     if isinstance(value, _SparseStub):
-        return _sparse_to_dense(value, source, key)
+        return _sparse_to_dense(value, source, key, depth)
     if isinstance(value, _ChumpyStub):
         st = value.state
         if isinstance(st, dict) and "x" in st:
-            return _to_array(st["x"], source, key)
+            return _to_array(st["x"], source, key, depth + 1)
         raise FlameModelError(
             f"{source}: '{key}' is a chumpy expression ({value.origin}) rather than a plain chumpy "
             "array; it cannot be evaluated without chumpy. Convert the model to .npz with chumpy "
             "installed (np.savez with each array as np.asarray(...))."
         )
-    if hasattr(value, "toarray") and hasattr(value, "tocsr"):  # a real scipy matrix (npz of objects)
-        return np.asarray(value.toarray())
-    return np.asarray(value)
+    if isinstance(value, np.ndarray):  # from an npz (already checked) or a protocol-5 payload
+        arr = value
+    elif isinstance(value, (list, tuple)):
+        _list_elements(value, source, key)
+        try:
+            arr = np.asarray(value)
+        except (ValueError, TypeError, RecursionError) as exc:
+            raise FlameModelError(f"{source}: '{key}' is not a numeric array ({type(exc).__name__})") from None
+    elif isinstance(value, (bool, int, float, np.generic)):
+        arr = np.asarray(value)
+    else:
+        raise FlameModelError(f"{source}: '{key}' holds a {type(value).__name__}, not a numeric array")
+    if arr.dtype.kind not in "biuf":
+        raise FlameModelError(f"{source}: '{key}' is not a numeric array (dtype {arr.dtype})")
+    return arr
 
 
 # --------------------------------------------------------------------------------------
@@ -354,7 +507,8 @@ def _model_from_mapping(d: dict, source: str, n_shape: int | None) -> FlameModel
     if _first(d, "kintree_table", "parents") is None:
         missing.append("kintree_table")
     if missing:
-        raise FlameModelError(f"{source}: not a FLAME model, missing keys {missing} (has {sorted(d)})")
+        raise FlameModelError(f"{source}: not a FLAME model, missing keys {missing} "
+                              f"(has {sorted(k for k in d if isinstance(k, str))[:40]})")
     arr = {k: _to_array(d[k], source, k) for k in ("v_template", "shapedirs", "posedirs", "J_regressor", "weights")}
     faces = _to_array(_first(d, "f", "faces"), source, "f")
     if "kintree_table" in d:
@@ -389,6 +543,7 @@ def load_flame_model(path, n_shape: int | None = None) -> FlameModel:
         magic = f.read(4)
     if magic.startswith(b"PK"):
         try:
+            check_npz(path)  # headers first: nothing huge or non-numeric is allocated
             with np.load(path, allow_pickle=False) as z:
                 d = {k: z[k] for k in z.files}
         except ValueError as exc:
@@ -397,7 +552,11 @@ def load_flame_model(path, n_shape: int | None = None) -> FlameModel:
         d = restricted_load(path)
         if not isinstance(d, dict):
             raise FlameModelError(f"{path}: expected a dict of arrays at the top of the pickle, got {type(d).__name__}")
-    return _model_from_mapping(d, path, n_shape)
+    try:
+        return _model_from_mapping(d, path, n_shape)
+    except (RecursionError, MemoryError) as exc:  # backstop: the checks above should come first
+        raise FlameModelError(f"{path}: refused, the model's arrays are too large or too deeply nested "
+                              f"({type(exc).__name__})") from None
 
 
 # --------------------------------------------------------------------------------------

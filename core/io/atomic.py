@@ -9,10 +9,45 @@ import os
 from contextlib import contextmanager
 
 
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True  # exists (another user's) or cannot tell: leave its file alone
+    return True
+
+
+def clean_stale_temps(path) -> list:
+    """Remove ``path.<pid>.tmp`` files left by writers that were killed (their pid is gone);
+    returns the removed paths. A live writer's temporary is never touched."""
+    path = os.fspath(path)
+    folder, base = os.path.split(os.path.abspath(path))
+    removed = []
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return removed
+    for name in names:
+        if not (name.startswith(base + ".") and name.endswith(".tmp")):
+            continue
+        pid = name[len(base) + 1: -4]
+        if pid.isdigit() and int(pid) != os.getpid() and not _pid_alive(int(pid)):
+            try:
+                os.remove(os.path.join(folder, name))
+                removed.append(os.path.join(folder, name))
+            except OSError:
+                pass
+    return removed
+
+
 @contextmanager
 def atomic_open(path, mode: str = "wb"):
-    """Open a temporary file for writing; on success it replaces `path` in one rename."""
+    """Open a temporary file for writing; on success it replaces `path` in one rename.
+    Temporaries of earlier writers of `path` that were killed (pid gone) are removed first."""
     path = os.fspath(path)
+    clean_stale_temps(path)
     tmp = f"{path}.{os.getpid()}.tmp"
     try:
         with open(tmp, mode) as fh:

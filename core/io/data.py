@@ -16,7 +16,6 @@ where images or OBJ/PLY files are read.
 
 from __future__ import annotations
 
-import json
 import os
 import re
 from collections import OrderedDict
@@ -26,6 +25,7 @@ import numpy as np
 
 from ..geometry.camera import Camera
 from ..flame.model import FlameModel, flame_forward, load_flame_model
+from .safe_io import check_npz, loads_json
 
 __all__ = [
     "DataError",
@@ -146,6 +146,7 @@ def _npz(path: str) -> dict:
     if not os.path.isfile(path):
         raise MissingFileError(f"{path}: file not found")
     try:
+        check_npz(path)  # headers first: a forged element count is refused before allocation
         with np.load(path, allow_pickle=False) as z:
             return {k: z[k] for k in z.files}
     except Exception as exc:
@@ -487,6 +488,21 @@ class Sample:
     image_path: str = ""
 
 
+def _to_8bit(im, path: str, what: str):
+    """16-bit greyscale PNGs (PIL modes I;16*, I) rescaled to 8-bit L: PIL's own convert
+    clips them at 255, so they would read as pure white."""
+    if im.mode in ("I;16", "I;16L", "I;16B", "I"):
+        from PIL import Image
+
+        a = np.asarray(im, dtype=np.float64)
+        if a.size and (a.min() < 0 or a.max() > 65535):
+            raise DataError(f"{path}: {what} has 32-bit pixel values outside 0..65535")
+        return Image.fromarray(np.round(a * (255.0 / 65535.0)).astype(np.uint8), "L")
+    if im.mode not in ("RGB", "RGBA", "L", "LA", "P", "1", "CMYK", "YCbCr"):
+        raise DataError(f"{path}: {what} has pixel format {im.mode!r}; use 8-bit RGB/RGBA/L or 16-bit greyscale PNG")
+    return im
+
+
 def _resolve(root: str, rel: str) -> str:
     return os.path.normpath(rel if os.path.isabs(rel) else os.path.join(root, rel))
 
@@ -527,9 +543,9 @@ class Dataset:
             raise MissingFileError(f"{json_path}: split '{split}' not found (present: {have or 'none'})")
         self.json_path = json_path
         try:
-            with open(json_path, "r", encoding="utf-8") as f:
-                meta = json.load(f)
-        except json.JSONDecodeError as exc:
+            with open(json_path, "rb") as f:
+                meta = loads_json(f.read(), json_path)  # nesting bounded (safe_io)
+        except (ValueError, UnicodeDecodeError) as exc:
             raise DataError(f"{json_path}: invalid JSON ({exc})") from exc
         rows = meta.get("frames") if isinstance(meta, dict) else None
         if not rows:
@@ -690,7 +706,7 @@ class Dataset:
             if im.size != full and im.size != target:
                 want = f"{full[0]}x{full[1]}" + (f" or {target[0]}x{target[1]} (downscaled)" if target != full else "")
                 raise DataError(f"{path}: {what} is {im.size[0]}x{im.size[1]}, {self.json_path} says {want}")
-            return im
+            return _to_8bit(im, path, what)
 
         im = read(info.image_path, "image")
         alpha = None

@@ -84,9 +84,45 @@ def write_ply(path, gaussians: dict) -> int:
     return len(rows)
 
 
+_PLY_SIZES = {"char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2, "uint16": 2,
+              "int": 4, "int32": 4, "uint": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+_MAX_PLY_HEADER = 1 << 16
+
+
+def _check_ply_header(path: str) -> None:
+    """Refuse, before any reader allocates, a header whose element counts are malformed or
+    need more bytes than the file holds (``element vertex 1e12`` in a 1 KB file)."""
+    size = os.path.getsize(path)
+    with open(path, "rb") as fh:
+        head = fh.read(_MAX_PLY_HEADER)
+    end = head.find(b"end_header")
+    if not head.startswith(b"ply") or end < 0:
+        raise ValueError(f"{path}: not a PLY file (bad magic or no end_header in the first {_MAX_PLY_HEADER} bytes)")
+    body = size - (head.find(b"\n", end) + 1 if head.find(b"\n", end) >= 0 else len(head))
+    lines = head[:end].decode("ascii", "replace").splitlines()
+    binary = any(ln.split()[:2] in (["format", "binary_little_endian"], ["format", "binary_big_endian"])
+                 for ln in lines)
+    need, rows, row_bytes = 0, 0, 0
+    for line in lines + ["element _end 0"]:
+        parts = line.split()
+        if parts and parts[0] == "element":
+            if len(parts) != 3 or not parts[2].isdigit():
+                raise ValueError(f"{path}: malformed PLY element line {line.strip()!r} (count must be a whole number)")
+            # Lower bound per row: its scalar bytes (a list at least its count) in binary, a
+            # character per row in ASCII.
+            need += rows * (max(row_bytes, 1) if binary else 1)
+            rows, row_bytes = int(parts[2]), 0
+        elif len(parts) >= 3 and parts[0] == "property":
+            row_bytes += _PLY_SIZES.get(parts[2] if parts[1] == "list" else parts[1], 1)
+    if need > body:
+        raise ValueError(f"{path}: PLY header declares elements needing at least {need} bytes, the file holds "
+                         f"{body}: truncated or forged, refused before reading")
+
+
 def _read_vertices(path: str) -> np.ndarray:
     """The vertex element as a structured array: plyfile when available (any PLY flavour),
     else a numpy parser for binary little-endian files with scalar vertex properties."""
+    _check_ply_header(path)
     try:
         from plyfile import PlyData
     except ImportError:
@@ -148,6 +184,8 @@ def read_ply(path) -> dict:
         raise ValueError(f"{path}: not a 3DGS PLY, missing vertex properties {missing}")
     col = lambda *ks: np.stack([np.asarray(v[k], np.float64) for k in ks], axis=1)  # noqa: E731
     quats = col("rot_0", "rot_1", "rot_2", "rot_3")
+    big = np.abs(quats).max(axis=1, keepdims=True)  # pre-scaled: a norm of 1e200 must not overflow
+    quats = np.where(np.isfinite(big) & (big > 0), quats / np.where(np.isfinite(big) & (big > 0), big, 1), 0.0)
     qn = np.linalg.norm(quats, axis=1, keepdims=True)
     quats = np.where(qn > 0, quats / np.where(qn > 0, qn, 1), np.array([1.0, 0, 0, 0]))
     n_rest = sum(1 for nm in names if nm.startswith("f_rest_"))

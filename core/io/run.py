@@ -44,21 +44,33 @@ def run_flame_model(run: str, flame_model: str | None = None) -> str | None:
 
 
 def run_importance(run: str, avatar: Avatar, data: str, max_views: int | None = 120, progress=True) -> np.ndarray:
-    """Importance per face, computed once per trained avatar and cached in the run folder."""
+    """Importance per face, computed once per trained avatar and view count and cached in the
+    run folder (importance.npy, with importance.json saying which avatar and max_views)."""
     path = os.path.join(run, "importance.npy")
+    key_path = os.path.join(run, "importance.json")
     stamp = os.path.getmtime(os.path.join(run, "avatar.npz"))
+    key = {"max_views": max_views, "data": os.path.abspath(data)}
     if os.path.exists(path) and os.path.getmtime(path) >= stamp:
-        W = np.load(path)
-        if W.shape == (avatar.num_gaussians,):
-            return W
+        try:
+            with open(key_path, encoding="utf-8") as fh:
+                cached = json.load(fh)
+        except (OSError, ValueError):
+            cached = None
+        if cached == key:
+            W = np.load(path, allow_pickle=False)
+            if W.shape == (avatar.num_gaussians,):
+                return W
     from .data import Dataset
     from ..render.importance import face_importance
 
     W = face_importance(avatar, Dataset(data, "train", flame_model=run_flame_model(run)), max_views=max_views,
                         progress=progress)
-    tmp = path + ".tmp.npy"
-    np.save(tmp, W)
-    os.replace(tmp, path)
+    from .atomic import atomic_open
+
+    with atomic_open(path) as fh:
+        np.save(fh, W)
+    with atomic_open(key_path, "w") as fh:
+        json.dump(key, fh)
     return W
 
 

@@ -25,8 +25,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..io.atomic import atomic_open
-from ..avatar.avatar import PARAM_NAMES, SH_C0, Avatar
+from ..avatar.avatar import Avatar, PARAM_NAMES, SH_C0
 from ..avatar.forest import Forest
+from ..io.safe_io import loads_json
 
 MAGIC = b"PAVS\r\n\x1a\n"
 VERSION = 2  # what the writer writes
@@ -403,7 +404,7 @@ def _parse_header(buf, source: str) -> StreamInfo:
     meta = {}
     if f["M"]:
         try:
-            meta = json.loads(bytes(buf[pos: pos + f["M"]]).decode("utf-8"))
+            meta = loads_json(bytes(buf[pos: pos + f["M"]]).decode("utf-8"), f"{source}: metadata")
         except (UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise ValueError(f"{source}: metadata is not valid UTF-8 JSON: {exc}") from None
         if not isinstance(meta, dict):
@@ -1003,6 +1004,11 @@ class StreamReader:
                 first[np.unique(keys, return_index=True)[1]] = True
                 k = nr + int(np.argmax((old > 0) | ~first))
                 problem = f"record {i0 + k} reuses the child slot of an earlier record"
+                # The scatter above also wrote the refused record and those after it: put the
+                # table back and claim only the kept records' slots, so the kept prefix's
+                # forest keeps every child link (the duplicate overwrote its earlier twin's).
+                child[keys] = old
+                child[keys[: k - nr]] = ids[: k - nr]
         if nr:
             par[:nr] = -1
             slt[:nr] = -1

@@ -14,7 +14,11 @@ from ..avatar.forest import Forest
 
 
 def quat_normalize(q: torch.Tensor) -> torch.Tensor:
-    return q / torch.linalg.vector_norm(q, dim=-1, keepdim=True).clamp_min(1e-12)
+    # Scaled by the largest component first (as binding.quat_normalize): a float32 norm of
+    # 1e20 squares to inf and would give a zero quaternion.
+    m = q.detach().abs().amax(-1, keepdim=True).clamp_min(torch.finfo(q.dtype).tiny)
+    u = q / m
+    return u / torch.linalg.vector_norm(u, dim=-1, keepdim=True).clamp_min(1e-12)
 
 
 def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

@@ -21,7 +21,7 @@ import torch
 from . import losses
 from ..avatar.avatar import PARAM_NAMES
 from ..io.data import Dataset
-from ..io.atomic import atomic_savez
+from ..io.atomic import atomic_open, atomic_savez
 from ..avatar.forest import Forest
 from .model import TorchAvatar
 from ..render.rasterize import render
@@ -140,17 +140,63 @@ def _check_finite(it: int, **tensors):
             raise FloatingPointError(f"iteration {it}: {name} became NaN/inf; training stopped, last checkpoint kept")
 
 
+def _log_iteration(line: str) -> float:
+    """The iteration of a metrics.jsonl line; a torn line (a kill mid-write) counts as after
+    every checkpoint, so resuming drops it instead of failing on it."""
+    try:
+        rec = json.loads(line)
+        return float(rec.get("iteration", 0)) if isinstance(rec, dict) else math.inf
+    except (ValueError, TypeError):
+        return math.inf
+
+
+def _check_same_data(out_dir: str, data_dir: str) -> None:
+    """--resume must continue on the dataset the run was started on (config.json says which)."""
+    cfg = os.path.join(out_dir, "config.json")
+    try:
+        with open(cfg, encoding="utf-8") as fh:
+            was = json.load(fh).get("data")
+    except (OSError, ValueError, AttributeError):
+        return  # no readable config: the checkpoint's template check below still applies
+    now = os.path.abspath(data_dir)
+    if was and os.path.realpath(was) != os.path.realpath(now):
+        raise ValueError(f"{out_dir}: --resume with a different --data: this run was trained on {was}, not {now}; "
+                         "resume with the same --data, or train into a new --out folder")
+
+
+def _check_gaussians(it: int, g: dict):
+    """The activated Gaussians before they reach the rasteriser (which would refuse them with
+    a ValueError): a scale that overflowed to inf, or a NaN, stops training cleanly."""
+    with torch.no_grad():
+        _check_finite(it, **{f"Gaussian {k}": v for k, v in g.items()})
+        bad = g["scales"] <= 0
+        if bool(bad.any()):
+            raise FloatingPointError(f"iteration {it}: Gaussian scales underflowed to 0; training stopped, "
+                                     "last checkpoint kept")
+
+
 class Trainer:
-    def __init__(self, data_dir: str, out_dir: str, config: TrainConfig, resume: bool = False):
+    def __init__(self, data_dir: str, out_dir: str, config: TrainConfig, resume: bool = False,
+                 check_data: bool = True, progress: bool = False):
         self.data_dir, self.out_dir, self.cfg = data_dir, out_dir, config
         os.makedirs(out_dir, exist_ok=True)
+        self.ckpt_path = os.path.join(out_dir, "checkpoint.npz")
+        if resume and os.path.exists(self.ckpt_path):
+            _check_same_data(out_dir, data_dir)
         self.train = Dataset(data_dir, "train", downscale=config.downscale, cache_images=100000,
                              flame_model=config.flame_model)
-        try:
+        # No validation split is fine; a broken one is an error, not silently dropped.
+        if os.path.isfile(os.path.join(self.train.root, "transforms_val.json")):
             self.val = Dataset(data_dir, "val", downscale=config.downscale, cache_images=64,
                                flame_model=config.flame_model)
-        except (ValueError, FileNotFoundError):
+        else:
             self.val = None
+        if check_data:
+            from ..io.validate import validate_dataset
+
+            for ds in (self.train, self.val):
+                if ds is not None:
+                    validate_dataset(ds, progress=progress)
         self.background = torch.tensor(np.asarray(self.train.background, np.float32))
         self.refiner = None
         if config.refine_flame:
@@ -160,7 +206,6 @@ class Trainer:
             from .flame_refine import FlameRefiner
 
             self.refiner = FlameRefiner(self.train, config.lr)
-        self.ckpt_path = os.path.join(out_dir, "checkpoint.npz")
         self.log_path = os.path.join(out_dir, "metrics.jsonl")
         if resume and os.path.exists(self.ckpt_path):
             self._load_checkpoint()
@@ -173,7 +218,7 @@ class Trainer:
             self._reset_accumulators()
             if os.path.exists(self.log_path):
                 os.remove(self.log_path)
-        with open(os.path.join(out_dir, "config.json"), "w") as fh:
+        with atomic_open(os.path.join(out_dir, "config.json"), "w") as fh:
             json.dump({"data": os.path.abspath(data_dir), **asdict(config)}, fh, indent=1)
 
     # -- growth ---------------------------------------------------------------------------
@@ -223,6 +268,7 @@ class Trainer:
         target = torch.from_numpy(sample.image)
         self.model.active_sh_degree = min(c.sh_degree, it // max(1, c.sh_every))
         g = self.model.gaussians(self._vertices(sample), sample.camera.center)
+        _check_gaussians(it, g)
         levels = self._levels()
         top = self.model.forest.max_level
         loss = torch.zeros(())
@@ -303,10 +349,17 @@ class Trainer:
         atomic_savez(self.ckpt_path, **arrays)
 
     def _load_checkpoint(self):
+        from ..io.safe_io import check_npz
+
+        check_npz(self.ckpt_path, allow_text=("state_json",))
         with np.load(self.ckpt_path, allow_pickle=False) as d:
             forest = Forest.from_state(d, source=self.ckpt_path)
             from ..avatar.avatar import Avatar
 
+            if not np.array_equal(forest.template_faces, np.asarray(self.train.faces)):
+                raise ValueError(f"{self.ckpt_path}: the checkpoint's template mesh ({len(forest.template_faces)} "
+                                 f"faces) is not {self.data_dir}'s ({len(self.train.faces)} faces); resume with the "
+                                 "--data it was trained on, or train into a new --out folder")
             av = Avatar(forest, *(d["param_" + n] for n in PARAM_NAMES),
                         f_rest=d["param_f_rest"] if "param_f_rest" in d else None)
             if av.sh_degree != self.cfg.sh_degree:
@@ -330,8 +383,8 @@ class Trainer:
         # Drop log lines written after the checkpoint: they will be written again.
         if os.path.exists(self.log_path):
             with open(self.log_path) as fh:
-                lines = [ln for ln in fh if json.loads(ln).get("iteration", 0) <= self.iteration]
-            with open(self.log_path, "w") as fh:
+                lines = [ln.rstrip("\n") + "\n" for ln in fh if _log_iteration(ln) <= self.iteration]
+            with atomic_open(self.log_path, "w") as fh:
                 fh.writelines(lines)
 
     def _log(self, record: dict):

@@ -1,0 +1,100 @@
+"""Bounded readers for files that may be hostile or broken (numpy only: runs inside Blender).
+
+Every check here happens *before* the expensive step: an npz member's npy header is read and
+its declared element count bounded before numpy allocates the array; a JSON document's nesting
+depth is measured before the recursive parser runs. Failures are ``ValueError`` naming the
+file and the problem, never MemoryError or RecursionError.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import zipfile
+
+import numpy as np
+
+__all__ = ["MAX_ARRAY_ELEMENTS", "MAX_JSON_DEPTH", "check_npz", "json_depth", "loads_json"]
+
+# One array in any file the project reads holds at most 2^27 elements (1 GiB as float64);
+# the largest real arrays (FLAME shapedirs 5023x3x400, a 1M-Gaussian avatar's f_rest) are
+# far below. A whole npz is bounded at four times that.
+MAX_ARRAY_ELEMENTS = 1 << 27
+MAX_NPZ_ELEMENTS = 4 * MAX_ARRAY_ELEMENTS
+# Deeper JSON than this is refused before parsing (Python's parser recurses per level).
+MAX_JSON_DEPTH = 64
+
+# Object arrays need pickle (refused by np.load(allow_pickle=False) anyway) and structured
+# (void) ones are not data any reader here uses: both are refused from the header.
+_REFUSED_KINDS = "OV"
+
+
+def check_npz(path, *, max_elements: int = MAX_ARRAY_ELEMENTS, max_total: int = MAX_NPZ_ELEMENTS,
+              allow_text: tuple = ()) -> dict:
+    """Read every member's npy header of the npz ``path`` and refuse, before anything is
+    allocated, object or structured members, members that declare more than
+    ``max_elements`` elements (``max_total`` over the file), or more bytes than the archive
+    stores. Strings (e.g. a JSON blob, FLAME's ``bs_style``) are allowed: the reader decides
+    what it uses. ``allow_text`` is accepted for readability at call sites (members that
+    are meant to be text). Returns {member name: (shape, dtype)}."""
+    out = {}
+    total = 0
+    try:
+        zf = zipfile.ZipFile(path)
+    except (zipfile.BadZipFile, OSError, ValueError) as exc:
+        raise ValueError(f"{path}: not a readable npz archive ({exc})") from None
+    with zf:
+        for info in zf.infolist():
+            name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
+            try:
+                with zf.open(info) as fh:
+                    version = np.lib.format.read_magic(fh)
+                    if version == (1, 0):
+                        shape, fortran, dtype = np.lib.format.read_array_header_1_0(fh)
+                    elif version in ((2, 0), (3, 0)):
+                        shape, fortran, dtype = np.lib.format.read_array_header_2_0(fh)
+                    else:
+                        raise ValueError(f"unknown npy version {version}")
+            except (ValueError, OSError, EOFError, zipfile.BadZipFile, RuntimeError, NotImplementedError) as exc:
+                raise ValueError(f"{path}: member '{name}' has no valid npy header ({exc})") from None
+            if dtype.kind in _REFUSED_KINDS or dtype.hasobject:
+                raise ValueError(f"{path}: member '{name}' has dtype {dtype}; only plain arrays are read")
+            count = 1
+            for s in shape:
+                count *= int(s)  # Python ints: no overflow
+            if count > max_elements:
+                raise ValueError(f"{path}: member '{name}' declares {count} elements {tuple(shape)}, "
+                                 f"over the bound of {max_elements}; refused before allocating")
+            total += count
+            if total > max_total:
+                raise ValueError(f"{path}: members declare {total} elements in all, over the bound of {max_total}")
+            if count * dtype.itemsize > info.file_size:
+                raise ValueError(f"{path}: member '{name}' declares {count * dtype.itemsize} bytes of data but the "
+                                 f"archive stores {info.file_size}: truncated or forged")
+            out[name] = (tuple(shape), dtype)
+    return out
+
+
+_JSON_STRING = re.compile(rb'"(?:[^"\\]|\\.)*"', re.S)
+
+
+def json_depth(data) -> int:
+    """Nesting depth of the JSON text ``data`` (str or bytes), without recursion: strings are
+    blanked out, then brackets are counted with one cumulative sum."""
+    raw = data.encode("utf-8", "surrogatepass") if isinstance(data, str) else bytes(data)
+    raw = _JSON_STRING.sub(b'""', raw)
+    b = np.frombuffer(raw, np.uint8)
+    step = (np.isin(b, (ord("["), ord("{"))).astype(np.int64) - np.isin(b, (ord("]"), ord("}"))))
+    return int(np.cumsum(step).max(initial=0))
+
+
+def loads_json(data, source: str = "<json>", max_depth: int = MAX_JSON_DEPTH):
+    """``json.loads`` that refuses documents nested deeper than ``max_depth`` with a
+    ValueError naming ``source`` (Python's parser would raise RecursionError)."""
+    depth = json_depth(data)
+    if depth > max_depth:
+        raise ValueError(f"{source}: JSON nested {depth} levels deep, over the limit of {max_depth}")
+    try:
+        return json.loads(data)
+    except RecursionError:  # belt and braces: a depth the scanner could not see
+        raise ValueError(f"{source}: JSON nested too deeply") from None

@@ -1,0 +1,209 @@
+"""HTTP faults (core/http_stream.py) against an in-process loopback server (127.0.0.1 only):
+a file replaced mid-download, percent budgets before the header, a dripping server, nested
+JSON metadata. Every test is bounded to a few seconds."""
+
+import hashlib
+import re
+import threading
+import time
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+import pytest
+
+from progressive_avatars.core.stream import http as H
+from progressive_avatars.core.stream import format as S
+from progressive_avatars.core.avatar.avatar import Avatar
+from tests.test_stream import assert_prefix, make_avatar
+
+
+class FaultHandler(BaseHTTPRequestHandler):
+    protocol_version = "HTTP/1.1"
+
+    def log_message(self, *args):
+        pass
+
+    def do_GET(self):
+        srv = self.server
+        srv.requests += 1
+        if srv.swap_after is not None and srv.requests > srv.swap_after:
+            srv.data, srv.etag = srv.new_data, srv.new_etag
+        data, etag = srv.data, srv.etag
+        if srv.drip_headers:
+            for ch in b"HTTP/1.1 200 OK\r\n":
+                self.wfile.write(bytes([ch]))
+                self.wfile.flush()
+                time.sleep(srv.drip)
+            return
+        rng = self.headers.get("Range")
+        if_range = self.headers.get("If-Range")
+        srv.log.append((rng, if_range))
+        start, end, partial = 0, len(data) - 1, False
+        validator = etag if srv.send_etag else _lastmod(etag)
+        if rng and srv.ranges and (if_range is None or if_range == validator):
+            m = re.match(r"bytes=(\d+)-(\d*)", rng)
+            start = int(m.group(1))
+            end = min(int(m.group(2)) if m.group(2) else len(data) - 1, len(data) - 1)
+            partial = True
+        self.send_response(206 if partial else 200)
+        if partial:
+            self.send_header("Content-Range", f"bytes {start}-{end}/{len(data)}")
+        if srv.send_etag:
+            self.send_header("ETag", etag)
+        else:  # Last-Modified only: an HTTP date that differs between the two versions
+            self.send_header("Last-Modified", _lastmod(etag))
+        self.send_header("Content-Length", str(end - start + 1))
+        self.end_headers()
+        body = data[start: end + 1]
+        if srv.drip:
+            for i in range(len(body)):
+                try:
+                    self.wfile.write(body[i: i + 1])
+                    self.wfile.flush()
+                except OSError:
+                    return
+                time.sleep(srv.drip)
+        else:
+            self.wfile.write(body)
+
+
+def _lastmod(etag):
+    second = int(etag.strip('"')[:4], 16) % 60
+    return f"Mon, 23 Nov 2026 04:00:{second:02d} GMT"
+
+
+def _etag(data):
+    return '"' + hashlib.sha1(data).hexdigest()[:16] + '"'
+
+
+class _QuietServer(ThreadingHTTPServer):
+    def handle_error(self, request, client_address):
+        pass  # the client hanging up on a dripping response is the point of some tests
+
+
+class FaultServer:
+    def __init__(self, data, *, new_data=None, swap_after=None, ranges=True, send_etag=True, drip=0.0,
+                 drip_headers=False):
+        self.httpd = _QuietServer(("127.0.0.1", 0), FaultHandler)
+        self.httpd.daemon_threads = True
+        h = self.httpd
+        h.data, h.etag, h.new_data = data, _etag(data), new_data
+        h.new_etag = _etag(new_data) if new_data is not None else None
+        h.swap_after, h.ranges, h.send_etag, h.drip, h.drip_headers = swap_after, ranges, send_etag, drip, drip_headers
+        h.requests, h.log = 0, []
+        self.thread = threading.Thread(target=h.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
+        self.thread.start()
+        self.url = f"http://127.0.0.1:{h.server_address[1]}/s.pavs"
+
+    def close(self):
+        self.httpd.shutdown()
+        self.httpd.server_close()
+        self.thread.join(5)
+
+
+@pytest.fixture
+def serve():
+    servers = []
+
+    def start(*a, **k):
+        s = FaultServer(*a, **k)
+        servers.append(s)
+        return s
+
+    yield start
+    for s in servers:
+        s.close()
+
+
+@pytest.fixture(scope="module")
+def two_streams():
+    _, av, imp = make_avatar(11, n_lat=6, n_lon=10, depth=3)
+    # The replacement: same forest and size, other colours (a re-export after more training).
+    av2 = Avatar(av.forest, av.d_mu, av.d_log_scale, av.d_rot, av.opacity_logit, av.f_dc + 0.5, meta=av.meta)
+    a = S.encode_stream(av, imp, records_per_block=16)
+    b = S.encode_stream(av2, imp, records_per_block=16)
+    return a, b, S.read_stream(a)
+
+
+@pytest.mark.parametrize("ranges", [True, False], ids=["if-range", "server-ignores-range"])
+def test_file_replaced_mid_download_is_detected_not_stitched(two_streams, serve, ranges):
+    a, b, full_a = two_streams
+    assert len(a) == len(b)  # same size: only the validator can tell them apart
+    srv = serve(a, new_data=b, swap_after=2 if ranges else 1, ranges=ranges)
+    res = H.fetch_stream(srv.url, chunk_size=1500, read_size=1500 if ranges else 400, timeout=2,
+                         percent=90 if ranges else None,
+                         on_chunk=(None if ranges else lambda r, n: r.bytes_received < 1200))
+    if ranges:
+        assert res.status == H.CHANGED and not res.ok, str(res)
+        assert "changed mid-download" in res.message and "discard" in res.message
+        assert srv.httpd.log[1][1] == _etag(a)  # the second range request carried If-Range
+        assert_prefix(res.avatar(), full_a, res.num_gaussians)  # only old-file records, never a mix
+        # Resuming with the same reader and the old validator is refused the same way.
+        res2 = H.fetch_stream(srv.url, reader=res.reader, validator=res.validator, timeout=2)
+        assert res2.status == H.CHANGED, str(res2)
+    else:
+        # Without range support the client restarts a plain GET and sees the new ETag at once.
+        res2 = H.fetch_stream(srv.url, reader=res.reader, validator=res.validator, timeout=2)
+        assert res.status == H.CANCELLED and res2.status == H.CHANGED, (str(res), str(res2))
+
+
+def test_last_modified_used_without_etag(two_streams, serve):
+    a, b, full_a = two_streams
+    assert _lastmod(_etag(a)) != _lastmod(_etag(b))
+    srv = serve(a, new_data=b, swap_after=1, send_etag=False)
+    res = H.fetch_stream(srv.url, chunk_size=1500, timeout=2)
+    assert res.status == H.CHANGED, str(res)
+    assert res.validator == _lastmod(_etag(a)) and srv.httpd.log[1][1] == res.validator  # sent as If-Range
+    assert_prefix(res.avatar(), full_a, res.num_gaussians)
+
+
+@pytest.mark.parametrize("percent", [0, 1, 10, 50, 99])
+def test_percent_budget_exact_before_header(two_streams, serve, percent):
+    a, _, full = two_streams
+    info = S.read_header(a)
+    assert len(a) < (1 << 20)  # under the default first request size: was downloaded whole
+    srv = serve(a)
+    res = H.fetch_stream(srv.url, timeout=2, percent=percent)
+    want = max(S.FIXED_SIZE if percent else 0, min(len(a), int(percent / 100 * len(a))))
+    assert res.status == H.BUDGET, str(res)
+    assert res.bytes_received == want, (res.bytes_received, want)
+    n = info.count_for_percent(percent)
+    assert res.num_gaussians == n
+    if n:
+        assert_prefix(res.avatar(), full, n)
+    # Without Range support the same budget holds (the plain GET is read only that far).
+    srv2 = serve(a, ranges=False)
+    res2 = H.fetch_stream(srv2.url, timeout=2, percent=percent)
+    assert res2.status == H.BUDGET and res2.num_gaussians == n
+
+
+def test_deadline_and_min_rate_stop_a_dripping_server(two_streams, serve):
+    a, _, full = two_streams
+    srv = serve(a, drip=0.05)  # 20 bytes/s: every byte inside the 2 s socket timeout
+    t = time.monotonic()
+    res = H.fetch_stream(srv.url, timeout=2, deadline=1.0, min_rate=None)
+    assert time.monotonic() - t < 3.0
+    assert res.status == H.DEADLINE and "deadline" in res.message, str(res)
+    assert 0 < res.bytes_received < len(a)
+    assert_prefix(res.avatar(), full, res.num_gaussians)
+    t = time.monotonic()
+    res = H.fetch_stream(srv.url, timeout=2, min_rate=200, rate_window=0.6)
+    assert time.monotonic() - t < 3.0
+    assert res.status == H.TOO_SLOW and "minimum rate" in res.message, str(res)
+    # Response headers dripped byte by byte are bounded too.
+    srv2 = serve(a, drip=0.1, drip_headers=True)
+    t = time.monotonic()
+    res = H.fetch_stream(srv2.url, timeout=2, deadline=0.8)
+    assert time.monotonic() - t < 3.0 and res.status == H.DEADLINE, str(res)
+    with pytest.raises(ValueError, match="deadline"):
+        H.fetch_stream(srv.url, deadline=-1)
+
+
+def test_nested_json_metadata_reported_as_corrupt(serve):
+    _, av, imp = make_avatar(3, n_lat=3, n_lon=4, depth=1)
+    nested = {}
+    for _ in range(200):
+        nested = {"n": nested}
+    data = S.encode_stream(av, imp, metadata={"deep": nested})
+    srv = serve(data)
+    res = H.fetch_stream(srv.url, timeout=2)
+    assert res.status == H.CORRUPT and "JSON nested" in res.message, str(res)

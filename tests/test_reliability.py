@@ -1,0 +1,263 @@
+"""Careless-user and numerical faults around training, datasets, export and the evaluators:
+each one is refused or handled with a clear message before work is wasted."""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from progressive_avatars.core.io import atomic
+from progressive_avatars.core.avatar.avatar import LOG_SCALE_MAX, Avatar
+from progressive_avatars.core.avatar.binding import quat_normalize
+from progressive_avatars.core.train.binding_torch import quat_normalize as quat_normalize_torch
+from progressive_avatars.core.io.data import DataError, Dataset
+from progressive_avatars.core.train.trainer import Trainer, config_for
+from progressive_avatars.core.io.validate import dataset_problems
+from tests.helpers import random_forest, sphere_mesh
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+@pytest.fixture
+def data_copy(tiny_dataset, tmp_path):
+    dst = tmp_path / "data"
+    shutil.copytree(tiny_dataset, dst)
+    return dst
+
+
+def _edit_json(path, fn):
+    d = json.loads(path.read_text())
+    fn(d)
+    path.write_text(json.dumps(d))
+
+
+# -- datasets ---------------------------------------------------------------------------
+def test_clean_dataset_validates(tiny_dataset):
+    for split in ("train", "val"):
+        assert dataset_problems(Dataset(tiny_dataset, split), progress=False) == []
+
+
+def test_every_broken_file_reported_before_training(data_copy, tmp_path):
+    from PIL import Image
+
+    tj = data_copy / "transforms_train.json"
+    frames = json.loads(tj.read_text())["frames"]
+    img = [data_copy / f["file_path"] for f in frames]
+    # 1. an image of the wrong size, 2. a truncated PNG, 3. a mask of the wrong size
+    Image.open(img[0]).resize((13, 20)).save(img[0])
+    img[1].write_bytes(img[1].read_bytes()[:200])
+    m2 = data_copy / frames[2]["fg_mask_path"]
+    Image.open(m2).resize((10, 10)).save(m2)
+    # 4. a mesh with the wrong vertex count, 5. NaN vertices, 6. a missing mesh
+    meshes = sorted({f["mesh_path"] for f in frames})
+    v = np.load(data_copy / meshes[0])["vertices"]
+    np.savez(data_copy / meshes[0], vertices=v[:-5])
+    v2 = np.load(data_copy / meshes[1])["vertices"].copy()
+    v2[7, 1] = np.nan
+    np.savez(data_copy / meshes[1], vertices=v2)
+    os.remove(data_copy / meshes[2])
+
+    # 7. an all-zero camera matrix, 8. a NaN principal point, 9. a fractional timestep
+    def cams(d):
+        d["frames"][3]["transform_matrix"] = [[0.0] * 4 for _ in range(4)]
+        d["frames"][4]["cx"] = float("nan")
+        d["frames"][5]["timestep_index"] = d["frames"][5]["timestep_index"] + 0.5
+
+    _edit_json(tj, cams)
+    ds = Dataset(data_copy, "train")  # indexing still works: files are only checked lazily
+    problems = dataset_problems(ds, progress=False)
+    text = "\n".join(problems)
+    for needle in (f"{img[0]}: image: size 13x20", f"{img[1]}: image: cannot be decoded", f"{m2}: mask: size 10x10",
+                   f"{data_copy / meshes[0]}", "NaN", f"{data_copy / meshes[2]}: file not found",
+                   "frames[3]: transform_matrix", "frames[4]: principal point cx is nan",
+                   "frames[5].timestep_index is"):
+        assert needle in text, (needle, text)
+    assert len(problems) == 9, text
+    # The trainer refuses before its first iteration, naming every file in one message.
+    with pytest.raises(DataError) as ei:
+        Trainer(str(data_copy), str(tmp_path / "run"), config_for("tiny"))
+    assert "9 problem(s)" in str(ei.value) and str(img[1]) in str(ei.value)
+    assert not (tmp_path / "run" / "checkpoint.npz").exists()
+
+
+def test_16bit_png_reads_as_its_values_not_white(data_copy):
+    from PIL import Image
+
+    frames = json.loads((data_copy / "transforms_train.json").read_text())["frames"]
+    ds8 = Dataset(data_copy, "train", cache_images=0)
+    img8, mask8 = ds8.images(0)
+    grey = np.asarray(Image.open(data_copy / frames[0]["file_path"]).convert("L"), np.float64)
+    Image.fromarray(np.round(grey * 257).astype(np.uint16)).save(data_copy / frames[0]["file_path"])  # 16-bit
+    m = np.asarray(Image.open(data_copy / frames[0]["fg_mask_path"]).convert("L"), np.float64)
+    Image.fromarray(np.round(m * 257).astype(np.uint16)).save(data_copy / frames[0]["fg_mask_path"])
+    assert Image.open(data_copy / frames[0]["file_path"]).mode.startswith("I")
+    ds16 = Dataset(data_copy, "train", cache_images=0)
+    assert dataset_problems(ds16, progress=False) == []
+    img16, mask16 = ds16.images(0)
+    np.testing.assert_allclose(img16[..., 0], grey / 255.0, atol=1 / 255)  # was 1.0 everywhere
+    np.testing.assert_allclose(mask16, mask8, atol=1 / 255)
+    assert img16.mean() < 0.99
+
+
+def test_broken_val_split_is_an_error_not_dropped(data_copy, tmp_path):
+    (data_copy / "transforms_val.json").write_text("{ not json")
+    with pytest.raises(DataError, match=r"transforms_val\.json: invalid JSON"):
+        Trainer(str(data_copy), str(tmp_path / "r"), config_for("tiny"))
+    os.remove(data_copy / "transforms_val.json")  # no val split at all is fine
+    assert Trainer(str(data_copy), str(tmp_path / "r2"), config_for("tiny")).val is None
+
+
+# -- training ---------------------------------------------------------------------------
+def test_resume_with_other_data_refused(tiny_dataset, tmp_path):
+    from progressive_avatars.core.synthetic.head import make_dataset
+
+    cfg = config_for("tiny", iterations=3, checkpoint_every=2, eval_every=1000, log_every=1)
+    run = tmp_path / "run"
+    Trainer(tiny_dataset, str(run), cfg).run(progress=False)
+    other = tmp_path / "other"
+    make_dataset(str(other), resolution=24, cameras=3, sequences=3, frames=1, seed=5, progress=False)
+    with pytest.raises(ValueError, match="--resume with a different --data"):
+        Trainer(str(other), str(run), cfg, resume=True)
+    # Same path, contents replaced by another mesh: the checkpoint's template is checked too.
+    cfgj = run / "config.json"
+    _edit_json(cfgj, lambda d: d.update(data=str(other)))
+    os.remove(other / "canonical_mesh.npz")
+    verts, faces = sphere_mesh(4, 5)
+    np.savez(other / "canonical_mesh.npz", vertices=verts, faces=faces)
+    with pytest.raises((ValueError, DataError)):
+        Trainer(str(other), str(run), cfg, resume=True)
+    # config.json is written atomically: no temporary left, valid JSON.
+    assert json.loads(cfgj.read_text())["data"] == str(other)
+    assert [n for n in os.listdir(run) if n.endswith(".tmp")] == []
+
+
+def test_torn_metrics_line_and_stale_temps_do_not_block_resume(tiny_dataset, tmp_path):
+    cfg = config_for("tiny", iterations=6, checkpoint_every=4, eval_every=1000, log_every=1)
+    run = tmp_path / "run"
+    tr = Trainer(tiny_dataset, str(run), cfg)
+    tr.run(progress=False, stop_after=4)
+    with open(run / "metrics.jsonl", "a") as fh:
+        fh.write('{"iteration": 5, "seconds": 1.2, "lo')  # killed mid-write
+    # A checkpoint write killed mid-way left its pid-named temporary (pid of a dead process).
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    stale = run / f"checkpoint.npz.{dead.pid}.tmp"
+    stale.write_bytes(b"partial")
+    resumed = Trainer(tiny_dataset, str(run), cfg, resume=True)
+    assert resumed.iteration == 4
+    resumed.run(progress=False)
+    rows = [json.loads(line)["iteration"] for line in open(run / "metrics.jsonl")]
+    assert rows == list(range(1, 7))
+    assert not stale.exists()
+    live = run / f"checkpoint.npz.{os.getpid()}.tmp"  # a live writer's temporary is never touched
+    live.write_bytes(b"x")
+    atomic.clean_stale_temps(run / "checkpoint.npz")
+    assert live.exists()
+
+
+def test_scale_overflow_stops_training_with_the_trainers_message(tiny_dataset, tmp_path):
+    tr = Trainer(tiny_dataset, str(tmp_path / "r"), config_for("tiny", eval_every=1000), check_data=False)
+    with torch.no_grad():
+        tr.model.params["d_log_scale"][3, 0] = 95.0  # exp overflows float32
+    with pytest.raises(FloatingPointError, match="Gaussian scales became NaN/inf; training stopped, last checkpoint kept"):
+        tr.step()
+
+
+def test_train_script_reports_disk_full(tiny_dataset, tmp_path):
+    code = ("import errno, sys; sys.argv[0] = 'train.py'; sys.path.insert(0, %r);"
+            "import progressive_avatars.core.io.atomic as A;"
+            "real = A.atomic_savez\n"
+            "def full(path, **a):\n"
+            "    raise OSError(errno.ENOSPC, 'No space left on device', str(path))\n"
+            "A.atomic_savez = full\n"
+            "import progressive_avatars.core.train as T; T.atomic_savez = full\n"
+            "import train; sys.exit(train.main(['--data', %r, '--out', %r, '--preset', 'tiny', '--iterations', '2',"
+            " '--no-progress']))") % (os.path.join(ROOT, "scripts"), tiny_dataset, str(tmp_path / "r"))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 3, out.stderr
+    assert "error: disk full: No space left on device" in out.stderr and "last checkpoint" in out.stderr
+    assert "Traceback" not in out.stderr
+
+
+# -- export -----------------------------------------------------------------------------
+@pytest.mark.parametrize("budget", ["0", "150", "-1", "nan"])
+def test_export_budget_refused_clearly(tiny_run, tmp_path, budget):
+    out = subprocess.run([sys.executable, os.path.join(ROOT, "scripts", "export.py"), "--run", tiny_run, "--ply",
+                          str(tmp_path / "x.ply"), "--budget", budget], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 2 and "--budget" in out.stderr and "Traceback" not in out.stderr, out.stderr
+
+
+def test_importance_cache_keyed_on_max_views(tiny_run, tiny_dataset, tmp_path, monkeypatch):
+    from progressive_avatars.core.render import importance
+    from progressive_avatars.core.io import run as runs
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    for n in ("importance.npy", "importance.json"):
+        if (run / n).exists():
+            os.remove(run / n)
+    av = runs.load_run_avatar(str(run))
+    calls = []
+    real = importance.face_importance
+    monkeypatch.setattr(importance, "face_importance", lambda *a, **k: calls.append(k["max_views"]) or real(*a, **k))
+    w2 = runs.run_importance(str(run), av, tiny_dataset, max_views=2, progress=False)
+    w2b = runs.run_importance(str(run), av, tiny_dataset, max_views=2, progress=False)
+    w_all = runs.run_importance(str(run), av, tiny_dataset, max_views=None, progress=False)
+    assert calls == [2, None]  # cached for the same views, recomputed for others
+    np.testing.assert_array_equal(w2, w2b)
+    assert not np.array_equal(w2, w_all)
+
+
+# -- numerical --------------------------------------------------------------------------
+def test_log_scale_that_overflows_is_refused():
+    verts, faces = sphere_mesh(3, 4)
+    av = Avatar.initial(random_forest(faces, np.random.default_rng(0), depth=1))
+    bad = av.d_log_scale.copy()
+    bad[2, 1] = 88.8
+    with pytest.raises(ValueError, match=r"d_log_scale of face 2 is 88.8.*infinite"):
+        Avatar(av.forest, av.d_mu, bad, av.d_rot, av.opacity_logit, av.f_dc)
+    bad[2, 1] = LOG_SCALE_MAX - 1
+    g = Avatar(av.forest, av.d_mu, bad, av.d_rot, av.opacity_logit, av.f_dc).gaussians(verts)
+    assert np.all(np.isfinite(g["scales"]))
+
+
+@pytest.mark.parametrize("norm", [1e-200, 1e-30, 1.0, 1e30, 1e154, 1e300])
+def test_quaternions_of_extreme_norm_normalise_to_their_rotation(norm):
+    q = np.array([[0.5, -0.5, 0.5, 0.5], [0.0, 0.6, 0.0, 0.8]])
+    np.testing.assert_allclose(quat_normalize(q * norm), q, atol=1e-12)
+    if 1e-30 <= norm <= 1e30:
+        t = quat_normalize_torch(torch.tensor(q * norm, dtype=torch.float32))
+        np.testing.assert_allclose(t.numpy(), q, atol=1e-6)
+    assert np.array_equal(quat_normalize(np.zeros((1, 4))), [[1.0, 0, 0, 0]])  # only exact zero: identity
+
+
+@pytest.mark.parametrize("unit", [1e12, 1e-12])
+def test_numpy_evaluator_matches_torch_at_absurd_unit_scales(unit):
+    """The numpy evaluator pre-scales root edges and normals before squaring, like the torch
+    path: the same avatar on a mesh in absurd units gives the same rotations, and means and
+    scales that scale with the unit (before: quats off by up to 1.99 at 1e12 and 1e-12)."""
+    from progressive_avatars.core.train.binding_torch import TorchForest, compose
+
+    rng = np.random.default_rng(0)
+    verts, faces = sphere_mesh(8, 10)
+    forest = random_forest(faces, rng, depth=2, frac=0.5)
+    N = forest.num_faces
+    av = Avatar(forest, rng.normal(0, .3, (N, 3)), rng.normal(-1, .5, (N, 3)), rng.normal(size=(N, 4)),
+                rng.normal(size=N), rng.normal(size=(N, 3)))
+    m1, q1, s1 = [x.copy() for x in av.evaluator()(verts)]
+    mk, qk, sk = [x.copy() for x in av.evaluator()(verts * unit)]
+    np.testing.assert_allclose(qk, q1, atol=2e-5)
+    if unit < 1:
+        return  # below MIN_SCALE (1e-10 m) face scales are clamped by design; rotations still agree
+    np.testing.assert_allclose(mk / unit, m1, atol=1e-5 * np.abs(m1).max())
+    np.testing.assert_allclose(sk / unit, s1, rtol=1e-4)
+    tf = TorchForest(forest)
+    v = torch.tensor(verts * unit, dtype=torch.float32)
+    t, r, s = tf.evaluate(v, tf.weights(torch.tensor(forest.split_logits)))
+    mt, st, qt = compose(t, r, s, *(torch.tensor(getattr(av, n)) for n in ("d_mu", "d_log_scale", "d_rot")))
+    np.testing.assert_allclose(np.abs(np.sum(qt.numpy() * qk, axis=1)), 1.0, atol=1e-4)  # same rotation (±q)
