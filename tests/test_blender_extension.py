@@ -211,6 +211,7 @@ def _():
     d = np.empty(len(mesh.data.polygons), np.int32)
     mesh.data.attributes["pa_depth"].data.foreach_get("value", d)
     arrays["depth"] = d
+    bpy.ops.object.progressive_avatars_depth_colors()  # a toggle: load no longer paints the mesh
     R["depth_color_domain"] = mesh.data.color_attributes["pa_depth_color"].domain
     R["active_color"] = mesh.data.color_attributes.active_color_name
     R["legend"] = [[i.depth, i.faces] for i in mesh.pa_mesh.depth_legend]
@@ -687,7 +688,12 @@ def test_save_reload_keeps_state(session):
     n = r["count_60"]
     np.testing.assert_allclose(session["arrays"]["reload_pos_4"][:n], av.gaussians(session["verts"][4])["means"][:n],
                                atol=1e-5)
-    np.testing.assert_array_equal(session["arrays"]["reload_depth"], av.forest.depth_per_root())
+    # Depth follows the budget: the deepest level among the first count_60 Gaussians per face.
+    from progressive_avatars.core.preview_data import depth_per_face
+
+    want = depth_per_face(av.forest, av.forest.num_roots, n)
+    np.testing.assert_array_equal(session["arrays"]["reload_depth"], want)
+    assert (want >= 0).all() and not np.array_equal(want, av.forest.depth_per_root())
 
 
 def test_cycles_renders_show_coloured_splats(session):
