@@ -31,7 +31,7 @@ class PA_Preferences(bpy.types.AddonPreferences):
         description="Python interpreter with torch and numba installed, used for training and splat rendering")
     train_script: bpy.props.StringProperty(
         name="Train script", subtype="FILE_PATH", default="",
-        description="Path of ProgressiveAvatars' scripts/train.py (not shipped inside the extension)")
+        description="Optional: a checkout's scripts/train.py to run instead of the extension's own trainer")
     flame_model: bpy.props.StringProperty(
         name="FLAME model", subtype="FILE_PATH", default="",
         description="Your own FLAME model file (generic_model.pkl / flame2023.pkl), for FLAME parameter sequences")
@@ -60,6 +60,12 @@ def python_path(context=None) -> str:
 def train_script(context=None) -> str:
     p = get(context)
     return bpy.path.abspath(p.train_script) if p and p.train_script else _default_train_script()
+
+
+def user_train_script(context=None) -> str:
+    """The train script set in the preferences ("" : train from the extension itself)."""
+    p = get(context)
+    return bpy.path.abspath(p.train_script) if p and p.train_script else ""
 
 
 def flame_model(context=None) -> str:

@@ -98,8 +98,9 @@ def load_avatar(path, template_faces=None) -> tuple[Avatar, Budget]:
         try:
             avatar = Avatar.load(path)
         except (ValueError, KeyError, OSError) as exc:
-            msg = str(exc)
-            raise ValueError(msg if path in msg else f"{path}: not a ProgressiveAvatars avatar .npz ({msg})") from None
+            msg = str(exc).replace(f"{path}: ", "")
+            raise ValueError(f"{path}: not an avatar file (a ProgressiveAvatars stream .pavs or avatar .npz): "
+                             f"{msg}") from None
     else:
         raise ValueError(f"{path}: not a ProgressiveAvatars stream or avatar .npz (the file starts with "
                          f"{bytes(head[:8])!r}; streams start with {stream.MAGIC if stream else 'their magic'!r})")

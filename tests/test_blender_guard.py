@@ -501,3 +501,230 @@ def test_topology_changing_modifier_is_refused(cut_session, kind):
     report = rep["stdout"].split(f"PA_LOAD_WITH {kind}")[1].split("PA_LOAD_WITH")[0]  # the operator's reports
     assert "Warning" in report and mod in report, report
     assert r["removed"] == ["", n]
+
+
+# -- training from the installed zip, messages and state --------------------------------------
+TRAIN_SCENARIO = r'''
+prefs = bpy.context.preferences.addons[PKG].preferences
+st = bpy.context.scene.pa_train
+sc = bpy.context.scene
+R["extension_dir"] = os.path.dirname(sys.modules[PKG].__file__)
+
+@section("train")
+def _():
+    R["train"] = {}
+    prefs.python_path = ARGS["python"]
+    prefs.flame_model = ARGS["flame_model"]
+    assert not prefs.train_script  # the extension's own trainer, no checkout script
+    for kind, (data, mesh_src, kw) in ARGS["train"].items():
+        res, mesh = import_mesh(mesh_src, **kw)
+        assert res == ["FINISHED"], res
+        # The previous avatar's preview is what is active: the result must go to its mesh.
+        assert run_op(bpy.ops.object.progressive_avatars_load, filepath=ARGS["seed_stream"][kind]) == ["FINISHED"]
+        bpy.context.view_layer.objects.active = preview_of(mesh)
+        st.data_dir, st.out_dir = data, os.path.join(ARGS["out"], "run_" + kind)
+        st.preset, st.iterations = "tiny", 6
+        t0 = time.perf_counter()
+        res = run_op(bpy.ops.progressive_avatars.train)
+        pv = preview_of(mesh)
+        R["train"][kind] = {"result": res, "seconds": time.perf_counter() - t0, "message": st.message,
+                            "loaded": bpy.path.abspath(pv.pa_avatar.filepath), "total": pv.pa_avatar.total,
+                            "instances": instances(pv), "status": pv.pa_avatar.status, "mesh": mesh.name,
+                            "previews": [o.name for o in bpy.data.objects if o.pa_avatar.is_preview and o.pa_avatar.source == mesh]}
+
+@section("messages")
+def _():
+    M = R["messages"] = {}
+    bad_python = os.path.join(ARGS["out"], "no", "python3")
+    prefs.python_path = bad_python
+    st.data_dir, st.out_dir = ARGS["out"], os.path.join(ARGS["out"], "never")
+    M["bad_python"] = run_op(bpy.ops.progressive_avatars.train)
+    prefs.python_path = ARGS["python"]
+    prefs.flame_model = ""
+    res, mesh = import_mesh(ARGS["seq"])
+    bpy.context.view_layer.objects.active = mesh
+    for key in ("foreign_pavs", "foreign_npz", "empty_pavs"):
+        M[key] = run_op(bpy.ops.object.progressive_avatars_load, filepath=ARGS[key])
+    M["flame_no_model"], _ = import_mesh(ARGS["flame_params"])
+    M["mesh_npz_folder"], obj = import_mesh(ARGS["npz_folder"], whole_folder=False)
+    M["mesh_npz_folder_frames"] = obj.pa_mesh.num_frames if obj is not None else None
+    # Frame range and fps: optional, and kept when not asked for.
+    sc.frame_start, sc.frame_end, sc.render.fps = 7, 9, 24
+    res, obj = import_mesh(ARGS["seq"], set_frame_range=False)
+    M["range_kept"] = [res, sc.frame_start, sc.frame_end, sc.render.fps]
+    res, obj = import_mesh(ARGS["seq"], fps=30)
+    M["range_set"] = [res, sc.frame_start, sc.frame_end, sc.render.fps, obj.pa_mesh.num_frames]
+    # OBJ and PLY sequences (trimesh is blocked here)
+    for key in ("obj_folder", "ply_folder"):
+        res, obj = import_mesh(ARGS[key], whole_folder=True)
+        n = len(obj.data.vertices)
+        M[key] = [res, obj.pa_mesh.num_frames, n, len(obj.data.polygons)]
+        sc.frame_set(sc.frame_start + 2)
+        dg = bpy.context.evaluated_depsgraph_get()
+        me = obj.evaluated_get(dg).data
+        co = np.empty(len(me.vertices) * 3, np.float32)
+        me.vertices.foreach_get("co", co)
+        arrays[key] = co.reshape(-1, 3)
+    # Avatar paths: absolute in an unsaved file, relative ("//") once saved; a moved project
+    # (the .blend and the avatar moved together) still finds its avatar.
+    import shutil
+    res, mesh = import_mesh(ARGS["seq"])
+    bpy.context.view_layer.objects.active = mesh
+    M["load_unsaved"] = run_op(bpy.ops.object.progressive_avatars_load, filepath=ARGS["stream"])
+    pv_name = preview_of(mesh).name
+    M["path_unsaved"] = bpy.data.objects[pv_name].pa_avatar.filepath
+    os.makedirs(os.path.join(ARGS["out"], "proj"), exist_ok=True)
+    bpy.ops.wm.save_as_mainfile(filepath=os.path.join(ARGS["out"], "proj", "scene.blend"))
+    M["path_saved"] = bpy.data.objects[pv_name].pa_avatar.filepath
+    moved = os.path.join(ARGS["out"], "moved")
+    os.makedirs(os.path.join(moved, "proj"))
+    shutil.copy(os.path.join(ARGS["out"], "proj", "scene.blend"), os.path.join(moved, "proj", "scene.blend"))
+    shutil.copy(ARGS["stream"], os.path.join(moved, os.path.basename(ARGS["stream"])))
+    bpy.ops.wm.open_mainfile(filepath=os.path.join(moved, "proj", "scene.blend"))
+    pv = bpy.data.objects[pv_name]
+    pv.pa_avatar.budget = 50.0
+    M["moved"] = [bpy.path.abspath(pv.pa_avatar.filepath), pv.pa_avatar.count, pv.pa_avatar.status]
+    mesh = pv.pa_avatar.source
+    bpy.context.view_layer.objects.active = mesh
+    M["load_rel"] = run_op(bpy.ops.object.progressive_avatars_load, filepath=ARGS["stream"])
+    pv = preview_of(mesh)
+    M["stored_path"] = pv.pa_avatar.filepath
+    pv.pa_avatar.budget = 0.0
+    bpy.context.view_layer.objects.active = pv
+    M["export_zero"] = run_op(bpy.ops.export_scene.progressive_avatars_ply, filepath=os.path.join(ARGS["out"], "z.ply"))
+    M["tab"] = bpy.types.PA_PT_main.bl_category
+
+np.savez(os.path.join(ARGS["out"], "arrays.npz"), **arrays)
+print("PA_REPORT " + json.dumps(R, default=str))
+'''
+
+BLOCK_CHECKOUT = '''import importlib.abc, sys
+class _NoCheckout(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in ("progressive_avatars", "scripts", "_bootstrap"):
+            raise ImportError(f"{name}: the checkout is not available to the extension's trainer")
+sys.meta_path.insert(0, _NoCheckout())
+'''
+
+
+@pytest.fixture(scope="module")
+def train_session(tiny_dataset, tmp_path_factory):
+    sys.path.insert(0, os.path.dirname(__file__))
+    import trimesh
+    from test_train import _flame_mode_dataset
+
+    from progressive_avatars.core.avatar import Avatar
+    from progressive_avatars.core.data import Dataset
+    from progressive_avatars.core.stream import write_stream
+    from tests.helpers import random_forest, sphere_mesh
+
+    tmp = str(tmp_path_factory.mktemp("train"))
+    out = os.path.join(tmp, "out")
+    os.makedirs(out)
+    # A Python that cannot import the checkout: what the extension runs must come from the zip.
+    block = os.path.join(tmp, "block")
+    os.makedirs(block)
+    with open(os.path.join(block, "sitecustomize.py"), "w") as fh:
+        fh.write(BLOCK_CHECKOUT)
+    python = os.path.join(tmp, "python_no_checkout")
+    with open(python, "w") as fh:
+        fh.write(f"#!/bin/sh\nPYTHONPATH={block} exec {sys.executable} \"$@\"\n")
+    os.chmod(python, 0o755)
+    rng = np.random.default_rng(3)
+
+    def seed_stream(faces, name):  # something loaded before training (replaced by the result)
+        av = Avatar.initial(random_forest(faces, rng, depth=1, frac=0.2))
+        p = os.path.join(out, name)
+        write_stream(p, av, quantize=False)
+        return p
+
+    seq = Dataset(tiny_dataset, "train").sequence()
+    seq_path = os.path.join(out, "head_seq.npz")
+    np.savez(seq_path, vertices=seq.vertices, faces=seq.faces)
+    flame_root, model, model_path, _ts, _one = _flame_mode_dataset(tiny_dataset, tmp_path_factory.mktemp("flame"))
+    train = {"mesh": (tiny_dataset, seq_path, {}),
+             "flame": (str(flame_root), str(flame_root / "flame_param"), {"flame_model": model_path})}
+    seeds = {"mesh": seed_stream(seq.faces, "seed_mesh.pavs"), "flame": seed_stream(model.faces, "seed_flame.pavs")}
+    # Messages and imports
+    foreign = os.path.join(out, "foreign.pavs")
+    with open(foreign, "wb") as fh:
+        fh.write(b"GIF89a" + bytes(100))
+    foreign_npz = os.path.join(out, "foreign.npz")
+    np.savez(foreign_npz, a=np.zeros(3))
+    empty = os.path.join(out, "empty.pavs")
+    open(empty, "wb").close()
+    npz_folder = os.path.join(out, "npz_frames")
+    os.makedirs(npz_folder)
+    v, f = sphere_mesh(8, 10)
+    for i in range(3):
+        np.savez(os.path.join(npz_folder, f"f{i}.npz"), vertices=v * (1 + i), faces=f)
+    folders = {}
+    for ext in ("obj", "ply"):
+        d = os.path.join(out, f"{ext}_frames")
+        os.makedirs(d)
+        for i in range(4):
+            trimesh.Trimesh(v * (1 + 0.1 * i), f, process=False).export(os.path.join(d, f"frame_{i}.{ext}"))
+        folders[f"{ext}_folder"] = os.path.join(d, f"frame_0.{ext}")
+    stream = os.path.join(out, "avatar.pavs")
+    write_stream(stream, Avatar.initial(random_forest(seq.faces, rng, depth=2, frac=0.3)))
+    args = {"zip": build_zip(tmp), "out": out, "python": python, "flame_model": model_path, "train": train,
+            "seed_stream": seeds, "seq": seq_path, "foreign_pavs": foreign, "foreign_npz": foreign_npz,
+            "empty_pavs": empty, "flame_params": os.path.join(str(flame_root), "flame_param", "00000.npz"),
+            "npz_folder": npz_folder, "stream": stream, **folders}
+    rep, arrays = run_scenario(tmp, TRAIN_SCENARIO, args, timeout=1500)
+    return {"rep": rep, "arrays": arrays, "args": args, "verts": v, "faces": f}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["mesh", "flame"])
+def test_train_from_installed_zip_loads_onto_starting_mesh(train_session, kind):
+    """No checkout reachable (the configured Python blocks it), the FLAME model from the
+    preferences: training and export run from the extension's folder and the stream lands on
+    the mesh that started training (a preview of it was active, not the mesh)."""
+    from progressive_avatars.core.stream import read_header
+
+    rep = train_session["rep"]
+    _no_error(rep, "train")
+    assert rep["blocked_loaded"] == []
+    r = rep["train"][kind]
+    assert r["result"] == ["FINISHED"], r
+    run = os.path.join(train_session["args"]["out"], "run_" + kind)
+    assert r["loaded"] == os.path.join(run, "avatar.pavs")
+    h = read_header(r["loaded"])
+    assert r["total"] == r["instances"] == h.num_records > 0 and not r["status"]
+    assert len(r["previews"]) == 1  # replaced the seed preview on the starting mesh
+    cfg = json.load(open(os.path.join(run, "config.json")))
+    if kind == "flame":
+        assert cfg["flame_model"] == train_session["args"]["flame_model"]
+    assert os.path.isfile(os.path.join(run, "avatar.npz"))
+
+
+@pytest.mark.slow
+def test_messages_name_the_file_or_setting(train_session):
+    rep, args = train_session["rep"], train_session["args"]
+    _no_error(rep, "messages")
+    m = rep["messages"]
+    assert "Python not found" in m["bad_python"] and os.path.join(args["out"], "no", "python3") in m["bad_python"]
+    assert "Preferences" in m["bad_python"]
+    assert "foreign.pavs" in m["foreign_pavs"] and "not a ProgressiveAvatars stream" in m["foreign_pavs"]
+    assert "foreign.npz" in m["foreign_npz"] and "not an avatar file" in m["foreign_npz"]
+    assert "empty.pavs" in m["empty_pavs"] and "empty" in m["empty_pavs"]
+    assert "00000.npz" in m["flame_no_model"] and "FLAME model" in m["flame_no_model"]
+    assert "preferences" in m["flame_no_model"] and "flame_model=" not in m["flame_no_model"]
+    assert m["mesh_npz_folder"] == ["FINISHED"] and m["mesh_npz_folder_frames"] == 3
+    assert m["range_kept"] == [["FINISHED"], 7, 9, 24]
+    assert m["range_set"][0] == ["FINISHED"] and m["range_set"][1:] == [7, 7 + m["range_set"][4] - 1, 30, m["range_set"][4]]
+    v, f = train_session["verts"], train_session["faces"]
+    for key in ("obj_folder", "ply_folder"):
+        res, frames, nv, nf = m[key]
+        assert res == ["FINISHED"] and frames == 4 and (nv, nf) == (len(v), len(f))
+        np.testing.assert_allclose(train_session["arrays"][key], v * 1.2, atol=1e-6)  # frame 2, object space
+    assert m["load_unsaved"] == ["FINISHED"] and m["path_unsaved"] == args["stream"]
+    assert m["path_saved"] == "//../" + os.path.basename(args["stream"])
+    moved = os.path.join(args["out"], "moved", os.path.basename(args["stream"]))
+    assert os.path.normpath(m["moved"][0]) == moved and m["moved"][1] > 0 and not m["moved"][2]
+    assert m["load_rel"] == ["FINISHED"] and m["stored_path"].startswith("//")
+    assert "Budget" in m["export_zero"] and "0 Gaussians" in m["export_zero"]
+    assert m["tab"] == "Progressive Avatars"
+    with open(os.path.join(ROOT, "README.md")) as fh:
+        assert "*Progressive Avatars*" in fh.read()
