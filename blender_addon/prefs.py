@@ -17,12 +17,6 @@ def _default_python() -> str:
     return ""
 
 
-def _default_train_script() -> str:
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    cand = os.path.join(root, "scripts", "train.py")
-    return cand if os.path.isfile(cand) else ""
-
-
 class PA_Preferences(bpy.types.AddonPreferences):
     bl_idname = ADDON_PACKAGE
 
@@ -55,11 +49,6 @@ def python_path(context=None) -> str:
     p = get(context)
     path = bpy.path.abspath(p.python_path) if p and p.python_path else _default_python()
     return path or ""
-
-
-def train_script(context=None) -> str:
-    p = get(context)
-    return bpy.path.abspath(p.train_script) if p and p.train_script else _default_train_script()
 
 
 def user_train_script(context=None) -> str:

@@ -592,6 +592,9 @@ def _():
     pv.pa_avatar.budget = 0.0
     bpy.context.view_layer.objects.active = pv
     M["export_zero"] = run_op(bpy.ops.export_scene.progressive_avatars_ply, filepath=os.path.join(ARGS["out"], "z.ply"))
+    pv.pa_avatar.budget = 50.0  # PLY export with plyfile blocked
+    M["export_half"] = [run_op(bpy.ops.export_scene.progressive_avatars_ply, filepath=os.path.join(ARGS["out"], "h.ply")),
+                        pv.pa_avatar.count]
     M["tab"] = bpy.types.PA_PT_main.bl_category
 
 np.savez(os.path.join(ARGS["out"], "arrays.npz"), **arrays)
@@ -726,5 +729,9 @@ def test_messages_name_the_file_or_setting(train_session):
     assert m["load_rel"] == ["FINISHED"] and m["stored_path"].startswith("//")
     assert "Budget" in m["export_zero"] and "0 Gaussians" in m["export_zero"]
     assert m["tab"] == "Progressive Avatars"
+    from progressive_avatars.core.ply import read_ply
+
+    assert m["export_half"][0] == ["FINISHED"] and m["export_half"][1] > 0
+    assert len(read_ply(os.path.join(args["out"], "h.ply"))["means"]) == m["export_half"][1]
     with open(os.path.join(ROOT, "README.md")) as fh:
         assert "*Progressive Avatars*" in fh.read()
