@@ -20,10 +20,12 @@ LEVEL_MODIFIER = "PA Level"
 LEVEL_GROUP = "PA Level Filter"
 
 
-def apply_depth(obj, forest, count=None):
+def apply_depth(obj, forest, count=None, max_level=None):
     """Write the depth of each face of ``obj`` over the first ``count`` Gaussians (all if
-    None): the attribute, the legend and, while they are shown, the colours."""
+    None): the attribute, the legend and, while they are shown, the colours. ``max_level``:
+    the whole avatar's deepest level (the colour scale; default the forest's)."""
     me = obj.data
+    top = forest.max_level if max_level is None else max(int(max_level), forest.max_level)
     depth = preview_data.depth_per_face(forest, len(me.polygons), count)
     attr = me.attributes.get(DEPTH_ATTR)
     if attr is not None and (attr.domain != "FACE" or attr.data_type != "INT"):
@@ -33,14 +35,14 @@ def apply_depth(obj, forest, count=None):
         attr = me.attributes.new(DEPTH_ATTR, "INT", "FACE")
     attr.data.foreach_set("value", depth)
     state = obj.pa_mesh
-    state.depth_max_level = forest.max_level
+    state.depth_max_level = top
     legend = state.depth_legend
     legend.clear()
-    for d, n, rgb in preview_data.depth_legend(depth, forest.max_level):
+    for d, n, rgb in preview_data.depth_legend(depth, top):
         item = legend.add()
         item.depth, item.faces, item.color = d, n, rgb
     if state.depth_shown:
-        _write_colors(me, depth, forest.max_level)
+        _write_colors(me, depth, top)
         me.update()  # redraw; otherwise no tag: a slider move must not re-evaluate the mesh
     return depth
 
@@ -65,7 +67,7 @@ def _view_spaces(context):
                     yield f"{screen.name}|{ai}|{si}", space
 
 
-def show_colors(context, obj, forest, count=None):
+def show_colors(context, obj, forest, count=None, max_level=None):
     """Depth colours on: remember the mesh's active/render colours and every 3D view's colour
     mode, then show the depth colours of the first ``count`` Gaussians there (Solid mode,
     Attribute colour)."""
@@ -76,7 +78,7 @@ def show_colors(context, obj, forest, count=None):
             "active": ca.active_color_name or "", "default": getattr(ca, "default_color_name", "") or "",
             "shading": {key: sp.shading.color_type for key, sp in _view_spaces(context)}})
     state.depth_shown = True
-    apply_depth(obj, forest, count)
+    apply_depth(obj, forest, count, max_level)
     for _key, sp in _view_spaces(context):
         sp.shading.color_type = "VERTEX"
 

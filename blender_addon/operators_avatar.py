@@ -124,12 +124,12 @@ def load_avatar_onto(context, mesh_obj, path, budget=100.0):
         state.is_preview = True
         state.filepath = stored_path(abspath)
         state.source = mesh_obj
-        state.max_level = avatar.forest.max_level
+        state.max_level = budget_info.max_level()
         state.template_vertices = len(mesh_obj.data.vertices)
         state.template_faces = len(mesh_obj.data.polygons)
         runtime.prime(obj, abspath, avatar, budget_info)
         state.budget = budget  # its update callback sets the count, readouts and evaluates the frame
-        depth.apply_depth(mesh_obj, avatar.forest, state.count)
+        depth.apply_depth(mesh_obj, avatar.forest, state.count, budget_info.max_level())
     except BaseException:
         if obj is not None:
             runtime.forget(obj)
@@ -238,7 +238,7 @@ class PA_OT_depth_colors(bpy.types.Operator):
             self.report({"ERROR"}, obj.pa_avatar.status or "Avatar not available")
             return {"CANCELLED"}
         try:
-            depth.show_colors(context, src, e.avatar.forest, obj.pa_avatar.count)
+            depth.show_colors(context, src, e.avatar.forest, obj.pa_avatar.count, e.budget.max_level())
         except ValueError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}

@@ -66,6 +66,14 @@ class Budget:
     def level_reached(self, count: int) -> int:
         return int(self.levels[count - 1]) if count > 0 else -1
 
+    def max_level(self) -> int:
+        """Deepest level of the whole avatar: a stream's header knows it even when the
+        stream was cut, so depth colours keep their meaning at any prefix."""
+        n = getattr(self.info, "num_levels", None)
+        if n:
+            return int(n) - 1
+        return int(self.levels.max()) if len(self.levels) else 0
+
 
 def load_avatar(path, template_faces=None) -> tuple[Avatar, Budget]:
     """An avatar in stream order from a stream file (.pavs, recognised by its magic) or an

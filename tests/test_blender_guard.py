@@ -385,6 +385,8 @@ def test_cut_streams_load_and_preview_what_arrived(cut_session):
         assert (depth[:roots] >= 0).all() and (depth[roots:] == -1).all()
         legend = dict((d, c) for d, c in r["legend"])
         assert legend.get(-1, 0) == h.num_template_faces - roots
+        # Every level of the whole stream has its row (and colour), however short the cut.
+        assert [d for d, _ in r["legend"] if d >= 0] == list(range(len(h.level_counts)))
         # The slider: a percent of the whole stream, as far as it arrived.
         for p, (count, inst, status) in r["slider"].items():
             want = min(h.count_for_percent(float(p)), n)
