@@ -115,8 +115,8 @@ def _modifier_names(source, depsgraph, types=None):
     for m in source.modifiers:
         on = m.show_render if render else m.show_viewport
         if on and (types is None or m.type in types):
-            if m.type in _SUBDIVIDERS and max(getattr(m, "levels", 1), getattr(m, "render_levels", 1)) == 0:
-                continue
+            if m.type in _SUBDIVIDERS and getattr(m, "render_levels" if render else "levels", 1) == 0:
+                continue  # subdivides nothing in this mode
             out.append(f"{m.type.replace('_', ' ').title()} '{m.name}'")
     return out
 

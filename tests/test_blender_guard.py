@@ -264,6 +264,12 @@ def _():
         sc.frame_set(sc.frame_start + 1)
         r["removed"] = [pv.pa_avatar.status, instances(pv)]
         R["topology"][kind] = r
+    # A Subdivision Surface that subdivides nothing in the viewport (render levels only) is fine.
+    mod = mesh.modifiers.new("render_only", "SUBSURF")
+    mod.levels, mod.render_levels = 0, 2
+    bpy.context.view_layer.update()
+    sc.frame_set(sc.frame_start)
+    R["topology"]["render_only_subsurf"] = [pv.pa_avatar.status, instances(pv)]
     bpy.data.objects.remove(pv)
     bpy.data.objects.remove(mesh)
 
@@ -503,6 +509,7 @@ def test_topology_changing_modifier_is_refused(cut_session, kind):
     report = rep["stdout"].split(f"PA_LOAD_WITH {kind}")[1].split("PA_LOAD_WITH")[0]  # the operator's reports
     assert "Warning" in report and mod in report, report
     assert r["removed"] == ["", n]
+    assert t["render_only_subsurf"] == ["", n]
 
 
 # -- training from the installed zip, messages and state --------------------------------------
