@@ -56,8 +56,12 @@ class PA_PT_avatar(_Base, bpy.types.Panel):
                 except KeyError:
                     pass
         lay.prop(st, "bind_mode")
-        if st.status:
-            lay.label(text=st.status, icon="ERROR")
+        if st.status:  # long reasons (the topology guard's) wrap instead of being clipped
+            import textwrap
+
+            col = lay.column(align=True)
+            for i, line in enumerate(textwrap.wrap(st.status, 48)):
+                col.label(text=line, icon="ERROR" if i == 0 else "BLANK1")
         row = lay.row(align=True)
         row.operator("export_scene.progressive_avatars_ply", icon="EXPORT")
         row.operator("render.progressive_avatars_splats", icon="RENDER_STILL")

@@ -531,6 +531,10 @@ def test_manifest_validates_and_builds(session):
     leaked = [n for n in names if n.split("/")[0] in ("tests", "scripts", "docs", ".venv", "runs", ".git")
               or "__pycache__" in n or n.endswith(".pyc")]
     assert not leaked, leaked
+    # Training and export run from the zip (core/jobs.py); the synthetic-data generator and the
+    # evaluation report/plots are not shipped.
+    assert {"core/jobs.py", "core/train.py", "core/run.py", "core/mesh_io.py"} <= set(names)
+    assert not {"core/synthetic.py", "core/eval.py", "core/plots.py"} & set(names)
 
 
 def test_installs_and_enables_in_clean_blender(session):
