@@ -322,10 +322,11 @@ class PA_OT_render_splats(bpy.types.Operator):
         return _preview_of(context) is not None and context.scene.camera is not None
 
     def execute(self, context):
-        python = prefs.python_path(context)
-        if not python or not os.path.isfile(python):
-            self.report({"ERROR"}, "Set a Python with numba in the add-on preferences to render splats")
+        problem = prefs.python_problem(context, "numba")
+        if problem:
+            self.report({"ERROR"}, f"Render Splats: {problem}")
             return {"CANCELLED"}
+        python = prefs.python_path(context)
         scene = context.scene
         cam_obj = scene.camera
         r = scene.render

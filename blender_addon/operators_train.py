@@ -55,12 +55,10 @@ def _extension_root():
 
 def _command(context):
     st = context.scene.pa_train
+    problem = prefs.python_problem(context, "torch and numba")
+    if problem:
+        raise RuntimeError(problem)
     python = prefs.python_path(context)
-    where = "Preferences > Add-ons > Progressive Avatars > Python"
-    if not python:
-        raise RuntimeError(f"No Python set: choose one with torch and numba in {where}")
-    if not os.path.isfile(python):
-        raise RuntimeError(f"Python not found: {python} (set in {where})")
     data, out = bpy.path.abspath(st.data_dir), bpy.path.abspath(st.out_dir)
     if not st.data_dir or not os.path.isdir(data):
         raise RuntimeError(f"Data folder not found: '{data}' (Training > Data)")

@@ -51,6 +51,18 @@ def python_path(context=None) -> str:
     return path or ""
 
 
+def python_problem(context=None, needs="torch and numba") -> str:
+    """Why the configured Python cannot be run ("" when it can), naming the path and where
+    to set it."""
+    python = python_path(context)
+    where = "Preferences > Add-ons > Progressive Avatars > Python"
+    if not python:
+        return f"No Python set: choose one with {needs} in {where}"
+    if not os.path.isfile(python):
+        return f"Python not found: {python} (set in {where})"
+    return ""
+
+
 def user_train_script(context=None) -> str:
     """The train script set in the preferences ("" : train from the extension itself)."""
     p = get(context)

@@ -601,6 +601,14 @@ def _():
     pv.pa_avatar.budget = 0.0
     bpy.context.view_layer.objects.active = pv
     M["export_zero"] = run_op(bpy.ops.export_scene.progressive_avatars_ply, filepath=os.path.join(ARGS["out"], "z.ply"))
+    scene = bpy.context.scene  # the reopened file's
+    cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    addon_prefs = bpy.context.preferences.addons[PKG].preferences
+    addon_prefs.python_path = bad_python
+    M["bad_python_render"] = run_op(bpy.ops.render.progressive_avatars_splats)
+    addon_prefs.python_path = ARGS["python"]
     pv.pa_avatar.budget = 50.0  # PLY export with plyfile blocked
     M["export_half"] = [run_op(bpy.ops.export_scene.progressive_avatars_ply, filepath=os.path.join(ARGS["out"], "h.ply")),
                         pv.pa_avatar.count]
@@ -718,6 +726,7 @@ def test_messages_name_the_file_or_setting(train_session):
     m = rep["messages"]
     assert "Python not found" in m["bad_python"] and os.path.join(args["out"], "no", "python3") in m["bad_python"]
     assert "Preferences" in m["bad_python"]
+    assert "Python not found" in m["bad_python_render"] and os.path.join(args["out"], "no", "python3") in m["bad_python_render"]
     assert "foreign.pavs" in m["foreign_pavs"] and "not a ProgressiveAvatars stream" in m["foreign_pavs"]
     assert "foreign.npz" in m["foreign_npz"] and "not an avatar file" in m["foreign_npz"]
     assert "empty.pavs" in m["empty_pavs"] and "empty" in m["empty_pavs"]
