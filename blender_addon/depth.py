@@ -1,33 +1,159 @@
-"""Per-face subdivision depth on the mesh: an int face attribute, a corner colour for Solid
-mode (face-domain colours do not show there), and a legend stored on the object."""
+"""Inspecting the hierarchy on the mesh: per-face subdivision depth (an int face attribute and
+a legend stored on the object), depth colours as a toggle that puts the user's colour and
+shading back, and a "show level k only" filter on the preview.
 
+Depth is taken over the Gaussians the preview shows (the budget's count): faces none of whose
+Gaussians has arrived (a stream cut inside the template level, a budget below it) get depth
+NOT_ARRIVED and their own legend colour.
+"""
+
+import json
+
+import bpy
 import numpy as np
 
 from ..core.bridge import preview as preview_data
 
 DEPTH_ATTR = "pa_depth"
 COLOR_ATTR = "pa_depth_color"
+LEVEL_MODIFIER = "PA Level"
+LEVEL_GROUP = "PA Level Filter"
 
 
-def apply_depth(obj, forest):
+def apply_depth(obj, forest, count=None, max_level=None):
+    """Write the depth of each face of ``obj`` over the first ``count`` Gaussians (all if
+    None): the attribute, the legend and, while they are shown, the colours. ``max_level``:
+    the whole avatar's deepest level (the colour scale; default the forest's)."""
     me = obj.data
-    depth = forest.depth_per_root().astype(np.int32)
-    if len(me.polygons) != len(depth):
-        raise ValueError(f"{obj.name} has {len(me.polygons)} faces, the avatar's template {len(depth)}")
-    for name in (DEPTH_ATTR, COLOR_ATTR):
-        if name in me.attributes:
-            me.attributes.remove(me.attributes[name])
-    me.attributes.new(DEPTH_ATTR, "INT", "FACE").data.foreach_set("value", depth)
-    totals = np.empty(len(me.polygons), np.int32)
-    me.polygons.foreach_get("loop_total", totals)
-    colors = preview_data.per_corner(preview_data.depth_colors(depth, forest.max_level), totals)
-    attr = me.color_attributes.new(COLOR_ATTR, "FLOAT_COLOR", "CORNER")
-    attr.data.foreach_set("color", colors.ravel())
-    me.color_attributes.active_color = attr
-    legend = obj.pa_mesh.depth_legend
+    top = forest.max_level if max_level is None else max(int(max_level), forest.max_level)
+    depth = preview_data.depth_per_face(forest, len(me.polygons), count)
+    attr = me.attributes.get(DEPTH_ATTR)
+    if attr is not None and (attr.domain != "FACE" or attr.data_type != "INT"):
+        me.attributes.remove(attr)
+        attr = None
+    if attr is None:
+        attr = me.attributes.new(DEPTH_ATTR, "INT", "FACE")
+    attr.data.foreach_set("value", depth)
+    state = obj.pa_mesh
+    state.depth_max_level = top
+    legend = state.depth_legend
     legend.clear()
-    for d, n, rgb in preview_data.depth_legend(depth):
+    for d, n, rgb in preview_data.depth_legend(depth, top):
         item = legend.add()
         item.depth, item.faces, item.color = d, n, rgb
-    me.update()
+    if state.depth_shown:
+        _write_colors(me, depth, top)
+        me.update()  # redraw; otherwise no tag: a slider move must not re-evaluate the mesh
     return depth
+
+
+def _write_colors(me, depth, max_level):
+    attr = me.color_attributes.get(COLOR_ATTR)
+    if attr is None:
+        attr = me.color_attributes.new(COLOR_ATTR, "FLOAT_COLOR", "CORNER")
+    totals = np.empty(len(me.polygons), np.int32)
+    me.polygons.foreach_get("loop_total", totals)
+    colors = preview_data.per_corner(preview_data.depth_colors(depth, max_level), totals)
+    attr.data.foreach_set("color", np.ascontiguousarray(colors, np.float32).ravel())
+    me.color_attributes.active_color = attr
+
+
+def _view_spaces(context):
+    """(key, space) of every 3D view of every screen (windowless sessions included)."""
+    for screen in bpy.data.screens:
+        for ai, area in enumerate(screen.areas):
+            for si, space in enumerate(area.spaces):
+                if space.type == "VIEW_3D":
+                    yield f"{screen.name}|{ai}|{si}", space
+
+
+def show_colors(context, obj, forest, count=None, max_level=None):
+    """Depth colours on: remember the mesh's active/render colours and every 3D view's colour
+    mode, then show the depth colours of the first ``count`` Gaussians there (Solid mode,
+    Attribute colour)."""
+    state, me = obj.pa_mesh, obj.data
+    if not state.depth_shown:
+        ca = me.color_attributes
+        state.depth_saved = json.dumps({
+            "active": ca.active_color_name or "", "default": getattr(ca, "default_color_name", "") or "",
+            "shading": {key: sp.shading.color_type for key, sp in _view_spaces(context)}})
+    state.depth_shown = True
+    apply_depth(obj, forest, count, max_level)
+    for _key, sp in _view_spaces(context):
+        sp.shading.color_type = "VERTEX"
+
+
+def hide_colors(context, obj):
+    """Depth colours off: remove them and put back what show_colors remembered."""
+    state, me = obj.pa_mesh, obj.data
+    saved = json.loads(state.depth_saved or "{}")
+    ca = me.color_attributes
+    attr = ca.get(COLOR_ATTR)
+    if attr is not None:
+        ca.remove(attr)
+    for key in ("active", "default"):
+        name = saved.get(key, "")
+        if name and name in ca:
+            if key == "active":
+                ca.active_color = ca[name]
+            elif hasattr(ca, "default_color_name"):
+                ca.default_color_name = name
+    shading = saved.get("shading", {})
+    for key, sp in _view_spaces(context):
+        if key in shading:
+            sp.shading.color_type = shading[key]
+    state.depth_shown = False
+    state.depth_saved = ""
+    me.update()
+
+
+# -- "show level k only" -------------------------------------------------------------------
+def _level_group():
+    ng = bpy.data.node_groups.get(LEVEL_GROUP)
+    if ng is not None:
+        return ng
+    ng = bpy.data.node_groups.new(LEVEL_GROUP, "GeometryNodeTree")
+    ng.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    ng.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    lv = ng.interface.new_socket("Level", in_out="INPUT", socket_type="NodeSocketInt")
+    lv.min_value, lv.default_value = 0, 0
+    N = ng.nodes.new
+    gin, gout = N("NodeGroupInput"), N("NodeGroupOutput")
+    attr = N("GeometryNodeInputNamedAttribute")
+    attr.data_type = "INT"
+    attr.inputs["Name"].default_value = "level"
+    cmp = N("FunctionNodeCompare")
+    cmp.data_type, cmp.operation = "INT", "NOT_EQUAL"
+    a = next(s for s in cmp.inputs if s.identifier == "A_INT")
+    b = next(s for s in cmp.inputs if s.identifier == "B_INT")
+    ng.links.new(attr.outputs["Attribute"], a)
+    ng.links.new(gin.outputs["Level"], b)
+    delete = N("GeometryNodeDeleteGeometry")
+    delete.domain = "POINT"
+    ng.links.new(gin.outputs["Geometry"], delete.inputs["Geometry"])
+    ng.links.new(cmp.outputs["Result"], delete.inputs["Selection"])
+    ng.links.new(delete.outputs["Geometry"], gout.inputs["Geometry"])
+    for i, node in enumerate(ng.nodes):
+        node.location = (200 * i, 0)
+    return ng
+
+
+def set_level_only(obj, level):
+    """Show only the preview's Gaussians of ``level`` (a Geometry Nodes filter first in the
+    preview's modifier stack); a negative level removes the filter (all levels)."""
+    mod = obj.modifiers.get(LEVEL_MODIFIER)
+    if level < 0:
+        if mod is not None:
+            ng = mod.node_group
+            obj.modifiers.remove(mod)
+            if ng is not None and ng.users == 0:
+                bpy.data.node_groups.remove(ng)
+        return
+    if mod is None:
+        mod = obj.modifiers.new(LEVEL_MODIFIER, "NODES")
+        mod.node_group = _level_group()
+        obj.modifiers.move(len(obj.modifiers) - 1, 0)  # before the splat modifier
+    key = next(it.identifier for it in mod.node_group.interface.items_tree
+               if it.item_type == "SOCKET" and it.in_out == "INPUT" and it.name == "Level")
+    mod[key] = int(level)
+    obj.update_tag()

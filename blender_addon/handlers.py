@@ -58,6 +58,48 @@ def on_load_post(*_args):
     runtime.forget()
 
 
+_relocated = []  # (object, previous path) while a save is under way
+
+
+@persistent
+def on_save_pre(filepath, *_args):
+    """Store avatar paths relative to the .blend being written ("//..."), as Blender does for
+    its own file paths when Relative Paths is on, so a moved project keeps its avatars."""
+    _relocated.clear()
+    if not filepath or not bpy.context.preferences.filepaths.use_relative_paths:
+        return
+    import os
+
+    start = os.path.dirname(os.path.abspath(filepath))
+    for obj in bpy.data.objects:
+        st = obj.pa_avatar
+        if not st.is_preview or not st.filepath:
+            continue
+        path = runtime.resolve(st.filepath)
+        try:
+            rel = "//" + os.path.relpath(path, start).replace(os.sep, "/")
+        except ValueError:  # another drive
+            continue
+        if rel != st.filepath:
+            _relocated.append((obj, st.filepath))
+            st.filepath = rel
+
+
+@persistent
+def on_save_post(*_args):
+    _relocated.clear()
+
+
+@persistent
+def on_save_fail(*_args):
+    for obj, old in _relocated:  # the file was not written: paths stay relative to the old one
+        try:
+            obj.pa_avatar.filepath = old
+        except ReferenceError:
+            pass
+    _relocated.clear()
+
+
 @persistent
 def on_undo_redo(*_args):
     # Undo restores preview attributes as they were at that step; points the cache counted
@@ -71,7 +113,9 @@ _HANDLERS = (
     (bpy.app.handlers.frame_change_post, on_frame_change),
     (bpy.app.handlers.depsgraph_update_post, on_depsgraph_update),
     (bpy.app.handlers.load_post, on_load_post),
-)
+    (bpy.app.handlers.save_pre, on_save_pre),
+    (bpy.app.handlers.save_post, on_save_post),
+) + (((bpy.app.handlers.save_post_fail, on_save_fail),) if hasattr(bpy.app.handlers, "save_post_fail") else ())
 
 
 def register():

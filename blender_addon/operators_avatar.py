@@ -33,7 +33,7 @@ def _preview_of(context):
     return None
 
 
-def _fetch(url):
+def _fetch(url, template_faces=None):
     """Stream an avatar from a URL into the extension's user cache (online access only),
     verifying it as it arrives (core/http_stream). A transfer that stalls or is cut keeps its
     verified prefix, itself a valid (shorter) stream. Returns (path, message or "")."""
@@ -56,7 +56,7 @@ def _fetch(url):
             return super().feed(chunk)
 
     with open(part, "wb") as fh:
-        res = http_stream.fetch_stream(url, reader=_Tee(source=url), timeout=30.0)
+        res = http_stream.fetch_stream(url, reader=_Tee(template_faces, source=url), timeout=30.0)
     n = res.num_gaussians
     if n == 0:
         os.remove(part)
@@ -69,40 +69,111 @@ def _fetch(url):
     return dest, note
 
 
-def mesh_faces(me):
-    """Triangle vertex indices [F,3] (quads and n-gons cannot be an avatar's template)."""
-    totals = np.empty(len(me.polygons), np.int32)
-    me.polygons.foreach_get("loop_total", totals)
-    if len(totals) and (totals != 3).any():
-        raise ValueError(f"{me.name} has non-triangle faces; avatars bind to triangle templates")
-    idx = np.empty(len(me.loops), np.int32)
-    me.loops.foreach_get("vertex_index", idx)
-    return idx.reshape(-1, 3)
+mesh_faces = runtime.mesh_faces
+
+_DATA_KINDS = ("objects", "meshes", "node_groups", "materials", "images", "textures")
+
+
+def _snapshot():
+    return {kind: set(getattr(bpy.data, kind)) for kind in _DATA_KINDS}
+
+
+def _remove_new(before):
+    """Remove every datablock made since ``before`` (objects first: they use the rest)."""
+    for kind in _DATA_KINDS:
+        coll = getattr(bpy.data, kind)
+        for idb in [x for x in coll if x not in before[kind]]:
+            try:
+                coll.remove(idb)
+            except (ReferenceError, RuntimeError):
+                pass
+
+
+def stored_path(path):
+    """The path to store: relative to the .blend ("//...") once it is saved, so a moved
+    project keeps its avatars; absolute otherwise."""
+    path = runtime.resolve(path)
+    if bpy.data.filepath:
+        try:
+            return bpy.path.relpath(path)
+        except ValueError:  # another drive (Windows)
+            return path
+    return path
 
 
 def load_avatar_onto(context, mesh_obj, path, budget=100.0):
-    """Create (or replace) the splat preview of ``mesh_obj`` from an avatar/stream file."""
+    """Create (or replace) the splat preview of ``mesh_obj`` from an avatar/stream file.
+
+    Everything that can fail on the file runs before the scene is touched; should building
+    the preview fail anyway, whatever it made is removed and the previous preview stays."""
     abspath = runtime.resolve(path)
-    avatar, budget_info = preview_data.load_avatar(abspath)
-    preview_data.check_mesh(avatar, budget_info, mesh_faces(mesh_obj.data))
-    for child in list(mesh_obj.children):
-        if child.pa_avatar.is_preview:
-            runtime.forget(child)
-            me = child.data
-            bpy.data.objects.remove(child)
-            if me.users == 0:
-                bpy.data.meshes.remove(me)
+    faces = mesh_faces(mesh_obj.data)
+    avatar, budget_info = preview_data.load_avatar(abspath, faces)
+    preview_data.check_mesh(avatar, budget_info, faces)
+    count = budget_info.count_for_percent(budget)
+    preview_data.depth_per_face(avatar.forest, len(faces), count)  # raises before any change
     static = preview_data.static_attributes(avatar, preview_data.preview_order(avatar))
-    obj = preview.create_preview_object(f"{mesh_obj.name}_splats", mesh_obj, static)
-    state = obj.pa_avatar
-    state.is_preview = True
-    state.filepath = path
-    state.source = mesh_obj
-    state.max_level = avatar.forest.max_level
-    runtime.prime(obj, path, avatar, budget_info)
-    state.budget = budget  # its update callback sets the count, readouts and evaluates the frame
-    depth.apply_depth(mesh_obj, avatar.forest)
+    old = [c for c in mesh_obj.children if c.pa_avatar.is_preview]
+    name = f"{mesh_obj.name}_splats"
+    before = _snapshot()
+    saved_depth = _save_depth(mesh_obj)
+    obj = None
+    try:
+        obj = preview.create_preview_object(name, mesh_obj, static)
+        state = obj.pa_avatar
+        state.is_preview = True
+        state.filepath = stored_path(abspath)
+        state.source = mesh_obj
+        state.max_level = budget_info.max_level()
+        state.template_vertices = len(mesh_obj.data.vertices)
+        state.template_faces = len(mesh_obj.data.polygons)
+        runtime.prime(obj, abspath, avatar, budget_info)
+        state.budget = budget  # its update callback sets the count, readouts and evaluates the frame
+        depth.apply_depth(mesh_obj, avatar.forest, state.count, budget_info.max_level())
+    except BaseException:
+        if obj is not None:
+            runtime.forget(obj)
+        _restore_depth(mesh_obj, saved_depth)
+        _remove_new(before)
+        raise
+    for child in old:
+        runtime.forget(child)
+        me = child.data
+        bpy.data.objects.remove(child)
+        if me.users == 0:
+            bpy.data.meshes.remove(me)
+    obj.name = name
+    obj.data.name = name
     return obj
+
+
+def _save_depth(mesh_obj):
+    me = mesh_obj.data
+    attr = me.attributes.get(depth.DEPTH_ATTR)
+    if attr is None or attr.domain != "FACE" or attr.data_type != "INT":
+        values = None
+    else:
+        values = np.empty(len(me.polygons), np.int32)
+        attr.data.foreach_get("value", values)
+    legend = [(i.depth, i.faces, tuple(i.color)) for i in mesh_obj.pa_mesh.depth_legend]
+    return values, legend, mesh_obj.pa_mesh.depth_max_level
+
+
+def _restore_depth(mesh_obj, saved):
+    values, legend, top = saved
+    me = mesh_obj.data
+    attr = me.attributes.get(depth.DEPTH_ATTR)
+    if values is None:
+        if attr is not None:
+            me.attributes.remove(attr)
+    elif attr is not None:
+        attr.data.foreach_set("value", values)
+    st = mesh_obj.pa_mesh
+    st.depth_legend.clear()
+    for d, n, rgb in legend:
+        item = st.depth_legend.add()
+        item.depth, item.faces, item.color = d, n, rgb
+    st.depth_max_level = top
 
 
 class PA_OT_load_avatar(bpy.types.Operator, ImportHelper):
@@ -126,19 +197,24 @@ class PA_OT_load_avatar(bpy.types.Operator, ImportHelper):
         try:
             note = ""
             if self.url:
-                path, note = _fetch(self.url)
+                path, note = _fetch(self.url, mesh_faces(mesh_obj.data))
             obj = load_avatar_onto(context, mesh_obj, path, self.budget)
         except Exception as exc:
             self.report({"ERROR"}, f"Cannot load avatar: {exc}")
             return {"CANCELLED"}
         if note:
             self.report({"WARNING"}, note)
+        problem = runtime.topology_problem(obj, context.evaluated_depsgraph_get())
+        if problem:
+            self.report({"WARNING"}, problem)
         self.report({"INFO"}, f"Loaded {obj.pa_avatar.total} Gaussians onto {mesh_obj.name}")
         return {"FINISHED"}
 
 
 class PA_OT_depth_colors(bpy.types.Operator):
-    """Colour the mesh's faces by the avatar's subdivision depth (Solid mode: Attribute colour)"""
+    """Show or hide the mesh's faces coloured by the avatar's subdivision depth at the current
+    budget (faces without a Gaussian yet in their own colour); hiding restores your colours
+    and shading"""
 
     bl_idname = "object.progressive_avatars_depth_colors"
     bl_label = "Colour by Depth"
@@ -150,19 +226,22 @@ class PA_OT_depth_colors(bpy.types.Operator):
 
     def execute(self, context):
         obj = _preview_of(context)
+        src = obj.pa_avatar.source
+        if src is None or src.type != "MESH":
+            self.report({"ERROR"}, f"{obj.name}: its mesh was deleted; load the avatar onto a mesh again")
+            return {"CANCELLED"}
+        if src.pa_mesh.depth_shown:
+            depth.hide_colors(context, src)
+            return {"FINISHED"}
         e = runtime.entry(obj)
         if e is None:
             self.report({"ERROR"}, obj.pa_avatar.status or "Avatar not available")
             return {"CANCELLED"}
         try:
-            depth.apply_depth(obj.pa_avatar.source, e.avatar.forest)
+            depth.show_colors(context, src, e.avatar.forest, obj.pa_avatar.count, e.budget.max_level())
         except ValueError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        for area in context.screen.areas if context.screen else ():
-            for space in area.spaces:
-                if space.type == "VIEW_3D":
-                    space.shading.color_type = "VERTEX"
         return {"FINISHED"}
 
 
@@ -207,8 +286,13 @@ class PA_OT_export_ply(bpy.types.Operator, ExportHelper):
         except ImportError:
             self.report({"ERROR"}, "This build has no PLY writer (core/io/ply.py)")
             return {"CANCELLED"}
+        pv = _preview_of(context)
+        if pv.pa_avatar.count == 0:
+            self.report({"ERROR"}, f"Nothing to export: {pv.name}'s Budget is {pv.pa_avatar.budget:.1f} %, "
+                                   "0 Gaussians; raise the Budget slider")
+            return {"CANCELLED"}
         try:
-            g = current_gaussians(context, _preview_of(context), world=self.world_space)
+            g = current_gaussians(context, pv, world=self.world_space)
             ply.write_ply(bpy.path.abspath(self.filepath), g)
         except Exception as exc:
             self.report({"ERROR"}, f"PLY export failed: {exc}")
@@ -238,10 +322,11 @@ class PA_OT_render_splats(bpy.types.Operator):
         return _preview_of(context) is not None and context.scene.camera is not None
 
     def execute(self, context):
-        python = prefs.python_path(context)
-        if not python or not os.path.isfile(python):
-            self.report({"ERROR"}, "Set a Python with numba in the add-on preferences to render splats")
+        problem = prefs.python_problem(context, "numba")
+        if problem:
+            self.report({"ERROR"}, f"Render Splats: {problem}")
             return {"CANCELLED"}
+        python = prefs.python_path(context)
         scene = context.scene
         cam_obj = scene.camera
         r = scene.render

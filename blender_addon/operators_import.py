@@ -26,6 +26,13 @@ class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
         description="FLAME parameter files only: import expression and pose-corrective shape keys and a keyed "
                     "armature instead of one shape key per frame, so expressions and joints can be edited")
     z_up: bpy.props.BoolProperty(name="Y up to Z up", default=True)
+    set_frame_range: bpy.props.BoolProperty(
+        name="Set frame range", default=True,
+        description="Set the scene's frame range to the imported frames (off: keep the scene's range)")
+    fps: bpy.props.IntProperty(
+        name="Frame rate", default=0, min=0, max=1000,
+        description="Frames per second of the sequence, set as the scene's frame rate (0: keep the scene's; "
+                    "tracked sequences do not store one)")
 
     def execute(self, context):
         from ..core.io import data
@@ -55,6 +62,8 @@ class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
         if seq.n_frames == 0:
             self.report({"ERROR"}, f"{path}: no frames")
             return {"CANCELLED"}
+        scene = context.scene
+        kept_range = (scene.frame_start, scene.frame_end)
         name = os.path.splitext(os.path.basename(path.rstrip("/\\")))[0] or "sequence"
         for ob in context.selected_objects:
             ob.select_set(False)
@@ -67,6 +76,10 @@ class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
                                          "(import without 'As FLAME rig' to keep them)")
         else:
             obj = sequence.build_sequence_object(context, seq, name, context.scene.frame_start, self.z_up)
+        if not self.set_frame_range:  # the builders set it; put the scene's back
+            scene.frame_start, scene.frame_end = kept_range
+        if self.fps:
+            scene.render.fps, scene.render.fps_base = self.fps, 1.0
         obj.pa_mesh.sequence_path = self.filepath if not self.whole_folder else path
         context.view_layer.objects.active = obj
         obj.select_set(True)

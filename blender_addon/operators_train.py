@@ -1,4 +1,10 @@
-"""Train operator: scripts/train.py in the configured Python (torch is not in Blender)."""
+"""Train operator: training in the configured Python (torch is not in Blender).
+
+The extension trains from its own folder (core/train/jobs.py, loaded under a private package
+name, so no checkout and no other installed copy is involved); a train script set in the
+preferences (a checkout's scripts/train.py) is run instead when given. The result is loaded
+onto the mesh that started training (stored on the scene, so it survives undo).
+"""
 
 import glob
 import os
@@ -33,28 +39,67 @@ def find_result(run_dir):
     return max(cands, key=os.path.getmtime) if cands else None
 
 
+_RUNNER = (
+    "import importlib.util, sys\n"
+    "root = sys.argv.pop(1)\n"
+    "spec = importlib.util.spec_from_file_location('pa_ext', root + '/__init__.py', submodule_search_locations=[root])\n"
+    "m = importlib.util.module_from_spec(spec); sys.modules['pa_ext'] = m; spec.loader.exec_module(m)\n"
+    "from pa_ext.core.train import jobs\n"
+    "sys.exit(jobs.main(sys.argv[1:]))\n"
+)
+
+
+def _extension_root():
+    return os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
 def _command(context):
     st = context.scene.pa_train
-    python, script = prefs.python_path(context), prefs.train_script(context)
-    if not python or not os.path.isfile(python):
-        raise RuntimeError("Set a Python with torch in the add-on preferences")
-    if not script or not os.path.isfile(script):
-        raise RuntimeError("Set the path of scripts/train.py in the add-on preferences")
+    problem = prefs.python_problem(context, "torch and numba")
+    if problem:
+        raise RuntimeError(problem)
+    python = prefs.python_path(context)
     data, out = bpy.path.abspath(st.data_dir), bpy.path.abspath(st.out_dir)
-    if not os.path.isdir(data):
-        raise RuntimeError(f"Data folder not found: {data}")
-    if not out:
-        raise RuntimeError("Choose a run folder")
-    cmd = [python, "-u", script, "--data", data, "--out", out]
+    if not st.data_dir or not os.path.isdir(data):
+        raise RuntimeError(f"Data folder not found: '{data}' (Training > Data)")
+    if not st.out_dir:
+        raise RuntimeError("Choose a run folder (Training > Run)")
+    model = prefs.flame_model(context)
+    if model and not os.path.isfile(model):
+        raise RuntimeError(f"FLAME model not found: {model} (Preferences > Add-ons > Progressive Avatars > FLAME model)")
+    flame = ["--flame-model", model] if model else []
+    script = prefs.user_train_script(context)
+    if script:
+        if not os.path.isfile(script):
+            raise RuntimeError(f"Train script not found: {script} (Preferences > Add-ons > Progressive Avatars)")
+        cmd = [python, "-u", script, "--data", data, "--out", out]
+        if st.preset:
+            cmd += ["--preset", st.preset]
+        if st.iterations:
+            cmd += ["--iterations", str(st.iterations)]
+        cmds = [cmd + flame]
+        # Training writes RUN/avatar.npz in creation order; the importance-ordered stream that
+        # the budget slider needs comes from scripts/export.py, run next when it is there.
+        export = os.path.join(os.path.dirname(script), "export.py")
+        if os.path.isfile(export):
+            cmds.append([python, "-u", export, "--run", out, "--data", data, "--stream",
+                         os.path.join(out, "avatar.pavs")] + flame)
+        return cmds, out
+    cmd = [python, "-u", "-c", _RUNNER, _extension_root(), "train", "--data", data, "--out", out] + flame
     if st.preset:
         cmd += ["--preset", st.preset]
-    cmds = [cmd]
-    # Training writes RUN/avatar.npz in creation order; the importance-ordered stream that
-    # the budget slider needs comes from scripts/export.py, run next when it is there.
-    export = os.path.join(os.path.dirname(script), "export.py")
-    if os.path.isfile(export):
-        cmds.append([python, "-u", export, "--run", out, "--data", data, "--stream", os.path.join(out, "avatar.pavs")])
-    return cmds, out
+    if st.iterations:
+        cmd += ["--iterations", str(st.iterations)]
+    return [cmd], out
+
+
+def _start(context):
+    """Remember the mesh training is for (the active mesh, or the active preview's mesh)."""
+    st = context.scene.pa_train
+    obj = context.active_object
+    if obj is not None and obj.pa_avatar.is_preview:
+        obj = obj.pa_avatar.source
+    st.target = obj if obj is not None and obj.type == "MESH" else None
 
 
 def _finish(op, context, rc, out):
@@ -65,16 +110,22 @@ def _finish(op, context, rc, out):
         return {"CANCELLED"}
     st.progress = 100.0
     result = find_result(out)
-    mesh = context.active_object
-    if result and mesh is not None and mesh.type == "MESH":
-        from .operators_avatar import load_avatar_onto
+    mesh = st.target  # the mesh that started training, whatever is active now
+    if result is None:
+        op.report({"ERROR"}, f"Training finished but wrote no avatar in {out}")
+        return {"CANCELLED"}
+    if mesh is None or mesh.type != "MESH":
+        op.report({"WARNING"}, f"Trained {result}; no mesh to load it onto (none was active when training "
+                               "started, or it was deleted)")
+        return {"FINISHED"}
+    from .operators_avatar import load_avatar_onto
 
-        try:
-            load_avatar_onto(context, mesh, result)
-        except Exception as exc:
-            op.report({"ERROR"}, f"Trained, but loading {result} failed: {exc}")
-            return {"CANCELLED"}
-    op.report({"INFO"}, f"Training finished: {result or out}")
+    try:
+        load_avatar_onto(context, mesh, result)
+    except Exception as exc:
+        op.report({"ERROR"}, f"Trained, but loading {result} onto {mesh.name} failed: {exc}")
+        return {"CANCELLED"}
+    op.report({"INFO"}, f"Training finished: {result} loaded onto {mesh.name}")
     return {"FINISHED"}
 
 
@@ -96,6 +147,7 @@ class PA_OT_train(bpy.types.Operator):
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         st = context.scene.pa_train
+        _start(context)
         st.running = True
         rc = 0
         for cmd in cmds:
@@ -116,6 +168,7 @@ class PA_OT_train(bpy.types.Operator):
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         st = context.scene.pa_train
+        _start(context)
         st.running, st.progress, st.message = True, 0.0, "starting"
         self._lines = queue.Queue()
         self._next_process()

@@ -4,7 +4,7 @@ import bpy
 
 from . import operators_avatar
 
-CATEGORY = "Avatars"
+CATEGORY = "Progressive Avatars"  # the sidebar tab, as the README names it
 
 
 class _Base:
@@ -55,8 +55,13 @@ class PA_PT_avatar(_Base, bpy.types.Panel):
                     lay.prop(mod, f'["{input_identifier(mod.node_group, name)}"]', text=name)
                 except KeyError:
                     pass
-        if st.status:
-            lay.label(text=st.status, icon="ERROR")
+        lay.prop(st, "bind_mode")
+        if st.status:  # long reasons (the topology guard's) wrap instead of being clipped
+            import textwrap
+
+            col = lay.column(align=True)
+            for i, line in enumerate(textwrap.wrap(st.status, 48)):
+                col.label(text=line, icon="ERROR" if i == 0 else "BLANK1")
         row = lay.row(align=True)
         row.operator("export_scene.progressive_avatars_ply", icon="EXPORT")
         row.operator("render.progressive_avatars_splats", icon="RENDER_STILL")
@@ -73,9 +78,15 @@ class PA_PT_depth(_Base, bpy.types.Panel):
     def draw(self, context):
         obj = operators_avatar._preview_of(context)
         lay = self.layout
-        lay.operator("object.progressive_avatars_depth_colors", icon="COLOR")
         src = obj.pa_avatar.source
-        legend = src.pa_mesh.depth_legend if src is not None else ()
+        if src is None:
+            lay.label(text="The preview's mesh was deleted", icon="ERROR")
+            return
+        shown = src.pa_mesh.depth_shown
+        lay.operator("object.progressive_avatars_depth_colors", icon="COLOR",
+                     text="Hide Depth Colours" if shown else "Colour by Depth", depress=shown)
+        lay.prop(obj.pa_avatar, "level_only")
+        legend = src.pa_mesh.depth_legend
         total = max(sum(item.faces for item in legend), 1)
         for item in legend:
             row = lay.row(align=True)
@@ -83,7 +94,8 @@ class PA_PT_depth(_Base, bpy.types.Panel):
             sw.enabled = False
             sw.prop(item, "color", text="")
             bar = "█" * int(round(20 * item.faces / total))
-            row.label(text=f"depth {item.depth}: {item.faces:,}  {bar}")
+            what = "not arrived" if item.depth < 0 else f"depth {item.depth}"
+            row.label(text=f"{what}: {item.faces:,}  {bar}")
 
 
 class PA_PT_train(_Base, bpy.types.Panel):
@@ -97,6 +109,7 @@ class PA_PT_train(_Base, bpy.types.Panel):
         lay.prop(st, "data_dir")
         lay.prop(st, "out_dir")
         lay.prop(st, "preset")
+        lay.prop(st, "iterations")
         if st.running:
             lay.progress(factor=st.progress / 100.0, text=f"{st.progress:.0f}%")
             lay.operator("progressive_avatars.train_cancel", icon="CANCEL")

@@ -17,12 +17,6 @@ def _default_python() -> str:
     return ""
 
 
-def _default_train_script() -> str:
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    cand = os.path.join(root, "scripts", "train.py")
-    return cand if os.path.isfile(cand) else ""
-
-
 class PA_Preferences(bpy.types.AddonPreferences):
     bl_idname = ADDON_PACKAGE
 
@@ -31,7 +25,7 @@ class PA_Preferences(bpy.types.AddonPreferences):
         description="Python interpreter with torch and numba installed, used for training and splat rendering")
     train_script: bpy.props.StringProperty(
         name="Train script", subtype="FILE_PATH", default="",
-        description="Path of ProgressiveAvatars' scripts/train.py (not shipped inside the extension)")
+        description="Optional: a checkout's scripts/train.py to run instead of the extension's own trainer")
     flame_model: bpy.props.StringProperty(
         name="FLAME model", subtype="FILE_PATH", default="",
         description="Your own FLAME model file (generic_model.pkl / flame2023.pkl), for FLAME parameter sequences")
@@ -57,9 +51,22 @@ def python_path(context=None) -> str:
     return path or ""
 
 
-def train_script(context=None) -> str:
+def python_problem(context=None, needs="torch and numba") -> str:
+    """Why the configured Python cannot be run ("" when it can), naming the path and where
+    to set it."""
+    python = python_path(context)
+    where = "Preferences > Add-ons > Progressive Avatars > Python"
+    if not python:
+        return f"No Python set: choose one with {needs} in {where}"
+    if not os.path.isfile(python):
+        return f"Python not found: {python} (set in {where})"
+    return ""
+
+
+def user_train_script(context=None) -> str:
+    """The train script set in the preferences ("" : train from the extension itself)."""
     p = get(context)
-    return bpy.path.abspath(p.train_script) if p and p.train_script else _default_train_script()
+    return bpy.path.abspath(p.train_script) if p and p.train_script else ""
 
 
 def flame_model(context=None) -> str:

@@ -9,6 +9,19 @@ def _budget_changed(self, context):
     runtime.apply_budget(self.id_data, context)
 
 
+def _level_only_changed(self, context):
+    from . import depth
+
+    depth.set_level_only(self.id_data, self.level_only)
+
+
+def _bind_changed(self, context):
+    from . import runtime
+
+    runtime.invalidate()
+    runtime.apply_budget(self.id_data, context)
+
+
 class PA_LegendItem(bpy.types.PropertyGroup):
     depth: bpy.props.IntProperty()
     faces: bpy.props.IntProperty()
@@ -22,6 +35,9 @@ class PA_MeshState(bpy.types.PropertyGroup):
     frame_start: bpy.props.IntProperty(name="First frame")
     num_frames: bpy.props.IntProperty(name="Frames")
     depth_legend: bpy.props.CollectionProperty(type=PA_LegendItem)
+    depth_max_level: bpy.props.IntProperty()
+    depth_shown: bpy.props.BoolProperty(name="Depth colours shown", default=False)
+    depth_saved: bpy.props.StringProperty(description="Colour and shading settings to restore (JSON)")
 
 
 class PA_AvatarState(bpy.types.PropertyGroup):
@@ -42,15 +58,30 @@ class PA_AvatarState(bpy.types.PropertyGroup):
     level_reached: bpy.props.IntProperty(name="Level reached")
     max_level: bpy.props.IntProperty(name="Levels")
     status: bpy.props.StringProperty(name="Status")
+    level_only: bpy.props.IntProperty(name="Show level only", min=-1, default=-1, update=_level_only_changed,
+                                      description="Show only the Gaussians of this subdivision level (-1: all)")
+    bind_mode: bpy.props.EnumProperty(
+        name="Follow", default="EVALUATED", update=_bind_changed,
+        items=(("EVALUATED", "Evaluated mesh", "Follow the mesh with all its modifiers; refused (status and "
+                "report) when a modifier changes its vertex or face count"),
+               ("SHAPE_KEYS", "Shape keys only", "Follow the mesh's shape keys before any modifier (Remesh, "
+                "Subdivision Surface, Decimate, but also armatures, are ignored)")),
+        description="Which deformation of the mesh the Gaussians follow")
+    template_vertices: bpy.props.IntProperty(description="Vertex count of the mesh the avatar was bound to")
+    template_faces: bpy.props.IntProperty(description="Face count of the mesh the avatar was bound to")
 
 
 class PA_TrainState(bpy.types.PropertyGroup):
     data_dir: bpy.props.StringProperty(name="Data", subtype="DIR_PATH")
     out_dir: bpy.props.StringProperty(name="Run", subtype="DIR_PATH")
     preset: bpy.props.StringProperty(name="Preset", default="")
+    iterations: bpy.props.IntProperty(name="Iterations", default=0, min=0,
+                                      description="Training iterations (0: the preset's)")
     running: bpy.props.BoolProperty(default=False)
     progress: bpy.props.FloatProperty(subtype="PERCENTAGE", min=0, max=100)
     message: bpy.props.StringProperty()
+    target: bpy.props.PointerProperty(type=bpy.types.Object, name="Target",
+                                      description="The mesh that started training: the result is loaded onto it")
 
 
 classes = (PA_LegendItem, PA_MeshState, PA_AvatarState, PA_TrainState)

@@ -13,10 +13,21 @@ from ..core.bridge import preview as preview_data
 from . import preview
 
 
+def mesh_faces(me):
+    """Triangle vertex indices [F,3] (quads and n-gons cannot be an avatar's template)."""
+    totals = np.empty(len(me.polygons), np.int32)
+    me.polygons.foreach_get("loop_total", totals)
+    if len(totals) and (totals != 3).any():
+        raise ValueError(f"{me.name} has non-triangle faces; avatars bind to triangle templates")
+    idx = np.empty(len(me.loops), np.int32)
+    me.loops.foreach_get("vertex_index", idx)
+    return idx.reshape(-1, 3)
+
+
 class _Entry:
-    def __init__(self, path, loaded=None):
+    def __init__(self, path, loaded=None, template_faces=None):
         self.path = path
-        self.avatar, self.budget = loaded or preview_data.load_avatar(path)
+        self.avatar, self.budget = loaded or preview_data.load_avatar(path, template_faces)
         self.weights = self.avatar.forest.weights()
         self.order = preview_data.preview_order(self.avatar)  # stream rank of each preview point
         self.point_of_rank = np.argsort(self.order)
@@ -49,7 +60,16 @@ def entry(obj):
     if not path or not os.path.isfile(path):
         state.status = f"Avatar file not found: {path}" if path else "No avatar file"
         return None
-    e = _cache[key] = _Entry(path)
+    src = state.source
+    try:  # the mesh stands in for a template the stream does not embed
+        faces = mesh_faces(src.data) if src is not None and src.type == "MESH" else None
+    except ValueError:
+        faces = None
+    try:
+        e = _cache[key] = _Entry(path, template_faces=faces)
+    except (ValueError, OSError) as exc:
+        state.status = f"Cannot read the avatar: {exc}"
+        return None
     return e
 
 
@@ -84,6 +104,78 @@ def source_vertices(source, depsgraph):
     return out.reshape(-1, 3)
 
 
+# Modifiers that can change a mesh's vertex or face count while the evaluated mesh does not
+# show it (GPU subdivision draws the last Subdivision Surface without evaluating it on the CPU).
+_SUBDIVIDERS = {"SUBSURF", "MULTIRES"}
+
+
+def _modifier_names(source, depsgraph, types=None):
+    render = getattr(depsgraph, "mode", "VIEWPORT") == "RENDER"
+    out = []
+    for m in source.modifiers:
+        on = m.show_render if render else m.show_viewport
+        if on and (types is None or m.type in types):
+            if m.type in _SUBDIVIDERS and getattr(m, "render_levels" if render else "levels", 1) == 0:
+                continue  # subdivides nothing in this mode
+            out.append(f"{m.type.replace('_', ' ').title()} '{m.name}'")
+    return out
+
+
+def topology_problem(obj, depsgraph):
+    """Why the bound mesh's evaluated topology is not the one the avatar was bound to
+    (Remesh, Subdivision Surface, Decimate, ...), or "" when it is."""
+    state, src = obj.pa_avatar, obj.pa_avatar.source
+    tv, tf = state.template_vertices, state.template_faces
+    if not tv:  # bound before the counts were recorded
+        return ""
+    me = src.evaluated_get(depsgraph).data
+    nv, nf = len(me.vertices), len(me.polygons)
+    if (nv, nf) != (tv, tf):
+        mods = _modifier_names(src, depsgraph)
+        by = f" (modifiers: {', '.join(mods)})" if mods else ""
+        return (f"{src.name} evaluates to {nv} vertices / {nf} faces{by}, the avatar is bound to its "
+                f"{tv} / {tf}: Gaussians would sit on unrelated vertices. Disable the modifiers that change "
+                f"the topology, or set Follow to 'Shape keys only'")
+    subdiv = _modifier_names(src, depsgraph, _SUBDIVIDERS)
+    if subdiv:
+        return (f"{src.name} has {', '.join(subdiv)}: it moves the surface off the vertices the avatar is "
+                f"bound to. Disable it, or set Follow to 'Shape keys only'")
+    return ""
+
+
+def shape_key_vertices(source, depsgraph):
+    """The mesh's own vertices with its relative shape keys mixed at their current (evaluated)
+    values, before any modifier: one pass per active key, none per vertex."""
+    me = source.data
+    co = np.empty(len(me.vertices) * 3, np.float32)
+    key = me.shape_keys
+    if key is None:
+        me.vertices.foreach_get("co", co)
+        return co.reshape(-1, 3), ""
+    if not key.use_relative:
+        return None, f"{source.name}: absolute shape keys cannot be followed without modifiers"
+    key_eval = key.evaluated_get(depsgraph)
+    blocks = key.key_blocks
+    cache = {}
+
+    def block_co(kb):
+        if kb.name not in cache:
+            a = np.empty(len(me.vertices) * 3, np.float32)
+            kb.data.foreach_get("co", a)
+            cache[kb.name] = a
+        return cache[kb.name]
+
+    out = block_co(key.reference_key).astype(np.float64)
+    for kb, kb_eval in zip(blocks[1:], key_eval.key_blocks[1:]):
+        value = kb_eval.value
+        if kb.mute or value == 0.0:
+            continue
+        if kb.vertex_group:
+            return None, f"{source.name}: shape key '{kb.name}' is limited to a vertex group; follow the evaluated mesh"
+        out += value * (block_co(kb) - block_co(kb.relative_key))
+    return out.astype(np.float32).reshape(-1, 3), ""
+
+
 def refresh(obj, depsgraph, count=None):
     """Re-evaluate the first ``count`` Gaussians on the mesh's current evaluated shape and
     write positions, rotations and scales. Returns False (and sets status) when it cannot."""
@@ -95,10 +187,20 @@ def refresh(obj, depsgraph, count=None):
             state.status = "No mesh bound"
         return False
     count = e.budget.count_for_percent(state.budget) if count is None else count
-    verts = source_vertices(src, depsgraph)
-    if len(verts) < e.n_vertices:
-        state.status = f"{src.name} has {len(verts)} vertices; the avatar needs {e.n_vertices}"
+    if state.bind_mode == "SHAPE_KEYS":
+        verts, problem = shape_key_vertices(src, depsgraph)
+    else:
+        problem = topology_problem(obj, depsgraph)
+        verts = None if problem else source_vertices(src, depsgraph)
+    if not problem and len(verts) < e.n_vertices:
+        problem = f"{src.name} has {len(verts)} vertices; the avatar needs {e.n_vertices}"
+    if problem:
+        # Never leave Gaussians standing where they were: hide them until the mesh fits again.
+        state.status = problem
+        preview.set_count(obj, 0)
+        e.valid = 0
         return False
+    preview.set_count(obj, count)
     means, quats, scales = e.evaluator_for(count)(verts)
     me = obj.data
     if len(me.vertices) != e.avatar.num_gaussians:
@@ -133,3 +235,11 @@ def apply_budget(obj, context=None, depsgraph=None):
     if count > e.valid:
         context = context or bpy.context
         refresh(obj, depsgraph or context.evaluated_depsgraph_get(), count)
+    src = state.source
+    if src is not None and src.type == "MESH":  # depth (and its colours) follow what the budget shows
+        from . import depth
+
+        try:
+            depth.apply_depth(src, e.avatar.forest, count, b.max_level())
+        except ValueError as exc:  # the mesh was edited to another face count
+            state.status = f"Depth not shown: {exc}"

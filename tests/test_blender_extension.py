@@ -210,6 +210,7 @@ def _():
     d = np.empty(len(mesh.data.polygons), np.int32)
     mesh.data.attributes["pa_depth"].data.foreach_get("value", d)
     arrays["depth"] = d
+    bpy.ops.object.progressive_avatars_depth_colors()  # a toggle: load no longer paints the mesh
     R["depth_color_domain"] = mesh.data.color_attributes["pa_depth_color"].domain
     R["active_color"] = mesh.data.color_attributes.active_color_name
     R["legend"] = [[i.depth, i.faces] for i in mesh.pa_mesh.depth_legend]
@@ -529,6 +530,10 @@ def test_manifest_validates_and_builds(session):
     leaked = [n for n in names if n.split("/")[0] in ("tests", "scripts", "docs", ".venv", "runs", ".git")
               or "__pycache__" in n or n.endswith(".pyc")]
     assert not leaked, leaked
+    # Training and export run from the zip (core/train/jobs.py); the synthetic-data generator and the
+    # evaluation report/plots are not shipped.
+    assert {"core/train/jobs.py", "core/train/trainer.py", "core/io/run.py", "core/io/mesh_io.py"} <= set(names)
+    assert not {"core/synthetic/head.py", "core/evaluate/sweep.py", "core/evaluate/plots.py"} & set(names)
 
 
 def test_installs_and_enables_in_clean_blender(session):
@@ -686,7 +691,12 @@ def test_save_reload_keeps_state(session):
     n = r["count_60"]
     np.testing.assert_allclose(session["arrays"]["reload_pos_4"][:n], av.gaussians(session["verts"][4])["means"][:n],
                                atol=1e-5)
-    np.testing.assert_array_equal(session["arrays"]["reload_depth"], av.forest.depth_per_root())
+    # Depth follows the budget: the deepest level among the first count_60 Gaussians per face.
+    from progressive_avatars.core.bridge.preview import depth_per_face
+
+    want = depth_per_face(av.forest, av.forest.num_roots, n)
+    np.testing.assert_array_equal(session["arrays"]["reload_depth"], want)
+    assert (want >= 0).all() and not np.array_equal(want, av.forest.depth_per_root())
 
 
 def test_cycles_renders_show_coloured_splats(session):

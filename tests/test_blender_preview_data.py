@@ -90,3 +90,23 @@ def test_transform_gaussians_rigid():
     np.testing.assert_allclose(scales, moved["scales"], rtol=1e-4)
     Rw = quat_to_rotmat(quats)
     np.testing.assert_allclose(Rw, quat_to_rotmat(moved["quats"]), atol=1e-4)
+
+
+def test_depth_per_face_of_a_prefix_marks_faces_not_arrived():
+    """A stream cut inside the template level: faces past the received roots are NOT_ARRIVED,
+    with their own colour and legend row; the legend still lists every level."""
+    rng = np.random.default_rng(4)
+    av, _ = _avatar(rng)
+    forest = av.forest
+    F0 = forest.num_roots
+    full = preview_data.depth_per_face(forest, F0)
+    np.testing.assert_array_equal(full, forest.depth_per_root())
+    cut = preview_data.depth_per_face(forest, F0, F0 // 3)
+    assert (cut[: F0 // 3] == 0).all() and (cut[F0 // 3:] == preview_data.NOT_ARRIVED).all()
+    cols = preview_data.depth_colors(cut, forest.max_level)
+    np.testing.assert_array_equal(cols[F0 // 3:], np.broadcast_to(preview_data.NOT_ARRIVED_COLOR, (F0 - F0 // 3, 4)))
+    assert not np.allclose(cols[0], preview_data.NOT_ARRIVED_COLOR)
+    legend = preview_data.depth_legend(cut, forest.max_level)
+    assert [(d, n) for d, n, _ in legend] == [(-1, F0 - F0 // 3), (0, F0 // 3)] + [(d, 0) for d in range(1, forest.max_level + 1)]
+    with pytest.raises(ValueError, match="template faces"):
+        preview_data.depth_per_face(forest, F0 - 1)

@@ -1,4 +1,4 @@
-"""HTTP faults (core/http_stream.py) against an in-process loopback server (127.0.0.1 only):
+"""HTTP faults (core/stream/http.py) against an in-process loopback server (127.0.0.1 only):
 a file replaced mid-download, percent budgets before the header, a dripping server, nested
 JSON metadata. Every test is bounded to a few seconds."""
 

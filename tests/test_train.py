@@ -207,7 +207,7 @@ def test_flame_mode_dataset_trains_and_exports(tiny_dataset, tmp_path):
     base = [sys.executable, os.path.join(ROOT, "scripts", "train.py"), "--data", str(root), "--out", str(run),
             "--preset", "tiny", "--iterations", "8", "--no-progress"]
     out = subprocess.run(base, capture_output=True, text=True, timeout=600, env=env)
-    assert out.returncode == 2 and "flame_model" in out.stderr  # FLAME mode without a model: a clear error
+    assert out.returncode == 2 and "--flame-model" in out.stderr  # FLAME mode without a model: a clear error
     out = subprocess.run(base + ["--flame-model", model_path], capture_output=True, text=True, timeout=600, env=env)
     assert out.returncode == 0, out.stderr[-2000:]
     av = Avatar.load(run / "avatar.npz")

@@ -66,25 +66,52 @@ class Budget:
     def level_reached(self, count: int) -> int:
         return int(self.levels[count - 1]) if count > 0 else -1
 
+    def max_level(self) -> int:
+        """Deepest level of the whole avatar: a stream's header knows it even when the
+        stream was cut, so depth colours keep their meaning at any prefix."""
+        n = getattr(self.info, "num_levels", None)
+        if n:
+            return int(n) - 1
+        return int(self.levels.max()) if len(self.levels) else 0
 
-def load_avatar(path) -> tuple[Avatar, Budget]:
+
+def load_avatar(path, template_faces=None) -> tuple[Avatar, Budget]:
     """An avatar in stream order from a stream file (.pavs, recognised by its magic) or an
     avatar .npz, and its budget. Avatar .npz files are taken to be in stream order already
-    (a face's rank is its index)."""
+    (a face's rank is its index). A stream cut anywhere (even inside the template level)
+    gives the Gaussians it holds whole; ``template_faces`` (the mesh's) stand in for a
+    template the stream does not embed."""
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{path}: file not found")
     stream = _stream_module()
+    size = os.path.getsize(path)
+    if size == 0:
+        raise ValueError(f"{path}: the file is empty (0 bytes), not an avatar stream or avatar .npz")
     with open(path, "rb") as fh:
         head = fh.read(8)
     info = None
     if stream is not None and head == stream.MAGIC:
-        info = stream.read_header(path)
-        avatar = stream.read_stream(path)
+        try:
+            info = stream.read_header(path)
+        except ValueError as exc:  # a stream cut inside its header
+            raise ValueError(f"{exc}; no Gaussian arrived (the stream's records start after its header)") from None
+        tmpl = None if info.template_embedded else template_faces
+        avatar = stream.read_stream(path, template_faces=tmpl)
         if avatar is None:
-            raise ValueError(f"{path}: the stream holds no complete Gaussian record")
+            raise ValueError(f"{path}: the stream holds no complete Gaussian record ({size} of "
+                             f"{info.total_bytes} bytes arrived; the first record ends at byte "
+                             f"{info.bytes_for_count(1)})")
+    elif head[:2] == b"PK":  # zip container: numpy's .npz
+        try:
+            avatar = Avatar.load(path)
+        except (ValueError, KeyError, OSError) as exc:
+            msg = str(exc).replace(f"{path}: ", "")
+            raise ValueError(f"{path}: not an avatar file (a ProgressiveAvatars stream .pavs or avatar .npz): "
+                             f"{msg}") from None
     else:
-        avatar = Avatar.load(path)
+        raise ValueError(f"{path}: not a ProgressiveAvatars stream or avatar .npz (the file starts with "
+                         f"{bytes(head[:8])!r}; streams start with {stream.MAGIC if stream else 'their magic'!r})")
     budget = Budget(avatar.num_gaussians, avatar.forest.level.copy(), os.path.getsize(path), info)
     return avatar, budget
 
@@ -157,15 +184,23 @@ _RAMP = np.array([
 ], np.float32)
 
 
+NOT_ARRIVED = -1  # depth of a face none of whose Gaussians has arrived
+# Neutral light grey: off the ramp (no ramp colour is grey) and unlike the dark depth 0.
+NOT_ARRIVED_COLOR = np.array([0.55, 0.55, 0.55, 1.0], np.float32)
+
+
 def depth_colors(depth: np.ndarray, max_depth: int | None = None) -> np.ndarray:
-    """Linear RGBA colours [F,4] float32 for integer depths (0 = darkest)."""
+    """Linear RGBA colours [F,4] float32 for integer depths (0 = darkest); NOT_ARRIVED
+    (negative) depths get NOT_ARRIVED_COLOR."""
     depth = np.asarray(depth, np.float32)
     top = float(max(depth.max() if depth.size else 0, 1) if max_depth is None else max(max_depth, 1))
     x = np.clip(depth / top, 0, 1) * (len(_RAMP) - 1)
     i0 = np.minimum(np.floor(x).astype(np.int64), len(_RAMP) - 2)
     w = (x - i0)[:, None]
     rgb = _RAMP[i0] * (1 - w) + _RAMP[i0 + 1] * w
-    return np.concatenate([rgb, np.ones((len(rgb), 1), np.float32)], axis=1).astype(np.float32)
+    out = np.concatenate([rgb, np.ones((len(rgb), 1), np.float32)], axis=1).astype(np.float32)
+    out[depth < 0] = NOT_ARRIVED_COLOR
+    return out
 
 
 def per_corner(values: np.ndarray, loop_totals: np.ndarray) -> np.ndarray:
@@ -173,13 +208,32 @@ def per_corner(values: np.ndarray, loop_totals: np.ndarray) -> np.ndarray:
     return np.repeat(np.asarray(values), np.asarray(loop_totals, np.int64), axis=0)
 
 
-def depth_legend(depth_per_face: np.ndarray) -> list[tuple[int, int, tuple]]:
-    """(depth, number of template faces, RGB) for every depth 0..max."""
+def depth_legend(depth_per_face: np.ndarray, max_depth: int | None = None) -> list[tuple[int, int, tuple]]:
+    """(depth, number of template faces, RGB) for every depth 0..max, led by
+    (NOT_ARRIVED, count, its colour) when some faces have no Gaussian yet."""
     depth = np.asarray(depth_per_face, np.int64)
-    top = int(depth.max()) if depth.size else 0
-    hist = np.bincount(depth, minlength=top + 1)
+    top = int(max(depth.max(), 0)) if depth.size else 0
+    top = top if max_depth is None else max(int(max_depth), 0)
+    hist = np.bincount(depth[depth >= 0], minlength=top + 1)
     cols = depth_colors(np.arange(top + 1), top)
-    return [(d, int(hist[d]), tuple(float(c) for c in cols[d, :3])) for d in range(top + 1)]
+    out = [(d, int(hist[d]), tuple(float(c) for c in cols[d, :3])) for d in range(top + 1)]
+    missing = int(np.count_nonzero(depth < 0))
+    if missing:
+        out.insert(0, (NOT_ARRIVED, missing, tuple(float(c) for c in NOT_ARRIVED_COLOR[:3])))
+    return out
+
+
+def depth_per_face(forest, num_template_faces: int, count: int | None = None) -> np.ndarray:
+    """Deepest level among the first ``count`` Gaussians (all if None) under each of the
+    mesh's ``num_template_faces`` faces, int32; NOT_ARRIVED where none of them lies under
+    the face (a stream cut inside the template level, or a budget below it)."""
+    n = forest.num_faces if count is None else int(min(max(count, 0), forest.num_faces))
+    depth = np.full(int(num_template_faces), NOT_ARRIVED, np.int32)
+    root = forest.root[:n]
+    if n and int(root.max()) >= len(depth):
+        raise ValueError(f"the avatar has {forest.num_roots} template faces, the mesh {len(depth)}")
+    np.maximum.at(depth, root, forest.level[:n].astype(np.int32))
+    return depth
 
 
 # -- cameras -------------------------------------------------------------------------------

@@ -155,8 +155,9 @@ def _npz(path: str) -> dict:
 
 def _need_model(flame_model, source: str) -> FlameModel:
     if flame_model is None:
-        raise DataError(f"{source}: FLAME parameters need a FLAME model: pass flame_model= (path to your own "
-                        "generic_model.pkl / flame2023.pkl, or a FlameModel)")
+        raise DataError(f"{source}: FLAME parameters need a FLAME model file (your own generic_model.pkl / "
+                        "flame2023.pkl): set the FLAME model in the add-on preferences or the importer, or "
+                        "pass --flame-model to the scripts")
     return load_flame_model(flame_model)
 
 
@@ -352,19 +353,15 @@ def read_mesh_npz(path, frames=None) -> MeshSequence:
 
 
 def _load_mesh_file(path: str):
-    import trimesh  # only this reader needs it
+    from .mesh_io import read_mesh  # numpy readers: no trimesh inside Blender
 
     if not os.path.isfile(path):
         raise MissingFileError(f"{path}: file not found")
     try:
-        mesh = trimesh.load(path, force="mesh", process=False, maintain_order=True)
-    except Exception as exc:
-        raise DataError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from exc
-    v = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))))
-    f = np.asarray(getattr(mesh, "faces", np.zeros((0, 3), np.int64)))
-    if v.shape[0] == 0:
-        raise DataError(f"{path}: mesh has no vertices")
-    return v, f
+        return read_mesh(path)
+    except (ValueError, OSError) as exc:
+        msg = str(exc)
+        raise DataError(msg if path in msg else f"{path}: cannot read mesh ({msg})") from exc
 
 
 def read_mesh_folder(path, frames=None) -> MeshSequence:
@@ -393,6 +390,24 @@ def read_mesh_folder(path, frames=None) -> MeshSequence:
         verts_arr = np.stack(verts)
     ids = _ids_from([files[i] for i in sel.tolist()], len(sel))
     return MeshSequence(faces, verts_arr, ids, None, path)
+
+
+def _read_mesh_npz_folder(path: str, files: list, frames) -> MeshSequence:
+    """A folder of mesh npz files, one frame each ([V,3] or [1,V,3] vertices), in name order."""
+    sel = _select(len(files), frames, path)
+    parts = [read_mesh_npz(os.path.join(path, files[i])) for i in sel.tolist()]  # one file per frame
+    if not parts:
+        first = read_mesh_npz(os.path.join(path, files[0]))
+        return MeshSequence(first.faces, first.vertices[:0], np.zeros(0, np.int64), None, path)
+    for i, p in zip(sel.tolist(), parts):
+        if p.n_frames != 1:
+            raise DataError(f"{os.path.join(path, files[i])}: holds {p.n_frames} frames; a folder of mesh npz "
+                            "files needs one frame per file (or import that file alone)")
+        if p.faces.shape != parts[0].faces.shape or not np.array_equal(p.faces, parts[0].faces):
+            raise DataError(f"{os.path.join(path, files[i])}: faces differ from {files[sel[0]]}: frames must "
+                            "share one topology")
+    verts = np.concatenate([p.vertices for p in parts])
+    return MeshSequence(parts[0].faces, verts, _ids_from([files[i] for i in sel.tolist()], len(sel)), None, path)
 
 
 def read_sequence(path, frames=None, flame_model=None) -> MeshSequence:
@@ -428,7 +443,12 @@ def _read(path, frames, flame_model, evaluate):
                                     "folder or a tracked-parameter npz")
                 split = None if js == "transforms.json" else js[len("transforms_"):-len(".json")]
                 return Dataset(path, split, flame_model=flame_model).sequence(frames)
-        if os.path.isdir(os.path.join(path, "flame_param")) or any(n.endswith(".npz") for n in names):
+        npz = sorted((n for n in names if n.endswith(".npz")), key=natural_key)
+        if npz and not os.path.isdir(os.path.join(path, "flame_param")) and "vertices" in _npz(os.path.join(path, npz[0])):
+            if not evaluate:
+                _not_flame(path)
+            return _read_mesh_npz_folder(path, npz, frames)
+        if os.path.isdir(os.path.join(path, "flame_param")) or npz:
             return read_flame_param_folder(path, frames, flame_model, evaluate)
         if any(n.lower().endswith(_MESH_EXTS) for n in names):
             if not evaluate:
@@ -574,8 +594,8 @@ class Dataset:
             self.faces = _check_faces(d["faces"], canon_path, self.canonical_vertices.shape[0])
         else:
             if flame_model is None:
-                raise DataError(f"{json_path}: FLAME-mode dataset (flame_param_path): pass flame_model= "
-                                "(path to your own FLAME model file)")
+                raise DataError(f"{json_path}: FLAME-mode dataset (flame_param_path) needs a FLAME model file: "
+                                "set the FLAME model in the add-on preferences, or pass --flame-model")
             self.flame_model = load_flame_model(flame_model)
             canon_path = os.path.join(self.root, "canonical_flame_param.npz")
             self.canonical_vertices = self._flame_vertices(canon_path)

@@ -1,0 +1,193 @@
+"""OBJ and PLY mesh readers in numpy (no trimesh: this runs inside a stock Blender).
+
+Both return (vertices [V,3] float64, faces [F,3] int64) with vertices in file order and
+faces in file order; quads are split into two triangles (a, b, c), (c, d, a) in place (as trimesh did).
+Parsing is done by regular expressions and numpy over the whole text or buffer, never by a
+Python loop over vertices or faces. Errors name the file and the problem.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+
+import numpy as np
+
+
+class MeshFormatError(ValueError):
+    """A mesh file this reader cannot use (the message names the file)."""
+
+
+def read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{path}: file not found")
+    low = path.lower()
+    with open(path, "rb") as fh:
+        data = fh.read()
+    if low.endswith(".obj"):
+        v, f = read_obj_bytes(data, path)
+    elif low.endswith(".ply"):
+        v, f = read_ply_bytes(data, path)
+    else:
+        raise MeshFormatError(f"{path}: not an .obj or .ply mesh")
+    if len(v) == 0:
+        raise MeshFormatError(f"{path}: mesh has no vertices")
+    if len(f) and (f.min() < 0 or f.max() >= len(v)):
+        raise MeshFormatError(f"{path}: face vertex indices outside 0..{len(v) - 1}")
+    return v, f
+
+
+def _triangles(poly: np.ndarray, sizes: np.ndarray, path: str) -> np.ndarray:
+    """[P,4] corner indices (the 4th unused for triangles) and each polygon's size (3 or 4)
+    → triangles in polygon order, quads as (a, b, c), (c, d, a)."""
+    if len(sizes) and not np.isin(sizes, (3, 4)).all():
+        bad = int(np.flatnonzero(~np.isin(sizes, (3, 4)))[0])
+        raise MeshFormatError(f"{path}: face {bad} has {int(sizes[bad])} corners; only triangles and quads are read")
+    per = np.where(sizes == 4, 2, 1)
+    first = np.repeat(np.arange(len(sizes)), per)
+    second = np.zeros(len(first), bool)
+    second[np.cumsum(per)[sizes == 4] - 1] = True  # the (c, d, a) half of each quad
+    p = poly[first]
+    tri = np.where(second[:, None], p[:, [2, 3, 0]], p[:, :3])
+    return tri.astype(np.int64)
+
+
+# -- OBJ -----------------------------------------------------------------------------------
+_OBJ_V = re.compile(rb"^[ \t]*v[ \t]+(\S+)[ \t]+(\S+)[ \t]+(\S+)", re.M)
+_OBJ_F = re.compile(rb"^[ \t]*f[ \t]", re.M)
+_C = rb"(-?\d+)(?:/[-\d/]*)?"
+_OBJ_TRI_QUAD = re.compile(rb"^[ \t]*f[ \t]+" + _C + rb"[ \t]+" + _C + rb"[ \t]+" + _C
+                           + rb"(?:[ \t]+" + _C + rb")?[ \t]*(?:#[^\n]*)?\r?$", re.M)
+
+
+def read_obj_bytes(data: bytes, path: str = "<obj>"):
+    try:
+        v = np.array(_OBJ_V.findall(data), dtype=np.float64).reshape(-1, 3)
+    except ValueError as exc:
+        raise MeshFormatError(f"{path}: unreadable vertex coordinates ({exc})") from None
+    n_lines = len(_OBJ_F.findall(data))
+    rows = _OBJ_TRI_QUAD.findall(data)
+    if len(rows) != n_lines:
+        raise MeshFormatError(f"{path}: {n_lines - len(rows)} face lines are neither triangles nor quads "
+                              "(or are unreadable); only triangles and quads are read")
+    if not rows:
+        return v, np.zeros((0, 3), np.int64)
+    cells = np.array(rows, dtype=bytes)  # [F,4], the 4th empty for triangles
+    sizes = np.where(cells[:, 3] == b"", 3, 4)
+    cells[:, 3] = np.where(sizes == 4, cells[:, 3], cells[:, 0])
+    idx = cells.astype(np.int64)
+    idx = np.where(idx < 0, idx + len(v), idx - 1)  # OBJ is 1-based; negatives count back
+    return v, _triangles(idx, sizes, path)
+
+
+# -- PLY -----------------------------------------------------------------------------------
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+
+
+def _ply_header(data: bytes, path: str):
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise MeshFormatError(f"{path}: not a PLY file (no 'ply' magic / 'end_header')")
+    body = data.index(b"\n", end) + 1
+    fmt, elements = None, []
+    for line in data[:end].decode("ascii", "replace").splitlines():  # header lines, a handful
+        w = line.split()
+        if not w:
+            continue
+        if w[0] == "format":
+            fmt = w[1]
+        elif w[0] == "element":
+            elements.append((w[1], int(w[2]), []))
+        elif w[0] == "property" and elements:
+            if w[1] == "list":
+                elements[-1][2].append((w[4], ("list", _PLY_TYPES.get(w[2]), _PLY_TYPES.get(w[3]))))
+            else:
+                elements[-1][2].append((w[2], _PLY_TYPES.get(w[1])))
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise MeshFormatError(f"{path}: unsupported PLY format {fmt!r}")
+    for name, _n, props in elements:
+        if any(t is None or (isinstance(t, tuple) and None in t) for _p, t in props):
+            raise MeshFormatError(f"{path}: element '{name}' has a property of unknown type")
+    return fmt, elements, body
+
+
+def read_ply_bytes(data: bytes, path: str = "<ply>"):
+    fmt, elements, pos = _ply_header(data, path)
+    names = [e[0] for e in elements]
+    if "vertex" not in names:
+        raise MeshFormatError(f"{path}: PLY has no vertex element")
+    if fmt == "ascii":
+        return _ply_ascii(data[pos:], elements, path)
+    end = "<" if fmt == "binary_little_endian" else ">"
+    v = f = None
+    for name, n, props in elements:
+        lists = [p for p in props if isinstance(p[1], tuple)]
+        if not lists:
+            dt = np.dtype([(p, end + t) for p, t in props])
+            arr = np.frombuffer(data, dt, count=n, offset=pos)
+            pos += dt.itemsize * n
+            if name == "vertex":
+                if not {"x", "y", "z"} <= set(arr.dtype.names):
+                    raise MeshFormatError(f"{path}: vertex element lacks x, y, z")
+                v = np.stack([arr["x"], arr["y"], arr["z"]], 1).astype(np.float64)
+            continue
+        if name != "face" or len(props) != 1:
+            if name == "face":
+                raise MeshFormatError(f"{path}: face element with properties besides its index list")
+            break  # an unknown list element after the mesh: nothing we need follows
+        _p, (_l, count_t, index_t) = props[0]
+        if n == 0:
+            f = np.zeros((0, 3), np.int64)
+            continue
+        k = int(np.frombuffer(data, end + count_t, count=1, offset=pos)[0])
+        dt = np.dtype([("n", end + count_t), ("i", end + index_t, (k,))])
+        if pos + dt.itemsize * n > len(data):
+            raise MeshFormatError(f"{path}: the face element is cut short or its polygons differ in size "
+                                  f"(first has {k} corners)")
+        arr = np.frombuffer(data, dt, count=n, offset=pos)
+        if (arr["n"] != k).any():
+            raise MeshFormatError(f"{path}: faces with different corner counts (first has {k})")
+        pos += dt.itemsize * n
+        poly = np.zeros((n, 4), np.int64)
+        poly[:, :k] = arr["i"][:, :4]
+        f = _triangles(poly, np.full(n, k), path)
+    if v is None:
+        raise MeshFormatError(f"{path}: PLY has no vertex element")
+    return v, (np.zeros((0, 3), np.int64) if f is None else f)
+
+
+def _ply_ascii(text: bytes, elements, path):
+    lines = text.split(b"\n")
+    at = 0
+    v = f = None
+    for name, n, props in elements:
+        block = lines[at: at + n]
+        at += n
+        if len(block) < n:
+            raise MeshFormatError(f"{path}: element '{name}' is cut short ({len(block)} of {n} rows)")
+        if name == "vertex":
+            cols = [p for p, _t in props]
+            width = len(cols)
+            try:
+                arr = np.array(b" ".join(block).split(), dtype=np.float64).reshape(n, width)
+            except ValueError:
+                raise MeshFormatError(f"{path}: vertex rows do not all hold {width} numbers") from None
+            v = arr[:, [cols.index(c) for c in ("x", "y", "z")]]
+        elif name == "face":
+            if n == 0:
+                f = np.zeros((0, 3), np.int64)
+                continue
+            k = int(block[0].split()[0])
+            try:
+                arr = np.array(b" ".join(block).split(), dtype=np.int64).reshape(n, k + 1)
+            except ValueError:
+                raise MeshFormatError(f"{path}: faces with different corner counts (first has {k})") from None
+            if (arr[:, 0] != k).any():
+                raise MeshFormatError(f"{path}: faces with different corner counts (first has {k})")
+            poly = np.zeros((n, 4), np.int64)
+            poly[:, :k] = arr[:, 1: 1 + min(k, 4)]
+            f = _triangles(poly, np.full(n, k), path)
+    return v, (np.zeros((0, 3), np.int64) if f is None else f)

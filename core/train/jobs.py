@@ -1,0 +1,69 @@
+"""Train and export from the installed extension, in an external Python with torch and numba.
+
+    python -m progressive_avatars.core.train.jobs train --data DIR --out RUN [--preset tiny]
+        [--flame-model FILE] [--iterations N] [--no-export]
+
+The Blender add-on runs this module from the extension's own folder (no checkout, no
+scripts/): it trains (RUN/avatar.npz, as scripts/train.py does) and then writes the
+importance-ordered stream RUN/avatar.pavs (as scripts/export.py --stream does), printing
+progress lines the add-on parses and, last, "result: RUN/avatar.pavs". Errors exit with code
+2 and one line naming the file or setting.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+
+def _train(args) -> int:
+    from .trainer import Trainer, config_for
+
+    flame = os.path.abspath(args.flame_model) if args.flame_model else None
+    if flame and not os.path.isfile(flame):
+        print(f"error: FLAME model file not found: {flame} (the add-on's FLAME model preference)", file=sys.stderr)
+        return 2
+    try:
+        cfg = config_for(args.preset, iterations=args.iterations or None, flame_model=flame)
+        trainer = Trainer(args.data, args.out, cfg)
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    trainer.run(progress=True)
+    result = os.path.join(args.out, "avatar.npz")
+    if not args.no_export:
+        from ..io import run as runs
+        from ..stream.format import write_stream
+
+        avatar = runs.load_run_avatar(args.out)
+        print("importance and stream", flush=True)
+        W = runs.run_importance(args.out, avatar, args.data, progress=True)
+        result = os.path.join(args.out, "avatar.pavs")
+        try:
+            write_stream(result, avatar, W, metadata={"run": os.path.abspath(args.out)}, drop_sh=True)
+        except ValueError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+    print(f"result: {result}", flush=True)
+    return 0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="progressive_avatars.core.train.jobs", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="job", required=True)
+    t = sub.add_parser("train", help="train an avatar, then write its stream")
+    t.add_argument("--data", required=True, help="dataset folder (transforms_train.json, ...)")
+    t.add_argument("--out", required=True, help="run folder to write")
+    t.add_argument("--preset", default="cpu", help="tiny | cpu | paper (default cpu)")
+    t.add_argument("--flame-model", help="your FLAME model file, for FLAME-mode datasets")
+    t.add_argument("--iterations", type=int, default=0, help="override the preset's iterations (0: keep)")
+    t.add_argument("--no-export", action="store_true", help="stop after training (RUN/avatar.npz)")
+    args = ap.parse_args(argv)
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    return _train(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,755 @@
+"""The Blender extension as artists use it: cut streams, topology guard, depth colours,
+messages, imports without anything but Blender.
+
+Each scenario runs the installed extension zip in a clean bpy subprocess (like
+tests/test_blender_extension.py) with torch, numba, trimesh, PIL, scipy and plyfile blocked
+from import in that process, so a stray import fails here. The avatar is a *trained* one (the
+tiny preset, conftest's tiny_run): its level sizes, its template, its header share.
+"""
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from tests.test_blender_extension import ROOT, _blender_ext, _clean_env
+
+pytestmark = pytest.mark.blender
+
+BLOCKED = ("torch", "numba", "trimesh", "PIL", "scipy", "plyfile")
+
+PRELUDE = r'''
+import importlib.abc, sys
+BLOCKED = __BLOCKED__
+class _Block(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in BLOCKED:
+            raise ImportError(f"{name} is blocked: a stock Blender does not have it")
+for _m in [m for m in sys.modules if m.split(".")[0] in BLOCKED]:
+    del sys.modules[_m]
+sys.meta_path.insert(0, _Block())
+import json, os, time, traceback
+import numpy as np
+import bpy
+
+ARGS = json.loads(sys.argv[-1])
+R = {"errors": []}
+arrays = {}
+PKG = "bl_ext.user_default.progressive_avatars"
+
+def section(name):
+    def deco(fn):
+        try:
+            fn()
+        except Exception:
+            R["errors"].append(name + ": " + traceback.format_exc())
+    return deco
+
+def run_op(op, **kw):
+    """Operator result, or the first line of the error it reported."""
+    try:
+        return list(op(**kw))
+    except RuntimeError as exc:
+        return str(exc).splitlines()[0]
+
+bpy.ops.extensions.package_install_files(filepath=ARGS["zip"], repo="user_default", enable_on_install=True)
+for ob in list(bpy.data.objects):
+    bpy.data.objects.remove(ob)
+R["blocked_loaded"] = sorted({m.split(".")[0] for m in sys.modules} & set(BLOCKED))
+
+def scene_state():
+    """Everything a failed operator must leave as it was."""
+    out = {kind: sorted(x.name for x in getattr(bpy.data, kind))
+           for kind in ("objects", "meshes", "materials", "node_groups", "images", "collections")}
+    out["attributes"] = {o.name: sorted(a.name for a in o.data.attributes) for o in bpy.data.objects if o.type == "MESH"}
+    out["legend"] = {o.name: [[i.depth, i.faces] for i in o.pa_mesh.depth_legend] for o in bpy.data.objects}
+    return out
+
+def preview_of(mesh):
+    pvs = [c for c in mesh.children if c.pa_avatar.is_preview]
+    return pvs[0] if pvs else None
+
+def instances(pv):
+    dg = bpy.context.evaluated_depsgraph_get()
+    geo = pv.evaluated_get(dg).evaluated_geometry()
+    ip = geo.instances_pointcloud()
+    if ip is not None:
+        return len(ip.points)
+    pc = geo.pointcloud
+    return len(pc.points) if pc is not None else 0
+
+def positions(pv):
+    """Preview positions in stream order (the rank attribute)."""
+    me = pv.data
+    pos = np.empty(len(me.vertices) * 3, np.float32)
+    me.attributes["position"].data.foreach_get("vector", pos)
+    rank = np.empty(len(me.vertices), np.int32)
+    me.attributes["rank"].data.foreach_get("value", rank)
+    return pos.reshape(-1, 3)[np.argsort(rank)]
+
+def import_mesh(path, **kw):
+    for ob in bpy.context.selected_objects:
+        ob.select_set(False)
+    res = run_op(bpy.ops.import_scene.progressive_avatars_sequence, filepath=path, **kw)
+    return res, bpy.context.active_object
+'''
+
+CUT_SCENARIO = r'''
+res, mesh = import_mesh(ARGS["seq"])
+R["import"] = res
+sc = bpy.context.scene
+bpy.context.view_layer.objects.active = mesh
+ext = sys.modules[PKG + ".blender_addon.depth"]
+
+@section("cuts")
+def _():
+    R["cuts"] = {}
+    for name, path in ARGS["cuts"].items():
+        bpy.context.view_layer.objects.active = mesh
+        before = scene_state()
+        res = run_op(bpy.ops.object.progressive_avatars_load, filepath=path, budget=100.0)
+        r = {"result": res}
+        pv = preview_of(mesh)
+        if res == ["FINISHED"]:
+            sc.frame_set(sc.frame_start + 1)
+            r.update(total=pv.pa_avatar.total, count=pv.pa_avatar.count, instances=instances(pv),
+                     status=pv.pa_avatar.status)
+            arrays[f"pos_{name}"] = positions(pv)
+            d = np.empty(len(mesh.data.polygons), np.int32)
+            mesh.data.attributes["pa_depth"].data.foreach_get("value", d)
+            arrays[f"depth_{name}"] = d
+            r["legend"] = [[i.depth, i.faces] for i in mesh.pa_mesh.depth_legend]
+            r["slider"] = {}
+            for p in (0.0, 1.0, 2.0, 5.0, 20.0, 60.0, 100.0):  # the slider on a cut stream
+                pv.pa_avatar.budget = p
+                r["slider"][str(p)] = [pv.pa_avatar.count, instances(pv), pv.pa_avatar.status]
+            pv.pa_avatar.budget = 100.0
+            bpy.data.objects.remove(pv)  # next case starts from the bare mesh
+        else:
+            r["unchanged"] = scene_state() == before
+            r["preview_left"] = pv is not None
+        R["cuts"][name] = r
+
+@section("url")
+def _():
+    import http.server, threading
+    blobs = {os.path.basename(p): open(p, "rb").read() for p in ARGS["url_streams"]}
+
+    class Handler(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):  # /NAME/CUT: NAME's first CUT bytes, then the connection dies
+            _, name, cut = self.path.split("/")
+            data = blobs[name]
+            self.send_response(200)
+            self.send_header("Content-Length", str(len(data)))
+            self.end_headers()
+            self.wfile.write(data[: int(cut)])
+            self.wfile.flush()
+            self.close_connection = True
+
+        def log_message(self, *args):
+            pass
+
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    base = f"http://127.0.0.1:{srv.server_address[1]}"
+    bpy.context.preferences.system.use_online_access = True
+    R["url"] = {}
+    for key, (name, cut) in ARGS["url_cuts"].items():
+        bpy.context.view_layer.objects.active = mesh
+        before = scene_state()
+        res = run_op(bpy.ops.object.progressive_avatars_load, url=f"{base}/{name}/{cut}", budget=100.0)
+        r = {"result": res}
+        pv = preview_of(mesh)
+        if res == ["FINISHED"]:
+            r.update(total=pv.pa_avatar.total, instances=instances(pv),
+                     file=os.path.getsize(bpy.path.abspath(pv.pa_avatar.filepath)))
+            arrays[f"urlpos_{key}"] = positions(pv)
+            bpy.data.objects.remove(pv)
+        else:
+            r["unchanged"] = scene_state() == before
+        R["url"][key] = r
+    srv.shutdown()
+
+@section("rollback")
+def _():
+    # A failure while building the preview (after every check on the file passed): nothing
+    # new is left and the preview that was there stays.
+    bpy.context.view_layer.objects.active = mesh
+    assert run_op(bpy.ops.object.progressive_avatars_load, filepath=ARGS["cuts"]["level1"]) == ["FINISHED"]
+    old = preview_of(mesh).name
+    before = scene_state()
+    orig = ext.apply_depth
+    def boom(*a, **k):
+        raise RuntimeError("injected failure")
+    ext.apply_depth = boom
+    try:
+        res = run_op(bpy.ops.object.progressive_avatars_load, filepath=ARGS["cuts"]["level2"])
+    finally:
+        ext.apply_depth = orig
+    R["rollback"] = {"result": res, "unchanged": scene_state() == before, "diff": [
+        k for k in before if scene_state()[k] != before[k]], "old_kept": preview_of(mesh).name == old}
+
+@section("depth_toggle")
+def _():
+    bpy.context.view_layer.objects.active = mesh
+    run_op(bpy.ops.object.progressive_avatars_load, filepath=ARGS["cuts"]["level0_mid"])
+    pv = preview_of(mesh)
+    user = mesh.data.color_attributes.new("user_paint", "BYTE_COLOR", "POINT")
+    mesh.data.color_attributes.active_color = user
+    spaces = [sp for s in bpy.data.screens for a in s.areas for sp in a.spaces if sp.type == "VIEW_3D"]
+    for sp in spaces:
+        sp.shading.color_type = "OBJECT"
+    bpy.context.view_layer.objects.active = pv
+    R["toggle_on"] = run_op(bpy.ops.object.progressive_avatars_depth_colors)
+    me = mesh.data
+    col = np.empty(len(me.loops) * 4, np.float32)
+    me.color_attributes["pa_depth_color"].data.foreach_get("color", col)
+    arrays["depth_colors_corner"] = col.reshape(-1, 4).copy()
+    d = np.empty(len(me.polygons), np.int32)
+    me.attributes["pa_depth"].data.foreach_get("value", d)
+    arrays["depth_toggle"] = d
+    R["on"] = {"active": me.color_attributes.active_color_name, "shading": sorted({sp.shading.color_type for sp in spaces}),
+               "legend": [[i.depth, i.faces, list(i.color)] for i in mesh.pa_mesh.depth_legend], "views": len(spaces)}
+    pv.pa_avatar.budget = 1.0  # colours follow the budget
+    me.color_attributes["pa_depth_color"].data.foreach_get("color", col)
+    arrays["depth_colors_1pct"] = col.reshape(-1, 4).copy()
+    R["on_1pct_count"] = pv.pa_avatar.count
+    pv.pa_avatar.budget = 100.0
+    R["toggle_off"] = run_op(bpy.ops.object.progressive_avatars_depth_colors)
+    R["off"] = {"active": me.color_attributes.active_color_name, "shading": sorted({sp.shading.color_type for sp in spaces}),
+                "colour_attrs": sorted(a.name for a in me.color_attributes)}
+    # Level k only
+    R["levels"] = {}
+    run_op(bpy.ops.object.progressive_avatars_load, filepath=ARGS["full"])
+    pv = preview_of(mesh)
+    for k in (0, 1, 2, -1):
+        pv.pa_avatar.level_only = k
+        R["levels"][str(k)] = [instances(pv), [m.name for m in pv.modifiers]]
+    # The mesh deleted under the preview: an error report, no traceback
+    bpy.context.view_layer.objects.active = pv
+    mesh_name = mesh.name
+    bpy.data.objects.remove(mesh)
+    R["deleted_mesh"] = run_op(bpy.ops.object.progressive_avatars_depth_colors)
+
+@section("topology")
+def _():
+    res, mesh = import_mesh(ARGS["seq"])
+    bpy.context.view_layer.objects.active = mesh
+    assert run_op(bpy.ops.object.progressive_avatars_load, filepath=ARGS["full"]) == ["FINISHED"]
+    pv = preview_of(mesh)
+    sc.frame_set(sc.frame_start + 1)
+    R["topology"] = {"clean": [pv.pa_avatar.status, instances(pv)]}
+    setups = {"REMESH": dict(mode="VOXEL", voxel_size=0.01), "SUBSURF": dict(levels=1), "DECIMATE": dict(ratio=0.5)}
+    for kind, settings in setups.items():
+        mod = mesh.modifiers.new(f"my_{kind.lower()}", kind)
+        for k, v in settings.items():
+            setattr(mod, k, v)
+        bpy.context.view_layer.update()
+        sc.frame_set(sc.frame_start)  # a new frame: the handler must refuse, not bind wrongly
+        r = {"status": pv.pa_avatar.status, "instances": instances(pv)}
+        pv.pa_avatar.bind_mode = "SHAPE_KEYS"
+        sc.frame_set(sc.frame_start + 1)
+        r["shape_keys"] = [pv.pa_avatar.status, instances(pv)]
+        arrays[f"topo_pos_{kind}"] = positions(pv)
+        pv.pa_avatar.bind_mode = "EVALUATED"
+        print(f"PA_LOAD_WITH {kind}")
+        r["load"] = run_op(bpy.ops.object.progressive_avatars_load, filepath=ARGS["full"])
+        pv = preview_of(mesh)
+        r["load_status"] = pv.pa_avatar.status
+        mesh.modifiers.remove(mesh.modifiers[f"my_{kind.lower()}"])
+        bpy.context.view_layer.update()
+        sc.frame_set(sc.frame_start + 1)
+        r["removed"] = [pv.pa_avatar.status, instances(pv)]
+        R["topology"][kind] = r
+    # A Subdivision Surface that subdivides nothing in the viewport (render levels only) is fine.
+    mod = mesh.modifiers.new("render_only", "SUBSURF")
+    mod.levels, mod.render_levels = 0, 2
+    bpy.context.view_layer.update()
+    sc.frame_set(sc.frame_start)
+    R["topology"]["render_only_subsurf"] = [pv.pa_avatar.status, instances(pv)]
+    bpy.data.objects.remove(pv)
+    bpy.data.objects.remove(mesh)
+
+np.savez(os.path.join(ARGS["out"], "arrays.npz"), **arrays)
+print("PA_REPORT " + json.dumps(R, default=str))
+'''
+
+
+def build_zip(tmp):
+    ext = _blender_ext()
+    dist = os.path.join(tmp, "dist")
+    os.makedirs(dist, exist_ok=True)
+    build = subprocess.run([sys.executable, ext, "build", "--source-dir", ROOT, "--output-dir", dist],
+                           capture_output=True, text=True)
+    assert build.returncode == 0, build.stdout + build.stderr
+    (z,) = [os.path.join(dist, z) for z in os.listdir(dist) if z.endswith(".zip")]
+    return z
+
+
+def run_scenario(tmp, body, args, timeout=600):
+    script = os.path.join(tmp, "scenario.py")
+    with open(script, "w") as fh:
+        fh.write(PRELUDE.replace("__BLOCKED__", repr(BLOCKED)) + body)
+    proc = subprocess.run([sys.executable, script, json.dumps(args)], capture_output=True, text=True,
+                          env=_clean_env(tmp), timeout=timeout)
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("PA_REPORT ")]
+    if not lines:
+        pytest.fail("Blender session produced no report:\n" + proc.stdout[-3000:] + proc.stderr[-3000:])
+    rep = json.loads(lines[-1][len("PA_REPORT "):])
+    rep["stdout"] = proc.stdout
+    arrays = dict(np.load(os.path.join(args["out"], "arrays.npz")))
+    return rep, arrays
+
+
+def _no_error(rep, name):
+    errs = [e for e in rep["errors"] if e.startswith(name + ":")]
+    assert not errs, errs[0]
+
+
+@pytest.fixture(scope="module")
+def cut_session(tiny_run, tiny_dataset, tmp_path_factory):
+    from progressive_avatars.core.avatar.avatar import Avatar
+    from progressive_avatars.core.io.data import Dataset
+    from progressive_avatars.core.stream.format import read_header, write_stream
+
+    tmp = str(tmp_path_factory.mktemp("guard"))
+    out = os.path.join(tmp, "out")
+    os.makedirs(out)
+    av = Avatar.load(os.path.join(tiny_run, "avatar.npz"))
+    seq = Dataset(tiny_dataset, "train").sequence()
+    seq_path = os.path.join(out, "head_seq.npz")
+    np.savez(seq_path, vertices=seq.vertices, faces=seq.faces)
+    imp = np.random.default_rng(0).random(av.num_gaussians)
+    full = os.path.join(out, "full.pavs")
+    write_stream(full, av, imp)
+    bare = os.path.join(out, "bare.pavs")  # no embedded template: the mesh in Blender is it
+    write_stream(bare, av, imp, embed_template=False)
+    hb, hf = read_header(bare), read_header(full)
+    raw_bare, raw_full = open(bare, "rb").read(), open(full, "rb").read()
+    cuts = {}
+
+    def cut(name, raw, nbytes):
+        p = os.path.join(out, f"{name}.pavs")
+        with open(p, "wb") as fh:
+            fh.write(raw[:nbytes])
+        cuts[name] = p
+
+    for pct in (1, 3, 10, 50):
+        cut(f"bare_{pct}", raw_bare, hb.total_bytes * pct // 100)
+        cut(f"full_{pct}", raw_full, hf.total_bytes * pct // 100)
+    starts = np.concatenate([[0], np.cumsum(hb.level_counts)])
+    for lv in range(len(hb.level_counts)):  # inside every level, mid-record
+        mid = int(starts[lv] + hb.level_counts[lv] // 2)
+        cut(f"level{lv}", raw_bare, hb.bytes_for_count(mid) + hb.record_size // 2)
+    cut("level0_mid", raw_bare, hb.bytes_for_count(hb.level_counts[0] // 3))
+    cut("empty", raw_bare, 0)
+    cut("header_only", raw_bare, hb.header_size)
+    url_cuts = {f"bare_{p}": ("bare.pavs", hb.total_bytes * p // 100) for p in (1, 3, 10, 50)}
+    url_cuts.update({f"full_{p}": ("full.pavs", hf.total_bytes * p // 100) for p in (3, 50)})
+    args = {"zip": build_zip(tmp), "seq": seq_path, "out": out, "cuts": cuts, "full": bare,
+            "url_streams": [bare, full], "url_cuts": url_cuts}
+    rep, arrays = run_scenario(tmp, CUT_SCENARIO, args)
+    return {"rep": rep, "arrays": arrays, "cuts": cuts, "seq": seq, "bare": bare, "full": full, "url_cuts": url_cuts,
+            "header": hb}
+
+
+def _expected(path, faces):
+    from progressive_avatars.core.stream.format import read_stream
+
+    return read_stream(path, template_faces=faces)
+
+
+@pytest.mark.slow
+def test_nothing_blocked_was_imported(cut_session):
+    assert cut_session["rep"]["blocked_loaded"] == []
+    assert cut_session["rep"]["import"] == ["FINISHED"]
+
+
+@pytest.mark.slow
+def test_cut_streams_load_and_preview_what_arrived(cut_session):
+    """Cut at 1/3/10/50 % (no embedded template: the header is small) and inside every
+    level: each loads, shows exactly the verified records, on the mesh's frame."""
+    rep, arrays, seq = cut_session["rep"], cut_session["arrays"], cut_session["seq"]
+    _no_error(rep, "cuts")
+    h = cut_session["header"]
+    assert len(h.level_counts) >= 3  # a trained avatar that grew at least two levels
+    names = [n for n in cut_session["cuts"] if n.startswith("bare_") or n.startswith("level")]
+    for name in names:
+        r = rep["cuts"][name]
+        assert r["result"] == ["FINISHED"], (name, r)
+        av = _expected(cut_session["cuts"][name], seq.faces)
+        n = av.num_gaussians
+        assert r["total"] == r["instances"] == n > 0, (name, r)
+        assert not r["status"], r["status"]
+        ref = av.gaussians(seq.vertices[1].astype(np.float32))
+        np.testing.assert_allclose(arrays[f"pos_{name}"], ref["means"], atol=1e-5, rtol=0)
+        depth = arrays[f"depth_{name}"]
+        roots = min(n, h.num_template_faces)
+        assert (depth[:roots] >= 0).all() and (depth[roots:] == -1).all()
+        legend = dict((d, c) for d, c in r["legend"])
+        assert legend.get(-1, 0) == h.num_template_faces - roots
+        # Every level of the whole stream has its row (and colour), however short the cut.
+        assert [d for d, _ in r["legend"] if d >= 0] == list(range(len(h.level_counts)))
+        # The slider: a percent of the whole stream, as far as it arrived.
+        for p, (count, inst, status) in r["slider"].items():
+            want = min(h.count_for_percent(float(p)), n)
+            assert count == inst == want, (name, p, count, inst, want, status)
+    assert rep["cuts"]["level0"]["total"] < h.level_counts[0]  # the case of issue 16: inside the template level
+
+
+@pytest.mark.slow
+def test_cut_inside_header_fails_cleanly(cut_session):
+    """With the template embedded a trained head's header is ~13 % of the stream: a cut at
+    1/3/10 % holds no Gaussian. The load refuses, naming the file, and changes nothing."""
+    rep = cut_session["rep"]
+    _no_error(rep, "cuts")
+    h = cut_session["header"]
+    for name in ("full_1", "full_3", "empty", "header_only"):
+        r = rep["cuts"][name]
+        assert isinstance(r["result"], str) and os.path.basename(cut_session["cuts"][name]) in r["result"], r
+        assert r["unchanged"] and not r["preview_left"], r
+    assert "empty" in rep["cuts"]["empty"]["result"]
+    assert "no complete Gaussian" in rep["cuts"]["header_only"]["result"]
+    assert rep["cuts"]["full_50"]["result"] == ["FINISHED"]
+    assert rep["cuts"]["full_50"]["total"] == _expected(cut_session["cuts"]["full_50"], None).num_gaussians
+
+
+@pytest.mark.slow
+def test_cut_url_transfers(cut_session):
+    from progressive_avatars.core.stream.format import read_header
+
+    rep, arrays, seq = cut_session["rep"], cut_session["arrays"], cut_session["seq"]
+    _no_error(rep, "url")
+    for key, (name, nbytes) in cut_session["url_cuts"].items():
+        r = rep["url"][key]
+        h = read_header(cut_session[name.split(".")[0]])
+        n = h.count_for_bytes(nbytes)
+        if n == 0:  # only the header arrived
+            assert "no complete Gaussian" in r["result"] and r["unchanged"], r
+            continue
+        assert r["result"] == ["FINISHED"] and r["total"] == r["instances"] == n, (key, r, n)
+        assert r["file"] == h.bytes_for_count(n)
+        faces = None if h.template_embedded else seq.faces
+        path = cut_session["bare"] if not h.template_embedded else cut_session["full"]
+        from progressive_avatars.core.stream.format import read_stream
+
+        ref = read_stream(path, max_gaussians=n, template_faces=faces).gaussians(seq.vertices[1].astype(np.float32))
+        np.testing.assert_allclose(arrays[f"urlpos_{key}"], ref["means"], atol=1e-5, rtol=0)
+    assert rep["url"]["bare_1"]["result"] == ["FINISHED"]
+
+
+@pytest.mark.slow
+def test_failed_load_leaves_scene_as_it_was(cut_session):
+    rep = cut_session["rep"]
+    _no_error(rep, "rollback")
+    r = rep["rollback"]
+    assert "injected failure" in r["result"]
+    assert r["unchanged"], r["diff"]
+    assert r["old_kept"]
+
+
+@pytest.mark.slow
+def test_depth_colours_toggle_and_levels(cut_session):
+    from progressive_avatars.core.bridge import preview as preview_data
+
+    rep, arrays, seq = cut_session["rep"], cut_session["arrays"], cut_session["seq"]
+    _no_error(rep, "depth_toggle")
+    assert rep["toggle_on"] == ["FINISHED"] and rep["on"]["views"] > 0
+    assert rep["on"]["active"] == "pa_depth_color" and rep["on"]["shading"] == ["VERTEX"]
+    depth = arrays["depth_toggle"]
+    n = _expected(cut_session["cuts"]["level0_mid"], seq.faces).num_gaussians
+    assert (depth[:n] == 0).all() and (depth[n:] == -1).all()
+    corner = arrays["depth_colors_corner"].reshape(-1, 3, 4)  # triangles: 3 corners a face
+    np.testing.assert_allclose(corner[n:], np.broadcast_to(preview_data.NOT_ARRIVED_COLOR, corner[n:].shape), atol=1e-6)
+    np.testing.assert_allclose(corner[:n], np.broadcast_to(preview_data.depth_colors(np.zeros(1), 2)[0], corner[:n].shape),
+                               atol=1e-6)
+    legend = rep["on"]["legend"]
+    assert legend[0][:2] == [-1, len(depth) - n]
+    np.testing.assert_allclose(legend[0][2], preview_data.NOT_ARRIVED_COLOR[:3], atol=1e-6)
+    m = rep["on_1pct_count"]  # colours follow the budget
+    low = arrays["depth_colors_1pct"].reshape(-1, 3, 4)
+    assert 0 < m < n and np.allclose(low[m:], preview_data.NOT_ARRIVED_COLOR) and not np.allclose(low[:m], preview_data.NOT_ARRIVED_COLOR)
+    # Off: the user's active colour and every view's colour mode come back, our colours go.
+    assert rep["toggle_off"] == ["FINISHED"]
+    assert rep["off"] == {"active": "user_paint", "shading": ["OBJECT"], "colour_attrs": ["user_paint"]}
+    h = cut_session["header"]
+    lv = rep["levels"]
+    for k in range(3):
+        assert lv[str(k)][0] == h.level_counts[k] and lv[str(k)][1][0] == "PA Level"
+    assert lv["-1"][0] == h.num_records and "PA Level" not in lv["-1"][1]
+    assert "mesh was deleted" in rep["deleted_mesh"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["REMESH", "SUBSURF", "DECIMATE"])
+def test_topology_changing_modifier_is_refused(cut_session, kind):
+    """Remesh / Subdivision Surface / Decimate on the bound mesh: the status names the mesh,
+    the counts and the modifier; no Gaussian stays standing on wrong vertices; the load
+    reports it; 'Shape keys only' follows the mesh exactly; removing the modifier recovers."""
+    rep, arrays, seq = cut_session["rep"], cut_session["arrays"], cut_session["seq"]
+    _no_error(rep, "topology")
+    t = rep["topology"]
+    n = cut_session["header"].num_records
+    assert t["clean"] == ["", n]
+    r = t[kind]
+    mod = f"my_{kind.lower()}"
+    assert mod in r["status"] and "head_seq" in r["status"] and "Shape keys only" in r["status"], r
+    if kind != "SUBSURF":
+        assert "2562" in r["status"] and "5120" in r["status"]
+    assert r["instances"] == 0
+    assert r["shape_keys"] == ["", n]
+    from progressive_avatars.core.stream.format import read_stream
+
+    ref = read_stream(cut_session["bare"], template_faces=seq.faces).gaussians(seq.vertices[1].astype(np.float32))
+    np.testing.assert_allclose(arrays[f"topo_pos_{kind}"], ref["means"], atol=1e-5, rtol=0)
+    assert r["load"] == ["FINISHED"] and mod in r["load_status"]
+    report = rep["stdout"].split(f"PA_LOAD_WITH {kind}")[1].split("PA_LOAD_WITH")[0]  # the operator's reports
+    assert "Warning" in report and mod in report, report
+    assert r["removed"] == ["", n]
+    assert t["render_only_subsurf"] == ["", n]
+
+
+# -- training from the installed zip, messages and state --------------------------------------
+TRAIN_SCENARIO = r'''
+prefs = bpy.context.preferences.addons[PKG].preferences
+st = bpy.context.scene.pa_train
+sc = bpy.context.scene
+R["extension_dir"] = os.path.dirname(sys.modules[PKG].__file__)
+
+@section("train")
+def _():
+    R["train"] = {}
+    prefs.python_path = ARGS["python"]
+    prefs.flame_model = ARGS["flame_model"]
+    assert not prefs.train_script  # the extension's own trainer, no checkout script
+    for kind, (data, mesh_src, kw) in ARGS["train"].items():
+        res, mesh = import_mesh(mesh_src, **kw)
+        assert res == ["FINISHED"], res
+        # The previous avatar's preview is what is active: the result must go to its mesh.
+        assert run_op(bpy.ops.object.progressive_avatars_load, filepath=ARGS["seed_stream"][kind]) == ["FINISHED"]
+        bpy.context.view_layer.objects.active = preview_of(mesh)
+        st.data_dir, st.out_dir = data, os.path.join(ARGS["out"], "run_" + kind)
+        st.preset, st.iterations = "tiny", 6
+        t0 = time.perf_counter()
+        res = run_op(bpy.ops.progressive_avatars.train)
+        pv = preview_of(mesh)
+        R["train"][kind] = {"result": res, "seconds": time.perf_counter() - t0, "message": st.message,
+                            "loaded": bpy.path.abspath(pv.pa_avatar.filepath), "total": pv.pa_avatar.total,
+                            "instances": instances(pv), "status": pv.pa_avatar.status, "mesh": mesh.name,
+                            "previews": [o.name for o in bpy.data.objects if o.pa_avatar.is_preview and o.pa_avatar.source == mesh]}
+
+@section("messages")
+def _():
+    M = R["messages"] = {}
+    bad_python = os.path.join(ARGS["out"], "no", "python3")
+    prefs.python_path = bad_python
+    st.data_dir, st.out_dir = ARGS["out"], os.path.join(ARGS["out"], "never")
+    M["bad_python"] = run_op(bpy.ops.progressive_avatars.train)
+    prefs.python_path = ARGS["python"]
+    prefs.flame_model = ""
+    res, mesh = import_mesh(ARGS["seq"])
+    bpy.context.view_layer.objects.active = mesh
+    for key in ("foreign_pavs", "foreign_npz", "empty_pavs"):
+        M[key] = run_op(bpy.ops.object.progressive_avatars_load, filepath=ARGS[key])
+    M["flame_no_model"], _ = import_mesh(ARGS["flame_params"])
+    M["mesh_npz_folder"], obj = import_mesh(ARGS["npz_folder"], whole_folder=False)
+    M["mesh_npz_folder_frames"] = obj.pa_mesh.num_frames if obj is not None else None
+    # Frame range and fps: optional, and kept when not asked for.
+    sc.frame_start, sc.frame_end, sc.render.fps = 7, 9, 24
+    res, obj = import_mesh(ARGS["seq"], set_frame_range=False)
+    M["range_kept"] = [res, sc.frame_start, sc.frame_end, sc.render.fps]
+    res, obj = import_mesh(ARGS["seq"], fps=30)
+    M["range_set"] = [res, sc.frame_start, sc.frame_end, sc.render.fps, obj.pa_mesh.num_frames]
+    # OBJ and PLY sequences (trimesh is blocked here)
+    for key in ("obj_folder", "ply_folder"):
+        res, obj = import_mesh(ARGS[key], whole_folder=True)
+        n = len(obj.data.vertices)
+        M[key] = [res, obj.pa_mesh.num_frames, n, len(obj.data.polygons)]
+        sc.frame_set(sc.frame_start + 2)
+        dg = bpy.context.evaluated_depsgraph_get()
+        me = obj.evaluated_get(dg).data
+        co = np.empty(len(me.vertices) * 3, np.float32)
+        me.vertices.foreach_get("co", co)
+        arrays[key] = co.reshape(-1, 3)
+    # Avatar paths: absolute in an unsaved file, relative ("//") once saved; a moved project
+    # (the .blend and the avatar moved together) still finds its avatar.
+    import shutil
+    res, mesh = import_mesh(ARGS["seq"])
+    bpy.context.view_layer.objects.active = mesh
+    M["load_unsaved"] = run_op(bpy.ops.object.progressive_avatars_load, filepath=ARGS["stream"])
+    pv_name = preview_of(mesh).name
+    M["path_unsaved"] = bpy.data.objects[pv_name].pa_avatar.filepath
+    os.makedirs(os.path.join(ARGS["out"], "proj"), exist_ok=True)
+    bpy.ops.wm.save_as_mainfile(filepath=os.path.join(ARGS["out"], "proj", "scene.blend"))
+    M["path_saved"] = bpy.data.objects[pv_name].pa_avatar.filepath
+    moved = os.path.join(ARGS["out"], "moved")
+    os.makedirs(os.path.join(moved, "proj"))
+    shutil.copy(os.path.join(ARGS["out"], "proj", "scene.blend"), os.path.join(moved, "proj", "scene.blend"))
+    shutil.copy(ARGS["stream"], os.path.join(moved, os.path.basename(ARGS["stream"])))
+    bpy.ops.wm.open_mainfile(filepath=os.path.join(moved, "proj", "scene.blend"))
+    pv = bpy.data.objects[pv_name]
+    pv.pa_avatar.budget = 50.0
+    M["moved"] = [bpy.path.abspath(pv.pa_avatar.filepath), pv.pa_avatar.count, pv.pa_avatar.status]
+    mesh = pv.pa_avatar.source
+    bpy.context.view_layer.objects.active = mesh
+    M["load_rel"] = run_op(bpy.ops.object.progressive_avatars_load, filepath=ARGS["stream"])
+    pv = preview_of(mesh)
+    M["stored_path"] = pv.pa_avatar.filepath
+    pv.pa_avatar.budget = 0.0
+    bpy.context.view_layer.objects.active = pv
+    M["export_zero"] = run_op(bpy.ops.export_scene.progressive_avatars_ply, filepath=os.path.join(ARGS["out"], "z.ply"))
+    scene = bpy.context.scene  # the reopened file's
+    cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    addon_prefs = bpy.context.preferences.addons[PKG].preferences
+    addon_prefs.python_path = bad_python
+    M["bad_python_render"] = run_op(bpy.ops.render.progressive_avatars_splats)
+    addon_prefs.python_path = ARGS["python"]
+    pv.pa_avatar.budget = 50.0  # PLY export with plyfile blocked
+    M["export_half"] = [run_op(bpy.ops.export_scene.progressive_avatars_ply, filepath=os.path.join(ARGS["out"], "h.ply")),
+                        pv.pa_avatar.count]
+    M["tab"] = bpy.types.PA_PT_main.bl_category
+
+np.savez(os.path.join(ARGS["out"], "arrays.npz"), **arrays)
+print("PA_REPORT " + json.dumps(R, default=str))
+'''
+
+BLOCK_CHECKOUT = '''import importlib.abc, sys
+class _NoCheckout(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in ("progressive_avatars", "scripts", "_bootstrap"):
+            raise ImportError(f"{name}: the checkout is not available to the extension's trainer")
+sys.meta_path.insert(0, _NoCheckout())
+'''
+
+
+@pytest.fixture(scope="module")
+def train_session(tiny_dataset, tmp_path_factory):
+    sys.path.insert(0, os.path.dirname(__file__))
+    import trimesh
+    from test_train import _flame_mode_dataset
+
+    from progressive_avatars.core.avatar.avatar import Avatar
+    from progressive_avatars.core.io.data import Dataset
+    from progressive_avatars.core.stream.format import write_stream
+    from tests.helpers import random_forest, sphere_mesh
+
+    tmp = str(tmp_path_factory.mktemp("train"))
+    out = os.path.join(tmp, "out")
+    os.makedirs(out)
+    # A Python that cannot import the checkout: what the extension runs must come from the zip.
+    block = os.path.join(tmp, "block")
+    os.makedirs(block)
+    with open(os.path.join(block, "sitecustomize.py"), "w") as fh:
+        fh.write(BLOCK_CHECKOUT)
+    python = os.path.join(tmp, "python_no_checkout")
+    with open(python, "w") as fh:
+        fh.write(f"#!/bin/sh\nPYTHONPATH={block} exec {sys.executable} \"$@\"\n")
+    os.chmod(python, 0o755)
+    rng = np.random.default_rng(3)
+
+    def seed_stream(faces, name):  # something loaded before training (replaced by the result)
+        av = Avatar.initial(random_forest(faces, rng, depth=1, frac=0.2))
+        p = os.path.join(out, name)
+        write_stream(p, av, quantize=False)
+        return p
+
+    seq = Dataset(tiny_dataset, "train").sequence()
+    seq_path = os.path.join(out, "head_seq.npz")
+    np.savez(seq_path, vertices=seq.vertices, faces=seq.faces)
+    flame_root, model, model_path, _ts, _one = _flame_mode_dataset(tiny_dataset, tmp_path_factory.mktemp("flame"))
+    train = {"mesh": (tiny_dataset, seq_path, {}),
+             "flame": (str(flame_root), str(flame_root / "flame_param"), {"flame_model": model_path})}
+    seeds = {"mesh": seed_stream(seq.faces, "seed_mesh.pavs"), "flame": seed_stream(model.faces, "seed_flame.pavs")}
+    # Messages and imports
+    foreign = os.path.join(out, "foreign.pavs")
+    with open(foreign, "wb") as fh:
+        fh.write(b"GIF89a" + bytes(100))
+    foreign_npz = os.path.join(out, "foreign.npz")
+    np.savez(foreign_npz, a=np.zeros(3))
+    empty = os.path.join(out, "empty.pavs")
+    open(empty, "wb").close()
+    npz_folder = os.path.join(out, "npz_frames")
+    os.makedirs(npz_folder)
+    v, f = sphere_mesh(8, 10)
+    for i in range(3):
+        np.savez(os.path.join(npz_folder, f"f{i}.npz"), vertices=v * (1 + i), faces=f)
+    folders = {}
+    for ext in ("obj", "ply"):
+        d = os.path.join(out, f"{ext}_frames")
+        os.makedirs(d)
+        for i in range(4):
+            trimesh.Trimesh(v * (1 + 0.1 * i), f, process=False).export(os.path.join(d, f"frame_{i}.{ext}"))
+        folders[f"{ext}_folder"] = os.path.join(d, f"frame_0.{ext}")
+    stream = os.path.join(out, "avatar.pavs")
+    write_stream(stream, Avatar.initial(random_forest(seq.faces, rng, depth=2, frac=0.3)))
+    args = {"zip": build_zip(tmp), "out": out, "python": python, "flame_model": model_path, "train": train,
+            "seed_stream": seeds, "seq": seq_path, "foreign_pavs": foreign, "foreign_npz": foreign_npz,
+            "empty_pavs": empty, "flame_params": os.path.join(str(flame_root), "flame_param", "00000.npz"),
+            "npz_folder": npz_folder, "stream": stream, **folders}
+    rep, arrays = run_scenario(tmp, TRAIN_SCENARIO, args, timeout=1500)
+    return {"rep": rep, "arrays": arrays, "args": args, "verts": v, "faces": f}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["mesh", "flame"])
+def test_train_from_installed_zip_loads_onto_starting_mesh(train_session, kind):
+    """No checkout reachable (the configured Python blocks it), the FLAME model from the
+    preferences: training and export run from the extension's folder and the stream lands on
+    the mesh that started training (a preview of it was active, not the mesh)."""
+    from progressive_avatars.core.stream.format import read_header
+
+    rep = train_session["rep"]
+    _no_error(rep, "train")
+    assert rep["blocked_loaded"] == []
+    r = rep["train"][kind]
+    assert r["result"] == ["FINISHED"], r
+    run = os.path.join(train_session["args"]["out"], "run_" + kind)
+    assert r["loaded"] == os.path.join(run, "avatar.pavs")
+    h = read_header(r["loaded"])
+    assert r["total"] == r["instances"] == h.num_records > 0 and not r["status"]
+    assert len(r["previews"]) == 1  # replaced the seed preview on the starting mesh
+    cfg = json.load(open(os.path.join(run, "config.json")))
+    if kind == "flame":
+        assert cfg["flame_model"] == train_session["args"]["flame_model"]
+    assert os.path.isfile(os.path.join(run, "avatar.npz"))
+
+
+@pytest.mark.slow
+def test_messages_name_the_file_or_setting(train_session):
+    rep, args = train_session["rep"], train_session["args"]
+    _no_error(rep, "messages")
+    m = rep["messages"]
+    assert "Python not found" in m["bad_python"] and os.path.join(args["out"], "no", "python3") in m["bad_python"]
+    assert "Preferences" in m["bad_python"]
+    assert "Python not found" in m["bad_python_render"] and os.path.join(args["out"], "no", "python3") in m["bad_python_render"]
+    assert "foreign.pavs" in m["foreign_pavs"] and "not a ProgressiveAvatars stream" in m["foreign_pavs"]
+    assert "foreign.npz" in m["foreign_npz"] and "not an avatar file" in m["foreign_npz"]
+    assert "empty.pavs" in m["empty_pavs"] and "empty" in m["empty_pavs"]
+    assert "00000.npz" in m["flame_no_model"] and "FLAME model" in m["flame_no_model"]
+    assert "preferences" in m["flame_no_model"] and "flame_model=" not in m["flame_no_model"]
+    assert m["mesh_npz_folder"] == ["FINISHED"] and m["mesh_npz_folder_frames"] == 3
+    assert m["range_kept"] == [["FINISHED"], 7, 9, 24]
+    assert m["range_set"][0] == ["FINISHED"] and m["range_set"][1:] == [7, 7 + m["range_set"][4] - 1, 30, m["range_set"][4]]
+    v, f = train_session["verts"], train_session["faces"]
+    for key in ("obj_folder", "ply_folder"):
+        res, frames, nv, nf = m[key]
+        assert res == ["FINISHED"] and frames == 4 and (nv, nf) == (len(v), len(f))
+        np.testing.assert_allclose(train_session["arrays"][key], v * 1.2, atol=1e-6)  # frame 2, object space
+    assert m["load_unsaved"] == ["FINISHED"] and m["path_unsaved"] == args["stream"]
+    assert m["path_saved"] == "//../" + os.path.basename(args["stream"])
+    moved = os.path.join(args["out"], "moved", os.path.basename(args["stream"]))
+    assert os.path.normpath(m["moved"][0]) == moved and m["moved"][1] > 0 and not m["moved"][2]
+    assert m["load_rel"] == ["FINISHED"] and m["stored_path"].startswith("//")
+    assert "Budget" in m["export_zero"] and "0 Gaussians" in m["export_zero"]
+    assert m["tab"] == "Progressive Avatars"
+    from progressive_avatars.core.io.ply import read_ply
+
+    assert m["export_half"][0] == ["FINISHED"] and m["export_half"][1] > 0
+    assert len(read_ply(os.path.join(args["out"], "h.ply"))["means"]) == m["export_half"][1]
+    with open(os.path.join(ROOT, "README.md")) as fh:
+        assert "*Progressive Avatars*" in fh.read()
