@@ -46,6 +46,11 @@ LIGHT_DIR = np.array([0.45, 0.55, 0.75]) / np.linalg.norm([0.45, 0.55, 0.75])
 AMBIENT = 0.38
 DIFFUSE = 0.72
 
+# The paper-scale head (make_dataset(detail="paper")): octahedron subdivisions of the tracked
+# template (8 * 4^5 = 8192 faces) and further subdivisions of the imaged surface (16x the faces).
+PAPER_TEMPLATE_LEVELS = 5
+PAPER_SURFACE_LEVELS = 2
+
 # Radial shape search: rays from this interior point cross the surface once.
 _SHAPE_CENTER = np.array([0.0, -0.06, 0.0])
 _SHAPE_RMAX = 0.42
@@ -861,7 +866,8 @@ def _timestep_from_job(step):
 
 def make_dataset(out, resolution: int = 128, cameras: int = 16, sequences: int = 10, frames: int = 8,
                  seed: int = 0, progress: bool = True, supersample: int = 2,
-                 template_subdivisions: int = 4, detail: str = "default", workers: int = 1) -> dict:
+                 template_subdivisions: int = 4, detail: str = "default", workers: int = 1,
+                 surface_levels: int = PAPER_SURFACE_LEVELS) -> dict:
     """Write the synthetic mesh-mode dataset into ``out``; returns a summary dict.
 
     Global timestep T = sequence * frames + frame. Splits: the last sequence is the test
@@ -874,7 +880,9 @@ def make_dataset(out, resolution: int = 128, cameras: int = 16, sequences: int =
 
     ``detail="paper"``: the paper-scale head instead (``paper_head``: an 8192-face template
     with FLAME-like uneven density, images ray-cast from a 16x finer displaced surface with
-    ``paper_albedo``); ``template_subdivisions`` is then ignored.
+    ``paper_albedo``); ``template_subdivisions`` is then ignored, ``surface_levels`` sets how
+    much finer the imaged surface is (each level 4x the faces). ``workers`` > 1 renders
+    timesteps in that many forked processes (the files are the same).
     """
     if detail not in ("default", "paper"):
         raise ValueError(f"make_dataset: detail must be 'default' or 'paper', got {detail!r}")
@@ -887,7 +895,7 @@ def make_dataset(out, resolution: int = 128, cameras: int = 16, sequences: int =
     for sub in ("images", "fg_masks", "meshes"):
         os.makedirs(os.path.join(out, sub), exist_ok=True)
     if detail == "paper":
-        tv, tf, rv, rf = paper_head()
+        tv, tf, rv, rf = paper_head(surface_levels=surface_levels)
         albedo_fn = paper_albedo
     else:
         tv, tf = head_template(template_subdivisions)
@@ -1043,8 +1051,6 @@ def render_closeup(path, height: int = 384, supersample: int = 3) -> str:
 # template cannot represent, most of it where the template is coarse
 # --------------------------------------------------------------------------------------
 
-PAPER_TEMPLATE_LEVELS = 5  # octahedron subdivisions of the tracked template: 8 * 4^5 = 8192 faces
-PAPER_SURFACE_LEVELS = 2  # further subdivisions of the imaged surface: 16x the template's faces
 
 
 def _octahedron():

@@ -29,6 +29,9 @@ def report_section(report_dir: str) -> str:
         r = json.load(fh)
     md_path = os.path.join(report_dir, "report.md")
     body = open(md_path).read().split("\n", 1)[1] if os.path.exists(md_path) else ""
+    paper_md = os.path.join(report_dir, "paper_table.md")  # evaluate.py --paper-table
+    if os.path.exists(paper_md):
+        body += "\n" + open(paper_md).read().replace("# The paper's tables", "### The paper's tables", 1)
     rel = os.path.relpath(os.path.abspath(report_dir), os.path.join(_bootstrap.ROOT, "docs"))
     if not rel.startswith(".."):  # pictures inside docs/ are linked; elsewhere they are not in the repo
         body = body.replace("](", f"]({rel}/")

@@ -54,6 +54,8 @@ def main(argv=None):
     ap.add_argument("--template-subdivisions", type=int,
                     help="icosphere subdivisions of the tracked template (default preset): 4 = 5120 faces (default), "
                          "3 = 1280 (coarser than the imaged surface, which stays at 4)")
+    ap.add_argument("--surface-levels", type=int, help="paper preset: subdivisions of the imaged surface beyond "
+                                                       "the template (default 2: 16x its faces)")
     ap.add_argument("--workers", type=int, help="processes rendering timesteps (default 1, paper 2)")
     ap.add_argument("--contact-sheet", default=None, help="also copy the contact sheet PNG here")
     ap.add_argument("--closeup", default=None, help="also render a frontal close-up strip PNG here")
@@ -61,7 +63,8 @@ def main(argv=None):
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
     args = ap.parse_args(_bootstrap.script_args(argv))
     kw = dict(PRESETS[args.preset])
-    for key in ("resolution", "cameras", "sequences", "frames", "supersample", "template_subdivisions", "workers"):
+    for key in ("resolution", "cameras", "sequences", "frames", "supersample", "template_subdivisions", "workers",
+                "surface_levels"):
         if getattr(args, key) is not None:
             kw[key] = getattr(args, key)
     if not args.resolution_scale > 0:
