@@ -20,7 +20,13 @@
 #   (iterations of finest and the seed-1 runs; preset's if empty: shorter runs are allowed, the
 #   report's Training table gives every run's iterations), DATA_ARGS (extra make_synthetic.py
 #   options, e.g. "--resolution-scale 0.25 --sequences 3"), EVAL_ARGS (extra evaluate.py
-#   options, e.g. "--views 8"), UNIFORM_DEPTH (2), BENCH=0 to skip writing docs/BENCHMARKS.md.
+#   options; default "--views 16 --curve-points 12"), UNIFORM_DEPTH (2), BENCH=0 to skip writing
+#   docs/BENCHMARKS.md.
+# Time on 2 idle cores: data ~15-18 min (scripts/bench_data_gen_paper.py); each full training
+# ~2 h at ~0.4 s per iteration (an assumption until the renderer is that fast: check the
+# "seconds" column of the first run's metrics.jsonl after ~500 iterations); the report, with
+# importance for five runs at 550x802, tens of minutes. Five full runs do not fit in one 3-hour
+# session: run with --resume across sessions, or set ABL_ITERS lower.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 RESUME=0; REPORT_ONLY=0
@@ -38,7 +44,7 @@ REPORT=${REPORT:-runs/report_paper}
 ITERS=${ITERS:-}
 ABL_ITERS=${ABL_ITERS:-}
 DATA_ARGS=${DATA_ARGS:-}
-EVAL_ARGS=${EVAL_ARGS:-}
+EVAL_ARGS=${EVAL_ARGS:---views 16 --curve-points 12}
 PY=${PY:-.venv/bin/python}
 [ -x "$PY" ] || { bash scripts/setup_env.sh; PY=.venv/bin/python; }
 
