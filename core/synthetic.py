@@ -1024,11 +1024,16 @@ def _activity(p):
     return (p["jaw"] + p["blink"] + abs(p["smile"]) + sum(abs(a) for a in p["rotation"]) / 25.0)
 
 
-def render_closeup(path, height: int = 384, supersample: int = 3) -> str:
-    """A frontal close-up strip: neutral, jaw open + blink, smile, pucker + turn."""
+def render_closeup(path, height: int = 384, supersample: int = 3, detail: str = "default") -> str:
+    """A frontal close-up strip: neutral, jaw open + blink, smile, pucker + turn (``detail="paper"``:
+    the paper-scale head's imaged surface and albedo)."""
     from PIL import Image
 
-    tv, tf = head_template()
+    if detail == "paper":
+        _, _, tv, tf = paper_head()
+    else:
+        tv, tf = head_template()
+    albedo_fn = paper_albedo if detail == "paper" else None
     w = int(round(height * 0.8))
     f = height / 0.30
     cam = Camera.look_at((0.0, 0.0, 1.0), (0.0, -0.01, 0.0), (0.0, 1.0, 0.0), f, f, w / 2.0, height / 2.0, w, height)
@@ -1038,7 +1043,7 @@ def render_closeup(path, height: int = 384, supersample: int = 3) -> str:
              {"smile": -1.0, "rotation": (20.0, 0.0, 0.0)}]
     tiles = []
     for p in poses:
-        img, _ = render_views(pose_head(tv, p), tf, [cam], canonical=tv, supersample=supersample)
+        img, _ = render_views(pose_head(tv, p), tf, [cam], canonical=tv, supersample=supersample, albedo_fn=albedo_fn)
         tiles.append(_to_u8(img[0]))
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     Image.fromarray(np.concatenate(tiles, axis=1), "RGB").save(path)

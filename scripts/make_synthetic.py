@@ -77,7 +77,7 @@ def main(argv=None):
         os.makedirs(os.path.dirname(os.path.abspath(args.contact_sheet)), exist_ok=True)
         shutil.copyfile(sheet, args.contact_sheet)
     if args.closeup:
-        synthetic.render_closeup(args.closeup, height=args.closeup_height)
+        synthetic.render_closeup(args.closeup, height=args.closeup_height, detail=kw.get("detail", "default"))
     s = summary
     print(f"wrote {s['out']}: {s['timesteps']} timesteps x {s['cameras']} cameras = {s['images']} images "
           f"({s['width']}x{s['height']}, {s['supersample']}x{s['supersample']} samples/pixel), "
