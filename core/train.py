@@ -74,7 +74,7 @@ PRESETS = {
     # training images of 550x802) on a 2-core CPU: depth 4, growth every 500 of 15k iterations
     # up to ~15x the base (max_faces), sized for <= 2 h ASSUMING ~0.4 s per iteration at that
     # scale (15k x 0.4 s = 100 min, plus evaluations and checkpoints); the image cache is held
-    # to 1 GiB (~150 of the 540 frames; a PNG decode is ~15 ms against a 0.4 s iteration).
+    # to 1 GiB (~150 of the 540 frames; decoding a frame again costs far less than an iteration).
     "paper-cpu": dict(iterations=15000, max_depth=4, grow_every=500, grow_start=500, grow_stop=0.7,
                       max_faces=125000, grad_threshold=2e-4, log_every=50, eval_every=1000, eval_views=8,
                       checkpoint_every=500, image_cache_mb=1024.0),
