@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
 # The paper's tables at the paper's scale on the synthetic head (issue 17):
 #   data      make_synthetic.py --preset paper (16 cameras at 550x802, 10 sequences; ~15-20 min)
-#   adaptive  the method, preset paper-cpu (depth 4, growth to ~15x the base; <= 2 h if an
+#   adaptive  the method, preset paper-cpu (depth 4, growth to ~17x the base; <= 2 h if an
 #             iteration takes ~0.4 s)
-#   uniform   uniform subdivision to depth 2 (106,496 Gaussians on the 8192-face template: the
-#             adaptive run's count, which max_faces 125k caps), all levels supervised
+#   uniform   uniform subdivision to depth 2 (106,496 Gaussians on the 8192-face template, the
+#             uniform count nearest the adaptive run's, which max_faces caps at 140k; the report
+#             cuts both streams to the smaller count), all levels supervised
 #   finest    finest-level-only supervision (Table 3: 35 %)
 #   adaptive_seed1, uniform_seed1   the same two with seed 1 (adaptive vs uniform over seeds)
 #   report    scripts/evaluate.py --paper-table (Table 1, Table 3, adaptive vs uniform at matched

@@ -246,14 +246,14 @@ def test_flame_refinement_learns_resumes_and_is_saved(tiny_dataset, tmp_path):
 
 
 def test_paper_cpu_preset_schedule_and_bounded_cache():
-    """paper-cpu: depth 4 reached while growth still runs, growth capped near 15x the paper-scale
+    """paper-cpu: depth 4 reached while growth still runs, growth capped near 17x the paper-scale
     template's 8192 faces, 15k iterations (<= 2 h at the assumed ~0.4 s each), a bounded image
     cache; the cache bound reaches the training Dataset."""
     from types import SimpleNamespace
 
     cfg = config_for("paper-cpu")
     assert cfg.max_depth == 4 and cfg.iterations * 0.4 <= 2 * 3600
-    assert 14 <= cfg.max_faces / 8192 <= 17
+    assert 16.7 <= cfg.max_faces / 8192 <= 18  # base <= 6 % of the records, as the paper's
     caps = [Trainer.depth_cap(SimpleNamespace(cfg=cfg), it) for it in range(cfg.grow_start, cfg.iterations + 1,
                                                                              cfg.grow_every)]
     last_growth = int(cfg.grow_stop * cfg.iterations)
