@@ -3,7 +3,8 @@
     python scripts/bench.py [--quick] [--only forest,render,...] [--report runs/report_cpu]
 
 Sections: forest (evaluation speed, float32 precision), render (CPU rasteriser against the
-dense reference), data (loading), data_gen (synthetic dataset), stream (bytes, decode
+dense reference), data (loading), data_gen (synthetic dataset), data_gen_paper (the paper-scale
+one, extrapolated from a reduced run), stream (bytes, decode
 speed), blender (import, slider, frame change), and the training/evaluation figures read
 from an evaluation report folder written by scripts/evaluate.py.
 """
@@ -18,7 +19,7 @@ import traceback
 
 import _bootstrap
 
-SECTIONS = ["forest", "render", "data", "data_gen", "stream", "blender"]
+SECTIONS = ["forest", "render", "data", "data_gen", "data_gen_paper", "stream", "blender"]
 ORDER = SECTIONS + ["gpu"]
 
 
@@ -30,6 +31,9 @@ def report_section(report_dir: str) -> str:
         r = json.load(fh)
     md_path = os.path.join(report_dir, "report.md")
     body = open(md_path).read().split("\n", 1)[1] if os.path.exists(md_path) else ""
+    paper_md = os.path.join(report_dir, "paper_table.md")  # evaluate.py --paper-table
+    if os.path.exists(paper_md):
+        body += "\n" + open(paper_md).read().replace("# The paper's tables", "### The paper's tables", 1)
     rel = os.path.relpath(os.path.abspath(report_dir), os.path.join(_bootstrap.ROOT, "docs"))
     if not rel.startswith(".."):  # pictures inside docs/ are linked; elsewhere they are not in the repo
         body = body.replace("](", f"]({rel}/")
@@ -39,7 +43,7 @@ def report_section(report_dir: str) -> str:
 HEADINGS = {  # how each section's heading starts, to read the current page back into sections
     "forest": "## Forest evaluation", "render": "## CPU rasteriser", "data": "## Dataset loading",
     "data_gen": "## Synthetic dataset generation", "stream": "## Stream benchmark", "blender": "## Blender extension",
-    "gpu": "## GPU:",
+    "data_gen_paper": "## Paper-scale synthetic dataset generation", "gpu": "## GPU:",
 }
 
 

@@ -47,6 +47,92 @@ def _data_summary(data) -> dict | None:
     return {k: s[k] for k in ("width", "height", "faces", "vertices", "cameras", "timesteps") if k in s}
 
 
+def _run_stream(run, data, progress):
+    """(stream-ordered quantised avatar, StreamInfo) of a trained run: importance (cached in the
+    run), then RUN/avatar.pavs."""
+    from progressive_avatars.core.io import run as runs
+    from progressive_avatars.core.stream import format as stream
+
+    avatar = runs.load_run_avatar(run)
+    W = runs.run_importance(run, avatar, data, progress=progress)
+    path = os.path.join(run, "avatar.pavs")
+    info = stream.write_stream(path, avatar, W, quantize=True, metadata={"run": os.path.abspath(run)}, drop_sh=True)
+    return stream.read_stream(path), info
+
+
+def _seeded(specs, first=None):
+    """{seed: (name, run)} from NAME=RUN / NAME_seed<k>=RUN specs (plus `first` as seed 0)."""
+    from progressive_avatars.core.evaluate import plots
+
+    out = {} if first is None else {0: first}
+    for spec in specs:
+        name, _, run = spec.partition("=")
+        out[plots._seed_of(name)] = (name, run)
+    return out
+
+
+def _paper_extras(args, report, streamed, info, rend, splits, data, progress):
+    """What --paper-table adds to the report: base bytes, the finest-only ablation at 35 %,
+    adaptive against uniform at matched Gaussian counts per seed (and the curves of quality
+    against Gaussians of both), training time and peak memory, full-resolution strips."""
+    from progressive_avatars.core.evaluate import plots
+    from progressive_avatars.core.evaluate.sweep import SplitRenderer
+
+    figs = {}
+    nvs = rend["nvs"]
+    report["base_bytes"] = int(info.bytes_for_count(int(streamed.forest.level_counts()[0])))
+    report["header_bytes"] = int(info.header_size)
+    if args.finest_only:
+        other, oinfo = _run_stream(args.finest_only, data, progress)
+        n_ours, n_other = int(info.count_for_percent(35)), int(oinfo.count_for_percent(35))
+        report["ablations"]["finest_only_35"] = {
+            "run": os.path.abspath(args.finest_only),
+            "multi_level": {**nvs.score(np.arange(n_ours)), "gaussians": n_ours},
+            "finest_only": {**SplitRenderer(other, splits["nvs"], args.views).score(np.arange(n_other)),
+                            "gaussians": n_other}}
+    # Adaptive (this run = seed 0, and --adaptive runs) against uniform (--uniform), per seed: both
+    # streams cut to the smaller of the two Gaussian counts, so the counts match exactly.
+    adaptive = _seeded(args.adaptive, first=("this run", args.run))
+    uniform = _seeded(args.uniform)
+    curve_views = max(4, args.views // 2)
+    curves, pairs = {}, []
+    streams = {}
+    for group, members in (("adaptive", adaptive), ("uniform", uniform)):
+        for seed, (name, run) in sorted(members.items()):
+            av, inf = (streamed, info) if run == args.run else _run_stream(run, data, progress)
+            streams[(group, seed)] = (av, inf)
+            r = SplitRenderer(av, splits["nvs"], curve_views)
+            counts = np.unique(np.geomspace(int(av.forest.level_counts()[0]), av.num_gaussians, 6).astype(int))
+            curves.setdefault(group, {})[seed] = [{"gaussians": int(n), "psnr": r.score(np.arange(n))["psnr"]}
+                                                 for n in counts]
+    for seed in sorted(set(adaptive) & set(uniform)):
+        (a_av, _), (u_av, _) = streams[("adaptive", seed)], streams[("uniform", seed)]
+        n = min(a_av.num_gaussians, u_av.num_gaussians)
+        a = SplitRenderer(a_av, splits["nvs"], args.views).score(np.arange(n))
+        u = SplitRenderer(u_av, splits["nvs"], args.views).score(np.arange(n))
+        pairs.append({"seed": seed, "gaussians": n, "adaptive": a["psnr"], "uniform": u["psnr"],
+                      "adaptive_total": a_av.num_gaussians, "uniform_total": u_av.num_gaussians,
+                      "diff": a["psnr"] - u["psnr"]})
+    report["quality_curves"] = curves
+    if pairs:
+        d = np.array([p["diff"] for p in pairs])
+        report["adaptive_vs_uniform"] = {"pairs": pairs, "diffs": d.tolist(), "n": len(d), "mean": float(d.mean()),
+                                         "sd": float(d.std(ddof=1)) if len(d) > 1 else None}
+    if curves:
+        figs["paper_quality_vs_gaussians"] = plots.seed_curves_vs_gaussians(
+            os.path.join(args.out, "paper_quality_vs_gaussians.png"), curves)
+    # Training wall time and peak memory of every run (metrics log; scripts/train.py's resources.jsonl).
+    runs_used = {"this run": args.run, **({"finest only": args.finest_only} if args.finest_only else {})}
+    runs_used.update({f"adaptive seed {k}": r for k, (_, r) in adaptive.items() if r != args.run})
+    runs_used.update({f"uniform seed {k}": r for k, (_, r) in uniform.items()})
+    report["resources"] = {name: plots.run_resources(run) for name, run in runs_used.items()}
+    budgets = [float(k) for k in report["budgets"]]
+    for k, r in rend.items():
+        figs[f"strip_full_{k}"] = plots.full_resolution_strip(os.path.join(args.out, f"strip_full_{k}.png"), r, info,
+                                                              budgets)
+    return figs
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run", required=True)
@@ -60,6 +146,16 @@ def main(argv=None):
     ap.add_argument("--name", default="", help="this run's name for grouping with compared runs of other seeds "
                     "(NAME_seed1=RUN ...): the report then gives mean ± sd over the seeds")
     ap.add_argument("--about", default="", help="a sentence on what this report compares (printed under its header)")
+    ap.add_argument("--paper-table", action="store_true",
+                    help="also write the paper's layout (paper_table.md): Table 1 with gaps to 100 %% beside the "
+                         "paper's, Table 3, adaptive vs uniform at matched Gaussian counts, full-resolution strips, "
+                         "training time and peak memory, and issue 17's acceptance checks")
+    ap.add_argument("--finest-only", metavar="RUN", help="paper table: a finest-level-only run, scored at 35 %% of its "
+                    "stream against this run's 35 %%")
+    ap.add_argument("--uniform", action="append", default=[], metavar="NAME=RUN",
+                    help="paper table: uniform-subdivision runs, NAME_seed<k> for seed k (no suffix: seed 0)")
+    ap.add_argument("--adaptive", action="append", default=[], metavar="NAME=RUN",
+                    help="paper table: this method with other seeds, NAME_seed<k> (this run is seed 0)")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(_bootstrap.script_args() if argv is None else argv)
 
@@ -190,6 +286,8 @@ def main(argv=None):
                                   "iterations": {k: plots.first_reaching(rs, target, "iteration") for k, rs in rows.items()}}
         report["training"] = {k: plots.training_summary(rs) for k, rs in rows.items()}
     figs["quality_vs_gaussians"] = plots.quality_vs_gaussians(os.path.join(args.out, "quality_vs_gaussians.png"), report)
+    if args.paper_table:
+        figs.update(_paper_extras(args, report, streamed, info, rend, splits, data, progress))
     report["figures"] = {k: os.path.basename(v) for k, v in figs.items() if v}
     report["machine"] = f"{platform.node()} ({os.cpu_count()} CPUs, {platform.processor() or platform.machine()})"
     report["date"] = time.strftime("%Y-%m-%d %H:%M:%S")
@@ -200,6 +298,14 @@ def main(argv=None):
         json.dump(report, fh, indent=1)
     with open(os.path.join(args.out, "report.md"), "w") as fh:
         fh.write(plots.report_markdown(report))
+    if args.paper_table:
+        from progressive_avatars.core.evaluate.sweep import paper_table
+
+        report["paper_table"] = paper_table(report)
+        with open(os.path.join(args.out, "report.json"), "w") as fh:
+            json.dump(report, fh, indent=1)
+        with open(os.path.join(args.out, "paper_table.md"), "w") as fh:
+            fh.write(plots.paper_table_markdown(report))
     print(json.dumps({"report": os.path.join(args.out, "report.json"),
                       "budgets": {k: [v["nvs"]["psnr"], v["nes"]["psnr"]] for k, v in report["budgets"].items()}}))
     return 0

@@ -3,6 +3,13 @@
     python scripts/make_synthetic.py --out runs/synthetic
     python scripts/make_synthetic.py --out runs/synthetic --contact-sheet docs/images/synthetic_contact_sheet.png \
         --closeup docs/images/synthetic_head_closeup.png
+    python scripts/make_synthetic.py --preset paper --out runs/synthetic_paper      # the paper's scale
+    python scripts/make_synthetic.py --preset paper --resolution-scale 0.25 --sequences 3 --frames 1 --out DIR
+
+--preset paper: 16 cameras at 550x802 px, 10 sequences of 4 frames (9 train, 1 novel-expression
+test; camera 8 held out), the 8192-face paper-scale template (FLAME-like uneven density) and images
+ray-cast from its 16x finer displaced surface (core/synthetic.py paper_head), two worker processes.
+Options given explicitly override the preset's.
 
 Writes canonical_mesh.npz, meshes/, images/, fg_masks/, transforms_{train,val,test}.json,
 transforms.json, detail.npz, summary.json and contact_sheet.png into --out.
@@ -23,40 +30,60 @@ import _bootstrap
 from progressive_avatars.core.synthetic import head as synthetic
 
 
+PRESETS = {
+    "default": dict(resolution=128, cameras=16, sequences=10, frames=8, supersample=2, template_subdivisions=4,
+                    workers=1, detail="default"),
+    "paper": dict(resolution=802, cameras=16, sequences=10, frames=4, supersample=2, workers=2, detail="paper"),
+}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", required=True, help="dataset directory (created)")
-    ap.add_argument("--resolution", type=int, default=128, help="image height in pixels (width follows 550:802)")
-    ap.add_argument("--cameras", type=int, default=16)
-    ap.add_argument("--sequences", type=int, default=10)
-    ap.add_argument("--frames", type=int, default=8, help="frames per sequence")
+    ap.add_argument("--preset", choices=sorted(PRESETS), default="default",
+                    help="default: the demo's small dataset; paper: the paper's scale (see above)")
+    ap.add_argument("--resolution", type=int, help="image height in pixels (width follows 550:802; default 128, "
+                                                   "paper 802)")
+    ap.add_argument("--resolution-scale", type=float, default=1.0, help="multiply the resolution (e.g. 0.25 for a "
+                                                                         "small version of a preset)")
+    ap.add_argument("--cameras", type=int)
+    ap.add_argument("--sequences", type=int)
+    ap.add_argument("--frames", type=int, help="frames per sequence")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--supersample", type=int, default=2, help="samples per pixel axis (anti-aliasing)")
-    ap.add_argument("--template-subdivisions", type=int, default=4,
-                    help="icosphere subdivisions of the tracked template: 4 = 5120 faces (default), "
+    ap.add_argument("--supersample", type=int, help="samples per pixel axis (anti-aliasing; default 2)")
+    ap.add_argument("--template-subdivisions", type=int,
+                    help="icosphere subdivisions of the tracked template (default preset): 4 = 5120 faces (default), "
                          "3 = 1280 (coarser than the imaged surface, which stays at 4)")
+    ap.add_argument("--surface-levels", type=int, help="paper preset: subdivisions of the imaged surface beyond "
+                                                       "the template (default 2: 16x its faces)")
+    ap.add_argument("--workers", type=int, help="processes rendering timesteps (default 1, paper 2)")
     ap.add_argument("--contact-sheet", default=None, help="also copy the contact sheet PNG here")
     ap.add_argument("--closeup", default=None, help="also render a frontal close-up strip PNG here")
     ap.add_argument("--closeup-height", type=int, default=384)
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
     args = ap.parse_args(_bootstrap.script_args(argv))
+    kw = dict(PRESETS[args.preset])
+    for key in ("resolution", "cameras", "sequences", "frames", "supersample", "template_subdivisions", "workers",
+                "surface_levels"):
+        if getattr(args, key) is not None:
+            kw[key] = getattr(args, key)
+    if not args.resolution_scale > 0:
+        ap.error("--resolution-scale must be positive")
+    kw["resolution"] = max(8, int(round(kw["resolution"] * args.resolution_scale)))
 
-    summary = synthetic.make_dataset(args.out, resolution=args.resolution, cameras=args.cameras,
-                                     sequences=args.sequences, frames=args.frames, seed=args.seed,
-                                     progress=not args.quiet, supersample=args.supersample,
-                                     template_subdivisions=args.template_subdivisions)
+    summary = synthetic.make_dataset(args.out, seed=args.seed, progress=not args.quiet, **kw)
     sheet = synthetic.contact_sheet(args.out, os.path.join(args.out, "contact_sheet.png"))
     if args.contact_sheet:
         os.makedirs(os.path.dirname(os.path.abspath(args.contact_sheet)), exist_ok=True)
         shutil.copyfile(sheet, args.contact_sheet)
     if args.closeup:
-        synthetic.render_closeup(args.closeup, height=args.closeup_height)
+        synthetic.render_closeup(args.closeup, height=args.closeup_height, detail=kw.get("detail", "default"))
     s = summary
     print(f"wrote {s['out']}: {s['timesteps']} timesteps x {s['cameras']} cameras = {s['images']} images "
           f"({s['width']}x{s['height']}, {s['supersample']}x{s['supersample']} samples/pixel), "
           f"splits train/val/test = {s['train']}/{s['val']}/{s['test']} "
           f"(held-out camera {s['held_out_camera']}, test sequence {s['test_sequence']}), "
-          f"mesh {s['vertices']} vertices / {s['faces']} faces")
+          f"mesh {s['vertices']} vertices / {s['faces']} faces (images ray-cast from {s['imaged_faces']} faces)")
     print(f"{s['seconds']:.1f} s, {s['rays'] / 1e6:.1f} M rays ({s['rays_per_second'] / 1e6:.2f} M rays/s, "
           f"{s['intersector']}); contact sheet {sheet}")
     return 0

@@ -1,11 +1,12 @@
 """Train a progressive avatar.
 
-    python scripts/train.py --data DIR --out RUN [--preset tiny|cpu|paper] [--resume] [...]
+    python scripts/train.py --data DIR --out RUN [--preset tiny|cpu|paper-cpu|paper] [--resume] [...]
     blender --background --python scripts/train.py -- --data DIR --out RUN ...
 
 Writes RUN/avatar.npz (the trained avatar, no pickle), RUN/metrics.jsonl (one JSON object
 per logged iteration), RUN/checkpoint.npz (atomic; --resume continues from it) and
-RUN/config.json.
+RUN/config.json; RUN/resources.jsonl gets one line per invocation (wall seconds, peak resident
+memory of the process).
 """
 
 import argparse
@@ -24,7 +25,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", required=True, help="dataset folder (transforms_train.json, ...)")
     ap.add_argument("--out", required=True, help="run folder to write")
-    ap.add_argument("--preset", default="cpu", help="tiny | cpu | paper (default cpu)")
+    ap.add_argument("--preset", default="cpu", help="tiny | cpu | paper-cpu | paper (default cpu)")
     ap.add_argument("--resume", action="store_true", help="continue from RUN/checkpoint.npz")
     ap.add_argument("--iterations", type=int)
     ap.add_argument("--max-depth", type=int)
@@ -41,8 +42,12 @@ def main(argv=None):
                     help="learn per-timestep corrections of the tracked FLAME expression, pose and translation")
     ap.add_argument("--sh-degree", type=int, choices=[0, 1, 2, 3],
                     help="view-dependent colour bands (default 0; the stream carries the DC colour only)")
+    ap.add_argument("--image-cache-mb", type=float, help="memory for decoded training images (LRU by bytes)")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(_bootstrap.script_args() if argv is None else argv)
+    import time
+
+    t0 = time.perf_counter()
 
     from progressive_avatars.core.train.trainer import Trainer, config_for
 
@@ -51,6 +56,7 @@ def main(argv=None):
                          supervision=args.supervision, level_weights=args.level_weights, uniform=args.uniform or None,
                          grad_threshold=args.grad_threshold, max_faces=args.max_faces, seed=args.seed,
                          sh_degree=args.sh_degree, refine_flame=args.refine_flame or None,
+                         image_cache_mb=args.image_cache_mb,
                          flame_model=_os.path.abspath(args.flame_model) if args.flame_model else None)
         trainer = Trainer(args.data, args.out, cfg, resume=args.resume, progress=not args.no_progress)
     except (ValueError, FileNotFoundError) as exc:
@@ -68,6 +74,10 @@ def main(argv=None):
         print(f"error: {_os_error(exc)}; training stopped, the last checkpoint in {args.out} is kept "
               "(free space, then --resume)", file=sys.stderr)
         return 3
+    summary["peak_rss_mb"] = _peak_rss_mb()
+    with open(_os.path.join(args.out, "resources.jsonl"), "a") as fh:
+        fh.write(json.dumps({"wall_seconds": round(time.perf_counter() - t0, 1), "peak_rss_mb": summary["peak_rss_mb"],
+                             "iterations": summary["iterations"]}) + "\n")
     print(json.dumps(summary))
     return 0
 
@@ -77,6 +87,14 @@ def _os_error(exc: OSError) -> str:
 
     what = {errno.ENOSPC: "disk full", errno.EDQUOT: "disk quota exceeded"}.get(exc.errno, type(exc).__name__)
     return f"{what}: {exc.strerror or exc} ({exc.filename or 'writing the run folder'})"
+
+
+def _peak_rss_mb():
+    """Peak resident memory of this process in MiB (ru_maxrss is KiB on Linux, bytes on macOS)."""
+    import resource
+
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return round(peak / (2**20 if sys.platform == "darwin" else 2**10), 1)
 
 
 def _weights(text):

@@ -285,6 +285,30 @@ def test_dataset_downscale_and_cache(tmp_path):
     assert ds0[0].image is not ds0[0].image
 
 
+def test_dataset_image_cache_holds_a_byte_budget(tmp_path):
+    """cache_bytes bounds the decoded images kept (LRU by bytes), whatever cache_images allows;
+    evicted frames decode again to the same values; a frame larger than the budget is not kept."""
+    root = tmp_path / "ds"
+    write_mesh_dataset(root)
+    plain = Dataset(root, "train", cache_images=0)
+    frame = plain[0].image.nbytes + plain[0].mask.nbytes
+    budget = int(2.5 * frame)
+    ds = Dataset(root, "train", cache_images=100000, cache_bytes=budget)
+    assert len(ds) >= 4
+    order = [0, 1, 2, 3, 1, 0, 2, 3, 3, 0]
+    for i in order:
+        s = ds[i]
+        np.testing.assert_array_equal(s.image, plain[i].image)
+        assert ds.cached_bytes <= budget
+        assert ds.cached_bytes == sum(a.nbytes + b.nbytes for a, b in ds._images.values())
+    assert list(ds._images) == [3, 0]  # the two most recently used frames
+    held = ds[0].image
+    assert ds[0].image is held
+    tiny = Dataset(root, "train", cache_images=100000, cache_bytes=frame - 1)
+    tiny[0]
+    assert len(tiny._images) == 0 and tiny.cached_bytes == 0
+
+
 def test_dataset_top_level_intrinsics_fallback(tmp_path):
     root = tmp_path / "ds"
     cams = write_mesh_dataset(root, top_level_intrinsics=True)

@@ -242,3 +242,29 @@ def test_flame_refinement_learns_resumes_and_is_saved(tiny_dataset, tmp_path):
     np.testing.assert_allclose(a["expr"][0], one(t0 % 64)["expr"][0] + a["correction_expr"][0], atol=1e-6)
     with pytest.raises(ValueError, match="FLAME-mode dataset"):
         Trainer(tiny_dataset, str(tmp_path / "mesh"), config_for("tiny", refine_flame=True))
+
+
+def test_paper_cpu_preset_schedule_and_bounded_cache():
+    """paper-cpu: depth 4 reached while growth still runs, growth capped near 17x the paper-scale
+    template's 8192 faces, 15k iterations (<= 2 h at the assumed ~0.4 s each), a bounded image
+    cache; the cache bound reaches the training Dataset."""
+    from types import SimpleNamespace
+
+    cfg = config_for("paper-cpu")
+    assert cfg.max_depth == 4 and cfg.iterations * 0.4 <= 2 * 3600
+    assert 16.7 <= cfg.max_faces / 8192 <= 18  # base <= 6 % of the records, as the paper's
+    caps = [Trainer.depth_cap(SimpleNamespace(cfg=cfg), it) for it in range(cfg.grow_start, cfg.iterations + 1,
+                                                                             cfg.grow_every)]
+    last_growth = int(cfg.grow_stop * cfg.iterations)
+    assert caps[0] == 1 and max(caps) == 4 and caps == sorted(caps)
+    assert Trainer.depth_cap(SimpleNamespace(cfg=cfg), last_growth - cfg.grow_every) == 4  # splits at depth 4 happen
+    assert 0 < cfg.image_cache_mb <= 2048
+    assert config_for("paper-cpu", image_cache_mb=64).image_cache_mb == 64
+
+
+def test_trainer_image_cache_budget(tiny_dataset, tmp_path):
+    cfg = config_for("tiny", iterations=3, image_cache_mb=0.05)
+    t = Trainer(tiny_dataset, str(tmp_path / "run"), cfg)
+    assert t.train.cache_bytes == int(0.05 * 2**20)
+    t.run(progress=False)
+    assert 0 < t.train.cached_bytes <= t.train.cache_bytes

@@ -369,3 +369,171 @@ def report_markdown(r: dict) -> str:
                   f"faces {d['mean_depth_detailed_quartile']:.2f} vs smoothest quarter {d['mean_depth_smooth_quartile']:.2f}."]
     lines += ["", "## Figures", ""] + [f"![{k}]({v})" for k, v in r.get("figures", {}).items()]
     return "\n".join(lines) + "\n"
+
+
+# --------------------------------------------------------------------------------------
+# the paper's layout (scripts/evaluate.py --paper-table)
+# --------------------------------------------------------------------------------------
+
+def full_resolution_strip(path, renderer, info, budgets, view_index=0):
+    """One view at each budget and the ground truth side by side at the dataset's own pixel
+    size (no resampling), each under a one-line label."""
+    from PIL import Image, ImageDraw
+
+    view = int(renderer.views[min(view_index, len(renderer.views) - 1)])
+    sample = renderer.dataset[view]
+    panels, labels = [], []
+    for b in budgets:
+        n = int(info.count_for_percent(b))
+        image, _ = renderer.render(view, np.arange(n))
+        panels.append(image)
+        labels.append(f"{b:g}%" + (f" ({n:,} Gaussians)" if renderer.dataset[view].image.shape[1] >= 160 else ""))
+    panels.append(sample.image)
+    labels.append("ground truth")
+    h, w = sample.image.shape[:2]
+    bar = 16
+    sheet = Image.new("RGB", (w * len(panels), h + bar), (255, 255, 255))
+    draw = ImageDraw.Draw(sheet)
+    for k, (im, label) in enumerate(zip(panels, labels)):
+        sheet.paste(Image.fromarray(np.clip(np.round(np.asarray(im) * 255), 0, 255).astype(np.uint8)), (k * w, bar))
+        draw.text((k * w + 3, 2), label, fill=(0, 0, 0))
+    sheet.save(path)
+    return path
+
+
+def seed_curves_vs_gaussians(path, curves: dict):
+    """NVS PSNR against Gaussians rendered (stream prefixes) for groups of runs over seeds
+    ({group: {seed: [{"gaussians", "psnr"}, ...]}}): each seed thin, and mean ± sd of the
+    seeds at the counts they share."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.2, 3.8))
+    for i, (group, seeds) in enumerate(curves.items()):
+        colour = f"C{i}"
+        for seed, pts in seeds.items():
+            ax.plot([p["gaussians"] for p in pts], [p["psnr"] for p in pts], "-", lw=0.8, alpha=0.5, color=colour)
+        if len(seeds) > 1:
+            # the seeds' curves at common counts (interpolated in log Gaussians)
+            lo = max(min(p["gaussians"] for p in pts) for pts in seeds.values())
+            hi = min(max(p["gaussians"] for p in pts) for pts in seeds.values())
+            if hi > lo:
+                xs = np.geomspace(lo, hi, 8)
+                ys = np.array([np.interp(np.log(xs), np.log([p["gaussians"] for p in pts]), [p["psnr"] for p in pts])
+                               for pts in seeds.values()])
+                ax.errorbar(xs, ys.mean(0), yerr=ys.std(0, ddof=1), fmt="-o", ms=3, capsize=2, color=colour,
+                            label=f"{group}: mean ± sd over {len(seeds)} seeds")
+                continue
+        pts = next(iter(seeds.values()))
+        ax.plot([p["gaussians"] for p in pts], [p["psnr"] for p in pts], "-o", ms=3, color=colour,
+                label=f"{group} (1 seed)")
+    ax.set_xscale("log")
+    ax.set_xlabel("Gaussians rendered (stream prefix, log)")
+    ax.set_ylabel("NVS PSNR in mask (dB)")
+    ax.set_title("Adaptive against uniform subdivision", fontsize=9)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7)
+    return _save(fig, path)
+
+
+def run_resources(run: str) -> dict:
+    """Training iterations and seconds (metrics log), wall seconds summed over invocations and
+    peak resident memory (RUN/resources.jsonl from scripts/train.py; None when absent)."""
+    import os
+
+    out = {"iterations": None, "train_seconds": None, "wall_seconds": None, "peak_rss_mb": None}
+    log = os.path.join(run, "metrics.jsonl")
+    if os.path.exists(log):
+        rows = read_log(log)
+        if rows:
+            out["iterations"], out["train_seconds"] = rows[-1].get("iteration"), rows[-1].get("seconds")
+    res = os.path.join(run, "resources.jsonl")
+    if os.path.exists(res):
+        rows = read_log(res)
+        if rows:
+            out["wall_seconds"] = float(sum(r.get("wall_seconds", 0.0) for r in rows))
+            out["peak_rss_mb"] = float(max(r.get("peak_rss_mb", 0.0) for r in rows))
+    return out
+
+
+def _fmt(x, spec, none="–"):
+    return none if x is None else format(x, spec)
+
+
+def paper_table_markdown(r: dict) -> str:
+    """The report in the paper's layout (Table 1, Table 3, adaptive vs uniform, resources,
+    acceptance checks), our numbers beside the paper's."""
+    from .sweep import PAPER_GAUSSIANAVATARS
+
+    pt = r["paper_table"]
+    ds = r.get("data_summary") or {}
+    size = f"{ds['width']}x{ds['height']} px" if {"width", "height"} <= set(ds) else "?"
+    lines = ["# The paper's tables on our data", "",
+             f"- run: `{r['run']}`; data: `{r['data']}` ({size}, template {ds.get('faces', '?'):,} faces)"
+             if isinstance(ds.get("faces"), int) else f"- run: `{r['run']}`; data: `{r['data']}` ({size})",
+             f"- machine: {r['machine']}", f"- date: {r['date']}", f"- command: `{r['command']}`",
+             f"- stream: {r['stream_bytes']:,} bytes, {r['gaussians']:,} Gaussians, levels {r['level_counts']}",
+             "- paper: ProgressiveAvatars on NeRSemble at 550x802 px, RTX 4090 (DESIGN.md). Ours: the synthetic head, "
+             "scored from the quantised stream; PSNR/SSIM inside the foreground mask; render ms of the CPU renderer "
+             "at the dataset's size (the paper gives FPS on a GPU).", ""]
+    if r.get("about"):
+        lines += [r["about"], ""]
+    lines += ["## Table 1: budgets", "",
+              "| budget | NVS PSNR / SSIM | paper | NVS gap to 100 % (paper) | NES PSNR / SSIM | paper | "
+              "NES gap (paper) | Gaussians (paper) | MB (paper) | render ms (paper FPS) |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
+    for key, row in sorted(pt["table1"].items(), key=lambda kv: float(kv[0])):
+        p = row.get("paper", {})
+        lines.append(
+            f"| {key} % | {row['nvs_psnr']:.2f} / {row['nvs_ssim']:.3f} | "
+            f"{_fmt(p.get('nvs_psnr'), '.2f')} / {_fmt(p.get('nvs_ssim'), '.3f')} | "
+            f"{_fmt(row.get('nvs_gap'), '.2f')} ({_fmt(p.get('nvs_gap'), '.2f')}) | "
+            f"{row['nes_psnr']:.2f} / {row['nes_ssim']:.3f} | "
+            f"{_fmt(p.get('nes_psnr'), '.2f')} / {_fmt(p.get('nes_ssim'), '.3f')} | "
+            f"{_fmt(row.get('nes_gap'), '.2f')} ({_fmt(p.get('nes_gap'), '.2f')}) | "
+            f"{row['gaussians']:,} ({_fmt(p.get('gaussians'), ',')}) | {row['mb']:.2f} ({_fmt(p.get('mb'), '.2f')}) | "
+            f"{row['render_ms']:.0f} ({_fmt(p.get('fps'), 'd')}) |")
+    g = PAPER_GAUSSIANAVATARS
+    lines += ["", f"Paper's GaussianAvatars: NVS {g[0]:.2f} / {g[1]:.3f}, NES {g[2]:.2f} / {g[3]:.3f}, "
+              f"{g[4]:,} Gaussians, {g[5]:.2f} MB.", "", "## Table 3: ablations (NVS PSNR)", "",
+              "| ablation | ours | paper |", "|---|---|---|"]
+    t3 = pt["table3"]
+    if "finest_only_35" in t3:
+        f = t3["finest_only_35"]
+        lines.append(f"| 35 %: multi-level supervision / finest level only | {f['multi_level']:.2f} / "
+                     f"{f['finest_only']:.2f} | {f['paper'][0]:.2f} / {f['paper'][1]:.2f} |")
+    else:
+        lines.append("| 35 %: finest level only | not run (no --finest-only) | 29.87 / 20.06 |")
+    ro = t3["random_order_25"]
+    lines.append(f"| 25 %: importance-ranked / random within levels | {ro['ranked']:.2f} / {ro['random']:.2f} | "
+                 f"{ro['paper'][0]:.2f} / {ro['paper'][1]:.2f} |")
+    io = t3["importance_only_50"]
+    lines.append(f"| 50 %: levels then importance / importance only | {io['levels']:.2f} / "
+                 f"{io['importance_only']:.2f} | holes (no number) |")
+    vs = r.get("adaptive_vs_uniform")
+    lines += ["", "## Adaptive against uniform subdivision at matched Gaussian counts", ""]
+    if vs:
+        lines += ["Both streams cut to the smaller of the two runs' Gaussian counts (same seed), NVS PSNR.", "",
+                  "| seed | Gaussians | adaptive | uniform | adaptive − uniform | totals (adaptive / uniform) |",
+                  "|---|---|---|---|---|---|"]
+        for p in vs["pairs"]:
+            lines.append(f"| {p['seed']} | {p['gaussians']:,} | {p['adaptive']:.2f} | {p['uniform']:.2f} | "
+                         f"{p['diff']:+.2f} | {p['adaptive_total']:,} / {p['uniform_total']:,} |")
+        lines.append(f"| mean ± sd | | | | {vs['mean']:+.2f} ± {_fmt(vs['sd'], '.2f')} ({vs['n']} seeds) | |")
+    else:
+        lines.append("not run (no --uniform)")
+    lines += ["", "## Training", "", "| run | iterations | training s (steps) | wall s (all invocations) | peak RSS MB |",
+              "|---|---|---|---|---|"]
+    for name, res in r.get("resources", {}).items():
+        lines.append(f"| {name} | {_fmt(res['iterations'], 'd')} | {_fmt(res['train_seconds'], '.0f')} | "
+                     f"{_fmt(res['wall_seconds'], '.0f')} | {_fmt(res['peak_rss_mb'], '.0f')} |")
+    lines += ["", "## Acceptance (issue 17)", "", "| criterion | ours | target | paper | met |", "|---|---|---|---|---|"]
+    for name, c in pt["checks"].items():
+        ours = c["ours"]
+        ours = f"{ours:.3f}" if isinstance(ours, float) else str(ours)
+        paper = c["paper"]
+        paper = f"{paper:.3f}" if isinstance(paper, float) else ("–" if paper is None else str(paper))
+        met = {True: "yes", False: "**no**", None: "?"}[c["ok"]]
+        lines.append(f"| {name} | {ours} | {c['target']} | {paper} | {met} |")
+    figs = r.get("figures", {})
+    lines += ["", "## Figures", ""] + [f"![{k}]({v})" for k, v in figs.items()
+                                        if k.startswith(("strip_full", "paper_quality", "depth", "psnr_vs"))]
+    return "\n".join(lines) + "\n"

@@ -542,18 +542,22 @@ class Dataset:
     """GaussianAvatars/VHAP layout: ``root/transforms_{split}.json`` + images, masks, geometry.
 
     ``downscale`` divides the image size (2.0: half width and height); intrinsics scale with
-    it. Images are decoded on access and kept in an LRU cache of ``cache_images`` entries
-    (0 disables it); per-timestep vertices are cached without bound (they are small).
+    it. Images are decoded on access and kept in an LRU cache of at most ``cache_images`` entries
+    (0 disables it) and, when ``cache_bytes`` is given, at most that many bytes of decoded
+    image and mask arrays (a paper-scale frame is ~7 MB); per-timestep vertices are cached
+    without bound (they are small).
     """
 
     def __init__(self, root, split: str | None = "train", downscale: float = 1.0, cache_images: int = 256,
-                 flame_model=None):
+                 flame_model=None, cache_bytes: int | None = None):
         self.root = os.path.abspath(os.fspath(root))
         self.split = split
         if not (downscale > 0):
             raise ValueError(f"downscale must be positive, got {downscale}")
         self.downscale = float(downscale)
         self.cache_images = int(cache_images)
+        self.cache_bytes = None if cache_bytes is None else int(cache_bytes)
+        self.cached_bytes = 0  # bytes of the arrays in the image cache now
         self._images: OrderedDict[int, tuple] = OrderedDict()
         self._verts: dict[int, np.ndarray] = {}
         # split=None reads transforms.json (VHAP's export of every frame).
@@ -762,10 +766,14 @@ class Dataset:
             self._images.move_to_end(i)
             return hit
         pair = self._load_pixels(self.frames[i])
-        if self.cache_images > 0:
+        size = pair[0].nbytes + pair[1].nbytes
+        if self.cache_images > 0 and (self.cache_bytes is None or size <= self.cache_bytes):
             self._images[i] = pair
-            while len(self._images) > self.cache_images:
-                self._images.popitem(last=False)
+            self.cached_bytes += size
+            while len(self._images) > self.cache_images or (
+                    self.cache_bytes is not None and self.cached_bytes > self.cache_bytes):
+                _, (im, m) = self._images.popitem(last=False)
+                self.cached_bytes -= im.nbytes + m.nbytes
         return pair
 
     def __getitem__(self, i: int) -> Sample:

@@ -46,6 +46,11 @@ LIGHT_DIR = np.array([0.45, 0.55, 0.75]) / np.linalg.norm([0.45, 0.55, 0.75])
 AMBIENT = 0.38
 DIFFUSE = 0.72
 
+# The paper-scale head (make_dataset(detail="paper")): octahedron subdivisions of the tracked
+# template (8 * 4^5 = 8192 faces) and further subdivisions of the imaged surface (16x the faces).
+PAPER_TEMPLATE_LEVELS = 5
+PAPER_SURFACE_LEVELS = 2
+
 # Radial shape search: rays from this interior point cross the surface once.
 _SHAPE_CENTER = np.array([0.0, -0.06, 0.0])
 _SHAPE_RMAX = 0.42
@@ -634,7 +639,7 @@ def albedo(points) -> np.ndarray:
     return np.clip(col, 0.0, 1.0)
 
 
-def face_detail(vertices, faces, order: int = 6) -> np.ndarray:
+def face_detail(vertices, faces, order: int = 6, albedo_fn=None) -> np.ndarray:
     """Per-face appearance detail: the variance of the albedo over a barycentric grid.
 
     float32 [F]; summed over RGB. Smooth skin scores near zero; hair, eyes, lips, stubble
@@ -649,7 +654,7 @@ def face_detail(vertices, faces, order: int = 6) -> np.ndarray:
     bary = np.stack([1.0 - b1 - b2, b1, b2], 1)  # [S,3], inside every face
     tri = v[f]  # [F,3,3]
     pts = np.einsum("sk,fkd->fsd", bary, tri).reshape(-1, 3)
-    col = albedo(pts).reshape(len(f), len(bary), 3)
+    col = (albedo if albedo_fn is None else albedo_fn)(pts).reshape(len(f), len(bary), 3)
     return col.var(axis=1).sum(axis=1).astype(np.float32)
 
 
@@ -763,14 +768,16 @@ def shade(albedo_rgb, normals, view_dirs):
 
 
 def render_views(vertices, faces, cameras, canonical=None, supersample: int = 2,
-                 background=(1.0, 1.0, 1.0), stats: dict | None = None):
+                 background=(1.0, 1.0, 1.0), stats: dict | None = None, albedo_fn=None):
     """Ray-cast ground truth of a posed mesh from each camera.
 
     vertices [V,3] posed; canonical [V,3] where the texture is evaluated (default: the head
     template when V matches, else ``vertices`` itself). Returns images float32 [C,H,W,3]
     composited over ``background`` and masks float32 [C,H,W] (coverage of the s x s
-    samples). ``stats`` (a dict) collects ray counts and the intersector used.
+    samples). ``stats`` (a dict) collects ray counts and the intersector used. ``albedo_fn``:
+    reflectance of canonical points (default ``albedo``; the paper-scale head's is ``paper_albedo``).
     """
+    albedo_fn = albedo if albedo_fn is None else albedo_fn
     vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces, np.int64)
     if canonical is None:
@@ -795,7 +802,7 @@ def render_views(vertices, faces, cameras, canonical=None, supersample: int = 2,
             b = _hit_barycentrics(o[hit], d[hit], vertices[ft])
             p_can = np.einsum("nk,nkd->nd", b, canonical[ft])
             n = _normalize(np.einsum("nk,nkd->nd", b, vn[ft]))
-            color[hit] = shade(albedo(p_can), n, d[hit])
+            color[hit] = shade(albedo_fn(p_can), n, d[hit])
         cov = np.zeros(len(d))
         cov[hit] = 1.0
         H, W = cam.height, cam.width
@@ -829,9 +836,38 @@ def _frame_record(cam: Camera, T: int, C: int, S: int) -> dict:
     }
 
 
+_JOB = None  # what forked generation workers render (set by make_dataset)
+
+
+def _write_timestep(job, s, f, stats):
+    """Pose, ray cast and write one timestep: its mesh, and an image and a mask per camera."""
+    from PIL import Image
+
+    out, frames = job["out"], job["frames"]
+    T = s * frames + f
+    params = sequence_params(s, f, frames, job["sequences"], job["seed"])
+    tv, rv = job["tv"], job["rv"]
+    verts = pose_head(tv, params)
+    np.savez(os.path.join(out, "meshes", f"{T:05d}.npz"), vertices=verts)
+    shown = verts if rv.shape == tv.shape else pose_head(rv, params)
+    images, masks = render_views(shown, job["rf"], job["cams"], canonical=rv, supersample=job["supersample"],
+                                 stats=stats, albedo_fn=job["albedo_fn"])
+    for C in range(len(job["cams"])):
+        name = f"{T:05d}_{C:02d}.png"
+        Image.fromarray(_to_u8(images[C]), "RGB").save(os.path.join(out, "images", name))
+        Image.fromarray(_to_u8(masks[C]), "L").save(os.path.join(out, "fg_masks", name))
+
+
+def _timestep_from_job(step):
+    stats: dict = {}
+    _write_timestep(_JOB, *step, stats=stats)
+    return stats.get("rays", 0), stats.get("hits", 0), stats.get("intersector", "none")
+
+
 def make_dataset(out, resolution: int = 128, cameras: int = 16, sequences: int = 10, frames: int = 8,
                  seed: int = 0, progress: bool = True, supersample: int = 2,
-                 template_subdivisions: int = 4) -> dict:
+                 template_subdivisions: int = 4, detail: str = "default", workers: int = 1,
+                 surface_levels: int = PAPER_SURFACE_LEVELS) -> dict:
     """Write the synthetic mesh-mode dataset into ``out``; returns a summary dict.
 
     Global timestep T = sequence * frames + frame. Splits: the last sequence is the test
@@ -841,7 +877,15 @@ def make_dataset(out, resolution: int = 128, cameras: int = 16, sequences: int =
     3: 1280). The images are always ray-cast from a mesh of at least 4 subdivisions, so a
     coarser template is a chord approximation of the imaged surface, as a tracked FLAME
     mesh is of a real head; both come from the same pointwise rig, so they move together.
+
+    ``detail="paper"``: the paper-scale head instead (``paper_head``: an 8192-face template
+    with FLAME-like uneven density, images ray-cast from a 16x finer displaced surface with
+    ``paper_albedo``); ``template_subdivisions`` is then ignored, ``surface_levels`` sets how
+    much finer the imaged surface is (each level 4x the faces). ``workers`` > 1 renders
+    timesteps in that many forked processes (the files are the same).
     """
+    if detail not in ("default", "paper"):
+        raise ValueError(f"make_dataset: detail must be 'default' or 'paper', got {detail!r}")
     from PIL import Image
 
     if sequences < 2 or cameras < 2 or frames < 1:
@@ -850,10 +894,15 @@ def make_dataset(out, resolution: int = 128, cameras: int = 16, sequences: int =
     out = os.fspath(out)
     for sub in ("images", "fg_masks", "meshes"):
         os.makedirs(os.path.join(out, sub), exist_ok=True)
-    tv, tf = head_template(template_subdivisions)
-    rv, rf = head_template(max(4, int(template_subdivisions)))
+    if detail == "paper":
+        tv, tf, rv, rf = paper_head(surface_levels=surface_levels)
+        albedo_fn = paper_albedo
+    else:
+        tv, tf = head_template(template_subdivisions)
+        rv, rf = head_template(max(4, int(template_subdivisions)))
+        albedo_fn = None
     np.savez(os.path.join(out, "canonical_mesh.npz"), vertices=tv, faces=tf)
-    np.savez(os.path.join(out, "detail.npz"), face_detail=face_detail(tv, tf))
+    np.savez(os.path.join(out, "detail.npz"), face_detail=face_detail(tv, tf, albedo_fn=albedo_fn))
     cams = make_cameras(cameras, resolution)
     held = held_out_camera(cameras)
     test_seq = sequences - 1
@@ -867,17 +916,11 @@ def make_dataset(out, resolution: int = 128, cameras: int = 16, sequences: int =
     if progress:
         from tqdm import tqdm
         bar = tqdm(total=len(steps), desc="synthetic head", unit="timestep")
+    job = dict(out=out, frames=frames, sequences=sequences, seed=seed, tv=tv, rv=rv, rf=rf, cams=cams,
+               supersample=supersample, albedo_fn=albedo_fn)
     for s, f in steps:
         T = s * frames + f
-        params = sequence_params(s, f, frames, sequences, seed)
-        verts = pose_head(tv, params)
-        np.savez(os.path.join(out, "meshes", f"{T:05d}.npz"), vertices=verts)
-        shown = verts if rv.shape == tv.shape else pose_head(rv, params)
-        images, masks = render_views(shown, rf, cams, canonical=rv, supersample=supersample, stats=stats)
         for C, cam in enumerate(cams):
-            name = f"{T:05d}_{C:02d}.png"
-            Image.fromarray(_to_u8(images[C]), "RGB").save(os.path.join(out, "images", name))
-            Image.fromarray(_to_u8(masks[C]), "L").save(os.path.join(out, "fg_masks", name))
             rec = _frame_record(cam, T, C, s)
             everything.append(rec)
             if s == test_seq:
@@ -886,8 +929,25 @@ def make_dataset(out, resolution: int = 128, cameras: int = 16, sequences: int =
                 splits["val"].append(rec)
             else:
                 splits["train"].append(rec)
-        if bar is not None:
-            bar.update(1)
+    if int(workers) > 1 and len(steps) > 1:
+        # fork: the workers share the surface built above instead of rebuilding it
+        import multiprocessing as mp
+
+        global _JOB
+        _JOB = job
+        with mp.get_context("fork").Pool(min(int(workers), len(steps))) as pool:
+            for rays, hits, kind in pool.imap_unordered(_timestep_from_job, steps):
+                stats["rays"] = stats.get("rays", 0) + rays
+                stats["hits"] = stats.get("hits", 0) + hits
+                stats["intersector"] = kind
+                if bar is not None:
+                    bar.update(1)
+        _JOB = None
+    else:
+        for step in steps:
+            _write_timestep(job, *step, stats=stats)
+            if bar is not None:
+                bar.update(1)
     if bar is not None:
         bar.close()
 
@@ -913,6 +973,7 @@ def make_dataset(out, resolution: int = 128, cameras: int = 16, sequences: int =
         "val": len(splits["val"]), "test": len(splits["test"]), "held_out_camera": held,
         "test_sequence": test_seq, "vertices": int(len(tv)), "faces": int(len(tf)),
         "supersample": supersample, "rays": int(stats.get("rays", 0)),
+        "detail": detail, "imaged_faces": int(len(rf)),
         "intersector": stats.get("intersector", "none"), "seconds": seconds,
         "rays_per_second": stats.get("rays", 0) / max(seconds, 1e-9),
     }
@@ -963,11 +1024,16 @@ def _activity(p):
     return (p["jaw"] + p["blink"] + abs(p["smile"]) + sum(abs(a) for a in p["rotation"]) / 25.0)
 
 
-def render_closeup(path, height: int = 384, supersample: int = 3) -> str:
-    """A frontal close-up strip: neutral, jaw open + blink, smile, pucker + turn."""
+def render_closeup(path, height: int = 384, supersample: int = 3, detail: str = "default") -> str:
+    """A frontal close-up strip: neutral, jaw open + blink, smile, pucker + turn (``detail="paper"``:
+    the paper-scale head's imaged surface and albedo)."""
     from PIL import Image
 
-    tv, tf = head_template()
+    if detail == "paper":
+        _, _, tv, tf = paper_head()
+    else:
+        tv, tf = head_template()
+    albedo_fn = paper_albedo if detail == "paper" else None
     w = int(round(height * 0.8))
     f = height / 0.30
     cam = Camera.look_at((0.0, 0.0, 1.0), (0.0, -0.01, 0.0), (0.0, 1.0, 0.0), f, f, w / 2.0, height / 2.0, w, height)
@@ -977,8 +1043,228 @@ def render_closeup(path, height: int = 384, supersample: int = 3) -> str:
              {"smile": -1.0, "rotation": (20.0, 0.0, 0.0)}]
     tiles = []
     for p in poses:
-        img, _ = render_views(pose_head(tv, p), tf, [cam], canonical=tv, supersample=supersample)
+        img, _ = render_views(pose_head(tv, p), tf, [cam], canonical=tv, supersample=supersample, albedo_fn=albedo_fn)
         tiles.append(_to_u8(img[0]))
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     Image.fromarray(np.concatenate(tiles, axis=1), "RGB").save(path)
     return path
+
+
+# --------------------------------------------------------------------------------------
+# the paper-scale head (make_dataset(detail="paper")): a FLAME-sized tracked template with
+# FLAME-like uneven density, imaged from a much finer, displaced surface with detail the
+# template cannot represent, most of it where the template is coarse
+# --------------------------------------------------------------------------------------
+
+
+
+def _octahedron():
+    v = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], np.float64)
+    f = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]], np.int64)
+    return v, f
+
+
+def _sphere_levels(levels):
+    """Octahedron subdivided ``levels`` times on the unit sphere; each subdivision appends its
+    midpoints after the existing vertices, so a coarser level's vertices are a prefix of a finer one's."""
+    v, f = _octahedron()
+    out = [(v, f)]
+    for _ in range(levels):
+        v, f = trimesh.remesh.subdivide(v, f)
+        v = _normalize(v)
+        out.append((v, f))
+    return out
+
+
+def _paper_warp(dirs):
+    """Uneven tessellation like FLAME's, stronger than the default head's: pulls toward the face,
+    the eyes, the mouth and the nose (in the arclength parameter); the scalp, the back of the head
+    and the neck keep what remains."""
+    def toward(point):
+        return _geometric_to_parameter(_direction_to(point)[None])[0]
+
+    # widths well above the base spacing (~0.06 rad), or a pull only moves a face or two
+    dirs = _contract(dirs, toward((0.0, -0.02, 0.10)), 0.6, 0.9)
+    dirs = _contract(dirs, toward((0.0, MOUTH_Y, 0.09)), 0.75, 0.2)
+    dirs = _contract(dirs, toward((0.0, -0.025, 0.105)), 0.6, 0.15)  # nose
+    for ex, ey in EYE_CENTERS:
+        dirs = _contract(dirs, toward((ex, ey, 0.085)), 0.8, 0.18)
+    return _parameter_to_geometric(dirs)
+
+
+def _hairline_mask(p):
+    """(indices of points near or above the hairline, their hair coverage 0..1, polar angle
+    from the crown, azimuth): albedo's hairline, with ears left bare."""
+    hc = p - np.array([0.0, 0.015, -0.012])
+    phi = np.arctan2(hc[:, 0], hc[:, 2])
+    aphi = np.degrees(np.abs(phi))
+    hairline = np.interp(aphi, [0, 35, 62, 80, 88, 96, 112, 140, 180],
+                         [0.074, 0.068, 0.05, 0.03, -0.012, 0.034, 0.03, -0.04, -0.072])
+    sel = np.nonzero(p[:, 1] > hairline - 0.01)[0]
+    ps, hs, phi = p[sel], hc[sel], phi[sel]
+    theta = np.arccos(np.clip(hs[:, 1] / np.maximum(np.linalg.norm(hs, axis=1), 1e-9), -1, 1))
+    jag = 0.006 * (_value_noise(np.stack([phi * 40.0, np.zeros(len(sel)), np.zeros(len(sel))], 1), 61) - 0.5)
+    mask = _edge(hairline[sel] + jag - ps[:, 1], 0.0008)
+    for sx in (1.0, -1.0):
+        mask = mask * (1.0 - _edge(_sd_ellipsoid(ps, (sx * 0.079, 0.004, -0.010), (0.013, 0.031, 0.021)), 0.001))
+    return sel, mask, theta, phi
+
+
+def _strands(p, theta, phi, width, length, seed):
+    """Value noise stretched along the hair's flow (down from the crown): thin strands."""
+    arc = phi * 0.09 * np.sin(np.clip(theta, 0.3, np.pi))
+    q = np.stack([arc / width, theta * 0.1 / length, np.full(len(p), float(seed % 7))], 1)
+    return _value_noise(q, seed)
+
+
+def _ear_coords(p, sx):
+    """(normalised radius in the ear's side plane, inside-ear weight) for the ear on side sx."""
+    c = np.array([sx * 0.079, 0.004, -0.010])
+    q = (p - c) / np.array([0.011, 0.029, 0.019])
+    r = np.hypot(q[:, 1], q[:, 2])
+    side = _smoothstep(0.3, 0.8, q[:, 0] * sx)  # the outer face of the ear
+    return r, side * (1.0 - _smoothstep(0.9, 1.05, r))
+
+
+_BUTTON_Y = (-0.2165, -0.2320, -0.2475)
+_NECK_RZ = 0.054  # the neck cylinder's radius along z, for where its front surface is
+
+
+def _buttons(p):
+    """(distance to the nearest shirt button's centre in metres, on-front weight)."""
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    d = np.full(len(p), np.inf)
+    for by in _BUTTON_Y:
+        d = np.minimum(d, np.hypot(x, y - by))
+    return d, _smoothstep(0.02, 0.04, z - NECK_AXIS_Z)
+
+
+def paper_displacement(points, normals) -> np.ndarray:
+    """Displacement (metres, along the outward normal) of the imaged paper-scale surface: hair
+    volume with strand ridges and a stepped hairline, ear folds, a raised shirt collar with
+    buttons, a recessed mouth interior. None of it is in the tracked template."""
+    p = np.asarray(points, np.float64)
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    d = np.zeros(len(p))
+    sel, hair, theta, phi = _hairline_mask(p)
+    if len(sel):
+        s1 = _strands(p[sel], theta, phi, 0.0016, 0.02, 101)
+        s2 = _strands(p[sel], theta, phi, 0.006, 0.04, 103)
+        d[sel] += hair * (0.0022 + 0.0009 * (s1 - 0.5) + 0.0012 * (s2 - 0.5))
+    for sx in (1.0, -1.0):
+        r, w = _ear_coords(p, sx)
+        # helix rim, antihelix ridge, the concha's hollow
+        folds = (0.0016 * np.exp(-((r - 0.8) / 0.07) ** 2) + 0.0011 * np.exp(-((r - 0.5) / 0.06) ** 2)
+                 - 0.0022 * (1.0 - _smoothstep(0.2, 0.38, r)))
+        d += w * folds
+    collar = _edge(np.abs(y + 0.2095) - 0.0032, 0.0004)  # a folded collar band stands out
+    d += 0.0022 * collar
+    bd, front = _buttons(p)
+    d += 0.0011 * front * np.sqrt(np.clip(1.0 - (bd / 0.0036) ** 2, 0.0, 1.0))
+    sel = np.nonzero((z > 0.04) & (np.abs(y - MOUTH_Y) < 0.006) & (np.abs(x) < 0.03))[0]
+    if len(sel):
+        gap = _edge(np.abs(y[sel] - MOUTH_Y) - 0.0018, 0.0003) * _edge(np.abs(x[sel]) - 0.021, 0.0008)
+        d[sel] -= 0.0025 * gap
+    return d
+
+
+TEETH = np.array([0.93, 0.90, 0.82])
+TONGUE = np.array([0.62, 0.26, 0.28])
+BUTTON = np.array([0.90, 0.88, 0.80])
+
+
+def paper_albedo(points) -> np.ndarray:
+    """The default albedo plus detail at the paper's pixel size, mostly where a FLAME-like
+    template is coarse: fine hair strands with dark gaps and sheen, fine stubble, ear folds,
+    a woven shirt with buttons and a seam, teeth and a tongue in the mouth."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    col = albedo(p)
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    ax = np.abs(x)
+    sel, hair, theta, phi = _hairline_mask(p)
+    if len(sel):
+        fine = _strands(p[sel], theta, phi, 0.0006, 0.012, 111)
+        gaps = _smoothstep(0.25, 0.08, _strands(p[sel], theta, phi, 0.0009, 0.03, 113))
+        mult = (0.55 + 0.9 * fine) * (1.0 - 0.6 * gaps)
+        sheen = 0.12 * np.exp(-((theta - 0.8) / 0.12) ** 2) * fine
+        c = col[sel] * mult[:, None] + sheen[:, None]
+        col[sel] = _mix(col[sel], c, hair)
+    # fine stubble between the coarse dots
+    beard = (_smoothstep(-0.036, -0.046, y) * _smoothstep(-0.128, -0.112, y) * _smoothstep(-0.02, 0.02, z)
+             * (1.0 - _smoothstep(0.055, 0.07, ax) * _smoothstep(-0.07, -0.06, y)))
+    sel = np.nonzero(beard > 0.01)[0]
+    if len(sel):
+        q = p[sel] / 0.0011
+        ci = np.floor(q).astype(np.int64)
+        jitter = np.stack([_hash01(ci[:, 0], ci[:, 1], ci[:, 2], 131 + k) for k in range(3)], 1)
+        dd = np.linalg.norm(q - ci - 0.25 - 0.5 * jitter, axis=1)
+        dots = _edge(dd - 0.3, 0.08) * (_hash01(ci[:, 0], ci[:, 1], ci[:, 2], 137) < 0.6)
+        col[sel] *= (1.0 - 0.45 * dots * beard[sel])[:, None]
+    # ear folds: shadowed creases along the ridges of paper_displacement
+    near_ear = np.nonzero((ax > 0.06) & (np.abs(y - 0.004) < 0.032) & (np.abs(z + 0.010) < 0.022))[0]
+    for sx in (1.0, -1.0):
+        r, w = _ear_coords(p[near_ear], sx)
+        keep = np.nonzero(w > 0.01)[0]
+        sel = near_ear[keep]
+        r, w = r[keep], w[keep]
+        if len(sel):
+            rs = r
+            crease = (np.exp(-((rs - 0.66) / 0.035) ** 2) + np.exp(-((rs - 0.93) / 0.03) ** 2)
+                      + 0.8 * (1.0 - _smoothstep(0.25, 0.36, rs)))
+            col[sel] *= (1.0 - 0.45 * np.clip(crease, 0, 1) * w)[:, None]
+    # shirt: a fine weave, a placket seam and buttons with four holes
+    sel = np.nonzero(y < -0.205)[0]
+    if len(sel):
+        ps = p[sel]
+        ys = ps[:, 1]
+        arc = np.arctan2(ps[:, 0], ps[:, 2] - NECK_AXIS_Z) * 0.052
+        shirt = _edge(ys + 0.206, 0.0003)
+        weave = 0.5 + 0.5 * np.sign(np.sin(arc / 0.00045 * np.pi)) * np.sign(np.sin(ys / 0.00045 * np.pi))
+        c = col[sel] * (0.8 + 0.3 * weave)[:, None]
+        seam = _edge(np.abs(ps[:, 0] - 0.006) - 0.00035, 0.0001) * (ys < -0.212) * (ps[:, 2] > 0.0)
+        c = _mix(c, INK, 0.8 * seam)
+        bd, front = _buttons(ps)
+        button = _edge(bd - 0.0036, 0.0002) * front
+        holes = np.zeros(len(ps))
+        for by in _BUTTON_Y:
+            for hx, hy in ((-0.0009, -0.0009), (0.0009, -0.0009), (-0.0009, 0.0009), (0.0009, 0.0009)):
+                holes = np.maximum(holes, _edge(np.hypot(ps[:, 0] - hx, ys - by - hy) - 0.00045, 0.0001))
+        rim = _edge(np.abs(bd - 0.003) - 0.0003, 0.0001)
+        bcol = _mix(_mix(np.tile(BUTTON, (len(ps), 1)), 0.6 * BUTTON, rim), INK, holes)
+        c = _mix(c, bcol, button)
+        col[sel] = _mix(col[sel], c, shirt)
+    # mouth interior: upper and lower teeth with gaps, the tongue behind
+    sel = np.nonzero((z > 0.04) & (np.abs(y - MOUTH_Y) < 0.004) & (ax < 0.025))[0]
+    if len(sel):
+        xs, dy = x[sel], y[sel] - MOUTH_Y
+        gap = _edge(np.abs(dy) - 0.0018, 0.0002) * _edge(ax[sel] - 0.021, 0.0008)
+        tooth = np.abs(((xs + 0.0021) / 0.0042) % 1.0 - 0.5) < 0.42
+        teeth = _edge(np.abs(dy) - 0.0011, 0.00015) * _edge(np.abs(dy) - 0.0004, -0.00015) * tooth
+        inside = _mix(np.tile(MOUTH_INSIDE, (len(sel), 1)), TONGUE, _edge(np.abs(dy) - 0.0006, 0.0002))
+        inside = _mix(inside, TEETH, teeth * (ax[sel] < 0.016))
+        col[sel] = _mix(col[sel], inside, gap)
+    return np.clip(col, 0.0, 1.0)
+
+
+@functools.lru_cache(maxsize=1)
+def _paper_cached(template_levels, surface_levels):
+    levels = _sphere_levels(template_levels + surface_levels)
+    tdirs, tf = levels[template_levels]
+    sdirs, sf = levels[-1]
+    dirs = _paper_warp(sdirs)
+    verts = _SHAPE_CENTER + dirs * _radial_distance(dirs, steps=60, refine=18)[:, None]
+    fine = verts.copy()
+    n = vertex_normals(verts, sf)
+    fine += n * paper_displacement(verts, n)[:, None]
+    tv = verts[:len(tdirs)]
+    return (tv.astype(np.float32), tf.astype(np.int32), fine.astype(np.float32), sf.astype(np.int32))
+
+
+def paper_head(template_levels: int = PAPER_TEMPLATE_LEVELS, surface_levels: int = PAPER_SURFACE_LEVELS):
+    """(template vertices, template faces, imaged vertices, imaged faces) of the paper-scale head.
+
+    The template (8192 faces at the defaults) is what the dataset ships as the tracked mesh;
+    its vertices are the first vertices of the imaged surface before displacement, so it is a
+    chord approximation of the imaged head that the same pointwise rig moves.
+    """
+    return tuple(a.copy() for a in _paper_cached(int(template_levels), int(surface_levels)))

@@ -1,0 +1,80 @@
+"""scripts/run_paper_table.sh end to end on a small version of the paper preset: data, the five
+trainings, the report in the paper's layout; --resume skips finished runs; a fresh start refuses
+to overwrite runs."""
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from PIL import Image
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _run(tmp, *args):
+    env = dict(os.environ, DATA=str(tmp / "data"), OUT=str(tmp / "runs"), REPORT=str(tmp / "report"),
+               PRESET="tiny", ITERS="24", ABL_ITERS="20", UNIFORM_DEPTH="1", BENCH="0", PY=sys.executable,
+               EVAL_ARGS="--views 2 --curve-points 3",
+               DATA_ARGS="--resolution-scale 0.08 --sequences 3 --frames 1 --cameras 4 --surface-levels 1",
+               NUMBA_NUM_THREADS="1", OMP_NUM_THREADS="1")
+    return subprocess.run(["bash", os.path.join(ROOT, "scripts", "run_paper_table.sh"), *args], env=env, cwd=ROOT,
+                          capture_output=True, text=True, timeout=1500)
+
+
+@pytest.mark.slow
+def test_run_paper_table_small(tmp_path):
+    p = _run(tmp_path)
+    assert p.returncode == 0, p.stdout + p.stderr
+    with open(tmp_path / "data" / "summary.json") as fh:
+        data = json.load(fh)
+    assert data["detail"] == "paper" and data["faces"] == 8192 and data["imaged_faces"] == 4 * 8192
+    assert (data["width"], data["height"]) == (44, 64) and data["sequences"] == 3
+    report_dir = tmp_path / "report"
+    with open(report_dir / "report.json") as fh:
+        r = json.load(fh)
+    pt = r["paper_table"]
+    assert sorted(pt["table1"], key=float) == ["5", "25", "50", "100"]
+    assert pt["table1"]["100"]["paper"]["nvs_psnr"] == 31.47 and pt["table1"]["100"]["nvs_gap"] == 0.0
+    for key, row in pt["table1"].items():
+        assert np.isfinite(row["nvs_psnr"]) and np.isfinite(row["nes_psnr"]) and row["render_ms"] > 0
+        assert row["nvs_gap"] == pytest.approx(pt["table1"]["100"]["nvs_psnr"] - row["nvs_psnr"])
+    # Table 3: the finest-only run scored at 35 % of its own stream
+    f = r["ablations"]["finest_only_35"]
+    assert f["finest_only"]["gaussians"] > 0 and np.isfinite(f["finest_only"]["psnr"])
+    # adaptive vs uniform: both seeds, the same Gaussian count on both sides
+    vs = r["adaptive_vs_uniform"]
+    assert vs["n"] == 2 and [p["seed"] for p in vs["pairs"]] == [0, 1]
+    for pair in vs["pairs"]:
+        assert pair["gaussians"] == min(pair["adaptive_total"], pair["uniform_total"])
+        assert pair["uniform_total"] == 4 * 8192  # uniform to depth 1
+    assert set(r["quality_curves"]) == {"adaptive", "uniform"}
+    res = r["resources"]
+    assert set(res) == {"this run", "finest only", "adaptive seed 1", "uniform seed 0", "uniform seed 1"}
+    assert res["this run"]["iterations"] == 24 and res["finest only"]["iterations"] == 20
+    assert all(v["peak_rss_mb"] > 50 and v["wall_seconds"] > 0 for v in res.values())
+    checks = pt["checks"]
+    assert all(c["ok"] in (True, False) for c in checks.values())
+    assert any("growth" in k for k in checks) and any("35 %" in k for k in checks)
+    # full-resolution strips: 4 budgets and the ground truth at the dataset's pixel size
+    for split in ("nvs", "nes"):
+        with Image.open(report_dir / f"strip_full_{split}.png") as im:
+            assert im.size == (5 * 44, 64 + 16)
+    md = (report_dir / "paper_table.md").read_text()
+    for text in ("## Table 1", "27.89 / 0.851", "## Table 3", "29.87 / 20.06", "mean ± sd", "peak RSS",
+                 "## Acceptance"):
+        assert text in md, text
+    for name in ("paper_quality_vs_gaussians.png", "depth.png", "report.md"):
+        assert (report_dir / name).exists(), name
+    # A fresh start refuses to overwrite; --resume skips every finished run and reports again.
+    p = _run(tmp_path)
+    assert p.returncode == 2 and "--resume" in p.stderr
+    stamp = os.path.getmtime(tmp_path / "runs" / "adaptive" / "avatar.npz")
+    p = _run(tmp_path, "--resume")
+    assert p.returncode == 0, p.stdout + p.stderr
+    log = (tmp_path / "runs" / "progress.log").read_text()
+    for name in ("adaptive", "uniform", "finest", "adaptive_seed1", "uniform_seed1"):
+        assert f"{name}: done" in log, name
+    assert os.path.getmtime(tmp_path / "runs" / "adaptive" / "avatar.npz") == stamp
