@@ -270,9 +270,10 @@ def _tile_bounds(t, tiles_x, width, height):
 
 @njit(cache=True)
 def _forward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, background, width, height,
-                  tiles_x, T, acc, lst, done, active, contrib_isect, image, t_final, last):
-    """Composite one tile front to back. Each Gaussian visits only the chords of its ellipse
-    inside the tile, and skips rows whose pixels have all stopped (bit masks in ``active``)."""
+                  tiles_x, T, acc, lst, done, active, contrib_isect, image, t_final, last, glevel, upto):
+    """Composite one tile front to back, Gaussians with glevel <= upto only. Each Gaussian
+    visits only the chords of its ellipse inside the tile, and skips rows whose pixels have
+    all stopped (bit masks in ``active``)."""
     n_ch = colors.shape[1]
     x0, y0, x1, y1 = _tile_bounds(t, tiles_x, width, height)
     tw = x1 - x0
@@ -288,6 +289,8 @@ def _forward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, b
     n_done = 0
     for k in range(tile_start[t], tile_start[t + 1]):
         g = ids[k]
+        if glevel[g] > upto:
+            continue
         i0 = max(rect[g, 0], x0)
         i1 = min(rect[g, 2], x1 - 1)
         j0 = max(rect[g, 1], y0)
@@ -342,7 +345,8 @@ def _forward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, b
                 wsum += w
                 T[p] = t_next
                 lst[p] = k
-        contrib_isect[k] = wsum
+        if contrib_isect.shape[0] > 0:
+            contrib_isect[k] = wsum
         if n_done == n_pix:
             break
     for j in range(y0, y1):
@@ -356,28 +360,35 @@ def _forward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, b
 
 @njit(parallel=_PARALLEL, cache=True)
 def raster_forward(tile_start, ids, xy, conic, opacities, cut, colors, rect, background, width, height,
-                   tiles_x):
-    """Front-to-back compositing, parallel over tiles.
+                   tiles_x, glevel, upto):
+    """Front-to-back compositing, parallel over tiles, of one image per entry of ``upto``:
+    image l composites the Gaussians g with glevel[g] <= upto[l] (levels of a forest share
+    the projection, depth order and tile lists; a level only skips entries).
 
-    Returns image [H,W,C] (background included), final transmittance [H,W], the flat index
-    (into ``ids``) of the last Gaussian composited at each pixel (-1: none), and per-Gaussian
-    contribution sum_pixels alpha*T.
+    Returns images [L,H,W,C] (background included), final transmittance [L,H,W], the flat
+    index (into ``ids``) of the last Gaussian composited at each pixel (-1: none) [L,H,W],
+    and the per-Gaussian contribution sum_pixels alpha*T of the last image.
     """
     n = xy.shape[0]
     n_ch = colors.shape[1]
     n_tiles = tile_start.shape[0] - 1
-    image = np.empty((height, width, n_ch))
-    t_final = np.empty((height, width))
-    last = np.empty((height, width), np.int64)
+    n_img = upto.shape[0]
+    image = np.empty((n_img, height, width, n_ch))
+    t_final = np.empty((n_img, height, width))
+    last = np.empty((n_img, height, width), np.int64)
     contrib_isect = np.zeros(ids.shape[0])  # pairs after a tile's early exit stay 0
+    no_contrib = np.zeros(0)
     for t in prange(n_tiles):
         T = np.empty(TILE * TILE)
         acc = np.empty((TILE * TILE, n_ch))
         lst = np.empty(TILE * TILE, np.int64)
         done = np.empty(TILE * TILE, np.bool_)
         active = np.empty(TILE, np.int64)
-        _forward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, background, width,
-                      height, tiles_x, T, acc, lst, done, active, contrib_isect, image, t_final, last)
+        for l in range(n_img):
+            _forward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, background, width,
+                          height, tiles_x, T, acc, lst, done, active,
+                          contrib_isect if l == n_img - 1 else no_contrib, image[l], t_final[l], last[l],
+                          glevel, upto[l])
     contrib = np.zeros(n)
     for k in range(ids.shape[0]):
         contrib[ids[k]] += contrib_isect[k]
@@ -387,9 +398,11 @@ def raster_forward(tile_start, ids, xy, conic, opacities, cut, colors, rect, bac
 @njit(cache=True)
 def _backward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, background, t_final,
                    last, grad_image, grad_alpha, width, height, tiles_x, T, behind, gimg, galpha, tfin,
-                   lst, row_last, gcol, grads_isect, gbg):
-    """Back-to-front recomputation of one tile (see raster_backward); rows whose pixels all
-    stopped before Gaussian k are skipped via ``row_last``."""
+                   lst, row_last, gcol, grads_isect, gbg, glevel, upto, finest):
+    """Back-to-front recomputation of one tile for the image of Gaussians with glevel <= upto
+    (see raster_backward), adding into grads_isect (and, when ``finest``, the screen-space
+    gradient into its last two columns too); rows whose pixels all stopped before Gaussian k
+    are skipped via ``row_last``."""
     n_ch = colors.shape[1]
     x0, y0, x1, y1 = _tile_bounds(t, tiles_x, width, height)
     tw = x1 - x0
@@ -411,6 +424,8 @@ def _backward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, 
                 gbg[ch] += grad_image[j, i, ch] * tn
     for k in range(k_max, tile_start[t] - 1, -1):
         g = ids[k]
+        if glevel[g] > upto:
+            continue
         i0 = max(rect[g, 0], x0)
         i1 = min(rect[g, 2], x1 - 1)
         j0 = max(rect[g, 1], y0)
@@ -467,19 +482,22 @@ def _backward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, 
                 gcb -= g_pow * dx * dy
                 gcc -= 0.5 * g_pow * dy * dy
         if touched:
-            grads_isect[k, G_U] = gu
-            grads_isect[k, G_V] = gv
-            grads_isect[k, G_CA] = gca
-            grads_isect[k, G_CB] = gcb
-            grads_isect[k, G_CC] = gcc
-            grads_isect[k, G_OPAC] = go
+            grads_isect[k, G_U] += gu
+            grads_isect[k, G_V] += gv
+            grads_isect[k, G_CA] += gca
+            grads_isect[k, G_CB] += gcb
+            grads_isect[k, G_CC] += gcc
+            grads_isect[k, G_OPAC] += go
             for ch in range(n_ch):
-                grads_isect[k, G_COLOR + ch] = gcol[ch]
+                grads_isect[k, G_COLOR + ch] += gcol[ch]
+            if finest:
+                grads_isect[k, G_COLOR + n_ch] += gu
+                grads_isect[k, G_COLOR + n_ch + 1] += gv
 
 
 @njit(parallel=_PARALLEL, cache=True)
 def raster_backward(tile_start, ids, xy, conic, opacities, cut, colors, rect, background, t_final, last,
-                    grad_image, grad_alpha, width, height, tiles_x):
+                    grad_image, grad_alpha, width, height, tiles_x, glevel, upto):
     """Back-to-front recomputation per pixel (3DGS): from the saved final T and last index,
     T before Gaussian i is T_after / (1 - alpha_i), and the colour behind it is accumulated
     as we go. Per pixel and Gaussian i (C = sum_i c_i a_i T_i + T_N bg, A = 1 - T_N):
@@ -490,12 +508,16 @@ def raster_backward(tile_start, ids, xy, conic, opacities, cut, colors, rect, ba
 
     then a = o * exp(power) (no gradient where clamped to 0.99) and
     power = -(ca dx^2 + cc dy^2)/2 - cb dx dy, dx = px - u, dy = py - v.
-    Returns per-Gaussian gradients [N, 6 + C] (layout G_*) and d/dbackground [C].
+    Images are those of raster_forward (t_final, last, grad_image, grad_alpha carry a leading
+    level axis); their gradients add up. Returns per-Gaussian gradients [N, 6 + C + 2]
+    (layout G_*, then d/du, d/dv of the last image alone) and d/dbackground [C].
     """
     n = xy.shape[0]
     n_ch = colors.shape[1]
     n_tiles = tile_start.shape[0] - 1
-    grads_isect = np.zeros((ids.shape[0], G_COLOR + n_ch))
+    n_img = upto.shape[0]
+    width_g = G_COLOR + n_ch + 2
+    grads_isect = np.zeros((ids.shape[0], width_g))
     gbg_tile = np.zeros((n_tiles, n_ch))
     for t in prange(n_tiles):
         T = np.empty(TILE * TILE)
@@ -506,13 +528,14 @@ def raster_backward(tile_start, ids, xy, conic, opacities, cut, colors, rect, ba
         lst = np.empty(TILE * TILE, np.int64)
         row_last = np.empty(TILE, np.int64)
         gcol = np.empty(n_ch)
-        _backward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, background, t_final,
-                       last, grad_image, grad_alpha, width, height, tiles_x, T, behind, gimg, galpha, tfin,
-                       lst, row_last, gcol, grads_isect, gbg_tile[t])
-    grads = np.zeros((n, G_COLOR + n_ch))
+        for l in range(n_img):
+            _backward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, background, t_final[l],
+                           last[l], grad_image[l], grad_alpha[l], width, height, tiles_x, T, behind, gimg, galpha,
+                           tfin, lst, row_last, gcol, grads_isect, gbg_tile[t], glevel, upto[l], l == n_img - 1)
+    grads = np.zeros((n, width_g))
     for k in range(ids.shape[0]):
         g = ids[k]
-        for q in range(G_COLOR + n_ch):
+        for q in range(width_g):
             grads[g, q] += grads_isect[k, q]
     gbg = np.zeros(n_ch)
     for t in range(n_tiles):

@@ -243,3 +243,43 @@ def test_flame_refinement_learns_resumes_and_is_saved(tiny_dataset, tmp_path):
     np.testing.assert_allclose(a["expr"][0], one(t0 % 64)["expr"][0] + a["correction_expr"][0], atol=1e-6)
     with pytest.raises(ValueError, match="FLAME-mode dataset"):
         Trainer(tiny_dataset, str(tmp_path / "mesh"), config_for("tiny", refine_flame=True))
+
+
+def _ssim_dense_reference(a, b):
+    """The 11x11 two-dimensional window SSIM that core.losses used before the fused kernel."""
+    import torch.nn.functional as F
+
+    x, y = a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None]
+    C = x.shape[1]
+    t = torch.arange(11, dtype=x.dtype) - 5
+    g = torch.exp(-(t**2) / (2 * 1.5**2))
+    g = g / g.sum()
+    w = (g[:, None] * g[None, :]).expand(C, 1, 11, 11).contiguous()
+    mx, my = F.conv2d(x, w, groups=C), F.conv2d(y, w, groups=C)
+    sxx = F.conv2d(x * x, w, groups=C) - mx**2
+    syy = F.conv2d(y * y, w, groups=C) - my**2
+    sxy = F.conv2d(x * y, w, groups=C) - mx * my
+    c1, c2 = 0.01**2, 0.03**2
+    return (((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx**2 + my**2 + c1) * (sxx + syy + c2))).mean()
+
+
+@pytest.mark.parametrize("size", [(11, 11), (37, 23), (128, 88)])
+def test_fused_ssim_matches_dense_window_and_metrics(size):
+    """The fused CPU SSIM (and its separable torch fallback) against the dense 11x11 window in
+    value and gradient, and against core.metrics (numpy, float64)."""
+    from progressive_avatars.core import losses, metrics
+
+    rng = np.random.default_rng(size[0])
+    b = torch.tensor(rng.uniform(0, 1, size + (3,)), dtype=torch.float32)
+    a0 = (0.6 * b + 0.4 * torch.tensor(rng.uniform(0, 1, size + (3,)), dtype=torch.float32))
+    values, grads = [], []
+    for fn in (losses.ssim, losses.ssim_torch, _ssim_dense_reference):
+        a = a0.clone().requires_grad_(True)
+        v = fn(a, b)
+        v.backward()
+        values.append(float(v))
+        grads.append(a.grad)
+    assert abs(values[0] - metrics.ssim(a0.numpy(), b.numpy())) < 1e-6
+    for v, g in zip(values[:2], grads[:2]):
+        assert abs(v - values[2]) < 1e-6
+        assert float((g - grads[2]).norm() / grads[2].norm()) < 1e-5
