@@ -184,8 +184,37 @@ def project_forward(means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, lim
     return xy, conic, depth, rect, radii, cut
 
 
+@njit(cache=True)
+def _touches_tile(g, tx, ty, xy, conic, cut, rect):
+    """Whether Gaussian g's ellipse alpha >= 1/255 (q = ca dx^2 + 2 cb dx dy + cc dy^2 <= -2 cut)
+    reaches a pixel centre of tile (tx, ty) inside its box. The box of a tilted, thin splat
+    holds tiles its ellipse never crosses; every (tile, Gaussian) pair costs both passes a
+    visit per row, so those are left out of the lists. The minimum of the convex q over the
+    rectangle of pixel centres is 0 when it holds the centre, else on one of its edges."""
+    u = xy[g, 0]
+    v = xy[g, 1]
+    x0 = max(rect[g, 0], tx * TILE) + 0.5 - u
+    x1 = min(rect[g, 2], tx * TILE + TILE - 1) + 0.5 - u
+    y0 = max(rect[g, 1], ty * TILE) + 0.5 - v
+    y1 = min(rect[g, 3], ty * TILE + TILE - 1) + 0.5 - v
+    if x0 <= 0.0 <= x1 and y0 <= 0.0 <= y1:
+        return True
+    ca = conic[g, 0]
+    cb = conic[g, 1]
+    cc = conic[g, 2]
+    limit = -2.0 * cut[g] * _BOX_SLACK + 1e-9
+    best = math.inf
+    for x in (x0, x1):
+        y = min(max(-cb * x / cc, y0), y1)
+        best = min(best, ca * x * x + 2.0 * cb * x * y + cc * y * y)
+    for y in (y0, y1):
+        x = min(max(-cb * y / ca, x0), x1)
+        best = min(best, ca * x * x + 2.0 * cb * x * y + cc * y * y)
+    return best <= limit
+
+
 @njit(parallel=_PARALLEL, cache=True)
-def bin_tiles(rect, order, tiles_x, tiles_y):
+def bin_tiles(rect, order, tiles_x, tiles_y, xy, conic, cut):
     """Counting sort of (tile, Gaussian) pairs into per-tile lists.
 
     ``order`` holds the visible Gaussians front to back; it is binned in BIN_CHUNKS contiguous
@@ -201,7 +230,8 @@ def bin_tiles(rect, order, tiles_x, tiles_y):
             g = order[k]
             for ty in range(rect[g, 1] // TILE, rect[g, 3] // TILE + 1):
                 for tx in range(rect[g, 0] // TILE, rect[g, 2] // TILE + 1):
-                    counts[ch, ty * tiles_x + tx] += 1
+                    if _touches_tile(g, tx, ty, xy, conic, cut, rect):
+                        counts[ch, ty * tiles_x + tx] += 1
     tile_start = np.empty(n_tiles + 1, np.int64)
     cursor = np.empty((n_chunks, n_tiles), np.int64)
     total = 0
@@ -217,9 +247,10 @@ def bin_tiles(rect, order, tiles_x, tiles_y):
             g = order[k]
             for ty in range(rect[g, 1] // TILE, rect[g, 3] // TILE + 1):
                 for tx in range(rect[g, 0] // TILE, rect[g, 2] // TILE + 1):
-                    t = ty * tiles_x + tx
-                    ids[cursor[ch, t]] = g
-                    cursor[ch, t] += 1
+                    if _touches_tile(g, tx, ty, xy, conic, cut, rect):
+                        t = ty * tiles_x + tx
+                        ids[cursor[ch, t]] = g
+                        cursor[ch, t] += 1
     return tile_start, ids
 
 
@@ -241,6 +272,38 @@ def _alpha(o, power, cut):
     if alpha > ALPHA_MAX:
         return ALPHA_MAX, gauss, True
     return alpha, gauss, False
+
+
+@njit(cache=True)
+def _alpha_g(o, power, gauss, cut):
+    """_alpha with exp(power) supplied (rows step it by a recurrence, see _row_start)."""
+    if power < cut or power > 0.0:
+        return 0.0, 0.0, False
+    alpha = o * gauss
+    if alpha < ALPHA_MIN:
+        return 0.0, gauss, False
+    if alpha > ALPHA_MAX:
+        return ALPHA_MAX, gauss, True
+    return alpha, gauss, False
+
+
+@njit(cache=True)
+def _row_start(dy, u, ca, cb, cc, a):
+    """power, its step to the next column, exp of both at column a of a row.
+
+    Along a row power is quadratic in dx, so power(dx + 1) = power(dx) + step with step
+    falling by ca per column, and exp(power) follows as gauss *= exp(step), exp(step) *=
+    exp(-ca): three exps per row instead of one per pixel. With eps2d > 0 the conic is
+    bounded (ca <= 1/eps2d) and a chord stays inside one tile, so nothing overflows; the
+    product drifts by a few ulps over a tile row. Forward and backward walk the same chord
+    from the same column, so they see the same values (and skip the same pixels).
+    """
+    p_base = -0.5 * cc * dy * dy
+    p_lin = -cb * dy
+    dx = a + 0.5 - u
+    power = p_base + dx * (p_lin - 0.5 * ca * dx)
+    step = p_lin - ca * dx - 0.5 * ca
+    return power, step, math.exp(power), math.exp(step)
 
 
 @njit(cache=True)
@@ -302,6 +365,7 @@ def _forward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, b
         cc = conic[g, 2]
         o = opacities[g]
         c_g = cut[g]
+        e_ca = math.exp(-ca)
         wsum = 0.0
         c0 = colors[g, 0]
         c1 = colors[g, 1 % n_ch]
@@ -317,14 +381,18 @@ def _forward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, b
             if active[r] & (((1 << (b + 1 - x0)) - 1) ^ ((1 << (a - x0)) - 1)) == 0:
                 continue
             row = r * tw - x0
-            p_base = -0.5 * cc * dy * dy
-            p_lin = -cb * dy
+            power, step, gauss, e_step = _row_start(dy, u, ca, cb, cc, a)
             for i in range(a, b + 1):
                 p = row + i
+                pw = power
+                gs = gauss
+                power += step
+                step -= ca
+                gauss *= e_step
+                e_step *= e_ca
                 if done[p]:
                     continue
-                dx = i + 0.5 - u
-                alpha, _, _ = _alpha(o, p_base + dx * (p_lin - 0.5 * ca * dx), c_g)
+                alpha, _, _ = _alpha_g(o, pw, gs, c_g)
                 if alpha == 0.0:
                     continue
                 Tp = T[p]
@@ -437,6 +505,7 @@ def _backward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, 
         cc = conic[g, 2]
         o = opacities[g]
         c_g = cut[g]
+        e_ca = math.exp(-ca)
         gu = 0.0
         gv = 0.0
         gca = 0.0
@@ -452,14 +521,19 @@ def _backward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, 
             dy = j + 0.5 - v
             a, b = _row_span(dy, u, ca, cb, cc, c_g, i0, i1)
             row = (j - y0) * tw - x0
-            p_base = -0.5 * cc * dy * dy
-            p_lin = -cb * dy
+            power, step, gss, e_step = _row_start(dy, u, ca, cb, cc, a)
             for i in range(a, b + 1):
                 p = row + i
+                pw = power
+                gs = gss
+                power += step
+                step -= ca
+                gss *= e_step
+                e_step *= e_ca
                 if k > lst[p]:
                     continue
                 dx = i + 0.5 - u
-                alpha, gauss, clamped = _alpha(o, p_base + dx * (p_lin - 0.5 * ca * dx), c_g)
+                alpha, gauss, clamped = _alpha_g(o, pw, gs, c_g)
                 if alpha == 0.0:
                     continue
                 touched = True

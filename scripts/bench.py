@@ -3,7 +3,7 @@
     python scripts/bench.py [--quick] [--only forest,render,...] [--report runs/report_cpu]
 
 Sections: forest (evaluation speed, float32 precision), render (CPU rasteriser against the
-dense reference), data (loading), data_gen (synthetic dataset), stream (bytes, decode
+dense reference), train (training iteration, f6907ae against this tree), data (loading), data_gen (synthetic dataset), stream (bytes, decode
 speed), blender (import, slider, frame change), and the training/evaluation figures read
 from an evaluation report folder written by scripts/evaluate.py.
 """
@@ -18,7 +18,7 @@ import traceback
 
 import _bootstrap
 
-SECTIONS = ["forest", "render", "data", "data_gen", "stream", "blender"]
+SECTIONS = ["forest", "render", "train", "data", "data_gen", "stream", "blender"]
 
 
 def report_section(report_dir: str) -> str:

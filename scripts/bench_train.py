@@ -1,6 +1,9 @@
 """Training-iteration speed, old (commit f6907ae, before issue 18) against new, in one run.
 
-    python scripts/bench_train.py [--quick] [--data runs/synthetic]
+    python scripts/bench_train.py [--quick] [--write]
+
+(--write puts the section into docs/BENCHMARKS.md; scripts/bench.py --only train does too,
+with the other sections it has cached.)
 
 The old code is the f6907ae tree of core/ extracted with `git archive` into
 runs/bench_old_f6907ae (imported as its own package, so both run in this process) and is
@@ -60,14 +63,25 @@ def old_package():
     return importlib.import_module("pa_old.core.train"), importlib.import_module("pa_old.core.render")
 
 
-class _Views:
-    """A dataset stand-in: the training views scaled to another image size."""
+def _in(train_mod, name):
+    """Module `name` of the package train_mod belongs to (old and new each have their own)."""
+    return importlib.import_module(train_mod.__name__.rsplit(".", 1)[0] + "." + name)
 
-    def __init__(self, ds, height, count=8):
+
+def _camera_as(cam, train_mod):
+    Camera = _in(train_mod, "camera").Camera
+    return Camera(cam.R, cam.t, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height)
+
+
+class _Views:
+    """A dataset stand-in: the training views scaled to another image size (built with the
+    Dataset and Camera of the code under test)."""
+
+    def __init__(self, data, train_mod, height, count=8):
         import torch
 
-        from progressive_avatars.core.camera import Camera
-
+        Camera = _in(train_mod, "camera").Camera
+        ds = _in(train_mod, "data").Dataset(data, "train", cache_images=count)
         self.samples = []
         for i in np.linspace(0, len(ds) - 1, count).astype(int):
             s = ds[int(i)]
@@ -110,39 +124,44 @@ def _make(train_mod, data, out, supervision, plan, views=None):
     step = tr.opt.step
 
     def capture(params, lr_scale=None):
-        if not captured:
-            captured["grad"] = np.concatenate([p.grad.detach().double().numpy().ravel() for p in params.values()
-                                               if p.grad is not None])
+        if not captured:  # a parameter nothing depends on may have no gradient (old) or zeros (new)
+            captured.update({k: (p.grad.detach().double().numpy().ravel() if p.grad is not None
+                                 else np.zeros(p.numel())) for k, p in params.items()})
         return step(params, lr_scale)
 
     tr.opt.step = capture
     return tr, captured
 
 
-def bench_steps(data, label, supervision, plan, reps, views=None):
+def bench_steps(data, label, supervision, plan, reps, height=None):
     import torch
 
     old_train, _ = old_package()
     from progressive_avatars.core import train as new_train
 
     with tempfile.TemporaryDirectory() as tmp:
-        old, old_cap = _make(old_train, data, os.path.join(tmp, "old"), supervision, plan, views)
-        new, new_cap = _make(new_train, data, os.path.join(tmp, "new"), supervision, plan, views)
+        views = [None if height is None else _Views(data, m, height) for m in (old_train, new_train)]
+        old, old_cap = _make(old_train, data, os.path.join(tmp, "old"), supervision, plan, views[0])
+        new, new_cap = _make(new_train, data, os.path.join(tmp, "new"), supervision, plan, views[1])
         assert old.model.num_faces == new.model.num_faces
         s_old = old.step()
         s_new = new.step()
         loss_err = abs(s_new["loss"] - s_old["loss"]) / abs(s_old["loss"])
-        grad_err = float(np.linalg.norm(new_cap["grad"] - old_cap["grad"]) / np.linalg.norm(old_cap["grad"]))
-        t_old, t_new = [], []
+        g_old = np.concatenate([old_cap[k] for k in sorted(old_cap)])
+        g_new = np.concatenate([new_cap[k] for k in sorted(old_cap)])
+        grad_err = float(np.linalg.norm(g_new - g_old) / np.linalg.norm(g_old))
+        t_old, t_new, c_old, c_new = [], [], [], []
         for _ in range(reps):
-            for tr, times in ((old, t_old), (new, t_new)):
-                t0 = time.perf_counter()
+            for tr, times, cpu in ((old, t_old, c_old), (new, t_new, c_new)):
+                t0, c0 = time.perf_counter(), time.process_time()
                 tr.step()
                 times.append(time.perf_counter() - t0)
+                cpu.append(time.process_time() - c0)
         levels = len(new._levels())
     del torch
     return dict(label=label, faces=new.model.num_faces, levels=levels, supervision=supervision,
                 width=new.train[0].camera.width, height=new.train[0].camera.height, old=t_old, new=t_new,
+                cpu_old=c_old, cpu_new=c_new,
                 loss_err=loss_err, grad_err=grad_err)
 
 
@@ -152,25 +171,59 @@ def bench_raster(reps):
     from bench_render import head_camera, head_scene
     from progressive_avatars.core.render import render as new_render
 
-    _, old_render_mod = old_package()
+    old_train, old_render_mod = old_package()
     cam = head_camera(802, 550)
+    old_cam = _camera_as(cam, old_train)
     params = [torch.from_numpy(x) for x in head_scene(170_000)]
 
     def run(fn):
         ps = [p.clone().requires_grad_(True) for p in params]
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         out = fn(*ps, cam)
         ((out.image * 0.5).sum() + out.alpha.sum()).backward()
-        return time.perf_counter() - t0, out
+        return (time.perf_counter() - t0, time.process_time() - c0), out
 
-    run(old_render_mod.render)
+    def old_render(*a):
+        return old_render_mod.render(*a[:-1], old_cam)
+
+    run(old_render)
     run(new_render)
     t_old, t_new = [], []
     for _ in range(reps):
-        t_old.append(run(old_render_mod.render)[0])
+        t_old.append(run(old_render)[0])
         dt, out = run(new_render)
         t_new.append(dt)
-    return dict(old=t_old, new=t_new, visible=int((out.radii > 0).sum()))
+    return dict(old=[t[0] for t in t_old], new=[t[0] for t in t_new], cpu_old=[t[1] for t in t_old],
+                cpu_new=[t[1] for t in t_new], visible=int((out.radii > 0).sum()))
+
+
+def bench_ssim(reps, size=(802, 551)):
+    """Old (11x11 window, five conv2d) against new (fused kernel) SSIM, forward + backward."""
+    import torch
+
+    old_train, _ = old_package()
+    old_ssim = _in(old_train, "losses").ssim
+    from progressive_avatars.core.losses import ssim as new_ssim
+
+    g = torch.Generator().manual_seed(0)
+    b = torch.rand(size + (3,), generator=g)
+    a = (0.7 * b + 0.3 * torch.rand(size + (3,), generator=g)).requires_grad_(True)
+
+    def run(fn):
+        a.grad = None
+        t0 = time.perf_counter()
+        v = fn(a, b)
+        v.backward()
+        return time.perf_counter() - t0, float(v), a.grad.clone()
+
+    _, v_old, g_old = run(old_ssim)
+    _, v_new, g_new = run(new_ssim)
+    t_old, t_new = [], []
+    for _ in range(reps):
+        t_old.append(run(old_ssim)[0])
+        t_new.append(run(new_ssim)[0])
+    return dict(old=t_old, new=t_new, value_err=abs(v_old - v_new),
+                grad_err=float((g_new - g_old).norm() / g_old.norm()), size=size)
 
 
 def raster_reference_errors():
@@ -184,8 +237,9 @@ def raster_reference_errors():
 
     from progressive_avatars.core.render import render as new_render
 
-    _, old_render_mod = old_package()
+    old_train, old_render_mod = old_package()
     cam = head_camera(64, 64)
+    old_cam = _camera_as(cam, old_train)
     params = [torch.from_numpy(x) for x in head_scene(400, seed=1)]
     params[2] = params[2] * 6.0
     bg = torch.tensor([0.2, 0.4, 0.1])
@@ -193,17 +247,17 @@ def raster_reference_errors():
     wi, wa = torch.randn(64, 64, 3, generator=g, dtype=torch.float64), torch.randn(64, 64, generator=g,
                                                                                    dtype=torch.float64)
 
-    def grads(fn, dtype):
+    def grads(fn, dtype, camera=cam):
         ps = [p.detach().clone().to(dtype).requires_grad_(True) for p in params + [bg]]
-        out = fn(*ps[:5], cam, ps[5])
+        out = fn(*ps[:5], camera, ps[5])
         img, alpha = (out[0], out[1]) if isinstance(out, tuple) else (out.image, out.alpha)
         ((img.double() * wi).sum() + (alpha.double() * wa).sum()).backward()
         return img.detach().double(), [p.grad.double() for p in ps]
 
     ref_img, ref_g = grads(render_reference, torch.float64)
     rows = {}
-    for name, fn in (("old", old_render_mod.render), ("new", new_render)):
-        img, gr = grads(fn, torch.float32)
+    for name, fn, camera in (("old", old_render_mod.render, old_cam), ("new", new_render, cam)):
+        img, gr = grads(fn, torch.float32, camera)
         rel = max(float((a - b).norm() / b.norm()) for a, b in zip(gr, ref_g))
         rows[name] = (float((img - ref_img).abs().max()), rel)
     return rows
@@ -226,22 +280,20 @@ def run(quick: bool = False, data: str | None = None) -> str:
     load0 = os.getloadavg()
     reps = 3 if quick else 6
     rows = []
-    cpu_plans = [("cpu preset, 5k faces", []), ("cpu preset, ~20k faces", [1.0, 0.35]),
-                 ("cpu preset, ~40k faces", [1.0, 0.9, 0.35])]
+    cpu_plans = [("cpu preset, 5k faces", []), ("cpu preset, 20k faces", [1.0]),
+                 ("cpu preset, ~37k faces", [1.0, 0.35])]
     if quick:
         cpu_plans = cpu_plans[1:2]
     for label, plan in cpu_plans:
         rows.append(bench_steps(data, label, "all", plan, reps))
         print(rows[-1]["label"], _fmt(rows[-1]["old"]), _fmt(rows[-1]["new"]), file=sys.stderr)
-    from progressive_avatars.core.data import Dataset
-
-    views = _Views(Dataset(data, "train", cache_images=16), 802)
     paper_plan = [1.0, 1.0, 0.45, 0.12]  # levels 0-4, ~150k faces
     for sup in ("sampled", "all"):
-        rows.append(bench_steps(data, f"paper scale ({sup})", sup, paper_plan, max(2, reps // 2), views))
+        rows.append(bench_steps(data, f"paper scale ({sup})", sup, paper_plan, max(2, reps // 2), 802))
         print(rows[-1]["label"], _fmt(rows[-1]["old"]), _fmt(rows[-1]["new"]), file=sys.stderr)
     raster = bench_raster(reps)
     ref = raster_reference_errors()
+    ss = bench_ssim(reps)
     load1 = os.getloadavg()
     cmd = "python scripts/bench.py --only train" + (" --quick" if quick else "")
     lines = [header("Training iteration: f6907ae (old) against this tree (new), same run", cmd),
@@ -251,21 +303,30 @@ def run(quick: bool = False, data: str | None = None) -> str:
              "rather than the absolute times)",
              "- old = `git archive f6907ae core` imported as its own package in the same process; each rep "
              "runs one old step then one new step; times are min / median ms over the reps",
+             "- CPU ms: process CPU time (all threads) per iteration, min over the reps: less sensitive to "
+             "waiting for the cores than wall time, though contention still inflates it",
              "- accuracy: loss and whole-gradient relative difference between old and new on the first step from "
              "an identical state (new binds in float64, old's forest weights were float32)",
              "",
              "| iteration | image | faces | levels rendered | old ms (min / median) | new ms (min / median) "
-             "| speed-up (median) | loss diff | gradient diff |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| speed-up (median) | old / new CPU ms | speed-up (CPU) | loss diff | gradient diff |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         speed = np.median(r["old"]) / np.median(r["new"])
+        co, cn = min(r["cpu_old"]), min(r["cpu_new"])
         lines.append(f"| {r['label']} | {r['width']}x{r['height']} | {r['faces']:,} | {r['levels']} "
-                     f"| {_fmt(r['old'])} | {_fmt(r['new'])} | x{speed:.2f} | {r['loss_err']:.1e} "
-                     f"| {r['grad_err']:.1e} |")
+                     f"| {_fmt(r['old'])} | {_fmt(r['new'])} | x{speed:.2f} | {co * 1e3:.0f} / {cn * 1e3:.0f} "
+                     f"| x{co / cn:.2f} | {r['loss_err']:.1e} | {r['grad_err']:.1e} |")
     speed = np.median(raster["old"]) / np.median(raster["new"])
     lines += [
         f"| raster only: 802x550, 170k Gaussians ({raster['visible']:,} visible), forward + backward | 802x550 "
-        f"| - | 1 | {_fmt(raster['old'])} | {_fmt(raster['new'])} | x{speed:.2f} | - | - |",
+        f"| - | 1 | {_fmt(raster['old'])} | {_fmt(raster['new'])} | x{speed:.2f} "
+        f"| {min(raster['cpu_old']) * 1e3:.0f} / {min(raster['cpu_new']) * 1e3:.0f} "
+        f"| x{min(raster['cpu_old']) / min(raster['cpu_new']):.2f} | - | - |",
+        "",
+        f"SSIM loss alone ({ss['size'][0]}x{ss['size'][1]}, forward + backward, min / median ms): old "
+        f"{_fmt(ss['old'])}, new {_fmt(ss['new'])} (x{np.median(ss['old']) / np.median(ss['new']):.2f}); value "
+        f"difference {ss['value_err']:.1e}, gradient relative difference {ss['grad_err']:.1e}.",
         "",
         "Against the dense float64 reference (64x64, 400 head-scene Gaussians, float32 inputs): old max image "
         f"error {ref['old'][0]:.1e}, worst relative gradient error {ref['old'][1]:.1e}; new {ref['new'][0]:.1e}, "
@@ -275,6 +336,28 @@ def run(quick: bool = False, data: str | None = None) -> str:
     return "\n".join(lines)
 
 
+def write_section(text: str, path: str = os.path.join(ROOT, "docs", "BENCHMARKS.md")):
+    """Put the section into BENCHMARKS.md in place of an earlier one (or before the training
+    reports), leaving the other sections as they are."""
+    doc = open(path).read()
+    title = text.split("\n", 1)[0]
+    start = doc.find(title + "\n")
+    if start < 0:
+        start = doc.find("## Training and evaluation")
+        start = len(doc) if start < 0 else start
+        end = start
+    else:
+        nxt = doc.find("\n## ", start + len(title))
+        end = len(doc) if nxt < 0 else nxt + 1
+    new = doc[:start] + text.rstrip("\n") + "\n\n" + doc[end:]
+    with open(path + ".tmp", "w") as fh:
+        fh.write(new)
+    os.replace(path + ".tmp", path)
+
+
 if __name__ == "__main__":
     args = _bootstrap.script_args()
-    print(run(quick="--quick" in args))
+    section = run(quick="--quick" in args)
+    print(section)
+    if "--write" in args:
+        write_section(section)

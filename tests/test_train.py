@@ -283,3 +283,28 @@ def test_fused_ssim_matches_dense_window_and_metrics(size):
     for v, g in zip(values[:2], grads[:2]):
         assert abs(v - values[2]) < 1e-6
         assert float((g - grads[2]).norm() / grads[2].norm()) < 1e-5
+
+
+def test_steps_are_deterministic_for_seed_and_any_numba_thread_count(tiny_dataset, tmp_path):
+    """Same seed: bit-identical parameters after a few steps, whatever the number of numba
+    threads (binding, rasteriser and SSIM kernels sum in fixed orders)."""
+    import numba
+
+    cfg = config_for("tiny", iterations=8, grow_every=3, grow_start=3, eval_every=1000, checkpoint_every=1000)
+    results = []
+    for k, threads in enumerate([numba.config.NUMBA_NUM_THREADS, 1, numba.config.NUMBA_NUM_THREADS]):
+        numba.set_num_threads(threads)
+        try:
+            tr = Trainer(tiny_dataset, str(tmp_path / f"r{k}"), cfg)
+            for _ in range(5):
+                tr.step()
+                tr.iteration += 1
+                if tr.iteration % cfg.grow_every == 0:
+                    tr._grow(tr.iteration)
+        finally:
+            numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+        results.append({n: p.detach().clone() for n, p in tr.model.params.items()})
+    assert results[0]["d_mu"].shape[0] > tr.model.forest.num_roots  # the forest grew on the way
+    for other in results[1:]:
+        for name, p in results[0].items():
+            assert torch.equal(p, other[name]), name
