@@ -214,7 +214,7 @@ def bench_ssim(reps, size=(802, 551)):
         t0 = time.perf_counter()
         v = fn(a, b)
         v.backward()
-        return time.perf_counter() - t0, float(v), a.grad.clone()
+        return time.perf_counter() - t0, float(v.detach()), a.grad.clone()
 
     _, v_old, g_old = run(old_ssim)
     _, v_new, g_new = run(new_ssim)
