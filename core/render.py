@@ -128,7 +128,7 @@ def _cpu_forward(means, quats, scales, opacities, colors, background, camera, ne
     visible = np.flatnonzero((radii != 0) & (glevel <= upto.max()))
     order = visible[np.argsort(depth[visible], kind="stable")].astype(np.int64)
     tiles_x, tiles_y = _tiles(camera)
-    tile_start, ids = rk.bin_tiles(rect, order, tiles_x, tiles_y, xy, conic, cut)
+    tile_start, ids = rk.bin_tiles(rect, order, tiles_x, tiles_y)
     if with_depth:
         colors = np.concatenate([colors, depth[:, None]], axis=1)
         background = np.concatenate([background, [0.0]])

@@ -184,37 +184,8 @@ def project_forward(means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, lim
     return xy, conic, depth, rect, radii, cut
 
 
-@njit(cache=True)
-def _touches_tile(g, tx, ty, xy, conic, cut, rect):
-    """Whether Gaussian g's ellipse alpha >= 1/255 (q = ca dx^2 + 2 cb dx dy + cc dy^2 <= -2 cut)
-    reaches a pixel centre of tile (tx, ty) inside its box. The box of a tilted, thin splat
-    holds tiles its ellipse never crosses; every (tile, Gaussian) pair costs both passes a
-    visit per row, so those are left out of the lists. The minimum of the convex q over the
-    rectangle of pixel centres is 0 when it holds the centre, else on one of its edges."""
-    u = xy[g, 0]
-    v = xy[g, 1]
-    x0 = max(rect[g, 0], tx * TILE) + 0.5 - u
-    x1 = min(rect[g, 2], tx * TILE + TILE - 1) + 0.5 - u
-    y0 = max(rect[g, 1], ty * TILE) + 0.5 - v
-    y1 = min(rect[g, 3], ty * TILE + TILE - 1) + 0.5 - v
-    if x0 <= 0.0 <= x1 and y0 <= 0.0 <= y1:
-        return True
-    ca = conic[g, 0]
-    cb = conic[g, 1]
-    cc = conic[g, 2]
-    limit = -2.0 * cut[g] * _BOX_SLACK + 1e-9
-    best = math.inf
-    for x in (x0, x1):
-        y = min(max(-cb * x / cc, y0), y1)
-        best = min(best, ca * x * x + 2.0 * cb * x * y + cc * y * y)
-    for y in (y0, y1):
-        x = min(max(-cb * y / ca, x0), x1)
-        best = min(best, ca * x * x + 2.0 * cb * x * y + cc * y * y)
-    return best <= limit
-
-
 @njit(parallel=_PARALLEL, cache=True)
-def bin_tiles(rect, order, tiles_x, tiles_y, xy, conic, cut):
+def bin_tiles(rect, order, tiles_x, tiles_y):
     """Counting sort of (tile, Gaussian) pairs into per-tile lists.
 
     ``order`` holds the visible Gaussians front to back; it is binned in BIN_CHUNKS contiguous
@@ -230,8 +201,7 @@ def bin_tiles(rect, order, tiles_x, tiles_y, xy, conic, cut):
             g = order[k]
             for ty in range(rect[g, 1] // TILE, rect[g, 3] // TILE + 1):
                 for tx in range(rect[g, 0] // TILE, rect[g, 2] // TILE + 1):
-                    if _touches_tile(g, tx, ty, xy, conic, cut, rect):
-                        counts[ch, ty * tiles_x + tx] += 1
+                    counts[ch, ty * tiles_x + tx] += 1
     tile_start = np.empty(n_tiles + 1, np.int64)
     cursor = np.empty((n_chunks, n_tiles), np.int64)
     total = 0
@@ -247,10 +217,9 @@ def bin_tiles(rect, order, tiles_x, tiles_y, xy, conic, cut):
             g = order[k]
             for ty in range(rect[g, 1] // TILE, rect[g, 3] // TILE + 1):
                 for tx in range(rect[g, 0] // TILE, rect[g, 2] // TILE + 1):
-                    if _touches_tile(g, tx, ty, xy, conic, cut, rect):
-                        t = ty * tiles_x + tx
-                        ids[cursor[ch, t]] = g
-                        cursor[ch, t] += 1
+                    t = ty * tiles_x + tx
+                    ids[cursor[ch, t]] = g
+                    cursor[ch, t] += 1
     return tile_start, ids
 
 
