@@ -305,6 +305,8 @@ def run(quick: bool = False, data: str | None = None) -> str:
              "runs one old step then one new step; times are min / median ms over the reps",
              "- CPU ms: process CPU time (all threads) per iteration, min over the reps: less sensitive to "
              "waiting for the cores than wall time, though contention still inflates it",
+             "- state: the initial avatar after a fixed split plan (children copy their parent's Gaussian), not a "
+             "trained one: its Gaussians are larger and overlap more than trained ones, so rendering costs more",
              "- accuracy: loss and whole-gradient relative difference between old and new on the first step from "
              "an identical state (new binds in float64, old's forest weights were float32)",
              "",
