@@ -3,8 +3,8 @@
     python scripts/bench.py [--quick] [--only forest,render,...] [--report runs/report_cpu]
 
 Sections: forest (evaluation speed, float32 precision), render (CPU rasteriser against the
-dense reference), data (loading), data_gen (synthetic dataset), data_gen_paper (the paper-scale
-one, extrapolated from a reduced run), stream (bytes, decode
+dense reference), train (training iteration, f6907ae against this tree), data (loading), data_gen (synthetic dataset),
+data_gen_paper (the paper-scale one, extrapolated from a reduced run), stream (bytes, decode
 speed), blender (import, slider, frame change), and the training/evaluation figures read
 from an evaluation report folder written by scripts/evaluate.py.
 """
@@ -19,7 +19,7 @@ import traceback
 
 import _bootstrap
 
-SECTIONS = ["forest", "render", "data", "data_gen", "data_gen_paper", "stream", "blender"]
+SECTIONS = ["forest", "render", "train", "data", "data_gen", "data_gen_paper", "stream", "blender"]
 ORDER = SECTIONS + ["gpu"]
 
 

@@ -8,7 +8,7 @@
 
 --preset paper: 16 cameras at 550x802 px, 10 sequences of 4 frames (9 train, 1 novel-expression
 test; camera 8 held out), the 8192-face paper-scale template (FLAME-like uneven density) and images
-ray-cast from its 16x finer displaced surface (core/synthetic.py paper_head), two worker processes.
+ray-cast from its 16x finer displaced surface (core/synthetic/head.py paper_head), two worker processes.
 Options given explicitly override the preset's.
 
 Writes canonical_mesh.npz, meshes/, images/, fg_masks/, transforms_{train,val,test}.json,

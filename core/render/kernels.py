@@ -244,6 +244,38 @@ def _alpha(o, power, cut):
 
 
 @njit(cache=True)
+def _alpha_g(o, power, gauss, cut):
+    """_alpha with exp(power) supplied (rows step it by a recurrence, see _row_start)."""
+    if power < cut or power > 0.0:
+        return 0.0, 0.0, False
+    alpha = o * gauss
+    if alpha < ALPHA_MIN:
+        return 0.0, gauss, False
+    if alpha > ALPHA_MAX:
+        return ALPHA_MAX, gauss, True
+    return alpha, gauss, False
+
+
+@njit(cache=True)
+def _row_start(dy, u, ca, cb, cc, a):
+    """power, its step to the next column, exp of both at column a of a row.
+
+    Along a row power is quadratic in dx, so power(dx + 1) = power(dx) + step with step
+    falling by ca per column, and exp(power) follows as gauss *= exp(step), exp(step) *=
+    exp(-ca): three exps per row instead of one per pixel. With eps2d > 0 the conic is
+    bounded (ca <= 1/eps2d) and a chord stays inside one tile, so nothing overflows; the
+    product drifts by a few ulps over a tile row. Forward and backward walk the same chord
+    from the same column, so they see the same values (and skip the same pixels).
+    """
+    p_base = -0.5 * cc * dy * dy
+    p_lin = -cb * dy
+    dx = a + 0.5 - u
+    power = p_base + dx * (p_lin - 0.5 * ca * dx)
+    step = p_lin - ca * dx - 0.5 * ca
+    return power, step, math.exp(power), math.exp(step)
+
+
+@njit(cache=True)
 def _row_span(dy, u, ca, cb, cc, cut, i0, i1):
     """Columns of one pixel row whose centres lie on the ellipse's chord power >= cut, within
     [i0, i1]; empty when first > last. Bounding boxes of thin, tilted splats are mostly empty,
@@ -270,9 +302,10 @@ def _tile_bounds(t, tiles_x, width, height):
 
 @njit(cache=True)
 def _forward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, background, width, height,
-                  tiles_x, T, acc, lst, done, active, contrib_isect, image, t_final, last):
-    """Composite one tile front to back. Each Gaussian visits only the chords of its ellipse
-    inside the tile, and skips rows whose pixels have all stopped (bit masks in ``active``)."""
+                  tiles_x, T, acc, lst, done, active, contrib_isect, image, t_final, last, glevel, upto):
+    """Composite one tile front to back, Gaussians with glevel <= upto only. Each Gaussian
+    visits only the chords of its ellipse inside the tile, and skips rows whose pixels have
+    all stopped (bit masks in ``active``)."""
     n_ch = colors.shape[1]
     x0, y0, x1, y1 = _tile_bounds(t, tiles_x, width, height)
     tw = x1 - x0
@@ -288,6 +321,8 @@ def _forward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, b
     n_done = 0
     for k in range(tile_start[t], tile_start[t + 1]):
         g = ids[k]
+        if glevel[g] > upto:
+            continue
         i0 = max(rect[g, 0], x0)
         i1 = min(rect[g, 2], x1 - 1)
         j0 = max(rect[g, 1], y0)
@@ -299,6 +334,7 @@ def _forward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, b
         cc = conic[g, 2]
         o = opacities[g]
         c_g = cut[g]
+        e_ca = math.exp(-ca)
         wsum = 0.0
         c0 = colors[g, 0]
         c1 = colors[g, 1 % n_ch]
@@ -314,14 +350,18 @@ def _forward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, b
             if active[r] & (((1 << (b + 1 - x0)) - 1) ^ ((1 << (a - x0)) - 1)) == 0:
                 continue
             row = r * tw - x0
-            p_base = -0.5 * cc * dy * dy
-            p_lin = -cb * dy
+            power, step, gauss, e_step = _row_start(dy, u, ca, cb, cc, a)
             for i in range(a, b + 1):
                 p = row + i
+                pw = power
+                gs = gauss
+                power += step
+                step -= ca
+                gauss *= e_step
+                e_step *= e_ca
                 if done[p]:
                     continue
-                dx = i + 0.5 - u
-                alpha, _, _ = _alpha(o, p_base + dx * (p_lin - 0.5 * ca * dx), c_g)
+                alpha, _, _ = _alpha_g(o, pw, gs, c_g)
                 if alpha == 0.0:
                     continue
                 Tp = T[p]
@@ -342,7 +382,8 @@ def _forward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, b
                 wsum += w
                 T[p] = t_next
                 lst[p] = k
-        contrib_isect[k] = wsum
+        if contrib_isect.shape[0] > 0:
+            contrib_isect[k] = wsum
         if n_done == n_pix:
             break
     for j in range(y0, y1):
@@ -356,28 +397,35 @@ def _forward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, b
 
 @njit(parallel=_PARALLEL, cache=True)
 def raster_forward(tile_start, ids, xy, conic, opacities, cut, colors, rect, background, width, height,
-                   tiles_x):
-    """Front-to-back compositing, parallel over tiles.
+                   tiles_x, glevel, upto):
+    """Front-to-back compositing, parallel over tiles, of one image per entry of ``upto``:
+    image l composites the Gaussians g with glevel[g] <= upto[l] (levels of a forest share
+    the projection, depth order and tile lists; a level only skips entries).
 
-    Returns image [H,W,C] (background included), final transmittance [H,W], the flat index
-    (into ``ids``) of the last Gaussian composited at each pixel (-1: none), and per-Gaussian
-    contribution sum_pixels alpha*T.
+    Returns images [L,H,W,C] (background included), final transmittance [L,H,W], the flat
+    index (into ``ids``) of the last Gaussian composited at each pixel (-1: none) [L,H,W],
+    and the per-Gaussian contribution sum_pixels alpha*T of the last image.
     """
     n = xy.shape[0]
     n_ch = colors.shape[1]
     n_tiles = tile_start.shape[0] - 1
-    image = np.empty((height, width, n_ch))
-    t_final = np.empty((height, width))
-    last = np.empty((height, width), np.int64)
+    n_img = upto.shape[0]
+    image = np.empty((n_img, height, width, n_ch))
+    t_final = np.empty((n_img, height, width))
+    last = np.empty((n_img, height, width), np.int64)
     contrib_isect = np.zeros(ids.shape[0])  # pairs after a tile's early exit stay 0
+    no_contrib = np.zeros(0)
     for t in prange(n_tiles):
         T = np.empty(TILE * TILE)
         acc = np.empty((TILE * TILE, n_ch))
         lst = np.empty(TILE * TILE, np.int64)
         done = np.empty(TILE * TILE, np.bool_)
         active = np.empty(TILE, np.int64)
-        _forward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, background, width,
-                      height, tiles_x, T, acc, lst, done, active, contrib_isect, image, t_final, last)
+        for l in range(n_img):
+            _forward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, background, width,
+                          height, tiles_x, T, acc, lst, done, active,
+                          contrib_isect if l == n_img - 1 else no_contrib, image[l], t_final[l], last[l],
+                          glevel, upto[l])
     contrib = np.zeros(n)
     for k in range(ids.shape[0]):
         contrib[ids[k]] += contrib_isect[k]
@@ -387,9 +435,11 @@ def raster_forward(tile_start, ids, xy, conic, opacities, cut, colors, rect, bac
 @njit(cache=True)
 def _backward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, background, t_final,
                    last, grad_image, grad_alpha, width, height, tiles_x, T, behind, gimg, galpha, tfin,
-                   lst, row_last, gcol, grads_isect, gbg):
-    """Back-to-front recomputation of one tile (see raster_backward); rows whose pixels all
-    stopped before Gaussian k are skipped via ``row_last``."""
+                   lst, row_last, gcol, grads_isect, gbg, glevel, upto, finest):
+    """Back-to-front recomputation of one tile for the image of Gaussians with glevel <= upto
+    (see raster_backward), adding into grads_isect (and, when ``finest``, the screen-space
+    gradient into its last two columns too); rows whose pixels all stopped before Gaussian k
+    are skipped via ``row_last``."""
     n_ch = colors.shape[1]
     x0, y0, x1, y1 = _tile_bounds(t, tiles_x, width, height)
     tw = x1 - x0
@@ -411,6 +461,8 @@ def _backward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, 
                 gbg[ch] += grad_image[j, i, ch] * tn
     for k in range(k_max, tile_start[t] - 1, -1):
         g = ids[k]
+        if glevel[g] > upto:
+            continue
         i0 = max(rect[g, 0], x0)
         i1 = min(rect[g, 2], x1 - 1)
         j0 = max(rect[g, 1], y0)
@@ -422,6 +474,7 @@ def _backward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, 
         cc = conic[g, 2]
         o = opacities[g]
         c_g = cut[g]
+        e_ca = math.exp(-ca)
         gu = 0.0
         gv = 0.0
         gca = 0.0
@@ -437,14 +490,19 @@ def _backward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, 
             dy = j + 0.5 - v
             a, b = _row_span(dy, u, ca, cb, cc, c_g, i0, i1)
             row = (j - y0) * tw - x0
-            p_base = -0.5 * cc * dy * dy
-            p_lin = -cb * dy
+            power, step, gss, e_step = _row_start(dy, u, ca, cb, cc, a)
             for i in range(a, b + 1):
                 p = row + i
+                pw = power
+                gs = gss
+                power += step
+                step -= ca
+                gss *= e_step
+                e_step *= e_ca
                 if k > lst[p]:
                     continue
                 dx = i + 0.5 - u
-                alpha, gauss, clamped = _alpha(o, p_base + dx * (p_lin - 0.5 * ca * dx), c_g)
+                alpha, gauss, clamped = _alpha_g(o, pw, gs, c_g)
                 if alpha == 0.0:
                     continue
                 touched = True
@@ -467,19 +525,22 @@ def _backward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, 
                 gcb -= g_pow * dx * dy
                 gcc -= 0.5 * g_pow * dy * dy
         if touched:
-            grads_isect[k, G_U] = gu
-            grads_isect[k, G_V] = gv
-            grads_isect[k, G_CA] = gca
-            grads_isect[k, G_CB] = gcb
-            grads_isect[k, G_CC] = gcc
-            grads_isect[k, G_OPAC] = go
+            grads_isect[k, G_U] += gu
+            grads_isect[k, G_V] += gv
+            grads_isect[k, G_CA] += gca
+            grads_isect[k, G_CB] += gcb
+            grads_isect[k, G_CC] += gcc
+            grads_isect[k, G_OPAC] += go
             for ch in range(n_ch):
-                grads_isect[k, G_COLOR + ch] = gcol[ch]
+                grads_isect[k, G_COLOR + ch] += gcol[ch]
+            if finest:
+                grads_isect[k, G_COLOR + n_ch] += gu
+                grads_isect[k, G_COLOR + n_ch + 1] += gv
 
 
 @njit(parallel=_PARALLEL, cache=True)
 def raster_backward(tile_start, ids, xy, conic, opacities, cut, colors, rect, background, t_final, last,
-                    grad_image, grad_alpha, width, height, tiles_x):
+                    grad_image, grad_alpha, width, height, tiles_x, glevel, upto):
     """Back-to-front recomputation per pixel (3DGS): from the saved final T and last index,
     T before Gaussian i is T_after / (1 - alpha_i), and the colour behind it is accumulated
     as we go. Per pixel and Gaussian i (C = sum_i c_i a_i T_i + T_N bg, A = 1 - T_N):
@@ -490,12 +551,16 @@ def raster_backward(tile_start, ids, xy, conic, opacities, cut, colors, rect, ba
 
     then a = o * exp(power) (no gradient where clamped to 0.99) and
     power = -(ca dx^2 + cc dy^2)/2 - cb dx dy, dx = px - u, dy = py - v.
-    Returns per-Gaussian gradients [N, 6 + C] (layout G_*) and d/dbackground [C].
+    Images are those of raster_forward (t_final, last, grad_image, grad_alpha carry a leading
+    level axis); their gradients add up. Returns per-Gaussian gradients [N, 6 + C + 2]
+    (layout G_*, then d/du, d/dv of the last image alone) and d/dbackground [C].
     """
     n = xy.shape[0]
     n_ch = colors.shape[1]
     n_tiles = tile_start.shape[0] - 1
-    grads_isect = np.zeros((ids.shape[0], G_COLOR + n_ch))
+    n_img = upto.shape[0]
+    width_g = G_COLOR + n_ch + 2
+    grads_isect = np.zeros((ids.shape[0], width_g))
     gbg_tile = np.zeros((n_tiles, n_ch))
     for t in prange(n_tiles):
         T = np.empty(TILE * TILE)
@@ -506,13 +571,14 @@ def raster_backward(tile_start, ids, xy, conic, opacities, cut, colors, rect, ba
         lst = np.empty(TILE * TILE, np.int64)
         row_last = np.empty(TILE, np.int64)
         gcol = np.empty(n_ch)
-        _backward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, background, t_final,
-                       last, grad_image, grad_alpha, width, height, tiles_x, T, behind, gimg, galpha, tfin,
-                       lst, row_last, gcol, grads_isect, gbg_tile[t])
-    grads = np.zeros((n, G_COLOR + n_ch))
+        for l in range(n_img):
+            _backward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, background, t_final[l],
+                           last[l], grad_image[l], grad_alpha[l], width, height, tiles_x, T, behind, gimg, galpha,
+                           tfin, lst, row_last, gcol, grads_isect, gbg_tile[t], glevel, upto[l], l == n_img - 1)
+    grads = np.zeros((n, width_g))
     for k in range(ids.shape[0]):
         g = ids[k]
-        for q in range(G_COLOR + n_ch):
+        for q in range(width_g):
             grads[g, q] += grads_isect[k, q]
     gbg = np.zeros(n_ch)
     for t in range(n_tiles):

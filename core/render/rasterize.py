@@ -26,7 +26,7 @@ import torch  # noqa: E402
 from . import kernels as rk  # noqa: E402
 from ..geometry.camera import Camera  # noqa: E402
 
-__all__ = ["RenderOutput", "render", "render_numpy", "gsplat_available"]
+__all__ = ["RenderOutput", "render", "render_levels", "render_numpy", "gsplat_available"]
 
 
 @dataclass
@@ -112,8 +112,12 @@ def _tiles(camera: Camera):
 
 
 def _cpu_forward(means, quats, scales, opacities, colors, background, camera, near, eps2d,
-                 means2d_offset=None, with_depth=False):
-    """Numpy float64 forward; returns the outputs and the state the backward needs."""
+                 means2d_offset=None, with_depth=False, glevel=None, upto=None):
+    """Numpy float64 forward of one image per entry of ``upto`` (image l: Gaussians with
+    glevel <= upto[l]; default one image of all); returns images [L,H,W,C], final
+    transmittances [L,H,W], the last image's contrib, radii and the state the backward needs."""
+    if glevel is None:
+        glevel, upto = np.zeros(len(means), np.int64), np.zeros(1, np.int64)
     Rc, tc, fx, fy, cx, cy = _camera_args(camera)
     W, H = camera.width, camera.height
     lim = rk.fov_limits(W, H, fx, fy, cx, cy)
@@ -121,7 +125,7 @@ def _cpu_forward(means, quats, scales, opacities, colors, background, camera, ne
         means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, lim, W, H, float(near), float(eps2d))
     if means2d_offset is not None:
         xy += means2d_offset
-    visible = np.flatnonzero(radii)
+    visible = np.flatnonzero((radii != 0) & (glevel <= upto.max()))
     order = visible[np.argsort(depth[visible], kind="stable")].astype(np.int64)
     tiles_x, tiles_y = _tiles(camera)
     tile_start, ids = rk.bin_tiles(rect, order, tiles_x, tiles_y)
@@ -129,9 +133,10 @@ def _cpu_forward(means, quats, scales, opacities, colors, background, camera, ne
         colors = np.concatenate([colors, depth[:, None]], axis=1)
         background = np.concatenate([background, [0.0]])
     image, t_final, last, contrib = rk.raster_forward(
-        tile_start, ids, xy, conic, opacities, cut, colors, rect, background, W, H, tiles_x)
+        tile_start, ids, xy, conic, opacities, cut, colors, rect, background, W, H, tiles_x, glevel, upto)
     state = dict(xy=xy, conic=conic, cut=cut, rect=rect, radii=radii, tile_start=tile_start, ids=ids,
-                 t_final=t_final, last=last, colors=colors, background=background, lim=lim)
+                 t_final=t_final, last=last, colors=colors, background=background, lim=lim, glevel=glevel,
+                 upto=upto)
     return image, t_final, contrib, radii, state
 
 
@@ -142,10 +147,11 @@ def _cpu_backward(state, means, quats, scales, opacities, camera, eps2d, grad_im
     grads, g_bg = rk.raster_backward(
         state["tile_start"], state["ids"], state["xy"], state["conic"], opacities, state["cut"], state["colors"],
         state["rect"], state["background"], state["t_final"], state["last"], grad_image, grad_alpha,
-        camera.width, camera.height, tiles_x)
+        camera.width, camera.height, tiles_x, state["glevel"], state["upto"])
     g_uv = np.ascontiguousarray(grads[:, rk.G_U:rk.G_V + 1])
+    g_uv_last = grads[:, -2:]  # the last image's own screen-space gradient
     g_conic = np.ascontiguousarray(grads[:, rk.G_CA:rk.G_CC + 1])
-    g_colors = grads[:, rk.G_COLOR:]
+    g_colors = grads[:, rk.G_COLOR:-2]
     if with_depth:
         g_depth = np.ascontiguousarray(g_colors[:, -1])
         g_colors, g_bg = g_colors[:, :-1], g_bg[:-1]
@@ -154,16 +160,17 @@ def _cpu_backward(state, means, quats, scales, opacities, camera, eps2d, grad_im
     g_means, g_quats, g_scales = rk.project_backward(
         means, quats, scales, Rc, tc, fx, fy, state["lim"], float(eps2d), state["radii"], g_uv, g_conic,
         g_depth)
-    return g_means, g_quats, g_scales, grads[:, rk.G_OPAC], g_colors, g_bg, g_uv
+    return g_means, g_quats, g_scales, grads[:, rk.G_OPAC], g_colors, g_bg, g_uv_last
 
 
 class _RasterizeCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, colors, background, means2d, camera, near, eps2d,
-                with_depth):
+                with_depth, glevel, upto):
         arrays = [_f64(x) for x in (means, quats, scales, opacities, colors, background)]
         image, t_final, contrib, radii, state = _cpu_forward(
-            *arrays, camera, near, eps2d, means2d_offset=_f64(means2d), with_depth=with_depth)
+            *arrays, camera, near, eps2d, means2d_offset=_f64(means2d), with_depth=with_depth, glevel=glevel,
+            upto=upto)
         ctx.camera, ctx.eps2d, ctx.with_depth = camera, eps2d, with_depth
         ctx.arrays, ctx.state = arrays, state
         ctx.kinds = [(x.dtype, x.device) for x in (means, quats, scales, opacities, colors, background, means2d)]
@@ -180,8 +187,9 @@ class _RasterizeCPU(torch.autograd.Function):
         means, quats, scales, opacities, _, _ = ctx.arrays
         H, W = ctx.camera.height, ctx.camera.width
         n_out = ctx.state["colors"].shape[1]
-        g_img = _f64(grad_image) if grad_image is not None else np.zeros((H, W, n_out))
-        g_alpha = _f64(grad_alpha) if grad_alpha is not None else np.zeros((H, W))
+        n_img = len(ctx.state["upto"])
+        g_img = _f64(grad_image) if grad_image is not None else np.zeros((n_img, H, W, n_out))
+        g_alpha = _f64(grad_alpha) if grad_alpha is not None else np.zeros((n_img, H, W))
         g_means, g_quats, g_scales, g_opac, g_colors, g_bg, g_uv = _cpu_backward(
             ctx.state, means, quats, scales, opacities, ctx.camera, ctx.eps2d, g_img, g_alpha, ctx.with_depth)
 
@@ -192,7 +200,7 @@ class _RasterizeCPU(torch.autograd.Function):
             return torch.from_numpy(np.ascontiguousarray(x)).to(device=device, dtype=dtype)
 
         return (out(g_means, 0), out(g_quats, 1), out(g_scales, 2), out(g_opac, 3), out(g_colors, 4),
-                out(g_bg, 5), out(g_uv, 6), None, None, None, None)
+                out(g_bg, 5), out(g_uv, 6), None, None, None, None, None, None)
 
 
 def render_numpy(means, quats, scales, opacities, colors, camera, background=None, *, near=0.01,
@@ -204,7 +212,7 @@ def render_numpy(means, quats, scales, opacities, colors, camera, background=Non
     arrays = [_f64(x) for x in (means, quats, scales, opacities, colors)]
     bg = _f64(background) if background is not None else np.zeros(arrays[4].shape[1])
     image, t_final, contrib, _, _ = _cpu_forward(*arrays, bg, camera, near, eps2d)
-    return image.astype(np.float32), (1.0 - t_final).astype(np.float32), contrib
+    return image[0].astype(np.float32), (1.0 - t_final[0]).astype(np.float32), contrib
 
 
 # ----------------------------------------------------------------------------- gsplat (CUDA)
@@ -296,7 +304,8 @@ def render(means, quats, scales, opacities, colors, camera, background=None, *, 
     means2d = torch.zeros(n, 2, dtype=means.dtype, device=means.device, requires_grad=track)
     image, alpha, contrib, radii = _RasterizeCPU.apply(
         means, quats, scales, opacities, colors, background, means2d, camera, float(near), float(eps2d),
-        bool(return_depth))
+        bool(return_depth), None, None)
+    image, alpha = image[0], alpha[0]
     depth = None
     if return_depth:
         # Channel n_ch carries sum_i z_i alpha_i T_i; dividing by alpha gives the expected z.
@@ -304,3 +313,47 @@ def render(means, quats, scales, opacities, colors, camera, background=None, *, 
         depth = torch.where(alpha > 1e-10, acc / alpha.clamp_min(1e-10), torch.zeros_like(acc))
         image = image[..., :n_ch]
     return RenderOutput(image=image, alpha=alpha, means2d=means2d, contrib=contrib, radii=radii, depth=depth)
+
+
+def render_levels(means, quats, scales, opacities, colors, camera, background=None, *, level, upto, near=0.01,
+                  eps2d=0.3, backend="auto") -> list:
+    """Several images of nested subsets in one pass: image k shows the Gaussians whose
+    ``level`` [N] (ints, e.g. the forest level of each face) is <= ``upto[k]``, exactly as
+    ``render`` of that subset would (same order, same pixels). On the CPU the subsets share
+    projection, depth sort and tile lists; only compositing runs per image.
+
+    Returns one RenderOutput per entry of ``upto``. They share ``means2d`` (all N Gaussians),
+    whose .grad after backward is the screen-space gradient of the image with the largest
+    ``upto`` alone (the one densification reads), and ``radii``; ``contrib`` is that image's
+    and None on the others.
+    """
+    upto = [int(u) for u in upto]
+    if not upto:
+        raise ValueError("render_levels: upto must name at least one level")
+    if sorted(upto) != upto or len(set(upto)) != len(upto):
+        raise ValueError(f"render_levels: upto must be strictly increasing, got {upto}")
+    lv = np.asarray(level.detach().cpu().numpy() if isinstance(level, torch.Tensor) else level)
+    if lv.shape != (means.shape[0],) or not np.issubdtype(lv.dtype, np.integer):
+        raise ValueError(f"render_levels: level must be [N={means.shape[0]}] integers, got {lv.dtype} {list(lv.shape)}")
+    tensors = (means, quats, scales, opacities, colors) + ((background,) if background is not None else ())
+    if not all(isinstance(x, torch.Tensor) for x in tensors):
+        raise ValueError("render_levels: Gaussian parameters must be torch tensors")
+    if backend == "gsplat" or (backend == "auto" and means.is_cuda and gsplat_available()):
+        outs = []
+        for u in upto:  # gsplat renders each subset on its own
+            ids = torch.as_tensor(np.flatnonzero(lv <= u), device=means.device)
+            outs.append(render(means[ids], quats[ids], scales[ids], opacities[ids], colors[ids], camera, background,
+                               near=near, eps2d=eps2d, backend=backend))
+        return outs
+    _validate(means, quats, scales, opacities, colors, background, camera, near, eps2d)
+    n, n_ch = means.shape[0], colors.shape[1]
+    if background is None:
+        background = torch.zeros(n_ch, dtype=means.dtype, device=means.device)
+    track = torch.is_grad_enabled() and any(x.requires_grad for x in tensors)
+    means2d = torch.zeros(n, 2, dtype=means.dtype, device=means.device, requires_grad=track)
+    images, alphas, contrib, radii = _RasterizeCPU.apply(
+        means, quats, scales, opacities, colors, background, means2d, camera, float(near), float(eps2d), False,
+        np.ascontiguousarray(lv, np.int64), np.asarray(upto, np.int64))
+    last = len(upto) - 1
+    return [RenderOutput(image=images[k], alpha=alphas[k], means2d=means2d, contrib=contrib if k == last else None,
+                         radii=radii) for k in range(len(upto))]

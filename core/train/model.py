@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from . import binding_torch
+from . import binding_kernels, binding_torch
 from ..geometry import sh
 from ..avatar.avatar import PARAM_NAMES, Avatar
 from ..avatar.forest import Forest
@@ -40,7 +40,7 @@ class TorchAvatar:
         return sh.degree_of(self.params["f_rest"].shape[1]) if "f_rest" in self.params else 0
 
     def _structure_changed(self):
-        self.torch_forest = binding_torch.TorchForest(self.forest, self.device)
+        self.binding = binding_kernels.FaceBinding(self.forest)
         self.level_ids = [torch.as_tensor(self.forest.cumulative(lvl), device=self.device)
                           for lvl in range(self.forest.max_level + 1)]
 
@@ -52,9 +52,9 @@ class TorchAvatar:
         """Activated world-space Gaussians of every face for one frame's vertices [V,3];
         colours seen from ``camera_center`` up to the active SH degree."""
         p = self.params
-        W = self.torch_forest.weights(p["split_logits"])
-        t, r, s = self.torch_forest.evaluate(vertices, W)
-        means, scales, quats = binding_torch.compose(t, r, s, p["d_mu"], p["d_log_scale"], p["d_rot"])
+        # float64 numba kernels (binding_kernels); binding_torch is their test reference
+        means, scales, quats = self.binding.gaussians(vertices, p["split_logits"], p["d_mu"], p["d_log_scale"],
+                                                      p["d_rot"])
         degree = min(self.active_sh_degree, self.sh_degree) if camera_center is not None else 0
         if degree:
             c = torch.as_tensor(np.asarray(camera_center), dtype=means.dtype, device=means.device).reshape(1, 3)

@@ -24,7 +24,7 @@ from ..io.data import Dataset
 from ..io.atomic import atomic_open, atomic_savez
 from ..avatar.forest import Forest
 from .model import TorchAvatar
-from ..render.rasterize import render
+from ..render.rasterize import render, render_levels
 
 
 @dataclass
@@ -283,10 +283,11 @@ class Trainer:
         top = self.model.forest.max_level
         loss = torch.zeros(())
         finest = None
-        for lvl in levels:
-            ids = self.model.level_ids[lvl]
-            out = render(g["means"][ids], g["quats"][ids], g["scales"][ids], g["opacities"][ids], g["colors"][ids],
-                         sample.camera, self.background)
+        # One projection, sort and tile binning shared by every supervised level.
+        outs = render_levels(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], sample.camera,
+                             self.background, level=self.model.forest.level, upto=levels)
+        for lvl, out in zip(levels, outs):
+            ids = self.model.level_ids[top]  # every level's output covers all faces (means2d, radii)
             w = level_weight(c, lvl)
             if w:
                 loss = loss + w * losses.photometric(out.image, target, c.lambda_ssim)

@@ -1,0 +1,365 @@
+"""Training-iteration speed, old (commit f6907ae, before issue 18) against new, in one run.
+
+    python scripts/bench_train.py [--quick] [--write]
+
+(--write puts the section into docs/BENCHMARKS.md; scripts/bench.py --only train does too,
+with the other sections it has cached.)
+
+The old code is the f6907ae tree of core/ extracted with `git archive` into
+runs/bench_old_f6907ae (imported as its own package, so both run in this process) and is
+timed interleaved with the working tree's: rep by rep, old then new, so the machine's load
+hits both alike. Rows:
+
+- cpu preset: `Trainer.step()` (binding, every level rendered, loss, backward, Adam) on the
+  synthetic dataset (88x128 px) at 5k / 20k / 40k faces (the preset's cap).
+- paper scale: the same step on 550x802 px views (the dataset's cameras and images scaled
+  up) at ~150k faces over 5 levels, with the paper-scale supervision ("sampled": the finest
+  level and one other) and with every level supervised.
+- raster: the CPU rasteriser alone, 802x550 and 170k Gaussians (scripts/bench_render.py's
+  head scene), forward + backward.
+
+Accuracy kept: for the step rows, the first step of both runs starts from the same state
+(same seed, same forest, same parameters); the table gives the relative difference of the
+loss and of the whole parameter gradient between old and new (new computes the binding in
+float64; old ran its weight recursion in float32). For the raster row, both against the
+dense float64 reference (core/render/reference.py) on a small scene.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import sys as _sys
+
+_sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _bootstrap  # noqa: E402,F401
+
+import dataclasses  # noqa: E402
+import importlib  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+OLD_COMMIT = "f6907ae"
+OLD_DIR = os.path.join(ROOT, "runs", "bench_old_f6907ae")
+
+
+def old_package():
+    """The f6907ae core/ as package `pa_old` (extracted once; numba caches its kernels there)."""
+    pkg = os.path.join(OLD_DIR, "pa_old")
+    if not os.path.exists(os.path.join(pkg, "core", "render.py")):
+        os.makedirs(pkg, exist_ok=True)
+        tar = subprocess.run(["git", "-C", ROOT, "archive", OLD_COMMIT, "core"], check=True, capture_output=True).stdout
+        subprocess.run(["tar", "-x", "-C", pkg], input=tar, check=True)
+        open(os.path.join(pkg, "__init__.py"), "w").close()
+    if OLD_DIR not in sys.path:
+        sys.path.insert(0, OLD_DIR)
+    return importlib.import_module("pa_old.core.train"), importlib.import_module("pa_old.core.render")
+
+
+def _in(train_mod, name):
+    """Module `name` of the package train_mod belongs to (old and new each have their own)."""
+    return importlib.import_module(train_mod.__name__.rsplit(".", 1)[0] + "." + name)
+
+
+def _camera_as(cam, train_mod):
+    Camera = _in(train_mod, "camera").Camera
+    return Camera(cam.R, cam.t, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height)
+
+
+class _Views:
+    """A dataset stand-in: the training views scaled to another image size (built with the
+    Dataset and Camera of the code under test)."""
+
+    def __init__(self, data, train_mod, height, count=8):
+        import torch
+
+        Camera = _in(train_mod, "camera").Camera
+        ds = _in(train_mod, "data").Dataset(data, "train", cache_images=count)
+        self.samples = []
+        for i in np.linspace(0, len(ds) - 1, count).astype(int):
+            s = ds[int(i)]
+            c = s.camera
+            k = height / c.height
+            width = int(round(c.width * k))
+            cam = Camera(c.R, c.t, c.fx * k, c.fy * k, c.cx * k, c.cy * k, width, height)
+            img = torch.nn.functional.interpolate(torch.from_numpy(s.image).permute(2, 0, 1)[None], (height, width),
+                                                  mode="bilinear", align_corners=False)[0].permute(1, 2, 0)
+            self.samples.append(dataclasses.replace(s, camera=cam, image=np.ascontiguousarray(img.numpy())))
+        self.background = ds.background
+
+    def __len__(self):
+        return len(self.samples)
+
+    def __getitem__(self, i):
+        return self.samples[i]
+
+
+def _grow(trainer, plan):
+    """Split leaves by a fixed plan: per round, the fraction of the deepest leaves to split."""
+    rng = np.random.default_rng(123)
+    for frac in plan:
+        forest = trainer.model.forest
+        leaves = forest.leaves()
+        leaves = leaves[forest.level[leaves] == forest.max_level]
+        pick = np.sort(leaves[rng.random(len(leaves)) < frac])
+        trainer.model.split(pick)
+        trainer.opt.grow(trainer.model.params)
+    trainer._reset_accumulators()
+
+
+def _make(train_mod, data, out, supervision, plan, views=None):
+    cfg = train_mod.config_for("cpu", supervision=supervision, seed=0)
+    tr = train_mod.Trainer(data, out, cfg)
+    if views is not None:
+        tr.train = views
+    _grow(tr, plan)
+    captured = {}
+    step = tr.opt.step
+
+    def capture(params, lr_scale=None):
+        if not captured:  # a parameter nothing depends on may have no gradient (old) or zeros (new)
+            captured.update({k: (p.grad.detach().double().numpy().ravel() if p.grad is not None
+                                 else np.zeros(p.numel())) for k, p in params.items()})
+        return step(params, lr_scale)
+
+    tr.opt.step = capture
+    return tr, captured
+
+
+def bench_steps(data, label, supervision, plan, reps, height=None):
+    import torch
+
+    old_train, _ = old_package()
+    from progressive_avatars.core.train import trainer as new_train
+
+    with tempfile.TemporaryDirectory() as tmp:
+        views = [None if height is None else _Views(data, m, height) for m in (old_train, new_train)]
+        old, old_cap = _make(old_train, data, os.path.join(tmp, "old"), supervision, plan, views[0])
+        new, new_cap = _make(new_train, data, os.path.join(tmp, "new"), supervision, plan, views[1])
+        assert old.model.num_faces == new.model.num_faces
+        s_old = old.step()
+        s_new = new.step()
+        loss_err = abs(s_new["loss"] - s_old["loss"]) / abs(s_old["loss"])
+        g_old = np.concatenate([old_cap[k] for k in sorted(old_cap)])
+        g_new = np.concatenate([new_cap[k] for k in sorted(old_cap)])
+        grad_err = float(np.linalg.norm(g_new - g_old) / np.linalg.norm(g_old))
+        t_old, t_new, c_old, c_new = [], [], [], []
+        for _ in range(reps):
+            for tr, times, cpu in ((old, t_old, c_old), (new, t_new, c_new)):
+                t0, c0 = time.perf_counter(), time.process_time()
+                tr.step()
+                times.append(time.perf_counter() - t0)
+                cpu.append(time.process_time() - c0)
+        levels = len(new._levels())
+    del torch
+    return dict(label=label, faces=new.model.num_faces, levels=levels, supervision=supervision,
+                width=new.train[0].camera.width, height=new.train[0].camera.height, old=t_old, new=t_new,
+                cpu_old=c_old, cpu_new=c_new,
+                loss_err=loss_err, grad_err=grad_err)
+
+
+def bench_raster(reps):
+    import torch
+
+    from bench_render import head_camera, head_scene
+    from progressive_avatars.core.render.rasterize import render as new_render
+
+    old_train, old_render_mod = old_package()
+    cam = head_camera(802, 550)
+    old_cam = _camera_as(cam, old_train)
+    params = [torch.from_numpy(x) for x in head_scene(170_000)]
+
+    def run(fn):
+        ps = [p.clone().requires_grad_(True) for p in params]
+        t0, c0 = time.perf_counter(), time.process_time()
+        out = fn(*ps, cam)
+        ((out.image * 0.5).sum() + out.alpha.sum()).backward()
+        return (time.perf_counter() - t0, time.process_time() - c0), out
+
+    def old_render(*a):
+        return old_render_mod.render(*a[:-1], old_cam)
+
+    run(old_render)
+    run(new_render)
+    t_old, t_new = [], []
+    for _ in range(reps):
+        t_old.append(run(old_render)[0])
+        dt, out = run(new_render)
+        t_new.append(dt)
+    return dict(old=[t[0] for t in t_old], new=[t[0] for t in t_new], cpu_old=[t[1] for t in t_old],
+                cpu_new=[t[1] for t in t_new], visible=int((out.radii > 0).sum()))
+
+
+def bench_ssim(reps, size=(802, 551)):
+    """Old (11x11 window, five conv2d) against new (fused kernel) SSIM, forward + backward."""
+    import torch
+
+    old_train, _ = old_package()
+    old_ssim = _in(old_train, "losses").ssim
+    from progressive_avatars.core.train.losses import ssim as new_ssim
+
+    g = torch.Generator().manual_seed(0)
+    b = torch.rand(size + (3,), generator=g)
+    a = (0.7 * b + 0.3 * torch.rand(size + (3,), generator=g)).requires_grad_(True)
+
+    def run(fn):
+        a.grad = None
+        t0 = time.perf_counter()
+        v = fn(a, b)
+        v.backward()
+        return time.perf_counter() - t0, float(v.detach()), a.grad.clone()
+
+    _, v_old, g_old = run(old_ssim)
+    _, v_new, g_new = run(new_ssim)
+    t_old, t_new = [], []
+    for _ in range(reps):
+        t_old.append(run(old_ssim)[0])
+        t_new.append(run(new_ssim)[0])
+    return dict(old=t_old, new=t_new, value_err=abs(v_old - v_new),
+                grad_err=float((g_new - g_old).norm() / g_old.norm()), size=size)
+
+
+def raster_reference_errors():
+    """Both rasterisers against the dense float64 reference on a small head-like scene:
+    max abs image error and the worst relative gradient error over all inputs."""
+    import torch
+
+    sys.path.insert(0, os.path.join(ROOT, "tests"))
+    from bench_render import head_camera, head_scene
+    from reference_rasterizer import render_reference
+
+    from progressive_avatars.core.render.rasterize import render as new_render
+
+    old_train, old_render_mod = old_package()
+    cam = head_camera(64, 64)
+    old_cam = _camera_as(cam, old_train)
+    params = [torch.from_numpy(x) for x in head_scene(400, seed=1)]
+    params[2] = params[2] * 6.0
+    bg = torch.tensor([0.2, 0.4, 0.1])
+    g = torch.Generator().manual_seed(0)
+    wi, wa = torch.randn(64, 64, 3, generator=g, dtype=torch.float64), torch.randn(64, 64, generator=g,
+                                                                                   dtype=torch.float64)
+
+    def grads(fn, dtype, camera=cam):
+        ps = [p.detach().clone().to(dtype).requires_grad_(True) for p in params + [bg]]
+        out = fn(*ps[:5], camera, ps[5])
+        img, alpha = (out[0], out[1]) if isinstance(out, tuple) else (out.image, out.alpha)
+        ((img.double() * wi).sum() + (alpha.double() * wa).sum()).backward()
+        return img.detach().double(), [p.grad.double() for p in ps]
+
+    ref_img, ref_g = grads(render_reference, torch.float64)
+    rows = {}
+    for name, fn, camera in (("old", old_render_mod.render, old_cam), ("new", new_render, cam)):
+        img, gr = grads(fn, torch.float32, camera)
+        rel = max(float((a - b).norm() / b.norm()) for a, b in zip(gr, ref_g))
+        rows[name] = (float((img - ref_img).abs().max()), rel)
+    return rows
+
+
+def _fmt(times):
+    t = sorted(times)
+    return f"{t[0] * 1e3:.0f} / {t[len(t) // 2] * 1e3:.0f}"
+
+
+def run(quick: bool = False, data: str | None = None) -> str:
+    import numba
+    import torch
+
+    from bench_common import header
+
+    data = data or os.path.join(ROOT, "runs", "synthetic")
+    if not os.path.exists(os.path.join(data, "transforms_train.json")):
+        raise FileNotFoundError(f"{data}: no synthetic dataset; make it with scripts/make_synthetic.py --out {data}")
+    load0 = os.getloadavg()
+    reps = 3 if quick else 6
+    rows = []
+    cpu_plans = [("cpu preset, 5k faces", []), ("cpu preset, 20k faces", [1.0]),
+                 ("cpu preset, ~37k faces", [1.0, 0.35])]
+    if quick:
+        cpu_plans = cpu_plans[1:2]
+    for label, plan in cpu_plans:
+        rows.append(bench_steps(data, label, "all", plan, reps))
+        print(rows[-1]["label"], _fmt(rows[-1]["old"]), _fmt(rows[-1]["new"]), file=sys.stderr)
+    paper_plan = [1.0, 1.0, 0.45, 0.12]  # levels 0-4, ~150k faces
+    for sup in ("sampled", "all"):
+        rows.append(bench_steps(data, f"paper scale ({sup})", sup, paper_plan, max(2, reps // 2), 802))
+        print(rows[-1]["label"], _fmt(rows[-1]["old"]), _fmt(rows[-1]["new"]), file=sys.stderr)
+    raster = bench_raster(reps)
+    ref = raster_reference_errors()
+    ss = bench_ssim(reps)
+    load1 = os.getloadavg()
+    cmd = "python scripts/bench.py --only train" + (" --quick" if quick else "")
+    lines = [header("Training iteration: f6907ae (old) against this tree (new), same run", cmd),
+             f"- threads: numba {numba.get_num_threads()} ({numba.threading_layer()}), torch "
+             f"{torch.get_num_threads()}; load average {load0[0]:.1f} at the start, {load1[0]:.1f} at the end "
+             f"({os.cpu_count()} cores, shared with other jobs: read the ratios, taken from interleaved runs, "
+             "rather than the absolute times)",
+             "- old = `git archive f6907ae core` imported as its own package in the same process; each rep "
+             "runs one old step then one new step; times are min / median ms over the reps",
+             "- CPU ms: process CPU time (all threads) per iteration, min over the reps: less sensitive to "
+             "waiting for the cores than wall time, though contention still inflates it",
+             "- state: the initial avatar after a fixed split plan (children copy their parent's Gaussian), not a "
+             "trained one: its Gaussians are larger and overlap more than trained ones, so rendering costs more",
+             "- accuracy: loss and whole-gradient relative difference between old and new on the first step from "
+             "an identical state (new binds in float64, old's forest weights were float32)",
+             "",
+             "| iteration | image | faces | levels rendered | old ms (min / median) | new ms (min / median) "
+             "| speed-up (median) | old / new CPU ms | speed-up (CPU) | loss diff | gradient diff |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        speed = np.median(r["old"]) / np.median(r["new"])
+        co, cn = min(r["cpu_old"]), min(r["cpu_new"])
+        lines.append(f"| {r['label']} | {r['width']}x{r['height']} | {r['faces']:,} | {r['levels']} "
+                     f"| {_fmt(r['old'])} | {_fmt(r['new'])} | x{speed:.2f} | {co * 1e3:.0f} / {cn * 1e3:.0f} "
+                     f"| x{co / cn:.2f} | {r['loss_err']:.1e} | {r['grad_err']:.1e} |")
+    speed = np.median(raster["old"]) / np.median(raster["new"])
+    lines += [
+        f"| raster only: 802x550, 170k Gaussians ({raster['visible']:,} visible), forward + backward | 802x550 "
+        f"| - | 1 | {_fmt(raster['old'])} | {_fmt(raster['new'])} | x{speed:.2f} "
+        f"| {min(raster['cpu_old']) * 1e3:.0f} / {min(raster['cpu_new']) * 1e3:.0f} "
+        f"| x{min(raster['cpu_old']) / min(raster['cpu_new']):.2f} | - | - |",
+        "",
+        f"SSIM loss alone ({ss['size'][0]}x{ss['size'][1]}, forward + backward, min / median ms): old "
+        f"{_fmt(ss['old'])}, new {_fmt(ss['new'])} (x{np.median(ss['old']) / np.median(ss['new']):.2f}); value "
+        f"difference {ss['value_err']:.1e}, gradient relative difference {ss['grad_err']:.1e}.",
+        "",
+        "Against the dense float64 reference (64x64, 400 head-scene Gaussians, float32 inputs): old max image "
+        f"error {ref['old'][0]:.1e}, worst relative gradient error {ref['old'][1]:.1e}; new {ref['new'][0]:.1e}, "
+        f"{ref['new'][1]:.1e}.",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def write_section(text: str, path: str = os.path.join(ROOT, "docs", "BENCHMARKS.md")):
+    """Put the section into BENCHMARKS.md in place of an earlier one (or before the training
+    reports), leaving the other sections as they are."""
+    doc = open(path).read()
+    title = text.split("\n", 1)[0]
+    start = doc.find(title + "\n")
+    if start < 0:
+        start = doc.find("## Training and evaluation")
+        start = len(doc) if start < 0 else start
+        end = start
+    else:
+        nxt = doc.find("\n## ", start + len(title))
+        end = len(doc) if nxt < 0 else nxt + 1
+    new = doc[:start] + text.rstrip("\n") + "\n\n" + doc[end:]
+    with open(path + ".tmp", "w") as fh:
+        fh.write(new)
+    os.replace(path + ".tmp", path)
+
+
+if __name__ == "__main__":
+    args = _bootstrap.script_args()
+    section = run(quick="--quick" in args)
+    print(section)
+    if "--write" in args:
+        write_section(section)
