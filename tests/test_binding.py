@@ -6,6 +6,7 @@ from hypothesis.extra.numpy import arrays
 from scipy.spatial.transform import Rotation
 
 from progressive_avatars.core.avatar import binding
+from progressive_avatars.core.avatar.forest import Forest
 from progressive_avatars.core.train import binding_torch
 from tests.helpers import depth6_precision, random_forest, sphere_mesh
 

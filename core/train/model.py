@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from . import binding_kernels, binding_torch
+from . import binding_kernels
 from ..geometry import sh
 from ..avatar.avatar import PARAM_NAMES, Avatar
 from ..avatar.forest import Forest
