@@ -18,70 +18,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from .forest import Forest
+from ..geometry.rotations import quat_multiply, quat_normalize, quat_rows as _quat_rows, quat_to_rotmat, rotmat_to_quat  # noqa: F401
 
 MIN_SCALE = 1e-10  # metres; keeps degenerate faces' Gaussians valid (positive scale)
 MIN_EDGE = 1e-15  # metres; shorter edges count as zero (their direction, and its gradient, is noise)
 
 
 # -- quaternions --------------------------------------------------------------------------
-def quat_normalize(q: np.ndarray) -> np.ndarray:
-    """Unit quaternions; scaled by the largest component first, so a norm of 1e154 (whose
-    square overflows) or 1e-200 (underflows) still normalises to the right rotation. Only
-    an exactly zero quaternion, which has no direction, becomes the identity."""
-    q = np.asarray(q)
-    m = np.max(np.abs(q), axis=-1, keepdims=True)
-    u = q / np.where(m > 0, m, 1)
-    n = np.sqrt(np.sum(u * u, axis=-1, keepdims=True))
-    identity = np.zeros_like(u)
-    identity[..., 0] = 1
-    return np.where(n > 0, u / np.where(n > 0, n, 1), identity)
-
-
-def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    aw, ax, ay, az = np.moveaxis(a, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack([
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    ], axis=-1)
-
-
-def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
-    w, x, y, z = np.moveaxis(quat_normalize(q), -1, 0)
-    return np.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], axis=-1).reshape(q.shape[:-1] + (3, 3))
-
-
-def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
-    """Rotation matrices [...,3,3] -> unit quaternions wxyz with w >= 0."""
-    q = _quat_rows([[R[..., i, j] for j in range(3)] for i in range(3)])
-    return np.ascontiguousarray(np.moveaxis(q, 0, -1))
-
-
-def _quat_rows(R) -> np.ndarray:
-    """Shepperd's method on matrix entries given as arrays R[i][j] (any shape, any float
-    dtype; the GaussianEvaluator passes component-major rows): unit wxyz quaternions
-    [4,...] with w >= 0. Of the four algebraic forms it uses the one whose pivot component is
-    largest, so no division by a near-zero component ever happens."""
-    tr = R[0][0] + R[1][1] + R[2][2]
-    piv = np.stack([1 + tr, 1 + R[0][0] - R[1][1] - R[2][2], 1 - R[0][0] + R[1][1] - R[2][2],
-                    1 - R[0][0] - R[1][1] + R[2][2]])
-    k = np.argmax(piv, axis=0)
-    p = 0.5 * np.sqrt(np.maximum(np.take_along_axis(piv, k[None], 0)[0], 1e-30))
-    inv = 0.25 / p
-    a, b, c = R[2][1] - R[1][2], R[0][2] - R[2][0], R[1][0] - R[0][1]
-    d, e, f = R[0][1] + R[1][0], R[0][2] + R[2][0], R[1][2] + R[2][1]
-    cand = np.stack([[p, a * inv, b * inv, c * inv], [a * inv, p, d * inv, e * inv],
-                     [b * inv, d * inv, p, f * inv], [c * inv, e * inv, f * inv, p]])  # [4 pivots, 4, ...]
-    q = np.take_along_axis(cand, k[None, None], 0)[0]
-    q *= np.where(q[0] < 0, -1, 1).astype(q.dtype)
-    q /= np.sqrt(np.sum(q * q, axis=0))
-    return q
 
 
 # -- face frames --------------------------------------------------------------------------

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..io.safe_io import MAX_ARRAY_ELEMENTS, check_npz
+from ..geometry.rotations import axis_angle_to_matrix  # noqa: F401
 
 __all__ = [
     "FlameModelError",
@@ -561,24 +562,6 @@ def load_flame_model(path, n_shape: int | None = None) -> FlameModel:
 
 # --------------------------------------------------------------------------------------
 # Forward
-
-
-def axis_angle_to_matrix(r: np.ndarray) -> np.ndarray:
-    """Rotation matrices [...,3,3] from axis-angle vectors [...,3] (Rodrigues).
-
-    The sin/cos coefficients switch to their Taylor series near zero so that tiny angles
-    are exact to rounding (the torch twin does the same, which keeps the two in agreement).
-    """
-    r = np.asarray(r, dtype=np.float64)
-    th2 = np.sum(r * r, axis=-1)[..., None, None]
-    small = th2 < 1e-8
-    th = np.sqrt(np.where(small, 1.0, th2))
-    a = np.where(small, 1.0 - th2 / 6.0 + th2 * th2 / 120.0, np.sin(th) / th)
-    b = np.where(small, 0.5 - th2 / 24.0 + th2 * th2 / 720.0, (1.0 - np.cos(th)) / np.where(small, 1.0, th2))
-    x, y, z = r[..., 0], r[..., 1], r[..., 2]
-    o = np.zeros_like(x)
-    K = np.stack([o, -z, y, z, o, -x, -y, x, o], axis=-1).reshape(r.shape[:-1] + (3, 3))
-    return np.eye(3) + a * K + b * (K @ K)
 
 
 def _frames_of(arrays: dict) -> int:

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry.rotations import rotmat_to_quat
 from .model import FlameModel, axis_angle_to_matrix, prepare_params
 
 __all__ = ["FlameRig", "build_flame_rig", "SLIDER_LIMIT", "FLAME_BONE_NAMES", "quat_from_matrix"]
@@ -44,8 +45,6 @@ FLAME_BONE_NAMES = ("root", "neck", "jaw", "eye_0", "eye_1")  # eyes_pose[:3] dr
 
 def quat_from_matrix(R: np.ndarray) -> np.ndarray:
     """Unit quaternions (w, x, y, z) [...,4] from rotation matrices [...,3,3] (Shepperd)."""
-    from ..avatar.binding import rotmat_to_quat
-
     return rotmat_to_quat(np.asarray(R, np.float64))
 
 

@@ -11,59 +11,7 @@ import torch
 
 from ..avatar.binding import MIN_EDGE
 from ..avatar.forest import Forest
-
-
-def quat_normalize(q: torch.Tensor) -> torch.Tensor:
-    # Scaled by the largest component first (as binding.quat_normalize): a float32 norm of
-    # 1e20 squares to inf and would give a zero quaternion.
-    m = q.detach().abs().amax(-1, keepdim=True).clamp_min(torch.finfo(q.dtype).tiny)
-    u = q / m
-    return u / torch.linalg.vector_norm(u, dim=-1, keepdim=True).clamp_min(1e-12)
-
-
-def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack([
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    ], dim=-1)
-
-
-def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
-    w, x, y, z = quat_normalize(q).unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], dim=-1).reshape(q.shape[:-1] + (3, 3))
-
-
-def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
-    """Differentiable matrix -> wxyz quaternion (w >= 0), Shepperd's method as in binding.py."""
-    m = R
-    tr = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
-    piv = torch.stack([1 + tr, 1 + 2 * m[..., 0, 0] - tr, 1 + 2 * m[..., 1, 1] - tr, 1 + 2 * m[..., 2, 2] - tr], -1)
-    k = torch.argmax(piv.detach(), dim=-1, keepdim=True)
-    p = 0.5 * torch.sqrt(torch.gather(piv, -1, k)[..., 0].clamp_min(1e-30))
-    inv = 0.25 / p
-    a = m[..., 2, 1] - m[..., 1, 2]
-    b = m[..., 0, 2] - m[..., 2, 0]
-    c = m[..., 1, 0] - m[..., 0, 1]
-    d = m[..., 0, 1] + m[..., 1, 0]
-    e = m[..., 0, 2] + m[..., 2, 0]
-    f = m[..., 1, 2] + m[..., 2, 1]
-    cand = torch.stack([
-        torch.stack([p, a * inv, b * inv, c * inv], -1),
-        torch.stack([a * inv, p, d * inv, e * inv], -1),
-        torch.stack([b * inv, d * inv, p, f * inv], -1),
-        torch.stack([c * inv, e * inv, f * inv, p], -1),
-    ], -2)
-    q = torch.gather(cand, -2, k[..., None].expand(k.shape[:-1] + (1, 4)))[..., 0, :]
-    q = torch.where(q[..., :1] < 0, -q, q)
-    return quat_normalize(q)
+from ..geometry.rotations import quat_multiply, quat_normalize, quat_to_rotmat, rotmat_to_quat  # noqa: F401
 
 
 def _norm(v: torch.Tensor) -> torch.Tensor:

@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ..geometry.rotations import axis_angle_to_matrix
+
 from ..flame.model import FlameModel, load_flame_model
 
 __all__ = ["axis_angle_to_matrix_torch", "FlameTorch"]
@@ -18,19 +20,7 @@ __all__ = ["axis_angle_to_matrix_torch", "FlameTorch"]
 
 def axis_angle_to_matrix_torch(r: torch.Tensor) -> torch.Tensor:
     """Rotation matrices [...,3,3] from axis-angle [...,3]; finite gradients at r = 0."""
-    th2 = (r * r).sum(-1)[..., None, None]
-    small = th2 < 1e-8
-    # Feed a harmless 1 to sqrt/sin where the series is used: torch.where alone would still
-    # backpropagate NaN from the unused branch.
-    th2_safe = torch.where(small, torch.ones_like(th2), th2)
-    th = torch.sqrt(th2_safe)
-    a = torch.where(small, 1.0 - th2 / 6.0 + th2 * th2 / 120.0, torch.sin(th) / th)
-    b = torch.where(small, 0.5 - th2 / 24.0 + th2 * th2 / 720.0, (1.0 - torch.cos(th)) / th2_safe)
-    x, y, z = r[..., 0], r[..., 1], r[..., 2]
-    o = torch.zeros_like(x)
-    K = torch.stack([o, -z, y, z, o, -x, -y, x, o], dim=-1).reshape(r.shape[:-1] + (3, 3))
-    eye = torch.eye(3, dtype=r.dtype, device=r.device)
-    return eye + a * K + b * (K @ K)
+    return axis_angle_to_matrix(r)
 
 
 class FlameTorch(torch.nn.Module):
