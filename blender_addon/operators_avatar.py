@@ -290,6 +290,12 @@ class PA_OT_render_splats(bpy.types.Operator):
             return self._finish(context)
         return {"PASS_THROUGH"}
 
+    def cancel(self, context):  # Blender ends the modal (file load, quit): stop the render too
+        self._job.cancel()
+        context.window_manager.event_timer_remove(self._timer)
+        context.window_manager.progress_end()
+        context.workspace.status_text_set(None)
+
     def _finish(self, context):
         from . import render_job
 

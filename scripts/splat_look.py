@@ -120,7 +120,13 @@ opacity · exp(−d²/2), clamped at 0.99 like the rasteriser; back faces are tr
 each Gaussian counts once. That is the oriented ellipse with its Gaussian falloff from any
 side, independent of the hull's tessellation. Colour is the point's `color` attribute
 (scene-linear, converted from the avatar's sRGB colours) as *Emission* strength 1, mixed with
-*Transparent* by alpha: splats are unlit, as in training.
+*Transparent* by alpha: splats are unlit, as in training. Blender composites the splats in
+scene-linear light (correct for a scene with other objects and lights); the avatar was
+trained compositing sRGB-encoded colours (as the rasteriser does), so where splats are
+semi-transparent over each other the two differ slightly: that is most of the remaining
+difference in the table above. With both compositing in the same space, Cycles matches the
+rasteriser to ~30 dB on anisotropic splats at all orientations
+(`tests/test_blender_splat_look.py`).
 
 **Render settings** (*Splat Render Settings* button in the Avatar panel,
 `splat_look.configure_scene`): view transform *Standard* (AgX/Filmic would tone-map the
