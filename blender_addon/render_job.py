@@ -61,24 +61,49 @@ class RenderWorker:
         self.proc = subprocess.Popen([python, "-c", _LOADER, root], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                      stderr=subprocess.PIPE, text=True, bufsize=1, env=env)
         self._stderr = []
+        self.inbox = {}  # job id -> its messages, so several jobs can share one worker
+        self.eof = False
         threading.Thread(target=self._read, args=(self.proc.stdout, True), daemon=True).start()
         threading.Thread(target=self._read, args=(self.proc.stderr, False), daemon=True).start()
         self._next = 0
 
     def _read(self, pipe, is_stdout):
+        try:
+            self._read_lines(pipe, is_stdout)
+        except (ValueError, OSError):  # the pipe was closed by stop()
+            pass
+        if is_stdout:
+            self.messages.put({"eof": True})
+
+    def _read_lines(self, pipe, is_stdout):
         for line in pipe:
             if not is_stdout:
                 self._stderr = (self._stderr + [line.rstrip()])[-20:]
                 continue
             try:
-                self.messages.put(json.loads(line))
+                msg = json.loads(line)
             except ValueError:  # stray prints from libraries
                 continue
-        if is_stdout:
-            self.messages.put({"eof": True})
+            if isinstance(msg, dict):
+                self.messages.put(msg)
 
     def alive(self):
         return self.proc.poll() is None
+
+    def drain(self):
+        """Sort the reader thread's messages: worker state here, job messages by job id."""
+        while True:
+            try:
+                msg = self.messages.get_nowait()
+            except queue.Empty:
+                return
+            if msg.get("eof"):
+                self.eof = True
+            elif "ready" in msg:
+                self.ready = bool(msg["ready"])
+                self.error = msg.get("error", "")
+            elif "id" in msg:
+                self.inbox.setdefault(msg["id"], []).append(msg)
 
     def stderr_tail(self):
         return next((ln for ln in reversed(self._stderr) if ln.strip()), "")
@@ -153,24 +178,14 @@ class RenderJob:
         if self.state in ("done", "failed", "cancelled"):
             return self.state
         w = self.worker
-        while True:
-            try:
-                msg = w.messages.get_nowait()
-            except queue.Empty:
-                break
-            if msg.get("eof"):
-                self._fail(f"the render process ended: {w.stderr_tail() or 'no message'}")
+        w.drain()
+        if self.id is None:  # waiting for the worker to come up
+            if w.ready is False:
+                self._fail(f"the render process cannot render ({w.python}): {w.error}")
                 return self.state
-            if "ready" in msg:
-                w.ready = bool(msg["ready"])
-                if not w.ready:
-                    w.error = msg.get("error", "")
-                    self._fail(f"the render process cannot render ({w.python}): {w.error}")
-                    return self.state
+            if w.ready:
                 self._send()
-                continue
-            if msg.get("id") != self.id:
-                continue  # an earlier, abandoned job's answer
+        for msg in w.inbox.pop(self.id, []) if self.id is not None else ():
             if "error" in msg:
                 self._fail(msg["error"])
                 return self.state
@@ -187,8 +202,10 @@ class RenderJob:
             if "progress" in msg:
                 self.progress = max(self.progress, float(msg["progress"]))
                 self.message = msg.get("stage", self.message)
-        if not w.alive() and w.messages.empty():
-            self._fail(f"the render process ended: {w.stderr_tail() or 'no message'}")
+        if w.eof:  # the reader saw the end of the worker's output: nothing more will come
+            w.drain()
+            if not w.inbox.get(self.id):
+                self._fail(f"the render process ended: {w.stderr_tail() or 'no message'}")
         return self.state
 
     def wait(self, timeout=600.0, interval=0.02):

@@ -100,7 +100,7 @@ def splat_material(name=MATERIAL_NAME):
     return mat
 
 
-def configure_scene(scene, transparent_bounces=512):
+def configure_scene(scene, transparent_bounces=512, min_transparent_bounces=None):
     """Render settings the splat look needs; returns {setting: (old, new)} of what changed."""
     changed = {}
 
@@ -118,8 +118,9 @@ def configure_scene(scene, transparent_bounces=512):
             put(cy, "transparent_max_bounces", transparent_bounces, "cycles.transparent_max_bounces")
         # Past the minimum, Cycles ends paths through transparency at random (Russian
         # roulette): unbiased, but with hundreds of faint splats per pixel it is the grain.
-        if cy.min_transparent_bounces < transparent_bounces:
-            put(cy, "min_transparent_bounces", transparent_bounces, "cycles.min_transparent_bounces")
+        low = transparent_bounces if min_transparent_bounces is None else min_transparent_bounces
+        if cy.min_transparent_bounces < low:
+            put(cy, "min_transparent_bounces", low, "cycles.min_transparent_bounces")
     return changed
 
 

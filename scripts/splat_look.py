@@ -69,7 +69,7 @@ try:
     look = sys.modules.get("pa_look.blender_addon.splat_look")
     if look is None:
         import pa_look.blender_addon.splat_look as look
-    changed = look.configure_scene(sc)
+    changed = look.configure_scene(sc, **({"min_transparent_bounces": args["min_bounces"]} if args["min_bounces"] else {}))
 except ImportError:  # an older add-on: the settings its own demo used
     sc.view_settings.view_transform = "Standard"; sc.cycles.transparent_max_bounces = 128; changed = {}
 if args["filter"] > 0:
@@ -189,6 +189,7 @@ def main(argv=None):
     ap.add_argument("--samples", type=int, default=32)
     ap.add_argument("--filter", type=float, default=0.0, help="Cycles pixel filter width (0: Blender's default)")
     ap.add_argument("--root", default=os.path.dirname(HERE))
+    ap.add_argument("--min-bounces", type=int, default=0, help="Cycles min transparent bounces (0: the add-on's setting)")
     ap.add_argument("--baseline-root", help="also measure the look of this (older) add-on source tree, same run")
     ap.add_argument("--side-by-side", help="write the side-by-side PNG here (default OUT/side_by_side.png)")
     ap.add_argument("--doc", help="write the results into this markdown file's splat-look section")
@@ -219,7 +220,7 @@ def main(argv=None):
               "intr": [c.fx * k, c.fy * k, c.cx * k, c.cy * k, int(round(c.width * k)), int(round(c.height * k))]}
     frame = len(seq.vertices) // 2
     payload = {"sequence": sequence, "stream": os.path.abspath(stream), "samples": args.samples, "camera": camera,
-               "frame": frame, "filter": args.filter}
+               "frame": frame, "filter": args.filter, "min_bounces": args.min_bounces}
     child, got, g = _blender_render(args.root, payload, os.path.join(out, "new"))
     base = None
     if args.baseline_root:
