@@ -11,7 +11,9 @@ the projected ellipse with its Gaussian falloff, for any orientation and anisotr
 any side (no camera-facing trick, no dependence on the hull's tessellation). Colour comes
 from the point's linear "color" attribute as emission (no lighting, like the rasteriser),
 alpha = opacity · exp(−d²/2), and the back faces of each hull are transparent so each
-Gaussian counts once.
+Gaussian counts once. The rasteriser's 0.3 px² screen-space dilation (which training saw) is
+added as ε = 0.3·(z/f)² to each σ², within the hull; f (focal length in pixels) is a value
+node that ``configure_scene`` sets from the scene camera.
 
 Cycles composites the hulls along each ray in hit order; EEVEE needs an order-independent
 method, so the material uses Dithered (stochastic) transparency, which converges to the same
@@ -23,9 +25,11 @@ so colours are the avatar's own sRGB values).
 import bpy
 
 MATERIAL_NAME = "PA Splat"
-VERSION = 2
+VERSION = 3
 EXTENT = 3.0  # hull radius in standard deviations (the rasteriser cuts at ~3σ too)
 ALPHA_MAX = 0.99  # the rasteriser's per-splat alpha clamp
+EPS2D = 0.3  # the rasteriser's screen-space dilation (px²), which training saw
+FOCAL_NODE = "pa_focal_px"
 
 
 def _math(nt, op, a, b=None, clamp=False):
@@ -77,11 +81,30 @@ def splat_material(name=MATERIAL_NAME):
     to_obj = N("ShaderNodeVectorTransform")
     to_obj.vector_type, to_obj.convert_from, to_obj.convert_to = "VECTOR", "WORLD", "OBJECT"
     nt.links.new(geo.outputs["Incoming"], to_obj.inputs["Vector"])
-    d_hat = _vmath(nt, "NORMALIZE", to_obj.outputs["Vector"])
+    d_vec = to_obj.outputs["Vector"]
     p = tex.outputs["Object"]
-    p_len2 = _vmath(nt, "DOT_PRODUCT", p, p)
-    p_d = _vmath(nt, "DOT_PRODUCT", p, d_hat)
-    d2 = _math(nt, "SUBTRACT", p_len2, _math(nt, "MULTIPLY", p_d, p_d))
+    # The rasteriser dilates every projected Gaussian by EPS2D px² (and training saw that):
+    # in world units that is ε = EPS2D·(z/f)² added to each σ², so in the unit frame the
+    # ray metric is k_i = s_i²/(s_i² + ε) and d² = pᵀKp − (pᵀKD)²/(DᵀKD).
+    cam = N("ShaderNodeCameraData")
+    focal = N("ShaderNodeValue")
+    focal.name = focal.label = FOCAL_NODE
+    focal.outputs[0].default_value = 1e9  # no dilation until configure_scene knows the camera
+    px = _math(nt, "DIVIDE", cam.outputs["View Z Depth"], focal.outputs[0])
+    eps = _math(nt, "MULTIPLY", _math(nt, "MULTIPLY", px, px), EPS2D)
+    s_attr = N("ShaderNodeAttribute")
+    s_attr.attribute_type, s_attr.attribute_name = "INSTANCER", "scale"
+    s2 = _vmath(nt, "MULTIPLY", s_attr.outputs["Vector"], s_attr.outputs["Vector"])
+    eps_v = N("ShaderNodeCombineXYZ")
+    for axis in "XYZ":
+        nt.links.new(eps, eps_v.inputs[axis])
+    k = _vmath(nt, "DIVIDE", s2, _vmath(nt, "ADD", s2, eps_v.outputs["Vector"]))
+    kp = _vmath(nt, "MULTIPLY", p, k)
+    kd = _vmath(nt, "MULTIPLY", d_vec, k)
+    pkp = _vmath(nt, "DOT_PRODUCT", p, kp)
+    pkd = _vmath(nt, "DOT_PRODUCT", p, kd)
+    dkd = _math(nt, "MAXIMUM", _vmath(nt, "DOT_PRODUCT", d_vec, kd), 1e-30)
+    d2 = _math(nt, "SUBTRACT", pkp, _math(nt, "DIVIDE", _math(nt, "MULTIPLY", pkd, pkd), dkd))
     fall = _math(nt, "EXPONENT", _math(nt, "MULTIPLY", _math(nt, "MAXIMUM", d2, 0.0), -0.5))
     alpha = _math(nt, "MINIMUM", _math(nt, "MULTIPLY", fall, opa.outputs["Fac"]), ALPHA_MAX)
     front = _math(nt, "SUBTRACT", 1.0, geo.outputs["Backfacing"])
@@ -100,9 +123,27 @@ def splat_material(name=MATERIAL_NAME):
     return mat
 
 
+def set_focal(scene, mat=None):
+    """The scene camera's focal length in pixels, for the material's dilation (it changes
+    with the camera and the resolution: Splat Render Settings sets it again)."""
+    mat = mat or bpy.data.materials.get(MATERIAL_NAME)
+    node = mat.node_tree.nodes.get(FOCAL_NODE) if mat is not None and mat.node_tree else None
+    cam = scene.camera
+    if node is None or cam is None or cam.type != "CAMERA" or cam.data.type != "PERSP":
+        return None
+    r = scene.render
+    big = max(r.resolution_x, r.resolution_y) * r.resolution_percentage / 100.0
+    f = cam.data.lens / cam.data.sensor_width * big
+    node.outputs[0].default_value = f
+    return f
+
+
 def configure_scene(scene, transparent_bounces=512, min_transparent_bounces=None):
     """Render settings the splat look needs; returns {setting: (old, new)} of what changed."""
     changed = {}
+    f = set_focal(scene)
+    if f is not None:
+        changed["splat focal px"] = (None, round(f, 2))
 
     def put(owner, attr, value, label):
         old = getattr(owner, attr)

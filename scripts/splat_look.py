@@ -117,7 +117,13 @@ Object*, where the Gaussian is the unit normal distribution) and the view direct
 brought into that space (*Vector Transform*, World → Object, Vector), the ray passes the
 centre at squared distance d² = |P|² − (P·D̂)², and the splat's alpha is
 opacity · exp(−d²/2), clamped at 0.99 like the rasteriser; back faces are transparent, so
-each Gaussian counts once. That is the oriented ellipse with its Gaussian falloff from any
+each Gaussian counts once. The rasteriser (and so training) dilates every projected Gaussian by
+0.3 px²; the material adds the same in world units, ε = 0.3·(z/f)² on each σ² (z the view
+depth from *Camera Data*, f the camera's focal length in pixels, written into the material's
+`pa_focal_px` value by *Splat Render Settings*: press it again after changing the camera or
+the resolution). The dilation only reaches as far as the hull (3σ of the undilated splat), so
+sub-pixel splats stay a little thinner than the rasteriser draws them. That is the oriented
+ellipse with its Gaussian falloff from any
 side, independent of the hull's tessellation. Colour is the point's `color` attribute
 (scene-linear, converted from the avatar's sRGB colours) as *Emission* strength 1, mixed with
 *Transparent* by alpha: splats are unlit, as in training. Blender composites the splats in
