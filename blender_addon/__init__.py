@@ -12,10 +12,17 @@ def _load():
     return handlers, operators_avatar, operators_import, operators_train, panels, prefs, properties
 
 
+def _extra_classes():
+    # Modules added for issue 19 (splat look, non-blocking render, PLY import).
+    from . import ply_import, render_job, splat_look  # noqa: F401 (render_job: no classes)
+
+    return (*splat_look.classes, *ply_import.classes)
+
+
 def _classes():
     _, ops_avatar, ops_import, ops_train, panels, prefs, properties = _load()
     return (*properties.classes, *prefs.classes, *ops_import.classes, *ops_avatar.classes, *ops_train.classes,
-            *panels.classes)
+            *_extra_classes(), *panels.classes)
 
 
 def register():
@@ -26,6 +33,9 @@ def register():
         bpy.utils.register_class(cls)
     properties.register_props()
     bpy.types.TOPBAR_MT_file_import.append(ops_import.menu_import)
+    from . import ply_import
+
+    bpy.types.TOPBAR_MT_file_import.append(ply_import.menu_import)
     handlers.register()
 
 
@@ -35,9 +45,13 @@ def unregister():
     handlers, _, ops_import, _, _, _, properties = _load()
     handlers.unregister()
     bpy.types.TOPBAR_MT_file_import.remove(ops_import.menu_import)
+    from . import ply_import
+
+    bpy.types.TOPBAR_MT_file_import.remove(ply_import.menu_import)
     properties.unregister_props()
     for cls in reversed(_classes()):
         bpy.utils.unregister_class(cls)
-    from . import runtime
+    from . import render_job, runtime
 
     runtime.forget()
+    render_job.stop_all()

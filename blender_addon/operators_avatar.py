@@ -1,7 +1,6 @@
 """Load an avatar onto a mesh, colour faces by depth, export PLY, render splats."""
 
 import os
-import subprocess
 import tempfile
 import urllib.parse
 
@@ -247,6 +246,10 @@ class PA_OT_depth_colors(bpy.types.Operator):
 
 def current_gaussians(context, obj, world=True):
     """The Gaussians the preview shows now (this frame, this budget), as core arrays."""
+    from . import ply_import
+
+    if ply_import.is_splat_ply(obj):
+        return ply_import.current_gaussians(obj, world)
     e = runtime.entry(obj)
     if e is None:
         raise RuntimeError(obj.pa_avatar.status or "avatar not available")
@@ -301,21 +304,14 @@ class PA_OT_export_ply(bpy.types.Operator, ExportHelper):
         return {"FINISHED"}
 
 
-_LOADER = (
-    "import importlib.util, sys\n"
-    "root = sys.argv[1]\n"
-    "spec = importlib.util.spec_from_file_location('pa_ext', root + '/__init__.py', submodule_search_locations=[root])\n"
-    "m = importlib.util.module_from_spec(spec); sys.modules['pa_ext'] = m; spec.loader.exec_module(m)\n"
-    "from pa_ext.core.preview_data import render_job\n"
-    "render_job(sys.argv[2], sys.argv[3])\n"
-)
-
-
 class PA_OT_render_splats(bpy.types.Operator):
     """Render the splats with ProgressiveAvatars' own rasteriser (runs the configured Python)"""
 
     bl_idname = "render.progressive_avatars_splats"
     bl_label = "Render Splats"
+
+    wait: bpy.props.BoolProperty(name="Wait", default=False, options={"SKIP_SAVE"},
+                                 description="Block until the image is ready (scripts)")
 
     @classmethod
     def poll(cls, context):
@@ -340,26 +336,63 @@ class PA_OT_render_splats(bpy.types.Operator):
         except Exception as exc:
             self.report({"ERROR"}, f"Render splats: {exc}")
             return {"CANCELLED"}
-        tmp = tempfile.mkdtemp(prefix="pa_render_")
-        job, out = os.path.join(tmp, "job.npz"), os.path.join(tmp, "image.npy")
         world = scene.world
         bg = np.array(world.color[:3] if world else (0, 0, 0), np.float32)
-        np.savez(job, R=cam.R, t=cam.t, intr=np.array([cam.fx, cam.fy, cam.cx, cam.cy]), size=np.array([w, h]),
-                 background=bg, **g)
-        root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-        proc = subprocess.run([python, "-c", _LOADER, root, job, out], capture_output=True, text=True)
-        if proc.returncode != 0 or not os.path.isfile(out):
-            tail = (proc.stderr or proc.stdout).strip().splitlines()[-1:] or ["no output"]
-            self.report({"ERROR"}, f"Splat render failed: {tail[0]}")
+        arrays = dict(R=cam.R, t=cam.t, intr=np.array([cam.fx, cam.fy, cam.cx, cam.cy]), size=np.array([w, h]),
+                      background=bg, **g)
+        # A persistent worker renders (render_job): control returns at once; the modal
+        # timer polls it. Without a UI (timers never fire) or with wait=True it is awaited.
+        from . import render_job
+
+        try:
+            self._job = render_job.RenderJob(python, arrays)
+        except OSError as exc:
+            self.report({"ERROR"}, f"Splat render failed: cannot start {python}: {exc}")
             return {"CANCELLED"}
-        rgba = np.load(out)
-        img = bpy.data.images.get("PA Splats") or bpy.data.images.new("PA Splats", w, h, alpha=True, float_buffer=True)
-        if tuple(img.size) != (w, h):
-            img.scale(w, h)
-        rgba[..., :3] = preview_data.srgb_to_linear(rgba[..., :3])  # float images hold scene-linear values
-        img.pixels.foreach_set(np.ascontiguousarray(rgba[::-1]).ravel())  # Blender rows run bottom-up
-        img.update()
-        self.report({"INFO"}, f"Rendered {len(g['means'])} Gaussians into image 'PA Splats'")
+        self._count = len(g["means"])
+        if self.wait or bpy.app.background or context.window is None:
+            self._job.wait()
+            return self._finish(context)
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.1, window=context.window)
+        wm.modal_handler_add(self)
+        wm.progress_begin(0, 100)
+        context.workspace.status_text_set("Rendering splats… Esc to cancel")
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        job = self._job
+        if event.type == "ESC":
+            job.cancel()
+        elif event.type != "TIMER":
+            return {"PASS_THROUGH"}
+        state = job.poll()
+        context.window_manager.progress_update(int(100 * job.progress))
+        if state in ("done", "failed", "cancelled"):
+            context.window_manager.event_timer_remove(self._timer)
+            context.window_manager.progress_end()
+            context.workspace.status_text_set(None)
+            return self._finish(context)
+        return {"PASS_THROUGH"}
+
+    def cancel(self, context):  # Blender ends the modal (file load, quit): stop the render too
+        self._job.cancel()
+        context.window_manager.event_timer_remove(self._timer)
+        context.window_manager.progress_end()
+        context.workspace.status_text_set(None)
+
+    def _finish(self, context):
+        from . import render_job
+
+        job = self._job
+        if job.state == "cancelled":
+            self.report({"WARNING"}, f"Splat render {job.message}")
+            return {"CANCELLED"}
+        if job.state != "done":
+            self.report({"ERROR"}, f"Splat render failed: {job.message}")
+            return {"CANCELLED"}
+        render_job.store_image(job.rgba)
+        self.report({"INFO"}, f"Rendered {self._count} Gaussians into image 'PA Splats' in {job.seconds:.1f} s")
         return {"FINISHED"}
 
 

@@ -21,6 +21,7 @@ class PA_PT_main(_Base, bpy.types.Panel):
         col.operator("import_scene.progressive_avatars_sequence", icon="IMPORT")
         col.operator("import_scene.progressive_avatars_cameras", icon="CAMERA_DATA")
         col.operator("object.progressive_avatars_load", icon="POINTCLOUD_DATA")
+        col.operator("import_scene.progressive_avatars_splat_ply", icon="IMPORT")
         obj = context.active_object
         if obj is not None and obj.type == "MESH" and obj.pa_mesh.num_frames:
             self.layout.label(text=f"{obj.name}: {obj.pa_mesh.num_frames} frames from {obj.pa_mesh.frame_start}")
@@ -65,6 +66,7 @@ class PA_PT_avatar(_Base, bpy.types.Panel):
         row = lay.row(align=True)
         row.operator("export_scene.progressive_avatars_ply", icon="EXPORT")
         row.operator("render.progressive_avatars_splats", icon="RENDER_STILL")
+        lay.operator("render.progressive_avatars_splat_settings", icon="SHADING_RENDERED")
 
 
 class PA_PT_depth(_Base, bpy.types.Panel):

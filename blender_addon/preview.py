@@ -4,8 +4,8 @@ Points are grouped by root face (the layout the per-frame evaluator writes faste
 "rank" attribute is their stream position, and the modifier deletes those whose rank reaches
 the "Count" input, so moving the budget slider only sets one modifier input. Each remaining point instances
 an ico-sphere of radius 3 (3σ), rotated by the point's quaternion and scaled by its
-scale; the material reads colour and opacity from the instance and fades the sphere with a
-Gaussian profile of the view-projected radius.
+scale; the material (splat_look) reads colour and opacity from the instance and evaluates
+the Gaussian on each view ray, so every splat shows as its oriented ellipse.
 """
 
 import bpy
@@ -13,7 +13,7 @@ import bpy
 GROUP_NAME = "PA Splats"
 MATERIAL_NAME = "PA Splat"
 MODIFIER_NAME = "PA Splats"
-GROUP_VERSION = 1
+GROUP_VERSION = 2
 EXTENT = 3.0  # sphere radius in standard deviations
 
 # name -> (attribute type, foreach field, width)
@@ -49,69 +49,10 @@ def input_identifier(ng, name) -> str:
 
 
 def splat_material():
-    mat = bpy.data.materials.get(MATERIAL_NAME)
-    if mat is not None and mat.get("pa_version") == GROUP_VERSION:
-        return mat
-    mat = mat or bpy.data.materials.new(MATERIAL_NAME)
-    mat["pa_version"] = GROUP_VERSION
-    mat.use_nodes = True
-    if hasattr(mat, "surface_render_method"):
-        mat.surface_render_method = "BLENDED"
-    mat.use_backface_culling = True
-    nt = mat.node_tree
-    nt.nodes.clear()
-    N = nt.nodes.new
-    out = N("ShaderNodeOutputMaterial")
-    col = N("ShaderNodeAttribute")
-    col.attribute_type, col.attribute_name = "INSTANCER", "color"
-    opa = N("ShaderNodeAttribute")
-    opa.attribute_type, opa.attribute_name = "INSTANCER", "opacity"
-    geo = N("ShaderNodeNewGeometry")
-    # For a sphere, 1 - (N·I)² is the squared radius (as a fraction of the sphere's) at
-    # which the view ray passes the centre: the projected Gaussian is exp(-k²·r²/2).
-    dot = N("ShaderNodeVectorMath")
-    dot.operation = "DOT_PRODUCT"
-    _link(nt, geo.outputs["Normal"], dot.inputs[0])
-    _link(nt, geo.outputs["Incoming"], dot.inputs[1])
-    sq = N("ShaderNodeMath")
-    sq.operation = "MULTIPLY"
-    _link(nt, dot.outputs["Value"], sq.inputs[0])
-    _link(nt, dot.outputs["Value"], sq.inputs[1])
-    r2 = N("ShaderNodeMath")
-    r2.operation = "SUBTRACT"
-    r2.inputs[0].default_value = 1.0
-    _link(nt, sq.outputs[0], r2.inputs[1])
-    expo = N("ShaderNodeMath")
-    expo.operation = "MULTIPLY"
-    expo.inputs[1].default_value = -0.5 * EXTENT * EXTENT
-    _link(nt, r2.outputs[0], expo.inputs[0])
-    fall = N("ShaderNodeMath")
-    fall.operation = "EXPONENT"
-    _link(nt, expo.outputs[0], fall.inputs[0])
-    alpha = N("ShaderNodeMath")
-    alpha.operation = "MULTIPLY"
-    alpha.use_clamp = True
-    _link(nt, fall.outputs[0], alpha.inputs[0])
-    _link(nt, opa.outputs["Fac"], alpha.inputs[1])
-    # The far side of the sphere would count the same splat twice.
-    front = N("ShaderNodeMath")
-    front.operation = "SUBTRACT"
-    front.inputs[0].default_value = 1.0
-    _link(nt, geo.outputs["Backfacing"], front.inputs[1])
-    alpha2 = N("ShaderNodeMath")
-    alpha2.operation = "MULTIPLY"
-    _link(nt, alpha.outputs[0], alpha2.inputs[0])
-    _link(nt, front.outputs[0], alpha2.inputs[1])
-    emit = N("ShaderNodeEmission")
-    _link(nt, col.outputs["Color"], emit.inputs["Color"])
-    clear = N("ShaderNodeBsdfTransparent")
-    mix = N("ShaderNodeMixShader")
-    _link(nt, alpha2.outputs[0], mix.inputs[0])
-    _link(nt, clear.outputs[0], mix.inputs[1])
-    _link(nt, emit.outputs[0], mix.inputs[2])
-    _link(nt, mix.outputs[0], out.inputs["Surface"])
-    mat.diffuse_color = (0.8, 0.6, 0.5, 1.0)
-    return mat
+    # The look itself (ray-exact Gaussian falloff for Cycles and EEVEE) lives in splat_look.
+    from . import splat_look
+
+    return splat_look.splat_material(MATERIAL_NAME)
 
 
 def splat_group():

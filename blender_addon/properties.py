@@ -6,6 +6,11 @@ import bpy
 def _budget_changed(self, context):
     from . import runtime
 
+    if self.id_data.get("pa_splat_ply"):  # static PLY splats: no avatar behind them
+        from . import ply_import
+
+        ply_import.apply_budget(self.id_data)
+        return
     runtime.apply_budget(self.id_data, context)
 
 

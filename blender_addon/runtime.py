@@ -51,6 +51,8 @@ def resolve(path) -> str:
 
 def entry(obj):
     """The cache entry of a preview object, loading its avatar file if needed (or None)."""
+    if obj.get("pa_splat_ply"):  # static PLY splats (ply_import): nothing to evaluate
+        return None
     state = obj.pa_avatar
     path = resolve(state.filepath)
     key = obj.session_uid

@@ -290,7 +290,8 @@ def render_job(job_path: str, out_path: str) -> None:
 
     with np.load(job_path, allow_pickle=False) as d:
         cam = Camera(d["R"], d["t"], *[float(x) for x in d["intr"]], int(d["size"][0]), int(d["size"][1]))
-        out = render_numpy(d["means"], d["quats"], d["scales"], d["opacities"], d["colors"], cam,
+        # 3DGS clamps SH colours at 0 (PLY splats keep their exact, possibly negative, DC for export).
+        out = render_numpy(d["means"], d["quats"], d["scales"], d["opacities"], np.maximum(d["colors"], 0), cam,
                            d["background"])
     image, alpha = out[0], out[1]
     rgba = np.concatenate([np.asarray(image, np.float32), np.asarray(alpha, np.float32)[..., None]], -1)

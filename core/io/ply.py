@@ -202,3 +202,21 @@ def read_ply(path) -> dict:
         "opacities": (1.0 / (1.0 + np.exp(-np.asarray(v["opacity"], np.float64)))).astype(np.float32),
         "colors": np.maximum(0.5 + SH_C0 * col("f_dc_0", "f_dc_1", "f_dc_2"), 0.0).astype(np.float32),
     }
+
+
+# -- static splats in the Blender preview -------------------------------------------------
+def importance_order(gaussians: dict) -> np.ndarray:
+    """Gaussian indices, most important first, for a PLY that has no stream order: opacity
+    times ellipsoid volume (what a splat contributes to the image, up to its footprint);
+    ties keep file order."""
+    s = np.asarray(gaussians["scales"], np.float64)
+    # Volumes in log space: products of three tiny scales underflow float32.
+    key = np.log(np.maximum(np.asarray(gaussians["opacities"], np.float64), 1e-12)) + \
+        np.log(np.maximum(s, 1e-30)).sum(axis=1)
+    return np.argsort(-key, kind="stable")
+
+
+def splat_ply_bytes(count: int, k_rest: int) -> int:
+    """File size of a PLY holding ``count`` Gaussians with ``k_rest`` SH coefficients per
+    channel (what a budget of ``count`` would cost on disk)."""
+    return len(ply_header(count, k_rest)) + count * 4 * (len(PROPERTIES) + 3 * k_rest)

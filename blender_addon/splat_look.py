@@ -1,0 +1,183 @@
+"""The splat look in Cycles and EEVEE: each Gaussian drawn as its own 3D Gaussian seen along
+the view ray, composited front to back with its opacity.
+
+Geometry Nodes instances a closed hull (an ico-sphere of radius 3σ in the Gaussian's own
+frame) on every point, rotated by its quaternion and scaled by its scales; the hull is only a
+proxy that bounds where the Gaussian is visible. The material evaluates the Gaussian
+exactly on the ray that hits the hull's front face: in the instance's object space (where the
+Gaussian is the unit normal distribution) a ray through P with direction D passes the centre
+at squared distance d² = |P|² − (P·D̂)², and the ray's peak response is exp(−d²/2). That is
+the projected ellipse with its Gaussian falloff, for any orientation and anisotropy and from
+any side (no camera-facing trick, no dependence on the hull's tessellation). Colour comes
+from the point's linear "color" attribute as emission (no lighting, like the rasteriser),
+alpha = opacity · exp(−d²/2), and the back faces of each hull are transparent so each
+Gaussian counts once. The rasteriser's 0.3 px² screen-space dilation (which training saw) is
+added as ε = 0.3·(z/f)² to each σ², within the hull; f (focal length in pixels) is a value
+node that ``configure_scene`` sets from the scene camera.
+
+Cycles composites the hulls along each ray in hit order; EEVEE needs an order-independent
+method, so the material uses Dithered (stochastic) transparency, which converges to the same
+compositing with enough render samples. ``configure_scene`` sets what a correct render needs
+(enough transparent bounces for hundreds of overlapping splats, the Standard view transform
+so colours are the avatar's own sRGB values).
+"""
+
+import bpy
+
+MATERIAL_NAME = "PA Splat"
+VERSION = 3
+EXTENT = 3.0  # hull radius in standard deviations (the rasteriser cuts at ~3σ too)
+ALPHA_MAX = 0.99  # the rasteriser's per-splat alpha clamp
+EPS2D = 0.3  # the rasteriser's screen-space dilation (px²), which training saw
+FOCAL_NODE = "pa_focal_px"
+
+
+def _math(nt, op, a, b=None, clamp=False):
+    node = nt.nodes.new("ShaderNodeMath")
+    node.operation = op
+    node.use_clamp = clamp
+    for i, v in enumerate((a, b)):
+        if v is None:
+            continue
+        if isinstance(v, (int, float)):
+            node.inputs[i].default_value = float(v)
+        else:
+            nt.links.new(v, node.inputs[i])
+    return node.outputs[0]
+
+
+def _vmath(nt, op, a, b=None):
+    node = nt.nodes.new("ShaderNodeVectorMath")
+    node.operation = op
+    nt.links.new(a, node.inputs[0])
+    if b is not None:
+        nt.links.new(b, node.inputs[1])
+    return node.outputs["Value"] if op in ("DOT_PRODUCT", "LENGTH") else node.outputs["Vector"]
+
+
+def splat_material(name=MATERIAL_NAME):
+    """The splat material (rebuilt when an older version is found under the same name)."""
+    mat = bpy.data.materials.get(name)
+    if mat is not None and mat.get("pa_version") == VERSION:
+        return mat
+    mat = mat or bpy.data.materials.new(name)
+    mat["pa_version"] = VERSION
+    mat.use_nodes = True
+    if hasattr(mat, "surface_render_method"):  # EEVEE: order-independent transparency
+        mat.surface_render_method = "DITHERED"
+    if hasattr(mat, "use_transparent_shadow"):
+        mat.use_transparent_shadow = True
+    mat.use_backface_culling = True  # EEVEE viewport; the shader also drops back faces for Cycles
+    nt = mat.node_tree
+    nt.nodes.clear()
+    N = nt.nodes.new
+    out = N("ShaderNodeOutputMaterial")
+    col = N("ShaderNodeAttribute")
+    col.attribute_type, col.attribute_name = "INSTANCER", "color"
+    opa = N("ShaderNodeAttribute")
+    opa.attribute_type, opa.attribute_name = "INSTANCER", "opacity"
+    tex = N("ShaderNodeTexCoord")  # "Object": the hit point in the instance's unit-Gaussian frame
+    geo = N("ShaderNodeNewGeometry")
+    to_obj = N("ShaderNodeVectorTransform")
+    to_obj.vector_type, to_obj.convert_from, to_obj.convert_to = "VECTOR", "WORLD", "OBJECT"
+    nt.links.new(geo.outputs["Incoming"], to_obj.inputs["Vector"])
+    d_vec = to_obj.outputs["Vector"]
+    p = tex.outputs["Object"]
+    # The rasteriser dilates every projected Gaussian by EPS2D px² (and training saw that):
+    # in world units that is ε = EPS2D·(z/f)² added to each σ², so in the unit frame the
+    # ray metric is k_i = s_i²/(s_i² + ε) and d² = pᵀKp − (pᵀKD)²/(DᵀKD).
+    cam = N("ShaderNodeCameraData")
+    focal = N("ShaderNodeValue")
+    focal.name = focal.label = FOCAL_NODE
+    focal.outputs[0].default_value = 1e9  # no dilation until configure_scene knows the camera
+    px = _math(nt, "DIVIDE", cam.outputs["View Z Depth"], focal.outputs[0])
+    eps = _math(nt, "MULTIPLY", _math(nt, "MULTIPLY", px, px), EPS2D)
+    s_attr = N("ShaderNodeAttribute")
+    s_attr.attribute_type, s_attr.attribute_name = "INSTANCER", "scale"
+    s2 = _vmath(nt, "MULTIPLY", s_attr.outputs["Vector"], s_attr.outputs["Vector"])
+    eps_v = N("ShaderNodeCombineXYZ")
+    for axis in "XYZ":
+        nt.links.new(eps, eps_v.inputs[axis])
+    k = _vmath(nt, "DIVIDE", s2, _vmath(nt, "ADD", s2, eps_v.outputs["Vector"]))
+    kp = _vmath(nt, "MULTIPLY", p, k)
+    kd = _vmath(nt, "MULTIPLY", d_vec, k)
+    pkp = _vmath(nt, "DOT_PRODUCT", p, kp)
+    pkd = _vmath(nt, "DOT_PRODUCT", p, kd)
+    dkd = _math(nt, "MAXIMUM", _vmath(nt, "DOT_PRODUCT", d_vec, kd), 1e-30)
+    d2 = _math(nt, "SUBTRACT", pkp, _math(nt, "DIVIDE", _math(nt, "MULTIPLY", pkd, pkd), dkd))
+    fall = _math(nt, "EXPONENT", _math(nt, "MULTIPLY", _math(nt, "MAXIMUM", d2, 0.0), -0.5))
+    alpha = _math(nt, "MINIMUM", _math(nt, "MULTIPLY", fall, opa.outputs["Fac"]), ALPHA_MAX)
+    front = _math(nt, "SUBTRACT", 1.0, geo.outputs["Backfacing"])
+    alpha = _math(nt, "MULTIPLY", alpha, front)
+    emit = N("ShaderNodeEmission")
+    nt.links.new(col.outputs["Color"], emit.inputs["Color"])
+    clear = N("ShaderNodeBsdfTransparent")
+    mix = N("ShaderNodeMixShader")
+    nt.links.new(alpha, mix.inputs[0])
+    nt.links.new(clear.outputs[0], mix.inputs[1])
+    nt.links.new(emit.outputs[0], mix.inputs[2])
+    nt.links.new(mix.outputs[0], out.inputs["Surface"])
+    for i, node in enumerate(nt.nodes):
+        node.location = (180 * (i % 7), -180 * (i // 7))
+    mat.diffuse_color = (0.8, 0.6, 0.5, 1.0)
+    return mat
+
+
+def set_focal(scene, mat=None):
+    """The scene camera's focal length in pixels, for the material's dilation (it changes
+    with the camera and the resolution: Splat Render Settings sets it again)."""
+    mat = mat or bpy.data.materials.get(MATERIAL_NAME)
+    node = mat.node_tree.nodes.get(FOCAL_NODE) if mat is not None and mat.node_tree else None
+    cam = scene.camera
+    if node is None or cam is None or cam.type != "CAMERA" or cam.data.type != "PERSP":
+        return None
+    r = scene.render
+    big = max(r.resolution_x, r.resolution_y) * r.resolution_percentage / 100.0
+    f = cam.data.lens / cam.data.sensor_width * big
+    node.outputs[0].default_value = f
+    return f
+
+
+def configure_scene(scene, transparent_bounces=512, min_transparent_bounces=None):
+    """Render settings the splat look needs; returns {setting: (old, new)} of what changed."""
+    changed = {}
+    f = set_focal(scene)
+    if f is not None:
+        changed["splat focal px"] = (None, round(f, 2))
+
+    def put(owner, attr, value, label):
+        old = getattr(owner, attr)
+        if old != value:
+            setattr(owner, attr, value)
+            changed[label] = (old, value)
+
+    put(scene.view_settings, "view_transform", "Standard", "view_transform")
+    put(scene.view_settings, "look", "None", "look")
+    cy = getattr(scene, "cycles", None)
+    if cy is not None:
+        if cy.transparent_max_bounces < transparent_bounces:
+            put(cy, "transparent_max_bounces", transparent_bounces, "cycles.transparent_max_bounces")
+        # Past the minimum, Cycles ends paths through transparency at random (Russian
+        # roulette): unbiased, but with hundreds of faint splats per pixel it is the grain.
+        low = transparent_bounces if min_transparent_bounces is None else min_transparent_bounces
+        if cy.min_transparent_bounces < low:
+            put(cy, "min_transparent_bounces", low, "cycles.min_transparent_bounces")
+    return changed
+
+
+class PA_OT_splat_render_settings(bpy.types.Operator):
+    """Set the scene's render settings the splat look needs (Standard view transform, enough
+    transparent bounces for overlapping splats)"""
+
+    bl_idname = "render.progressive_avatars_splat_settings"
+    bl_label = "Splat Render Settings"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        changed = configure_scene(context.scene)
+        text = ", ".join(f"{k}: {a} → {b}" for k, (a, b) in changed.items()) or "already set"
+        self.report({"INFO"}, f"Splat render settings: {text}")
+        return {"FINISHED"}
+
+
+classes = (PA_OT_splat_render_settings,)
