@@ -1,0 +1,75 @@
+"""Blender session run by test_blender_ply.py (a real file so it can be read, linted and run by hand)."""
+import importlib.util, json, os, sys, traceback
+root, ply_path, out, blocked = sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[4].split(",")
+
+
+class Block:
+    """A stock Blender has none of these: importing one must fail, as it would there."""
+
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in blocked:
+            raise ImportError(f"{name} is blocked (not in a stock Blender)")
+        return None
+
+
+sys.meta_path.insert(0, Block())
+import bpy
+import numpy as np
+
+spec = importlib.util.spec_from_file_location("pa_blk", os.path.join(root, "__init__.py"),
+                                              submodule_search_locations=[root])
+pkg = importlib.util.module_from_spec(spec); sys.modules["pa_blk"] = pkg; spec.loader.exec_module(pkg)
+pkg.register()
+R = {"errors": []}
+A = {}
+try:
+    for ob in list(bpy.data.objects):
+        bpy.data.objects.remove(ob)
+    res = bpy.ops.import_scene.progressive_avatars_splat_ply(filepath=ply_path, order="IMPORTANCE")
+    obj = bpy.context.active_object
+    R["import"] = list(res)
+    st = obj.pa_avatar
+    R["total"], R["bands"] = st.total, int(obj["pa_sh_bands"])
+    me = obj.data
+    def read(name, width, dtype=np.float32, field="value"):
+        a = np.empty(len(me.vertices) * width, dtype); me.attributes[name].data.foreach_get(field, a)
+        return a.reshape(-1, width) if width > 1 else a
+    A["position"] = read("position", 3, field="vector")
+    A["rank"] = read("rank", 1, np.int32)
+    A["color"] = read("color", 4, field="color")
+    st.budget = 40.0
+    R["count_40"], R["mb_40"] = st.count, st.megabytes
+    mod = obj.modifiers["PA Splats"]
+    ng = mod.node_group
+    key = next(i.identifier for i in ng.interface.items_tree if getattr(i, "name", "") == "Count" and i.in_out == "INPUT")
+    R["modifier_count"] = mod[key]
+    dg = bpy.context.evaluated_depsgraph_get()
+    R["instances"] = sum(1 for inst in dg.object_instances if inst.is_instance and inst.parent
+                         and inst.parent.original == obj)
+    exp = os.path.join(out, "export_40.ply")
+    R["export"] = list(bpy.ops.export_scene.progressive_avatars_ply(filepath=exp, world_space=False))
+    obj.location = (1.0, 2.0, 3.0)
+    bpy.context.view_layer.update()
+    expw = os.path.join(out, "export_40_world.ply")
+    R["export_world"] = list(bpy.ops.export_scene.progressive_avatars_ply(filepath=expw, world_space=True))
+    res2 = bpy.ops.import_scene.progressive_avatars_splat_ply(filepath=ply_path, order="FILE")
+    o2 = bpy.context.active_object
+    rk = np.empty(len(o2.data.vertices), np.int32); o2.data.attributes["rank"].data.foreach_get("value", rk)
+    A["rank_file"] = rk
+    o2.pa_avatar.budget = 0.0
+    R["count_0"] = o2.pa_avatar.count
+    # A broken file: a clear message naming it, and nothing added to the scene.
+    bad = os.path.join(out, "bad.ply")
+    with open(bad, "wb") as fh:
+        fh.write(b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nend_header\n1\n2\n3\n")
+    n_before = len(bpy.data.objects), len(bpy.data.meshes)
+    try:
+        R["bad"] = list(bpy.ops.import_scene.progressive_avatars_splat_ply(filepath=bad))
+    except RuntimeError as exc:
+        R["bad_message"] = str(exc)
+    R["bad_left_scene"] = (len(bpy.data.objects), len(bpy.data.meshes)) == n_before
+    R["blocked_loaded"] = sorted(m for m in sys.modules if m.split(".")[0] in blocked)
+except Exception:
+    R["errors"].append(traceback.format_exc())
+np.savez(os.path.join(out, "arrays.npz"), **A)
+print("PA_PLY " + json.dumps(R))
