@@ -38,6 +38,9 @@ class TrainConfig:
     max_faces: int = 60000
     supervision: str = "all"  # all | sampled | finest
     uniform: bool = False  # ablation: split every leaf when the cap rises, ignore gradients
+    # Coarse levels above the template (DESIGN.md 7), as fractions of the template's face count,
+    # built once from the canonical mesh; () turns them off (the paper's levels, older runs).
+    coarse_levels: tuple = (1 / 32, 1 / 8)
     sh_degree: int = 0  # view-dependent colour bands (0..3); the stream carries degree 0
     sh_every: int = 1000  # one more active SH band every this many iterations (as 3DGS)
     flame_model: str | None = None  # the user's FLAME model, for FLAME-mode datasets (flame_param_path)
@@ -165,7 +168,13 @@ class Trainer:
         if resume and os.path.exists(self.ckpt_path):
             self._load_checkpoint()
         else:
-            self.model = TorchAvatar.from_template(self.train.faces, sh_degree=config.sh_degree)
+            coarse = None
+            if config.coarse_levels:
+                from .coarse import build_coarse
+
+                cf, counts = build_coarse(self.train.canonical_vertices, self.train.faces, config.coarse_levels)
+                coarse = (cf, counts, None) if counts else None
+            self.model = TorchAvatar.from_template(self.train.faces, sh_degree=config.sh_degree, coarse=coarse)
             self.opt = Adam(self.model.params, config.lr)
             self.rng = np.random.default_rng(config.seed)
             self.iteration = 0
@@ -190,8 +199,8 @@ class Trainer:
     def _grow(self, it: int) -> int:
         c, forest = self.cfg, self.model.forest
         cap = self.depth_cap(it)
-        leaves = forest.leaves()
-        leaves = leaves[forest.level[leaves] < cap]
+        leaves = forest.splittable()  # never coarse faces
+        leaves = leaves[forest.depth[leaves] < cap]
         if c.uniform:
             pick = leaves
         else:

@@ -32,6 +32,9 @@ def main(argv=None):
     ap.add_argument("--uniform", action="store_true", help="ablation: uniform subdivision to --max-depth")
     ap.add_argument("--level-weights", type=_weights, metavar="W0,W1,...",
                     help="per-level loss weights by level index; later levels take the last (default all 1)")
+    ap.add_argument("--coarse-levels", type=_weights, metavar="F1,F2,...",
+                    help="coarse levels above the template, as fractions of its face count (default 1/32,1/8)")
+    ap.add_argument("--no-coarse", action="store_true", help="no coarse levels (the paper's levels; ablation)")
     ap.add_argument("--grad-threshold", type=float)
     ap.add_argument("--max-faces", type=int)
     ap.add_argument("--seed", type=int)
@@ -50,7 +53,7 @@ def main(argv=None):
         cfg = config_for(args.preset, iterations=args.iterations, max_depth=args.max_depth,
                          supervision=args.supervision, level_weights=args.level_weights, uniform=args.uniform or None,
                          grad_threshold=args.grad_threshold, max_faces=args.max_faces, seed=args.seed,
-                         sh_degree=args.sh_degree, refine_flame=args.refine_flame or None,
+                         sh_degree=args.sh_degree, coarse_levels=() if args.no_coarse else args.coarse_levels, refine_flame=args.refine_flame or None,
                          flame_model=_os.path.abspath(args.flame_model) if args.flame_model else None)
         trainer = Trainer(args.data, args.out, cfg, resume=args.resume)
     except (ValueError, FileNotFoundError) as exc:

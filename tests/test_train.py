@@ -119,7 +119,7 @@ def test_level_weights_scale_each_level_loss(tiny_dataset, tmp_path):
     from progressive_avatars.core.train import level_weight
 
     def first_step(name, weights):
-        cfg = config_for("tiny", level_weights=weights, eval_every=10**6, checkpoint_every=10**6)
+        cfg = config_for("tiny", level_weights=weights, eval_every=10**6, checkpoint_every=10**6, coarse_levels=())
         tr = Trainer(tiny_dataset, str(tmp_path / name), cfg)
         p = tr.model.params
         with torch.no_grad():
@@ -212,7 +212,8 @@ def test_flame_mode_dataset_trains_and_exports(tiny_dataset, tmp_path):
     out = subprocess.run(base + ["--flame-model", model_path], capture_output=True, text=True, timeout=600, env=env)
     assert out.returncode == 0, out.stderr[-2000:]
     av = Avatar.load(run / "avatar.npz")
-    assert av.forest.num_roots == len(model.faces) and np.all(np.isfinite(av.d_mu))
+    assert len(av.forest.template_faces) == len(model.faces) and np.all(np.isfinite(av.d_mu))
+    assert av.forest.num_roots == len(model.faces) + len(av.forest.coarse_faces)
     assert json.loads((run / "config.json").read_text())["flame_model"] == model_path
     out = subprocess.run([sys.executable, os.path.join(ROOT, "scripts", "export.py"), "--run", str(run), "--ply",
                           str(tmp_path / "f.ply"), "--frame", str(min(timesteps)), "--max-views", "4"],
@@ -243,3 +244,25 @@ def test_flame_refinement_learns_resumes_and_is_saved(tiny_dataset, tmp_path):
     np.testing.assert_allclose(a["expr"][0], one(t0 % 64)["expr"][0] + a["correction_expr"][0], atol=1e-6)
     with pytest.raises(ValueError, match="FLAME-mode dataset"):
         Trainer(tiny_dataset, str(tmp_path / "mesh"), config_for("tiny", refine_flame=True))
+
+
+def test_coarse_levels_on_by_default_and_switchable(tiny_dataset, tmp_path):
+    """Coarse levels above the template (DESIGN.md 7): built from the canonical mesh on a
+    subset of its vertices, supervised by the multi-level loss, never split; off with ()."""
+    cfg = config_for("tiny", eval_every=10**6, checkpoint_every=10**6)
+    tr = Trainer(tiny_dataset, str(tmp_path / "on"), cfg)
+    f = tr.model.forest
+    F0 = len(tr.train.faces)
+    assert f.num_coarse_levels == 2 and f.level_counts().tolist() == [*f.coarse_counts, F0]
+    assert 0.015 * F0 < f.coarse_counts[0] < 0.06 * F0 and 0.08 * F0 < f.coarse_counts[1] < 0.2 * F0
+    assert set(np.unique(f.coarse_faces)) <= set(np.unique(tr.train.faces))
+    assert len(tr.model.level_ids) == 3 and len(tr.model.level_ids[0]) == f.coarse_counts[0]
+    loss = tr.step()["loss"]
+    assert np.isfinite(loss) and tr.model.params["d_mu"].shape[0] == f.num_faces
+    tr.grad_sum[:] = 1.0  # every leaf over the threshold: only template faces may split
+    tr.grad_count[:] = 1.0
+    tr._grow(cfg.grow_start)
+    f = tr.model.forest
+    assert f.level_counts()[3] > 0 and np.all(f.level[f.num_roots:] >= 3) and f.max_depth == 1
+    off = Trainer(tiny_dataset, str(tmp_path / "off"), config_for("tiny", coarse_levels=()))
+    assert off.model.forest.num_coarse_levels == 0 and off.model.forest.level_counts().tolist() == [F0]
