@@ -130,6 +130,9 @@ def main(argv=None):
     ap.add_argument("--name", default="", help="this run's name for grouping with compared runs of other seeds "
                     "(NAME_seed1=RUN ...): the report then gives mean ± sd over the seeds")
     ap.add_argument("--about", default="", help="a sentence on what this report compares (printed under its header)")
+    ap.add_argument("--benchmarks", help="also write the report into this Markdown file (docs/BENCHMARKS.md), as "
+                    "the section named by --section (replaced in place when present)")
+    ap.add_argument("--section", default="", help="section name and title for --benchmarks")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(_bootstrap.script_args() if argv is None else argv)
 
@@ -284,6 +287,14 @@ def main(argv=None):
         json.dump(report, fh, indent=1)
     with open(os.path.join(args.out, "report.md"), "w") as fh:
         fh.write(plots.report_markdown(report))
+    if args.benchmarks:
+        import bench_common
+
+        body = plots.report_markdown(report).split("\n", 1)[1].replace("\n## ", "\n### ")
+        rel = os.path.relpath(os.path.abspath(args.out), os.path.dirname(os.path.abspath(args.benchmarks)))
+        body = body.replace("](", f"]({rel}/")
+        title = args.section or os.path.basename(os.path.abspath(args.out))
+        bench_common.replace_section(args.benchmarks, title, f"## {title}\n{body}")
     print(json.dumps({"report": os.path.join(args.out, "report.json"),
                       "budgets": {k: [v["nvs"]["psnr"], v["nes"]["psnr"]] for k, v in report["budgets"].items()}}))
     return 0
