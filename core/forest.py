@@ -205,6 +205,8 @@ class Forest:
             raise IndexError("Forest.split: face index out of range")
         if not np.all(self.is_leaf()[ids]):
             raise ValueError("Forest.split: only leaf faces can be split")
+        if np.any(self.level[ids] < self.num_coarse_levels):
+            raise ValueError("Forest.split: coarse faces do not split")
         N, k = self.num_faces, len(ids)
         new = N + np.arange(3 * k).reshape(k, 3)
         self.parent = np.concatenate([self.parent, np.repeat(ids, 3)])
@@ -212,8 +214,6 @@ class Forest:
         self.split_logits = np.concatenate([self.split_logits, np.zeros((3 * k, 3), np.float32)])
         self.children = np.concatenate([self.children, np.full((3 * k, 3), -1, np.int64)])
         self.children[ids] = new
-        if np.any(self.level[ids] < self.num_coarse_levels):
-            raise ValueError("Forest.split: coarse faces do not split")
         self.level = np.concatenate([self.level, np.repeat(self.level[ids] + 1, 3).astype(np.int8)])
         self.root = np.concatenate([self.root, np.repeat(self.root[ids], 3)])
         return new
