@@ -800,9 +800,10 @@ def test_log_scale_ranges_are_clamped_and_refused():
 
 
 def test_cut_inside_every_level_with_trained_level_sizes():
-    """A forest with the level proportions of the trained default avatar (coarse levels 316 /
-    1,275, template 5,120, then 13,668 / 4,983 / 1,479 deeper faces, scaled down 8x): a cut
-    inside every level, and at every level end, reads, binds and keeps whole levels whole."""
+    """A forest with the level proportions of the trained default avatar (runs/default_coarse,
+    docs/report_prefix: coarse levels 156 / 636, template 5,120, then 7,653 / 3,387 / 3,021
+    deeper faces; here on a 1,216-face sphere): a cut inside every level, and at every level
+    end, reads, binds and keeps whole levels whole."""
     rng = np.random.default_rng(25)
     verts, faces = sphere_mesh(20, 32)  # 1,216 faces ~ the template scaled down
     from progressive_avatars.core import coarse
@@ -811,7 +812,7 @@ def test_cut_inside_every_level_with_trained_level_sizes():
     cf, counts = coarse.build_coarse(verts, faces)
     f = Forest(faces, coarse_faces=cf, coarse_counts=counts,
                root_ref=np.concatenate([np.arange(len(cf)), len(cf) + coarse.spread_order(coarse.centroids(verts, faces))]))
-    for frac in (0.56, 0.12, 0.1):  # fractions of the trained run's splits per level
+    for frac in (0.5, 0.147, 0.3):  # the trained run's fraction of each level's faces that split
         leaves = f.splittable()
         leaves = leaves[f.level[leaves] == f.max_level]
         f.split(leaves[rng.random(len(leaves)) < frac])
