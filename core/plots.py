@@ -386,7 +386,8 @@ def report_markdown(r: dict) -> str:
         cuts = list(ro["cuts"])
         lines += ["", "Order of the roots inside their levels, at cuts inside a root level (NVS PSNR / coverage; "
                   "forest: as trained, the template level in template order; spatial: spread over the head, "
-                  "core/coarse.py; importance: descending; both: spatial dyadic blocks, each by importance):", "",
+                  "core/coarse.py; importance: descending; both: spatial dyadic blocks, each by importance; auto: spatial in level 0, "
+                  "importance in the later root levels):", "",
                   "| order | " + " | ".join(f"{c} ({ro['cuts'][c]:,} G)" for c in cuts) + " |",
                   "|---|" + "---|" * len(cuts)]
         for how, vals in ro["orders"].items():

@@ -555,7 +555,7 @@ def read_header(source) -> StreamInfo:
 
 
 # -- stream order -------------------------------------------------------------------------
-ROOT_ORDERS = ("forest", "spatial", "importance", "both")
+ROOT_ORDERS = ("forest", "spatial", "importance", "both", "auto")
 
 
 def root_keys(forest: Forest, how: str = "forest", importance=None, vertices=None):
@@ -565,14 +565,16 @@ def root_keys(forest: Forest, how: str = "forest", importance=None, vertices=Non
     template order). spatial: spread-out order of the roots' centroids on `vertices` (a rest
     pose). importance: descending importance. both: the spatial order's dyadic blocks (the
     first 1, 1, 2, 4, 8, ... roots: each block spread over the head) with every block sorted by
-    descending importance."""
+    descending importance. auto: spatial in level 0 (nothing renders below it: a prefix must
+    not leave holes), importance in the later root levels (a whole head is already there:
+    the most visible faces first); measured in docs/BENCHMARKS.md (issue 16)."""
     if how not in ROOT_ORDERS:
         raise ValueError(f"root order must be one of {ROOT_ORDERS}, got {how!r}")
     if how == "forest":
         return None
     R = forest.num_roots
     lv = forest.level[:R]
-    if how in ("spatial", "both"):
+    if how in ("spatial", "both", "auto"):
         rank = np.arange(R, dtype=np.float64)
         if vertices is not None:
             from .coarse import centroids, spread_order
@@ -587,12 +589,16 @@ def root_keys(forest: Forest, how: str = "forest", importance=None, vertices=Non
                 rank[ids] = np.arange(len(ids))
         if how == "spatial":
             return rank
+        if how == "auto" and importance is None:
+            return rank
     if importance is None:
         raise ValueError(f"root order {how!r} needs the faces' importance")
     imp = np.asarray(importance, np.float64)[:R]
     top = max(float(imp.max()), 1e-300) if R else 1.0
     if how == "importance":
         return -imp
+    if how == "auto":  # level 0 by its spatial rank (all keys < 0), later levels by importance
+        return np.where(lv == 0, rank - R, -imp)
     return np.floor(np.log2(rank + 1.0)) + 0.999 * (1.0 - np.clip(imp / top, 0.0, 1.0))
 
 
@@ -707,7 +713,9 @@ def write_stream(path, avatar: Avatar, importance=None, *, quantize: bool = True
     bands is refused unless ``drop_sh`` (then the metadata says which degree was dropped).
 
     Roots (coarse levels, template level) go level by level in `root_order` (root_keys):
-    default "spatial" when rest-pose `vertices` are given, else the forest's order.
+    default "auto" when rest-pose `vertices` are given, else the forest's order. The avatar's
+    training settings (meta "config") stay out of the header (they are in the run folder):
+    time to the first whole head counts.
     ``version=2`` writes the previous format (no coarse levels, roots in template order)."""
     forest = avatar.forest
     if avatar.sh_degree and not drop_sh:
@@ -727,7 +735,7 @@ def write_stream(path, avatar: Avatar, importance=None, *, quantize: bool = True
         raise ValueError(f"write_stream: the avatar holds {forest.num_roots} of its {C + len(forest.template_faces)} "
                          "roots (a prefix); streams start from every root")
     if root_order is None:
-        root_order = "spatial" if vertices is not None else "forest"
+        root_order = "auto" if vertices is not None else "forest"
     if version == 2:
         if K or not np.array_equal(forest.root_ref, np.arange(forest.num_roots)) or root_order != "forest":
             raise ValueError("write_stream: version 2 has no coarse levels and keeps roots in template order")
@@ -745,7 +753,7 @@ def write_stream(path, avatar: Avatar, importance=None, *, quantize: bool = True
     root_ref = row_of[f2.root_ref]
     av = Avatar(f2, *(getattr(avatar, n)[order] for n in ("d_mu", "d_log_scale", "d_rot", "opacity_logit", "f_dc")))
 
-    meta = {k: v for k, v in dict(avatar.meta or {}).items() if k != "stream"}
+    meta = {k: v for k, v in dict(avatar.meta or {}).items() if k not in ("stream", "config")}
     if avatar.sh_degree:
         meta["sh_degree_dropped"] = avatar.sh_degree
     meta.update(metadata or {})

@@ -77,7 +77,7 @@ def root_order_ablation(avatar, W, rest, info, renderer) -> dict:
     return out
 
 
-def coarse_ablation(run0, data, rest, nvs_renderer, info, nvs_split, views, scratch, progress) -> dict:
+def coarse_ablation(run0, data, rest, nvs_renderer, info, nvs_split, views, scratch, progress, root_order) -> dict:
     """This run against `run0` (trained without coarse levels) at 2, 5 and 100 % of each one's
     own stream (same writer settings)."""
     from progressive_avatars.core import run as runs
@@ -87,7 +87,7 @@ def coarse_ablation(run0, data, rest, nvs_renderer, info, nvs_split, views, scra
     av0 = runs.load_run_avatar(run0)
     W0 = runs.run_importance(run0, av0, data, progress=progress)
     p0 = os.path.join(scratch, "no_coarse.pavs")
-    info0 = stream.write_stream(p0, av0, W0, quantize=True, drop_sh=True, vertices=rest,
+    info0 = stream.write_stream(p0, av0, W0, quantize=True, drop_sh=True, vertices=rest, root_order=root_order,
                                 embed_template=info.template_embedded)
     r0 = SplitRenderer(stream.read_stream(p0, template_faces=nvs_split.faces), nvs_split, views)
     out = {"run": os.path.abspath(run0), "bytes_with": info.total_bytes, "bytes_without": info0.total_bytes,
@@ -120,7 +120,7 @@ def main(argv=None):
     ap.add_argument("--views", type=int, default=24, help="views per split (spread evenly)")
     ap.add_argument("--curve-points", type=int, default=100, help="curve budgets (100: 1 %% steps)")
     ap.add_argument("--curve-views", type=int, default=8, help="NVS views per curve point")
-    ap.add_argument("--root-order", default="spatial", choices=["forest", "spatial", "importance", "both"],
+    ap.add_argument("--root-order", default="auto", choices=["forest", "spatial", "importance", "both", "auto"],
                     help="order of the roots inside their levels in the written stream")
     ap.add_argument("--embed-template", action="store_true",
                     help="embed the template in the evaluated stream (default: the receiver has it, as it has the "
@@ -213,7 +213,7 @@ def main(argv=None):
     abl["root_order"] = root_order_ablation(avatar, W, rest, info, SplitRenderer(avatar, splits["nvs"], args.views))
     if args.no_coarse_run:
         abl["coarse_vs_none"] = coarse_ablation(args.no_coarse_run, data, rest, rend["nvs"], info, splits["nvs"],
-                                                args.views, scratch, progress)
+                                                args.views, scratch, progress, args.root_order)
     n25, n50 = int(info.count_for_percent(25)), int(info.count_for_percent(50))
     rand = random_within_levels(streamed.forest.level, seed=0)[:n25]
     abl["random_order_25"] = {"ranked": report["budgets"].get("25", {}).get("nvs") or nvs.score(np.arange(n25)),

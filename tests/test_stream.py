@@ -834,3 +834,28 @@ def test_cut_inside_every_level_with_trained_level_sizes():
                                                                                    np.maximum(n - starts, 0))[: lv.max() + 1])
         d = out.forest.depth_per_root()
         assert np.count_nonzero(d >= 0) == int(np.clip(n - ends[1], 0, len(faces)))
+
+
+def test_root_orders():
+    """Inside the root levels: spatial = core/coarse.spread_order of the roots' centroids per
+    level; importance = descending; auto = spatial in level 0, importance after (what the
+    measurements in docs/BENCHMARKS.md chose); the forest's order when nothing is asked."""
+    from progressive_avatars.core import coarse
+
+    verts, av, imp = make_avatar(26, coarse=True)
+    f = av.forest
+    R, lv = f.num_roots, f.level[: f.num_roots]
+    cen = coarse.centroids(verts, f.root_faces)
+    for how in ("spatial", "importance", "auto", "both"):
+        o = S.stream_order(f, imp, S.root_keys(f, how, imp, verts))
+        assert np.array_equal(np.sort(o[:R]), np.arange(R)) and np.all(np.diff(f.level[o]) >= 0)
+        for level in range(f.num_coarse_levels + 1):
+            got = o[:R][lv[o[:R]] == level]
+            ids = np.flatnonzero(lv == level)
+            if how == "spatial" or (how == "auto" and level == 0):
+                assert np.array_equal(got, ids[coarse.spread_order(cen[ids])])
+            elif how in ("importance", "auto"):
+                assert np.all(np.diff(imp[got]) <= 0)
+    assert np.array_equal(S.stream_order(f, imp)[:R], np.arange(R))
+    with pytest.raises(ValueError, match="importance"):
+        S.root_keys(f, "importance")
