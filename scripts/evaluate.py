@@ -17,6 +17,7 @@ import argparse
 import json
 import os
 import platform
+import shlex
 import shutil
 import sys
 import tempfile
@@ -279,7 +280,7 @@ def main(argv=None):
     report["figures"] = {k: os.path.basename(v) for k, v in figs.items() if v}
     report["machine"] = f"{platform.node()} ({os.cpu_count()} CPUs, {platform.processor() or platform.machine()})"
     report["date"] = time.strftime("%Y-%m-%d %H:%M:%S")
-    report["command"] = " ".join(["python", "scripts/evaluate.py"] + (sys.argv[1:] if argv is None else argv))
+    report["command"] = shlex.join(["python", "scripts/evaluate.py"] + (sys.argv[1:] if argv is None else argv))
     report["done_when"] = plots.done_when(report)
     report["seconds"] = time.perf_counter() - t_start
     shutil.rmtree(scratch, ignore_errors=True)
