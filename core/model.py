@@ -28,7 +28,8 @@ class TorchAvatar:
     @classmethod
     def from_template(cls, faces, color=(0.5, 0.5, 0.5), opacity=0.7, log_scale=(np.log(0.5), np.log(0.1), np.log(0.5)),
                       device="cpu", sh_degree: int = 0, coarse=None) -> "TorchAvatar":
-        """`coarse`: None, or (coarse_faces, coarse_counts, root_ref) from core.coarse.build_roots."""
+        """`coarse`: None, or (coarse_faces, coarse_counts, root_ref or None), the table and
+        counts from core.coarse.build_coarse."""
         if coarse is None:
             forest = Forest(faces)
         else:

@@ -64,12 +64,12 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
     assert fh["coarse_levels"] == 2 and fh["head_gaussians"] == trained.forest.level_counts()[0]
     assert fh["header_bytes"] < fh["head_bytes"] < fh["base_bytes"] < rep["stream_bytes"]
     assert set(rep["ablations"]["root_order"]["orders"]) == {"forest", "spatial", "importance", "both", "auto"}
-    assert "psnr_non_decreasing" in rep["done_when"] and "First whole head" in md
+    assert "psnr_non_decreasing" in rep["done_when"]
     for png in ("psnr_vs_bytes.png", "strip_nvs.png", "strip_nes.png", "depth.png", "psnr_vs_time.png",
                 "quality_vs_gaussians.png"):
         assert (report_dir / png).stat().st_size > 1000, png
     md = (report_dir / "report.md").read_text()
-    assert "| 100 % |" in md
+    assert "| 100 % |" in md and "First whole head" in md
     # The tiny dataset's own summary (make_synthetic) is named in the report.
     ds = rep["data_summary"]
     assert "\nThe tiny run against itself.\n" in md
