@@ -266,3 +266,14 @@ def test_coarse_levels_on_by_default_and_switchable(tiny_dataset, tmp_path):
     assert f.level_counts()[3] > 0 and np.all(f.level[f.num_roots:] >= 3) and f.max_depth == 1
     off = Trainer(tiny_dataset, str(tmp_path / "off"), config_for("tiny", coarse_levels=()))
     assert off.model.forest.num_coarse_levels == 0 and off.model.forest.level_counts().tolist() == [F0]
+
+
+def test_coarse_weight_scales_the_coarse_levels_loss(tiny_dataset, tmp_path):
+    cfg = dict(eval_every=10**6, checkpoint_every=10**6)
+    full = Trainer(tiny_dataset, str(tmp_path / "w1"), config_for("tiny", **cfg))
+    off = Trainer(tiny_dataset, str(tmp_path / "w0"), config_for("tiny", coarse_weight=0.0, **cfg))
+    # Same view (same seed), same parameters: only the coarse levels' terms are gone (the coarse
+    # Gaussians still learn through every later level, which renders them too).
+    assert off.step()["loss"] < full.step()["loss"]
+    with pytest.raises(ValueError, match="coarse weight"):
+        config_for("tiny", coarse_weight=-1.0)
