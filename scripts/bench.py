@@ -44,6 +44,7 @@ HEADINGS = {  # how each section's heading starts, to read the current page back
     "forest": "## Forest evaluation", "render": "## CPU rasteriser", "data": "## Dataset loading",
     "data_gen": "## Synthetic dataset generation", "stream": "## Stream benchmark", "blender": "## Blender extension",
     "data_gen_paper": "## Paper-scale synthetic dataset generation", "gpu": "## GPU:",
+    "train": "## Training iteration:",
 }
 
 
@@ -53,9 +54,14 @@ def read_sections(path: str) -> dict:
     re-measuring one section on a fresh machine keeps the others."""
     if not os.path.exists(path):
         return {}
-    parts, key = {}, None
+    parts, key, marked = {}, None, False
     for line in open(path).read().split("\n"):
-        if line.startswith("## "):
+        if line.startswith("<!-- section:"):  # a block written by bench_common.replace_section
+            key, marked = "marked:" + line[len("<!-- section:"):-len(" -->")], True
+            parts[key] = []
+        elif marked:  # inside a marked block everything belongs to it, up to its end marker
+            marked = not line.startswith("<!-- /section:")
+        elif line.startswith("## "):
             found = next((k for k, h in HEADINGS.items() if line.startswith(h)), None)
             if found is None and line.startswith("## Training and evaluation (from `"):
                 found = "report:" + line.split("`")[1].rsplit("/report.json", 1)[0]

@@ -42,5 +42,21 @@ def best_of(fn, repeat=5, warmup=1):
     return times[0], times[len(times) // 2]
 
 
+def replace_section(path: str, name: str, text: str) -> None:
+    """Put `text` between the markers of section `name` in the Markdown file at `path`
+    (appended with its markers when absent), leaving the rest of the file as it is."""
+    start, end = f"<!-- section:{name} -->", f"<!-- /section:{name} -->"
+    old = open(path, encoding="utf-8").read() if os.path.exists(path) else ""
+    block = f"{start}\n{text.rstrip()}\n{end}"
+    if start in old and end in old:
+        new = old[: old.index(start)] + block + old[old.index(end) + len(end):]
+    else:
+        new = old.rstrip() + "\n\n" + block + "\n"
+    tmp = path + ".tmp"
+    with open(tmp, "w", encoding="utf-8") as fh:
+        fh.write(new)
+    os.replace(tmp, path)
+
+
 if __name__ == "__main__":
     print(machine(), sys.version)

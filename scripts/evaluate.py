@@ -1,18 +1,23 @@
 """Evaluate a trained run at several transmission budgets and write a report.
 
-    python scripts/evaluate.py --run RUN [--data DIR] --out REPORT_DIR [--budgets 5,25,50,100]
-                               [--compare uniform_d2=RUN2 --compare finest_only=RUN3 ...]
+    python scripts/evaluate.py --run RUN [--data DIR] --out REPORT_DIR [--budgets 1,2,5,10,25,50,100]
+                               [--no-coarse-run RUN0] [--compare uniform_d2=RUN2 ...]
 
-Writes REPORT_DIR/report.json, report.md and PNGs: PSNR against bytes, image strips (one
-view at each budget next to the ground truth), subdivision depth on the head, and PSNR
-against training time. Budgets are percentages of the stream's bytes; a budget's Gaussians
-are the stream's whole records within that many bytes.
+Writes REPORT_DIR/report.json, report.md and PNGs: PSNR and mask coverage against bytes (in
+1 % steps), image strips (one view at each budget next to the ground truth), subdivision
+depth on the head, and PSNR against training time. Budgets are percentages of the stream's
+bytes, header included; a budget's Gaussians are the stream's whole records within that many
+bytes. Mask coverage: the fraction of ground-truth mask pixels whose rendered alpha is >= 0.5.
+Also: bytes and time to the first whole head at 1/10/100 Mbit/s, the order of the roots inside
+their levels (forest / spatial / importance / both) at cuts inside the coarse and template
+levels, and with --no-coarse-run the same model trained without coarse levels at 2/5/100 %.
 """
 
 import argparse
 import json
 import os
 import platform
+import shlex
 import shutil
 import sys
 import tempfile
@@ -35,6 +40,64 @@ def _levels_prefixes(avatar):
 
 def _score_prefixes(renderer, counts):
     return {k: renderer.score(np.arange(n)) for k, n in counts.items()}
+
+
+RATES_MBIT = (1, 10, 100)
+
+
+def first_head(info) -> dict:
+    """Bytes (header included) and seconds at 1/10/100 Mbit/s to the first whole head (the
+    coarsest level; the template level without coarse levels) and to the whole base."""
+    out = {"coarse_levels": info.num_coarse_levels, "header_bytes": info.header_size,
+           "template_embedded": info.template_embedded,
+           "head_gaussians": info.head_records, "head_bytes": info.head_bytes,
+           "base_gaussians": info.num_roots, "base_bytes": info.base_bytes, "total_bytes": info.total_bytes}
+    for r in RATES_MBIT:
+        out[f"head_seconds_{r}mbit"] = info.head_bytes * 8 / (r * 1e6)
+        out[f"base_seconds_{r}mbit"] = info.base_bytes * 8 / (r * 1e6)
+    return out
+
+
+def root_order_ablation(avatar, W, rest, info, renderer) -> dict:
+    """NVS quality of prefixes that end inside a root level (a coarse level, the template
+    level), for each order of the roots inside their levels."""
+    from progressive_avatars.core.stream import format as stream
+
+    ends = info.level_ends()
+    K = info.num_coarse_levels
+    starts = np.concatenate([[0], ends[:-1]])
+    cuts = {}
+    for lv in range(K + 1):  # a quarter and a half into each root level
+        a, size = int(starts[lv]), int(info.level_counts[lv])
+        for frac in (0.25, 0.5):
+            cuts[f"level {lv} + {frac:.0%}"] = a + max(1, int(frac * size))
+    out = {"cuts": cuts, "orders": {}}
+    for how in stream.ROOT_ORDERS:
+        order = stream.stream_order(avatar.forest, W, stream.root_keys(avatar.forest, how, W, rest))
+        out["orders"][how] = {k: renderer.score(np.sort(order[:n]), ssim=False) for k, n in cuts.items()}
+    return out
+
+
+def coarse_ablation(run0, data, rest, nvs_renderer, info, nvs_split, views, scratch, progress, root_order) -> dict:
+    """This run against `run0` (trained without coarse levels) at 2, 5 and 100 % of each one's
+    own stream (same writer settings)."""
+    from progressive_avatars.core.io import run as runs
+    from progressive_avatars.core.stream import format as stream
+    from progressive_avatars.core.evaluate.sweep import SplitRenderer
+
+    av0 = runs.load_run_avatar(run0)
+    W0 = runs.run_importance(run0, av0, data, progress=progress)
+    p0 = os.path.join(scratch, "no_coarse.pavs")
+    info0 = stream.write_stream(p0, av0, W0, quantize=True, drop_sh=True, vertices=rest, root_order=root_order,
+                                embed_template=info.template_embedded)
+    r0 = SplitRenderer(stream.read_stream(p0, template_faces=nvs_split.faces), nvs_split, views)
+    out = {"run": os.path.abspath(run0), "bytes_with": info.total_bytes, "bytes_without": info0.total_bytes,
+           "first_head_with": first_head(info), "first_head_without": first_head(info0), "budgets": {}}
+    for b in (2, 5, 100):
+        n1, n0 = int(info.count_for_percent(b)), int(info0.count_for_percent(b))
+        out["budgets"][str(b)] = {"with": {"gaussians": n1, **nvs_renderer.score(np.arange(n1))},
+                                  "without": {"gaussians": n0, **r0.score(np.arange(n0))}}
+    return out
 
 
 def _data_summary(data) -> dict | None:
@@ -139,9 +202,17 @@ def main(argv=None):
     ap.add_argument("--data")
     ap.add_argument("--flame-model", help="FLAME model for FLAME-mode datasets (default: the run's)")
     ap.add_argument("--out", required=True)
-    ap.add_argument("--budgets", default="5,25,50,100")
+    ap.add_argument("--budgets", default="1,2,5,10,25,50,100")
+    ap.add_argument("--strips", default="1,2,5,25,100", help="budgets shown in the image strips")
     ap.add_argument("--views", type=int, default=24, help="views per split (spread evenly)")
-    ap.add_argument("--curve-points", type=int, default=20)
+    ap.add_argument("--curve-points", type=int, default=100, help="curve budgets (100: 1 %% steps)")
+    ap.add_argument("--curve-views", type=int, default=8, help="NVS views per curve point")
+    ap.add_argument("--root-order", default="auto", choices=["forest", "spatial", "importance", "both", "auto"],
+                    help="order of the roots inside their levels in the written stream")
+    ap.add_argument("--embed-template", action="store_true",
+                    help="embed the template in the evaluated stream (default: the receiver has it, as it has the "
+                         "tracked mesh that drives the avatar; FORMAT.md 2)")
+    ap.add_argument("--no-coarse-run", help="the same model trained without coarse levels (scored at 2/5/100 %%)")
     ap.add_argument("--compare", action="append", default=[], help="NAME=RUN: another run scored at 100 %%")
     ap.add_argument("--name", default="", help="this run's name for grouping with compared runs of other seeds "
                     "(NAME_seed1=RUN ...): the report then gives mean ± sd over the seeds")
@@ -156,6 +227,9 @@ def main(argv=None):
                     help="paper table: uniform-subdivision runs, NAME_seed<k> for seed k (no suffix: seed 0)")
     ap.add_argument("--adaptive", action="append", default=[], metavar="NAME=RUN",
                     help="paper table: this method with other seeds, NAME_seed<k> (this run is seed 0)")
+    ap.add_argument("--benchmarks", help="also write the report into this Markdown file (docs/BENCHMARKS.md), as "
+                    "the section named by --section (replaced in place when present)")
+    ap.add_argument("--section", default="", help="section name and title for --benchmarks")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(_bootstrap.script_args() if argv is None else argv)
 
@@ -175,6 +249,7 @@ def main(argv=None):
         data = runs.run_data_dir(args.run, args.data)
         fm = runs.run_flame_model(args.run, args.flame_model)
         splits = {"nvs": Dataset(data, "val", flame_model=fm), "nes": Dataset(data, "test", flame_model=fm)}
+        strips = [float(b) for b in args.strips.split(",") if b.strip()]
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -184,14 +259,17 @@ def main(argv=None):
     if avatar.sh_degree:
         print(f"note: the avatar has SH degree {avatar.sh_degree}; the stream (and so this report) carries its "
               "DC colour only", file=sys.stderr)
+    rest = splits["nvs"].canonical_vertices  # spread-out root order (core/avatar/coarse.py)
     info = stream.write_stream(stream_path, avatar, W, quantize=True, metadata={"run": os.path.abspath(args.run)},
-                               drop_sh=True)
+                               drop_sh=True, vertices=rest, root_order=args.root_order,
+                               embed_template=args.embed_template)
     scratch = tempfile.mkdtemp(prefix="pa_eval_")
     lossless_path = os.path.join(scratch, "lossless.pavs")  # only to measure what quantisation costs
-    stream.write_stream(lossless_path, avatar, W, quantize=False, drop_sh=True)
-    streamed = stream.read_stream(stream_path)
+    stream.write_stream(lossless_path, avatar, W, quantize=False, drop_sh=True, vertices=rest,
+                        root_order=args.root_order)
+    streamed = stream.read_stream(stream_path, template_faces=splits["nvs"].faces)
     exact = stream.read_stream(lossless_path)
-    order = stream.stream_order(avatar.forest, W)
+    order = info.order
     W_stream = W[order]
     total_bytes = os.path.getsize(stream_path)
 
@@ -210,20 +288,30 @@ def main(argv=None):
         entry["render_ms"] = entry["nvs"]["render_ms"]
         report["budgets"][f"{b:g}"] = entry
         if progress:
-            print(f"budget {b:g}%: {n} Gaussians, NVS {entry['nvs']['psnr']:.2f} dB, NES {entry['nes']['psnr']:.2f} dB")
+            print(f"budget {b:g}%: {n} Gaussians, NVS {entry['nvs']['psnr']:.2f} dB "
+                  f"(coverage {entry['nvs']['coverage']:.3f}), NES {entry['nes']['psnr']:.2f} dB")
 
-    # PSNR against bytes, many budgets (NVS, fewer views to keep it quick).
-    curve_r = SplitRenderer(streamed, splits["nvs"], max(4, args.views // 2))
+    # PSNR and coverage against bytes, many budgets (NVS, fewer views to keep it quick).
+    curve_r = SplitRenderer(streamed, splits["nvs"], args.curve_views)
     curve = []
     for b in np.linspace(100 / args.curve_points, 100, args.curve_points):
         n = int(info.count_for_percent(b))
+        sc = curve_r.score(np.arange(n), ssim=False)
         curve.append({"percent": float(b), "bytes": int(info.bytes_for_count(n)), "gaussians": n,
-                      "psnr": curve_r.score(np.arange(n))["psnr"]})
+                      "psnr": sc["psnr"], "coverage": sc["coverage"]})
     report["curve_nvs"] = curve
+    report["curve_views"] = len(curve_r.views)
+    report["first_head"] = first_head(info)
+    report["root_order"] = args.root_order
+    report["template_embedded"] = info.template_embedded
 
     # Ablations on our data.
     abl = report["ablations"]
     nvs = rend["nvs"]
+    abl["root_order"] = root_order_ablation(avatar, W, rest, info, SplitRenderer(avatar, splits["nvs"], args.views))
+    if args.no_coarse_run:
+        abl["coarse_vs_none"] = coarse_ablation(args.no_coarse_run, data, rest, rend["nvs"], info, splits["nvs"],
+                                                args.views, scratch, progress, args.root_order)
     n25, n50 = int(info.count_for_percent(25)), int(info.count_for_percent(50))
     rand = random_within_levels(streamed.forest.level, seed=0)[:n25]
     abl["random_order_25"] = {"ranked": report["budgets"].get("25", {}).get("nvs") or nvs.score(np.arange(n25)),
@@ -271,7 +359,7 @@ def main(argv=None):
     figs = {}
     figs["psnr_vs_bytes"] = plots.psnr_vs_bytes(os.path.join(args.out, "psnr_vs_bytes.png"), curve, report["budgets"])
     for k, r in rend.items():
-        figs[f"strip_{k}"] = plots.budget_strip(os.path.join(args.out, f"strip_{k}.png"), r, info, budgets)
+        figs[f"strip_{k}"] = plots.budget_strip(os.path.join(args.out, f"strip_{k}.png"), r, info, strips)
     figs["depth"] = plots.depth_picture(os.path.join(args.out, "depth.png"), streamed, splits["nes"])
     logs = {"this run": os.path.join(args.run, "metrics.jsonl")}
     logs.update({spec.partition("=")[0]: os.path.join(spec.partition("=")[2], "metrics.jsonl") for spec in args.compare})
@@ -291,7 +379,8 @@ def main(argv=None):
     report["figures"] = {k: os.path.basename(v) for k, v in figs.items() if v}
     report["machine"] = f"{platform.node()} ({os.cpu_count()} CPUs, {platform.processor() or platform.machine()})"
     report["date"] = time.strftime("%Y-%m-%d %H:%M:%S")
-    report["command"] = " ".join(["python", "scripts/evaluate.py"] + (sys.argv[1:] if argv is None else argv))
+    report["command"] = shlex.join(["python", "scripts/evaluate.py"] + (sys.argv[1:] if argv is None else argv))
+    report["done_when"] = plots.done_when(report)
     report["seconds"] = time.perf_counter() - t_start
     shutil.rmtree(scratch, ignore_errors=True)
     with open(os.path.join(args.out, "report.json"), "w") as fh:
@@ -306,6 +395,14 @@ def main(argv=None):
             json.dump(report, fh, indent=1)
         with open(os.path.join(args.out, "paper_table.md"), "w") as fh:
             fh.write(plots.paper_table_markdown(report))
+    if args.benchmarks:
+        import bench_common
+
+        body = plots.report_markdown(report).split("\n", 1)[1].replace("\n## ", "\n### ")
+        rel = os.path.relpath(os.path.abspath(args.out), os.path.dirname(os.path.abspath(args.benchmarks)))
+        body = body.replace("](", f"]({rel}/")
+        title = args.section or os.path.basename(os.path.abspath(args.out))
+        bench_common.replace_section(args.benchmarks, title, f"## {title}\n{body}")
     print(json.dumps({"report": os.path.join(args.out, "report.json"),
                       "budgets": {k: [v["nvs"]["psnr"], v["nes"]["psnr"]] for k, v in report["budgets"].items()}}))
     return 0

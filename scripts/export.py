@@ -4,8 +4,11 @@
     python scripts/export.py --run RUN --ply OUT.ply --budget 25 --frame 0 [--data DIR]
 
 The stream is ordered by importance (computed over the training views, cached in
-RUN/importance.npy). --budget is a percentage of the stream's bytes; --frame a timestep
-index of the dataset (its mesh drives the Gaussians).
+RUN/importance.npy), the roots inside their levels spread over the head (the dataset's rest
+mesh). --budget is a percentage of the stream's bytes (header included; any value in
+[0, 100]: a budget inside the coarse or template level exports what it holds, a budget with
+no whole record an empty but valid PLY, with a note); --frame a timestep index of the dataset
+(its mesh drives the Gaussians).
 """
 
 import argparse
@@ -37,8 +40,8 @@ def main(argv=None):
     args = ap.parse_args(_bootstrap.script_args() if argv is None else argv)
     if not args.stream and not args.ply:
         ap.error("nothing to do: give --stream and/or --ply")
-    if not (0.0 < args.budget <= 100.0):  # also refuses nan (every comparison is False)
-        ap.error(f"--budget is a percentage of the stream's bytes in (0, 100], got {args.budget}")
+    if not (0.0 <= args.budget <= 100.0):  # also refuses nan (every comparison is False)
+        ap.error(f"--budget is a percentage of the stream's bytes in [0, 100], got {args.budget}")
     if args.max_views < 1:
         ap.error(f"--max-views must be at least 1, got {args.max_views}")
 
@@ -54,32 +57,42 @@ def main(argv=None):
         return 2
     stream_path = args.stream or os.path.join(args.run, "avatar.pavs")
     try:
+        from progressive_avatars.core.io.data import Dataset
+
+        ds = Dataset(data, None, flame_model=runs.run_flame_model(args.run, args.flame_model))
         info = stream.write_stream(stream_path, avatar, W, quantize=not args.lossless,
-                                   metadata={"run": os.path.abspath(args.run)}, drop_sh=args.drop_sh)
+                                   metadata={"run": os.path.abspath(args.run)}, drop_sh=args.drop_sh,
+                                   vertices=ds.canonical_vertices)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     result = {"stream": stream_path, "bytes": os.path.getsize(stream_path), "gaussians": avatar.num_gaussians}
     if args.ply:
-        from progressive_avatars.core.io.data import Dataset
+        import numpy as np
+
         from progressive_avatars.core.io.ply import write_ply
         from progressive_avatars.core.avatar.avatar import sh_to_rgb
 
         part = stream.read_stream(stream_path, percent=args.budget)
-        if part is None:
-            print(f"error: --budget {args.budget}% of {stream_path} holds no whole Gaussian (the base level needs "
-                  f"{100.0 * info.base_bytes / info.total_bytes:.2f}%); give a larger budget", file=sys.stderr)
-            return 2
-        ds = Dataset(data, None, flame_model=runs.run_flame_model(args.run, args.flame_model))
         if args.frame not in set(int(t) for t in ds.timesteps):
             print(f"error: {data}: no timestep {args.frame} (have {ds.timesteps[0]}..{ds.timesteps[-1]})", file=sys.stderr)
             return 2
-        g = part.gaussians(ds.vertices_at(args.frame))
+        n = 0 if part is None else part.num_gaussians
+        if part is None:  # the budget holds no whole record (e.g. less than the header)
+            print(f"note: {args.budget:g} % of the stream ({int(args.budget / 100 * info.total_bytes):,} of "
+                  f"{info.total_bytes:,} bytes) holds no whole Gaussian (the header alone is {info.header_size:,} "
+                  f"bytes, the first whole head {info.head_bytes:,}); writing an empty PLY", file=sys.stderr)
+            z = np.zeros((0, 3), np.float32)
+            g = {"means": z, "quats": np.zeros((0, 4), np.float32), "scales": z, "opacities": np.zeros(0, np.float32),
+                 "colors": z}
+        else:
+            g = part.gaussians(ds.vertices_at(args.frame))
         if avatar.sh_degree:  # every band, from the trained avatar's faces of this prefix
-            g["sh_rest"] = avatar.f_rest[info.order[: part.num_gaussians]]
-            g["colors"] = sh_to_rgb(avatar.f_dc[info.order[: part.num_gaussians]])
+            g["sh_rest"] = avatar.f_rest[info.order[:n]]
+            g["colors"] = sh_to_rgb(avatar.f_dc[info.order[:n]])
         write_ply(args.ply, g)
-        result.update(ply=args.ply, ply_gaussians=part.num_gaussians, budget=args.budget, frame=args.frame)
+        result.update(ply=args.ply, ply_gaussians=n, budget=args.budget, frame=args.frame,
+                      head_complete=bool(part is not None and part.meta["stream"]["head_complete"]))
     print(json.dumps(result))
     return 0
 

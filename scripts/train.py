@@ -33,6 +33,10 @@ def main(argv=None):
     ap.add_argument("--uniform", action="store_true", help="ablation: uniform subdivision to --max-depth")
     ap.add_argument("--level-weights", type=_weights, metavar="W0,W1,...",
                     help="per-level loss weights by level index; later levels take the last (default all 1)")
+    ap.add_argument("--coarse-levels", type=_weights, metavar="F1,F2,...",
+                    help="coarse levels above the template, as fractions of its face count (default 1/32,1/8)")
+    ap.add_argument("--no-coarse", action="store_true", help="no coarse levels (the paper's levels; ablation)")
+    ap.add_argument("--coarse-weight", type=float, help="factor on the coarse levels' loss weights (default 0.5)")
     ap.add_argument("--grad-threshold", type=float)
     ap.add_argument("--max-faces", type=int)
     ap.add_argument("--seed", type=int)
@@ -55,7 +59,8 @@ def main(argv=None):
         cfg = config_for(args.preset, iterations=args.iterations, max_depth=args.max_depth,
                          supervision=args.supervision, level_weights=args.level_weights, uniform=args.uniform or None,
                          grad_threshold=args.grad_threshold, max_faces=args.max_faces, seed=args.seed,
-                         sh_degree=args.sh_degree, refine_flame=args.refine_flame or None,
+                         sh_degree=args.sh_degree, coarse_levels=() if args.no_coarse else args.coarse_levels,
+                         coarse_weight=args.coarse_weight, refine_flame=args.refine_flame or None,
                          image_cache_mb=args.image_cache_mb,
                          flame_model=_os.path.abspath(args.flame_model) if args.flame_model else None)
         trainer = Trainer(args.data, args.out, cfg, resume=args.resume, progress=not args.no_progress)

@@ -12,7 +12,7 @@ def tri_area(v):
 
 def face_vertices(forest, verts):
     W = forest.vertex_weights()  # [N,3 face verts,3 root weights]
-    rv = verts[forest.template_faces[forest.root]]  # [N,3,3]
+    rv = verts[forest.root_faces[forest.root]]  # [N,3,3]
     return np.einsum("nij,njk->nik", W, rv)
 
 
@@ -125,3 +125,47 @@ def test_invalid_structures_are_refused():
         Forest(faces, parent=[-1, 0, 0], slot=[-1, 0, 0])
     with pytest.raises(ValueError, match="\\[F,3\\]"):
         Forest(np.zeros((0, 3)))
+
+
+def test_coarse_roots_bind_like_template_faces_and_survive_reorder_prefix_and_save(tmp_path):
+    """Coarse faces (three template vertices each) are roots of the root table: they bind
+    exactly like a template face over the same vertices, never split, and the forest keeps
+    its geometry through a root permutation, a prefix shorter than the roots and save/load."""
+    from progressive_avatars.core.avatar import binding
+    from progressive_avatars.core.avatar import coarse
+
+    rng = np.random.default_rng(4)
+    verts, faces = sphere_mesh(8, 12)
+    cf, counts = coarse.build_coarse(verts, faces, (0.125, 0.5))
+    assert len(counts) == 2 and set(np.unique(cf)) <= set(np.unique(faces))
+    f = Forest(faces, coarse_faces=cf, coarse_counts=counts)
+    C, F0 = len(cf), len(faces)
+    assert f.num_roots == C + F0 and f.level_counts().tolist() == [*counts, F0]
+    assert f.depth[:C].tolist() == [-2] * counts[0] + [-1] * counts[1]
+    with pytest.raises(ValueError, match="coarse"):
+        f.split([0])
+    f.split(f.splittable()[rng.random(F0) < 0.3])
+    f.split_logits[:] = rng.normal(0, 1, f.split_logits.shape)
+    v = verts + rng.normal(0, 1e-3, verts.shape)
+    g = binding.evaluate(f, v)
+    plain = binding.evaluate(Forest(np.concatenate([cf, faces])), v)  # the same triangles as plain roots
+    np.testing.assert_allclose(g.t[: C + F0], plain.t, atol=1e-12)
+    np.testing.assert_allclose(g.r[: C + F0], plain.r, atol=1e-12)
+    # roots permuted inside their levels (a stream's spread-out order), then a prefix
+    R = f.num_roots
+    perm = np.concatenate([rng.permutation(counts[0]), counts[0] + rng.permutation(counts[1]),
+                           C + rng.permutation(F0), np.arange(R, f.num_faces)])
+    f2 = f.reorder(perm)
+    g2 = binding.evaluate(f2, v)
+    np.testing.assert_allclose(g2.t, g.t[perm], atol=1e-12)
+    for n in (1, counts[0] + 3, C + 10, R + 5):
+        p = f2.prefix(n)
+        np.testing.assert_allclose(binding.evaluate(p, v).t, g2.t[:n], atol=1e-12)
+        d = p.depth_per_root()
+        assert len(d) == F0 and np.count_nonzero(d >= 0) == min(max(n - C, 0), F0)
+    f2.save(tmp_path / "f.npz")
+    f3 = Forest.load(tmp_path / "f.npz")
+    for k in ("parent", "slot", "split_logits", "coarse_faces", "root_ref", "level", "root"):
+        np.testing.assert_array_equal(getattr(f3, k), getattr(f2, k))
+    assert f3.coarse_counts == counts
+    np.testing.assert_array_equal(f3.depth_per_root(), f.depth_per_root())

@@ -5,6 +5,7 @@ import threading
 import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
+import numpy as np
 import pytest
 
 from progressive_avatars.core.stream import http as H
@@ -202,3 +203,28 @@ def test_corruption_is_reported_not_hidden(stream, serve):
     assert res.status == H.CORRUPT and ("record 100" in res.message or "block 6" in res.message), str(res)
     assert res.num_gaussians <= 100
     assert_prefix(res.avatar(), full, res.num_gaussians)
+
+
+def test_cuts_inside_every_level_of_a_coarse_stream(serve):
+    """A stream with coarse levels, cut (connection closed) at 1, 3, 10 and 50 % of its bytes and
+    inside every level: each download keeps exactly the whole verified records, and they bind
+    to the whole template (a cut inside a root level is a spread-out subset of its roots)."""
+    verts, av, imp = make_avatar(31, n_lat=10, n_lon=14, depth=3, coarse=True)
+    data = S.encode_stream(av, imp, records_per_block=16, embed_template=False)
+    full = S.read_stream(data, template_faces=av.forest.template_faces)
+    info = S.read_header(data)
+    ends = info.level_ends()
+    cuts = {int(p / 100 * len(data)) for p in (1, 3, 10, 50)}
+    cuts |= {info.bytes_for_count(int(e) - max(1, int(c) // 2)) + 5 for e, c in zip(ends, info.level_counts)}
+    for at in sorted(c for c in cuts if info.header_size < c < len(data)):
+        srv = serve(data, cut_at=at)
+        res = H.fetch_stream(srv.url, template_faces=av.forest.template_faces, chunk_size=4096, read_size=256, timeout=2)
+        assert res.status == H.CUT, str(res)
+        n = info.count_for_bytes(at)
+        assert res.num_gaussians == n
+        a = res.avatar()
+        assert_prefix(a, full, n)
+        if a is not None:
+            np.testing.assert_array_equal(a.forest.template_faces, av.forest.template_faces)
+            g = a.gaussians(verts)
+            assert all(np.all(np.isfinite(v)) for v in g.values())

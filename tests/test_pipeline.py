@@ -36,6 +36,13 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
     # Stream order: level by level, parents first; the same multiset of levels as trained.
     assert np.all(np.diff(decoded.forest.level) >= 0)
     assert np.array_equal(np.bincount(decoded.forest.level), trained.forest.level_counts())
+    # Any budget exports: 0 % holds no whole Gaussian, so the PLY is empty but valid, with a note.
+    out = subprocess.run([sys.executable, os.path.join(ROOT, "scripts", "export.py"), "--run", tiny_run, "--stream",
+                          str(tmp_path / "b.pavs"), "--ply", str(tmp_path / "e.ply"), "--budget", "0", "--max-views", "8"],
+                         capture_output=True, text=True, timeout=600, env=ENV)
+    assert out.returncode == 0 and "holds no whole Gaussian" in out.stderr, out.stderr[-2000:]
+    assert json.loads(out.stdout.strip().splitlines()[-1])["ply_gaussians"] == 0
+    assert PlyData.read(str(tmp_path / "e.ply"))["vertex"].count == 0
 
     report_dir = tmp_path / "report"
     run_script("evaluate.py", "--run", tiny_run, "--out", str(report_dir), "--budgets", "25,100", "--views", "2",
@@ -50,11 +57,19 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
         assert np.isfinite(full[key]["psnr"]) and 0 < full[key]["ssim"] <= 1
     assert rep["budgets"]["25"]["bytes"] < full["bytes"] <= rep["stream_bytes"]
     assert abs(rep["ablations"]["quantisation_100"]["psnr_loss_db"]) < 0.5
+    # issue 16: mask coverage per budget and curve point, the first whole head, the root orders
+    assert 0 <= rep["budgets"]["25"]["nvs"]["coverage"] <= full["nvs"]["coverage"] <= 1
+    assert all(0 <= c["coverage"] <= 1 for c in rep["curve_nvs"]) and len(rep["curve_nvs"]) == 3
+    fh = rep["first_head"]
+    assert fh["coarse_levels"] == 2 and fh["head_gaussians"] == trained.forest.level_counts()[0]
+    assert fh["header_bytes"] < fh["head_bytes"] < fh["base_bytes"] < rep["stream_bytes"]
+    assert set(rep["ablations"]["root_order"]["orders"]) == {"forest", "spatial", "importance", "both", "auto"}
+    assert "psnr_non_decreasing" in rep["done_when"]
     for png in ("psnr_vs_bytes.png", "strip_nvs.png", "strip_nes.png", "depth.png", "psnr_vs_time.png",
                 "quality_vs_gaussians.png"):
         assert (report_dir / png).stat().st_size > 1000, png
     md = (report_dir / "report.md").read_text()
-    assert "| 100 % |" in md
+    assert "| 100 % |" in md and "First whole head" in md
     # The tiny dataset's own summary (make_synthetic) is named in the report.
     ds = rep["data_summary"]
     assert "\nThe tiny run against itself.\n" in md

@@ -17,10 +17,10 @@ from tests.helpers import random_forest, sphere_mesh
 PARAMS = ("d_mu", "d_log_scale", "d_rot", "opacity_logit", "f_dc")
 
 
-def make_avatar(seed=0, n_lat=4, n_lon=6, depth=3, frac=0.5):
+def make_avatar(seed=0, n_lat=4, n_lon=6, depth=3, frac=0.5, coarse=False):
     rng = np.random.default_rng(seed)
     verts, faces = sphere_mesh(n_lat, n_lon)
-    forest = random_forest(faces, rng, depth=depth, frac=frac)
+    forest = random_forest(faces, rng, depth=depth, frac=frac, coarse_from=verts if coarse else None)
     N = forest.num_faces
     av = Avatar(forest, rng.normal(0, 0.4, (N, 3)), rng.normal(-1.0, 0.6, (N, 3)), rng.normal(size=(N, 4)),
                 rng.normal(0, 2.0, N), rng.normal(0, 1.0, (N, 3)), meta={"name": "test", "stream": "stale"})
@@ -29,7 +29,7 @@ def make_avatar(seed=0, n_lat=4, n_lon=6, depth=3, frac=0.5):
 
 @pytest.fixture(scope="module")
 def small():
-    verts, av, imp = make_avatar()
+    verts, av, imp = make_avatar(coarse=True)  # coarse levels, spread-out roots: every version 3 path
     data = S.encode_stream(av, imp, records_per_block=8, metadata={"k": [1, 2]})
     full = S.read_stream(data)
     return verts, av, imp, data, full
@@ -58,7 +58,7 @@ def assert_prefix(avatar, full, n):
 def test_format_constants_match_document():
     doc = open(os.path.join(os.path.dirname(__file__), "..", "docs", "FORMAT.md"), encoding="utf-8").read()
     assert S.MAGIC == bytes.fromhex("504156530D0A1A0A")
-    assert S.FIXED_SIZE == 56 and S.QUANT_RECORD == 23 and S.LOSSLESS_RECORD == 73
+    assert S.FIXED_SIZE == 56 and S.FIXED_SIZE_V3 == 60 and S.QUANT_RECORD == 23 and S.LOSSLESS_RECORD == 73
     offs = {n: S.QUANT_DTYPE.fields[n][1] for n in S.QUANT_DTYPE.names}
     assert offs == {"geo": 0, "rot": 8, "parent": 12, "ls": 15, "opa": 18, "col": 19, "crc": 22}
     offs = {n: S.LOSSLESS_DTYPE.fields[n][1] for n in S.LOSSLESS_DTYPE.names}
@@ -69,15 +69,27 @@ def test_format_constants_match_document():
     assert zlib.crc32(b"123456789") == 0xCBF43926 and "0xCBF43926" in doc
     rows = np.random.default_rng(1).integers(0, 256, (50, 72), dtype=np.uint8)
     assert [S._crc8_bytewise(r.tobytes()) for r in rows] == S.crc8(rows).tolist()
+    # version 3: the CRC-8 of u32le(record index) || record bytes
+    first = 0x01FFFFF0
+    assert [S._crc8_bytewise(struct.pack("<I", first + i) + r.tobytes()) for i, r in enumerate(rows)] == \
+        S.crc8_indexed(rows, first).tolist()
 
 
 def test_header_layout_is_the_documented_one(small):
     _, av, _, data, _ = small
-    magic, version, flags, hsize, N, F0, R, B, L, res, thash, M, T = struct.unpack_from("<8sHHIIIHHHH16sII", data)
-    assert (magic, version, flags, R, B, N, F0) == (S.MAGIC, 2, S.FLAG_TEMPLATE, 23, 8, av.num_gaussians, av.forest.num_roots)
+    magic, version, flags, hsize, N, F0, R, B, L, K, thash, M, T, CL = struct.unpack_from("<8sHHIIIHHHH16sIII", data)
+    f = av.forest
+    assert (magic, version, flags, R, B, N, F0) == (S.MAGIC, 3, S.FLAG_TEMPLATE, 23, 8, av.num_gaussians,
+                                                    len(f.template_faces))
+    assert K == f.num_coarse_levels == 2 and CL > 0
+    pos = 60 + 4 * L + 104  # the coarse table: zlib of int32 columns (a deltas, b - a, c - a)
+    cols = np.frombuffer(zlib.decompress(data[pos: pos + CL]), "<i4").reshape(3, -1)
+    a = np.cumsum(cols[0])
+    table = np.stack([a, a + cols[1], a + cols[2]], 1)
+    assert sorted(map(tuple, table)) == sorted(map(tuple, f.coarse_faces))
     assert thash == S.template_hash(av.forest.template_faces)
     assert thash == __import__("hashlib").sha256(av.forest.template_faces.astype("<i4").tobytes()).digest()[:16]
-    assert hsize == 56 + 4 * L + 104 + T + M + 4
+    assert hsize == 60 + 4 * L + 104 + CL + T + M + 4
     assert struct.unpack_from("<I", data, hsize - 4)[0] == zlib.crc32(data[: hsize - 4])
     info = S.read_header(data)
     assert len(data) == info.total_bytes == hsize + N * 23 + 4 * -(-N // B)
@@ -87,6 +99,17 @@ def test_header_layout_is_the_documented_one(small):
     assert struct.unpack_from("<I", data, hsize + 8 * 23)[0] == want
     assert info.level_counts == tuple(av.forest.level_counts())
     assert info.metadata == {"name": "test", "k": [1, 2]}  # the stale "stream" key is dropped
+    # the root records name their rows of [coarse table; template], each level its own rows
+    roots = info.num_roots
+    assert roots == f.num_roots == len(f.coarse_faces) + F0
+    refs = [int.from_bytes(data[info.record_offset(i) + 12: info.record_offset(i) + 15], "little") for i in range(roots)]
+    assert sorted(refs) == list(range(roots))
+    starts = np.concatenate([[0], np.cumsum(info.level_counts)])
+    for lv in range(K + 1):
+        assert sorted(refs[starts[lv]: starts[lv + 1]]) == list(range(starts[lv], starts[lv + 1]))
+    full = S.read_stream(data)
+    rows = np.concatenate([table, f.template_faces])
+    np.testing.assert_array_equal(full.forest.root_faces, rows[refs])
 
 
 # -- order --------------------------------------------------------------------------------
@@ -197,7 +220,7 @@ def test_quantiser_edge_values():
 
 
 # -- decoding pinned against an independent, per-record decoder ---------------------------
-def _slow_decode(rec: bytes, quant, version=2) -> dict:
+def _slow_decode(rec: bytes, quant, version=2, root=None) -> dict:
     """FORMAT.md 3.1 (and section 7 for version 1 rotations) for one quantised record, written
     from the document with Python ints and numpy float32 scalars (one rounding per operation),
     sharing nothing with the reader."""
@@ -205,7 +228,7 @@ def _slow_decode(rec: bytes, quant, version=2) -> dict:
     geo, rot = int.from_bytes(rec[0:8], "little"), int.from_bytes(rec[8:12], "little")
     parent = int.from_bytes(rec[12:15], "little")
     quant = np.asarray(quant, np.float64)
-    assert len(quant) == {1: 18, 2: 26}[version]
+    assert len(quant) == {1: 18, 2: 26, 3: 26}[version]
     q = quant[:18].reshape(3, 2, 3)
 
     def affine(code, lo32, step32):
@@ -226,7 +249,8 @@ def _slow_decode(rec: bytes, quant, version=2) -> dict:
     alpha = (rec[18] + 0.5) / 256
     fdc = [affine(rec[19 + k], f32((q[2, 0, k] - 0.5) / SH_C0), f32((q[2, 1, k] - q[2, 0, k]) / (255 * SH_C0)))
            for k in range(3)]
-    root = parent == 0xFFFFFF
+    if version < 3:
+        root = parent == 0xFFFFFF
     return {"d_mu": mu, "split_logits": split, "d_rot": d_rot, "d_log_scale": ls,
             "opacity_logit": [f32(math.log(alpha / (1 - alpha)))], "f_dc": fdc,
             "parent": [-1 if root else parent], "slot": [-1 if root else (geo >> 60) & 3]}
@@ -243,15 +267,25 @@ def test_decoded_records_match_an_independent_slow_decode():
     chunked = r.avatar()
     got = {**fields(out), **{n: getattr(out, n) for n in PARAMS}}
     got_c = {**fields(chunked), **{n: getattr(chunked, n) for n in PARAMS}}
-    assert info.version == 2
+    assert info.version == 3
     _assert_slow_decode(data, info, (got, got_c))
+    # the previous version, written by this writer, decodes as the document says too
+    data2 = S.encode_stream(av, imp, records_per_block=16, version=2)
+    info2 = S.read_header(data2)
+    assert info2.version == 2 and info2.header_size == info.header_size - 4
+    out2 = S.read_stream(data2)
+    _assert_slow_decode(data2, info2, ({**fields(out2), **{n: getattr(out2, n) for n in PARAMS}},))
 
 
 def _assert_slow_decode(data, info, decoded):
     """Every record of `data` decodes in each of `decoded` bit for bit as _slow_decode says."""
+    nroots = info.num_roots if info.version >= 3 else info.num_template_faces
     for i in range(info.num_records):
         o = info.record_offset(i)
-        want = _slow_decode(data[o: o + 23], info.quant, info.version)
+        rec = data[o: o + 23]
+        if info.version >= 3:  # the record CRC-8 covers u32le(i) first
+            assert S._crc8_bytewise(struct.pack("<I", i) + rec[:22]) == rec[22]
+        want = _slow_decode(rec, info.quant, info.version, root=i < nroots)
         for name, vals in want.items():
             dt = np.int64 if name == "parent" else np.int8 if name == "slot" else np.float32
             w = np.asarray(vals, dt)
@@ -279,23 +313,49 @@ def test_version_1_streams_still_read():
     assert np.allclose(np.linalg.norm(out.d_rot, axis=1), 1, atol=1e-5)
 
 
+def test_version_2_streams_still_read_bit_for_bit():
+    """tests/data/stream_v2.pavs was written by the version 2 writer; stream_v2_decoded.npz
+    holds what the version 2 reader decoded from it. This reader returns the same bits."""
+    here = os.path.join(os.path.dirname(__file__), "data")
+    data = open(os.path.join(here, "stream_v2.pavs"), "rb").read()
+    want = np.load(os.path.join(here, "stream_v2_decoded.npz"))
+    info = S.read_header(data)
+    assert (info.version, info.num_records, info.num_coarse_levels) == (2, 267, 0)
+    r = S.StreamReader()
+    for i in range(0, len(data), 61):
+        r.feed(data[i: i + 61])
+    for got in (S.read_stream(data), r.avatar()):
+        f = got.forest
+        for name in ("parent", "slot", "split_logits", "template_faces") + PARAMS:
+            arr = getattr(f if name in ("parent", "slot", "split_logits", "template_faces") else got, name)
+            assert arr.dtype == want[name].dtype and arr.tobytes() == want[name].tobytes(), name
+        assert np.array_equal(f.root_faces, want["template_faces"])
+
+
 def test_trusted_forest_and_avatar_equal_the_validated_constructors():
     """The reader builds Forest and Avatar without re-deriving and re-validating what it has
     already checked; the result must be what the public constructors would build."""
     import dataclasses
 
-    _, av, imp = make_avatar(12)
+    _, av, imp = make_avatar(12, coarse=True)
     data = S.encode_stream(av, imp, records_per_block=8)
     info = S.read_header(data)
-    F0 = info.num_template_faces
+    F0 = info.num_roots
     r = S.StreamReader()
     r.feed(data)
-    for n in sorted({1, F0 - 1, F0, F0 + 1, info.level_ends()[1], info.num_records - 1, info.num_records}):
+    ends = info.level_ends()
+    for n in sorted({1, ends[0] - 1, ends[0], ends[0] + 1, F0 - 1, F0, F0 + 1, ends[3], info.num_records - 1,
+                     info.num_records}):
         a = r.avatar(n)
-        ref_f = Forest(a.forest.template_faces, a.forest.parent, a.forest.slot, a.forest.split_logits)
+        f = a.forest
+        ref_f = Forest(f.template_faces, f.parent, f.slot, f.split_logits, coarse_faces=f.coarse_faces,
+                       coarse_counts=f.coarse_counts, root_ref=f.root_ref)
         assert set(vars(a.forest)) == set(vars(ref_f))
         for k, v in vars(ref_f).items():
             got = getattr(a.forest, k)
+            if isinstance(v, tuple):
+                assert got == v, (n, k)
+                continue
             assert got.dtype == v.dtype and got.shape == v.shape and np.array_equal(got, v), (n, k)
         ref = Avatar(ref_f, *(getattr(a, name) for name in PARAMS), meta=a.meta)
         assert {f.name for f in dataclasses.fields(Avatar)} == set(vars(a)) == set(vars(ref))
@@ -367,7 +427,7 @@ def test_duplicate_child_slot_names_the_second_record():
     rj[12:15] = ri[12:15]
     geo = int.from_bytes(rj[0:8], "little") & ~(3 << 60) | (int.from_bytes(ri[0:8], "little") & (3 << 60))
     rj[0:8] = geo.to_bytes(8, "little")
-    rj[22] = S._crc8_bytewise(bytes(rj[:22]))
+    rj[22] = S._crc8_bytewise(struct.pack("<I", j) + bytes(rj[:22]))
     data[oj: oj + 23] = rj
     r = S.StreamReader()
     with pytest.raises(ValueError, match=f"record {j} reuses the child slot"):
@@ -462,7 +522,7 @@ def test_header_errors(small, tmp_path):
     bad[H - 10] ^= 1  # inside the metadata
     with pytest.raises(ValueError, match="header checksum"):
         S.read_stream(bytes(bad))
-    for v in (0, 3):
+    for v in (0, 4):
         bad = bytearray(data)
         bad[8:10] = struct.pack("<H", v)
         with pytest.raises(ValueError, match=f"version {v} is not supported"):
@@ -489,11 +549,11 @@ def test_structurally_invalid_records_are_refused():
     _, av, imp = make_avatar(4)
     data = bytearray(S.encode_stream(av, imp, records_per_block=4))
     info = S.read_header(bytes(data))
-    i = info.num_template_faces + 2
+    i = info.num_roots + 2
     o = info.record_offset(i)
     rec = bytearray(data[o: o + 23])
     rec[12:15] = (i + 5).to_bytes(3, "little")  # parent after the child
-    rec[22] = S._crc8_bytewise(bytes(rec[:22]))
+    rec[22] = S._crc8_bytewise(struct.pack("<I", i) + bytes(rec[:22]))
     data[o: o + 23] = rec
     with pytest.raises(ValueError, match=f"record {i} is structurally invalid"):
         S.read_stream(bytes(data[: o + 23]))  # block incomplete: CRC-8 passes, structure fails
@@ -502,7 +562,7 @@ def test_structurally_invalid_records_are_refused():
     o = S.read_header(bytes(data)).record_offset(i)
     rec = bytearray(data[o: o + 73])
     rec[3] |= 0xC0
-    rec[72] = S._crc8_bytewise(bytes(rec[:72]))
+    rec[72] = S._crc8_bytewise(struct.pack("<I", i) + bytes(rec[:72]))
     data[o: o + 73] = rec
     with pytest.raises(ValueError, match=f"record {i} is structurally invalid"):
         S.read_stream(bytes(data[: o + 73]))
@@ -539,7 +599,9 @@ def test_partial_base_level():
     full = S.read_stream(data)
     out = S.read_stream(data, max_gaussians=5)
     assert out.num_gaussians == 5 and out.forest.num_roots == 5
-    np.testing.assert_array_equal(out.forest.template_faces, av.forest.template_faces[:5])
+    # the forest keeps the whole template (a mesh binds to it) and holds 5 of its roots
+    np.testing.assert_array_equal(out.forest.template_faces, av.forest.template_faces)
+    assert out.forest.depth_per_root().tolist().count(-1) == len(av.forest.template_faces) - 5
     assert out.meta["stream"]["base_complete"] is False
     assert S.read_stream(data, max_gaussians=av.forest.num_roots).meta["stream"]["base_complete"] is True
     np.testing.assert_array_equal(out.d_mu, full.d_mu[:5])
@@ -568,7 +630,8 @@ def test_budgets(small, tmp_path):
     assert_prefix(S.read_stream(p, max_bytes=info.bytes_for_count(40)), full, 40)
     assert_prefix(S.read_stream(p, max_gaussians=41), full, 41)
     assert_prefix(S.read_stream(p, max_gaussians=41, max_bytes=info.bytes_for_count(30), percent=100), full, 30)
-    assert info.base_bytes == info.bytes_for_count(info.num_template_faces)
+    assert info.base_bytes == info.bytes_for_count(info.num_roots)
+    assert info.head_bytes == info.bytes_for_count(info.level_counts[0]) < info.base_bytes
     with pytest.raises(ValueError):
         S.read_stream(p, percent=101)
     with pytest.raises(ValueError):
@@ -633,3 +696,166 @@ def test_property_random_forests(seed, depth, frac, quantize, block, cut, chunk)
     assert_prefix(r.avatar(), full, n)
     g = full.gaussians(verts)
     assert all(np.all(np.isfinite(v)) for v in g.values())
+
+
+# -- version 3: coarse levels, root references, indexed record checks ---------------------
+def _set_record(data, info, i, edit):
+    """Apply edit(bytearray record) to record i and re-seal its CRC-8 (as a buggy writer would)."""
+    o = info.record_offset(i)
+    R = info.record_size
+    rec = bytearray(data[o: o + R])
+    edit(rec)
+    rec[R - 1] = S._crc8_bytewise(struct.pack("<I", i) + bytes(rec[: R - 1]))
+    data[o: o + R] = rec
+
+
+@pytest.mark.parametrize("quantize", [True, False])
+def test_coarse_stream_roundtrip_and_every_record_boundary_renders(quantize):
+    """A coarse-level stream decodes to the writer's avatar (lossless: bit for bit; quantised:
+    the same geometry), and every record count, from 1 on, renders a finite image."""
+    from progressive_avatars.core.geometry.camera import Camera
+    from progressive_avatars.core.render.rasterize import render_numpy
+
+    verts, av, imp = make_avatar(21, coarse=True)
+    data = S.encode_stream(av, imp, quantize=quantize, records_per_block=8)
+    info = S.read_header(data)
+    full = S.read_stream(data)
+    o = S.stream_order(av.forest, imp)
+    ref = av.forest.reorder(o)
+    np.testing.assert_array_equal(full.forest.root_faces, ref.root_faces)
+    np.testing.assert_array_equal(full.forest.level, ref.level)
+    assert full.forest.coarse_counts == av.forest.coarse_counts == info.level_counts[:2]
+    if not quantize:
+        for n in PARAMS:
+            np.testing.assert_array_equal(getattr(full, n), getattr(av, n)[o])
+    g_ref, g_out = av.gaussians(verts), full.gaussians(verts)
+    assert np.abs(g_ref["means"][o] - g_out["means"]).max() < (1e-6 if not quantize else 0.02)
+    cam = Camera.look_at([0, 0, 0.5], [0, 0, 0], [0, 1, 0], 40, 40, 12, 12, 24, 24)
+    r = S.StreamReader()
+    covered = []
+    for i in range(len(data)):  # byte by byte: every record boundary
+        if r.feed(data[i: i + 1]):
+            a = r.avatar()
+            g = a.gaussians(verts)
+            image, alpha, _ = render_numpy(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], cam,
+                                           np.zeros(3, np.float32))
+            assert np.all(np.isfinite(image)) and a.num_gaussians == r.num_gaussians
+            covered.append(a.num_gaussians)
+    assert covered == list(range(1, info.num_records + 1))
+
+
+def test_root_references_are_checked():
+    verts, av, imp = make_avatar(22, coarse=True)
+    data = S.encode_stream(av, imp, records_per_block=64)
+    info = S.read_header(data)
+    c0 = info.level_counts[0]
+    # a coarse-level-0 root naming a row of coarse level 1
+    bad = bytearray(data)
+    _set_record(bad, info, 1, lambda rec: rec.__setitem__(slice(12, 15), (c0 + 1).to_bytes(3, "little")))
+    with pytest.raises(ValueError, match="record 1 is structurally invalid"):
+        S.read_stream(bytes(bad[: info.record_offset(3)]))
+    # two roots naming the same row: the second is named
+    bad = bytearray(data)
+    first = bytes(data[info.record_offset(0) + 12: info.record_offset(0) + 15])
+    _set_record(bad, info, 2, lambda rec: rec.__setitem__(slice(12, 15), first))
+    with pytest.raises(ValueError, match="record 2 names a root triangle an earlier record already holds"):
+        S.read_stream(bytes(bad[: info.record_offset(3)]))
+    # a template-level root (level 2) naming a coarse row
+    t = info.level_ends()[1] + 1
+    bad = bytearray(data)
+    _set_record(bad, info, t, lambda rec: rec.__setitem__(slice(12, 15), (0).to_bytes(3, "little")))
+    with pytest.raises(ValueError, match=f"record {t} is structurally invalid"):
+        S.read_stream(bytes(bad[: info.record_offset(t + 1)]))
+
+
+def test_swapped_records_are_caught_by_the_indexed_crc8():
+    """Version 3 seeds each record's CRC-8 with its index: two whole records swapped inside an
+    incomplete block (where no block CRC-32 can tell yet) fail."""
+    _, av, imp = make_avatar(23, coarse=True)
+    data = bytearray(S.encode_stream(av, imp, records_per_block=64))
+    info = S.read_header(bytes(data))
+    i, j = 5, 6
+    oi, oj, R = info.record_offset(i), info.record_offset(j), info.record_size
+    ri, rj = bytes(data[oi: oi + R]), bytes(data[oj: oj + R])
+    assert ri != rj
+    data[oi: oi + R], data[oj: oj + R] = rj, ri
+    with pytest.raises(ValueError, match=f"record {i} .*CRC-8"):
+        S.read_stream(bytes(data[: info.record_offset(10)]))
+
+
+def test_log_scale_ranges_are_clamped_and_refused():
+    _, av, imp = make_avatar(24)
+    av.d_log_scale[3] = [200.0, -300.0, 1.0]  # exp() would overflow float32 in a renderer
+    out = S.read_stream(S.encode_stream(av, imp))
+    assert np.all(np.abs(out.d_log_scale) <= S.LOG_SCALE_LIMIT)
+    assert np.all(np.isfinite(np.exp(out.d_log_scale.astype(np.float32))))
+    data = bytearray(S.encode_stream(av, imp))
+    info = S.read_header(bytes(data))
+    pos = 60 + 4 * info.num_levels + 4 * 9  # ls_hi[0]
+    data[pos: pos + 4] = struct.pack("<f", 1000.0)
+    H = info.header_size
+    data[H - 4: H] = struct.pack("<I", zlib.crc32(bytes(data[: H - 4])))
+    with pytest.raises(ValueError, match="log-scale beyond"):
+        S.read_stream(bytes(data))
+
+
+def test_cut_inside_every_level_with_trained_level_sizes():
+    """A forest with the level proportions of the trained default avatar (runs/default_coarse,
+    docs/report_prefix: coarse levels 156 / 636, template 5,120, then 7,653 / 3,387 / 3,021
+    deeper faces; here on a 1,216-face sphere): a cut inside every level, and at every level
+    end, reads, binds and keeps whole levels whole."""
+    rng = np.random.default_rng(25)
+    verts, faces = sphere_mesh(20, 32)  # 1,216 faces ~ the template scaled down
+    from progressive_avatars.core.avatar import coarse
+    from progressive_avatars.core.avatar.forest import Forest
+
+    cf, counts = coarse.build_coarse(verts, faces)
+    f = Forest(faces, coarse_faces=cf, coarse_counts=counts,
+               root_ref=np.concatenate([np.arange(len(cf)), len(cf) + coarse.spread_order(coarse.centroids(verts, faces))]))
+    for frac in (0.5, 0.147, 0.3):  # the trained run's fraction of each level's faces that split
+        leaves = f.splittable()
+        leaves = leaves[f.level[leaves] == f.max_level]
+        f.split(leaves[rng.random(len(leaves)) < frac])
+    N = f.num_faces
+    av = Avatar(f, rng.normal(0, 0.3, (N, 3)), rng.normal(-1, 0.3, (N, 3)), rng.normal(size=(N, 4)),
+                rng.normal(0, 1, N), rng.normal(0, 1, (N, 3)))
+    data = S.encode_stream(av, rng.random(N), vertices=verts)
+    info = S.read_header(data)
+    ends = info.level_ends()
+    starts = np.concatenate([[0], ends[:-1]])
+    cuts = sorted({int(x) for a, b in zip(starts, ends) for x in (a + 1, (a + b) // 2, b - 1, b)})
+    for n in cuts:
+        out = S.read_stream(data, max_bytes=info.bytes_for_count(n))
+        assert out.num_gaussians == n
+        g = out.gaussians(verts)
+        assert all(np.all(np.isfinite(v)) for v in g.values())
+        lv = out.forest.level
+        assert np.all(np.diff(lv) >= 0) and np.array_equal(np.bincount(lv), np.minimum(np.diff(np.r_[0, ends]),
+                                                                                   np.maximum(n - starts, 0))[: lv.max() + 1])
+        d = out.forest.depth_per_root()
+        assert np.count_nonzero(d >= 0) == int(np.clip(n - ends[1], 0, len(faces)))
+
+
+def test_root_orders():
+    """Inside the root levels: spatial = core/coarse.spread_order of the roots' centroids per
+    level; importance = descending; auto = spatial in level 0, importance after (what the
+    measurements in docs/BENCHMARKS.md chose); the forest's order when nothing is asked."""
+    from progressive_avatars.core.avatar import coarse
+
+    verts, av, imp = make_avatar(26, coarse=True)
+    f = av.forest
+    R, lv = f.num_roots, f.level[: f.num_roots]
+    cen = coarse.centroids(verts, f.root_faces)
+    for how in ("spatial", "importance", "auto", "both"):
+        o = S.stream_order(f, imp, S.root_keys(f, how, imp, verts))
+        assert np.array_equal(np.sort(o[:R]), np.arange(R)) and np.all(np.diff(f.level[o]) >= 0)
+        for level in range(f.num_coarse_levels + 1):
+            got = o[:R][lv[o[:R]] == level]
+            ids = np.flatnonzero(lv == level)
+            if how == "spatial" or (how == "auto" and level == 0):
+                assert np.array_equal(got, ids[coarse.spread_order(cen[ids])])
+            elif how in ("importance", "auto"):
+                assert np.all(np.diff(imp[got]) <= 0)
+    assert np.array_equal(S.stream_order(f, imp)[:R], np.arange(R))
+    with pytest.raises(ValueError, match="importance"):
+        S.root_keys(f, "importance")

@@ -119,7 +119,7 @@ def test_level_weights_scale_each_level_loss(tiny_dataset, tmp_path):
     from progressive_avatars.core.train.trainer import level_weight
 
     def first_step(name, weights):
-        cfg = config_for("tiny", level_weights=weights, eval_every=10**6, checkpoint_every=10**6)
+        cfg = config_for("tiny", level_weights=weights, eval_every=10**6, checkpoint_every=10**6, coarse_levels=())
         tr = Trainer(tiny_dataset, str(tmp_path / name), cfg)
         p = tr.model.params
         with torch.no_grad():
@@ -211,7 +211,8 @@ def test_flame_mode_dataset_trains_and_exports(tiny_dataset, tmp_path):
     out = subprocess.run(base + ["--flame-model", model_path], capture_output=True, text=True, timeout=600, env=env)
     assert out.returncode == 0, out.stderr[-2000:]
     av = Avatar.load(run / "avatar.npz")
-    assert av.forest.num_roots == len(model.faces) and np.all(np.isfinite(av.d_mu))
+    assert len(av.forest.template_faces) == len(model.faces) and np.all(np.isfinite(av.d_mu))
+    assert av.forest.num_roots == len(model.faces) + len(av.forest.coarse_faces)
     assert json.loads((run / "config.json").read_text())["flame_model"] == model_path
     out = subprocess.run([sys.executable, os.path.join(ROOT, "scripts", "export.py"), "--run", str(run), "--ply",
                           str(tmp_path / "f.ply"), "--frame", str(min(timesteps)), "--max-views", "4"],
@@ -268,6 +269,8 @@ def test_trainer_image_cache_budget(tiny_dataset, tmp_path):
     assert t.train.cache_bytes == int(0.05 * 2**20)
     t.run(progress=False)
     assert 0 < t.train.cached_bytes <= t.train.cache_bytes
+
+
 def _ssim_dense_reference(a, b):
     """The 11x11 two-dimensional window SSIM that core.train.losses used before the fused kernel."""
     import torch.nn.functional as F
@@ -287,6 +290,8 @@ def _ssim_dense_reference(a, b):
 
 
 @pytest.mark.parametrize("size", [(11, 11), (37, 23), (128, 88)])
+
+
 def test_fused_ssim_matches_dense_window_and_metrics(size):
     """The fused CPU SSIM (and its separable torch fallback) against the dense 11x11 window in
     value and gradient, and against core.train.metrics (numpy, float64)."""
@@ -332,3 +337,36 @@ def test_steps_are_deterministic_for_seed_and_any_numba_thread_count(tiny_datase
     for other in results[1:]:
         for name, p in results[0].items():
             assert torch.equal(p, other[name]), name
+
+
+def test_coarse_levels_on_by_default_and_switchable(tiny_dataset, tmp_path):
+    """Coarse levels above the template (DESIGN.md 7): built from the canonical mesh on a
+    subset of its vertices, supervised by the multi-level loss, never split; off with ()."""
+    cfg = config_for("tiny", eval_every=10**6, checkpoint_every=10**6)
+    tr = Trainer(tiny_dataset, str(tmp_path / "on"), cfg)
+    f = tr.model.forest
+    F0 = len(tr.train.faces)
+    assert f.num_coarse_levels == 2 and f.level_counts().tolist() == [*f.coarse_counts, F0]
+    assert 0.015 * F0 < f.coarse_counts[0] < 0.06 * F0 and 0.08 * F0 < f.coarse_counts[1] < 0.2 * F0
+    assert set(np.unique(f.coarse_faces)) <= set(np.unique(tr.train.faces))
+    assert len(tr.model.level_ids) == 3 and len(tr.model.level_ids[0]) == f.coarse_counts[0]
+    loss = tr.step()["loss"]
+    assert np.isfinite(loss) and tr.model.params["d_mu"].shape[0] == f.num_faces
+    tr.grad_sum[:] = 1.0  # every leaf over the threshold: only template faces may split
+    tr.grad_count[:] = 1.0
+    tr._grow(cfg.grow_start)
+    f = tr.model.forest
+    assert f.level_counts()[3] > 0 and np.all(f.level[f.num_roots:] >= 3) and f.max_depth == 1
+    off = Trainer(tiny_dataset, str(tmp_path / "off"), config_for("tiny", coarse_levels=()))
+    assert off.model.forest.num_coarse_levels == 0 and off.model.forest.level_counts().tolist() == [F0]
+
+
+def test_coarse_weight_scales_the_coarse_levels_loss(tiny_dataset, tmp_path):
+    cfg = dict(eval_every=10**6, checkpoint_every=10**6)
+    full = Trainer(tiny_dataset, str(tmp_path / "w1"), config_for("tiny", **cfg))
+    off = Trainer(tiny_dataset, str(tmp_path / "w0"), config_for("tiny", coarse_weight=0.0, **cfg))
+    # Same view (same seed), same parameters: only the coarse levels' terms are gone (the coarse
+    # Gaussians still learn through every later level, which renders them too).
+    assert off.step()["loss"] < full.step()["loss"]
+    with pytest.raises(ValueError, match="coarse weight"):
+        config_for("tiny", coarse_weight=-1.0)

@@ -162,7 +162,7 @@ class _PlaneEvaluator:
         self._coef = np.ascontiguousarray(
             np.stack([Wd[:, 1, 1], Wd[:, 1, 2], Wd[:, 2, 1], Wd[:, 2, 2], centroid[:, 0], centroid[:, 1]]), self.dtype)
         self._degenerate = np.zeros(n, bool)
-        self._tri = np.ascontiguousarray(np.asarray(forest.template_faces, np.int64).T)  # [3,F0]
+        self._tri = np.ascontiguousarray(np.asarray(forest.root_faces, np.int64).T)  # [3,R]: coarse and template roots
         self._pack = None
         chunk = int(chunk or self.CHUNK)
         grouped = n > 0 and bool(np.all(self.root[1:] >= self.root[:-1]))

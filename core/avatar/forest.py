@@ -17,7 +17,7 @@ import numpy as np
 
 from ..io.atomic import atomic_savez
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 
 
 def softmax(logits: np.ndarray) -> np.ndarray:
@@ -44,18 +44,43 @@ def child_weights(parent_weights: np.ndarray, bary: np.ndarray, slot: np.ndarray
 
 
 class Forest:
-    """Structure of the subdivision forest: topology plus split-point logits."""
+    """Structure of the subdivision forest: topology plus split-point logits.
 
-    def __init__(self, template_faces, parent=None, slot=None, split_logits=None):
+    Roots are the first R faces. A root is one triangle of the *root table*: the coarse
+    triangles (levels 0..K-1, three template vertices each, grouped by level) followed by the
+    template faces (level K). ``root_ref[i]`` names root i's row of that table, so roots may
+    come in any order (a stream's spread-out order) and a prefix may hold any subset of them.
+    Without coarse levels (K = 0) and without ``root_ref`` the roots are the template faces in
+    template order, as before. ``depth`` = level - K is the subdivision depth below the
+    template (negative for coarse faces); only template faces and their descendants split.
+    """
+
+    def __init__(self, template_faces, parent=None, slot=None, split_logits=None, *, coarse_faces=None,
+                 coarse_counts=(), root_ref=None):
         faces = np.ascontiguousarray(template_faces, dtype=np.int32)
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
             raise ValueError(f"Forest: template faces must be a non-empty [F,3] array, got shape {faces.shape}")
         if faces.min() < 0:
             raise ValueError("Forest: template faces hold negative vertex indices")
-        F0 = len(faces)
         self.template_faces = faces
-        self.parent = np.full(F0, -1, np.int64) if parent is None else np.asarray(parent, np.int64).copy()
-        self.slot = np.full(F0, -1, np.int8) if slot is None else np.asarray(slot, np.int8).copy()
+        self.coarse_counts = tuple(int(c) for c in coarse_counts)
+        C = sum(self.coarse_counts)
+        coarse = np.zeros((0, 3), np.int32) if coarse_faces is None else np.ascontiguousarray(coarse_faces, np.int32)
+        if coarse.ndim != 2 or coarse.shape[1] != 3 or len(coarse) != C or any(c < 1 for c in self.coarse_counts):
+            raise ValueError(f"Forest: coarse faces {coarse.shape} disagree with the coarse level counts "
+                             f"{list(self.coarse_counts)}")
+        if C and (coarse.min() < 0 or coarse.max() > faces.max()):
+            raise ValueError("Forest: coarse faces must be triangles of template vertices")
+        self.coarse_faces = coarse
+        if root_ref is None:
+            n_roots = C + len(faces)
+            if parent is not None:
+                n_roots = min(n_roots, len(parent))
+            root_ref = np.arange(n_roots, dtype=np.int64)
+        self.root_ref = np.asarray(root_ref, np.int64).copy()
+        R = len(self.root_ref)
+        self.parent = np.full(R, -1, np.int64) if parent is None else np.asarray(parent, np.int64).copy()
+        self.slot = np.full(R, -1, np.int8) if slot is None else np.asarray(slot, np.int8).copy()
         N = len(self.parent)
         if split_logits is None:
             split_logits = np.zeros((N, 3), np.float32)
@@ -63,42 +88,93 @@ class Forest:
         self._derive()
 
     # -- structure ------------------------------------------------------------------------
+    @property
+    def num_coarse_levels(self) -> int:
+        return len(self.coarse_counts)
+
+    @property
+    def num_coarse(self) -> int:
+        """Rows of the coarse table (coarse triangles of every coarse level)."""
+        return len(self.coarse_faces)
+
+    @property
+    def root_table(self) -> np.ndarray:
+        """[C + F0, 3]: the coarse triangles, then the template faces."""
+        if not self.num_coarse:
+            return self.template_faces
+        return np.concatenate([self.coarse_faces, self.template_faces])
+
+    @property
+    def root_faces(self) -> np.ndarray:
+        """[R,3] template vertex indices of each root, in face order (what the binding reads)."""
+        if not self.num_coarse and np.array_equal(self.root_ref, np.arange(len(self.root_ref))):
+            return self.template_faces[: len(self.root_ref)]
+        return self.root_table[self.root_ref]
+
+    def _root_levels(self) -> np.ndarray:
+        C = self.num_coarse
+        ends = np.cumsum(self.coarse_counts)
+        return np.where(self.root_ref < C, np.searchsorted(ends, self.root_ref, side="right"),
+                        self.num_coarse_levels).astype(np.int8)
+
     def _derive(self):
-        F0, N = len(self.template_faces), len(self.parent)
+        R, N = len(self.root_ref), len(self.parent)
+        C, F0, K = self.num_coarse, len(self.template_faces), self.num_coarse_levels
         idx = np.arange(N)
-        if N < F0 or len(self.slot) != N:
-            raise ValueError("Forest: parent/slot arrays shorter than the template")
-        if np.any(self.parent[:F0] != -1):
-            raise ValueError("Forest: the first F0 faces must be the roots (parent -1)")
-        nonroot = idx[F0:]
-        p = self.parent[F0:]
+        if N < R or len(self.slot) != N:
+            raise ValueError("Forest: parent/slot arrays shorter than the roots")
+        if R and (self.root_ref.min() < 0 or self.root_ref.max() >= C + F0
+                  or len(np.unique(self.root_ref)) != R):
+            raise ValueError("Forest: root references must be distinct rows of the coarse + template table")
+        if np.any(self.parent[:R] != -1):
+            raise ValueError("Forest: the first faces must be the roots (parent -1)")
+        nonroot = idx[R:]
+        p = self.parent[R:]
         if np.any(p < 0) or np.any(p >= nonroot):
             raise ValueError("Forest: every non-root face needs a parent that precedes it")
-        if np.any((self.slot[F0:] < 0) | (self.slot[F0:] > 2)):
+        if np.any((self.slot[R:] < 0) | (self.slot[R:] > 2)):
             raise ValueError("Forest: child slots must be 0, 1 or 2")
         children = np.full((N, 3), -1, np.int64)
-        children[p, self.slot[F0:].astype(np.int64)] = nonroot
+        children[p, self.slot[R:].astype(np.int64)] = nonroot
         # A slot used twice would be silently overwritten above; count to catch it.
-        if np.count_nonzero(children >= 0) != N - F0:
+        if np.count_nonzero(children >= 0) != N - R:
             raise ValueError("Forest: two faces claim the same (parent, slot)")
         self.children = children
         level = np.zeros(N, np.int8)
+        level[:R] = self._root_levels()
         root = idx.copy()
         # Parents precede children, so iterating "child = parent + 1" settles in depth+1 passes.
         while True:
             new_level = level.copy()
-            new_level[F0:] = level[p] + 1
+            new_level[R:] = level[p] + 1
             new_root = root.copy()
-            new_root[F0:] = root[p]
+            new_root[R:] = root[p]
             if np.array_equal(new_level, level) and np.array_equal(new_root, root):
                 break
             level, root = new_level, new_root
+        if K and np.any(level[p] < K):
+            raise ValueError("Forest: coarse faces cannot have children")
         self.level = level
         self.root = root
 
     @property
     def num_roots(self) -> int:
-        return len(self.template_faces)
+        """Parentless faces (coarse and template roots): faces 0..num_roots-1."""
+        return len(self.root_ref)
+
+    @property
+    def depth(self) -> np.ndarray:
+        """Subdivision depth below the template per face (level - K; coarse faces negative)."""
+        return (self.level - self.num_coarse_levels).astype(np.int8)
+
+    @property
+    def max_depth(self) -> int:
+        return max(int(self.level.max()) - self.num_coarse_levels, 0) if self.num_faces else 0
+
+    def splittable(self) -> np.ndarray:
+        """Leaves that may split: template faces and their descendants (never coarse faces)."""
+        leaves = self.leaves()
+        return leaves[self.level[leaves] >= self.num_coarse_levels]
 
     @property
     def num_faces(self) -> int:
@@ -129,6 +205,8 @@ class Forest:
             raise IndexError("Forest.split: face index out of range")
         if not np.all(self.is_leaf()[ids]):
             raise ValueError("Forest.split: only leaf faces can be split")
+        if np.any(self.level[ids] < self.num_coarse_levels):
+            raise ValueError("Forest.split: coarse faces do not split")
         N, k = self.num_faces, len(ids)
         new = N + np.arange(3 * k).reshape(k, 3)
         self.parent = np.concatenate([self.parent, np.repeat(ids, 3)])
@@ -142,20 +220,25 @@ class Forest:
 
     def subdivide_uniform(self, depth: int) -> "Forest":
         """Split every leaf until `depth` levels exist (uniform subdivision ablation)."""
-        while self.max_level < depth:
-            leaves = self.leaves()
+        while self.max_depth < depth or self.max_level < self.num_coarse_levels:
+            leaves = self.splittable()
             self.split(leaves[self.level[leaves] == self.max_level])
         return self
 
     def depth_per_root(self) -> np.ndarray:
-        """Deepest level reached under each template face [F0]."""
-        depth = np.zeros(self.num_roots, np.int8)
-        np.maximum.at(depth, self.root, self.level)
+        """Deepest subdivision depth reached under each template face [F0] (template order);
+        -1 for template faces whose root is not in this forest (a stream prefix)."""
+        F0, C = len(self.template_faces), self.num_coarse
+        depth = np.full(F0, -1, np.int8)
+        tmpl = self.root_ref[self.root] - C  # template face of each face's root (< 0: coarse)
+        keep = tmpl >= 0
+        np.maximum.at(depth, tmpl[keep], self.depth[keep])
         return depth
 
     def depth_histogram(self) -> np.ndarray:
-        """Number of template faces whose tree reaches depth d, for d = 0..max_level."""
-        return np.bincount(self.depth_per_root(), minlength=self.max_level + 1)
+        """Number of template faces whose tree reaches depth d, for d = 0..max_depth."""
+        d = self.depth_per_root()
+        return np.bincount(d[d >= 0], minlength=self.max_depth + 1)
 
     def cumulative(self, level: int) -> np.ndarray:
         """Indices of the faces levels 0..level render together (what level `level` shows)."""
@@ -168,24 +251,32 @@ class Forest:
     def reorder(self, order) -> "Forest":
         """A copy with faces permuted by `order` (new face i = old face order[i]).
 
-        The order must keep roots first in template order and parents before children.
+        The order must keep the roots first (in any order among themselves) and parents
+        before children.
         """
         order = np.asarray(order, np.int64)
+        R = self.num_roots
         if len(order) != self.num_faces or not np.array_equal(np.sort(order), np.arange(self.num_faces)):
             raise ValueError("Forest.reorder: order must be a permutation of all faces")
-        if not np.array_equal(order[: self.num_roots], np.arange(self.num_roots)):
-            raise ValueError("Forest.reorder: roots must stay first, in template order")
+        if not np.array_equal(np.sort(order[:R]), np.arange(R)):
+            raise ValueError("Forest.reorder: roots must stay first")
         inverse = np.empty_like(order)
         inverse[order] = np.arange(len(order))
         parent = self.parent[order]
         parent = np.where(parent >= 0, inverse[np.maximum(parent, 0)], -1)
-        return Forest(self.template_faces, parent, self.slot[order], self.split_logits[order])
+        return self._like(parent, self.slot[order], self.split_logits[order], self.root_ref[order[:R]])
+
+    def _like(self, parent, slot, split_logits, root_ref) -> "Forest":
+        return Forest(self.template_faces, parent, slot, split_logits, coarse_faces=self.coarse_faces,
+                      coarse_counts=self.coarse_counts, root_ref=root_ref)
 
     def prefix(self, n: int) -> "Forest":
-        """The first n faces (valid whenever n >= F0, since parents precede children)."""
-        if n < self.num_roots:
-            raise ValueError(f"Forest.prefix: a prefix needs all {self.num_roots} roots, got {n}")
-        return Forest(self.template_faces, self.parent[:n], self.slot[:n], self.split_logits[:n])
+        """The first n faces (any n >= 1: parents precede children; a prefix shorter than the
+        roots holds some roots only)."""
+        n = int(n)
+        if not 1 <= n <= self.num_faces:
+            raise ValueError(f"Forest.prefix: n must be in [1, {self.num_faces}], got {n}")
+        return self._like(self.parent[:n], self.slot[:n], self.split_logits[:n], self.root_ref[: min(n, self.num_roots)])
 
     # -- geometry -------------------------------------------------------------------------
     def barycentrics(self, logits=None) -> np.ndarray:
@@ -196,10 +287,11 @@ class Forest:
         """Per-face geometry weights [N,3,3] float64 (rows: w_v0, w_v1 - w_v0, w_v2 - w_v0)."""
         N, F0 = self.num_faces, self.num_roots
         bary = self.barycentrics(logits)
+        lo = int(self.level[F0:].min()) if N > F0 else 1
         W = np.empty((N, 3, 3), np.float64)
         W[:F0] = np.array([[1.0, 0.0, 0.0], [-1.0, 1.0, 0.0], [-1.0, 0.0, 1.0]])
-        for lvl in range(1, self.max_level + 1):
-            ids = np.flatnonzero(self.level == lvl)
+        for lvl in range(lo, self.max_level + 1):
+            ids = np.flatnonzero(self.level[F0:] == lvl) + F0
             p = self.parent[ids]
             W[ids] = child_weights(W[p], bary[p], self.slot[ids])
         return W
@@ -212,11 +304,16 @@ class Forest:
     # -- persistence ----------------------------------------------------------------------
     def state(self, prefix: str = "forest_") -> dict:
         return {
-            prefix + "version": np.array(FORMAT_VERSION),
+            # version 2 adds the coarse table and root_ref; plain forests stay readable by version 1 readers
+            prefix + "version": np.array(2 if self.num_coarse or not np.array_equal(
+                self.root_ref, np.arange(len(self.root_ref))) else 1),
             prefix + "template_faces": self.template_faces,
             prefix + "parent": self.parent,
             prefix + "slot": self.slot,
             prefix + "split_logits": self.split_logits,
+            prefix + "coarse_faces": self.coarse_faces,
+            prefix + "coarse_counts": np.asarray(self.coarse_counts, np.int64),
+            prefix + "root_ref": self.root_ref,
         }
 
     @classmethod
@@ -228,8 +325,13 @@ class Forest:
         if version > FORMAT_VERSION:
             raise ValueError(f"{source}: forest format version {version} is newer than this reader ({FORMAT_VERSION})")
         try:
+            extra = {}
+            if prefix + "root_ref" in data:  # (older files: no coarse levels, roots in template order)
+                extra = dict(coarse_faces=data[prefix + "coarse_faces"],
+                             coarse_counts=tuple(data[prefix + "coarse_counts"].tolist()),
+                             root_ref=data[prefix + "root_ref"])
             return cls(data[prefix + "template_faces"], data[prefix + "parent"], data[prefix + "slot"],
-                       data[prefix + "split_logits"])
+                       data[prefix + "split_logits"], **extra)
         except ValueError as exc:
             raise ValueError(f"{source}: {exc}") from None
 

@@ -37,7 +37,12 @@ def psnr_vs_bytes(path, curve, budgets):
     ax.set_xlabel("bytes received (MB)")
     ax.set_ylabel("PSNR in mask (dB)")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="lower right")
+    if curve and "coverage" in curve[0]:
+        ax2 = ax.twinx()
+        ax2.plot(mb, [c["coverage"] for c in curve], "-", color="C3", lw=1, alpha=0.8)
+        ax2.set_ylabel("mask coverage (alpha >= 0.5)", color="C3", fontsize=8)
+        ax2.set_ylim(0, 1.02)
     ax.set_title("Quality against transmitted bytes")
     return _save(fig, path)
 
@@ -76,9 +81,11 @@ def depth_picture(path, avatar, dataset, views=(0,)):
     from ..render.rasterize import render_numpy
 
     plt = _plt()
-    depth = avatar.forest.depth_per_root()
-    F0 = avatar.forest.num_roots
-    base = np.arange(F0)
+    f = avatar.forest
+    depth = f.depth_per_root()
+    base = np.flatnonzero(f.level[: f.num_roots] == f.num_coarse_levels)  # the template level's faces
+    F0 = len(base)
+    base_depth = depth[f.root_ref[base] - f.num_coarse]
     n_views = min(3, len(dataset))
     picks = np.linspace(0, len(dataset) - 1, n_views).astype(int)
     fig, axes = plt.subplots(2, n_views, figsize=(2.2 * n_views, 5.6), squeeze=False)
@@ -89,7 +96,7 @@ def depth_picture(path, avatar, dataset, views=(0,)):
         # Opaque, face-sized discs so the colour reads as a surface.
         means, scales, quats = compose(geo.t, geo.r, geo.s, np.zeros((F0, 3)), np.log(np.tile([0.55, 0.05, 0.55], (F0, 1))),
                                        np.tile([1.0, 0, 0, 0], (F0, 1)))
-        img, _, _ = render_numpy(means, quats, scales, np.full(F0, 0.99, np.float32), depth_colors(depth),
+        img, _, _ = render_numpy(means, quats, scales, np.full(F0, 0.99, np.float32), depth_colors(base_depth),
                                  info.camera, np.ones(3, np.float32))
         full = evaluate(avatar.forest, verts)
         m2, s2, q2 = compose(full.t, full.r, full.s, avatar.d_mu, avatar.d_log_scale, avatar.d_rot)
@@ -283,6 +290,39 @@ def quality_vs_gaussians(path, report: dict):
     return _save(fig, path)
 
 
+def _non_decreasing(values, slack) -> tuple:
+    """(holds, worst drop) of a sequence against its running maximum."""
+    v = np.asarray(values, np.float64)
+    drop = float((np.maximum.accumulate(v) - v).max()) if len(v) else 0.0
+    return drop <= slack, drop
+
+
+def done_when(r: dict) -> dict:
+    """Issue 16's measurable criteria on one report (each: value, threshold, met)."""
+    curve = r.get("curve_nvs", [])
+    out = {}
+    pts = [(c["percent"], c["coverage"]) for c in curve if c["percent"] >= 2 - 1e-9 and "coverage" in c]
+    pts += [(float(k), e["nvs"]["coverage"]) for k, e in r["budgets"].items() if float(k) >= 2 and "coverage" in e["nvs"]]
+    if pts:
+        worst = min(pts, key=lambda x: x[1])
+        out["coverage_from_2pct"] = {"min": worst[1], "at_percent": worst[0], "threshold": 0.95, "met": worst[1] >= 0.95}
+    if curve:
+        ok, drop = _non_decreasing([c["psnr"] for c in curve], 0.05)
+        out["psnr_non_decreasing"] = {"worst_drop_db": drop, "slack": 0.05, "met": ok}
+        if "coverage" in curve[0]:
+            ok, drop = _non_decreasing([c["coverage"] for c in curve], 0.0)
+            out["coverage_non_decreasing"] = {"worst_drop": drop, "met": ok}
+    b = r["budgets"]
+    if "5" in b and "100" in b:
+        gap = b["100"]["nvs"]["psnr"] - b["5"]["nvs"]["psnr"]
+        out["psnr_5_within_3db"] = {"gap_db": gap, "threshold": 3.0, "met": gap <= 3.0}
+    cv = r.get("ablations", {}).get("coarse_vs_none")
+    if cv:
+        cost = cv["budgets"]["100"]["without"]["psnr"] - cv["budgets"]["100"]["with"]["psnr"]
+        out["coarse_cost_100"] = {"cost_db": cost, "threshold": 0.1, "met": cost <= 0.1}
+    return out
+
+
 def report_markdown(r: dict) -> str:
     ds = r.get("data_summary") or {}
     about = (f" ({ds['width']}x{ds['height']} px images, tracked template {ds['faces']:,} faces)"
@@ -297,11 +337,41 @@ def report_markdown(r: dict) -> str:
     if own.get("seconds") is not None:
         lines.append(f"- training (from the run's metrics log): {own['iterations']} iterations, "
                      f"{own['seconds']:.0f} s wall time ({own['seconds'] / 60:.1f} min)")
+    cov = all("coverage" in e["nvs"] for e in r["budgets"].values())
     lines += ["",
-             "| budget | Gaussians | bytes | NVS PSNR / SSIM | NES PSNR / SSIM | render ms |", "|---|---|---|---|---|---|"]
+             "| budget | Gaussians | bytes | NVS PSNR / SSIM | NES PSNR / SSIM |" + (" NVS / NES coverage |" if cov else "")
+             + " render ms |", "|---|---|---|---|---|---|" + ("---|" if cov else "")]
     for key, e in r["budgets"].items():
+        c = f" {e['nvs']['coverage']:.3f} / {e['nes']['coverage']:.3f} |" if cov else ""
         lines.append(f"| {key} % | {e['gaussians']:,} | {e['bytes']:,} | {e['nvs']['psnr']:.2f} / {e['nvs']['ssim']:.3f} | "
-                     f"{e['nes']['psnr']:.2f} / {e['nes']['ssim']:.3f} | {e['render_ms']:.1f} |")
+                     f"{e['nes']['psnr']:.2f} / {e['nes']['ssim']:.3f} |{c} {e['render_ms']:.1f} |")
+    fh = r.get("first_head")
+    if fh:
+        lines += ["", f"First whole head ({'the coarsest level' if fh['coarse_levels'] else 'the template level'}, "
+                  f"{fh['head_gaussians']:,} Gaussians; header {fh['header_bytes']:,} B included, template "
+                  f"{'embedded' if fh.get('template_embedded') else 'not embedded: the receiver has it'}) and the whole base "
+                  f"(every coarse and template face, {fh['base_gaussians']:,} Gaussians):", "",
+                  "| | bytes | % of stream | at 1 Mbit/s | at 10 Mbit/s | at 100 Mbit/s |", "|---|---|---|---|---|---|"]
+        for what in ("head", "base"):
+            lines.append(f"| {'first whole head' if what == 'head' else 'whole base'} | {fh[what + '_bytes']:,} | "
+                         f"{100 * fh[what + '_bytes'] / fh['total_bytes']:.2f} | "
+                         + " | ".join(f"{1e3 * fh[f'{what}_seconds_{m}mbit']:.1f} ms" for m in (1, 10, 100)) + " |")
+    curve = r.get("curve_nvs", [])
+    if curve and "coverage" in curve[0]:
+        lines += ["", f"PSNR-against-bytes curve in {len(curve)} steps ({r.get('curve_views', '?')} NVS views each): "
+                  "percent: PSNR dB / mask coverage", "",
+                  "<details><summary>all points</summary>", "",
+                  ", ".join(f"{c['percent']:.0f}: {c['psnr']:.2f} / {c['coverage']:.3f}" for c in curve), "", "</details>"]
+    dw = r.get("done_when")
+    if dw:
+        lines += ["", "Issue 16 criteria on this run:", ""]
+        names = {"coverage_from_2pct": lambda d: f"mask coverage ≥ 0.95 from 2 %: min {d['min']:.3f} at {d['at_percent']:g} %",
+                 "psnr_non_decreasing": lambda d: f"NVS PSNR non-decreasing in 1 % steps (0.05 dB slack): worst drop {d['worst_drop_db']:.3f} dB",
+                 "coverage_non_decreasing": lambda d: f"coverage non-decreasing: worst drop {d['worst_drop']:.4f}",
+                 "psnr_5_within_3db": lambda d: f"NVS PSNR at 5 % within 3 dB of 100 %: {d['gap_db']:.2f} dB below",
+                 "coarse_cost_100": lambda d: f"coarse levels cost ≤ 0.1 dB at 100 %: {d['cost_db']:+.3f} dB"}
+        for k, d in dw.items():
+            lines.append(f"- {'met' if d['met'] else '**not met**'}: {names[k](d)}")
     a = r["ablations"]
     lines += ["", "## Ablations (NVS PSNR in mask)", ""]
     ro = a["random_order_25"]
@@ -311,6 +381,29 @@ def report_markdown(r: dict) -> str:
     q = a["quantisation_100"]
     lines.append(f"- 100 %: quantised {q['quantised']['psnr']:.3f} dB ({q['bytes_quantised']:,} B) vs float32 "
                  f"{q['float32']['psnr']:.3f} dB ({q['bytes_float32']:,} B): loss {q['psnr_loss_db']:.3f} dB")
+    ro = a.get("root_order")
+    if ro:
+        cuts = list(ro["cuts"])
+        lines += ["", "Order of the roots inside their levels, at cuts inside a root level (NVS PSNR / coverage; "
+                  "forest: as trained, the template level in template order; spatial: spread over the head, "
+                  "core/avatar/coarse.py; importance: descending; both: spatial dyadic blocks, each by importance; auto: spatial in level 0, "
+                  "importance in the later root levels):", "",
+                  "| order | " + " | ".join(f"{c} ({ro['cuts'][c]:,} G)" for c in cuts) + " |",
+                  "|---|" + "---|" * len(cuts)]
+        for how, vals in ro["orders"].items():
+            lines.append(f"| {how} | " + " | ".join(f"{vals[c]['psnr']:.2f} / {vals[c]['coverage']:.3f}" for c in cuts) + " |")
+    cv = a.get("coarse_vs_none")
+    if cv:
+        lines += ["", f"With against without coarse levels (the same model trained without them: `{cv['run']}`; "
+                  f"streams {cv['bytes_with']:,} / {cv['bytes_without']:,} B; first whole head "
+                  f"{cv['first_head_with']['head_bytes']:,} / {cv['first_head_without']['head_bytes']:,} B), NVS:", "",
+                  "| budget | with: Gaussians, PSNR / SSIM, coverage | without: Gaussians, PSNR / SSIM, coverage | Δ PSNR |",
+                  "|---|---|---|---|"]
+        for b, e in cv["budgets"].items():
+            w, o = e["with"], e["without"]
+            lines.append(f"| {b} % | {w['gaussians']:,}, {w['psnr']:.2f} / {w['ssim']:.3f}, {w['coverage']:.3f} | "
+                         f"{o['gaussians']:,}, {o['psnr']:.2f} / {o['ssim']:.3f}, {o['coverage']:.3f} | "
+                         f"{w['psnr'] - o['psnr']:+.2f} |")
     lp = a["level_prefixes"]
     lines.append("- level prefixes: " + ", ".join(f"level ≤{k}: {lp['counts'][k]:,} G, {v['psnr']:.2f} dB" for k, v in lp["nvs"].items()))
     sd = a["single_asset_vs_discrete"]

@@ -30,31 +30,47 @@ class SplitRenderer:
         self.rgb = sh_to_rgb(avatar.f_dc)
         self.bg = np.asarray(dataset.background, np.float32)
 
-    def render(self, view: int, ids: np.ndarray):
+    def render(self, view: int, ids: np.ndarray, with_alpha: bool = False):
+        """(image, seconds) of faces `ids` on a view, plus the alpha [H,W] with `with_alpha`.
+        No faces (a budget inside the header): the background, alpha 0."""
         from ..render.rasterize import render_numpy
 
         info = self.dataset.frame_info(int(view))
+        ids = np.asarray(ids, np.int64)
+        if len(ids) == 0:
+            cam = info.camera
+            image = np.broadcast_to(self.bg, (cam.height, cam.width, len(self.bg))).astype(np.float32)
+            alpha = np.zeros((cam.height, cam.width), np.float32)
+            return (image, 0.0, alpha) if with_alpha else (image, 0.0)
         verts = self.dataset.vertices_at(info.timestep_index)
         av = self.avatar
         geo = evaluate(av.forest, verts, ids=ids, weights=self.weights)
         means, scales, quats = compose(geo.t, geo.r, geo.s, av.d_mu[ids], av.d_log_scale[ids], av.d_rot[ids])
         t0 = time.perf_counter()
-        image, _, _ = render_numpy(means, quats, scales, self.opac[ids], self.rgb[ids], info.camera, self.bg)
-        return image, time.perf_counter() - t0
+        image, alpha, _ = render_numpy(means, quats, scales, self.opac[ids], self.rgb[ids], info.camera, self.bg)
+        seconds = time.perf_counter() - t0
+        return (image, seconds, alpha) if with_alpha else (image, seconds)
 
-    def score(self, ids: np.ndarray) -> dict:
-        psnr_m, ssim_m, psnr_w, ssim_w, ms = [], [], [], [], []
+    def score(self, ids: np.ndarray, ssim: bool = True) -> dict:
+        """Mean over the views: PSNR/SSIM in the mask and on the whole image, and mask
+        coverage: the fraction of ground-truth mask pixels (mask >= 0.5) whose rendered alpha
+        is >= 0.5 (a hole in a prefix shows here even where the background matches)."""
+        psnr_m, ssim_m, psnr_w, ssim_w, ms, cov = [], [], [], [], [], []
         for v in self.views:
-            image, seconds = self.render(v, ids)
+            image, seconds, alpha = self.render(v, ids, with_alpha=True)
             s = self.dataset[int(v)]
             psnr_m.append(metrics.psnr(image, s.image, s.mask))
-            ssim_m.append(metrics.ssim(image, s.image, s.mask))
             psnr_w.append(metrics.psnr(image, s.image))
-            ssim_w.append(metrics.ssim(image, s.image))
+            if ssim:
+                ssim_m.append(metrics.ssim(image, s.image, s.mask))
+                ssim_w.append(metrics.ssim(image, s.image))
+            inside = np.asarray(s.mask) >= 0.5
+            cov.append(float(np.count_nonzero(alpha[inside] >= 0.5)) / max(int(np.count_nonzero(inside)), 1))
             ms.append(seconds * 1e3)
-        return {"psnr": float(np.mean(psnr_m)), "ssim": float(np.mean(ssim_m)),
-                "psnr_full_image": float(np.mean(psnr_w)), "ssim_full_image": float(np.mean(ssim_w)),
-                "views": len(self.views), "render_ms": float(np.median(ms))}
+        nan = float("nan")
+        return {"psnr": float(np.mean(psnr_m)), "ssim": float(np.mean(ssim_m)) if ssim else nan,
+                "psnr_full_image": float(np.mean(psnr_w)), "ssim_full_image": float(np.mean(ssim_w)) if ssim else nan,
+                "coverage": float(np.mean(cov)), "views": len(self.views), "render_ms": float(np.median(ms))}
 
 
 def random_within_levels(level: np.ndarray, seed: int = 0) -> np.ndarray:

@@ -39,7 +39,8 @@ def _rows(gaussians: dict) -> np.ndarray:
     quats = np.asarray(gaussians["quats"], np.float64).reshape(n, 4)
     scales = np.asarray(gaussians["scales"], np.float64).reshape(n, 3)
     opac = np.asarray(gaussians["opacities"], np.float64).reshape(n)
-    colors = np.asarray(gaussians["colors"], np.float64).reshape(n, -1)
+    colors = np.asarray(gaussians["colors"], np.float64)
+    colors = colors.reshape(n, -1) if n else colors.reshape(0, colors.shape[-1] if colors.ndim == 2 else 3)
     if colors.shape[1] != 3:
         raise ValueError(f"write_ply: colors must be RGB [N,3], got {colors.shape}")
     rest = np.asarray(gaussians.get("sh_rest", np.zeros((n, 0, 3))), np.float64)

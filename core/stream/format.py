@@ -30,14 +30,18 @@ from ..avatar.forest import Forest
 from ..io.safe_io import loads_json
 
 MAGIC = b"PAVS\r\n\x1a\n"
-VERSION = 2  # what the writer writes
-READ_VERSIONS = (1, 2)  # what the reader reads (1: smallest-three rotations, FORMAT.md 7)
+VERSION = 3  # what the writer writes
+READ_VERSIONS = (1, 2, 3)  # what the reader reads (1: smallest-three rotations, 2: no coarse levels; FORMAT.md 7)
 FLAG_LOSSLESS = 1
 FLAG_TEMPLATE = 2
 KNOWN_FLAGS = FLAG_LOSSLESS | FLAG_TEMPLATE
 FIXED_HEADER = struct.Struct("<8sHHIIIHHHH16sII")
-FIXED_SIZE = FIXED_HEADER.size  # 56
-QUANT_TABLE_SIZE = {1: 18 * 4, 2: 26 * 4}  # by version
+FIXED_SIZE = FIXED_HEADER.size  # 56: versions 1 and 2; version 3 adds u32 coarse_length
+FIXED_SIZE_V3 = FIXED_SIZE + 4
+QUANT_TABLE_SIZE = {1: 18 * 4, 2: 26 * 4, 3: 26 * 4}  # by version
+# |log-scale| bound of header ranges: exp() of more overflows float32 (88.7) in a renderer; the
+# writer clamps to it, readers refuse a header beyond it (FORMAT.md 3.1).
+LOG_SCALE_LIMIT = 80.0
 MAX_HEADER = 256 << 20
 DEFAULT_BLOCK = 256
 QUANT_RECORD = 23
@@ -111,6 +115,27 @@ def crc8(rows) -> np.ndarray:
         tab = _CRC8_POS[k] = (_crc8_position_tables(k).ravel(), np.arange(k) * 256)
     flat, offs = tab
     return np.bitwise_xor.reduce(flat[rows + offs], axis=1) if len(rows) else np.zeros(0, np.uint8)
+
+
+_CRC8_INDEX: dict = {}
+
+
+def crc8_indexed(rows, first_index: int) -> np.ndarray:
+    """Version 3 record check: CRC-8 of u32le(record index) ‖ row, for rows of records
+    first_index, first_index+1, ... By linearity (init 0, no xorout) it is the row's CRC-8
+    xor the index bytes' contributions at positions 0..3 of the longer message."""
+    rows = np.asarray(rows, np.uint8)
+    if rows.ndim == 1:
+        rows = rows[None]
+    k = rows.shape[1]
+    tab = _CRC8_INDEX.get(k)
+    if tab is None:
+        tab = _CRC8_INDEX[k] = _crc8_position_tables(k + 4)[:4].copy()
+    idx = np.arange(first_index, first_index + len(rows), dtype=np.uint32)
+    out = crc8(rows)
+    for j in range(4):
+        out ^= tab[j][(idx >> np.uint32(8 * j)) & np.uint32(0xFF)]
+    return out
 
 
 def _crc8_bytewise(data: bytes) -> int:
@@ -197,6 +222,24 @@ class StreamInfo:
     template_faces: np.ndarray | None = field(default=None, repr=False, compare=False)
     header_crc: int = 0
     order: np.ndarray | None = field(default=None, repr=False, compare=False)
+    num_coarse_levels: int = 0  # version 3: levels 0..K-1 are coarse, level K the template
+    coarse_faces: np.ndarray | None = field(default=None, repr=False, compare=False)  # [C,3], grouped by level
+
+    @property
+    def num_roots(self) -> int:
+        """Root records: every coarse level and the template level (records 0..num_roots-1)."""
+        return int(sum(self.level_counts[: self.num_coarse_levels + 1]))
+
+    @property
+    def head_records(self) -> int:
+        """Records of the first whole head: the coarsest level (the template level when there
+        are no coarse levels)."""
+        return int(self.level_counts[0])
+
+    @property
+    def head_bytes(self) -> int:
+        """Bytes to the first whole head, header included."""
+        return self.bytes_for_count(self.head_records)
 
     @property
     def lossless(self) -> bool:
@@ -224,8 +267,8 @@ class StreamInfo:
 
     @property
     def base_bytes(self) -> int:
-        """Bytes needed for the whole base level (every template face)."""
-        return self.bytes_for_count(self.num_template_faces)
+        """Bytes needed for the whole base level (every template face, and the coarse levels)."""
+        return self.bytes_for_count(self.num_roots)
 
     @property
     def bytes_per_gaussian(self) -> float:
@@ -299,25 +342,31 @@ class StreamInfo:
             "header_bytes": self.header_size, "total_bytes": self.total_bytes,
             "bytes_per_gaussian": self.bytes_per_gaussian, "base_bytes": self.base_bytes,
             "template_hash": self.template_hash_hex, "template_embedded": self.template_embedded,
+            "coarse_levels": self.num_coarse_levels, "head_records": self.head_records, "head_bytes": self.head_bytes,
         }
 
 
 StreamHeader = StreamInfo
 
 
-def _encode_header(info: StreamInfo, template_blob: bytes, meta_blob: bytes) -> bytes:
+def _encode_header(info: StreamInfo, template_blob: bytes, meta_blob: bytes, coarse_blob: bytes = b"") -> bytes:
     L = len(info.level_counts)
+    v3 = info.version >= 3
     parts = [
         None,  # fixed part, filled once the size is known
         np.asarray(info.level_counts, "<u4").tobytes(),
         b"" if info.lossless else np.asarray(info.quant, "<f4").tobytes(),
+        coarse_blob,
         template_blob,
         meta_blob,
     ]
-    size = FIXED_SIZE + 4 * L + len(parts[2]) + len(template_blob) + len(meta_blob) + 4
+    fixed = FIXED_SIZE_V3 if v3 else FIXED_SIZE
+    size = fixed + 4 * L + len(parts[2]) + len(coarse_blob) + len(template_blob) + len(meta_blob) + 4
     parts[0] = FIXED_HEADER.pack(MAGIC, info.version, info.flags, size, info.num_records, info.num_template_faces,
-                                 info.record_size, info.records_per_block, L, 0, info.template_hash,
-                                 len(meta_blob), len(template_blob))
+                                 info.record_size, info.records_per_block, L, info.num_coarse_levels if v3 else 0,
+                                 info.template_hash, len(meta_blob), len(template_blob))
+    if v3:
+        parts[0] += struct.pack("<I", len(coarse_blob))
     body = b"".join(parts)
     crc = zlib.crc32(body)
     info.header_size = size
@@ -331,9 +380,27 @@ def _check_magic(buf, source: str) -> None:
         raise ValueError(f"{source}: not a ProgressiveAvatars stream (bad magic at offset 0: {bytes(buf[:k])!r})")
 
 
+def _fixed_size(buf) -> int:
+    """Bytes of the fixed header part (the version is at offset 8: 56 before version 3, 60 from it)."""
+    if len(buf) >= 10 and struct.unpack_from("<H", buf, 8)[0] >= 3:
+        return FIXED_SIZE_V3
+    return FIXED_SIZE
+
+
+def _header_size_if_known(buf, source: str):
+    """header_size once the fixed part has arrived (checked), else None."""
+    if len(buf) < FIXED_SIZE or len(buf) < _fixed_size(buf):
+        return None
+    return _parse_fixed(buf, source)["header_size"]
+
+
 def _parse_fixed(buf, source: str):
     _check_magic(buf, source)
     (magic, version, flags, hsize, N, F0, R, B, L, reserved, thash, M, T) = FIXED_HEADER.unpack_from(buf, 0)
+    K, CL = 0, 0  # version 3: coarse levels (offset 30, reserved before) and coarse table bytes
+    if version >= 3 and version in READ_VERSIONS:
+        K, reserved = reserved, 0
+        CL = struct.unpack_from("<I", buf, FIXED_SIZE)[0]
     if version not in READ_VERSIONS:
         raise ValueError(f"{source}: stream format version {version} is not supported (this reader: "
                          f"{', '.join(map(str, READ_VERSIONS))})")
@@ -354,13 +421,17 @@ def _parse_fixed(buf, source: str):
         problems.append(f"records_per_block={B}, num_levels={L}, reserved={reserved}")
     if bool(T) != bool(flags & FLAG_TEMPLATE):
         problems.append(f"template length {T} disagrees with flag bit 1")
-    expect = FIXED_SIZE + 4 * L + (0 if lossless else QUANT_TABLE_SIZE[version]) + T + M + 4
+    if K >= L or bool(K) != bool(CL):
+        problems.append(f"coarse levels {K} with {L} levels and a coarse table of {CL} bytes")
+    fixed = FIXED_SIZE_V3 if version >= 3 else FIXED_SIZE
+    expect = fixed + 4 * L + (0 if lossless else QUANT_TABLE_SIZE[version]) + CL + T + M + 4
     if hsize != expect or hsize > MAX_HEADER:
         problems.append(f"header size {hsize} (fields imply {expect}, limit {MAX_HEADER})")
     if problems:
         raise ValueError(f"{source}: invalid stream header: " + "; ".join(problems))
     return dict(version=version, flags=flags, header_size=hsize, num_records=N, num_template_faces=F0,
-                record_size=R, records_per_block=B, num_levels=L, template_hash=thash, M=M, T=T)
+                record_size=R, records_per_block=B, num_levels=L, template_hash=thash, M=M, T=T, K=K, CL=CL,
+                fixed=fixed)
 
 
 def _parse_header(buf, source: str) -> StreamInfo:
@@ -372,20 +443,27 @@ def _parse_header(buf, source: str) -> StreamInfo:
     if stored != actual:
         raise ValueError(f"{source}: header checksum mismatch (stored 0x{stored:08x}, computed 0x{actual:08x}, "
                          f"header bytes 0..{H - 1}): the header is corrupted")
-    pos = FIXED_SIZE
-    L = f["num_levels"]
+    pos = f["fixed"]
+    L, K = f["num_levels"], f["K"]
     counts = np.frombuffer(bytes(buf[pos: pos + 4 * L]), "<u4").astype(np.int64)
     pos += 4 * L
-    if counts[0] != f["num_template_faces"] or counts.sum() != f["num_records"] or np.any(counts < 1):
+    if counts[K] != f["num_template_faces"] or counts.sum() != f["num_records"] or np.any(counts < 1):
         raise ValueError(f"{source}: level counts {counts.tolist()} disagree with N={f['num_records']}, "
-                         f"F0={f['num_template_faces']}")
+                         f"F0={f['num_template_faces']} (template level {K})")
     quant = None
     if not f["flags"] & FLAG_LOSSLESS:
         size = QUANT_TABLE_SIZE[f["version"]]
         quant = np.frombuffer(bytes(buf[pos: pos + size]), "<f4").astype(np.float32)
         pos += size
-        if not np.all(np.isfinite(quant)) or any(np.any(lo > hi) for lo, hi in quant_ranges(quant).values()):
-            raise ValueError(f"{source}: invalid quantisation ranges in the header: {quant.tolist()}")
+        ranges = quant_ranges(quant)
+        if (not np.all(np.isfinite(quant)) or any(np.any(lo > hi) for lo, hi in ranges.values())
+                or np.any(np.abs(np.concatenate(ranges["ls"])) > LOG_SCALE_LIMIT)):
+            raise ValueError(f"{source}: invalid quantisation ranges in the header (lo > hi, not finite, or a "
+                             f"log-scale beyond +-{LOG_SCALE_LIMIT:g}): {quant.tolist()}")
+    coarse = None
+    if K:
+        coarse = _decode_coarse(bytes(buf[pos: pos + f["CL"]]), int(counts[:K].sum()), source)
+        pos += f["CL"]
     template = None
     if f["T"]:
         blob = bytes(buf[pos: pos + f["T"]])
@@ -409,9 +487,37 @@ def _parse_header(buf, source: str) -> StreamInfo:
             raise ValueError(f"{source}: metadata is not valid UTF-8 JSON: {exc}") from None
         if not isinstance(meta, dict):
             raise ValueError(f"{source}: metadata must be a JSON object")
+    if coarse is not None and template is not None and coarse.max() > template.max():
+        raise ValueError(f"{source}: coarse triangles name vertex {coarse.max()}, the template has "
+                         f"{template.max() + 1} vertices")
     return StreamInfo(f["version"], f["flags"], H, f["num_records"], f["num_template_faces"], f["record_size"],
                       f["records_per_block"], tuple(int(c) for c in counts), f["template_hash"], quant, meta,
-                      template, stored)
+                      template, stored, num_coarse_levels=K, coarse_faces=coarse)
+
+
+def _encode_coarse(tris) -> bytes:
+    """FORMAT.md 2.3: zlib of int32 LE columns (a[i] - a[i-1], b - a, c - a) of the [C,3]
+    coarse table (a[-1] = 0). Rows sorted by their first vertex make small numbers."""
+    t = np.asarray(tris, np.int64).reshape(-1, 3)
+    a = t[:, 0]
+    cols = np.concatenate([np.diff(a, prepend=0), t[:, 1] - a, t[:, 2] - a]).astype("<i4")
+    return zlib.compress(cols.tobytes(), 9)
+
+
+def _decode_coarse(blob: bytes, C: int, source: str) -> np.ndarray:
+    want = 12 * C
+    try:
+        raw = zlib.decompressobj().decompress(blob, want + 1)  # bounded, as the template
+    except zlib.error as exc:
+        raise ValueError(f"{source}: coarse triangle table does not decompress: {exc}") from None
+    if len(raw) != want:
+        raise ValueError(f"{source}: coarse triangle table holds {len(raw)} bytes, expected {want} ({C} triangles)")
+    cols = np.frombuffer(raw, "<i4").astype(np.int64).reshape(3, C)
+    a = np.cumsum(cols[0])
+    t = np.stack([a, a + cols[1], a + cols[2]], axis=1)
+    if C and (t.min() < 0 or t.max() > 0x7FFFFFFF):
+        raise ValueError(f"{source}: coarse triangle table holds invalid vertex indices")
+    return t.astype(np.int32)
 
 
 def check_template(header: StreamInfo, faces) -> None:
@@ -424,6 +530,9 @@ def check_template(header: StreamInfo, faces) -> None:
     if h != header.template_hash:
         raise ValueError(f"template mismatch: the mesh's topology hash {h.hex()} differs from the stream's "
                          f"{header.template_hash.hex()} (same face count, different faces)")
+    if header.coarse_faces is not None and len(header.coarse_faces) and header.coarse_faces.max() > faces.max():
+        raise ValueError(f"template mismatch: the stream's coarse triangles name vertex {header.coarse_faces.max()}, "
+                         f"the mesh has {faces.max() + 1} vertices")
 
 
 def read_header(source) -> StreamInfo:
@@ -435,17 +544,70 @@ def read_header(source) -> StreamInfo:
         with open(name, "rb") as fh:
             buf = fh.read(FIXED_SIZE)
             if len(buf) >= FIXED_SIZE:
-                buf += fh.read(_parse_fixed(buf, name)["header_size"] - FIXED_SIZE)
+                buf += fh.read(_fixed_size(buf) - FIXED_SIZE)
+                H = _header_size_if_known(buf, name)
+                if H is not None:
+                    buf += fh.read(H - len(buf))
     _check_magic(buf, name)
-    if len(buf) < FIXED_SIZE or len(buf) < _parse_fixed(buf, name)["header_size"]:
+    H = _header_size_if_known(buf, name)
+    if H is None or len(buf) < H:
         raise ValueError(f"{name}: truncated inside the stream header ({len(buf)} bytes)")
     return _parse_header(buf, name)
 
 
 # -- stream order -------------------------------------------------------------------------
-def stream_order(forest: Forest, importance=None) -> np.ndarray:
-    """Permutation (new position -> old face): roots in template order, then each level by
-    descending importance, ties by face index. Parents precede children since levels do."""
+ROOT_ORDERS = ("forest", "spatial", "importance", "both", "auto")
+
+
+def root_keys(forest: Forest, how: str = "forest", importance=None, vertices=None):
+    """Sort key (ascending) of each root inside its level, or None for the forest's order.
+
+    forest: as the forest holds them (trained avatars: spread-out, core/avatar/coarse.py; older ones:
+    template order). spatial: spread-out order of the roots' centroids on `vertices` (a rest
+    pose). importance: descending importance. both: the spatial order's dyadic blocks (the
+    first 1, 1, 2, 4, 8, ... roots: each block spread over the head) with every block sorted by
+    descending importance. auto: spatial in level 0 (nothing renders below it: a prefix must
+    not leave holes), importance in the later root levels (a whole head is already there:
+    the most visible faces first); measured in docs/BENCHMARKS.md (issue 16)."""
+    if how not in ROOT_ORDERS:
+        raise ValueError(f"root order must be one of {ROOT_ORDERS}, got {how!r}")
+    if how == "forest":
+        return None
+    R = forest.num_roots
+    lv = forest.level[:R]
+    if how in ("spatial", "both", "auto"):
+        rank = np.arange(R, dtype=np.float64)
+        if vertices is not None:
+            from ..avatar.coarse import centroids, spread_order
+
+            cen = centroids(vertices, forest.root_faces)
+            for level in np.unique(lv):  # per root level
+                ids = np.flatnonzero(lv == level)
+                rank[ids[spread_order(cen[ids])]] = np.arange(len(ids))
+        else:  # the forest's order within each level
+            for level in np.unique(lv):
+                ids = np.flatnonzero(lv == level)
+                rank[ids] = np.arange(len(ids))
+        if how == "spatial":
+            return rank
+        if how == "auto" and importance is None:
+            return rank
+    if importance is None:
+        raise ValueError(f"root order {how!r} needs the faces' importance")
+    imp = np.asarray(importance, np.float64)[:R]
+    top = max(float(imp.max()), 1e-300) if R else 1.0
+    if how == "importance":
+        return -imp
+    if how == "auto":  # level 0 by its spatial rank (all keys < 0), later levels by importance
+        return np.where(lv == 0, rank - R, -imp)
+    return np.floor(np.log2(rank + 1.0)) + 0.999 * (1.0 - np.clip(imp / top, 0.0, 1.0))
+
+
+def stream_order(forest: Forest, importance=None, root_key=None) -> np.ndarray:
+    """Permutation (new position -> old face): the roots level by level (coarse levels, then
+    the template level), each by ascending `root_key` (default: the forest's order), then each
+    further level by descending importance, ties by face index. Parents precede children
+    since levels do."""
     N = forest.num_faces
     if importance is None:
         key = np.zeros(N)
@@ -455,13 +617,16 @@ def stream_order(forest: Forest, importance=None) -> np.ndarray:
             raise ValueError(f"stream_order: importance has {len(key)} values for {N} faces")
         if not np.all(np.isfinite(key)):
             raise ValueError("stream_order: importance contains NaN or inf")
-    key = np.where(forest.level == 0, 0.0, -key)  # roots keep template order whatever their importance
+    R = forest.num_roots
+    key = -key
+    key[:R] = 0.0 if root_key is None else np.asarray(root_key, np.float64)[:R]
     idx = np.arange(N)
     return np.lexsort((idx, key, forest.level)).astype(np.int64)
 
 
 # -- writer -------------------------------------------------------------------------------
-def _quantize_records(av: Avatar, bary: np.ndarray, quant: np.ndarray) -> np.ndarray:
+def _quantize_records(av: Avatar, bary: np.ndarray, quant: np.ndarray, version: int = VERSION,
+                      root_ref=None) -> np.ndarray:
     N = av.num_gaussians
     rec = np.zeros(N, QUANT_DTYPE)
     q = quant_ranges(quant)
@@ -484,6 +649,8 @@ def _quantize_records(av: Avatar, bary: np.ndarray, quant: np.ndarray) -> np.nda
     rec["rot"] = rc[:, 0] | (rc[:, 1] << np.uint32(8)) | (rc[:, 2] << np.uint32(16)) | (rc[:, 3] << np.uint32(24))
 
     parent = np.where(av.forest.parent >= 0, av.forest.parent, QUANT_ROOT).astype(np.uint32)
+    if version >= 3:  # roots name their row of the coarse + template table
+        parent[: len(root_ref)] = root_ref
     rec["parent"] = np.stack([parent & 0xFF, (parent >> 8) & 0xFF, (parent >> 16) & 0xFF], 1).astype(np.uint8)
     rec["ls"] = codes(av.d_log_scale.astype(np.float64), *q["ls"], 256).astype(np.uint8)
     alpha = 1.0 / (1.0 + np.exp(-av.opacity_logit.astype(np.float64)))
@@ -491,14 +658,16 @@ def _quantize_records(av: Avatar, bary: np.ndarray, quant: np.ndarray) -> np.nda
     c = 0.5 + SH_C0 * av.f_dc.astype(np.float64)
     rec["col"] = codes(c, *q["c"], 256).astype(np.uint8)
     raw = rec.view(np.uint8).reshape(N, QUANT_RECORD)
-    rec["crc"] = crc8(raw[:, :QUANT_RECORD - 1])
+    rec["crc"] = crc8_indexed(raw[:, :QUANT_RECORD - 1], 0) if version >= 3 else crc8(raw[:, :QUANT_RECORD - 1])
     return rec
 
 
-def _lossless_records(av: Avatar) -> np.ndarray:
+def _lossless_records(av: Avatar, version: int = VERSION, root_ref=None) -> np.ndarray:
     N = av.num_gaussians
     rec = np.zeros(N, LOSSLESS_DTYPE)
     parent = np.where(av.forest.parent >= 0, av.forest.parent, LOSSLESS_ROOT).astype(np.uint32)
+    if version >= 3:
+        parent[: len(root_ref)] = root_ref
     rec["link"] = parent | (np.maximum(av.forest.slot, 0).astype(np.uint32) << np.uint32(30))
     rec["split_logits"] = av.forest.split_logits
     for name in ("d_mu", "d_log_scale", "d_rot", "opacity_logit", "f_dc"):
@@ -506,7 +675,8 @@ def _lossless_records(av: Avatar) -> np.ndarray:
     if not np.all(np.isfinite(av.forest.split_logits)):
         raise ValueError("write_stream: split logits contain NaN or inf")
     raw = rec.view(np.uint8).reshape(N, LOSSLESS_RECORD)
-    rec["crc"] = crc8(raw[:, :LOSSLESS_RECORD - 1])
+    rec["crc"] = (crc8_indexed(raw[:, :LOSSLESS_RECORD - 1], 0) if version >= 3
+                  else crc8(raw[:, :LOSSLESS_RECORD - 1]))
     return rec
 
 
@@ -524,20 +694,30 @@ def _quant_table(av: Avatar) -> np.ndarray:
     c_lo = np.maximum(c.min(0), 0.0)
     c_hi = np.maximum(c.max(0), c_lo)
     r = _unit_quaternions(av.d_rot)
-    parts = [av.d_mu.min(0), av.d_mu.max(0), av.d_log_scale.min(0), av.d_log_scale.max(0), c_lo, c_hi,
-             r.min(0), r.max(0)]
+    lim = LOG_SCALE_LIMIT
+    parts = [av.d_mu.min(0), av.d_mu.max(0), np.clip(av.d_log_scale.min(0), -lim, lim),
+             np.clip(av.d_log_scale.max(0), -lim, lim), c_lo, c_hi, r.min(0), r.max(0)]
     table = []
     for i, p in enumerate(parts):
         table.append(_f32_floor(p) if i % 2 == 0 else _f32_ceil(p))
-    return np.concatenate(table).astype(np.float32)
+    table = np.concatenate(table).astype(np.float32)
+    table[6:12] = np.clip(table[6:12], -lim, lim)  # (outward rounding must not pass the limit)
+    return table
 
 
 def write_stream(path, avatar: Avatar, importance=None, *, quantize: bool = True, metadata=None,
                  embed_template: bool = True, records_per_block: int = DEFAULT_BLOCK,
-                 drop_sh: bool = False) -> StreamInfo:
+                 drop_sh: bool = False, root_order: str | None = None, vertices=None,
+                 version: int = VERSION) -> StreamInfo:
     """Write `avatar` as a stream (atomically). Returns its header; `.order` maps stream index
     to the avatar's face index. Records carry the DC colour only: an avatar with higher SH
-    bands is refused unless ``drop_sh`` (then the metadata says which degree was dropped)."""
+    bands is refused unless ``drop_sh`` (then the metadata says which degree was dropped).
+
+    Roots (coarse levels, template level) go level by level in `root_order` (root_keys):
+    default "auto" when rest-pose `vertices` are given, else the forest's order. The avatar's
+    training settings (meta "config") stay out of the header (they are in the run folder):
+    time to the first whole head counts.
+    ``version=2`` writes the previous format (no coarse levels, roots in template order)."""
     forest = avatar.forest
     if avatar.sh_degree and not drop_sh:
         raise ValueError(f"write_stream: the avatar has SH degree {avatar.sh_degree}; stream records carry the "
@@ -549,11 +729,32 @@ def write_stream(path, avatar: Avatar, importance=None, *, quantize: bool = True
     limit = QUANT_ROOT if quantize else LOSSLESS_ROOT
     if N > limit:
         raise ValueError(f"write_stream: {N} Gaussians exceed this record type's limit of {limit}")
-    order = stream_order(forest, importance)
+    if version not in (2, VERSION):
+        raise ValueError(f"write_stream: can write versions 2 and {VERSION}, not {version}")
+    C, K = forest.num_coarse, forest.num_coarse_levels
+    if forest.num_roots != C + len(forest.template_faces):
+        raise ValueError(f"write_stream: the avatar holds {forest.num_roots} of its {C + len(forest.template_faces)} "
+                         "roots (a prefix); streams start from every root")
+    if root_order is None:
+        root_order = "auto" if vertices is not None else "forest"
+    if version == 2:
+        if K or not np.array_equal(forest.root_ref, np.arange(forest.num_roots)) or root_order != "forest":
+            raise ValueError("write_stream: version 2 has no coarse levels and keeps roots in template order")
+    order = stream_order(forest, importance, root_keys(forest, root_order, importance, vertices))
     f2 = forest.reorder(order)
+    # The coarse table as stored: each level's rows sorted by vertex (compresses well); roots
+    # name their row of [stored coarse table; template].
+    row_of = np.arange(C + len(forest.template_faces), dtype=np.int64)
+    coarse_rows = forest.coarse_faces
+    if C:
+        starts = np.concatenate([[0], np.cumsum(forest.coarse_counts)])
+        perm = np.concatenate([a + np.lexsort(forest.coarse_faces[a:b].T[::-1]) for a, b in zip(starts[:-1], starts[1:])])
+        coarse_rows = forest.coarse_faces[perm]
+        row_of[perm] = np.arange(C)
+    root_ref = row_of[f2.root_ref]
     av = Avatar(f2, *(getattr(avatar, n)[order] for n in ("d_mu", "d_log_scale", "d_rot", "opacity_logit", "f_dc")))
 
-    meta = {k: v for k, v in dict(avatar.meta or {}).items() if k != "stream"}
+    meta = {k: v for k, v in dict(avatar.meta or {}).items() if k not in ("stream", "config")}
     if avatar.sh_degree:
         meta["sh_degree_dropped"] = avatar.sh_degree
     meta.update(metadata or {})
@@ -567,14 +768,15 @@ def write_stream(path, avatar: Avatar, importance=None, *, quantize: bool = True
     level_counts = tuple(int(c) for c in f2.level_counts())
     if quantize:
         quant = _quant_table(av)
-        recs = _quantize_records(av, f2.barycentrics(), quant)
+        recs = _quantize_records(av, f2.barycentrics(), quant, version, root_ref)
     else:
         quant = None
-        recs = _lossless_records(av)
+        recs = _lossless_records(av, version, root_ref)
     R = recs.dtype.itemsize
-    info = StreamInfo(VERSION, flags, 0, N, F0, R, int(records_per_block), level_counts, template_hash(tmpl),
-                      quant, meta, tmpl.astype(np.int32) if embed_template else None)
-    header = _encode_header(info, template_blob, meta_blob)
+    info = StreamInfo(version, flags, 0, N, len(tmpl), R, int(records_per_block), level_counts, template_hash(tmpl),
+                      quant, meta, tmpl.astype(np.int32) if embed_template else None, num_coarse_levels=K,
+                      coarse_faces=coarse_rows.astype(np.int32) if K else None)
+    header = _encode_header(info, template_blob, meta_blob, _encode_coarse(coarse_rows) if K else b"")
     raw = recs.tobytes()
     B = info.records_per_block
     prefix = struct.pack("<I", info.header_crc)
@@ -692,7 +894,8 @@ class _Columns:
         return self.cols[name][:n]
 
 
-def _trusted_forest(template_faces, parent, slot, split_logits, children, level, root) -> Forest:
+def _trusted_forest(template_faces, parent, slot, split_logits, children, level, root,
+                    coarse_faces=None, coarse_counts=(), root_ref=None) -> Forest:
     """A Forest from arrays the stream reader has already checked against every rule that
     Forest._derive enforces (roots first, parents precede children in the previous level,
     slots 0..2 and unique), with children/level/root derived from the stream's level ranges:
@@ -702,6 +905,10 @@ def _trusted_forest(template_faces, parent, slot, split_logits, children, level,
         raise ValueError("Forest: template faces hold negative vertex indices")
     f = Forest.__new__(Forest)
     f.template_faces = template_faces
+    f.coarse_faces = np.zeros((0, 3), np.int32) if coarse_faces is None else coarse_faces
+    f.coarse_counts = tuple(int(c) for c in coarse_counts)
+    n_roots = int(np.count_nonzero(parent < 0)) if root_ref is None else len(root_ref)
+    f.root_ref = np.arange(n_roots, dtype=np.int64) if root_ref is None else root_ref
     f.parent = parent
     f.slot = slot
     f.split_logits = split_logits
@@ -789,7 +996,8 @@ class StreamReader:
                     self._pending += mv
                     buf = self._pending
                 _check_magic(buf, self.source)
-                if len(buf) < FIXED_SIZE or len(buf) < _parse_fixed(buf, self.source)["header_size"]:
+                H = _header_size_if_known(buf, self.source)
+                if H is None or len(buf) < H:
                     if buf is mv:
                         self._pending = bytearray(mv)
                     return 0
@@ -915,7 +1123,7 @@ class StreamReader:
                 dst = raw.reserve(hi)
                 rows = dst[lo:hi]
                 rows[...] = np.frombuffer(bytes(pend[(lo - i0) * R: (hi - i0) * R]), np.uint8).reshape(-1, R)
-                ok = crc8(rows[:, :-1]) == rows[:, -1]
+                ok = (crc8_indexed(rows[:, :-1], lo) if h.version >= 3 else crc8(rows[:, :-1])) == rows[:, -1]
                 if not ok.all():
                     bad = lo + int(np.argmin(ok))
                     err = ValueError(f"{self.source}: record {bad} (offset {h.record_offset(bad)}, block "
@@ -946,6 +1154,11 @@ class StreamReader:
         self._level_starts = np.concatenate([[0], header.level_ends()]).astype(np.int64)
         self._starts_list = [int(x) for x in self._level_starts]
         self._cols = _Columns(N)
+        # Root records: versions 1-2 the template faces in template order; version 3 every
+        # coarse level and the template level, each root naming its row of the root table.
+        self._nroots = header.num_roots if header.version >= 3 else header.num_template_faces
+        self._root_ref = _Grow((), np.int64, self._nroots)
+        self._root_claim = _Grow((), np.int32, self._nroots, fill=0)
 
     def _check(self, i0: int, i1: int):
         """_check_range over cache-sized runs of records (temporaries stay small and reused)."""
@@ -975,14 +1188,22 @@ class StreamReader:
             s += rec["b1"] & np.uint16(0xFFF)
             bad |= s > np.uint16(4095)  # beta0 + beta1 <= 4095
             root_val = QUANT_ROOT
-        nr = max(0, min(n, h.num_template_faces - i0))  # records of this batch that must be roots
-        if nr:
-            bad[:nr] |= (par[:nr] != root_val) | (slt[:nr] != 0)
-        # A non-root's parent lies in the previous level's index range (so before the child).
+        nr = max(0, min(n, self._nroots - i0))  # records of this batch that must be roots
         starts = self._starts_list
+        if nr and h.version < 3:
+            bad[:nr] |= (par[:nr] != root_val) | (slt[:nr] != 0)
+        elif nr:
+            # A root names a row of the root table in its own level's row range (the table's
+            # rows are grouped like the root records: coarse levels, then the template).
+            bad[:nr] |= slt[:nr] != 0
+            for lv in range(bisect.bisect_right(starts, i0) - 1, bisect.bisect_right(starts, i0 + nr - 1)):
+                x, y = max(starts[lv], i0) - i0, min(starts[lv + 1], i0 + nr) - i0
+                off = np.subtract(par[x:y], starts[lv])
+                bad[x:y] |= off.view(np.uint64) >= np.uint64(starts[lv + 1] - starts[lv])
+        # A non-root's parent lies in the previous level's index range (so before the child).
         l_first = bisect.bisect_right(starts, i0 + nr) - 1
         l_last = bisect.bisect_right(starts, i1 - 1) - 1
-        for lv in range(max(l_first, 1), l_last + 1):  # per level this batch touches
+        for lv in range(max(l_first, 1, h.num_coarse_levels + 1), l_last + 1):  # per level this batch touches
             x, y = max(starts[lv], i0) - i0, min(starts[lv + 1], i1) - i0
             off = np.subtract(par[x:y], starts[lv - 1])
             bad[x:y] |= off.view(np.uint64) >= np.uint64(starts[lv] - starts[lv - 1])
@@ -1009,6 +1230,20 @@ class StreamReader:
                 # forest keeps every child link (the duplicate overwrote its earlier twin's).
                 child[keys] = old
                 child[keys[: k - nr]] = ids[: k - nr]
+        if h.version >= 3 and min(k, nr):
+            # Each root row at most once: scatter, read back (as the child slots above).
+            m = min(k, nr)
+            refs = par[:m].copy()
+            ids = np.arange(i0 + 1, i0 + m + 1, dtype=np.int32)
+            claim = self._root_claim.reserve(self._nroots)
+            old = claim.take(refs)
+            claim[refs] = ids
+            if old.max() > 0 or (claim.take(refs) != ids).any():
+                first = np.zeros(m, bool)
+                first[np.unique(refs, return_index=True)[1]] = True
+                k = int(np.argmax((old > 0) | ~first))
+                problem = f"record {i0 + k} names a root triangle an earlier record already holds"
+            self._root_ref.reserve(i0 + m)[i0: i0 + min(k, m)] = refs[: min(k, m)]
         if nr:
             par[:nr] = -1
             slt[:nr] = -1
@@ -1028,7 +1263,7 @@ class StreamReader:
             self._decoded = 0
             for c0 in range(0, self._n, _RUN):
                 self._structure(c0, min(self._n, c0 + _RUN), cols)
-            nr = min(self._n, self.header.num_template_faces)
+            nr = min(self._n, self._nroots)
             cols["parent"][:nr] = -1
             cols["slot"][:nr] = -1
             c.valid["parent"] = c.valid["slot"] = self._n
@@ -1109,7 +1344,8 @@ class StreamReader:
         c = self._cols
         forest = self._forest(tmpl, n)
         meta = dict(h.metadata)
-        meta["stream"] = {"records": n, "total_records": h.num_records, "base_complete": n >= F0,
+        meta["stream"] = {"records": n, "total_records": h.num_records, "base_complete": n >= self._nroots,
+                          "head_complete": n >= h.head_records, "coarse_levels": h.num_coarse_levels,
                           "lossless": h.lossless, "template_hash": h.template_hash_hex,
                           "bytes": h.bytes_for_count(n), "total_bytes": h.total_bytes}
         params = [c.hand_out(name, n) for name in PARAM_NAMES]
@@ -1120,8 +1356,7 @@ class StreamReader:
     def _forest(self, tmpl, n) -> Forest:
         """The forest of the first n records, from the structure _check verified."""
         h = self.header
-        F0 = h.num_template_faces
-        nroot = min(n, F0)
+        nroot = min(n, self._nroots)
         arr = _carve((("children", (3,), np.int64), ("root", (), np.int64), ("level", (), np.int8)), n)
         children, root, level = arr["children"], arr["root"], arr["level"]
         np.subtract(self._child.reserve(3 * n)[: 3 * n], 1, out=children.reshape(-1))
@@ -1135,10 +1370,17 @@ class StreamReader:
             if x >= y:
                 break
             level[x:y] = lv
-            if lv:
+            if x >= self._nroots:  # (root levels: each root is its own root)
                 np.take(root, parent[x:y], out=root[x:y])
-        return _trusted_forest(np.array(tmpl[:nroot], np.int32), parent, self._cols.hand_out("slot", n),
-                               self._cols.hand_out("split_logits", n), children, level, root)
+        if h.version >= 3:
+            root_ref = self._root_ref.data[:nroot].copy()
+        else:
+            root_ref = np.arange(nroot, dtype=np.int64)
+        K = h.num_coarse_levels
+        coarse = h.coarse_faces if K else np.zeros((0, 3), np.int32)
+        return _trusted_forest(np.asarray(tmpl, np.int32), parent, self._cols.hand_out("slot", n),
+                               self._cols.hand_out("split_logits", n), children, level, root,
+                               coarse, tuple(h.level_counts[:K]), root_ref)
 
 
 def _decode_scratch(n) -> dict:
@@ -1275,8 +1517,13 @@ def read_stream(source, *, percent=None, max_bytes=None, max_gaussians=None, tem
         _check_magic(head, name)
         if len(head) < FIXED_SIZE:
             return None
-        H = _parse_fixed(head, name)["header_size"]
-        rest = data[FIXED_SIZE:H] if is_bytes else fh.read(H - FIXED_SIZE)
+        if _fixed_size(head) > FIXED_SIZE:
+            more = _fixed_size(head) - FIXED_SIZE
+            head = bytes(head) + bytes(data[FIXED_SIZE:FIXED_SIZE + more] if is_bytes else fh.read(more))
+        H = _header_size_if_known(head, name)
+        if H is None:
+            return None
+        rest = data[len(head):H] if is_bytes else fh.read(H - len(head))
         if len(head) + len(rest) < H:
             return None
         reader.feed(bytes(head) + bytes(rest))

@@ -592,7 +592,7 @@ class FaceBinding:
 
     def __init__(self, forest: Forest):
         self.forest = forest
-        self.tri = np.ascontiguousarray(forest.template_faces, np.int64)
+        self.tri = np.ascontiguousarray(forest.root_faces, np.int64)
         self.parent = np.ascontiguousarray(forest.parent, np.int64)
         self.slot = np.ascontiguousarray(forest.slot, np.int64)
         root = np.asarray(forest.root, np.int64)

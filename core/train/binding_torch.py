@@ -70,11 +70,12 @@ class TorchForest:
         self.forest = forest
         self.device = torch.device(device)
         as_t = lambda a: torch.as_tensor(np.ascontiguousarray(a), device=self.device)  # noqa: E731
-        self.template_faces = as_t(forest.template_faces.astype(np.int64))
+        self.template_faces = as_t(forest.root_faces.astype(np.int64))  # per root (coarse and template)
         self.root = as_t(forest.root)
         self.levels = []
-        for lvl in range(1, forest.max_level + 1):
-            ids = np.flatnonzero(forest.level == lvl)
+        R = forest.num_roots
+        for lvl in range(int(forest.level[R:].min()) if forest.num_faces > R else 1, forest.max_level + 1):
+            ids = np.flatnonzero(forest.level[R:] == lvl) + R
             self.levels.append((as_t(ids), as_t(forest.parent[ids]), as_t(forest.slot[ids].astype(np.int64))))
 
     @property

@@ -28,8 +28,14 @@ class TorchAvatar:
 
     @classmethod
     def from_template(cls, faces, color=(0.5, 0.5, 0.5), opacity=0.7, log_scale=(np.log(0.5), np.log(0.1), np.log(0.5)),
-                      device="cpu", sh_degree: int = 0) -> "TorchAvatar":
-        forest = Forest(faces)
+                      device="cpu", sh_degree: int = 0, coarse=None) -> "TorchAvatar":
+        """`coarse`: None, or (coarse_faces, coarse_counts, root_ref or None), the table and
+        counts from core.coarse.build_coarse."""
+        if coarse is None:
+            forest = Forest(faces)
+        else:
+            cf, counts, ref = coarse
+            forest = Forest(faces, coarse_faces=cf, coarse_counts=counts, root_ref=ref)
         av = Avatar.initial(forest, color=color, opacity=opacity)
         av.d_log_scale[:] = np.asarray(log_scale, np.float32)
         av.f_rest = np.zeros((forest.num_faces, sh.num_rest(sh_degree), 3), np.float32)
@@ -93,7 +99,7 @@ class TorchAvatar:
 
     def to_avatar(self, meta=None) -> Avatar:
         arrays = {n: self.params[n].detach().cpu().numpy() for n in PARAM_NAMES}
-        forest = Forest(self.forest.template_faces, self.forest.parent, self.forest.slot,
-                        self.params["split_logits"].detach().cpu().numpy())
+        f = self.forest
+        forest = f._like(f.parent, f.slot, self.params["split_logits"].detach().cpu().numpy(), f.root_ref)
         rest = self.params["f_rest"].detach().cpu().numpy() if "f_rest" in self.params else None
         return Avatar(forest, **arrays, meta=dict(meta or {}), f_rest=rest)

@@ -38,6 +38,13 @@ class TrainConfig:
     max_faces: int = 60000
     supervision: str = "all"  # all | sampled | finest
     uniform: bool = False  # ablation: split every leaf when the cap rises, ignore gradients
+    # Coarse levels above the template (DESIGN.md 7), as fractions of the template's face count,
+    # built once from the canonical mesh; () turns them off (the paper's levels, older runs).
+    coarse_levels: tuple = (1 / 32, 1 / 8)
+    # Multiplies w_l of the coarse levels in the multi-level loss. 0.5 measured on the default head
+    # (docs/BENCHMARKS.md, issue 16): 100 % within 0.02 dB of the run without coarse levels (1.0: 0.19
+    # dB below), for 0.65 dB less at the coarsest prefix.
+    coarse_weight: float = 0.5
     sh_degree: int = 0  # view-dependent colour bands (0..3); the stream carries degree 0
     sh_every: int = 1000  # one more active SH band every this many iterations (as 3DGS)
     flame_model: str | None = None  # the user's FLAME model, for FLAME-mode datasets (flame_param_path)
@@ -90,6 +97,8 @@ def config_for(preset: str, **overrides) -> TrainConfig:
         raise ValueError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
     cfg = replace(TrainConfig(), **PRESETS[preset])
     cfg = replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
+    if not (math.isfinite(cfg.coarse_weight) and cfg.coarse_weight >= 0):
+        raise ValueError(f"coarse weight must be finite and >= 0, got {cfg.coarse_weight}")
     w = tuple(float(x) for x in cfg.level_weights)
     if any(not math.isfinite(x) or x < 0 for x in w) or (w and max(w) == 0):
         raise ValueError(f"level weights must be finite, >= 0 and not all 0, got {list(w)}")
@@ -220,7 +229,13 @@ class Trainer:
         if resume and os.path.exists(self.ckpt_path):
             self._load_checkpoint()
         else:
-            self.model = TorchAvatar.from_template(self.train.faces, sh_degree=config.sh_degree)
+            coarse = None
+            if config.coarse_levels:
+                from ..avatar.coarse import build_coarse
+
+                cf, counts = build_coarse(self.train.canonical_vertices, self.train.faces, config.coarse_levels)
+                coarse = (cf, counts, None) if counts else None
+            self.model = TorchAvatar.from_template(self.train.faces, sh_degree=config.sh_degree, coarse=coarse)
             self.opt = Adam(self.model.params, config.lr)
             self.rng = np.random.default_rng(config.seed)
             self.iteration = 0
@@ -245,8 +260,8 @@ class Trainer:
     def _grow(self, it: int) -> int:
         c, forest = self.cfg, self.model.forest
         cap = self.depth_cap(it)
-        leaves = forest.leaves()
-        leaves = leaves[forest.level[leaves] < cap]
+        leaves = forest.splittable()  # never coarse faces
+        leaves = leaves[forest.depth[leaves] < cap]
         if c.uniform:
             pick = leaves
         else:
@@ -288,7 +303,7 @@ class Trainer:
                              self.background, level=self.model.forest.level, upto=levels)
         for lvl, out in zip(levels, outs):
             ids = self.model.level_ids[top]  # every level's output covers all faces (means2d, radii)
-            w = level_weight(c, lvl)
+            w = level_weight(c, lvl) * (c.coarse_weight if lvl < self.model.forest.num_coarse_levels else 1.0)
             if w:
                 loss = loss + w * losses.photometric(out.image, target, c.lambda_ssim)
             if lvl == top:
