@@ -23,9 +23,10 @@ LEVEL_GROUP = "PA Level Filter"
 def apply_depth(obj, forest, count=None, max_level=None):
     """Write the depth of each face of ``obj`` over the first ``count`` Gaussians (all if
     None): the attribute, the legend and, while they are shown, the colours. ``max_level``:
-    the whole avatar's deepest level (the colour scale; default the forest's)."""
+    the whole avatar's deepest subdivision depth below the template (the colour scale; default
+    the forest's)."""
     me = obj.data
-    top = forest.max_level if max_level is None else max(int(max_level), forest.max_level)
+    top = forest.max_depth if max_level is None else max(int(max_level), forest.max_depth)
     depth = preview_data.depth_per_face(forest, len(me.polygons), count)
     attr = me.attributes.get(DEPTH_ATTR)
     if attr is not None and (attr.domain != "FACE" or attr.data_type != "INT"):

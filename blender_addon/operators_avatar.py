@@ -55,7 +55,8 @@ def _fetch(url, template_faces=None):
             return super().feed(chunk)
 
     with open(part, "wb") as fh:
-        res = http_stream.fetch_stream(url, reader=_Tee(template_faces, source=url), timeout=30.0)
+        # A deadline: this runs on Blender's UI thread, which a slow server must not hold forever.
+        res = http_stream.fetch_stream(url, reader=_Tee(template_faces, source=url), timeout=30.0, deadline=300.0)
     n = res.num_gaussians
     if n == 0:
         os.remove(part)
@@ -128,7 +129,7 @@ def load_avatar_onto(context, mesh_obj, path, budget=100.0):
         state.template_faces = len(mesh_obj.data.polygons)
         runtime.prime(obj, abspath, avatar, budget_info)
         state.budget = budget  # its update callback sets the count, readouts and evaluates the frame
-        depth.apply_depth(mesh_obj, avatar.forest, state.count, budget_info.max_level())
+        depth.apply_depth(mesh_obj, avatar.forest, state.count, budget_info.max_depth(avatar.forest))
     except BaseException:
         if obj is not None:
             runtime.forget(obj)
@@ -237,7 +238,7 @@ class PA_OT_depth_colors(bpy.types.Operator):
             self.report({"ERROR"}, obj.pa_avatar.status or "Avatar not available")
             return {"CANCELLED"}
         try:
-            depth.show_colors(context, src, e.avatar.forest, obj.pa_avatar.count, e.budget.max_level())
+            depth.show_colors(context, src, e.avatar.forest, obj.pa_avatar.count, e.budget.max_depth(e.avatar.forest))
         except ValueError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}

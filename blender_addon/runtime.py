@@ -242,6 +242,6 @@ def apply_budget(obj, context=None, depsgraph=None):
         from . import depth
 
         try:
-            depth.apply_depth(src, e.avatar.forest, count, b.max_level())
+            depth.apply_depth(src, e.avatar.forest, count, b.max_depth(e.avatar.forest))
         except ValueError as exc:  # the mesh was edited to another face count
             state.status = f"Depth not shown: {exc}"

@@ -8,6 +8,8 @@ import pickle
 import tracemalloc
 import zipfile
 
+import struct
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
@@ -337,7 +339,7 @@ def test_refused_duplicate_keeps_a_correct_forest(block):
     rj[12:15] = ri[12:15]
     geo = int.from_bytes(rj[0:8], "little") & ~(3 << 60) | (int.from_bytes(ri[0:8], "little") & (3 << 60))
     rj[0:8] = geo.to_bytes(8, "little")
-    rj[R - 1] = S._crc8_bytewise(bytes(rj[:R - 1]))
+    rj[R - 1] = S._crc8_bytewise(struct.pack("<I", j) + bytes(rj[:R - 1]))  # version 3: the CRC covers the index
     data[oj: oj + R] = rj
     r = S.StreamReader()
     with pytest.raises(ValueError, match=f"record {j} reuses the child slot"):

@@ -205,6 +205,21 @@ def test_corruption_is_reported_not_hidden(stream, serve):
     assert_prefix(res.avatar(), full, res.num_gaussians)
 
 
+def test_only_verification_failures_are_corrupt(stream, serve):
+    """A flipped byte is a StreamError ("corrupt"); a valid stream bound to another template is
+    refused as such ("refused"), not reported as damaged bytes."""
+    data, full, info = stream
+    bad = bytearray(data)
+    bad[info.record_offset(3) + 2] ^= 0x21
+    with pytest.raises(S.StreamError):
+        S.read_stream(bytes(bad), template_faces=full.forest.template_faces)
+    other = full.forest.template_faces[::-1].copy()
+    with pytest.raises(S.TemplateMismatch):
+        S.read_stream(data, template_faces=other)
+    res = H.fetch_stream(serve(data).url, template_faces=other, timeout=2)
+    assert res.status == H.REFUSED and "template mismatch" in res.message, str(res)
+
+
 def test_cuts_inside_every_level_of_a_coarse_stream(serve):
     """A stream with coarse levels, cut (connection closed) at 1, 3, 10 and 50 % of its bytes and
     inside every level: each download keeps exactly the whole verified records, and they bind

@@ -68,6 +68,20 @@ class Avatar:
                              f"{LOG_SCALE_MAX:.2f} (its scale would be infinite)")
 
     @classmethod
+    def from_verified(cls, forest: Forest, params: dict, meta: dict) -> "Avatar":
+        """An Avatar from float32 arrays of the right shapes known to be finite and in range:
+        what ``__post_init__`` checks with a full pass over every array, which the stream
+        reader has already done record by record. Degree-0 colour only. Equal to
+        ``Avatar(forest, **params, meta=meta)`` (tests/test_stream.py)."""
+        av = cls.__new__(cls)
+        av.forest = forest
+        for name in PARAM_NAMES:
+            setattr(av, name, params[name])
+        av.meta = meta
+        av.f_rest = np.zeros((forest.num_faces, 0, 3), np.float32)
+        return av
+
+    @classmethod
     def initial(cls, forest: Forest, color=(0.5, 0.5, 0.5), opacity=0.9, log_scale=0.0) -> "Avatar":
         N = forest.num_faces
         rot = np.zeros((N, 4), np.float32)

@@ -317,6 +317,26 @@ class Forest:
         }
 
     @classmethod
+    def from_verified(cls, template_faces, parent, slot, split_logits, children, level, root, *,
+                      coarse_faces=None, coarse_counts=(), root_ref=None) -> "Forest":
+        """A Forest from arrays already checked against every rule ``_derive`` enforces (roots
+        first, parents precede children in the previous level, slots 0..2 and unique), with
+        children/level/root derived by the caller: the stream reader verifies the structure as
+        records arrive and must not pay a second full validation pass. Equal to
+        ``Forest(template_faces, parent, slot, split_logits, ...)`` (tests/test_stream.py)."""
+        if template_faces.min() < 0:
+            raise ValueError("Forest: template faces hold negative vertex indices")
+        f = cls.__new__(cls)
+        f.template_faces = template_faces
+        f.coarse_faces = np.zeros((0, 3), np.int32) if coarse_faces is None else coarse_faces
+        f.coarse_counts = tuple(int(c) for c in coarse_counts)
+        n_roots = int(np.count_nonzero(parent < 0)) if root_ref is None else len(root_ref)
+        f.root_ref = np.arange(n_roots, dtype=np.int64) if root_ref is None else root_ref
+        f.parent, f.slot, f.split_logits = parent, slot, split_logits
+        f.children, f.level, f.root = children, level, root
+        return f
+
+    @classmethod
     def from_state(cls, data, prefix: str = "forest_", source: str = "forest") -> "Forest":
         missing = [k for k in ("template_faces", "parent", "slot", "split_logits") if prefix + k not in data]
         if missing:

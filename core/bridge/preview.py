@@ -74,6 +74,14 @@ class Budget:
             return int(n) - 1
         return int(self.levels.max()) if len(self.levels) else 0
 
+    def max_depth(self, forest=None) -> int:
+        """Deepest subdivision depth below the template of the whole avatar (the depth colours'
+        scale): the deepest level less the coarse levels above the template."""
+        k = getattr(self.info, "num_coarse_levels", None)
+        if k is None:
+            k = getattr(forest, "num_coarse_levels", 0) if forest is not None else 0
+        return max(self.max_level() - int(k), 0)
+
 
 def load_avatar(path, template_faces=None) -> tuple[Avatar, Budget]:
     """An avatar in stream order from a stream file (.pavs, recognised by its magic) or an
@@ -229,10 +237,16 @@ def depth_per_face(forest, num_template_faces: int, count: int | None = None) ->
     the face (a stream cut inside the template level, or a budget below it)."""
     n = forest.num_faces if count is None else int(min(max(count, 0), forest.num_faces))
     depth = np.full(int(num_template_faces), NOT_ARRIVED, np.int32)
-    root = forest.root[:n]
-    if n and int(root.max()) >= len(depth):
-        raise ValueError(f"the avatar has {forest.num_roots} template faces, the mesh {len(depth)}")
-    np.maximum.at(depth, root, forest.level[:n].astype(np.int32))
+    # A face's root is a row of the root table: coarse triangles first (they sit above the
+    # template and cover no single template face), then template faces in any order.
+    coarse = int(getattr(forest, "num_coarse", 0))
+    ref = getattr(forest, "root_ref", None)
+    root = forest.root[:n] if ref is None else np.asarray(ref)[forest.root[:n]] - coarse
+    keep = root >= 0
+    if keep.any() and int(root[keep].max()) >= len(depth):
+        raise ValueError(f"the avatar has {len(forest.template_faces)} template faces, the mesh {len(depth)}")
+    below = forest.level[:n].astype(np.int32) - int(getattr(forest, "num_coarse_levels", 0))
+    np.maximum.at(depth, root[keep], below[keep])
     return depth
 
 

@@ -29,6 +29,16 @@ from ..avatar.avatar import Avatar, PARAM_NAMES, SH_C0
 from ..avatar.forest import Forest
 from ..io.safe_io import loads_json
 
+
+class StreamError(ValueError):
+    """The bytes are not a valid stream: the header, a record or a block failed verification
+    (what an HTTP download reports as "corrupt")."""
+
+
+class TemplateMismatch(ValueError):
+    """A valid stream made for another template than the mesh it is bound to."""
+
+
 MAGIC = b"PAVS\r\n\x1a\n"
 VERSION = 3  # what the writer writes
 READ_VERSIONS = (1, 2, 3)  # what the reader reads (1: smallest-three rotations, 2: no coarse levels; FORMAT.md 7)
@@ -167,7 +177,7 @@ def quant_ranges(quant) -> dict:
     and, from version 2 (26 floats instead of 18), rot (4: w, x, y, z)."""
     q = np.asarray(quant, np.float64).ravel()
     if len(q) not in (18, 26):
-        raise ValueError(f"quantisation table of {len(q)} floats (expected 18 or 26)")
+        raise StreamError(f"quantisation table of {len(q)} floats (expected 18 or 26)")
     out = {name: (q[6 * k: 6 * k + 3], q[6 * k + 3: 6 * k + 6]) for k, name in enumerate(("mu", "ls", "c"))}
     if len(q) == 26:
         out["rot"] = (q[18:22], q[22:26])
@@ -377,7 +387,7 @@ def _encode_header(info: StreamInfo, template_blob: bytes, meta_blob: bytes, coa
 def _check_magic(buf, source: str) -> None:
     k = min(len(buf), len(MAGIC))
     if bytes(buf[:k]) != MAGIC[:k]:
-        raise ValueError(f"{source}: not a ProgressiveAvatars stream (bad magic at offset 0: {bytes(buf[:k])!r})")
+        raise StreamError(f"{source}: not a ProgressiveAvatars stream (bad magic at offset 0: {bytes(buf[:k])!r})")
 
 
 def _fixed_size(buf) -> int:
@@ -402,10 +412,10 @@ def _parse_fixed(buf, source: str):
         K, reserved = reserved, 0
         CL = struct.unpack_from("<I", buf, FIXED_SIZE)[0]
     if version not in READ_VERSIONS:
-        raise ValueError(f"{source}: stream format version {version} is not supported (this reader: "
+        raise StreamError(f"{source}: stream format version {version} is not supported (this reader: "
                          f"{', '.join(map(str, READ_VERSIONS))})")
     if flags & ~KNOWN_FLAGS:
-        raise ValueError(f"{source}: unknown header flags 0x{flags:04x} at offset 10")
+        raise StreamError(f"{source}: unknown header flags 0x{flags:04x} at offset 10")
     lossless = bool(flags & FLAG_LOSSLESS)
     want_R = LOSSLESS_RECORD if lossless else QUANT_RECORD
     problems = []
@@ -428,7 +438,7 @@ def _parse_fixed(buf, source: str):
     if hsize != expect or hsize > MAX_HEADER:
         problems.append(f"header size {hsize} (fields imply {expect}, limit {MAX_HEADER})")
     if problems:
-        raise ValueError(f"{source}: invalid stream header: " + "; ".join(problems))
+        raise StreamError(f"{source}: invalid stream header: " + "; ".join(problems))
     return dict(version=version, flags=flags, header_size=hsize, num_records=N, num_template_faces=F0,
                 record_size=R, records_per_block=B, num_levels=L, template_hash=thash, M=M, T=T, K=K, CL=CL,
                 fixed=fixed)
@@ -441,14 +451,14 @@ def _parse_header(buf, source: str) -> StreamInfo:
     stored = struct.unpack_from("<I", buf, H - 4)[0]
     actual = zlib.crc32(bytes(buf[: H - 4]))
     if stored != actual:
-        raise ValueError(f"{source}: header checksum mismatch (stored 0x{stored:08x}, computed 0x{actual:08x}, "
+        raise StreamError(f"{source}: header checksum mismatch (stored 0x{stored:08x}, computed 0x{actual:08x}, "
                          f"header bytes 0..{H - 1}): the header is corrupted")
     pos = f["fixed"]
     L, K = f["num_levels"], f["K"]
     counts = np.frombuffer(bytes(buf[pos: pos + 4 * L]), "<u4").astype(np.int64)
     pos += 4 * L
     if counts[K] != f["num_template_faces"] or counts.sum() != f["num_records"] or np.any(counts < 1):
-        raise ValueError(f"{source}: level counts {counts.tolist()} disagree with N={f['num_records']}, "
+        raise StreamError(f"{source}: level counts {counts.tolist()} disagree with N={f['num_records']}, "
                          f"F0={f['num_template_faces']} (template level {K})")
     quant = None
     if not f["flags"] & FLAG_LOSSLESS:
@@ -458,7 +468,7 @@ def _parse_header(buf, source: str) -> StreamInfo:
         ranges = quant_ranges(quant)
         if (not np.all(np.isfinite(quant)) or any(np.any(lo > hi) for lo, hi in ranges.values())
                 or np.any(np.abs(np.concatenate(ranges["ls"])) > LOG_SCALE_LIMIT)):
-            raise ValueError(f"{source}: invalid quantisation ranges in the header (lo > hi, not finite, or a "
+            raise StreamError(f"{source}: invalid quantisation ranges in the header (lo > hi, not finite, or a "
                              f"log-scale beyond +-{LOG_SCALE_LIMIT:g}): {quant.tolist()}")
     coarse = None
     if K:
@@ -473,22 +483,24 @@ def _parse_header(buf, source: str) -> StreamInfo:
             d = zlib.decompressobj()
             raw = d.decompress(blob, want + 1)  # bounded: a hostile blob cannot inflate past the template
         except zlib.error as exc:
-            raise ValueError(f"{source}: embedded template does not decompress: {exc}") from None
+            raise StreamError(f"{source}: embedded template does not decompress: {exc}") from None
         if len(raw) != want:
-            raise ValueError(f"{source}: embedded template holds {len(raw)} bytes, expected {want}")
+            raise StreamError(f"{source}: embedded template holds {len(raw)} bytes, expected {want}")
         template = np.frombuffer(raw, "<i4").reshape(-1, 3).astype(np.int32)
         if template_hash(template) != f["template_hash"]:
-            raise ValueError(f"{source}: embedded template does not match the header's template hash")
+            raise StreamError(f"{source}: embedded template does not match the header's template hash")
     meta = {}
     if f["M"]:
         try:
             meta = loads_json(bytes(buf[pos: pos + f["M"]]).decode("utf-8"), f"{source}: metadata")
         except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise ValueError(f"{source}: metadata is not valid UTF-8 JSON: {exc}") from None
+            raise StreamError(f"{source}: metadata is not valid UTF-8 JSON: {exc}") from None
+        except ValueError as exc:  # nested too deeply: loads_json's message names the source
+            raise StreamError(str(exc)) from None
         if not isinstance(meta, dict):
-            raise ValueError(f"{source}: metadata must be a JSON object")
+            raise StreamError(f"{source}: metadata must be a JSON object")
     if coarse is not None and template is not None and coarse.max() > template.max():
-        raise ValueError(f"{source}: coarse triangles name vertex {coarse.max()}, the template has "
+        raise StreamError(f"{source}: coarse triangles name vertex {coarse.max()}, the template has "
                          f"{template.max() + 1} vertices")
     return StreamInfo(f["version"], f["flags"], H, f["num_records"], f["num_template_faces"], f["record_size"],
                       f["records_per_block"], tuple(int(c) for c in counts), f["template_hash"], quant, meta,
@@ -509,14 +521,14 @@ def _decode_coarse(blob: bytes, C: int, source: str) -> np.ndarray:
     try:
         raw = zlib.decompressobj().decompress(blob, want + 1)  # bounded, as the template
     except zlib.error as exc:
-        raise ValueError(f"{source}: coarse triangle table does not decompress: {exc}") from None
+        raise StreamError(f"{source}: coarse triangle table does not decompress: {exc}") from None
     if len(raw) != want:
-        raise ValueError(f"{source}: coarse triangle table holds {len(raw)} bytes, expected {want} ({C} triangles)")
+        raise StreamError(f"{source}: coarse triangle table holds {len(raw)} bytes, expected {want} ({C} triangles)")
     cols = np.frombuffer(raw, "<i4").astype(np.int64).reshape(3, C)
     a = np.cumsum(cols[0])
     t = np.stack([a, a + cols[1], a + cols[2]], axis=1)
     if C and (t.min() < 0 or t.max() > 0x7FFFFFFF):
-        raise ValueError(f"{source}: coarse triangle table holds invalid vertex indices")
+        raise StreamError(f"{source}: coarse triangle table holds invalid vertex indices")
     return t.astype(np.int32)
 
 
@@ -524,14 +536,14 @@ def check_template(header: StreamInfo, faces) -> None:
     """Refuse to bind a stream to a mesh whose topology is not the stream's template."""
     faces = np.asarray(faces)
     if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) != header.num_template_faces:
-        raise ValueError(f"template mismatch: the stream was made for {header.num_template_faces} template faces, "
+        raise TemplateMismatch(f"template mismatch: the stream was made for {header.num_template_faces} template faces, "
                          f"the mesh has faces of shape {faces.shape}")
     h = template_hash(faces)
     if h != header.template_hash:
-        raise ValueError(f"template mismatch: the mesh's topology hash {h.hex()} differs from the stream's "
+        raise TemplateMismatch(f"template mismatch: the mesh's topology hash {h.hex()} differs from the stream's "
                          f"{header.template_hash.hex()} (same face count, different faces)")
     if header.coarse_faces is not None and len(header.coarse_faces) and header.coarse_faces.max() > faces.max():
-        raise ValueError(f"template mismatch: the stream's coarse triangles name vertex {header.coarse_faces.max()}, "
+        raise TemplateMismatch(f"template mismatch: the stream's coarse triangles name vertex {header.coarse_faces.max()}, "
                          f"the mesh has {faces.max() + 1} vertices")
 
 
@@ -551,7 +563,7 @@ def read_header(source) -> StreamInfo:
     _check_magic(buf, name)
     H = _header_size_if_known(buf, name)
     if H is None or len(buf) < H:
-        raise ValueError(f"{name}: truncated inside the stream header ({len(buf)} bytes)")
+        raise StreamError(f"{name}: truncated inside the stream header ({len(buf)} bytes)")
     return _parse_header(buf, name)
 
 
@@ -896,39 +908,15 @@ class _Columns:
 
 def _trusted_forest(template_faces, parent, slot, split_logits, children, level, root,
                     coarse_faces=None, coarse_counts=(), root_ref=None) -> Forest:
-    """A Forest from arrays the stream reader has already checked against every rule that
-    Forest._derive enforces (roots first, parents precede children in the previous level,
-    slots 0..2 and unique), with children/level/root derived from the stream's level ranges:
-    skips rebuilding and re-validating the same structure a second time. Equal to
-    Forest(template_faces, parent, slot, split_logits) (tests/test_stream.py checks it)."""
-    if template_faces.min() < 0:
-        raise ValueError("Forest: template faces hold negative vertex indices")
-    f = Forest.__new__(Forest)
-    f.template_faces = template_faces
-    f.coarse_faces = np.zeros((0, 3), np.int32) if coarse_faces is None else coarse_faces
-    f.coarse_counts = tuple(int(c) for c in coarse_counts)
-    n_roots = int(np.count_nonzero(parent < 0)) if root_ref is None else len(root_ref)
-    f.root_ref = np.arange(n_roots, dtype=np.int64) if root_ref is None else root_ref
-    f.parent = parent
-    f.slot = slot
-    f.split_logits = split_logits
-    f.children = children
-    f.level = level
-    f.root = root
-    return f
+    """The reader has checked every rule Forest._derive enforces (see Forest.from_verified)."""
+    return Forest.from_verified(template_faces, parent, slot, split_logits, children, level, root,
+                                coarse_faces=coarse_faces, coarse_counts=coarse_counts, root_ref=root_ref)
 
 
 def _trusted_avatar(forest, params, meta) -> Avatar:
-    """An Avatar from float32 arrays of the right shapes known to be finite (what
-    Avatar.__post_init__ would check, at a full pass over every array). Equal to
-    Avatar(forest, *params, meta=meta) (tests/test_stream.py checks it)."""
-    av = Avatar.__new__(Avatar)
-    av.forest = forest
-    for name, arr in zip(PARAM_NAMES, params):
-        setattr(av, name, arr)
-    av.meta = meta
-    av.f_rest = np.zeros((forest.num_faces, 0, 3), np.float32)  # the format carries SH degree 0
-    return av
+    """Float32 arrays of the right shapes known to be finite (see Avatar.from_verified); the
+    format carries SH degree 0."""
+    return Avatar.from_verified(forest, dict(zip(PARAM_NAMES, params)), meta)
 
 
 def _block_seeds(header_crc: int, n: int) -> np.ndarray:
@@ -980,14 +968,14 @@ class StreamReader:
     def feed(self, chunk) -> int:
         """Add bytes; returns how many Gaussians became available."""
         if self.error is not None:
-            raise ValueError(f"{self.source}: the reader already failed: {self.error}")
+            raise StreamError(f"{self.source}: the reader already failed: {self.error}")
         mv = memoryview(chunk).cast("B")
         if len(mv) == 0:
             return 0
         before = self._n
         self.bytes_received += len(mv)
         if self.complete:
-            self._fail(ValueError(f"{self.source}: {len(mv)} unexpected bytes after the end of the stream "
+            self._fail(StreamError(f"{self.source}: {len(mv)} unexpected bytes after the end of the stream "
                                   f"(offset {self.bytes_received - len(mv)})"))
         try:
             if self.header is None:
@@ -1020,7 +1008,7 @@ class StreamReader:
     def _block_error(self, bi, nbytes):
         h = self.header
         o = h.header_size + bi * h.block_bytes
-        return ValueError(f"{self.source}: block {bi} (records {bi * h.records_per_block}.."
+        return StreamError(f"{self.source}: block {bi} (records {bi * h.records_per_block}.."
                           f"{min(h.num_records, (bi + 1) * h.records_per_block) - 1}, bytes "
                           f"{o}..{o + nbytes + 3}) fails its CRC-32: corrupted")
 
@@ -1109,7 +1097,7 @@ class StreamReader:
             if err is None:
                 if self._block >= nblocks:
                     if len(mv):
-                        err = ValueError(f"{self.source}: {len(mv)} unexpected bytes after the end of the stream "
+                        err = StreamError(f"{self.source}: {len(mv)} unexpected bytes after the end of the stream "
                                          f"(offset {h.total_bytes})")
                 else:
                     pend += mv
@@ -1126,7 +1114,7 @@ class StreamReader:
                 ok = (crc8_indexed(rows[:, :-1], lo) if h.version >= 3 else crc8(rows[:, :-1])) == rows[:, -1]
                 if not ok.all():
                     bad = lo + int(np.argmin(ok))
-                    err = ValueError(f"{self.source}: record {bad} (offset {h.record_offset(bad)}, block "
+                    err = StreamError(f"{self.source}: record {bad} (offset {h.record_offset(bad)}, block "
                                      f"{bad // B}) fails its CRC-8: corrupted")
                     hi = bad
                 end = max(end, hi)
@@ -1134,7 +1122,7 @@ class StreamReader:
             k, problem = self._check(a, end)
             self._n = a + k
             if problem is not None:
-                raise ValueError(f"{self.source}: {problem} at offset {h.record_offset(a + k)}")
+                raise StreamError(f"{self.source}: {problem} at offset {h.record_offset(a + k)}")
         if err is not None:
             raise err
 

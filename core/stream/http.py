@@ -18,7 +18,7 @@ import time
 from dataclasses import dataclass, field
 from urllib.parse import urljoin, urlsplit
 
-from .format import FIXED_SIZE, StreamReader, _parse_fixed
+from .format import FIXED_SIZE, FIXED_SIZE_V3, StreamError, StreamReader, _fixed_size, _parse_fixed
 
 COMPLETE = "complete"  # the whole stream arrived and verified
 BUDGET = "budget"  # stopped at the requested budget (everything inside it verified)
@@ -27,6 +27,7 @@ CUT = "connection_cut"  # the server closed or reset the connection mid-body
 HTTP_ERROR = "http_error"  # a non-success HTTP status (or a malformed response)
 UNREACHABLE = "unreachable"  # could not connect at all
 CORRUPT = "corrupt"  # the bytes failed verification (checksum or structure)
+REFUSED = "refused"  # valid bytes the reader cannot use here (e.g. a stream made for another template)
 CANCELLED = "cancelled"  # the callback asked to stop
 CHANGED = "changed"  # the file on the server was replaced mid-download: discard what arrived
 DEADLINE = "deadline"  # the total `deadline` passed
@@ -178,7 +179,7 @@ def fetch_stream(url: str, *, reader: StreamReader | None = None, template_faces
         header yet, the fixed header part (its fields give the stream's size)."""
         lim = limit()
         if percent is not None and reader.header is None and fixed_total[0] is None and fresh:
-            lim = FIXED_SIZE if lim is None else min(lim, FIXED_SIZE)
+            lim = FIXED_SIZE_V3 if lim is None else min(lim, FIXED_SIZE_V3)
         return lim
 
     def finished() -> str | None:
@@ -191,9 +192,11 @@ def fetch_stream(url: str, *, reader: StreamReader | None = None, template_faces
 
     def feed(data) -> bool:
         """Feed, call back; False when the caller cancelled."""
-        if fresh and fixed_total[0] is None and len(head) < FIXED_SIZE:
-            head.extend(bytes(data[: FIXED_SIZE - len(head)]))
-            if len(head) == FIXED_SIZE:
+        if fresh and fixed_total[0] is None and len(head) < FIXED_SIZE_V3:
+            head.extend(bytes(data[: FIXED_SIZE_V3 - len(head)]))
+            # The fixed part is 56 bytes up to version 2 and 60 from version 3 (its version
+            # field, inside the first 56, says which).
+            if len(head) >= FIXED_SIZE and len(head) >= _fixed_size(head):
                 f = _parse_fixed(head, url)
                 fixed_total[0] = (f["header_size"] + f["num_records"] * f["record_size"]
                                   + 4 * -(-f["num_records"] // f["records_per_block"]))
@@ -346,8 +349,10 @@ def fetch_stream(url: str, *, reader: StreamReader | None = None, template_faces
         res.status, res.message = CUT, f"{type(exc).__name__}: {exc}"
     except http.client.HTTPException as exc:
         res.status, res.message = HTTP_ERROR, f"malformed response: {type(exc).__name__}: {exc}"
-    except ValueError as exc:  # the reader refused the bytes
+    except StreamError as exc:  # the bytes failed verification
         res.status, res.message = CORRUPT, str(exc)
+    except ValueError as exc:  # verified bytes the reader refuses (template mismatch, ...)
+        res.status, res.message = REFUSED, str(exc)
     except OSError as exc:
         res.status, res.message = CUT, f"{type(exc).__name__}: {exc}"
     return _done(res, conn, t0, dog)
