@@ -370,3 +370,20 @@ def test_coarse_weight_scales_the_coarse_levels_loss(tiny_dataset, tmp_path):
     assert off.step()["loss"] < full.step()["loss"]
     with pytest.raises(ValueError, match="coarse weight"):
         config_for("tiny", coarse_weight=-1.0)
+
+
+def test_growth_and_supervision_policies_are_validated(tmp_path):
+    """An unknown supervision mode or an impossible growth setting is an error when the config is
+    made (it used to train "all" silently), and the policies do what the trainer asks of them."""
+    from progressive_avatars.core.train.policies import Growth, Supervision
+
+    with pytest.raises(ValueError, match="supervision must be one of"):
+        config_for("tiny", supervision="everything")
+    with pytest.raises(ValueError, match="grad_threshold"):
+        config_for("tiny", grad_threshold=float("nan"))
+    rng = np.random.default_rng(0)
+    assert Supervision("all").levels(3, rng) == [0, 1, 2, 3] and Supervision("finest").levels(3, rng) == [3]
+    assert all(lv[-1] == 3 and len(lv) <= 2 for lv in (Supervision("sampled").levels(3, rng) for _ in range(20)))
+    g = Growth.from_config(config_for("cpu"))
+    assert not g.due(149) and g.due(150) and not g.due(2850)  # growth stops at 70 % of 4000
+    assert g.depth_cap(150) == 1 and g.depth_cap(2800) == 3

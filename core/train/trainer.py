@@ -24,6 +24,7 @@ from ..io.data import Dataset
 from ..io.atomic import atomic_open, atomic_savez
 from ..avatar.forest import Forest
 from .model import TorchAvatar
+from .policies import Growth, Supervision
 from ..render.rasterize import render, render_levels
 
 
@@ -99,6 +100,8 @@ def config_for(preset: str, **overrides) -> TrainConfig:
     cfg = replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
     if not (math.isfinite(cfg.coarse_weight) and cfg.coarse_weight >= 0):
         raise ValueError(f"coarse weight must be finite and >= 0, got {cfg.coarse_weight}")
+    Supervision(cfg.supervision)  # unknown modes and growth settings fail here, before any work
+    Growth.from_config(cfg)
     w = tuple(float(x) for x in cfg.level_weights)
     if any(not math.isfinite(x) or x < 0 for x in w) or (w and max(w) == 0):
         raise ValueError(f"level weights must be finite, >= 0 and not all 0, got {list(w)}")
@@ -198,6 +201,9 @@ class Trainer:
     def __init__(self, data_dir: str, out_dir: str, config: TrainConfig, resume: bool = False,
                  check_data: bool = True, progress: bool = False):
         self.data_dir, self.out_dir, self.cfg = data_dir, out_dir, config
+        # Policies first: a wrong supervision mode or growth setting fails before any file is made.
+        self.supervision = Supervision(config.supervision)
+        self.growth = Growth.from_config(config)
         os.makedirs(out_dir, exist_ok=True)
         self.ckpt_path = os.path.join(out_dir, "checkpoint.npz")
         if resume and os.path.exists(self.ckpt_path):
@@ -253,24 +259,10 @@ class Trainer:
         self.grad_count = np.zeros(n)
 
     def depth_cap(self, it: int) -> int:
-        c = self.cfg
-        span = max(1, int(c.grow_stop * c.iterations) - c.grow_start)
-        return int(min(c.max_depth, 1 + (max(0, it - c.grow_start) * c.max_depth) // span))
+        return Growth.from_config(self.cfg).depth_cap(it)
 
     def _grow(self, it: int) -> int:
-        c, forest = self.cfg, self.model.forest
-        cap = self.depth_cap(it)
-        leaves = forest.splittable()  # never coarse faces
-        leaves = leaves[forest.depth[leaves] < cap]
-        if c.uniform:
-            pick = leaves
-        else:
-            mean = self.grad_sum[leaves] / np.maximum(self.grad_count[leaves], 1)
-            pick = leaves[mean > c.grad_threshold]
-            # Largest gradients first when the face budget would be exceeded.
-            pick = pick[np.argsort(-mean[mean > c.grad_threshold], kind="stable")]
-        room = max(0, (c.max_faces - forest.num_faces) // 3)
-        pick = np.sort(pick[:room])
+        pick = self.growth.pick(self.model.forest, self.grad_sum, self.grad_count, it)
         if len(pick):
             self.model.split(pick)
             self.opt.grow(self.model.params)
@@ -279,13 +271,7 @@ class Trainer:
 
     # -- one step -------------------------------------------------------------------------
     def _levels(self) -> list[int]:
-        top = self.model.forest.max_level
-        mode = self.cfg.supervision
-        if mode == "finest" or top == 0:
-            return [top]
-        if mode == "sampled":
-            return sorted({top, int(self.rng.integers(0, top))})
-        return list(range(top + 1))
+        return self.supervision.levels(self.model.forest.max_level, self.rng)
 
     def step(self) -> dict:
         c, it = self.cfg, self.iteration
@@ -442,7 +428,7 @@ class Trainer:
             self.iteration += 1
             it = self.iteration
             grown = 0
-            if (c.uniform or it >= c.grow_start) and it % c.grow_every == 0 and it <= c.grow_stop * c.iterations:
+            if self.growth.due(it):
                 grown = self._grow(it)
             self.elapsed += time.perf_counter() - t0
             recent.append(stats["psnr"])

@@ -1,0 +1,76 @@
+"""Growth and supervision as policy objects, validated when they are made (training tier).
+
+The trainer asks a ``Supervision`` which levels one step renders and supervises, and a
+``Growth`` when to split and which leaves. Both are built from ``TrainConfig`` fields (kept
+as plain strings and numbers so run folders' config.json stay readable), and an unknown
+value is an error at construction, before any work, not a silent fallback.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+SUPERVISION_MODES = ("all", "sampled", "finest")
+
+
+class Supervision:
+    """all: every cumulative level (the multi-level loss); sampled: the finest and one random
+    coarser level per step; finest: the finest level only (the paper's ablation)."""
+
+    def __init__(self, mode: str):
+        if mode not in SUPERVISION_MODES:
+            raise ValueError(f"supervision must be one of {', '.join(SUPERVISION_MODES)}, got {mode!r}")
+        self.mode = mode
+
+    def levels(self, top: int, rng: np.random.Generator) -> list[int]:
+        if self.mode == "finest" or top == 0:
+            return [top]
+        if self.mode == "sampled":
+            return sorted({top, int(rng.integers(0, top))})
+        return list(range(top + 1))
+
+
+class Growth:
+    """Adaptive (split leaves whose mean screen-space gradient exceeds the threshold, largest
+    first within the face budget) or uniform (every leaf under the depth cap: the ablation).
+    The depth cap rises from 1 to max_depth between grow_start and grow_stop."""
+
+    def __init__(self, *, iterations: int, max_depth: int, grow_every: int, grow_start: int, grow_stop: float,
+                 grad_threshold: float, max_faces: int, uniform: bool = False):
+        if grow_every < 1 or max_depth < 0 or max_faces < 0 or not 0 <= grow_stop <= 1:
+            raise ValueError(f"growth: grow_every >= 1, max_depth >= 0, max_faces >= 0 and grow_stop in [0, 1] "
+                             f"(got {grow_every}, {max_depth}, {max_faces}, {grow_stop})")
+        if not np.isfinite(grad_threshold) or grad_threshold < 0:
+            raise ValueError(f"growth: grad_threshold must be finite and >= 0, got {grad_threshold}")
+        self.iterations, self.max_depth, self.grow_every = int(iterations), int(max_depth), int(grow_every)
+        self.grow_start, self.grow_stop = int(grow_start), float(grow_stop)
+        self.grad_threshold, self.max_faces, self.uniform = float(grad_threshold), int(max_faces), bool(uniform)
+
+    @classmethod
+    def from_config(cls, cfg) -> "Growth":
+        return cls(iterations=cfg.iterations, max_depth=cfg.max_depth, grow_every=cfg.grow_every,
+                   grow_start=cfg.grow_start, grow_stop=cfg.grow_stop, grad_threshold=cfg.grad_threshold,
+                   max_faces=cfg.max_faces, uniform=cfg.uniform)
+
+    def due(self, it: int) -> bool:
+        """Whether the forest grows after iteration ``it`` (uniform growth starts at once)."""
+        return ((self.uniform or it >= self.grow_start) and it % self.grow_every == 0
+                and it <= self.grow_stop * self.iterations)
+
+    def depth_cap(self, it: int) -> int:
+        span = max(1, int(self.grow_stop * self.iterations) - self.grow_start)
+        return int(min(self.max_depth, 1 + (max(0, it - self.grow_start) * self.max_depth) // span))
+
+    def pick(self, forest, grad_sum: np.ndarray, grad_count: np.ndarray, it: int) -> np.ndarray:
+        """Sorted ids of the leaves to split after iteration ``it``."""
+        leaves = forest.splittable()  # never coarse faces
+        leaves = leaves[forest.depth[leaves] < self.depth_cap(it)]
+        if self.uniform:
+            pick = leaves
+        else:
+            mean = grad_sum[leaves] / np.maximum(grad_count[leaves], 1)
+            over = mean > self.grad_threshold
+            # Largest gradients first when the face budget would be exceeded.
+            pick = leaves[over][np.argsort(-mean[over], kind="stable")]
+        room = max(0, (self.max_faces - forest.num_faces) // 3)
+        return np.sort(pick[:room])
