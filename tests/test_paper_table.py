@@ -49,7 +49,8 @@ def test_run_paper_table_small(tmp_path):
     assert vs["n"] == 2 and [p["seed"] for p in vs["pairs"]] == [0, 1]
     for pair in vs["pairs"]:
         assert pair["gaussians"] == min(pair["adaptive_total"], pair["uniform_total"])
-        assert pair["uniform_total"] == 4 * 8192  # uniform to depth 1
+        K = r["first_head"]["coarse_levels"]  # the uniform run has the same coarse levels above the template
+        assert pair["uniform_total"] == 4 * 8192 + sum(r["level_counts"][:K])  # uniform to depth 1
     assert set(r["quality_curves"]) == {"adaptive", "uniform"}
     res = r["resources"]
     assert set(res) == {"this run", "finest only", "adaptive seed 1", "uniform seed 0", "uniform seed 1"}

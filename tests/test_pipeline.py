@@ -127,3 +127,20 @@ def test_scripts_report_bad_input(tmp_path):
     out = subprocess.run([sys.executable, os.path.join(ROOT, "scripts", "export.py"), "--run", str(tmp_path)],
                          capture_output=True, text=True, env=ENV)
     assert out.returncode != 0 and "nothing to do" in out.stderr
+
+
+def test_report_is_a_library_function(tiny_run, tmp_path):
+    """The evaluation report is built by core/evaluate/report.build_report (scripts/evaluate.py
+    is only its command line): bad budgets are refused before any work, and a call writes the
+    same report files the script does."""
+    from progressive_avatars.core.evaluate.report import ReportOptions, build_report
+
+    with pytest.raises(ValueError, match="budgets"):
+        build_report(ReportOptions(run=tiny_run, out=str(tmp_path / "bad"), budgets=(0, 100)))
+    out = tmp_path / "lib"
+    out.mkdir()
+    rep = build_report(ReportOptions(run=tiny_run, out=str(out), budgets=(100,), strips=(100,), views=1,
+                                     curve_points=2, curve_views=1, progress=False))
+    assert rep["budgets"]["100"]["gaussians"] == rep["gaussians"] > 0
+    assert json.load(open(out / "report.json"))["budgets"]["100"]["gaussians"] == rep["gaussians"]
+    assert (out / "report.md").read_text().startswith("#")

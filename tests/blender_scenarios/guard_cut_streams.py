@@ -96,7 +96,7 @@ def _():
 @section("depth_toggle")
 def _():
     bpy.context.view_layer.objects.active = mesh
-    run_op(bpy.ops.object.progressive_avatars_load, filepath=ARGS["cuts"]["level0_mid"])
+    run_op(bpy.ops.object.progressive_avatars_load, filepath=ARGS["cuts"]["template_mid"])
     pv = preview_of(mesh)
     user = mesh.data.color_attributes.new("user_paint", "BYTE_COLOR", "POINT")
     mesh.data.color_attributes.active_color = user
@@ -114,10 +114,10 @@ def _():
     arrays["depth_toggle"] = d
     R["on"] = {"active": me.color_attributes.active_color_name, "shading": sorted({sp.shading.color_type for sp in spaces}),
                "legend": [[i.depth, i.faces, list(i.color)] for i in mesh.pa_mesh.depth_legend], "views": len(spaces)}
-    pv.pa_avatar.budget = 1.0  # colours follow the budget
+    pv.pa_avatar.budget = 20.0  # colours follow the budget (20 %: inside the template level of this cut)
     me.color_attributes["pa_depth_color"].data.foreach_get("color", col)
-    arrays["depth_colors_1pct"] = col.reshape(-1, 4).copy()
-    R["on_1pct_count"] = pv.pa_avatar.count
+    arrays["depth_colors_low"] = col.reshape(-1, 4).copy()
+    R["on_low_count"] = pv.pa_avatar.count
     pv.pa_avatar.budget = 100.0
     R["toggle_off"] = run_op(bpy.ops.object.progressive_avatars_depth_colors)
     R["off"] = {"active": me.color_attributes.active_color_name, "shading": sorted({sp.shading.color_type for sp in spaces}),

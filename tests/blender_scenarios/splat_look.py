@@ -9,7 +9,7 @@ pkg = importlib.util.module_from_spec(spec); sys.modules["pa_look"] = pkg; spec.
 pkg.register()
 ply_import = sys.modules["pa_look.blender_addon.ply_import"]
 look = sys.modules["pa_look.blender_addon.splat_look"]
-pdata = sys.modules["pa_look.core.preview_data"]
+pdata = sys.modules["pa_look.core.bridge.preview"]
 R = {}
 try:
     for ob in list(bpy.data.objects):

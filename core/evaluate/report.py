@@ -1,0 +1,378 @@
+"""The evaluation report of a trained run, as a library function (scripts/evaluate.py is its
+command line; tests call ``build_report`` directly). Reporting tier (numba render, matplotlib).
+
+The run is scored at several transmission budgets: PSNR/SSIM and mask coverage per budget,
+the PSNR-against-bytes curve in 1 % steps, the first whole head, ablations (root order inside
+levels, coarse levels, random order, importance only, quantisation, compared runs), pictures,
+and with ``paper_table`` the paper's layout. Writes REPORT_DIR/report.json, report.md and PNGs.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import shutil
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..io import run as runs
+from ..io.data import Dataset
+from ..stream import format as stream
+from . import plots
+from .sweep import SplitRenderer, importance_only, random_within_levels
+
+
+@dataclass
+class ReportOptions:
+    """What ``build_report`` evaluates; the names are scripts/evaluate.py's options."""
+
+    run: str
+    out: str
+    data: str | None = None
+    flame_model: str | None = None
+    budgets: tuple = (1, 2, 5, 10, 25, 50, 100)
+    strips: tuple = (1, 2, 5, 25, 100)
+    views: int = 24
+    curve_points: int = 100
+    curve_views: int = 8
+    root_order: str = "auto"
+    embed_template: bool = False
+    no_coarse_run: str | None = None
+    compare: tuple = ()
+    name: str = ""
+    about: str = ""
+    paper_table: bool = False
+    finest_only: str | None = None
+    uniform: tuple = ()
+    adaptive: tuple = ()
+    progress: bool = True
+    command: str = ""
+
+
+def _levels_prefixes(avatar):
+    """Cumulative level sets as stream prefixes: level l shows faces of level <= l."""
+    level = avatar.forest.level
+    return {int(lvl): int(np.count_nonzero(level <= lvl)) for lvl in range(int(level.max()) + 1)}
+
+
+def _score_prefixes(renderer, counts):
+    return {k: renderer.score(np.arange(n)) for k, n in counts.items()}
+
+
+RATES_MBIT = (1, 10, 100)
+
+
+def first_head(info) -> dict:
+    """Bytes (header included) and seconds at 1/10/100 Mbit/s to the first whole head (the
+    coarsest level; the template level without coarse levels) and to the whole base."""
+    out = {"coarse_levels": info.num_coarse_levels, "header_bytes": info.header_size,
+           "template_embedded": info.template_embedded,
+           "head_gaussians": info.head_records, "head_bytes": info.head_bytes,
+           "base_gaussians": info.num_roots, "base_bytes": info.base_bytes, "total_bytes": info.total_bytes}
+    for r in RATES_MBIT:
+        out[f"head_seconds_{r}mbit"] = info.head_bytes * 8 / (r * 1e6)
+        out[f"base_seconds_{r}mbit"] = info.base_bytes * 8 / (r * 1e6)
+    return out
+
+
+def root_order_ablation(avatar, W, rest, info, renderer) -> dict:
+    """NVS quality of prefixes that end inside a root level (a coarse level, the template
+    level), for each order of the roots inside their levels."""
+    from ..stream import format as stream
+
+    ends = info.level_ends()
+    K = info.num_coarse_levels
+    starts = np.concatenate([[0], ends[:-1]])
+    cuts = {}
+    for lv in range(K + 1):  # a quarter and a half into each root level
+        a, size = int(starts[lv]), int(info.level_counts[lv])
+        for frac in (0.25, 0.5):
+            cuts[f"level {lv} + {frac:.0%}"] = a + max(1, int(frac * size))
+    out = {"cuts": cuts, "orders": {}}
+    for how in stream.ROOT_ORDERS:
+        order = stream.stream_order(avatar.forest, W, stream.root_keys(avatar.forest, how, W, rest))
+        out["orders"][how] = {k: renderer.score(np.sort(order[:n]), ssim=False) for k, n in cuts.items()}
+    return out
+
+
+def coarse_ablation(run0, data, rest, nvs_renderer, info, nvs_split, views, scratch, progress, root_order) -> dict:
+    """This run against `run0` (trained without coarse levels) at 2, 5 and 100 % of each one's
+    own stream (same writer settings)."""
+    from ..io import run as runs
+    from ..stream import format as stream
+    from .sweep import SplitRenderer
+
+    av0 = runs.load_run_avatar(run0)
+    W0 = runs.run_importance(run0, av0, data, progress=progress)
+    p0 = os.path.join(scratch, "no_coarse.pavs")
+    info0 = stream.write_stream(p0, av0, W0, quantize=True, drop_sh=True, vertices=rest, root_order=root_order,
+                                embed_template=info.template_embedded)
+    r0 = SplitRenderer(stream.read_stream(p0, template_faces=nvs_split.faces), nvs_split, views)
+    out = {"run": os.path.abspath(run0), "bytes_with": info.total_bytes, "bytes_without": info0.total_bytes,
+           "first_head_with": first_head(info), "first_head_without": first_head(info0), "budgets": {}}
+    for b in (2, 5, 100):
+        n1, n0 = int(info.count_for_percent(b)), int(info0.count_for_percent(b))
+        out["budgets"][str(b)] = {"with": {"gaussians": n1, **nvs_renderer.score(np.arange(n1))},
+                                  "without": {"gaussians": n0, **r0.score(np.arange(n0))}}
+    return out
+
+
+def _data_summary(data) -> dict | None:
+    """Image size and template of a dataset written by make_synthetic.py (None for others)."""
+    path = os.path.join(data, "summary.json")
+    if not os.path.exists(path):
+        return None
+    with open(path) as fh:
+        s = json.load(fh)
+    return {k: s[k] for k in ("width", "height", "faces", "vertices", "cameras", "timesteps") if k in s}
+
+
+def _run_stream(run, data, progress):
+    """(stream-ordered quantised avatar, StreamInfo) of a trained run: importance (cached in the
+    run), then RUN/avatar.pavs."""
+    from ..io import run as runs
+    from ..stream import format as stream
+
+    avatar = runs.load_run_avatar(run)
+    W = runs.run_importance(run, avatar, data, progress=progress)
+    path = os.path.join(run, "avatar.pavs")
+    info = stream.write_stream(path, avatar, W, quantize=True, metadata={"run": os.path.abspath(run)}, drop_sh=True)
+    return stream.read_stream(path), info
+
+
+def _seeded(specs, first=None):
+    """{seed: (name, run)} from NAME=RUN / NAME_seed<k>=RUN specs (plus `first` as seed 0)."""
+    from . import plots
+
+    out = {} if first is None else {0: first}
+    for spec in specs:
+        name, _, run = spec.partition("=")
+        out[plots._seed_of(name)] = (name, run)
+    return out
+
+
+def _paper_extras(args, report, streamed, info, rend, splits, data, progress):
+    """What --paper-table adds to the report: base bytes, the finest-only ablation at 35 %,
+    adaptive against uniform at matched Gaussian counts per seed (and the curves of quality
+    against Gaussians of both), training time and peak memory, full-resolution strips."""
+    from . import plots
+    from .sweep import SplitRenderer
+
+    figs = {}
+    nvs = rend["nvs"]
+    report["base_bytes"] = int(info.base_bytes)  # through the template level (coarse levels included)
+    report["header_bytes"] = int(info.header_size)
+    if args.finest_only:
+        other, oinfo = _run_stream(args.finest_only, data, progress)
+        n_ours, n_other = int(info.count_for_percent(35)), int(oinfo.count_for_percent(35))
+        report["ablations"]["finest_only_35"] = {
+            "run": os.path.abspath(args.finest_only),
+            "multi_level": {**nvs.score(np.arange(n_ours)), "gaussians": n_ours},
+            "finest_only": {**SplitRenderer(other, splits["nvs"], args.views).score(np.arange(n_other)),
+                            "gaussians": n_other}}
+    # Adaptive (this run = seed 0, and --adaptive runs) against uniform (--uniform), per seed: both
+    # streams cut to the smaller of the two Gaussian counts, so the counts match exactly.
+    adaptive = _seeded(args.adaptive, first=("this run", args.run))
+    uniform = _seeded(args.uniform)
+    curve_views = max(4, args.views // 2)
+    curves, pairs = {}, []
+    streams = {}
+    for group, members in (("adaptive", adaptive), ("uniform", uniform)):
+        for seed, (name, run) in sorted(members.items()):
+            av, inf = (streamed, info) if run == args.run else _run_stream(run, data, progress)
+            streams[(group, seed)] = (av, inf)
+            r = SplitRenderer(av, splits["nvs"], curve_views)
+            counts = np.unique(np.geomspace(int(av.forest.level_counts()[0]), av.num_gaussians, 6).astype(int))
+            curves.setdefault(group, {})[seed] = [{"gaussians": int(n), "psnr": r.score(np.arange(n))["psnr"]}
+                                                 for n in counts]
+    for seed in sorted(set(adaptive) & set(uniform)):
+        (a_av, _), (u_av, _) = streams[("adaptive", seed)], streams[("uniform", seed)]
+        n = min(a_av.num_gaussians, u_av.num_gaussians)
+        a = SplitRenderer(a_av, splits["nvs"], args.views).score(np.arange(n))
+        u = SplitRenderer(u_av, splits["nvs"], args.views).score(np.arange(n))
+        pairs.append({"seed": seed, "gaussians": n, "adaptive": a["psnr"], "uniform": u["psnr"],
+                      "adaptive_total": a_av.num_gaussians, "uniform_total": u_av.num_gaussians,
+                      "diff": a["psnr"] - u["psnr"]})
+    report["quality_curves"] = curves
+    if pairs:
+        d = np.array([p["diff"] for p in pairs])
+        report["adaptive_vs_uniform"] = {"pairs": pairs, "diffs": d.tolist(), "n": len(d), "mean": float(d.mean()),
+                                         "sd": float(d.std(ddof=1)) if len(d) > 1 else None}
+    if curves:
+        figs["paper_quality_vs_gaussians"] = plots.seed_curves_vs_gaussians(
+            os.path.join(args.out, "paper_quality_vs_gaussians.png"), curves)
+    # Training wall time and peak memory of every run (metrics log; scripts/train.py's resources.jsonl).
+    runs_used = {"this run": args.run, **({"finest only": args.finest_only} if args.finest_only else {})}
+    runs_used.update({f"adaptive seed {k}": r for k, (_, r) in adaptive.items() if r != args.run})
+    runs_used.update({f"uniform seed {k}": r for k, (_, r) in uniform.items()})
+    report["resources"] = {name: plots.run_resources(run) for name, run in runs_used.items()}
+    budgets = [float(k) for k in report["budgets"] if k in ("5", "25", "50", "100")] or \
+        [float(k) for k in report["budgets"]]  # the paper's columns when the report has them
+    for k, r in rend.items():
+        figs[f"strip_full_{k}"] = plots.full_resolution_strip(os.path.join(args.out, f"strip_full_{k}.png"), r, info,
+                                                              budgets)
+    return figs
+
+
+def build_report(args: ReportOptions) -> dict:
+    """Evaluate ``args.run`` and write the report into ``args.out``; returns the report dict.
+    Bad input (budgets, a missing run or dataset) raises ValueError / FileNotFoundError."""
+
+    t_start = time.perf_counter()
+    os.makedirs(args.out, exist_ok=True)
+    budgets = [float(b) for b in args.budgets]
+    if not budgets or any(not 0 < b <= 100 for b in budgets):
+        raise ValueError(f"budgets must be percentages in (0, 100], got {budgets}")
+    avatar = runs.load_run_avatar(args.run)
+    data = runs.run_data_dir(args.run, args.data)
+    fm = runs.run_flame_model(args.run, args.flame_model)
+    splits = {"nvs": Dataset(data, "val", flame_model=fm), "nes": Dataset(data, "test", flame_model=fm)}
+    strips = [float(b) for b in args.strips]
+    progress = args.progress
+    W = runs.run_importance(args.run, avatar, data, progress=progress)
+    stream_path = os.path.join(args.run, "avatar.pavs")
+    if avatar.sh_degree:
+        print(f"note: the avatar has SH degree {avatar.sh_degree}; the stream (and so this report) carries its "
+              "DC colour only", file=sys.stderr)
+    rest = splits["nvs"].canonical_vertices  # spread-out root order (core/avatar/coarse.py)
+    info = stream.write_stream(stream_path, avatar, W, quantize=True, metadata={"run": os.path.abspath(args.run)},
+                               drop_sh=True, vertices=rest, root_order=args.root_order,
+                               embed_template=args.embed_template)
+    scratch = tempfile.mkdtemp(prefix="pa_eval_")
+    lossless_path = os.path.join(scratch, "lossless.pavs")  # only to measure what quantisation costs
+    stream.write_stream(lossless_path, avatar, W, quantize=False, drop_sh=True, vertices=rest,
+                        root_order=args.root_order)
+    streamed = stream.read_stream(stream_path, template_faces=splits["nvs"].faces)
+    exact = stream.read_stream(lossless_path)
+    order = info.order
+    W_stream = W[order]
+    total_bytes = os.path.getsize(stream_path)
+
+    rend = {k: SplitRenderer(streamed, ds, args.views) for k, ds in splits.items()}
+    report = {"run": os.path.abspath(args.run), "data": os.path.abspath(data), "data_summary": _data_summary(data),
+              "about": args.about, "name": args.name,
+              "stream_bytes": total_bytes,
+              "bytes_per_gaussian": total_bytes / streamed.num_gaussians, "gaussians": streamed.num_gaussians,
+              "level_counts": streamed.forest.level_counts().tolist(), "budgets": {}, "ablations": {}}
+    for b in budgets:
+        n = int(info.count_for_percent(b))
+        ids = np.arange(n)
+        entry = {"gaussians": n, "bytes": int(info.bytes_for_count(n))}
+        for k, r in rend.items():
+            entry[k] = r.score(ids)
+        entry["render_ms"] = entry["nvs"]["render_ms"]
+        report["budgets"][f"{b:g}"] = entry
+        if progress:
+            print(f"budget {b:g}%: {n} Gaussians, NVS {entry['nvs']['psnr']:.2f} dB "
+                  f"(coverage {entry['nvs']['coverage']:.3f}), NES {entry['nes']['psnr']:.2f} dB")
+
+    # PSNR and coverage against bytes, many budgets (NVS, fewer views to keep it quick).
+    curve_r = SplitRenderer(streamed, splits["nvs"], args.curve_views)
+    curve = []
+    for b in np.linspace(100 / args.curve_points, 100, args.curve_points):
+        n = int(info.count_for_percent(b))
+        sc = curve_r.score(np.arange(n), ssim=False)
+        curve.append({"percent": float(b), "bytes": int(info.bytes_for_count(n)), "gaussians": n,
+                      "psnr": sc["psnr"], "coverage": sc["coverage"]})
+    report["curve_nvs"] = curve
+    report["curve_views"] = len(curve_r.views)
+    report["first_head"] = first_head(info)
+    report["root_order"] = args.root_order
+    report["template_embedded"] = info.template_embedded
+
+    # Ablations on our data.
+    abl = report["ablations"]
+    nvs = rend["nvs"]
+    abl["root_order"] = root_order_ablation(avatar, W, rest, info, SplitRenderer(avatar, splits["nvs"], args.views))
+    if args.no_coarse_run:
+        abl["coarse_vs_none"] = coarse_ablation(args.no_coarse_run, data, rest, rend["nvs"], info, splits["nvs"],
+                                                args.views, scratch, progress, args.root_order)
+    n25, n50 = int(info.count_for_percent(25)), int(info.count_for_percent(50))
+    rand = random_within_levels(streamed.forest.level, seed=0)[:n25]
+    abl["random_order_25"] = {"ranked": report["budgets"].get("25", {}).get("nvs") or nvs.score(np.arange(n25)),
+                              "random": nvs.score(np.sort(rand)), "gaussians": n25}
+    imp = importance_only(W_stream)[:n50]
+    abl["importance_only_50"] = {"levels_then_importance": nvs.score(np.arange(n50)),
+                                 "importance_only": nvs.score(np.sort(imp)), "gaussians": n50}
+    exact_nvs = SplitRenderer(exact, splits["nvs"], args.views)
+    abl["quantisation_100"] = {"quantised": nvs.score(np.arange(streamed.num_gaussians)),
+                               "float32": exact_nvs.score(np.arange(exact.num_gaussians)),
+                               "bytes_quantised": total_bytes, "bytes_float32": os.path.getsize(lossless_path)}
+    abl["quantisation_100"]["psnr_loss_db"] = (abl["quantisation_100"]["float32"]["psnr"]
+                                              - abl["quantisation_100"]["quantised"]["psnr"])
+    abl["level_prefixes"] = {"counts": _levels_prefixes(streamed), "nvs": _score_prefixes(nvs, _levels_prefixes(streamed))}
+    sizes = {f"{b:g}": int(info.bytes_for_count(int(info.count_for_percent(b)))) for b in budgets}
+    abl["single_asset_vs_discrete"] = {"stream_bytes": total_bytes, "discrete_sum_bytes": int(sum(sizes.values())),
+                                      "discrete_budgets": sizes}
+    for spec in args.compare:
+        name, _, other = spec.partition("=")
+        other_av = runs.load_run_avatar(other)
+        other_rend = SplitRenderer(other_av, splits["nvs"], args.views)
+        entry = {"run": os.path.abspath(other), "gaussians": other_av.num_gaussians,
+                 "level_counts": other_av.forest.level_counts().tolist(),
+                 "nvs": other_rend.score(np.arange(other_av.num_gaussians))}
+        level = other_av.forest.level
+        entry["level_prefixes_nvs"] = {int(lvl): other_rend.score(np.flatnonzero(level <= lvl))
+                                       for lvl in range(int(level.max()) + 1)}
+        abl.setdefault("compare", {})[name] = entry
+    grouped = dict(abl.get("compare", {}))
+    if args.name:  # this run joins its seeds' group, scored like them from its float32 avatar
+        grouped = {args.name: {"gaussians": avatar.num_gaussians, "nvs": abl["quantisation_100"]["float32"],
+                               "level_prefixes_nvs": _score_prefixes(exact_nvs, _levels_prefixes(exact))}, **grouped}
+    report["seed_groups"] = plots.seed_groups(grouped)
+    report["seed_pairs"] = plots.seed_pairs(grouped)
+
+    # Detail against depth.
+    detail_path = os.path.join(data, "detail.npz")
+    depth = avatar.forest.depth_per_root()
+    if os.path.exists(detail_path):
+        detail = np.load(detail_path)["face_detail"]
+        if len(detail) == len(depth):
+            report["depth_vs_detail"] = plots.depth_detail_stats(depth, detail)
+
+    # Pictures.
+    figs = {}
+    figs["psnr_vs_bytes"] = plots.psnr_vs_bytes(os.path.join(args.out, "psnr_vs_bytes.png"), curve, report["budgets"])
+    for k, r in rend.items():
+        figs[f"strip_{k}"] = plots.budget_strip(os.path.join(args.out, f"strip_{k}.png"), r, info, strips)
+    figs["depth"] = plots.depth_picture(os.path.join(args.out, "depth.png"), streamed, splits["nes"])
+    logs = {"this run": os.path.join(args.run, "metrics.jsonl")}
+    logs.update({spec.partition("=")[0]: os.path.join(spec.partition("=")[2], "metrics.jsonl") for spec in args.compare})
+    logs = {k: v for k, v in logs.items() if os.path.exists(v)}
+    if logs:
+        figs["psnr_vs_time"] = plots.psnr_vs_time(os.path.join(args.out, "psnr_vs_time.png"), logs)
+        rows = {k: plots.read_log(v) for k, v in logs.items()}
+        finals = [max(r.get("val_psnr", -np.inf) for r in rs) for rs in rows.values()]
+        target = min(finals) - 0.5  # a level every run reaches, so the times compare
+        report["time_to_psnr"] = {"target": float(target),
+                                  "seconds": {k: plots.first_reaching(rs, target, "seconds") for k, rs in rows.items()},
+                                  "iterations": {k: plots.first_reaching(rs, target, "iteration") for k, rs in rows.items()}}
+        report["training"] = {k: plots.training_summary(rs) for k, rs in rows.items()}
+    figs["quality_vs_gaussians"] = plots.quality_vs_gaussians(os.path.join(args.out, "quality_vs_gaussians.png"), report)
+    if args.paper_table:
+        figs.update(_paper_extras(args, report, streamed, info, rend, splits, data, progress))
+    report["figures"] = {k: os.path.basename(v) for k, v in figs.items() if v}
+    report["machine"] = f"{platform.node()} ({os.cpu_count()} CPUs, {platform.processor() or platform.machine()})"
+    report["date"] = time.strftime("%Y-%m-%d %H:%M:%S")
+    report["command"] = args.command
+    report["done_when"] = plots.done_when(report)
+    report["seconds"] = time.perf_counter() - t_start
+    shutil.rmtree(scratch, ignore_errors=True)
+    with open(os.path.join(args.out, "report.json"), "w") as fh:
+        json.dump(report, fh, indent=1)
+    with open(os.path.join(args.out, "report.md"), "w") as fh:
+        fh.write(plots.report_markdown(report))
+    if args.paper_table:
+        from .sweep import paper_table
+
+        report["paper_table"] = paper_table(report)
+        with open(os.path.join(args.out, "report.json"), "w") as fh:
+            json.dump(report, fh, indent=1)
+        with open(os.path.join(args.out, "paper_table.md"), "w") as fh:
+            fh.write(plots.paper_table_markdown(report))
+    return report
