@@ -63,9 +63,15 @@ def old_package():
     return importlib.import_module("pa_old.core.train"), importlib.import_module("pa_old.core.render")
 
 
+# Where each module lives in this tree's tier folders; the old tree (f6907ae) is flat.
+_NEW_PLACES = {"camera": "geometry.camera", "data": "io.data", "losses": "train.losses"}
+
+
 def _in(train_mod, name):
     """Module `name` of the package train_mod belongs to (old and new each have their own)."""
-    return importlib.import_module(train_mod.__name__.rsplit(".", 1)[0] + "." + name)
+    if train_mod.__name__.startswith("pa_old."):
+        return importlib.import_module(train_mod.__name__.rsplit(".", 1)[0] + "." + name)
+    return importlib.import_module("progressive_avatars.core." + _NEW_PLACES[name])
 
 
 def _camera_as(cam, train_mod):
