@@ -63,6 +63,8 @@ def read_sections(path: str) -> dict:
             marked = not line.startswith("<!-- /section:")
         elif line.startswith("## "):
             found = next((k for k, h in HEADINGS.items() if line.startswith(h)), None)
+            if found is None and line[3:].strip() in SECTIONS:  # a section whose benchmark failed
+                found = line[3:].strip()
             if found is None and line.startswith("## Training and evaluation (from `"):
                 found = "report:" + line.split("`")[1].rsplit("/report.json", 1)[0]
             if found is not None:

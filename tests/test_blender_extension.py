@@ -20,7 +20,7 @@ import pytest
 
 from tests.helpers import random_forest, sphere_mesh
 
-pytestmark = pytest.mark.blender
+pytestmark = [pytest.mark.blender, pytest.mark.slow]  # one Blender session (build, install, scenario) for the module
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 T_FRAMES = 8

@@ -19,6 +19,7 @@ def run_script(name, *args):
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow  # a training run or a subprocess
 def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
     from plyfile import PlyData
 

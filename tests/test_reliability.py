@@ -168,6 +168,7 @@ def test_scale_overflow_stops_training_with_the_trainers_message(tiny_dataset, t
         tr.step()
 
 
+@pytest.mark.slow  # a training run or a subprocess
 def test_train_script_reports_disk_full(tiny_dataset, tmp_path):
     code = ("import errno, sys; sys.argv[0] = 'train.py'; sys.path.insert(0, %r);"
             "import progressive_avatars.core.io.atomic as A;"

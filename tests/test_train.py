@@ -47,6 +47,7 @@ def test_kill_and_resume_matches_uninterrupted_run(tiny_dataset, tmp_path):
     assert rows == sorted(set(rows)), "no duplicated log lines after resume"
 
 
+@pytest.mark.slow  # a training run or a subprocess
 def test_killed_process_resumes(tiny_dataset, tmp_path):
     """A real kill: the training process is terminated mid-run, then --resume finishes it."""
     run = tmp_path / "killed"
@@ -81,6 +82,7 @@ def test_adam_grows_with_new_rows():
     np.testing.assert_allclose(p["a"].detach()[0].numpy(), -0.2, rtol=1e-3)
 
 
+@pytest.mark.slow  # a training run or a subprocess
 def test_extreme_expressions_stay_finite(tiny_dataset, tmp_path):
     """10x the tiny preset's iterations on exaggerated meshes (crumpled, repeated vertices) never goes NaN."""
     from progressive_avatars.core.io.data import Dataset
@@ -149,6 +151,7 @@ def test_level_weights_scale_each_level_loss(tiny_dataset, tmp_path):
     assert out.returncode == 2 and "level weights" in out.stderr
 
 
+@pytest.mark.slow  # a training run or a subprocess
 def test_train_script_runs_as_blender_would(tiny_dataset, tmp_path):
     """`blender --background --python scripts/train.py -- ARGS`: bpy loaded, Blender's argv, args after --."""
     pytest.importorskip("bpy")
@@ -198,6 +201,7 @@ def _flame_mode_dataset(tiny_dataset, tmp_path):
     return root, model, model_path, sorted(timesteps), one
 
 
+@pytest.mark.slow  # a training run or a subprocess
 def test_flame_mode_dataset_trains_and_exports(tiny_dataset, tmp_path):
     """A GaussianAvatars FLAME-mode dataset (flame_param_path per frame): train.py takes
     --flame-model, the run remembers it, export.py finds it there."""
