@@ -20,7 +20,7 @@ def _mesh_target(context):
     return obj if obj is not None and obj.type == "MESH" else None
 
 
-def _preview_of(context):
+def preview_of(context):
     obj = context.active_object
     if obj is None:
         return None
@@ -222,10 +222,10 @@ class PA_OT_depth_colors(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return _preview_of(context) is not None
+        return preview_of(context) is not None
 
     def execute(self, context):
-        obj = _preview_of(context)
+        obj = preview_of(context)
         src = obj.pa_avatar.source
         if src is None or src.type != "MESH":
             self.report({"ERROR"}, f"{obj.name}: its mesh was deleted; load the avatar onto a mesh again")
@@ -282,7 +282,7 @@ class PA_OT_export_ply(bpy.types.Operator, ExportHelper):
 
     @classmethod
     def poll(cls, context):
-        return _preview_of(context) is not None
+        return preview_of(context) is not None
 
     def execute(self, context):
         try:
@@ -290,7 +290,7 @@ class PA_OT_export_ply(bpy.types.Operator, ExportHelper):
         except ImportError:
             self.report({"ERROR"}, "This build has no PLY writer (core/io/ply.py)")
             return {"CANCELLED"}
-        pv = _preview_of(context)
+        pv = preview_of(context)
         if pv.pa_avatar.count == 0:
             self.report({"ERROR"}, f"Nothing to export: {pv.name}'s Budget is {pv.pa_avatar.budget:.1f} %, "
                                    "0 Gaussians; raise the Budget slider")
@@ -316,7 +316,7 @@ class PA_OT_render_splats(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return _preview_of(context) is not None and context.scene.camera is not None
+        return preview_of(context) is not None and context.scene.camera is not None
 
     def execute(self, context):
         problem = prefs.python_problem(context, "numba")
@@ -330,7 +330,7 @@ class PA_OT_render_splats(bpy.types.Operator):
         w = int(r.resolution_x * r.resolution_percentage / 100)
         h = int(r.resolution_y * r.resolution_percentage / 100)
         try:
-            g = current_gaussians(context, _preview_of(context), world=True)
+            g = current_gaussians(context, preview_of(context), world=True)
             cam = preview_data.camera_from_blender(np.array(cam_obj.matrix_world), cam_obj.data.lens,
                                                    cam_obj.data.sensor_width, cam_obj.data.shift_x,
                                                    cam_obj.data.shift_y, w, h, z_up=False)

@@ -33,10 +33,10 @@ class PA_PT_avatar(_Base, bpy.types.Panel):
 
     @classmethod
     def poll(cls, context):
-        return operators_avatar._preview_of(context) is not None
+        return operators_avatar.preview_of(context) is not None
 
     def draw(self, context):
-        obj = operators_avatar._preview_of(context)
+        obj = operators_avatar.preview_of(context)
         st = obj.pa_avatar
         lay = self.layout
         lay.prop(st, "budget", slider=True)
@@ -75,10 +75,10 @@ class PA_PT_depth(_Base, bpy.types.Panel):
 
     @classmethod
     def poll(cls, context):
-        return operators_avatar._preview_of(context) is not None
+        return operators_avatar.preview_of(context) is not None
 
     def draw(self, context):
-        obj = operators_avatar._preview_of(context)
+        obj = operators_avatar.preview_of(context)
         lay = self.layout
         src = obj.pa_avatar.source
         if src is None:
