@@ -5,7 +5,6 @@
 ADDON_PACKAGE = __package__.rpartition(".")[0] or __package__
 
 
-
 def _load():
     from . import handlers, operators_avatar, operators_import, operators_train, panels, prefs, properties
 
@@ -21,8 +20,15 @@ def _extra_classes():
 
 def _classes():
     _, ops_avatar, ops_import, ops_train, panels, prefs, properties = _load()
-    return (*properties.classes, *prefs.classes, *ops_import.classes, *ops_avatar.classes, *ops_train.classes,
-            *_extra_classes(), *panels.classes)
+    return (
+        *properties.classes,
+        *prefs.classes,
+        *ops_import.classes,
+        *ops_avatar.classes,
+        *ops_train.classes,
+        *_extra_classes(),
+        *panels.classes,
+    )
 
 
 def register():

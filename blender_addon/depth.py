@@ -75,9 +75,13 @@ def show_colors(context, obj, forest, count=None, max_level=None):
     state, me = obj.pa_mesh, obj.data
     if not state.depth_shown:
         ca = me.color_attributes
-        state.depth_saved = json.dumps({
-            "active": ca.active_color_name or "", "default": getattr(ca, "default_color_name", "") or "",
-            "shading": {key: sp.shading.color_type for key, sp in _view_spaces(context)}})
+        state.depth_saved = json.dumps(
+            {
+                "active": ca.active_color_name or "",
+                "default": getattr(ca, "default_color_name", "") or "",
+                "shading": {key: sp.shading.color_type for key, sp in _view_spaces(context)},
+            }
+        )
     state.depth_shown = True
     apply_depth(obj, forest, count, max_level)
     for _key, sp in _view_spaces(context):
@@ -154,7 +158,10 @@ def set_level_only(obj, level):
         mod = obj.modifiers.new(LEVEL_MODIFIER, "NODES")
         mod.node_group = _level_group()
         obj.modifiers.move(len(obj.modifiers) - 1, 0)  # before the splat modifier
-    key = next(it.identifier for it in mod.node_group.interface.items_tree
-               if it.item_type == "SOCKET" and it.in_out == "INPUT" and it.name == "Level")
+    key = next(
+        it.identifier
+        for it in mod.node_group.interface.items_tree
+        if it.item_type == "SOCKET" and it.in_out == "INPUT" and it.name == "Level"
+    )
     mod[key] = int(level)
     obj.update_tag()

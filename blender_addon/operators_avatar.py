@@ -265,9 +265,13 @@ def current_gaussians(context, obj, world=True):
     # The model's own colours (sRGB-encoded, what it was trained on), not the preview's linear
     # display colours: export and rendering must reproduce the trained avatar.
     av = e.avatar
-    return {"means": np.array(means), "quats": np.array(quats), "scales": np.array(scales),
-            "opacities": sigmoid(av.opacity_logit[:count]).astype(np.float32),
-            "colors": sh_to_rgb(av.f_dc[:count]).astype(np.float32)}
+    return {
+        "means": np.array(means),
+        "quats": np.array(quats),
+        "scales": np.array(scales),
+        "opacities": sigmoid(av.opacity_logit[:count]).astype(np.float32),
+        "colors": sh_to_rgb(av.f_dc[:count]).astype(np.float32),
+    }
 
 
 class PA_OT_export_ply(bpy.types.Operator, ExportHelper):
@@ -277,8 +281,9 @@ class PA_OT_export_ply(bpy.types.Operator, ExportHelper):
     bl_label = "Export Splats PLY"
     filename_ext = ".ply"
     filter_glob: bpy.props.StringProperty(default="*.ply", options={"HIDDEN"})
-    world_space: bpy.props.BoolProperty(name="World space", default=False,
-                                        description="Blender world space instead of the sequence's own coordinates")
+    world_space: bpy.props.BoolProperty(
+        name="World space", default=False, description="Blender world space instead of the sequence's own coordinates"
+    )
 
     @classmethod
     def poll(cls, context):
@@ -292,8 +297,11 @@ class PA_OT_export_ply(bpy.types.Operator, ExportHelper):
             return {"CANCELLED"}
         pv = preview_of(context)
         if pv.pa_avatar.count == 0:
-            self.report({"ERROR"}, f"Nothing to export: {pv.name}'s Budget is {pv.pa_avatar.budget:.1f} %, "
-                                   "0 Gaussians; raise the Budget slider")
+            self.report(
+                {"ERROR"},
+                f"Nothing to export: {pv.name}'s Budget is {pv.pa_avatar.budget:.1f} %, "
+                "0 Gaussians; raise the Budget slider",
+            )
             return {"CANCELLED"}
         try:
             g = current_gaussians(context, pv, world=self.world_space)
@@ -311,8 +319,9 @@ class PA_OT_render_splats(bpy.types.Operator):
     bl_idname = "render.progressive_avatars_splats"
     bl_label = "Render Splats"
 
-    wait: bpy.props.BoolProperty(name="Wait", default=False, options={"SKIP_SAVE"},
-                                 description="Block until the image is ready (scripts)")
+    wait: bpy.props.BoolProperty(
+        name="Wait", default=False, options={"SKIP_SAVE"}, description="Block until the image is ready (scripts)"
+    )
 
     @classmethod
     def poll(cls, context):
@@ -331,16 +340,24 @@ class PA_OT_render_splats(bpy.types.Operator):
         h = int(r.resolution_y * r.resolution_percentage / 100)
         try:
             g = current_gaussians(context, preview_of(context), world=True)
-            cam = preview_data.camera_from_blender(np.array(cam_obj.matrix_world), cam_obj.data.lens,
-                                                   cam_obj.data.sensor_width, cam_obj.data.shift_x,
-                                                   cam_obj.data.shift_y, w, h, z_up=False)
+            cam = preview_data.camera_from_blender(
+                np.array(cam_obj.matrix_world),
+                cam_obj.data.lens,
+                cam_obj.data.sensor_width,
+                cam_obj.data.shift_x,
+                cam_obj.data.shift_y,
+                w,
+                h,
+                z_up=False,
+            )
         except Exception as exc:
             self.report({"ERROR"}, f"Render splats: {exc}")
             return {"CANCELLED"}
         world = scene.world
         bg = np.array(world.color[:3] if world else (0, 0, 0), np.float32)
-        arrays = dict(R=cam.R, t=cam.t, intr=np.array([cam.fx, cam.fy, cam.cx, cam.cy]), size=np.array([w, h]),
-                      background=bg, **g)
+        arrays = dict(
+            R=cam.R, t=cam.t, intr=np.array([cam.fx, cam.fy, cam.cx, cam.cy]), size=np.array([w, h]), background=bg, **g
+        )
         # A persistent worker renders (render_job): control returns at once; the modal
         # timer polls it. Without a UI (timers never fire) or with wait=True it is awaited.
         from . import render_job

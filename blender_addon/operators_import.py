@@ -17,22 +17,35 @@ class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
 
     filter_glob: bpy.props.StringProperty(default="*.npz;*.obj;*.ply", options={"HIDDEN"})
     whole_folder: bpy.props.BoolProperty(
-        name="Whole folder", default=False,
-        description="Read every OBJ/PLY (or FLAME parameter) file in the chosen file's folder as frames")
-    flame_model: bpy.props.StringProperty(name="FLAME model", subtype="FILE_PATH",
-                                          description="Needed for FLAME parameter files; defaults to the preferences")
+        name="Whole folder",
+        default=False,
+        description="Read every OBJ/PLY (or FLAME parameter) file in the chosen file's folder as frames",
+    )
+    flame_model: bpy.props.StringProperty(
+        name="FLAME model",
+        subtype="FILE_PATH",
+        description="Needed for FLAME parameter files; defaults to the preferences",
+    )
     as_rig: bpy.props.BoolProperty(
-        name="As FLAME rig", default=False,
+        name="As FLAME rig",
+        default=False,
         description="FLAME parameter files only: import expression and pose-corrective shape keys and a keyed "
-                    "armature instead of one shape key per frame, so expressions and joints can be edited")
+        "armature instead of one shape key per frame, so expressions and joints can be edited",
+    )
     z_up: bpy.props.BoolProperty(name="Y up to Z up", default=True)
     set_frame_range: bpy.props.BoolProperty(
-        name="Set frame range", default=True,
-        description="Set the scene's frame range to the imported frames (off: keep the scene's range)")
+        name="Set frame range",
+        default=True,
+        description="Set the scene's frame range to the imported frames (off: keep the scene's range)",
+    )
     fps: bpy.props.IntProperty(
-        name="Frame rate", default=0, min=0, max=1000,
+        name="Frame rate",
+        default=0,
+        min=0,
+        max=1000,
         description="Frames per second of the sequence, set as the scene's frame rate (0: keep the scene's; "
-                    "tracked sequences do not store one)")
+        "tracked sequences do not store one)",
+    )
 
     def execute(self, context):
         from ..core.io import data
@@ -44,7 +57,9 @@ class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
             path = os.path.dirname(path)
         model = bpy.path.abspath(self.flame_model) if self.flame_model else (prefs.flame_model(context) or None)
         if self.as_rig and not model:
-            self.report({"ERROR"}, "Import as FLAME rig needs a FLAME model file (operator option or add-on preferences)")
+            self.report(
+                {"ERROR"}, "Import as FLAME rig needs a FLAME model file (operator option or add-on preferences)"
+            )
             return {"CANCELLED"}
         try:
             rig = None
@@ -72,8 +87,11 @@ class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
 
             obj, _ = rig_builder.build_rig_objects(context, rig, name, context.scene.frame_start, self.z_up)
             if rig.ignored:
-                self.report({"WARNING"}, f"Not representable in a rig, left out: {', '.join(rig.ignored)} "
-                                         "(import without 'As FLAME rig' to keep them)")
+                self.report(
+                    {"WARNING"},
+                    f"Not representable in a rig, left out: {', '.join(rig.ignored)} "
+                    "(import without 'As FLAME rig' to keep them)",
+                )
         else:
             obj = sequence.build_sequence_object(context, seq, name, context.scene.frame_start, self.z_up)
         if not self.set_frame_range:  # the builders set it; put the scene's back
@@ -83,7 +101,10 @@ class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
         obj.pa_mesh.sequence_path = self.filepath if not self.whole_folder else path
         context.view_layer.objects.active = obj
         obj.select_set(True)
-        self.report({"INFO"}, f"Imported {seq.n_frames} frames, {len(obj.data.vertices)} vertices, {len(obj.data.polygons)} faces")
+        self.report(
+            {"INFO"},
+            f"Imported {seq.n_frames} frames, {len(obj.data.vertices)} vertices, {len(obj.data.polygons)} faces",
+        )
         return {"FINISHED"}
 
 

@@ -66,7 +66,9 @@ def _command(context):
         raise RuntimeError("Choose a run folder (Training > Run)")
     model = prefs.flame_model(context)
     if model and not os.path.isfile(model):
-        raise RuntimeError(f"FLAME model not found: {model} (Preferences > Add-ons > Progressive Avatars > FLAME model)")
+        raise RuntimeError(
+            f"FLAME model not found: {model} (Preferences > Add-ons > Progressive Avatars > FLAME model)"
+        )
     flame = ["--flame-model", model] if model else []
     script = prefs.user_train_script(context)
     if script:
@@ -82,8 +84,10 @@ def _command(context):
         # the budget slider needs comes from scripts/export.py, run next when it is there.
         export = os.path.join(os.path.dirname(script), "export.py")
         if os.path.isfile(export):
-            cmds.append([python, "-u", export, "--run", out, "--data", data, "--stream",
-                         os.path.join(out, "avatar.pavs")] + flame)
+            cmds.append(
+                [python, "-u", export, "--run", out, "--data", data, "--stream", os.path.join(out, "avatar.pavs")]
+                + flame
+            )
         return cmds, out
     cmd = [python, "-u", "-c", _RUNNER, _extension_root(), "train", "--data", data, "--out", out] + flame
     if st.preset:
@@ -115,8 +119,10 @@ def _finish(op, context, rc, out):
         op.report({"ERROR"}, f"Training finished but wrote no avatar in {out}")
         return {"CANCELLED"}
     if mesh is None or mesh.type != "MESH":
-        op.report({"WARNING"}, f"Trained {result}; no mesh to load it onto (none was active when training "
-                               "started, or it was deleted)")
+        op.report(
+            {"WARNING"},
+            f"Trained {result}; no mesh to load it onto (none was active when training started, or it was deleted)",
+        )
         return {"FINISHED"}
     from .operators_avatar import load_avatar_onto
 

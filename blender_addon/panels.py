@@ -85,8 +85,12 @@ class PA_PT_depth(_Base, bpy.types.Panel):
             lay.label(text="The preview's mesh was deleted", icon="ERROR")
             return
         shown = src.pa_mesh.depth_shown
-        lay.operator("object.progressive_avatars_depth_colors", icon="COLOR",
-                     text="Hide Depth Colours" if shown else "Colour by Depth", depress=shown)
+        lay.operator(
+            "object.progressive_avatars_depth_colors",
+            icon="COLOR",
+            text="Hide Depth Colours" if shown else "Colour by Depth",
+            depress=shown,
+        )
         lay.prop(obj.pa_avatar, "level_only")
         legend = src.pa_mesh.depth_legend
         total = max(sum(item.faces for item in legend), 1)

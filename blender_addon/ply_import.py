@@ -75,15 +75,18 @@ def _fill(context, me, name, g, n, rank, rgba, source_path):
     if f_dc is None:
         f_dc = (np.asarray(g["colors"], np.float64) - 0.5) / SH_C0
     me.attributes[_F_DC].data.foreach_set("vector", np.asarray(f_dc, np.float32).ravel())
-    preview.write_attributes(me, {
-        "position": np.asarray(g["means"], np.float32),
-        "rotation": np.asarray(g["quats"], np.float32),
-        "scale": np.asarray(g["scales"], np.float32),
-        "opacity": np.asarray(g["opacities"], np.float32),
-        "color": rgba,
-        "level": np.zeros(n, np.int32),
-        "rank": rank,
-    })
+    preview.write_attributes(
+        me,
+        {
+            "position": np.asarray(g["means"], np.float32),
+            "rotation": np.asarray(g["quats"], np.float32),
+            "scale": np.asarray(g["scales"], np.float32),
+            "opacity": np.asarray(g["opacities"], np.float32),
+            "color": rgba,
+            "level": np.zeros(n, np.int32),
+            "rank": rank,
+        },
+    )
     me.update()
     obj = bpy.data.objects.new(name, me)
     context.collection.objects.link(obj)
@@ -113,7 +116,9 @@ def apply_budget(obj):
 
 def _read(me, name, width, dtype=np.float32, field=None):
     attr = me.attributes[name]
-    field = field or {"FLOAT_VECTOR": "vector", "QUATERNION": "value", "FLOAT_COLOR": "color"}.get(attr.data_type, "value")
+    field = field or {"FLOAT_VECTOR": "vector", "QUATERNION": "value", "FLOAT_COLOR": "color"}.get(
+        attr.data_type, "value"
+    )
     out = np.empty(len(me.vertices) * width, dtype)
     attr.data.foreach_get(field, out)
     return out.reshape(-1, width) if width > 1 else out
@@ -132,11 +137,19 @@ def current_gaussians(obj, world=True):
     if world:
         means, quats, scales = preview_data.transform_gaussians(np.array(obj.matrix_world), means, quats, scales)
     k_rest = int(obj.get("pa_sh_bands", 0))
-    rest = np.stack([_read(me, _rest_name(k), 3)[sel] for k in range(k_rest)], axis=1) if k_rest else \
-        np.zeros((len(sel), 0, 3), np.float32)
-    return {"means": np.asarray(means, np.float32), "quats": np.asarray(quats, np.float32),
-            "scales": np.asarray(scales, np.float32), "opacities": _read(me, "opacity", 1)[sel],
-            "colors": (0.5 + SH_C0 * f_dc).astype(np.float32), "sh_rest": rest}
+    rest = (
+        np.stack([_read(me, _rest_name(k), 3)[sel] for k in range(k_rest)], axis=1)
+        if k_rest
+        else np.zeros((len(sel), 0, 3), np.float32)
+    )
+    return {
+        "means": np.asarray(means, np.float32),
+        "quats": np.asarray(quats, np.float32),
+        "scales": np.asarray(scales, np.float32),
+        "opacities": _read(me, "opacity", 1)[sel],
+        "colors": (0.5 + SH_C0 * f_dc).astype(np.float32),
+        "sh_rest": rest,
+    }
 
 
 class PA_OT_import_splat_ply(bpy.types.Operator, ImportHelper):
@@ -150,9 +163,12 @@ class PA_OT_import_splat_ply(bpy.types.Operator, ImportHelper):
     filter_glob: bpy.props.StringProperty(default="*.ply", options={"HIDDEN"})
     order: bpy.props.EnumProperty(
         name="Budget order",
-        items=(("FILE", "File order", "The budget keeps the PLY's first Gaussians (files written in a progressive order)"),
-               ("IMPORTANCE", "Importance", "The budget keeps the most opaque, largest Gaussians first")),
-        default="IMPORTANCE")
+        items=(
+            ("FILE", "File order", "The budget keeps the PLY's first Gaussians (files written in a progressive order)"),
+            ("IMPORTANCE", "Importance", "The budget keeps the most opaque, largest Gaussians first"),
+        ),
+        default="IMPORTANCE",
+    )
 
     def execute(self, context):
         path = bpy.path.abspath(self.filepath)
@@ -168,9 +184,15 @@ class PA_OT_import_splat_ply(bpy.types.Operator, ImportHelper):
         obj.select_set(True)
         context.view_layer.objects.active = obj
         bands = int(obj.get("pa_sh_bands", 0))
-        self.report({"INFO"}, f"Imported {obj.pa_avatar.total} Gaussians from {os.path.basename(path)}"
-                              + (f" ({bands} SH coefficients per channel kept for export; the preview shows the DC colour)"
-                                 if bands else ""))
+        self.report(
+            {"INFO"},
+            f"Imported {obj.pa_avatar.total} Gaussians from {os.path.basename(path)}"
+            + (
+                f" ({bands} SH coefficients per channel kept for export; the preview shows the DC colour)"
+                if bands
+                else ""
+            ),
+        )
         return {"FINISHED"}
 
 

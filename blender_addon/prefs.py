@@ -21,14 +21,23 @@ class PA_Preferences(bpy.types.AddonPreferences):
     bl_idname = ADDON_PACKAGE
 
     python_path: bpy.props.StringProperty(
-        name="Python", subtype="FILE_PATH", default="",
-        description="Python interpreter with torch and numba installed, used for training and splat rendering")
+        name="Python",
+        subtype="FILE_PATH",
+        default="",
+        description="Python interpreter with torch and numba installed, used for training and splat rendering",
+    )
     train_script: bpy.props.StringProperty(
-        name="Train script", subtype="FILE_PATH", default="",
-        description="Optional: a checkout's scripts/train.py to run instead of the extension's own trainer")
+        name="Train script",
+        subtype="FILE_PATH",
+        default="",
+        description="Optional: a checkout's scripts/train.py to run instead of the extension's own trainer",
+    )
     flame_model: bpy.props.StringProperty(
-        name="FLAME model", subtype="FILE_PATH", default="",
-        description="Your own FLAME model file (generic_model.pkl / flame2023.pkl), for FLAME parameter sequences")
+        name="FLAME model",
+        subtype="FILE_PATH",
+        default="",
+        description="Your own FLAME model file (generic_model.pkl / flame2023.pkl), for FLAME parameter sequences",
+    )
 
     def draw(self, context):
         col = self.layout.column()

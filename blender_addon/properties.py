@@ -49,13 +49,22 @@ class PA_AvatarState(bpy.types.PropertyGroup):
     """On the splat preview object (a point per Gaussian, parented to its mesh)."""
 
     is_preview: bpy.props.BoolProperty(default=False)
-    filepath: bpy.props.StringProperty(name="Avatar", subtype="FILE_PATH",
-                                       description="Stream or avatar file this preview was loaded from")
-    source: bpy.props.PointerProperty(type=bpy.types.Object, name="Mesh",
-                                      description="Mesh whose evaluated vertices drive the Gaussians")
-    budget: bpy.props.FloatProperty(name="Budget", subtype="PERCENTAGE", min=0.0, max=100.0, default=100.0,
-                                    precision=1, update=_budget_changed,
-                                    description="Share of the stream shown, as a viewer with this budget would see it")
+    filepath: bpy.props.StringProperty(
+        name="Avatar", subtype="FILE_PATH", description="Stream or avatar file this preview was loaded from"
+    )
+    source: bpy.props.PointerProperty(
+        type=bpy.types.Object, name="Mesh", description="Mesh whose evaluated vertices drive the Gaussians"
+    )
+    budget: bpy.props.FloatProperty(
+        name="Budget",
+        subtype="PERCENTAGE",
+        min=0.0,
+        max=100.0,
+        default=100.0,
+        precision=1,
+        update=_budget_changed,
+        description="Share of the stream shown, as a viewer with this budget would see it",
+    )
     # Readouts, written when the budget changes (the panel draws them without any cache).
     count: bpy.props.IntProperty(name="Gaussians")
     total: bpy.props.IntProperty(name="Total")
@@ -63,15 +72,33 @@ class PA_AvatarState(bpy.types.PropertyGroup):
     level_reached: bpy.props.IntProperty(name="Level reached")
     max_level: bpy.props.IntProperty(name="Levels")
     status: bpy.props.StringProperty(name="Status")
-    level_only: bpy.props.IntProperty(name="Show level only", min=-1, default=-1, update=_level_only_changed,
-                                      description="Show only the Gaussians of this subdivision level (-1: all)")
+    level_only: bpy.props.IntProperty(
+        name="Show level only",
+        min=-1,
+        default=-1,
+        update=_level_only_changed,
+        description="Show only the Gaussians of this subdivision level (-1: all)",
+    )
     bind_mode: bpy.props.EnumProperty(
-        name="Follow", default="EVALUATED", update=_bind_changed,
-        items=(("EVALUATED", "Evaluated mesh", "Follow the mesh with all its modifiers; refused (status and "
-                "report) when a modifier changes its vertex or face count"),
-               ("SHAPE_KEYS", "Shape keys only", "Follow the mesh's shape keys before any modifier (Remesh, "
-                "Subdivision Surface, Decimate, but also armatures, are ignored)")),
-        description="Which deformation of the mesh the Gaussians follow")
+        name="Follow",
+        default="EVALUATED",
+        update=_bind_changed,
+        items=(
+            (
+                "EVALUATED",
+                "Evaluated mesh",
+                "Follow the mesh with all its modifiers; refused (status and "
+                "report) when a modifier changes its vertex or face count",
+            ),
+            (
+                "SHAPE_KEYS",
+                "Shape keys only",
+                "Follow the mesh's shape keys before any modifier (Remesh, "
+                "Subdivision Surface, Decimate, but also armatures, are ignored)",
+            ),
+        ),
+        description="Which deformation of the mesh the Gaussians follow",
+    )
     template_vertices: bpy.props.IntProperty(description="Vertex count of the mesh the avatar was bound to")
     template_faces: bpy.props.IntProperty(description="Face count of the mesh the avatar was bound to")
 
@@ -80,13 +107,15 @@ class PA_TrainState(bpy.types.PropertyGroup):
     data_dir: bpy.props.StringProperty(name="Data", subtype="DIR_PATH")
     out_dir: bpy.props.StringProperty(name="Run", subtype="DIR_PATH")
     preset: bpy.props.StringProperty(name="Preset", default="")
-    iterations: bpy.props.IntProperty(name="Iterations", default=0, min=0,
-                                      description="Training iterations (0: the preset's)")
+    iterations: bpy.props.IntProperty(
+        name="Iterations", default=0, min=0, description="Training iterations (0: the preset's)"
+    )
     running: bpy.props.BoolProperty(default=False)
     progress: bpy.props.FloatProperty(subtype="PERCENTAGE", min=0, max=100)
     message: bpy.props.StringProperty()
-    target: bpy.props.PointerProperty(type=bpy.types.Object, name="Target",
-                                      description="The mesh that started training: the result is loaded onto it")
+    target: bpy.props.PointerProperty(
+        type=bpy.types.Object, name="Target", description="The mesh that started training: the result is loaded onto it"
+    )
 
 
 classes = (PA_LegendItem, PA_MeshState, PA_AvatarState, PA_TrainState)

@@ -58,8 +58,15 @@ class RenderWorker:
         self.ready = None  # None: starting; True: warm; False: failed (see .error)
         self.error = ""
         self.started = time.perf_counter()
-        self.proc = subprocess.Popen([python, "-c", _LOADER, root], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                     stderr=subprocess.PIPE, text=True, bufsize=1, env=env)
+        self.proc = subprocess.Popen(
+            [python, "-c", _LOADER, root],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            bufsize=1,
+            env=env,
+        )
         self._stderr = []
         self.inbox = {}  # job id -> its messages, so several jobs can share one worker
         self.eof = False

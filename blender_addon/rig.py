@@ -16,9 +16,15 @@ from . import sequence
 # (non-unit) keys still give a rotation.
 _NORM = "(w*w+x*x+y*y+z*z)"
 _R_MINUS_I = {
-    (0, 0): f"-2*(y*y+z*z)/{_NORM}", (0, 1): f"2*(x*y-w*z)/{_NORM}", (0, 2): f"2*(x*z+w*y)/{_NORM}",
-    (1, 0): f"2*(x*y+w*z)/{_NORM}", (1, 1): f"-2*(x*x+z*z)/{_NORM}", (1, 2): f"2*(y*z-w*x)/{_NORM}",
-    (2, 0): f"2*(x*z-w*y)/{_NORM}", (2, 1): f"2*(y*z+w*x)/{_NORM}", (2, 2): f"-2*(x*x+y*y)/{_NORM}",
+    (0, 0): f"-2*(y*y+z*z)/{_NORM}",
+    (0, 1): f"2*(x*y-w*z)/{_NORM}",
+    (0, 2): f"2*(x*z+w*y)/{_NORM}",
+    (1, 0): f"2*(x*y+w*z)/{_NORM}",
+    (1, 1): f"-2*(x*x+z*z)/{_NORM}",
+    (1, 2): f"2*(y*z-w*x)/{_NORM}",
+    (2, 0): f"2*(x*z-w*y)/{_NORM}",
+    (2, 1): f"2*(y*z+w*x)/{_NORM}",
+    (2, 2): f"-2*(x*x+y*y)/{_NORM}",
 }
 
 
@@ -96,8 +102,7 @@ def _add_vertex_groups(context, obj, rig):
 def _add_shape_keys(obj, rig):
     obj.shape_key_add(name="Basis", from_mix=False)
     basis = rig.basis.astype(np.float64)
-    groups = ((rig.expr_key_names(), rig.expr_deltas, -10.0, 10.0),
-              (rig.pose_key_names(), rig.pose_deltas, -2.0, 2.0))
+    groups = ((rig.expr_key_names(), rig.expr_deltas, -10.0, 10.0), (rig.pose_key_names(), rig.pose_deltas, -2.0, 2.0))
     for names, deltas, lo, hi in groups:
         for key_name, delta in zip(names, deltas):
             kb = obj.shape_key_add(name=key_name, from_mix=False)

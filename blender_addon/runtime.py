@@ -135,13 +135,17 @@ def topology_problem(obj, depsgraph):
     if (nv, nf) != (tv, tf):
         mods = _modifier_names(src, depsgraph)
         by = f" (modifiers: {', '.join(mods)})" if mods else ""
-        return (f"{src.name} evaluates to {nv} vertices / {nf} faces{by}, the avatar is bound to its "
-                f"{tv} / {tf}: Gaussians would sit on unrelated vertices. Disable the modifiers that change "
-                f"the topology, or set Follow to 'Shape keys only'")
+        return (
+            f"{src.name} evaluates to {nv} vertices / {nf} faces{by}, the avatar is bound to its "
+            f"{tv} / {tf}: Gaussians would sit on unrelated vertices. Disable the modifiers that change "
+            f"the topology, or set Follow to 'Shape keys only'"
+        )
     subdiv = _modifier_names(src, depsgraph, _SUBDIVIDERS)
     if subdiv:
-        return (f"{src.name} has {', '.join(subdiv)}: it moves the surface off the vertices the avatar is "
-                f"bound to. Disable it, or set Follow to 'Shape keys only'")
+        return (
+            f"{src.name} has {', '.join(subdiv)}: it moves the surface off the vertices the avatar is "
+            f"bound to. Disable it, or set Follow to 'Shape keys only'"
+        )
     return ""
 
 

@@ -20,6 +20,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 def _ensure_package():
     try:
         import progressive_avatars  # noqa: F401
+
         return
     except ImportError:
         pass
@@ -39,7 +40,7 @@ def script_args(argv=None):
     """
     argv = sys.argv if argv is None else argv
     if "--" in argv:
-        return argv[argv.index("--") + 1:]
+        return argv[argv.index("--") + 1 :]
     if argv and argv[0].endswith(".py"):
         return argv[1:]
     return []

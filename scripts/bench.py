@@ -41,9 +41,14 @@ def report_section(report_dir: str) -> str:
 
 
 HEADINGS = {  # how each section's heading starts, to read the current page back into sections
-    "forest": "## Forest evaluation", "render": "## CPU rasteriser", "data": "## Dataset loading",
-    "data_gen": "## Synthetic dataset generation", "stream": "## Stream benchmark", "blender": "## Blender extension",
-    "data_gen_paper": "## Paper-scale synthetic dataset generation", "gpu": "## GPU:",
+    "forest": "## Forest evaluation",
+    "render": "## CPU rasteriser",
+    "data": "## Dataset loading",
+    "data_gen": "## Synthetic dataset generation",
+    "stream": "## Stream benchmark",
+    "blender": "## Blender extension",
+    "data_gen_paper": "## Paper-scale synthetic dataset generation",
+    "gpu": "## GPU:",
     "train": "## Training iteration:",
 }
 
@@ -57,7 +62,7 @@ def read_sections(path: str) -> dict:
     parts, key, marked = {}, None, False
     for line in open(path).read().split("\n"):
         if line.startswith("<!-- section:"):  # a block written by bench_common.replace_section
-            key, marked = "marked:" + line[len("<!-- section:"):-len(" -->")], True
+            key, marked = "marked:" + line[len("<!-- section:") : -len(" -->")], True
             parts[key] = []
         elif marked:  # inside a marked block everything belongs to it, up to its end marker
             marked = not line.startswith("<!-- /section:")
@@ -80,8 +85,13 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--only", help="comma-separated sections: " + ",".join(SECTIONS) + " (none: only --report)")
     ap.add_argument("--report", action="append", default=[], help="evaluation report folder(s) to include")
-    ap.add_argument("--section", action="append", default=[], metavar="NAME=FILE",
-                    help="a section measured elsewhere (e.g. gpu=DIR/gpu.md from scripts/bench_gpu.py on a CUDA machine)")
+    ap.add_argument(
+        "--section",
+        action="append",
+        default=[],
+        metavar="NAME=FILE",
+        help="a section measured elsewhere (e.g. gpu=DIR/gpu.md from scripts/bench_gpu.py on a CUDA machine)",
+    )
     ap.add_argument("--out", default=os.path.join(_bootstrap.ROOT, "docs", "BENCHMARKS.md"))
     args = ap.parse_args(_bootstrap.script_args() if argv is None else argv)
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -101,9 +111,11 @@ def main(argv=None):
         name, _, path = spec.partition("=")
         with open(path) as fh:
             parts[name] = fh.read().rstrip("\n")
-    head = ("# Benchmarks\n\nEvery figure on this page is written by `python scripts/bench.py` (sections list their own "
-            "machine, command and date). Speed is always reported with the accuracy it kept. The machine is a shared "
-            "2-core VM: other work on it shows up as noise, so minima are given beside medians.\n\n")
+    head = (
+        "# Benchmarks\n\nEvery figure on this page is written by `python scripts/bench.py` (sections list their own "
+        "machine, command and date). Speed is always reported with the accuracy it kept. The machine is a shared "
+        "2-core VM: other work on it shows up as noise, so minima are given beside medians.\n\n"
+    )
     order = [s for s in ORDER if s in parts] + [k for k in parts if k not in ORDER]  # reports as first added
     text = head + "\n\n".join(parts[k] for k in order if parts[k]) + "\n"
     with open(args.out + ".tmp", "w") as fh:

@@ -83,19 +83,33 @@ def make_rig_inputs(folder, frames):
         jr[j, rng.choice(V, 20, replace=False)] = 1 / 20
     w = rng.random((V, J)) ** 4
     w /= w.sum(1, keepdims=True)
-    model = FlameModel(v, f, 1e-3 * rng.normal(size=(V, 3, 400)), 1e-3 * rng.normal(size=(V, 3, 36)), jr, w,
-                       np.array([-1, 0, 1, 1, 1]), 300, "bench model")
+    model = FlameModel(
+        v,
+        f,
+        1e-3 * rng.normal(size=(V, 3, 400)),
+        1e-3 * rng.normal(size=(V, 3, 36)),
+        jr,
+        w,
+        np.array([-1, 0, 1, 1, 1]),
+        300,
+        "bench model",
+    )
     model.save_npz(os.path.join(folder, "flame_model.npz"))
     t = np.arange(frames)[:, None]
-    prm = dict(shape=rng.normal(size=300), expr=np.sin(0.05 * t + rng.random(100)) * 2,
-               rotation=0.3 * np.sin(0.02 * t + rng.random(3)), neck_pose=0.2 * np.sin(0.03 * t + rng.random(3)),
-               jaw_pose=0.15 * np.abs(np.sin(0.1 * t + rng.random(3))), eyes_pose=0.1 * np.sin(0.07 * t + rng.random(6)),
-               translation=0.01 * np.sin(0.01 * t + rng.random(3)))
+    prm = dict(
+        shape=rng.normal(size=300),
+        expr=np.sin(0.05 * t + rng.random(100)) * 2,
+        rotation=0.3 * np.sin(0.02 * t + rng.random(3)),
+        neck_pose=0.2 * np.sin(0.03 * t + rng.random(3)),
+        jaw_pose=0.15 * np.abs(np.sin(0.1 * t + rng.random(3))),
+        eyes_pose=0.1 * np.sin(0.07 * t + rng.random(6)),
+        translation=0.01 * np.sin(0.01 * t + rng.random(3)),
+    )
     np.savez(os.path.join(folder, "tracked_flame_params.npz"), **prm)
     return model, prm
 
 
-CHILD = r'''
+CHILD = r"""
 import json, os, sys, time
 import numpy as np
 sys.path.insert(0, sys.argv[1])
@@ -171,13 +185,17 @@ for t in check:
 np.save(os.path.join(folder, "rig_check.npy"), np.stack(got))
 R["rig_check_frames"] = check
 print("PA_BENCH " + json.dumps(R))
-'''
+"""
 
 
 def _child(folder):
     tmp = tempfile.mkdtemp(prefix="pa_bench_user_")
-    env = dict(os.environ, BLENDER_USER_RESOURCES=tmp, BLENDER_USER_CONFIG=os.path.join(tmp, "config"),
-               BLENDER_USER_SCRIPTS=os.path.join(tmp, "scripts"))
+    env = dict(
+        os.environ,
+        BLENDER_USER_RESOURCES=tmp,
+        BLENDER_USER_CONFIG=os.path.join(tmp, "config"),
+        BLENDER_USER_SCRIPTS=os.path.join(tmp, "scripts"),
+    )
     script = os.path.join(folder, "child.py")
     with open(script, "w") as fh:
         fh.write(CHILD)
@@ -185,7 +203,7 @@ def _child(folder):
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("PA_BENCH ")]
     if not lines:
         raise RuntimeError("Blender benchmark child failed:\n" + proc.stdout[-2000:] + proc.stderr[-2000:])
-    return json.loads(lines[-1][len("PA_BENCH "):])
+    return json.loads(lines[-1][len("PA_BENCH ") :])
 
 
 def run(quick: bool = False) -> str:
@@ -204,8 +222,10 @@ def run(quick: bool = False) -> str:
     ms = lambda pair: f"{pair[0] * 1e3:.2f} / {pair[1] * 1e3:.2f}"  # noqa: E731
     cmd = "python scripts/bench_blender.py" + (" --quick" if quick else "")
     out = [bench_common.header("Blender extension (bpy 5.0 module, headless)", cmd)]
-    out.append(f"Inputs: {frames}-frame sequence of a 5023-vertex mesh (9660 triangles), avatar stream of "
-               f"{n:,} Gaussians (made in {prep:.1f} s, not timed below). Times best / median of 7.\n")
+    out.append(
+        f"Inputs: {frames}-frame sequence of a 5023-vertex mesh (9660 triangles), avatar stream of "
+        f"{n:,} Gaussians (made in {prep:.1f} s, not timed below). Times best / median of 7.\n"
+    )
     out.append("| step | time | target |\n|---|---|---|")
     out.append(f"| import sequence ({frames} frames, shape keys + keyframes) | {r['import_s']:.2f} s | ≤ 3 s |")
     out.append(f"| load avatar ({r['gaussians']:,} Gaussians, decode + preview + depth) | {r['load_s']:.2f} s | |")
@@ -215,18 +235,22 @@ def run(quick: bool = False) -> str:
     out.append(f"| frame change: `frame_set` (shape keys + handler) | {ms(r['frame_set'])} ms | ≤ 30 ms |")
     out.append(f"| frame change + Geometry Nodes re-evaluation | {ms(r['frame_set_eval'])} ms | |")
     out.append(f"| frame change, mesh only (preview hidden, budget 0) | {ms(r['frame_set_mesh_only'])} ms | |")
-    out.append(f"| import as FLAME rig (1000 frames, {r['rig_keys']} shape keys, 5 bones, drivers) | {r['rig_import_s']:.2f} s | ≤ 3 s |")
+    out.append(
+        f"| import as FLAME rig (1000 frames, {r['rig_keys']} shape keys, 5 bones, drivers) | {r['rig_import_s']:.2f} s | ≤ 3 s |"
+    )
     out.append(f"| frame change of the FLAME rig (keys + drivers + armature) | {ms(r['rig_frame_set'])} ms | |")
     out.append("")
-    out.append(f"FLAME rig: a FLAME-sized model with random bases (5023 vertices, 100 expression and 36 pose-corrective "
-               f"keys); the evaluated rig differs from `flame_forward` by at most {rig_err:.1e} (frames {sel}).\n")
+    out.append(
+        f"FLAME rig: a FLAME-sized model with random bases (5023 vertices, 100 expression and 36 pose-corrective "
+        f"keys); the evaluated rig differs from `flame_forward` by at most {rig_err:.1e} (frames {sel}).\n"
+    )
     return "\n".join(out)
 
 
 def _own_args():
     # _bootstrap.script_args() takes any argv[0] starting with "blender" for the Blender
     # binary, which this script's own name does.
-    return sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+    return sys.argv[sys.argv.index("--") + 1 :] if "--" in sys.argv else sys.argv[1:]
 
 
 if __name__ == "__main__":

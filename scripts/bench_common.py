@@ -25,8 +25,10 @@ def machine() -> str:
 
 
 def header(title: str, command: str) -> str:
-    return (f"## {title}\n\n- machine: {machine()}\n- command: `{command}`\n"
-            f"- date: {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}\n")
+    return (
+        f"## {title}\n\n- machine: {machine()}\n- command: `{command}`\n"
+        f"- date: {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}\n"
+    )
 
 
 def best_of(fn, repeat=5, warmup=1):
@@ -49,7 +51,7 @@ def replace_section(path: str, name: str, text: str) -> None:
     old = open(path, encoding="utf-8").read() if os.path.exists(path) else ""
     block = f"{start}\n{text.rstrip()}\n{end}"
     if start in old and end in old:
-        new = old[: old.index(start)] + block + old[old.index(end) + len(end):]
+        new = old[: old.index(start)] + block + old[old.index(end) + len(end) :]
     else:
         new = old.rstrip() + "\n\n" + block + "\n"
     tmp = path + ".tmp"

@@ -42,22 +42,43 @@ def _write_tiny_dataset(root: str, cameras: int, timesteps: int, size: int) -> N
     faces = rng.integers(0, len(verts), size=(1280, 3)).astype(np.int32)
     np.savez(os.path.join(root, "canonical_mesh.npz"), vertices=verts, faces=faces)
     ys, xs = np.mgrid[0:size, 0:size]
-    disc = ((xs - size / 2) ** 2 + (ys - size / 2) ** 2 < (0.35 * size) ** 2)
+    disc = (xs - size / 2) ** 2 + (ys - size / 2) ** 2 < (0.35 * size) ** 2
     frames = []
     for t in range(timesteps):
         np.savez(os.path.join(root, "meshes", f"{t:05d}.npz"), vertices=verts * (1 + 0.01 * t))
         for c in range(cameras):
             ang = 2 * np.pi * c / cameras
-            cam = Camera.look_at([0.6 * np.sin(ang), 0.0, 0.6 * np.cos(ang)], [0, 0, 0], [0, 1, 0],
-                                 1.2 * size, 1.2 * size, size / 2, size / 2, size, size)
+            cam = Camera.look_at(
+                [0.6 * np.sin(ang), 0.0, 0.6 * np.cos(ang)],
+                [0, 0, 0],
+                [0, 1, 0],
+                1.2 * size,
+                1.2 * size,
+                size / 2,
+                size / 2,
+                size,
+                size,
+            )
             img = np.where(disc[..., None], rng.integers(0, 256, (size, size, 3)), 255).astype(np.uint8)
             name = f"{t:05d}_{c:02d}.png"
             Image.fromarray(img).save(os.path.join(root, "images", name))
             Image.fromarray((disc * 255).astype(np.uint8)).save(os.path.join(root, "fg_masks", name))
-            frames.append(dict(file_path=f"images/{name}", fg_mask_path=f"fg_masks/{name}",
-                               transform_matrix=cam.c2w_opengl().tolist(), fl_x=cam.fx, fl_y=cam.fy, cx=cam.cx,
-                               cy=cam.cy, w=size, h=size, timestep_index=t, camera_index=c,
-                               mesh_path=f"meshes/{t:05d}.npz"))
+            frames.append(
+                dict(
+                    file_path=f"images/{name}",
+                    fg_mask_path=f"fg_masks/{name}",
+                    transform_matrix=cam.c2w_opengl().tolist(),
+                    fl_x=cam.fx,
+                    fl_y=cam.fy,
+                    cx=cam.cx,
+                    cy=cam.cy,
+                    w=size,
+                    h=size,
+                    timestep_index=t,
+                    camera_index=c,
+                    mesh_path=f"meshes/{t:05d}.npz",
+                )
+            )
     with open(os.path.join(root, "transforms_train.json"), "w") as f:
         json.dump({"frames": frames}, f)
 
@@ -87,7 +108,7 @@ def run(quick: bool = False, data_dir=None, split: str = "train", downscale: flo
         root, what = os.fspath(data_dir), f"`{os.fspath(data_dir)}` split `{split}`"
     try:
         t0 = time.perf_counter()
-        ds = Dataset(root, split, downscale=downscale, cache_images=10 ** 9)
+        ds = Dataset(root, split, downscale=downscale, cache_images=10**9)
         open_s = time.perf_counter() - t0
         n = min(len(ds), 16 if quick else 256)
         cold = _pass(ds, n)  # decodes every image and loads every timestep's mesh
@@ -100,8 +121,12 @@ def run(quick: bool = False, data_dir=None, split: str = "train", downscale: flo
     finally:
         if tmp is not None:
             tmp.cleanup()
-    cmd = "python scripts/bench_data.py" + (f" --data {data_dir}" if data_dir else "") + (" --quick" if quick else "") + \
-        (f" --downscale {downscale}" if downscale != 1.0 else "")
+    cmd = (
+        "python scripts/bench_data.py"
+        + (f" --data {data_dir}" if data_dir else "")
+        + (" --quick" if quick else "")
+        + (f" --downscale {downscale}" if downscale != 1.0 else "")
+    )
     lines = [
         "## Dataset loading throughput",
         "",

@@ -40,10 +40,12 @@ def _machine() -> str:
 
 
 def run(quick: bool = False) -> str:
-    config = (dict(resolution=64, cameras=4, sequences=2, frames=2) if quick
-              else dict(resolution=128, cameras=16, sequences=10, frames=8))
-    command = "python scripts/make_synthetic.py --out DIR " + " ".join(
-        f"--{k} {v}" for k, v in config.items())
+    config = (
+        dict(resolution=64, cameras=4, sequences=2, frames=2)
+        if quick
+        else dict(resolution=128, cameras=16, sequences=10, frames=8)
+    )
+    command = "python scripts/make_synthetic.py --out DIR " + " ".join(f"--{k} {v}" for k, v in config.items())
     with tempfile.TemporaryDirectory(prefix="pa_bench_synth_") as tmp:
         t0 = time.perf_counter()
         synthetic.head_template()  # build (or reuse) the template outside the timed generation

@@ -44,8 +44,15 @@ def run(quick: bool = False) -> str:
     cameras, frames = 2, 1
     with tempfile.TemporaryDirectory(prefix="pa_bench_paper_") as tmp:
         c0, w0 = _cpu(), time.perf_counter()
-        s = synthetic.make_dataset(os.path.join(tmp, "ds"), resolution=802, cameras=cameras, sequences=2,
-                                   frames=frames, progress=False, detail="paper")
+        s = synthetic.make_dataset(
+            os.path.join(tmp, "ds"),
+            resolution=802,
+            cameras=cameras,
+            sequences=2,
+            frames=frames,
+            progress=False,
+            detail="paper",
+        )
         gen_cpu, gen_wall = _cpu() - c0, time.perf_counter() - w0
     per_image = gen_cpu / s["images"]
     estimate = build_cpu + per_image * PRESET_IMAGES / WORKERS
@@ -58,7 +65,8 @@ def run(quick: bool = False) -> str:
         f"- template {len(tf):,} faces / {len(tv):,} vertices; imaged surface {len(ff):,} faces; "
         f"{s['width']}x{s['height']} px, {s['supersample']}x{s['supersample']} samples/pixel, {s['intersector']}",
         "",
-        "| part | CPU s | wall s |", "|---|---|---|",
+        "| part | CPU s | wall s |",
+        "|---|---|---|",
         f"| surface build (once) | {build_cpu:.1f} | {build_wall:.1f} |",
         f"| {s['images']} images ({s['timesteps']} timesteps x {cameras} cameras, with detail.npz and PNGs) "
         f"| {gen_cpu:.1f} | {gen_wall:.1f} |",

@@ -1,6 +1,6 @@
 """Forest evaluation speed and float32 precision (issue: foundation).
 
-    python scripts/bench_forest.py
+python scripts/bench_forest.py
 """
 
 import os as _os
@@ -42,12 +42,15 @@ def run(quick=False) -> str:
     rng = np.random.default_rng(0)
     verts, faces = sphere(70, 72)  # ~5k vertices, ~10k faces: FLAME-sized
     v = verts.astype(np.float32)
-    out = [header("Forest evaluation (numpy, one frame)", "python scripts/bench.py --only forest"),
-           f"Template: UV sphere, {len(verts)} vertices, {len(faces)} faces, radius 0.1 m. Time = `FaceEvaluator(forest, ids)(vertices)`"
-           " (centroids, frames, scales of every face), min and median of 60 runs. Rows in root-grouped order"
-           " (`ids = binding.root_grouped(forest)`, what the Blender preview uses) and in the forest's own order.\n",
-           "| faces | max level | root-grouped min / median ms | forest order min / median ms |", "|---|---|---|---|"]
-    for target in ([20000, 170000] if quick else [20000, 50000, 100000, 170000, 300000]):
+    out = [
+        header("Forest evaluation (numpy, one frame)", "python scripts/bench.py --only forest"),
+        f"Template: UV sphere, {len(verts)} vertices, {len(faces)} faces, radius 0.1 m. Time = `FaceEvaluator(forest, ids)(vertices)`"
+        " (centroids, frames, scales of every face), min and median of 60 runs. Rows in root-grouped order"
+        " (`ids = binding.root_grouped(forest)`, what the Blender preview uses) and in the forest's own order.\n",
+        "| faces | max level | root-grouped min / median ms | forest order min / median ms |",
+        "|---|---|---|---|",
+    ]
+    for target in [20000, 170000] if quick else [20000, 50000, 100000, 170000, 300000]:
         f = grown_forest(faces, target, rng)
         cells = []
         for ids in (binding.root_grouped(f), None):
@@ -69,9 +72,13 @@ def run(quick=False) -> str:
     from progressive_avatars.core.synthetic.shapes import depth6_precision
 
     p = depth6_precision(rng)
-    out += ["", f"Precision, float32 vs float64 at depth 6 ({p['roots']} root faces, metres; median finest face scale "
-            f"{p['median_scale'] * 1e3:.3f} mm), max relative to each face's own scale: edges {p['edges']:.1e}, "
-            f"frames {p['frames']:.1e}, scales {p['scales']:.1e} (target 1e-5).", ""]
+    out += [
+        "",
+        f"Precision, float32 vs float64 at depth 6 ({p['roots']} root faces, metres; median finest face scale "
+        f"{p['median_scale'] * 1e3:.3f} mm), max relative to each face's own scale: edges {p['edges']:.1e}, "
+        f"frames {p['frames']:.1e}, scales {p['scales']:.1e} (target 1e-5).",
+        "",
+    ]
     return "\n".join(out)
 
 

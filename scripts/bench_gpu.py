@@ -67,9 +67,14 @@ def parity(width, height, n):
     img_c, img_g = cpu.image.detach().double(), gpu.image.detach().cpu().double()
     al_c, al_g = cpu.alpha.detach().double(), gpu.alpha.detach().cpu().double()
     res = {
-        "width": width, "height": height, "n": n, "visible": int((cpu.radii > 0).sum()),
-        "image_max_abs": float((img_c - img_g).abs().max()), "image_mean_abs": float((img_c - img_g).abs().mean()),
-        "alpha_max_abs": float((al_c - al_g).abs().max()), "alpha_mean_abs": float((al_c - al_g).abs().mean()),
+        "width": width,
+        "height": height,
+        "n": n,
+        "visible": int((cpu.radii > 0).sum()),
+        "image_max_abs": float((img_c - img_g).abs().max()),
+        "image_mean_abs": float((img_c - img_g).abs().mean()),
+        "alpha_max_abs": float((al_c - al_g).abs().max()),
+        "alpha_mean_abs": float((al_c - al_g).abs().mean()),
         "psnr_cpu_vs_gpu": float(10 * np.log10(1.0 / max(float(((img_c - img_g) ** 2).mean()), 1e-20))),
         "cpu_fwd_bwd_s_first": cpu_s,
         "grads": {},
@@ -99,8 +104,15 @@ def gsplat_timing(width, height, n):
 
     f_med, f_min = _cuda_ms(fwd)
     fb_med, fb_min = _cuda_ms(fwd_bwd)
-    return {"width": width, "height": height, "n": n, "fwd_ms_median": f_med, "fwd_ms_min": f_min,
-            "fwd_bwd_ms_median": fb_med, "fwd_bwd_ms_min": fb_min}
+    return {
+        "width": width,
+        "height": height,
+        "n": n,
+        "fwd_ms_median": f_med,
+        "fwd_ms_min": f_min,
+        "fwd_bwd_ms_median": fb_med,
+        "fwd_bwd_ms_min": fb_min,
+    }
 
 
 def grown_avatar(target, rng):
@@ -149,16 +161,32 @@ def iteration_timing(width, height, target, levels_mode):
         loss = torch.zeros((), device="cuda")
         for lvl in levels:
             ids = model.level_ids[lvl]
-            out = render(g["means"][ids], g["quats"][ids], g["scales"][ids], g["opacities"][ids], g["colors"][ids],
-                         cam, bg, backend="gsplat", compute_contrib=False)
+            out = render(
+                g["means"][ids],
+                g["quats"][ids],
+                g["scales"][ids],
+                g["opacities"][ids],
+                g["colors"][ids],
+                cam,
+                bg,
+                backend="gsplat",
+                compute_contrib=False,
+            )
             loss = loss + losses.photometric(out.image, target_img, 0.2)
         loss = loss + 0.01 * losses.position_reg(model.params["d_mu"]) + losses.scale_reg(model.params["d_log_scale"])
         loss.backward()
         opt.step(model.params)
 
     med, mn = _cuda_ms(step, repeats=20, warmup=3)
-    return {"width": width, "height": height, "faces": int(forest.num_faces), "depth": int(top),
-            "levels": levels, "iter_ms_median": med, "iter_ms_min": mn}
+    return {
+        "width": width,
+        "height": height,
+        "faces": int(forest.num_faces),
+        "depth": int(top),
+        "levels": levels,
+        "iter_ms_median": med,
+        "iter_ms_min": mn,
+    }
 
 
 def markdown(res):
@@ -183,16 +211,26 @@ def markdown(res):
         lines.append(f"| gradient of {k}: cosine / relative L2 difference | {g['cosine']:.5f} / {g['rel_l2']:.2e} |")
     lines += ["", "| gsplat render | median ms | best ms |", "|---|---|---|"]
     for t in res["render"]:
-        lines.append(f"| {t['width']}x{t['height']}, {t['n']:,} Gaussians, forward | {t['fwd_ms_median']:.2f} | "
-                     f"{t['fwd_ms_min']:.2f} |")
-        lines.append(f"| {t['width']}x{t['height']}, {t['n']:,} Gaussians, forward+backward | "
-                     f"{t['fwd_bwd_ms_median']:.2f} | {t['fwd_bwd_ms_min']:.2f} |")
-    lines += ["", "Whole training iteration on the GPU (torch face binding on CUDA, gsplat per supervised level, "
-              "L1+SSIM, regularisers, backward, Adam), 550x802:", "",
-              "| faces (depth) | supervised levels | median ms | best ms |", "|---|---|---|---|"]
+        lines.append(
+            f"| {t['width']}x{t['height']}, {t['n']:,} Gaussians, forward | {t['fwd_ms_median']:.2f} | "
+            f"{t['fwd_ms_min']:.2f} |"
+        )
+        lines.append(
+            f"| {t['width']}x{t['height']}, {t['n']:,} Gaussians, forward+backward | "
+            f"{t['fwd_bwd_ms_median']:.2f} | {t['fwd_bwd_ms_min']:.2f} |"
+        )
+    lines += [
+        "",
+        "Whole training iteration on the GPU (torch face binding on CUDA, gsplat per supervised level, "
+        "L1+SSIM, regularisers, backward, Adam), 550x802:",
+        "",
+        "| faces (depth) | supervised levels | median ms | best ms |",
+        "|---|---|---|---|",
+    ]
     for t in res["iteration"]:
-        lines.append(f"| {t['faces']:,} ({t['depth']}) | {t['levels']} | {t['iter_ms_median']:.1f} | "
-                     f"{t['iter_ms_min']:.1f} |")
+        lines.append(
+            f"| {t['faces']:,} ({t['depth']}) | {t['levels']} | {t['iter_ms_median']:.1f} | {t['iter_ms_min']:.1f} |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -215,8 +253,14 @@ def main():
     torch.cuda.synchronize()
     jit = time.perf_counter() - t0
     n = 20000 if a.quick else 170000
-    res = {"gpu": torch.cuda.get_device_name(0), "torch": torch.__version__, "gsplat": gsplat.__version__,
-           "date": datetime.date.today().isoformat(), "jit_s": jit, "host": platform.node()}
+    res = {
+        "gpu": torch.cuda.get_device_name(0),
+        "torch": torch.__version__,
+        "gsplat": gsplat.__version__,
+        "date": datetime.date.today().isoformat(),
+        "jit_s": jit,
+        "host": platform.node(),
+    }
     print("jit", jit, flush=True)
     res["parity"] = parity(802, 550, n)
     print(json.dumps(res["parity"]), flush=True)

@@ -48,8 +48,9 @@ def head_camera(width, height):
     from progressive_avatars.core.geometry.camera import Camera
 
     f = 3.0 * height  # the 0.22 m tall head fills about two thirds of the image height at 1 m
-    return Camera.look_at([0.05, 0.02, 1.0], [0, 0, 0], [0, 1, 0], f * 1.02, f, width * 0.52, height * 0.49,
-                          width, height)
+    return Camera.look_at(
+        [0.05, 0.02, 1.0], [0, 0, 0], [0, 1, 0], f * 1.02, f, width * 0.52, height * 0.49, width, height
+    )
 
 
 def _rss_peak_mb():
@@ -132,9 +133,20 @@ def bench_scene(width, height, n, repeats=3, threads=None):
     visible = int((out.radii > 0).sum())
     threads = numba.get_num_threads()
     numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
-    return dict(width=width, height=height, n=n, threads=threads, visible=visible, fwd_ms=fwd_ms, bwd_ms=bwd_ms,
-                total_ms=total_ms, rss_base_mb=base, rss_peak_mb=peak, peak_exact=exact,
-                coverage=float(out.alpha.detach().mean()))
+    return dict(
+        width=width,
+        height=height,
+        n=n,
+        threads=threads,
+        visible=visible,
+        fwd_ms=fwd_ms,
+        bwd_ms=bwd_ms,
+        total_ms=total_ms,
+        rss_base_mb=base,
+        rss_peak_mb=peak,
+        peak_exact=exact,
+        coverage=float(out.alpha.detach().mean()),
+    )
 
 
 def bench_reference(width=64, height=64, n=500, repeats=3):
@@ -178,9 +190,11 @@ def run(quick: bool = False) -> str:
     rows = [bench_scene(w, h, n, repeats=2 if quick else 5, threads=t) for w, h, n in sizes for t in thread_counts]
     ref = bench_reference(repeats=2 if quick else 3)
     cmd = "python scripts/bench_render.py" + (" --quick" if quick else "")
-    mem_note = ("peak RSS from /proc/self/status VmHWM, reset through /proc/self/clear_refs before one "
-                "forward+backward" if all(r["peak_exact"] for r in rows)
-                else "peak RSS from getrusage ru_maxrss (process high-water mark; may include earlier peaks)")
+    mem_note = (
+        "peak RSS from /proc/self/status VmHWM, reset through /proc/self/clear_refs before one forward+backward"
+        if all(r["peak_exact"] for r in rows)
+        else "peak RSS from getrusage ru_maxrss (process high-water mark; may include earlier peaks)"
+    )
     lines = [
         "## CPU rasteriser benchmark",
         "",
@@ -201,9 +215,11 @@ def run(quick: bool = False) -> str:
         "|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        lines.append(f"| {r['width']}x{r['height']} | {r['n']:,} ({r['visible']:,}) | {r['threads']} "
-                     f"| {r['fwd_ms']:.1f} | {r['bwd_ms']:.1f} | {r['total_ms']:.1f} | {r['rss_base_mb']:.0f} "
-                     f"| {r['rss_peak_mb']:.0f} |")
+        lines.append(
+            f"| {r['width']}x{r['height']} | {r['n']:,} ({r['visible']:,}) | {r['threads']} "
+            f"| {r['fwd_ms']:.1f} | {r['bwd_ms']:.1f} | {r['total_ms']:.1f} | {r['rss_base_mb']:.0f} "
+            f"| {r['rss_peak_mb']:.0f} |"
+        )
     lines += [
         "",
         f"Against the dense float64 torch reference (core/render/reference.py), {ref['width']}x"

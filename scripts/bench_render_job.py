@@ -113,19 +113,19 @@ driven by `blender_addon/render_job.py`) stays alive between renders and warms t
 before its first job; its numba cache lives in the extension's user folder, so kernels compile
 once per machine. Scripts and `--background` sessions (no timers) get the same job, awaited.
 
-Seconds for one frame ({res['gaussians']:,} Gaussians, {w}×{h} px), measured interleaved in one run on
-{res['machine']}:
+Seconds for one frame ({res["gaussians"]:,} Gaussians, {w}×{h} px), measured interleaved in one run on
+{res["machine"]}:
 
 | | first render (empty kernel cache) | second render of the same frame |
 |---|---|---|
-| before: one interpreter per render | {res['old_first_s']:.1f} | {res['old_second_s']:.1f} |
-| now: persistent worker | {res['new_first_s']:.1f} | {res['new_second_s']:.2f} |
+| before: one interpreter per render | {res["old_first_s"]:.1f} | {res["old_second_s"]:.1f} |
+| now: persistent worker | {res["new_first_s"]:.1f} | {res["new_second_s"]:.2f} |
 
-The operator returned after {1000 * res['new_returns_after_s']:.0f} ms (first) and
-{1000 * res['new_second_returns_after_s']:.0f} ms (second). Second render now vs first before:
-{res['speedup_second_new_vs_first_old']}×; vs second before: {res['speedup_second_new_vs_second_old']}×. Images
-identical to the old path's (max abs difference {res['max_abs_diff_new_vs_old']:.1e}). Written by
-`python scripts/bench_render_job.py {' '.join(sys.argv[1:])}` on {res['date']}.
+The operator returned after {1000 * res["new_returns_after_s"]:.0f} ms (first) and
+{1000 * res["new_second_returns_after_s"]:.0f} ms (second). Second render now vs first before:
+{res["speedup_second_new_vs_first_old"]}×; vs second before: {res["speedup_second_new_vs_second_old"]}×. Images
+identical to the old path's (max abs difference {res["max_abs_diff_new_vs_old"]:.1e}). Written by
+`python scripts/bench_render_job.py {" ".join(sys.argv[1:])}` on {res["date"]}.
 """
         _section(args.doc, "render-job", body)
     return 0

@@ -40,8 +40,14 @@ def build_avatar(quick: bool):
         forest.split(leaves[rng.random(len(leaves)) < frac])
     forest.split_logits[:] = rng.normal(0, 0.5, forest.split_logits.shape)
     N = forest.num_faces
-    av = Avatar(forest, rng.normal(0, 0.3, (N, 3)), rng.normal(-1, 0.5, (N, 3)), rng.normal(size=(N, 4)),
-                rng.normal(0, 2, N), rng.normal(0, 1, (N, 3)))
+    av = Avatar(
+        forest,
+        rng.normal(0, 0.3, (N, 3)),
+        rng.normal(-1, 0.5, (N, 3)),
+        rng.normal(size=(N, 4)),
+        rng.normal(0, 2, N),
+        rng.normal(0, 1, (N, 3)),
+    )
     return verts, av, rng.random(N)
 
 
@@ -74,7 +80,7 @@ def _readers(S, data: bytes, faces) -> dict:
     def chunked():
         r = S.StreamReader(faces)
         for i in range(0, len(data), 65536):
-            r.feed(data[i:i + 65536])
+            r.feed(data[i : i + 65536])
         r.avatar()
 
     def full():
@@ -120,7 +126,8 @@ def run(quick: bool = False) -> str:
                 f"{len(data):,} | {len(data) / info.num_records:.2f} | {info.record_size} | {mb / t_v[0]:.0f} | "
                 f"{rate(f'{mb / t:.0f}' for t in t_vd)} | {rate(f'{mb / t:.0f}' for t in t_c)} | "
                 f"{rate(f'{mb / t:.0f}' for t in t_f)} | {base:,} ({info.num_template_faces:,}) | "
-                f"{base * 8 / 10e6:.3f} | {wt:.2f} |")
+                f"{base * 8 / 10e6:.3f} | {wt:.2f} |"
+            )
             feeds = -(-len(data) // 65536)
             per_feed[(quant, embed)] = (t_c[0] - t_f[0]) / feeds  # both end in an Avatar
             if quant and embed:
@@ -147,8 +154,10 @@ def run(quick: bool = False) -> str:
         "*64 KiB* = StreamReader fed 64 KiB pieces (what the HTTP client feeds), then .avatar(). Product target:",
         "decoding (+decode, read_stream) >= 500 MB/s for quantised streams. Feeding in pieces adds a fixed cost",
         "per feed (about 40 numpy calls for the checks of a small batch); per 64 KiB feed, best case: "
-        + ", ".join(f"{'quantised' if q else 'lossless'}{' + template' if e else ''} {t * 1e6:.0f} µs"
-                    for (q, e), t in per_feed.items())
+        + ", ".join(
+            f"{'quantised' if q else 'lossless'}{' + template' if e else ''} {t * 1e6:.0f} µs"
+            for (q, e), t in per_feed.items()
+        )
         + f" (against read_stream). The piecewise path keeps up with links up to {piecewise_gbit:.1f} Gbit/s. On a shared",
         "machine the spread between runs is large: compare numbers taken in the same conditions.",
         "",

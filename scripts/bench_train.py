@@ -95,8 +95,9 @@ class _Views:
             k = height / c.height
             width = int(round(c.width * k))
             cam = Camera(c.R, c.t, c.fx * k, c.fy * k, c.cx * k, c.cy * k, width, height)
-            img = torch.nn.functional.interpolate(torch.from_numpy(s.image).permute(2, 0, 1)[None], (height, width),
-                                                  mode="bilinear", align_corners=False)[0].permute(1, 2, 0)
+            img = torch.nn.functional.interpolate(
+                torch.from_numpy(s.image).permute(2, 0, 1)[None], (height, width), mode="bilinear", align_corners=False
+            )[0].permute(1, 2, 0)
             self.samples.append(dataclasses.replace(s, camera=cam, image=np.ascontiguousarray(img.numpy())))
         self.background = ds.background
 
@@ -132,8 +133,12 @@ def _make(train_mod, data, out, supervision, plan, views=None):
 
     def capture(params, lr_scale=None):
         if not captured:  # a parameter nothing depends on may have no gradient (old) or zeros (new)
-            captured.update({k: (p.grad.detach().double().numpy().ravel() if p.grad is not None
-                                 else np.zeros(p.numel())) for k, p in params.items()})
+            captured.update(
+                {
+                    k: (p.grad.detach().double().numpy().ravel() if p.grad is not None else np.zeros(p.numel()))
+                    for k, p in params.items()
+                }
+            )
         return step(params, lr_scale)
 
     tr.opt.step = capture
@@ -166,10 +171,20 @@ def bench_steps(data, label, supervision, plan, reps, height=None):
                 cpu.append(time.process_time() - c0)
         levels = len(new._levels())
     del torch
-    return dict(label=label, faces=new.model.num_faces, levels=levels, supervision=supervision,
-                width=new.train[0].camera.width, height=new.train[0].camera.height, old=t_old, new=t_new,
-                cpu_old=c_old, cpu_new=c_new,
-                loss_err=loss_err, grad_err=grad_err)
+    return dict(
+        label=label,
+        faces=new.model.num_faces,
+        levels=levels,
+        supervision=supervision,
+        width=new.train[0].camera.width,
+        height=new.train[0].camera.height,
+        old=t_old,
+        new=t_new,
+        cpu_old=c_old,
+        cpu_new=c_new,
+        loss_err=loss_err,
+        grad_err=grad_err,
+    )
 
 
 def bench_raster(reps):
@@ -200,8 +215,13 @@ def bench_raster(reps):
         t_old.append(run(old_render)[0])
         dt, out = run(new_render)
         t_new.append(dt)
-    return dict(old=[t[0] for t in t_old], new=[t[0] for t in t_new], cpu_old=[t[1] for t in t_old],
-                cpu_new=[t[1] for t in t_new], visible=int((out.radii > 0).sum()))
+    return dict(
+        old=[t[0] for t in t_old],
+        new=[t[0] for t in t_new],
+        cpu_old=[t[1] for t in t_old],
+        cpu_new=[t[1] for t in t_new],
+        visible=int((out.radii > 0).sum()),
+    )
 
 
 def bench_ssim(reps, size=(802, 551)):
@@ -229,8 +249,13 @@ def bench_ssim(reps, size=(802, 551)):
     for _ in range(reps):
         t_old.append(run(old_ssim)[0])
         t_new.append(run(new_ssim)[0])
-    return dict(old=t_old, new=t_new, value_err=abs(v_old - v_new),
-                grad_err=float((g_new - g_old).norm() / g_old.norm()), size=size)
+    return dict(
+        old=t_old,
+        new=t_new,
+        value_err=abs(v_old - v_new),
+        grad_err=float((g_new - g_old).norm() / g_old.norm()),
+        size=size,
+    )
 
 
 def raster_reference_errors():
@@ -251,8 +276,10 @@ def raster_reference_errors():
     params[2] = params[2] * 6.0
     bg = torch.tensor([0.2, 0.4, 0.1])
     g = torch.Generator().manual_seed(0)
-    wi, wa = torch.randn(64, 64, 3, generator=g, dtype=torch.float64), torch.randn(64, 64, generator=g,
-                                                                                   dtype=torch.float64)
+    wi, wa = (
+        torch.randn(64, 64, 3, generator=g, dtype=torch.float64),
+        torch.randn(64, 64, generator=g, dtype=torch.float64),
+    )
 
     def grads(fn, dtype, camera=cam):
         ps = [p.detach().clone().to(dtype).requires_grad_(True) for p in params + [bg]]
@@ -287,8 +314,11 @@ def run(quick: bool = False, data: str | None = None) -> str:
     load0 = os.getloadavg()
     reps = 3 if quick else 6
     rows = []
-    cpu_plans = [("cpu preset, 5k faces", []), ("cpu preset, 20k faces", [1.0]),
-                 ("cpu preset, ~37k faces", [1.0, 0.35])]
+    cpu_plans = [
+        ("cpu preset, 5k faces", []),
+        ("cpu preset, 20k faces", [1.0]),
+        ("cpu preset, ~37k faces", [1.0, 0.35]),
+    ]
     if quick:
         cpu_plans = cpu_plans[1:2]
     for label, plan in cpu_plans:
@@ -303,29 +333,33 @@ def run(quick: bool = False, data: str | None = None) -> str:
     ss = bench_ssim(reps)
     load1 = os.getloadavg()
     cmd = "python scripts/bench.py --only train" + (" --quick" if quick else "")
-    lines = [header("Training iteration: f6907ae (old) against this tree (new), same run", cmd),
-             f"- threads: numba {numba.get_num_threads()} ({numba.threading_layer()}), torch "
-             f"{torch.get_num_threads()}; load average {load0[0]:.1f} at the start, {load1[0]:.1f} at the end "
-             f"({os.cpu_count()} cores, shared with other jobs: read the ratios, taken from interleaved runs, "
-             "rather than the absolute times)",
-             "- old = `git archive f6907ae core` imported as its own package in the same process; each rep "
-             "runs one old step then one new step; times are min / median ms over the reps",
-             "- CPU ms: process CPU time (all threads) per iteration, min over the reps: less sensitive to "
-             "waiting for the cores than wall time, though contention still inflates it",
-             "- state: the initial avatar after a fixed split plan (children copy their parent's Gaussian), not a "
-             "trained one: its Gaussians are larger and overlap more than trained ones, so rendering costs more",
-             "- accuracy: loss and whole-gradient relative difference between old and new on the first step from "
-             "an identical state (new binds in float64, old's forest weights were float32)",
-             "",
-             "| iteration | image | faces | levels rendered | old ms (min / median) | new ms (min / median) "
-             "| speed-up (median) | old / new CPU ms | speed-up (CPU) | loss diff | gradient diff |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        header("Training iteration: f6907ae (old) against this tree (new), same run", cmd),
+        f"- threads: numba {numba.get_num_threads()} ({numba.threading_layer()}), torch "
+        f"{torch.get_num_threads()}; load average {load0[0]:.1f} at the start, {load1[0]:.1f} at the end "
+        f"({os.cpu_count()} cores, shared with other jobs: read the ratios, taken from interleaved runs, "
+        "rather than the absolute times)",
+        "- old = `git archive f6907ae core` imported as its own package in the same process; each rep "
+        "runs one old step then one new step; times are min / median ms over the reps",
+        "- CPU ms: process CPU time (all threads) per iteration, min over the reps: less sensitive to "
+        "waiting for the cores than wall time, though contention still inflates it",
+        "- state: the initial avatar after a fixed split plan (children copy their parent's Gaussian), not a "
+        "trained one: its Gaussians are larger and overlap more than trained ones, so rendering costs more",
+        "- accuracy: loss and whole-gradient relative difference between old and new on the first step from "
+        "an identical state (new binds in float64, old's forest weights were float32)",
+        "",
+        "| iteration | image | faces | levels rendered | old ms (min / median) | new ms (min / median) "
+        "| speed-up (median) | old / new CPU ms | speed-up (CPU) | loss diff | gradient diff |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
         speed = np.median(r["old"]) / np.median(r["new"])
         co, cn = min(r["cpu_old"]), min(r["cpu_new"])
-        lines.append(f"| {r['label']} | {r['width']}x{r['height']} | {r['faces']:,} | {r['levels']} "
-                     f"| {_fmt(r['old'])} | {_fmt(r['new'])} | x{speed:.2f} | {co * 1e3:.0f} / {cn * 1e3:.0f} "
-                     f"| x{co / cn:.2f} | {r['loss_err']:.1e} | {r['grad_err']:.1e} |")
+        lines.append(
+            f"| {r['label']} | {r['width']}x{r['height']} | {r['faces']:,} | {r['levels']} "
+            f"| {_fmt(r['old'])} | {_fmt(r['new'])} | x{speed:.2f} | {co * 1e3:.0f} / {cn * 1e3:.0f} "
+            f"| x{co / cn:.2f} | {r['loss_err']:.1e} | {r['grad_err']:.1e} |"
+        )
     speed = np.median(raster["old"]) / np.median(raster["new"])
     lines += [
         f"| raster only: 802x550, 170k Gaussians ({raster['visible']:,} visible), forward + backward | 802x550 "

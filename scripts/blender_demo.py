@@ -69,7 +69,7 @@ def find_stream(run):
     return max(cands, key=os.path.getmtime) if cands else None
 
 
-CHILD = r'''
+CHILD = r"""
 import json, os, sys
 sys.path.insert(0, sys.argv[1])
 import _bootstrap
@@ -122,13 +122,13 @@ blend = os.path.join(args["out"], "demo.blend")
 bpy.ops.wm.save_as_mainfile(filepath=blend)
 print("PA_DEMO " + json.dumps({"blend": blend, "renders": pngs, "total": pv.pa_avatar.total,
                                "legend": [[i.depth, i.faces] for i in mesh.pa_mesh.depth_legend]}))
-'''
+"""
 
 
 def _own_args():
     # _bootstrap.script_args() takes any argv[0] starting with "blender" for the Blender
     # binary, which this script's own name does.
-    return sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+    return sys.argv[sys.argv.index("--") + 1 :] if "--" in sys.argv else sys.argv[1:]
 
 
 def main(argv=None):
@@ -147,8 +147,11 @@ def main(argv=None):
     if stream and args.data:
         from progressive_avatars.core.io import data
 
-        ds = data.Dataset(args.data, "test") if os.path.exists(os.path.join(args.data, "transforms_test.json")) \
+        ds = (
+            data.Dataset(args.data, "test")
+            if os.path.exists(os.path.join(args.data, "transforms_test.json"))
             else data.Dataset(args.data, "train")
+        )
         seq = ds.sequence()
         sequence = os.path.join(out, "sequence.npz")
         np.savez(sequence, vertices=seq.vertices, faces=seq.faces)
@@ -162,11 +165,22 @@ def main(argv=None):
             print("a run needs --data for its sequence: using the built-in avatar", file=sys.stderr)
         sequence, stream = builtin_inputs(out)
         source = "built-in synthetic head avatar"
-    payload = {"sequence": sequence, "stream": stream, "out": out, "size": args.size, "samples": args.samples,
-               "budgets": [float(b) for b in args.budgets.split(",")], "camera": camera}
+    payload = {
+        "sequence": sequence,
+        "stream": stream,
+        "out": out,
+        "size": args.size,
+        "samples": args.samples,
+        "budgets": [float(b) for b in args.budgets.split(",")],
+        "camera": camera,
+    }
     tmp = tempfile.mkdtemp(prefix="pa_demo_user_")
-    env = dict(os.environ, BLENDER_USER_RESOURCES=tmp, BLENDER_USER_CONFIG=os.path.join(tmp, "config"),
-               BLENDER_USER_SCRIPTS=os.path.join(tmp, "scripts"))
+    env = dict(
+        os.environ,
+        BLENDER_USER_RESOURCES=tmp,
+        BLENDER_USER_CONFIG=os.path.join(tmp, "config"),
+        BLENDER_USER_SCRIPTS=os.path.join(tmp, "scripts"),
+    )
     script = os.path.join(tmp, "demo_child.py")
     with open(script, "w") as fh:
         fh.write(CHILD)
@@ -175,7 +189,7 @@ def main(argv=None):
     if proc.returncode != 0 or not lines:
         sys.stderr.write(proc.stdout[-3000:] + proc.stderr[-3000:])
         return 1
-    result = json.loads(lines[-1][len("PA_DEMO "):])
+    result = json.loads(lines[-1][len("PA_DEMO ") :])
     result["source"] = source
     with open(os.path.join(out, "demo.json"), "w") as fh:
         json.dump(result, fh, indent=1)

@@ -39,28 +39,58 @@ def main(argv=None):
     ap.add_argument("--views", type=int, default=24, help="views per split (spread evenly)")
     ap.add_argument("--curve-points", type=int, default=100, help="curve budgets (100: 1 %% steps)")
     ap.add_argument("--curve-views", type=int, default=8, help="NVS views per curve point")
-    ap.add_argument("--root-order", default="auto", choices=["forest", "spatial", "importance", "both", "auto"],
-                    help="order of the roots inside their levels in the written stream")
-    ap.add_argument("--embed-template", action="store_true",
-                    help="embed the template in the evaluated stream (default: the receiver has it, as it has the "
-                         "tracked mesh that drives the avatar; FORMAT.md 2)")
+    ap.add_argument(
+        "--root-order",
+        default="auto",
+        choices=["forest", "spatial", "importance", "both", "auto"],
+        help="order of the roots inside their levels in the written stream",
+    )
+    ap.add_argument(
+        "--embed-template",
+        action="store_true",
+        help="embed the template in the evaluated stream (default: the receiver has it, as it has the "
+        "tracked mesh that drives the avatar; FORMAT.md 2)",
+    )
     ap.add_argument("--no-coarse-run", help="the same model trained without coarse levels (scored at 2/5/100 %%)")
     ap.add_argument("--compare", action="append", default=[], help="NAME=RUN: another run scored at 100 %%")
-    ap.add_argument("--name", default="", help="this run's name for grouping with compared runs of other seeds "
-                    "(NAME_seed1=RUN ...): the report then gives mean ± sd over the seeds")
+    ap.add_argument(
+        "--name",
+        default="",
+        help="this run's name for grouping with compared runs of other seeds "
+        "(NAME_seed1=RUN ...): the report then gives mean ± sd over the seeds",
+    )
     ap.add_argument("--about", default="", help="a sentence on what this report compares (printed under its header)")
-    ap.add_argument("--paper-table", action="store_true",
-                    help="also write the paper's layout (paper_table.md): Table 1 with gaps to 100 %% beside the "
-                         "paper's, Table 3, adaptive vs uniform at matched Gaussian counts, full-resolution strips, "
-                         "training time and peak memory, and issue 17's acceptance checks")
-    ap.add_argument("--finest-only", metavar="RUN", help="paper table: a finest-level-only run, scored at 35 %% of its "
-                    "stream against this run's 35 %%")
-    ap.add_argument("--uniform", action="append", default=[], metavar="NAME=RUN",
-                    help="paper table: uniform-subdivision runs, NAME_seed<k> for seed k (no suffix: seed 0)")
-    ap.add_argument("--adaptive", action="append", default=[], metavar="NAME=RUN",
-                    help="paper table: this method with other seeds, NAME_seed<k> (this run is seed 0)")
-    ap.add_argument("--benchmarks", help="also write the report into this Markdown file (docs/BENCHMARKS.md), as "
-                    "the section named by --section (replaced in place when present)")
+    ap.add_argument(
+        "--paper-table",
+        action="store_true",
+        help="also write the paper's layout (paper_table.md): Table 1 with gaps to 100 %% beside the "
+        "paper's, Table 3, adaptive vs uniform at matched Gaussian counts, full-resolution strips, "
+        "training time and peak memory, and issue 17's acceptance checks",
+    )
+    ap.add_argument(
+        "--finest-only",
+        metavar="RUN",
+        help="paper table: a finest-level-only run, scored at 35 %% of its stream against this run's 35 %%",
+    )
+    ap.add_argument(
+        "--uniform",
+        action="append",
+        default=[],
+        metavar="NAME=RUN",
+        help="paper table: uniform-subdivision runs, NAME_seed<k> for seed k (no suffix: seed 0)",
+    )
+    ap.add_argument(
+        "--adaptive",
+        action="append",
+        default=[],
+        metavar="NAME=RUN",
+        help="paper table: this method with other seeds, NAME_seed<k> (this run is seed 0)",
+    )
+    ap.add_argument(
+        "--benchmarks",
+        help="also write the report into this Markdown file (docs/BENCHMARKS.md), as "
+        "the section named by --section (replaced in place when present)",
+    )
     ap.add_argument("--section", default="", help="section name and title for --benchmarks")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(_bootstrap.script_args() if argv is None else argv)
@@ -70,14 +100,28 @@ def main(argv=None):
 
     try:
         opts = ReportOptions(
-            run=args.run, out=args.out, data=args.data, flame_model=args.flame_model,
+            run=args.run,
+            out=args.out,
+            data=args.data,
+            flame_model=args.flame_model,
             budgets=tuple(float(b) for b in args.budgets.split(",") if b.strip()),
-            strips=tuple(float(b) for b in args.strips.split(",") if b.strip()), views=args.views,
-            curve_points=args.curve_points, curve_views=args.curve_views, root_order=args.root_order,
-            embed_template=args.embed_template, no_coarse_run=args.no_coarse_run, compare=tuple(args.compare),
-            name=args.name, about=args.about, paper_table=args.paper_table, finest_only=args.finest_only,
-            uniform=tuple(args.uniform), adaptive=tuple(args.adaptive), progress=not args.no_progress,
-            command=shlex.join(["python", "scripts/evaluate.py"] + (sys.argv[1:] if argv is None else argv)))
+            strips=tuple(float(b) for b in args.strips.split(",") if b.strip()),
+            views=args.views,
+            curve_points=args.curve_points,
+            curve_views=args.curve_views,
+            root_order=args.root_order,
+            embed_template=args.embed_template,
+            no_coarse_run=args.no_coarse_run,
+            compare=tuple(args.compare),
+            name=args.name,
+            about=args.about,
+            paper_table=args.paper_table,
+            finest_only=args.finest_only,
+            uniform=tuple(args.uniform),
+            adaptive=tuple(args.adaptive),
+            progress=not args.no_progress,
+            command=shlex.join(["python", "scripts/evaluate.py"] + (sys.argv[1:] if argv is None else argv)),
+        )
         os.makedirs(args.out, exist_ok=True)
         report = build_report(opts)
     except (ValueError, FileNotFoundError) as exc:
@@ -91,8 +135,14 @@ def main(argv=None):
         body = body.replace("](", f"]({rel}/")
         title = args.section or os.path.basename(os.path.abspath(args.out))
         bench_common.replace_section(args.benchmarks, title, f"## {title}\n{body}")
-    print(json.dumps({"report": os.path.join(args.out, "report.json"),
-                      "budgets": {k: [v["nvs"]["psnr"], v["nes"]["psnr"]] for k, v in report["budgets"].items()}}))
+    print(
+        json.dumps(
+            {
+                "report": os.path.join(args.out, "report.json"),
+                "budgets": {k: [v["nvs"]["psnr"], v["nes"]["psnr"]] for k, v in report["budgets"].items()},
+            }
+        )
+    )
     return 0
 
 

@@ -35,8 +35,11 @@ def main(argv=None):
     ap.add_argument("--budget", type=float, default=100.0, help="percent of the stream (PLY export)")
     ap.add_argument("--frame", type=int, default=0, help="timestep index (PLY export)")
     ap.add_argument("--max-views", type=int, default=120, help="training views used for importance")
-    ap.add_argument("--drop-sh", action="store_true",
-                    help="stream an avatar trained with SH degree > 0 (records carry its DC colour only)")
+    ap.add_argument(
+        "--drop-sh",
+        action="store_true",
+        help="stream an avatar trained with SH degree > 0 (records carry its DC colour only)",
+    )
     args = ap.parse_args(_bootstrap.script_args() if argv is None else argv)
     if not args.stream and not args.ply:
         ap.error("nothing to do: give --stream and/or --ply")
@@ -60,9 +63,15 @@ def main(argv=None):
         from progressive_avatars.core.io.data import Dataset
 
         ds = Dataset(data, None, flame_model=runs.run_flame_model(args.run, args.flame_model))
-        info = stream.write_stream(stream_path, avatar, W, quantize=not args.lossless,
-                                   metadata={"run": os.path.abspath(args.run)}, drop_sh=args.drop_sh,
-                                   vertices=ds.canonical_vertices)
+        info = stream.write_stream(
+            stream_path,
+            avatar,
+            W,
+            quantize=not args.lossless,
+            metadata={"run": os.path.abspath(args.run)},
+            drop_sh=args.drop_sh,
+            vertices=ds.canonical_vertices,
+        )
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -75,24 +84,39 @@ def main(argv=None):
 
         part = stream.read_stream(stream_path, percent=args.budget)
         if args.frame not in set(int(t) for t in ds.timesteps):
-            print(f"error: {data}: no timestep {args.frame} (have {ds.timesteps[0]}..{ds.timesteps[-1]})", file=sys.stderr)
+            print(
+                f"error: {data}: no timestep {args.frame} (have {ds.timesteps[0]}..{ds.timesteps[-1]})", file=sys.stderr
+            )
             return 2
         n = 0 if part is None else part.num_gaussians
         if part is None:  # the budget holds no whole record (e.g. less than the header)
-            print(f"note: {args.budget:g} % of the stream ({int(args.budget / 100 * info.total_bytes):,} of "
-                  f"{info.total_bytes:,} bytes) holds no whole Gaussian (the header alone is {info.header_size:,} "
-                  f"bytes, the first whole head {info.head_bytes:,}); writing an empty PLY", file=sys.stderr)
+            print(
+                f"note: {args.budget:g} % of the stream ({int(args.budget / 100 * info.total_bytes):,} of "
+                f"{info.total_bytes:,} bytes) holds no whole Gaussian (the header alone is {info.header_size:,} "
+                f"bytes, the first whole head {info.head_bytes:,}); writing an empty PLY",
+                file=sys.stderr,
+            )
             z = np.zeros((0, 3), np.float32)
-            g = {"means": z, "quats": np.zeros((0, 4), np.float32), "scales": z, "opacities": np.zeros(0, np.float32),
-                 "colors": z}
+            g = {
+                "means": z,
+                "quats": np.zeros((0, 4), np.float32),
+                "scales": z,
+                "opacities": np.zeros(0, np.float32),
+                "colors": z,
+            }
         else:
             g = part.gaussians(ds.vertices_at(args.frame))
         if avatar.sh_degree:  # every band, from the trained avatar's faces of this prefix
             g["sh_rest"] = avatar.f_rest[info.order[:n]]
             g["colors"] = sh_to_rgb(avatar.f_dc[info.order[:n]])
         write_ply(args.ply, g)
-        result.update(ply=args.ply, ply_gaussians=n, budget=args.budget, frame=args.frame,
-                      head_complete=bool(part is not None and part.meta["stream"]["head_complete"]))
+        result.update(
+            ply=args.ply,
+            ply_gaussians=n,
+            budget=args.budget,
+            frame=args.frame,
+            head_complete=bool(part is not None and part.meta["stream"]["head_complete"]),
+        )
     print(json.dumps(result))
     return 0
 

@@ -31,8 +31,16 @@ from progressive_avatars.core.synthetic import head as synthetic
 
 
 PRESETS = {
-    "default": dict(resolution=128, cameras=16, sequences=10, frames=8, supersample=2, template_subdivisions=4,
-                    workers=1, detail="default"),
+    "default": dict(
+        resolution=128,
+        cameras=16,
+        sequences=10,
+        frames=8,
+        supersample=2,
+        template_subdivisions=4,
+        workers=1,
+        detail="default",
+    ),
     "paper": dict(resolution=802, cameras=16, sequences=10, frames=4, supersample=2, workers=2, detail="paper"),
 }
 
@@ -40,22 +48,37 @@ PRESETS = {
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", required=True, help="dataset directory (created)")
-    ap.add_argument("--preset", choices=sorted(PRESETS), default="default",
-                    help="default: the demo's small dataset; paper: the paper's scale (see above)")
-    ap.add_argument("--resolution", type=int, help="image height in pixels (width follows 550:802; default 128, "
-                                                   "paper 802)")
-    ap.add_argument("--resolution-scale", type=float, default=1.0, help="multiply the resolution (e.g. 0.25 for a "
-                                                                         "small version of a preset)")
+    ap.add_argument(
+        "--preset",
+        choices=sorted(PRESETS),
+        default="default",
+        help="default: the demo's small dataset; paper: the paper's scale (see above)",
+    )
+    ap.add_argument(
+        "--resolution", type=int, help="image height in pixels (width follows 550:802; default 128, paper 802)"
+    )
+    ap.add_argument(
+        "--resolution-scale",
+        type=float,
+        default=1.0,
+        help="multiply the resolution (e.g. 0.25 for a small version of a preset)",
+    )
     ap.add_argument("--cameras", type=int)
     ap.add_argument("--sequences", type=int)
     ap.add_argument("--frames", type=int, help="frames per sequence")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--supersample", type=int, help="samples per pixel axis (anti-aliasing; default 2)")
-    ap.add_argument("--template-subdivisions", type=int,
-                    help="icosphere subdivisions of the tracked template (default preset): 4 = 5120 faces (default), "
-                         "3 = 1280 (coarser than the imaged surface, which stays at 4)")
-    ap.add_argument("--surface-levels", type=int, help="paper preset: subdivisions of the imaged surface beyond "
-                                                       "the template (default 2: 16x its faces)")
+    ap.add_argument(
+        "--template-subdivisions",
+        type=int,
+        help="icosphere subdivisions of the tracked template (default preset): 4 = 5120 faces (default), "
+        "3 = 1280 (coarser than the imaged surface, which stays at 4)",
+    )
+    ap.add_argument(
+        "--surface-levels",
+        type=int,
+        help="paper preset: subdivisions of the imaged surface beyond the template (default 2: 16x its faces)",
+    )
     ap.add_argument("--workers", type=int, help="processes rendering timesteps (default 1, paper 2)")
     ap.add_argument("--contact-sheet", default=None, help="also copy the contact sheet PNG here")
     ap.add_argument("--closeup", default=None, help="also render a frontal close-up strip PNG here")
@@ -63,8 +86,16 @@ def main(argv=None):
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
     args = ap.parse_args(_bootstrap.script_args(argv))
     kw = dict(PRESETS[args.preset])
-    for key in ("resolution", "cameras", "sequences", "frames", "supersample", "template_subdivisions", "workers",
-                "surface_levels"):
+    for key in (
+        "resolution",
+        "cameras",
+        "sequences",
+        "frames",
+        "supersample",
+        "template_subdivisions",
+        "workers",
+        "surface_levels",
+    ):
         if getattr(args, key) is not None:
             kw[key] = getattr(args, key)
     if not args.resolution_scale > 0:
@@ -79,13 +110,17 @@ def main(argv=None):
     if args.closeup:
         synthetic.render_closeup(args.closeup, height=args.closeup_height, detail=kw.get("detail", "default"))
     s = summary
-    print(f"wrote {s['out']}: {s['timesteps']} timesteps x {s['cameras']} cameras = {s['images']} images "
-          f"({s['width']}x{s['height']}, {s['supersample']}x{s['supersample']} samples/pixel), "
-          f"splits train/val/test = {s['train']}/{s['val']}/{s['test']} "
-          f"(held-out camera {s['held_out_camera']}, test sequence {s['test_sequence']}), "
-          f"mesh {s['vertices']} vertices / {s['faces']} faces (images ray-cast from {s['imaged_faces']} faces)")
-    print(f"{s['seconds']:.1f} s, {s['rays'] / 1e6:.1f} M rays ({s['rays_per_second'] / 1e6:.2f} M rays/s, "
-          f"{s['intersector']}); contact sheet {sheet}")
+    print(
+        f"wrote {s['out']}: {s['timesteps']} timesteps x {s['cameras']} cameras = {s['images']} images "
+        f"({s['width']}x{s['height']}, {s['supersample']}x{s['supersample']} samples/pixel), "
+        f"splits train/val/test = {s['train']}/{s['val']}/{s['test']} "
+        f"(held-out camera {s['held_out_camera']}, test sequence {s['test_sequence']}), "
+        f"mesh {s['vertices']} vertices / {s['faces']} faces (images ray-cast from {s['imaged_faces']} faces)"
+    )
+    print(
+        f"{s['seconds']:.1f} s, {s['rays'] / 1e6:.1f} M rays ({s['rays_per_second'] / 1e6:.2f} M rays/s, "
+        f"{s['intersector']}); contact sheet {sheet}"
+    )
     return 0
 
 

@@ -35,7 +35,7 @@ import numpy as np  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
-CHILD = r'''
+CHILD = r"""
 import importlib.util, json, os, sys, time
 args = json.loads(sys.argv[1])
 root = args["root"]
@@ -91,11 +91,11 @@ cam = pdata.camera_from_blender(np.array(cam_obj.matrix_world), cam_obj.data.len
 np.savez(os.path.join(args["out"], "gaussians.npz"), R=cam.R, t=cam.t, intr=[cam.fx, cam.fy, cam.cx, cam.cy],
          size=[w, h], **g)
 print("PA_LOOK " + json.dumps({"seconds": seconds, "count": pv.pa_avatar.count, "changed": {k: [str(a), str(b)] for k, (a, b) in changed.items()}}))
-'''
+"""
 
 
 def _own_args():
-    return sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+    return sys.argv[sys.argv.index("--") + 1 :] if "--" in sys.argv else sys.argv[1:]
 
 
 def psnr(a, b, mask=None):
@@ -155,7 +155,7 @@ def _section(path, key, body):
     text = open(path).read() if os.path.exists(path) else "# The splat look and Render Splats in Blender\n\n"
     block = f"{start}\n{body.rstrip()}\n{end}"
     if start in text and end in text:
-        text = text[:text.index(start)] + block + text[text.index(end) + len(end):]
+        text = text[: text.index(start)] + block + text[text.index(end) + len(end) :]
     else:
         text = text.rstrip() + "\n\n" + block + "\n"
     with open(path + ".tmp", "w") as fh:
@@ -170,8 +170,12 @@ def _blender_render(root, payload, out):
     os.makedirs(out, exist_ok=True)
     payload = dict(payload, root=os.path.abspath(root), out=out)
     tmp = tempfile.mkdtemp(prefix="pa_look_user_")
-    env = dict(os.environ, BLENDER_USER_RESOURCES=tmp, BLENDER_USER_CONFIG=os.path.join(tmp, "config"),
-               BLENDER_USER_SCRIPTS=os.path.join(tmp, "scripts"))
+    env = dict(
+        os.environ,
+        BLENDER_USER_RESOURCES=tmp,
+        BLENDER_USER_CONFIG=os.path.join(tmp, "config"),
+        BLENDER_USER_SCRIPTS=os.path.join(tmp, "scripts"),
+    )
     script = os.path.join(tmp, "look_child.py")
     with open(script, "w") as fh:
         fh.write(CHILD)
@@ -179,7 +183,7 @@ def _blender_render(root, payload, out):
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("PA_LOOK ")]
     if proc.returncode != 0 or not lines:
         raise RuntimeError(f"Blender child failed for {root}:\n" + proc.stdout[-3000:] + proc.stderr[-3000:])
-    child = json.loads(lines[-1][len("PA_LOOK "):])
+    child = json.loads(lines[-1][len("PA_LOOK ") :])
     img = np.asarray(Image.open(os.path.join(out, "cycles.png")).convert("RGB"), np.float32) / 255.0
     with np.load(os.path.join(out, "gaussians.npz")) as d:
         g = {key: d[key] for key in d.files}
@@ -191,11 +195,15 @@ def main(argv=None):
     ap.add_argument("--run", required=True)
     ap.add_argument("--data", required=True)
     ap.add_argument("--out", required=True)
-    ap.add_argument("--size", type=int, default=256, help="longer image side in pixels (the dataset camera is scaled to it)")
+    ap.add_argument(
+        "--size", type=int, default=256, help="longer image side in pixels (the dataset camera is scaled to it)"
+    )
     ap.add_argument("--samples", type=int, default=32)
     ap.add_argument("--filter", type=float, default=0.0, help="Cycles pixel filter width (0: Blender's default)")
     ap.add_argument("--root", default=os.path.dirname(HERE))
-    ap.add_argument("--min-bounces", type=int, default=0, help="Cycles min transparent bounces (0: the add-on's setting)")
+    ap.add_argument(
+        "--min-bounces", type=int, default=0, help="Cycles min transparent bounces (0: the add-on's setting)"
+    )
     ap.add_argument("--baseline-root", help="also measure the look of this (older) add-on source tree, same run")
     ap.add_argument("--side-by-side", help="write the side-by-side PNG here (default OUT/side_by_side.png)")
     ap.add_argument("--doc", help="write the results into this markdown file's splat-look section")
@@ -222,11 +230,21 @@ def main(argv=None):
     cam_id = sorted(ds.cameras)[0]
     c = ds.cameras[cam_id]
     k = args.size / max(c.width, c.height)
-    camera = {"R": c.R.tolist(), "t": c.t.tolist(),
-              "intr": [c.fx * k, c.fy * k, c.cx * k, c.cy * k, int(round(c.width * k)), int(round(c.height * k))]}
+    camera = {
+        "R": c.R.tolist(),
+        "t": c.t.tolist(),
+        "intr": [c.fx * k, c.fy * k, c.cx * k, c.cy * k, int(round(c.width * k)), int(round(c.height * k))],
+    }
     frame = len(seq.vertices) // 2
-    payload = {"sequence": sequence, "stream": os.path.abspath(stream), "samples": args.samples, "camera": camera,
-               "frame": frame, "filter": args.filter, "min_bounces": args.min_bounces}
+    payload = {
+        "sequence": sequence,
+        "stream": os.path.abspath(stream),
+        "samples": args.samples,
+        "camera": camera,
+        "frame": frame,
+        "filter": args.filter,
+        "min_bounces": args.min_bounces,
+    }
     child, got, g = _blender_render(args.root, payload, os.path.join(out, "new"))
     base = None
     if args.baseline_root:
@@ -235,8 +253,9 @@ def main(argv=None):
         base = {"child": base_child, "img": base_img, "same_gaussians": bool(same)}
     cam = Camera(g["R"], g["t"], *[float(x) for x in g["intr"]], int(g["size"][0]), int(g["size"][1]))
     t0 = time.perf_counter()
-    image, alpha, _ = render_numpy(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], cam,
-                                   np.zeros(3, np.float32))
+    image, alpha, _ = render_numpy(
+        g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], cam, np.zeros(3, np.float32)
+    )
     raster_s = time.perf_counter() - t0
     ref = np.clip(image, 0, 1)
     mask = alpha > 0.5
@@ -245,17 +264,31 @@ def main(argv=None):
     side_png = os.path.abspath(args.side_by_side or os.path.join(out, "side_by_side.png"))
     os.makedirs(os.path.dirname(side_png), exist_ok=True)
     Image.fromarray((np.concatenate(panels, axis=1) * 255 + 0.5).astype(np.uint8)).save(side_png)
-    result = {"psnr_head_mask_db": round(psnr(got, ref, mask), 2), "psnr_full_db": round(psnr(got, ref), 2),
-              "mask_fraction": round(float(mask.mean()), 4), "gaussians": child["count"],
-              "size": [cam.width, cam.height], "samples": args.samples, "filter_width": args.filter or "default",
-              "cycles_seconds": round(child["seconds"], 2), "rasteriser_seconds": round(raster_s, 2),
-              "settings_changed": child["changed"], "stream": stream, "frame": frame, "camera": cam_id,
-              "root": os.path.abspath(args.root), "side_by_side": side_png}
+    result = {
+        "psnr_head_mask_db": round(psnr(got, ref, mask), 2),
+        "psnr_full_db": round(psnr(got, ref), 2),
+        "mask_fraction": round(float(mask.mean()), 4),
+        "gaussians": child["count"],
+        "size": [cam.width, cam.height],
+        "samples": args.samples,
+        "filter_width": args.filter or "default",
+        "cycles_seconds": round(child["seconds"], 2),
+        "rasteriser_seconds": round(raster_s, 2),
+        "settings_changed": child["changed"],
+        "stream": stream,
+        "frame": frame,
+        "camera": cam_id,
+        "root": os.path.abspath(args.root),
+        "side_by_side": side_png,
+    }
     if base:
-        result["baseline"] = {"root": os.path.abspath(args.baseline_root), "same_gaussians": base["same_gaussians"],
-                              "psnr_head_mask_db": round(psnr(base["img"], ref, mask), 2),
-                              "psnr_full_db": round(psnr(base["img"], ref), 2),
-                              "cycles_seconds": round(base["child"]["seconds"], 2)}
+        result["baseline"] = {
+            "root": os.path.abspath(args.baseline_root),
+            "same_gaussians": base["same_gaussians"],
+            "psnr_head_mask_db": round(psnr(base["img"], ref, mask), 2),
+            "psnr_full_db": round(psnr(base["img"], ref), 2),
+            "cycles_seconds": round(base["child"]["seconds"], 2),
+        }
     result["machine"] = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores (shared with other jobs)"
     result["date"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     result["command"] = "python scripts/splat_look.py " + " ".join(_own_args() if argv is None else argv)
@@ -270,22 +303,38 @@ def main(argv=None):
 def _write_doc(path, r):
     rel = os.path.relpath(r["side_by_side"], os.path.dirname(os.path.abspath(path)))
     w, h = r["size"]
-    rows = [("this add-on (ray-exact splat material, splat render settings)", r["psnr_head_mask_db"], r["psnr_full_db"],
-             r["cycles_seconds"])]
+    rows = [
+        (
+            "this add-on (ray-exact splat material, splat render settings)",
+            r["psnr_head_mask_db"],
+            r["psnr_full_db"],
+            r["cycles_seconds"],
+        )
+    ]
     if "baseline" in r:
         b = r["baseline"]
-        rows.insert(0, (f"before (sphere falloff from the normal; `{os.path.basename(b['root'])}`)",
-                        b["psnr_head_mask_db"], b["psnr_full_db"], b["cycles_seconds"]))
+        rows.insert(
+            0,
+            (
+                f"before (sphere falloff from the normal; `{os.path.basename(b['root'])}`)",
+                b["psnr_head_mask_db"],
+                b["psnr_full_db"],
+                b["cycles_seconds"],
+            ),
+        )
     table = "\n".join(f"| {name} | {m:.2f} | {f:.2f} | {s:.0f} |" for name, m, f, s in rows)
-    panels = ("before | now | our rasteriser | 4 × abs(now − rasteriser)" if "baseline" in r
-              else "Blender | our rasteriser | 4 × abs(difference)")
+    panels = (
+        "before | now | our rasteriser | 4 × abs(now − rasteriser)"
+        if "baseline" in r
+        else "Blender | our rasteriser | 4 × abs(difference)"
+    )
     body = f"""## Cycles against our rasteriser
 
-A Cycles render (CPU, {r['samples']} samples, no denoising, pixel filter {r['filter_width']}) of the preview at
-100 % ({r['gaussians']:,} Gaussians, stream `{r['stream']}`, test camera {r['camera']}, frame {r['frame']}) against
+A Cycles render (CPU, {r["samples"]} samples, no denoising, pixel filter {r["filter_width"]}) of the preview at
+100 % ({r["gaussians"]:,} Gaussians, stream `{r["stream"]}`, test camera {r["camera"]}, frame {r["frame"]}) against
 `core.render.render_numpy` of the same Gaussians from the same camera at {w}×{h} px, black background. PSNR
-over the head mask (rasteriser alpha > 0.5, {100 * r['mask_fraction']:.0f} % of the image) and over the whole
-image; Cycles seconds on {r['machine']}.
+over the head mask (rasteriser alpha > 0.5, {100 * r["mask_fraction"]:.0f} % of the image) and over the whole
+image; Cycles seconds on {r["machine"]}.
 
 | look | PSNR head mask (dB) | PSNR image (dB) | Cycles s |
 |---|---|---|---|
@@ -293,7 +342,7 @@ image; Cycles seconds on {r['machine']}.
 
 ![{panels}]({rel})
 
-{panels}. Written by `{r['command']}` on {r['date']}.
+{panels}. Written by `{r["command"]}` on {r["date"]}.
 
 {DOC_TEXT}"""
     _section(path, "splat-look", body)

@@ -31,21 +31,39 @@ def main(argv=None):
     ap.add_argument("--max-depth", type=int)
     ap.add_argument("--supervision", choices=["all", "sampled", "finest"])
     ap.add_argument("--uniform", action="store_true", help="ablation: uniform subdivision to --max-depth")
-    ap.add_argument("--level-weights", type=_weights, metavar="W0,W1,...",
-                    help="per-level loss weights by level index; later levels take the last (default all 1)")
-    ap.add_argument("--coarse-levels", type=_weights, metavar="F1,F2,...",
-                    help="coarse levels above the template, as fractions of its face count (default 1/32,1/8)")
+    ap.add_argument(
+        "--level-weights",
+        type=_weights,
+        metavar="W0,W1,...",
+        help="per-level loss weights by level index; later levels take the last (default all 1)",
+    )
+    ap.add_argument(
+        "--coarse-levels",
+        type=_weights,
+        metavar="F1,F2,...",
+        help="coarse levels above the template, as fractions of its face count (default 1/32,1/8)",
+    )
     ap.add_argument("--no-coarse", action="store_true", help="no coarse levels (the paper's levels; ablation)")
     ap.add_argument("--coarse-weight", type=float, help="factor on the coarse levels' loss weights (default 0.5)")
     ap.add_argument("--grad-threshold", type=float)
     ap.add_argument("--max-faces", type=int)
     ap.add_argument("--seed", type=int)
-    ap.add_argument("--flame-model", help="your FLAME model file (generic_model.pkl / flame2023.pkl / .npz), "
-                                          "for FLAME-mode datasets (flame_param_path)")
-    ap.add_argument("--refine-flame", action="store_true",
-                    help="learn per-timestep corrections of the tracked FLAME expression, pose and translation")
-    ap.add_argument("--sh-degree", type=int, choices=[0, 1, 2, 3],
-                    help="view-dependent colour bands (default 0; the stream carries the DC colour only)")
+    ap.add_argument(
+        "--flame-model",
+        help="your FLAME model file (generic_model.pkl / flame2023.pkl / .npz), "
+        "for FLAME-mode datasets (flame_param_path)",
+    )
+    ap.add_argument(
+        "--refine-flame",
+        action="store_true",
+        help="learn per-timestep corrections of the tracked FLAME expression, pose and translation",
+    )
+    ap.add_argument(
+        "--sh-degree",
+        type=int,
+        choices=[0, 1, 2, 3],
+        help="view-dependent colour bands (default 0; the stream carries the DC colour only)",
+    )
     ap.add_argument("--image-cache-mb", type=float, help="memory for decoded training images (LRU by bytes)")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(_bootstrap.script_args() if argv is None else argv)
@@ -56,13 +74,23 @@ def main(argv=None):
     from progressive_avatars.core.train.trainer import Trainer, config_for
 
     try:
-        cfg = config_for(args.preset, iterations=args.iterations, max_depth=args.max_depth,
-                         supervision=args.supervision, level_weights=args.level_weights, uniform=args.uniform or None,
-                         grad_threshold=args.grad_threshold, max_faces=args.max_faces, seed=args.seed,
-                         sh_degree=args.sh_degree, coarse_levels=() if args.no_coarse else args.coarse_levels,
-                         coarse_weight=args.coarse_weight, refine_flame=args.refine_flame or None,
-                         image_cache_mb=args.image_cache_mb,
-                         flame_model=_os.path.abspath(args.flame_model) if args.flame_model else None)
+        cfg = config_for(
+            args.preset,
+            iterations=args.iterations,
+            max_depth=args.max_depth,
+            supervision=args.supervision,
+            level_weights=args.level_weights,
+            uniform=args.uniform or None,
+            grad_threshold=args.grad_threshold,
+            max_faces=args.max_faces,
+            seed=args.seed,
+            sh_degree=args.sh_degree,
+            coarse_levels=() if args.no_coarse else args.coarse_levels,
+            coarse_weight=args.coarse_weight,
+            refine_flame=args.refine_flame or None,
+            image_cache_mb=args.image_cache_mb,
+            flame_model=_os.path.abspath(args.flame_model) if args.flame_model else None,
+        )
         trainer = Trainer(args.data, args.out, cfg, resume=args.resume, progress=not args.no_progress)
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -76,13 +104,24 @@ def main(argv=None):
         print(f"error: {exc}", file=sys.stderr)
         return 3
     except OSError as exc:
-        print(f"error: {_os_error(exc)}; training stopped, the last checkpoint in {args.out} is kept "
-              "(free space, then --resume)", file=sys.stderr)
+        print(
+            f"error: {_os_error(exc)}; training stopped, the last checkpoint in {args.out} is kept "
+            "(free space, then --resume)",
+            file=sys.stderr,
+        )
         return 3
     summary["peak_rss_mb"] = _peak_rss_mb()
     with open(_os.path.join(args.out, "resources.jsonl"), "a") as fh:
-        fh.write(json.dumps({"wall_seconds": round(time.perf_counter() - t0, 1), "peak_rss_mb": summary["peak_rss_mb"],
-                             "iterations": summary["iterations"]}) + "\n")
+        fh.write(
+            json.dumps(
+                {
+                    "wall_seconds": round(time.perf_counter() - t0, 1),
+                    "peak_rss_mb": summary["peak_rss_mb"],
+                    "iterations": summary["iterations"],
+                }
+            )
+            + "\n"
+        )
     print(json.dumps(summary))
     return 0
 

@@ -35,7 +35,9 @@ def test_evaluate_matches_world_formula_and_face_vertices():
         np.testing.assert_allclose(geo.s[i], s, rtol=1e-9)
         np.testing.assert_allclose(geo.t[i], t, atol=1e-14)
     # Proper rotations: orthonormal, det +1.
-    np.testing.assert_allclose(np.einsum("nji,njk->nik", geo.r, geo.r), np.broadcast_to(np.eye(3), geo.r.shape), atol=1e-12)
+    np.testing.assert_allclose(
+        np.einsum("nji,njk->nik", geo.r, geo.r), np.broadcast_to(np.eye(3), geo.r.shape), atol=1e-12
+    )
     np.testing.assert_allclose(np.linalg.det(geo.r), 1, atol=1e-12)
 
 
@@ -89,8 +91,12 @@ def test_gaussian_evaluator_matches_compose_in_any_row_layout():
     ref_m, ref_s, ref_q = binding.compose(geo.t, geo.r, geo.s, d_mu, d_ls, d_rot)
     ids = rng.permutation(N)[: N // 2]
     rows = rng.choice(3 * N, len(ids), replace=False)
-    cases = [(None, None, None, np.arange(N)), (ids, None, None, ids), (ids, rows, 3 * N, ids),
-             (binding.root_grouped(forest), None, None, binding.root_grouped(forest))]
+    cases = [
+        (None, None, None, np.arange(N)),
+        (ids, None, None, ids),
+        (ids, rows, 3 * N, ids),
+        (binding.root_grouped(forest), None, None, binding.root_grouped(forest)),
+    ]
     for case_ids, case_rows, cap, faces_of_rows in cases:
         ev = binding.GaussianEvaluator(forest, d_mu, d_ls, d_rot, ids=case_ids, rows=case_rows, capacity=cap, chunk=50)
         means, quats, scales = ev(verts.astype(np.float32))
@@ -119,7 +125,9 @@ def test_quaternion_conventions_against_scipy():
     np.testing.assert_allclose(binding.quat_to_rotmat(binding.quat_multiply(a, b)), R[:100] @ R[100:], atol=1e-12)
     qt = torch.tensor(q)
     np.testing.assert_allclose(binding_torch.quat_to_rotmat(qt).numpy(), R, atol=1e-12)
-    np.testing.assert_allclose(np.abs((binding_torch.rotmat_to_quat(torch.tensor(R)).numpy() * q).sum(1)), 1, atol=1e-10)
+    np.testing.assert_allclose(
+        np.abs((binding_torch.rotmat_to_quat(torch.tensor(R)).numpy() * q).sum(1)), 1, atol=1e-10
+    )
     # Near-180-degree rotations (w ~ 0) are where naive conversions lose the signs.
     flip = np.concatenate([np.zeros((50, 1)), rng.normal(size=(50, 3))], 1)
     flip /= np.linalg.norm(flip, axis=1, keepdims=True)
@@ -161,7 +169,11 @@ def test_numpy_and_torch_agree_float32():
     np.testing.assert_allclose(r.numpy(), geo.r, atol=2e-5)
     np.testing.assert_allclose(s.numpy(), geo.s, rtol=2e-5)
     N = forest.num_faces
-    res = rng.normal(0, 0.3, (N, 3)).astype(np.float32), rng.normal(0, 0.3, (N, 3)).astype(np.float32), rng.normal(size=(N, 4)).astype(np.float32)
+    res = (
+        rng.normal(0, 0.3, (N, 3)).astype(np.float32),
+        rng.normal(0, 0.3, (N, 3)).astype(np.float32),
+        rng.normal(size=(N, 4)).astype(np.float32),
+    )
     m_np, s_np, q_np = binding.compose(geo.t, geo.r, geo.s, *res)
     m_t, s_t, q_t = binding_torch.compose(t, r, s, *map(torch.tensor, res))
     np.testing.assert_allclose(m_t.numpy(), m_np, atol=1e-6)
@@ -209,7 +221,8 @@ def test_degenerate_triangles_give_finite_deterministic_frames(pts, kind):
     elif kind == 1:
         v2 = v0 + 0.5 * (v1 - v0)  # collinear
     elif kind == 2:
-        v1 = v0.copy(); v2 = v0.copy()  # a point
+        v1 = v0.copy()
+        v2 = v0.copy()  # a point
     elif kind == 3:
         v2 = v0 + (v1 - v0) * 1e-200  # tiny, nearly collinear
     for dtype in (np.float64, np.float32):
@@ -238,8 +251,13 @@ def test_float32_precision_at_depth_6_on_a_head_sized_mesh():
 def _kernel_inputs(forest, verts, rng, dtype=torch.float64):
     N = forest.num_faces
     mk = lambda a: torch.tensor(a, dtype=dtype, requires_grad=True)  # noqa: E731
-    return (mk(verts), mk(forest.split_logits), mk(rng.normal(0, 0.5, (N, 3))), mk(rng.normal(-1, 0.3, (N, 3))),
-            mk(rng.normal(size=(N, 4))))
+    return (
+        mk(verts),
+        mk(forest.split_logits),
+        mk(rng.normal(0, 0.5, (N, 3))),
+        mk(rng.normal(-1, 0.3, (N, 3))),
+        mk(rng.normal(size=(N, 4))),
+    )
 
 
 def test_binding_kernels_match_torch_reference_values_and_gradients():
@@ -267,8 +285,11 @@ def test_binding_kernels_match_torch_reference_values_and_gradients():
         ((out[0] * cot[0]).sum() + (out[1] * cot[1]).sum() + (out[2] * flip * cot[2]).sum()).backward()
         return [p.grad.clone() for p in inputs]
 
-    for name, a, b in zip(("vertices", "split_logits", "d_mu", "d_log_scale", "d_rot"), grads(ref, 1.0),
-                          grads(plan.gaussians(*inputs), sign)):
+    for name, a, b in zip(
+        ("vertices", "split_logits", "d_mu", "d_log_scale", "d_rot"),
+        grads(ref, 1.0),
+        grads(plan.gaussians(*inputs), sign),
+    ):
         err = float((a - b).abs().max() / a.abs().max())
         assert err < 1e-10, (name, err)
 
@@ -311,8 +332,9 @@ def test_training_binding_matches_inference_at_depth_6_with_learned_splits():
     zero = torch.zeros(N, 3)
     ident = torch.zeros(N, 4)
     ident[:, 0] = 1
-    m, s, q = binding_kernels.FaceBinding(forest).gaussians(torch.tensor(v32), torch.tensor(forest.split_logits),
-                                                            zero, zero, ident)
+    m, s, q = binding_kernels.FaceBinding(forest).gaussians(
+        torch.tensor(v32), torch.tensor(forest.split_logits), zero, zero, ident
+    )
     scale = g64.s[finest]
     assert np.median(scale) < 1e-3
     s_err = float((np.abs(s.numpy()[finest] - scale[:, None]).max(1) / scale).max())
@@ -331,7 +353,7 @@ def test_binding_kernels_degenerate_roots_stay_finite():
     rng = np.random.default_rng(13)
     verts, faces = sphere_mesh(4, 6)
     forest = random_forest(faces, rng, depth=3, frac=0.7)
-    forest.split_logits[forest.num_roots:][:5] = [60.0, -60.0, -60.0]  # split point on a vertex
+    forest.split_logits[forest.num_roots :][:5] = [60.0, -60.0, -60.0]  # split point on a vertex
     v = verts.copy()
     a, b, c = faces[0]
     v[b] = v[a]  # a point-like edge

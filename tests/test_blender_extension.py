@@ -71,14 +71,16 @@ def make_inputs(folder):
     write_stream(stream, av, importance=rng.random(N), quantize=False)
     trainer = os.path.join(folder, "fake_train.py")
     with open(trainer, "w") as fh:
-        fh.write(textwrap.dedent(f"""
+        fh.write(
+            textwrap.dedent(f"""
             import argparse, shutil, os
             p = argparse.ArgumentParser(); p.add_argument('--data'); p.add_argument('--out'); p.add_argument('--preset')
             a = p.parse_args(); os.makedirs(a.out, exist_ok=True)
             for i in range(1, 5):
                 print(f'it {{i}}/4 loss 0.1', flush=True)
             shutil.copy({stream!r}, os.path.join(a.out, 'avatar.pavs'))
-        """))
+        """)
+        )
     return seq, stream, trainer, verts
 
 
@@ -103,7 +105,7 @@ def _scenario(name):
         return fh.read()
 
 
-SCENARIO = _scenario('extension_session.py').replace("__FRAMES__", repr(CHECK_FRAMES))
+SCENARIO = _scenario("extension_session.py").replace("__FRAMES__", repr(CHECK_FRAMES))
 
 
 @pytest.fixture(scope="module")
@@ -113,27 +115,42 @@ def session(tmp_path_factory):
     validate = subprocess.run([sys.executable, ext, "validate", ROOT], capture_output=True, text=True)
     dist = os.path.join(tmp, "dist")
     os.makedirs(dist)
-    build = subprocess.run([sys.executable, ext, "build", "--source-dir", ROOT, "--output-dir", dist],
-                           capture_output=True, text=True)
+    build = subprocess.run(
+        [sys.executable, ext, "build", "--source-dir", ROOT, "--output-dir", dist], capture_output=True, text=True
+    )
     zips = [os.path.join(dist, z) for z in os.listdir(dist) if z.endswith(".zip")]
     out = os.path.join(tmp, "out")
     os.makedirs(out)
     seq, stream, trainer, verts = make_inputs(out)
     flame_path, params_path = make_rig_inputs(out)
-    result = {"validate": validate, "build": build, "zips": zips, "out": out, "seq": seq, "stream": stream,
-              "verts": verts, "flame": flame_path, "params": params_path, "report": None}
+    result = {
+        "validate": validate,
+        "build": build,
+        "zips": zips,
+        "out": out,
+        "seq": seq,
+        "stream": stream,
+        "verts": verts,
+        "flame": flame_path,
+        "params": params_path,
+        "report": None,
+    }
     if build.returncode != 0 or len(zips) != 1:
         return result
     script = os.path.join(tmp, "scenario.py")
     with open(script, "w") as fh:
         fh.write(SCENARIO)
-    proc = subprocess.run([sys.executable, script, zips[0], seq, stream, trainer, out, flame_path, params_path],
-                          capture_output=True,
-                          text=True, env=_clean_env(tmp), timeout=600)
+    proc = subprocess.run(
+        [sys.executable, script, zips[0], seq, stream, trainer, out, flame_path, params_path],
+        capture_output=True,
+        text=True,
+        env=_clean_env(tmp),
+        timeout=600,
+    )
     result["proc"] = proc
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("PA_REPORT ")]
     if lines:
-        result["report"] = json.loads(lines[-1][len("PA_REPORT "):])
+        result["report"] = json.loads(lines[-1][len("PA_REPORT ") :])
         result["arrays"] = dict(np.load(os.path.join(out, "arrays.npz")))
     return result
 
@@ -141,8 +158,10 @@ def session(tmp_path_factory):
 def _report(session):
     if session["report"] is None:
         proc = session.get("proc")
-        pytest.fail("Blender session produced no report:\n" + (proc.stdout[-3000:] + proc.stderr[-3000:] if proc else
-                                                                 session["build"].stdout + session["build"].stderr))
+        pytest.fail(
+            "Blender session produced no report:\n"
+            + (proc.stdout[-3000:] + proc.stderr[-3000:] if proc else session["build"].stdout + session["build"].stderr)
+        )
     return session["report"]
 
 
@@ -153,6 +172,7 @@ def _no_error(rep, name):
 
 def _stream():
     from progressive_avatars.core.stream import format as stream
+
     return stream
 
 
@@ -163,8 +183,13 @@ def test_manifest_validates_and_builds(session):
     names = zipfile.ZipFile(zp).namelist()
     assert "blender_manifest.toml" in names and "__init__.py" in names
     assert "blender_addon/__init__.py" in names and "core/bridge/preview.py" in names
-    leaked = [n for n in names if n.split("/")[0] in ("tests", "scripts", "docs", ".venv", "runs", ".git")
-              or "__pycache__" in n or n.endswith(".pyc")]
+    leaked = [
+        n
+        for n in names
+        if n.split("/")[0] in ("tests", "scripts", "docs", ".venv", "runs", ".git")
+        or "__pycache__" in n
+        or n.endswith(".pyc")
+    ]
     assert not leaked, leaked
     # Training and export run from the zip (core/train/jobs.py); the synthetic-data generator and the
     # evaluation report/plots are not shipped.
@@ -325,8 +350,9 @@ def test_save_reload_keeps_state(session):
     assert r["instances_60"] == r["count_60"] == info.count_for_percent(60)
     av = _stream().read_stream(session["stream"])
     n = r["count_60"]
-    np.testing.assert_allclose(session["arrays"]["reload_pos_4"][:n], av.gaussians(session["verts"][4])["means"][:n],
-                               atol=1e-5)
+    np.testing.assert_allclose(
+        session["arrays"]["reload_pos_4"][:n], av.gaussians(session["verts"][4])["means"][:n], atol=1e-5
+    )
     # Depth follows the budget: the deepest level among the first count_60 Gaussians per face.
     from progressive_avatars.core.bridge.preview import depth_per_face
 
@@ -365,10 +391,13 @@ def test_render_splats_operator_matches_core_render(session):
     n = r["count"]
     assert n == _stream().read_header(session["stream"]).count_for_percent(50)
     g = av.gaussians(session["verts"][r["frame"]], ids=np.arange(n))
-    means, quats, scales = preview_data.transform_gaussians(np.array(r["preview_matrix"]), g["means"], g["quats"], g["scales"])
+    means, quats, scales = preview_data.transform_gaussians(
+        np.array(r["preview_matrix"]), g["means"], g["quats"], g["scales"]
+    )
     w, h = r["size"]
-    cam = preview_data.camera_from_blender(np.array(r["camera_matrix"]), r["lens"], r["sensor"], *r["shift"], w, h,
-                                           z_up=False)
+    cam = preview_data.camera_from_blender(
+        np.array(r["camera_matrix"]), r["lens"], r["sensor"], *r["shift"], w, h, z_up=False
+    )
     image, alpha = render_numpy(means, quats, scales, g["opacities"], g["colors"], cam, np.zeros(3, np.float32))[:2]
     got = session["arrays"]["splats_image"]
     assert alpha.max() > 0.5 and (alpha > 0.01).mean() > 0.05  # the head is in view, not a blank frame

@@ -21,22 +21,24 @@ pytestmark = pytest.mark.blender
 
 BLOCKED = ("torch", "numba", "trimesh", "PIL", "scipy", "plyfile")
 
+
 def _scenario(name):
     with open(os.path.join(os.path.dirname(os.path.abspath(__file__)), "blender_scenarios", name)) as fh:
         return fh.read()
 
 
-PRELUDE = _scenario('guard_prelude.py')
+PRELUDE = _scenario("guard_prelude.py")
 
-CUT_SCENARIO = _scenario('guard_cut_streams.py')
+CUT_SCENARIO = _scenario("guard_cut_streams.py")
 
 
 def build_zip(tmp):
     ext = _blender_ext()
     dist = os.path.join(tmp, "dist")
     os.makedirs(dist, exist_ok=True)
-    build = subprocess.run([sys.executable, ext, "build", "--source-dir", ROOT, "--output-dir", dist],
-                           capture_output=True, text=True)
+    build = subprocess.run(
+        [sys.executable, ext, "build", "--source-dir", ROOT, "--output-dir", dist], capture_output=True, text=True
+    )
     assert build.returncode == 0, build.stdout + build.stderr
     (z,) = [os.path.join(dist, z) for z in os.listdir(dist) if z.endswith(".zip")]
     return z
@@ -46,12 +48,13 @@ def run_scenario(tmp, body, args, timeout=600):
     script = os.path.join(tmp, "scenario.py")
     with open(script, "w") as fh:
         fh.write(PRELUDE.replace("__BLOCKED__", repr(BLOCKED)) + body)
-    proc = subprocess.run([sys.executable, script, json.dumps(args)], capture_output=True, text=True,
-                          env=_clean_env(tmp), timeout=timeout)
+    proc = subprocess.run(
+        [sys.executable, script, json.dumps(args)], capture_output=True, text=True, env=_clean_env(tmp), timeout=timeout
+    )
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("PA_REPORT ")]
     if not lines:
         pytest.fail("Blender session produced no report:\n" + proc.stdout[-3000:] + proc.stderr[-3000:])
-    rep = json.loads(lines[-1][len("PA_REPORT "):])
+    rep = json.loads(lines[-1][len("PA_REPORT ") :])
     rep["stdout"] = proc.stdout
     arrays = dict(np.load(os.path.join(args["out"], "arrays.npz")))
     return rep, arrays
@@ -103,11 +106,26 @@ def cut_session(tiny_run, tiny_dataset, tmp_path_factory):
     cut("header_only", raw_bare, hb.header_size)
     url_cuts = {f"bare_{p}": ("bare.pavs", hb.total_bytes * p // 100) for p in (1, 3, 10, 50)}
     url_cuts.update({f"full_{p}": ("full.pavs", hf.total_bytes * p // 100) for p in (3, 50)})
-    args = {"zip": build_zip(tmp), "seq": seq_path, "out": out, "cuts": cuts, "full": bare,
-            "url_streams": [bare, full], "url_cuts": url_cuts}
+    args = {
+        "zip": build_zip(tmp),
+        "seq": seq_path,
+        "out": out,
+        "cuts": cuts,
+        "full": bare,
+        "url_streams": [bare, full],
+        "url_cuts": url_cuts,
+    }
     rep, arrays = run_scenario(tmp, CUT_SCENARIO, args)
-    return {"rep": rep, "arrays": arrays, "cuts": cuts, "seq": seq, "bare": bare, "full": full, "url_cuts": url_cuts,
-            "header": hb}
+    return {
+        "rep": rep,
+        "arrays": arrays,
+        "cuts": cuts,
+        "seq": seq,
+        "bare": bare,
+        "full": full,
+        "url_cuts": url_cuts,
+        "header": hb,
+    }
 
 
 def _expected(path, faces):
@@ -160,8 +178,9 @@ def test_cut_streams_load_and_preview_what_arrived(cut_session):
             want = min(h.count_for_percent(float(p)), n)
             assert count == inst == want, (name, p, count, inst, want, status)
     K = h.num_coarse_levels  # the case of issue 16: a cut inside the template level loads
-    assert loaded >= len(h.level_counts) and sum(h.level_counts[:K]) < rep["cuts"][f"level{K}"]["total"] < \
-        sum(h.level_counts[: K + 1])
+    assert loaded >= len(h.level_counts) and sum(h.level_counts[:K]) < rep["cuts"][f"level{K}"]["total"] < sum(
+        h.level_counts[: K + 1]
+    )
 
 
 @pytest.mark.slow
@@ -230,7 +249,9 @@ def test_depth_colours_toggle_and_levels(cut_session):
     top = len(h.level_counts) - 1 - h.num_coarse_levels  # the whole avatar's deepest depth: the colour scale
 
     def colours(d):  # what core says each face shows: its depth's colour, or "not arrived"
-        return np.where((d < 0)[:, None], preview_data.NOT_ARRIVED_COLOR, preview_data.depth_colors(np.maximum(d, 0), top))
+        return np.where(
+            (d < 0)[:, None], preview_data.NOT_ARRIVED_COLOR, preview_data.depth_colors(np.maximum(d, 0), top)
+        )
 
     expected = preview_data.depth_per_face(av.forest, len(depth))
     np.testing.assert_array_equal(depth, expected)
@@ -288,15 +309,15 @@ def test_topology_changing_modifier_is_refused(cut_session, kind):
 
 
 # -- training from the installed zip, messages and state --------------------------------------
-TRAIN_SCENARIO = _scenario('guard_train_from_zip.py')
+TRAIN_SCENARIO = _scenario("guard_train_from_zip.py")
 
-BLOCK_CHECKOUT = '''import importlib.abc, sys
+BLOCK_CHECKOUT = """import importlib.abc, sys
 class _NoCheckout(importlib.abc.MetaPathFinder):
     def find_spec(self, name, path=None, target=None):
         if name.split(".")[0] in ("progressive_avatars", "scripts", "_bootstrap"):
             raise ImportError(f"{name}: the checkout is not available to the extension's trainer")
 sys.meta_path.insert(0, _NoCheckout())
-'''
+"""
 
 
 @pytest.fixture(scope="module")
@@ -320,7 +341,7 @@ def train_session(tiny_dataset, tmp_path_factory):
         fh.write(BLOCK_CHECKOUT)
     python = os.path.join(tmp, "python_no_checkout")
     with open(python, "w") as fh:
-        fh.write(f"#!/bin/sh\nPYTHONPATH={block} exec {sys.executable} \"$@\"\n")
+        fh.write(f'#!/bin/sh\nPYTHONPATH={block} exec {sys.executable} "$@"\n')
     os.chmod(python, 0o755)
     rng = np.random.default_rng(3)
 
@@ -334,8 +355,10 @@ def train_session(tiny_dataset, tmp_path_factory):
     seq_path = os.path.join(out, "head_seq.npz")
     np.savez(seq_path, vertices=seq.vertices, faces=seq.faces)
     flame_root, model, model_path, _ts, _one = _flame_mode_dataset(tiny_dataset, tmp_path_factory.mktemp("flame"))
-    train = {"mesh": (tiny_dataset, seq_path, {}),
-             "flame": (str(flame_root), str(flame_root / "flame_param"), {"flame_model": model_path})}
+    train = {
+        "mesh": (tiny_dataset, seq_path, {}),
+        "flame": (str(flame_root), str(flame_root / "flame_param"), {"flame_model": model_path}),
+    }
     seeds = {"mesh": seed_stream(seq.faces, "seed_mesh.pavs"), "flame": seed_stream(model.faces, "seed_flame.pavs")}
     # Messages and imports
     foreign = os.path.join(out, "foreign.pavs")
@@ -359,10 +382,22 @@ def train_session(tiny_dataset, tmp_path_factory):
         folders[f"{ext}_folder"] = os.path.join(d, f"frame_0.{ext}")
     stream = os.path.join(out, "avatar.pavs")
     write_stream(stream, Avatar.initial(random_forest(seq.faces, rng, depth=2, frac=0.3)))
-    args = {"zip": build_zip(tmp), "out": out, "python": python, "flame_model": model_path, "train": train,
-            "seed_stream": seeds, "seq": seq_path, "foreign_pavs": foreign, "foreign_npz": foreign_npz,
-            "empty_pavs": empty, "flame_params": os.path.join(str(flame_root), "flame_param", "00000.npz"),
-            "npz_folder": npz_folder, "stream": stream, **folders}
+    args = {
+        "zip": build_zip(tmp),
+        "out": out,
+        "python": python,
+        "flame_model": model_path,
+        "train": train,
+        "seed_stream": seeds,
+        "seq": seq_path,
+        "foreign_pavs": foreign,
+        "foreign_npz": foreign_npz,
+        "empty_pavs": empty,
+        "flame_params": os.path.join(str(flame_root), "flame_param", "00000.npz"),
+        "npz_folder": npz_folder,
+        "stream": stream,
+        **folders,
+    }
     rep, arrays = run_scenario(tmp, TRAIN_SCENARIO, args, timeout=1500)
     return {"rep": rep, "arrays": arrays, "args": args, "verts": v, "faces": f}
 
@@ -398,7 +433,10 @@ def test_messages_name_the_file_or_setting(train_session):
     m = rep["messages"]
     assert "Python not found" in m["bad_python"] and os.path.join(args["out"], "no", "python3") in m["bad_python"]
     assert "Preferences" in m["bad_python"]
-    assert "Python not found" in m["bad_python_render"] and os.path.join(args["out"], "no", "python3") in m["bad_python_render"]
+    assert (
+        "Python not found" in m["bad_python_render"]
+        and os.path.join(args["out"], "no", "python3") in m["bad_python_render"]
+    )
     assert "foreign.pavs" in m["foreign_pavs"] and "not a ProgressiveAvatars stream" in m["foreign_pavs"]
     assert "foreign.npz" in m["foreign_npz"] and "not an avatar file" in m["foreign_npz"]
     assert "empty.pavs" in m["empty_pavs"] and "empty" in m["empty_pavs"]
@@ -406,7 +444,12 @@ def test_messages_name_the_file_or_setting(train_session):
     assert "preferences" in m["flame_no_model"] and "flame_model=" not in m["flame_no_model"]
     assert m["mesh_npz_folder"] == ["FINISHED"] and m["mesh_npz_folder_frames"] == 3
     assert m["range_kept"] == [["FINISHED"], 7, 9, 24]
-    assert m["range_set"][0] == ["FINISHED"] and m["range_set"][1:] == [7, 7 + m["range_set"][4] - 1, 30, m["range_set"][4]]
+    assert m["range_set"][0] == ["FINISHED"] and m["range_set"][1:] == [
+        7,
+        7 + m["range_set"][4] - 1,
+        30,
+        m["range_set"][4],
+    ]
     v, f = train_session["verts"], train_session["faces"]
     for key in ("obj_folder", "ply_folder"):
         res, frames, nv, nf = m[key]

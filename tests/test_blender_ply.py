@@ -22,12 +22,13 @@ pytestmark = pytest.mark.blender
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 BLOCKED = ("plyfile", "trimesh", "PIL", "scipy", "torch", "numba")
 
+
 def _scenario(name):
     with open(os.path.join(os.path.dirname(os.path.abspath(__file__)), "blender_scenarios", name)) as fh:
         return fh.read()
 
 
-CHILD = _scenario('ply_import.py')
+CHILD = _scenario("ply_import.py")
 
 
 def _gaussians(n, rng):
@@ -41,8 +42,14 @@ def _gaussians(n, rng):
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     opac = 1 / (1 + np.exp(-rng.normal(2.0, 2.0, n)))
     colors = np.clip(rng.normal(0.5, 0.25, (n, 3)), 0.01, 1.2)
-    return {"means": means, "quats": q, "scales": scales, "opacities": opac, "colors": colors,
-            "sh_rest": rng.normal(0, 0.05, (n, 3, 3))}
+    return {
+        "means": means,
+        "quats": q,
+        "scales": scales,
+        "opacities": opac,
+        "colors": colors,
+        "sh_rest": rng.normal(0, 0.05, (n, 3, 3)),
+    }
 
 
 @pytest.fixture(scope="module")
@@ -59,12 +66,17 @@ def ply_session(tmp_path_factory):
     script = os.path.join(tmp, "child.py")
     with open(script, "w") as fh:
         fh.write(CHILD)
-    proc = subprocess.run([sys.executable, script, ROOT, src, out, ",".join(BLOCKED)], capture_output=True, text=True,
-                          env=_clean_env(tmp), timeout=300)
+    proc = subprocess.run(
+        [sys.executable, script, ROOT, src, out, ",".join(BLOCKED)],
+        capture_output=True,
+        text=True,
+        env=_clean_env(tmp),
+        timeout=300,
+    )
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("PA_PLY ")]
     if not lines:
         pytest.fail("Blender session produced no report:\n" + proc.stdout[-3000:] + proc.stderr[-3000:])
-    rep = json.loads(lines[-1][len("PA_PLY "):])
+    rep = json.loads(lines[-1][len("PA_PLY ") :])
     assert not rep["errors"], rep["errors"][0]
     return {"rep": rep, "arrays": dict(np.load(os.path.join(out, "arrays.npz"))), "out": out, "src": src}
 

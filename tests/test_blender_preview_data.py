@@ -33,7 +33,7 @@ def test_splat_evaluator_matches_core_compose(q):
     m, s, qq = binding.compose(geo.t, geo.r, geo.s, av.d_mu, av.d_log_scale, av.d_rot)
     ref = {"means": m, "scales": s, "quats": qq}
     layouts = (None, preview_data.preview_order(av))  # stream order; grouped by root (Blender's)
-    for (count, order) in [(c, o) for c in (None, av.num_gaussians // 3) for o in layouts]:
+    for count, order in [(c, o) for c in (None, av.num_gaussians // 3) for o in layouts]:
         ev = preview_data.splat_evaluator(av, count, av.forest.weights(), order)
         means, quats, scales = ev(verts)
         n = ev.n
@@ -71,8 +71,9 @@ def test_depth_colours_and_legend():
 def test_blender_camera_round_trip():
     cam = Camera.look_at([0.2, 0.1, 0.7], [0, 0, 0], [0, 1, 0], 600.0, 600.0, 190.0, 130.0, 320, 240)
     s = preview_data.blender_camera(cam)
-    back = preview_data.camera_from_blender(s["matrix_world"], s["lens"], s["sensor_width"], s["shift_x"],
-                                            s["shift_y"], *s["resolution"])
+    back = preview_data.camera_from_blender(
+        s["matrix_world"], s["lens"], s["sensor_width"], s["shift_x"], s["shift_y"], *s["resolution"]
+    )
     pts = np.random.default_rng(0).normal(0, 0.1, (10, 3))
     np.testing.assert_allclose(back.project(pts)[0], cam.project(pts)[0], atol=1e-6)
 
@@ -102,11 +103,13 @@ def test_depth_per_face_of_a_prefix_marks_faces_not_arrived():
     full = preview_data.depth_per_face(forest, F0)
     np.testing.assert_array_equal(full, forest.depth_per_root())
     cut = preview_data.depth_per_face(forest, F0, F0 // 3)
-    assert (cut[: F0 // 3] == 0).all() and (cut[F0 // 3:] == preview_data.NOT_ARRIVED).all()
+    assert (cut[: F0 // 3] == 0).all() and (cut[F0 // 3 :] == preview_data.NOT_ARRIVED).all()
     cols = preview_data.depth_colors(cut, forest.max_level)
-    np.testing.assert_array_equal(cols[F0 // 3:], np.broadcast_to(preview_data.NOT_ARRIVED_COLOR, (F0 - F0 // 3, 4)))
+    np.testing.assert_array_equal(cols[F0 // 3 :], np.broadcast_to(preview_data.NOT_ARRIVED_COLOR, (F0 - F0 // 3, 4)))
     assert not np.allclose(cols[0], preview_data.NOT_ARRIVED_COLOR)
     legend = preview_data.depth_legend(cut, forest.max_level)
-    assert [(d, n) for d, n, _ in legend] == [(-1, F0 - F0 // 3), (0, F0 // 3)] + [(d, 0) for d in range(1, forest.max_level + 1)]
+    assert [(d, n) for d, n, _ in legend] == [(-1, F0 - F0 // 3), (0, F0 // 3)] + [
+        (d, 0) for d in range(1, forest.max_level + 1)
+    ]
     with pytest.raises(ValueError, match="template faces"):
         preview_data.depth_per_face(forest, F0 - 1)

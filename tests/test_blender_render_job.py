@@ -32,10 +32,18 @@ def _job_arrays(n=4000, size=(72, 96), seed=3):
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     w, h = size
     cam = Camera(np.eye(3), np.array([0.0, 0.0, 0.6]), 110.0, 110.0, w / 2, h / 2, w, h)
-    return cam, dict(R=cam.R, t=cam.t, intr=np.array([cam.fx, cam.fy, cam.cx, cam.cy]), size=np.array([w, h]),
-                     background=np.array([0.1, 0.2, 0.3], np.float32), means=means, quats=q, scales=scales,
-                     opacities=(1 / (1 + np.exp(-rng.normal(2, 1.5, n)))).astype(np.float32),
-                     colors=rng.random((n, 3)).astype(np.float32))
+    return cam, dict(
+        R=cam.R,
+        t=cam.t,
+        intr=np.array([cam.fx, cam.fy, cam.cx, cam.cy]),
+        size=np.array([w, h]),
+        background=np.array([0.1, 0.2, 0.3], np.float32),
+        means=means,
+        quats=q,
+        scales=scales,
+        opacities=(1 / (1 + np.exp(-rng.normal(2, 1.5, n)))).astype(np.float32),
+        colors=rng.random((n, 3)).astype(np.float32),
+    )
 
 
 @pytest.fixture
@@ -76,8 +84,15 @@ def test_worker_renders_once_warm_returns_at_once_and_cancels(tmp_path, no_worke
     second_s = time.perf_counter() - t
     assert second.worker is first.worker and second.worker.alive()
     assert second_s * 5 <= first_s, (first_s, second_s)
-    image, alpha, _ = render_numpy(arrays["means"], arrays["quats"], arrays["scales"], arrays["opacities"],
-                                   arrays["colors"], cam, arrays["background"])
+    image, alpha, _ = render_numpy(
+        arrays["means"],
+        arrays["quats"],
+        arrays["scales"],
+        arrays["opacities"],
+        arrays["colors"],
+        cam,
+        arrays["background"],
+    )
     assert (alpha > 0.5).mean() > 0.1
     np.testing.assert_allclose(second.rgba[..., :3], image, atol=1e-6)
     np.testing.assert_allclose(second.rgba[..., 3], alpha, atol=1e-6)

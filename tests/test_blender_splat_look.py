@@ -25,12 +25,13 @@ from tests.test_blender_extension import _bpy_dir, _clean_env
 pytestmark = pytest.mark.blender
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
+
 def _scenario(name):
     with open(os.path.join(os.path.dirname(os.path.abspath(__file__)), "blender_scenarios", name)) as fh:
         return fh.read()
 
 
-CHILD = _scenario('splat_look.py')
+CHILD = _scenario("splat_look.py")
 
 
 def _splats(rng, n=60):
@@ -40,9 +41,13 @@ def _splats(rng, n=60):
     scales[np.arange(n), rng.integers(0, 3, n)] *= 0.08  # flat, like trained surface splats
     q = rng.normal(size=(n, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
-    return {"means": means.astype(np.float32), "quats": q.astype(np.float32), "scales": scales.astype(np.float32),
-            "opacities": rng.uniform(0.2, 0.98, n).astype(np.float32),
-            "colors": rng.uniform(0.05, 0.95, (n, 3)).astype(np.float32)}
+    return {
+        "means": means.astype(np.float32),
+        "quats": q.astype(np.float32),
+        "scales": scales.astype(np.float32),
+        "opacities": rng.uniform(0.2, 0.98, n).astype(np.float32),
+        "colors": rng.uniform(0.05, 0.95, (n, 3)).astype(np.float32),
+    }
 
 
 def test_cycles_splat_look_matches_the_rasteriser(tmp_path):
@@ -57,11 +62,16 @@ def test_cycles_splat_look_matches_the_rasteriser(tmp_path):
     np.savez(src, **g)
     script = tmp_path / "child.py"
     script.write_text(CHILD)
-    proc = subprocess.run([sys.executable, str(script), ROOT, src, str(tmp_path)], capture_output=True, text=True,
-                          env=_clean_env(str(tmp_path)), timeout=300)
+    proc = subprocess.run(
+        [sys.executable, str(script), ROOT, src, str(tmp_path)],
+        capture_output=True,
+        text=True,
+        env=_clean_env(str(tmp_path)),
+        timeout=300,
+    )
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("PA_LOOK ")]
     assert lines, proc.stdout[-3000:] + proc.stderr[-3000:]
-    rep = json.loads(lines[-1][len("PA_LOOK "):])
+    rep = json.loads(lines[-1][len("PA_LOOK ") :])
     assert "error" not in rep, rep["error"]
     assert rep["material_method"] == "DITHERED"
     assert "view_transform" in rep["changed"] and "cycles.transparent_max_bounces" in rep["changed"]
@@ -69,8 +79,9 @@ def test_cycles_splat_look_matches_the_rasteriser(tmp_path):
     cam = Camera(np.array(c["R"]), np.array(c["t"]), *c["intr"], 64, 64)
     from progressive_avatars.core.bridge.preview import srgb_to_linear
 
-    lin, alpha, _ = render_numpy(g["means"], g["quats"], g["scales"], g["opacities"], srgb_to_linear(g["colors"]),
-                                 cam, np.zeros(3, np.float32))
+    lin, alpha, _ = render_numpy(
+        g["means"], g["quats"], g["scales"], g["opacities"], srgb_to_linear(g["colors"]), cam, np.zeros(3, np.float32)
+    )
     lin = np.clip(lin, 0, 1)
     ref = np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * lin ** (1 / 2.4) - 0.055)  # what Standard writes
     got = np.asarray(Image.open(tmp_path / "cycles.png").convert("RGB"), np.float32) / 255

@@ -7,9 +7,18 @@ import numpy as np
 import pytest
 
 from progressive_avatars.core.geometry.camera import Camera
-from progressive_avatars.core.io.data import (DataError, Dataset, MeshSequence, MissingFileError, read_flame_param_folder,
-                                           read_mesh_folder, read_mesh_npz, read_nersemble_tracking, read_sequence,
-                                           read_vhap_tracked)
+from progressive_avatars.core.io.data import (
+    DataError,
+    Dataset,
+    MeshSequence,
+    MissingFileError,
+    read_flame_param_folder,
+    read_mesh_folder,
+    read_mesh_npz,
+    read_nersemble_tracking,
+    read_sequence,
+    read_vhap_tracked,
+)
 from progressive_avatars.core.flame.model import flame_forward, load_flame_model
 
 from tests.test_flame import N_EXPR, N_SHAPE, N_V, random_params, write_flame_pkl  # noqa: E402
@@ -24,13 +33,20 @@ def flame_model(tmp_path_factory):
 
 def ga_frame(prm, t):
     """One GaussianAvatars/VHAP per-frame flame_param npz dict from stacked params."""
-    return dict(translation=prm["translation"][t:t + 1], rotation=prm["rotation"][t:t + 1],
-                neck_pose=prm["neck_pose"][t:t + 1], jaw_pose=prm["jaw_pose"][t:t + 1],
-                eyes_pose=prm["eyes_pose"][t:t + 1], shape=prm["shape"], expr=prm["expr"][t:t + 1],
-                static_offset=prm["static_offset"])
+    return dict(
+        translation=prm["translation"][t : t + 1],
+        rotation=prm["rotation"][t : t + 1],
+        neck_pose=prm["neck_pose"][t : t + 1],
+        jaw_pose=prm["jaw_pose"][t : t + 1],
+        eyes_pose=prm["eyes_pose"][t : t + 1],
+        shape=prm["shape"],
+        expr=prm["expr"][t : t + 1],
+        static_offset=prm["static_offset"],
+    )
 
 
 # ---------------------------------------------------------------------------- sequences
+
 
 def test_mesh_npz_reader_and_frame_selection(tmp_path):
     rng = np.random.default_rng(0)
@@ -82,7 +98,9 @@ def test_flame_param_folder(tmp_path, flame_model):
         np.savez(fp / f"{t * 5:05d}.npz", **ga_frame(prm, t))
     (fp / "00099.npz").write_bytes(b"garbage")  # sorted last; never opened unless asked
     seq = read_sequence(tmp_path, frames=[2, 0], flame_model=flame_model)
-    want = flame_forward(flame_model, **{k: (v[[2, 0]] if k not in ("shape", "static_offset") else v) for k, v in prm.items()})
+    want = flame_forward(
+        flame_model, **{k: (v[[2, 0]] if k not in ("shape", "static_offset") else v) for k, v in prm.items()}
+    )
     np.testing.assert_allclose(seq.vertices, want, atol=1e-6)
     np.testing.assert_array_equal(seq.frame_ids, [10, 0])
     np.testing.assert_array_equal(seq.faces, flame_model.faces)
@@ -102,11 +120,16 @@ def test_vhap_tracked_matches_per_frame(tmp_path, flame_model):
     for j, t in enumerate([4, 1]):
         np.testing.assert_allclose(seq.vertices[j], flame_forward(flame_model, **ga_frame(prm, t))[0], atol=1e-6)
     # Short key spellings (neck/jaw/eyes) are read too.
-    short = {("neck" if k == "neck_pose" else "jaw" if k == "jaw_pose" else "eyes" if k == "eyes_pose" else k): v
-             for k, v in prm.items()}
+    short = {
+        ("neck" if k == "neck_pose" else "jaw" if k == "jaw_pose" else "eyes" if k == "eyes_pose" else k): v
+        for k, v in prm.items()
+    }
     np.savez(tmp_path / "short.npz", **short)
-    np.testing.assert_allclose(read_vhap_tracked(tmp_path / "short.npz", flame_model=flame_model).vertices,
-                               flame_forward(flame_model, **prm), atol=1e-6)
+    np.testing.assert_allclose(
+        read_vhap_tracked(tmp_path / "short.npz", flame_model=flame_model).vertices,
+        flame_forward(flame_model, **prm),
+        atol=1e-6,
+    )
     bad = dict(prm, jaw_pose=prm["jaw_pose"][:3])
     np.savez(tmp_path / "bad.npz", **bad)
     with pytest.raises(DataError, match=r"bad\.npz: 'jaw_pose' has 3 frames"):
@@ -125,12 +148,28 @@ def test_nersemble_tracking(tmp_path, flame_model):
     prm = random_params(T, seed=5)
     euler = 0.4 * rng.normal(size=(T, 3))
     R = Rotation.from_euler("XYZ", euler).as_matrix()
-    d = dict(shape=prm["shape"][None], expression=prm["expr"], jaw=prm["jaw_pose"], neck=prm["neck_pose"],
-             eyes=prm["eyes_pose"], rotation=euler, rotation_matrices=R, translation=prm["translation"],
-             scale=np.array([[1.7]]), frames=np.array([7, 8, 9]))
+    d = dict(
+        shape=prm["shape"][None],
+        expression=prm["expr"],
+        jaw=prm["jaw_pose"],
+        neck=prm["neck_pose"],
+        eyes=prm["eyes_pose"],
+        rotation=euler,
+        rotation_matrices=R,
+        translation=prm["translation"],
+        scale=np.array([[1.7]]),
+        frames=np.array([7, 8, 9]),
+    )
     np.savez(tmp_path / "tracking.npz", **d)
-    local = flame_forward(flame_model, shape=prm["shape"], expr=prm["expr"], jaw_pose=prm["jaw_pose"],
-                          neck_pose=prm["neck_pose"], eyes_pose=prm["eyes_pose"], dtype=np.float64)
+    local = flame_forward(
+        flame_model,
+        shape=prm["shape"],
+        expr=prm["expr"],
+        jaw_pose=prm["jaw_pose"],
+        neck_pose=prm["neck_pose"],
+        eyes_pose=prm["eyes_pose"],
+        dtype=np.float64,
+    )
     want = 1.7 * np.einsum("tab,tvb->tva", R, local) + prm["translation"][:, None]
     seq = read_sequence(tmp_path / "tracking.npz", flame_model=flame_model)
     np.testing.assert_allclose(seq.vertices, want, atol=1e-5)
@@ -138,8 +177,11 @@ def test_nersemble_tracking(tmp_path, flame_model):
     # Without rotation_matrices the Euler angles (intrinsic XYZ) give the same result.
     del d["rotation_matrices"]
     np.savez(tmp_path / "euler.npz", **d)
-    np.testing.assert_allclose(read_nersemble_tracking(tmp_path / "euler.npz", frames=[1], flame_model=flame_model)
-                               .vertices[0], want[1], atol=1e-5)
+    np.testing.assert_allclose(
+        read_nersemble_tracking(tmp_path / "euler.npz", frames=[1], flame_model=flame_model).vertices[0],
+        want[1],
+        atol=1e-5,
+    )
 
 
 def test_read_sequence_errors(tmp_path):
@@ -169,26 +211,32 @@ def octahedron(t):
 
 def make_cameras():
     # Off-centre principal points and fx != fy, so an ignored intrinsic shows up as a miss.
-    return {0: Camera.look_at([0.0, 0.05, 0.6], [0, 0, 0], [0, 1, 0], 150.0, 120.0, 26.0, 54.0, W, H),
-            1: Camera.look_at([0.45, -0.05, 0.4], [0, 0, 0], [0, 1, 0], 110.0, 140.0, 68.0, 28.0, W, H)}
+    return {
+        0: Camera.look_at([0.0, 0.05, 0.6], [0, 0, 0], [0, 1, 0], 150.0, 120.0, 26.0, 54.0, W, H),
+        1: Camera.look_at([0.45, -0.05, 0.4], [0, 0, 0], [0, 1, 0], 110.0, 140.0, 68.0, 28.0, W, H),
+    }
 
 
 def raster_mask(cam, verts, faces):
     """Silhouette of a mesh: pixel centres inside any projected triangle (vectorised)."""
     uv, _ = cam.project(verts.astype(np.float64))
     tri = uv[faces]  # [F,3,2]
-    ys, xs = np.mgrid[0:cam.height, 0:cam.width]
+    ys, xs = np.mgrid[0 : cam.height, 0 : cam.width]
     p = np.stack([xs + 0.5, ys + 0.5], -1).reshape(1, -1, 2)
+
     def edge(a, b):
-        return (b[:, None, 0] - a[:, None, 0]) * (p[..., 1] - a[:, None, 1]) - \
-               (b[:, None, 1] - a[:, None, 1]) * (p[..., 0] - a[:, None, 0])
+        return (b[:, None, 0] - a[:, None, 0]) * (p[..., 1] - a[:, None, 1]) - (b[:, None, 1] - a[:, None, 1]) * (
+            p[..., 0] - a[:, None, 0]
+        )
+
     e0, e1, e2 = edge(tri[:, 0], tri[:, 1]), edge(tri[:, 1], tri[:, 2]), edge(tri[:, 2], tri[:, 0])
     inside = ((e0 >= 0) & (e1 >= 0) & (e2 >= 0)) | ((e0 <= 0) & (e1 <= 0) & (e2 <= 0))
     return inside.any(0).reshape(cam.height, cam.width)
 
 
-def write_mesh_dataset(root, timesteps=(0, 1, 2), split="train", extensionless=False, top_level_intrinsics=False,
-                       background=None):
+def write_mesh_dataset(
+    root, timesteps=(0, 1, 2), split="train", extensionless=False, top_level_intrinsics=False, background=None
+):
     from PIL import Image
 
     root.mkdir(parents=True, exist_ok=True)
@@ -206,9 +254,14 @@ def write_mesh_dataset(root, timesteps=(0, 1, 2), split="train", extensionless=F
             name = f"{t:05d}_{ci:02d}"
             Image.fromarray(img).save(root / "images" / f"{name}.png")
             Image.fromarray((m * 255).astype(np.uint8)).save(root / "fg_masks" / f"{name}.png")
-            fr = dict(file_path=f"images/{name}" + ("" if extensionless else ".png"),
-                      fg_mask_path=f"fg_masks/{name}.png", transform_matrix=cam.c2w_opengl().tolist(),
-                      timestep_index=t, camera_index=ci, mesh_path=f"meshes/{t:05d}.npz")
+            fr = dict(
+                file_path=f"images/{name}" + ("" if extensionless else ".png"),
+                fg_mask_path=f"fg_masks/{name}.png",
+                transform_matrix=cam.c2w_opengl().tolist(),
+                timestep_index=t,
+                camera_index=ci,
+                mesh_path=f"meshes/{t:05d}.npz",
+            )
             if not top_level_intrinsics:
                 fr.update(fl_x=cam.fx, fl_y=cam.fy, cx=cam.cx, cy=cam.cy, w=W, h=H)
             frames.append(fr)
@@ -253,7 +306,9 @@ def test_dataset_round_trip_cameras_hit_masks(tmp_path):
         assert np.all(s.mask[px[:, 1], px[:, 0]] == 1.0)
         # Control: the same camera with a centred principal point misses the silhouette.
         centred = Camera(s.camera.R, s.camera.t, s.camera.fx, s.camera.fy, W / 2, H / 2, W, H)
-        uvc = np.clip(np.floor(centred.project(centroids(s.vertices).astype(np.float64))[0]).astype(int), 0, [W - 1, H - 1])
+        uvc = np.clip(
+            np.floor(centred.project(centroids(s.vertices).astype(np.float64))[0]).astype(int), 0, [W - 1, H - 1]
+        )
         assert s.mask[uvc[:, 1], uvc[:, 0]].mean() < 0.5
         # Image pixels: mesh colour inside, white background outside.
         np.testing.assert_allclose(s.image[s.mask == 0], 1.0)
@@ -341,7 +396,9 @@ def test_dataset_bad_inputs(tmp_path):
     write_mesh_dataset(root)
 
     os.remove(root / "images" / "00001_00.png")
-    with pytest.raises(MissingFileError, match=r"images/00001_00\.png: image listed in .*transforms_train\.json not found"):
+    with pytest.raises(
+        MissingFileError, match=r"images/00001_00\.png: image listed in .*transforms_train\.json not found"
+    ):
         Dataset(root)
     write_mesh_dataset(root)
 
@@ -387,9 +444,21 @@ def test_flame_mode_dataset(tmp_path, flame_model):
     for t in range(2):
         np.savez(root / "flame_param" / f"{t:05d}.npz", **ga_frame(prm, t))
         Image.new("RGB", (W, H), (255, 255, 255)).save(root / "images" / f"{t}.png")
-        frames.append(dict(file_path=f"images/{t}.png", transform_matrix=cam.c2w_opengl().tolist(), fl_x=cam.fx,
-                           fl_y=cam.fy, cx=cam.cx, cy=cam.cy, w=W, h=H, timestep_index=t, camera_index=0,
-                           flame_param_path=f"flame_param/{t:05d}.npz"))
+        frames.append(
+            dict(
+                file_path=f"images/{t}.png",
+                transform_matrix=cam.c2w_opengl().tolist(),
+                fl_x=cam.fx,
+                fl_y=cam.fy,
+                cx=cam.cx,
+                cy=cam.cy,
+                w=W,
+                h=H,
+                timestep_index=t,
+                camera_index=0,
+                flame_param_path=f"flame_param/{t:05d}.npz",
+            )
+        )
     (root / "transforms_train.json").write_text(json.dumps({"frames": frames}))
     with pytest.raises(DataError, match="FLAME-mode dataset"):
         Dataset(root)
@@ -409,8 +478,10 @@ def test_flame_track_reads_parameters_without_a_model(tmp_path, flame_model):
     track = read_flame_track(tmp_path / "tracked.npz", frames=[3, 1])
     assert track.n_frames == 2
     np.testing.assert_array_equal(track.params["expr"], prm["expr"][[3, 1]])
-    np.testing.assert_allclose(flame_forward(flame_model, **track.params),
-                               read_sequence(tmp_path / "tracked.npz", frames=[3, 1], flame_model=flame_model).vertices)
+    np.testing.assert_allclose(
+        flame_forward(flame_model, **track.params),
+        read_sequence(tmp_path / "tracked.npz", frames=[3, 1], flame_model=flame_model).vertices,
+    )
     fp = tmp_path / "ga" / "flame_param"
     fp.mkdir(parents=True)
     for t in range(4):

@@ -34,8 +34,17 @@ def make_flame_arrays(seed=0):
     w = rng.random((N_V, N_J)) ** 3
     w /= w.sum(1, keepdims=True)
     kintree = np.stack([np.where(PARENTS < 0, 4294967295, PARENTS), np.arange(N_J)]).astype(np.int64)
-    return dict(v_template=v, f=faces, shapedirs=shapedirs, posedirs=posedirs, J_regressor=jr, weights=w,
-                kintree_table=kintree, bs_style="lbs", bs_type="lrotmin")
+    return dict(
+        v_template=v,
+        f=faces,
+        shapedirs=shapedirs,
+        posedirs=posedirs,
+        J_regressor=jr,
+        weights=w,
+        kintree_table=kintree,
+        bs_style="lbs",
+        bs_type="lrotmin",
+    )
 
 
 @contextlib.contextmanager
@@ -48,8 +57,14 @@ def fake_chumpy():
 
         def __getstate__(self):
             # What chumpy's Ch.__getstate__ leaves after dropping _parents and _cache.
-            return {"x": self.x, "_dirty_vars": {"x"}, "_itr": None, "_depends_on_deps": {},
-                    "_make_dense": False, "_make_sparse": False}
+            return {
+                "x": self.x,
+                "_dirty_vars": {"x"},
+                "_itr": None,
+                "_depends_on_deps": {},
+                "_make_dense": False,
+                "_make_sparse": False,
+            }
 
     Ch.__module__, Ch.__qualname__ = "chumpy.ch", "Ch"
     pkg, mod = types.ModuleType("chumpy"), types.ModuleType("chumpy.ch")
@@ -73,7 +88,9 @@ def write_flame_pkl(path, protocol=2, sparse="csc", seed=0):
         d = dict(arrays)
         d["shapedirs"] = Ch(arrays["shapedirs"])
         d["v_template"] = Ch(arrays["v_template"])
-        d["J_regressor"] = {"csc": sp.csc_matrix, "csr": sp.csr_matrix, "coo": sp.coo_matrix}[sparse](arrays["J_regressor"])
+        d["J_regressor"] = {"csc": sp.csc_matrix, "csr": sp.csr_matrix, "coo": sp.coo_matrix}[sparse](
+            arrays["J_regressor"]
+        )
         with open(path, "wb") as f:
             pickle.dump(d, f, protocol=protocol)
     assert "chumpy" not in sys.modules
@@ -89,13 +106,20 @@ def model_and_arrays(tmp_path_factory):
 
 def random_params(T, seed=1, scale=0.3):
     rng = np.random.default_rng(seed)
-    return dict(shape=rng.normal(size=N_SHAPE), expr=rng.normal(size=(T, N_EXPR)),
-                rotation=scale * rng.normal(size=(T, 3)), neck_pose=scale * rng.normal(size=(T, 3)),
-                jaw_pose=scale * rng.normal(size=(T, 3)), eyes_pose=scale * rng.normal(size=(T, 6)),
-                translation=0.05 * rng.normal(size=(T, 3)), static_offset=0.002 * rng.normal(size=(1, N_V, 3)))
+    return dict(
+        shape=rng.normal(size=N_SHAPE),
+        expr=rng.normal(size=(T, N_EXPR)),
+        rotation=scale * rng.normal(size=(T, 3)),
+        neck_pose=scale * rng.normal(size=(T, 3)),
+        jaw_pose=scale * rng.normal(size=(T, 3)),
+        eyes_pose=scale * rng.normal(size=(T, 6)),
+        translation=0.05 * rng.normal(size=(T, 3)),
+        static_offset=0.002 * rng.normal(size=(1, N_V, 3)),
+    )
 
 
 # ---------------------------------------------------------------------------- loading
+
 
 @pytest.mark.parametrize("protocol", [1, 2])
 @pytest.mark.parametrize("sparse", ["csc", "csr", "coo"])
@@ -129,8 +153,10 @@ def test_default_split_caps_at_component_count(tmp_path):
     assert (m.n_shape, m.n_expr) == (N_SHAPE + N_EXPR, 0)
 
 
-@pytest.mark.parametrize("target,expected", [
-    ("os.system", "system"), ("builtins.eval", "builtins.eval"), ("subprocess.Popen", "subprocess.Popen")])
+@pytest.mark.parametrize(
+    "target,expected",
+    [("os.system", "system"), ("builtins.eval", "builtins.eval"), ("subprocess.Popen", "subprocess.Popen")],
+)
 def test_malicious_pickle_refused_without_side_effect(tmp_path, target, expected):
     marker = tmp_path / "pwned"
     cmd = f"touch {marker}"
@@ -142,6 +168,7 @@ def test_malicious_pickle_refused_without_side_effect(tmp_path, target, expected
             if target == "builtins.eval":
                 return (eval, (f"__import__('os').system({cmd!r})",))
             import subprocess
+
             return (subprocess.Popen, (["touch", str(marker)],))
 
     arrays = make_flame_arrays()
@@ -187,6 +214,7 @@ def test_model_errors_name_file(tmp_path):
 
 # ---------------------------------------------------------------------------- forward
 
+
 def reference_forward(a, n_shape, prm):
     """Independent, loop-based LBS written from the FLAME/SMPL equations (test only)."""
     T = prm["expr"].shape[0]
@@ -195,8 +223,13 @@ def reference_forward(a, n_shape, prm):
         betas = np.concatenate([prm["shape"], prm["expr"][t]])
         vs = a["v_template"] + prm["static_offset"][0] + np.tensordot(a["shapedirs"], betas, axes=([2], [0]))
         Jt = a["J_regressor"] @ vs
-        pose = [prm["rotation"][t], prm["neck_pose"][t], prm["jaw_pose"][t], prm["eyes_pose"][t][:3],
-                prm["eyes_pose"][t][3:]]
+        pose = [
+            prm["rotation"][t],
+            prm["neck_pose"][t],
+            prm["jaw_pose"][t],
+            prm["eyes_pose"][t][:3],
+            prm["eyes_pose"][t][3:],
+        ]
         Rs = [Rotation.from_rotvec(p).as_matrix() for p in pose]
         feat = np.concatenate([(R - np.eye(3)).ravel() for R in Rs[1:]])
         vp = vs + np.tensordot(a["posedirs"], feat, axes=([2], [0]))
@@ -207,8 +240,10 @@ def reference_forward(a, n_shape, prm):
             L[:3, 3] = Jt[j] - (Jt[PARENTS[j]] if j else 0)
             G.append(L if j == 0 else G[PARENTS[j]] @ L)
         for v in range(N_V):
-            M = sum(a["weights"][v, j] * G[j] @ np.block([[np.eye(3), -Jt[j][:, None]], [np.zeros((1, 3)), 1]])
-                    for j in range(N_J))
+            M = sum(
+                a["weights"][v, j] * G[j] @ np.block([[np.eye(3), -Jt[j][:, None]], [np.zeros((1, 3)), 1]])
+                for j in range(N_J)
+            )
             out[t, v] = (M @ np.append(vp[v], 1.0))[:3] + prm["translation"][t]
     return out
 
@@ -229,8 +264,11 @@ def test_zero_pose_is_template_plus_blendshapes(model_and_arrays):
     want = a["v_template"] + np.einsum("vck,tk->tvc", a["shapedirs"], betas)
     np.testing.assert_allclose(got, want, atol=1e-12)
     # Fewer coefficients than the model has are zero-padded.
-    np.testing.assert_allclose(flame_forward(m, shape=shape[:2], dtype=np.float64)[0],
-                               a["v_template"] + a["shapedirs"][:, :, :2] @ shape[:2], atol=1e-12)
+    np.testing.assert_allclose(
+        flame_forward(m, shape=shape[:2], dtype=np.float64)[0],
+        a["v_template"] + a["shapedirs"][:, :, :2] @ shape[:2],
+        atol=1e-12,
+    )
 
 
 def test_global_rotation_is_rigid_about_root_joint(model_and_arrays):
@@ -252,8 +290,9 @@ def test_global_rotation_is_rigid_about_root_joint(model_and_arrays):
 
 def test_axis_angle_matches_scipy_including_tiny_angles():
     rng = np.random.default_rng(0)
-    r = np.concatenate([rng.normal(size=(20, 3)), 1e-9 * rng.normal(size=(5, 3)), np.zeros((1, 3)),
-                        np.array([[np.pi, 0, 0]])])
+    r = np.concatenate(
+        [rng.normal(size=(20, 3)), 1e-9 * rng.normal(size=(5, 3)), np.zeros((1, 3)), np.array([[np.pi, 0, 0]])]
+    )
     np.testing.assert_allclose(fl.axis_angle_to_matrix(r), Rotation.from_rotvec(r).as_matrix(), atol=1e-14)
 
 
@@ -275,11 +314,12 @@ def test_chunked_frames_match_single_frames(model_and_arrays):
     prm = random_params(fl._CHUNK + 5, seed=7)
     allv = flame_forward(m, **prm)
     for t in (0, fl._CHUNK - 1, fl._CHUNK, fl._CHUNK + 4):
-        one = {k: (v[t:t + 1] if k not in ("shape", "static_offset") else v) for k, v in prm.items()}
+        one = {k: (v[t : t + 1] if k not in ("shape", "static_offset") else v) for k, v in prm.items()}
         np.testing.assert_allclose(flame_forward(m, **one)[0], allv[t], atol=1e-6)
 
 
 # ---------------------------------------------------------------------------- torch twin
+
 
 def test_torch_agrees_with_numpy_float32(model_and_arrays):
     torch = pytest.importorskip("torch")
@@ -306,8 +346,9 @@ def test_torch_gradients_finite_and_correct(model_and_arrays):
     jaw = torch.tensor(0.2 * rng.normal(size=(1, 3)), requires_grad=True)
     expr = torch.tensor(rng.normal(size=(1, 2)), requires_grad=True)
     probe = torch.tensor(rng.normal(size=(1, N_V, 3)))  # random projection: one backward pass, full coverage
-    assert torch.autograd.gradcheck(lambda j, e: (layer(jaw_pose=j, expr=e) * probe).sum(), (jaw, expr),
-                                    eps=1e-6, atol=1e-6)
+    assert torch.autograd.gradcheck(
+        lambda j, e: (layer(jaw_pose=j, expr=e) * probe).sum(), (jaw, expr), eps=1e-6, atol=1e-6
+    )
     # At exactly zero pose (where a naive Rodrigues gives NaN gradients).
     zero = torch.zeros(1, 3, dtype=torch.float64, requires_grad=True)
     layer(rotation=zero, neck_pose=zero).sum().backward()

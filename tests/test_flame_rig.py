@@ -2,7 +2,6 @@
 Blender by evaluating it the way Blender does (tests/test_blender_extension.py checks that
 Blender agrees)."""
 
-
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -39,8 +38,13 @@ def test_nersemble_placement_and_scaled_keys():
     prm["expr"][1, 2] = -31.0  # beyond the slider range: the key is stored scaled
     R = Rotation.random(T, random_state=4).as_matrix()
     local = {k: v for k, v in prm.items() if k not in ("rotation", "translation")}
-    want = 1.7 * np.einsum("tab,tvb->tva", R, flame_forward(MODEL, **local, dtype=np.float64)) + prm["translation"][:, None]
-    rig = build_flame_rig(MODEL, dict(local, rotation_matrices=R, translation=prm["translation"], scale=np.array([[1.7]])))
+    want = (
+        1.7 * np.einsum("tab,tvb->tva", R, flame_forward(MODEL, **local, dtype=np.float64))
+        + prm["translation"][:, None]
+    )
+    rig = build_flame_rig(
+        MODEL, dict(local, rotation_matrices=R, translation=prm["translation"], scale=np.array([[1.7]]))
+    )
     np.testing.assert_allclose(rig.vertices(), want, atol=1e-12)
     np.testing.assert_allclose(rig.scales[:, 0], 1.7)
     np.testing.assert_array_equal(rig.scales[:, 1:], 1.0)
@@ -53,7 +57,10 @@ def test_quaternions_sign_continuous_through_a_full_turn():
     jaw = np.zeros((T, 3))
     jaw[:, 0] = np.linspace(0, 2 * np.pi * 0.99, T)  # passes 180 degrees, where q and -q swap
     prm = dict(random_params(1, seed=6), jaw_pose=jaw, expr=np.zeros((T, N_EXPR)))
-    prm = {k: (v if k in ("shape", "static_offset", "jaw_pose", "expr") else np.repeat(v, T, axis=0)) for k, v in prm.items()}
+    prm = {
+        k: (v if k in ("shape", "static_offset", "jaw_pose", "expr") else np.repeat(v, T, axis=0))
+        for k, v in prm.items()
+    }
     rig = build_flame_rig(MODEL, prm)
     dots = np.sum(rig.quaternions[1:, 2] * rig.quaternions[:-1, 2], axis=-1)
     assert dots.min() > 0.9
@@ -71,14 +78,20 @@ def test_what_a_rig_cannot_hold():
 
 
 @settings(max_examples=40, deadline=None)
-@given(seed=st.integers(0, 2**31 - 1), pose_scale=st.floats(0.0, 3.0), expr_scale=st.floats(0.0, 40.0),
-       T=st.integers(1, 4))
+@given(
+    seed=st.integers(0, 2**31 - 1), pose_scale=st.floats(0.0, 3.0), expr_scale=st.floats(0.0, 40.0), T=st.integers(1, 4)
+)
 def test_rig_matches_flame_for_any_pose(seed, pose_scale, expr_scale, T):
     rng = np.random.default_rng(seed)
-    prm = dict(shape=rng.normal(size=N_SHAPE), expr=expr_scale * rng.normal(size=(T, N_EXPR)),
-               rotation=pose_scale * rng.normal(size=(T, 3)), neck_pose=pose_scale * rng.normal(size=(T, 3)),
-               jaw_pose=pose_scale * rng.normal(size=(T, 3)), eyes_pose=pose_scale * rng.normal(size=(T, 6)),
-               translation=rng.normal(size=(T, 3)))
+    prm = dict(
+        shape=rng.normal(size=N_SHAPE),
+        expr=expr_scale * rng.normal(size=(T, N_EXPR)),
+        rotation=pose_scale * rng.normal(size=(T, 3)),
+        neck_pose=pose_scale * rng.normal(size=(T, 3)),
+        jaw_pose=pose_scale * rng.normal(size=(T, 3)),
+        eyes_pose=pose_scale * rng.normal(size=(T, 6)),
+        translation=rng.normal(size=(T, 3)),
+    )
     rig = build_flame_rig(MODEL, prm)
     want = flame_forward(MODEL, **prm, dtype=np.float64)
     assert np.all(np.isfinite(rig.quaternions)) and np.abs(rig.expr_values).max(initial=0) <= SLIDER_LIMIT

@@ -153,8 +153,14 @@ def test_coarse_roots_bind_like_template_faces_and_survive_reorder_prefix_and_sa
     np.testing.assert_allclose(g.r[: C + F0], plain.r, atol=1e-12)
     # roots permuted inside their levels (a stream's spread-out order), then a prefix
     R = f.num_roots
-    perm = np.concatenate([rng.permutation(counts[0]), counts[0] + rng.permutation(counts[1]),
-                           C + rng.permutation(F0), np.arange(R, f.num_faces)])
+    perm = np.concatenate(
+        [
+            rng.permutation(counts[0]),
+            counts[0] + rng.permutation(counts[1]),
+            C + rng.permutation(F0),
+            np.arange(R, f.num_faces),
+        ]
+    )
     f2 = f.reorder(perm)
     g2 = binding.evaluate(f2, v)
     np.testing.assert_allclose(g2.t, g.t[perm], atol=1e-12)

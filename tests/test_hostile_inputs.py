@@ -61,15 +61,19 @@ def _flame_pickle(tmp_path, name, **override):
     return p
 
 
-@pytest.mark.parametrize("forged", [
-    _ForgedArray(_ForgedDtype("V8")),            # void dtype turned object by its flags
-    _ForgedArray(_ForgedDtype("f8")),            # float dtype turned object by its flags
-    _ForgedArray(_ForgedDtype("O8", 0)),         # plain object dtype
-    _ForgedScalar(_ForgedDtype("V8")),           # numpy.core.multiarray.scalar with a forged dtype
-    _ForgedScalar(_ForgedDtype("O8", 0)),
-    _ForgedArray(_ForgedDtype("f8", 0), raw=b"\x00" * 8, shape=(10**6, 10**6)),  # shape beyond the bytes
-    _ForgedArray(_ForgedDtype("f8", 0), raw=[1, 2, 3]),                          # object payload
-], ids=["void-flags", "float-flags", "object", "scalar-void", "scalar-object", "huge-shape", "list-payload"])
+@pytest.mark.parametrize(
+    "forged",
+    [
+        _ForgedArray(_ForgedDtype("V8")),  # void dtype turned object by its flags
+        _ForgedArray(_ForgedDtype("f8")),  # float dtype turned object by its flags
+        _ForgedArray(_ForgedDtype("O8", 0)),  # plain object dtype
+        _ForgedScalar(_ForgedDtype("V8")),  # numpy.core.multiarray.scalar with a forged dtype
+        _ForgedScalar(_ForgedDtype("O8", 0)),
+        _ForgedArray(_ForgedDtype("f8", 0), raw=b"\x00" * 8, shape=(10**6, 10**6)),  # shape beyond the bytes
+        _ForgedArray(_ForgedDtype("f8", 0), raw=[1, 2, 3]),  # object payload
+    ],
+    ids=["void-flags", "float-flags", "object", "scalar-void", "scalar-object", "huge-shape", "list-payload"],
+)
 def test_flame_unpickler_refuses_forged_object_dtypes(tmp_path, forged):
     # Before the fix these segfaulted (forged pointers) or allocated 8 TB; now a clear refusal.
     p = _flame_pickle(tmp_path, "forged.pkl", v_template=forged)
@@ -81,7 +85,7 @@ def test_flame_unpickler_refuses_forged_object_dtypes(tmp_path, forged):
 def test_flame_unpickler_still_reads_every_protocol_and_plain_dtypes(tmp_path):
     arrays = make_flame_arrays()
     arrays["weights"] = arrays["weights"].astype(">f4")  # big-endian payloads keep their values
-    arrays["n_shape"] = np.int64(3)                      # a numpy scalar (scalar + dtype globals)
+    arrays["n_shape"] = np.int64(3)  # a numpy scalar (scalar + dtype globals)
     for protocol in (0, 2, 4, 5):
         p = tmp_path / f"p{protocol}.pkl"
         p.write_bytes(pickle.dumps(arrays, protocol=protocol))
@@ -113,9 +117,18 @@ def test_flame_sparse_shape_checked_before_densifying(tmp_path, monkeypatch):
 
         def __reduce__(self):
             import copyreg
-            return (copyreg._reconstructor, (csr_matrix, object, None),
-                    {"_shape": self.shape, "data": np.ones(2), "indices": np.array([0, 1], np.int32),
-                     "indptr": np.array([0, 1, 2] + [2] * (self.shape[0] - 2), np.int32), "maxprint": 50})
+
+            return (
+                copyreg._reconstructor,
+                (csr_matrix, object, None),
+                {
+                    "_shape": self.shape,
+                    "data": np.ones(2),
+                    "indices": np.array([0, 1], np.int32),
+                    "indptr": np.array([0, 1, 2] + [2] * (self.shape[0] - 2), np.int32),
+                    "maxprint": 50,
+                },
+            )
 
     mod = types.ModuleType("scipy.sparse._csr")
     mod.csr_matrix = csr_matrix
@@ -188,8 +201,13 @@ def _npz_with_forged_member(path, name, shape, dtype="<f8", payload=b"\0" * 64, 
 def test_npz_huge_declared_member_refused_before_allocation(tmp_path):
     arrays = {k: np.asarray(v) for k, v in make_flame_arrays().items() if k not in ("bs_style", "bs_type")}
     p = tmp_path / "flame_forged.npz"
-    _npz_with_forged_member(p, "shapedirs", (10**11,), payload=b"\0" * 3_000_000,
-                            extra={k: v for k, v in arrays.items() if k != "shapedirs"})
+    _npz_with_forged_member(
+        p,
+        "shapedirs",
+        (10**11,),
+        payload=b"\0" * 3_000_000,
+        extra={k: v for k, v in arrays.items() if k != "shapedirs"},
+    )
     tracemalloc.start()
     try:
         with pytest.raises(FlameModelError, match=r"flame_forged\.npz.*'shapedirs' declares 100000000000 elements"):
@@ -225,8 +243,10 @@ def test_avatar_npz_forged_member_refused(tmp_path):
 
 
 def _ply_header(count, fmt="binary_little_endian"):
-    return (f"ply\nformat {fmt} 1.0\nelement vertex {count}\nproperty float x\nproperty float y\n"
-            "property float z\nend_header\n").encode()
+    return (
+        f"ply\nformat {fmt} 1.0\nelement vertex {count}\nproperty float x\nproperty float y\n"
+        "property float z\nend_header\n"
+    ).encode()
 
 
 @pytest.mark.parametrize("use_plyfile", [True, False])
@@ -236,8 +256,13 @@ def test_ply_huge_or_malformed_vertex_count_refused(tmp_path, monkeypatch, use_p
         import builtins
 
         real_import = builtins.__import__
-        monkeypatch.setattr(builtins, "__import__", lambda name, *a, **k: (
-            (_ for _ in ()).throw(ImportError(name)) if name == "plyfile" else real_import(name, *a, **k)))
+        monkeypatch.setattr(
+            builtins,
+            "__import__",
+            lambda name, *a, **k: (
+                (_ for _ in ()).throw(ImportError(name)) if name == "plyfile" else real_import(name, *a, **k)
+            ),
+        )
     p = tmp_path / "huge.ply"
     p.write_bytes(_ply_header(count) + b"\0" * 1200)
     with pytest.raises(ValueError, match=r"huge\.ply: (PLY header declares|malformed PLY element)"):
@@ -246,13 +271,17 @@ def test_ply_huge_or_malformed_vertex_count_refused(tmp_path, monkeypatch, use_p
 
 def test_ply_real_file_and_huge_quaternions_still_read(tmp_path):
     n = 5
-    g = {"means": np.zeros((n, 3), np.float32), "scales": np.ones((n, 3), np.float32) * 0.01,
-         "quats": np.tile(np.array([1e30, 0, 1e30, 0], np.float32), (n, 1)), "opacities": np.full(n, 0.5, np.float32),
-         "colors": np.full((n, 3), 0.5, np.float32)}
+    g = {
+        "means": np.zeros((n, 3), np.float32),
+        "scales": np.ones((n, 3), np.float32) * 0.01,
+        "quats": np.tile(np.array([1e30, 0, 1e30, 0], np.float32), (n, 1)),
+        "opacities": np.full(n, 0.5, np.float32),
+        "colors": np.full((n, 3), 0.5, np.float32),
+    }
     p = tmp_path / "ok.ply"
     write_ply(str(p), g)
     back = read_ply(str(p))
-    np.testing.assert_allclose(back["quats"], np.tile([2 ** -0.5, 0, 2 ** -0.5, 0], (n, 1)), atol=1e-6)
+    np.testing.assert_allclose(back["quats"], np.tile([2**-0.5, 0, 2**-0.5, 0], (n, 1)), atol=1e-6)
 
 
 def test_json_depth_bounded_without_recursion():
@@ -283,8 +312,10 @@ _FLAME_PICKLE = pickle.dumps({k: v for k, v in make_flame_arrays().items()}, pro
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(edits=st.lists(st.tuples(st.integers(0, len(_FLAME_PICKLE) - 1), st.integers(0, 255)), min_size=1,
-                      max_size=6), cut=st.integers(1, len(_FLAME_PICKLE)))
+@given(
+    edits=st.lists(st.tuples(st.integers(0, len(_FLAME_PICKLE) - 1), st.integers(0, 255)), min_size=1, max_size=6),
+    cut=st.integers(1, len(_FLAME_PICKLE)),
+)
 def test_fuzz_flame_unpickler_refuses_cleanly(tmp_path_factory, edits, cut):
     data = bytearray(_FLAME_PICKLE)
     for pos, val in edits:
@@ -300,14 +331,16 @@ def test_fuzz_flame_unpickler_refuses_cleanly(tmp_path_factory, edits, cut):
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(edits=st.lists(st.tuples(st.integers(0, 4000), st.integers(0, 255)), min_size=1, max_size=6),
-       cut=st.floats(0, 1))
+@given(
+    edits=st.lists(st.tuples(st.integers(0, 4000), st.integers(0, 255)), min_size=1, max_size=6), cut=st.floats(0, 1)
+)
 def test_fuzz_stream_reader_refuses_cleanly(edits, cut):
     verts, faces = sphere_mesh(3, 4)
     if not hasattr(test_fuzz_stream_reader_refuses_cleanly, "data"):
         av = Avatar.initial(random_forest(faces, np.random.default_rng(2), depth=2))
-        test_fuzz_stream_reader_refuses_cleanly.data = S.encode_stream(av, records_per_block=4,
-                                                                       metadata={"k": [1, {"a": 2}]})
+        test_fuzz_stream_reader_refuses_cleanly.data = S.encode_stream(
+            av, records_per_block=4, metadata={"k": [1, {"a": 2}]}
+        )
     data = bytearray(test_fuzz_stream_reader_refuses_cleanly.data)
     for pos, val in edits:
         data[pos % len(data)] = val
@@ -335,12 +368,12 @@ def test_refused_duplicate_keeps_a_correct_forest(block):
     i, j = lv1 + 1, lv1 + 2  # two level-1 records: give j the (parent, slot) of i
     oi, oj = info.record_offset(i), info.record_offset(j)
     R = info.record_size
-    ri, rj = bytearray(data[oi: oi + R]), bytearray(data[oj: oj + R])
+    ri, rj = bytearray(data[oi : oi + R]), bytearray(data[oj : oj + R])
     rj[12:15] = ri[12:15]
     geo = int.from_bytes(rj[0:8], "little") & ~(3 << 60) | (int.from_bytes(ri[0:8], "little") & (3 << 60))
     rj[0:8] = geo.to_bytes(8, "little")
-    rj[R - 1] = S._crc8_bytewise(struct.pack("<I", j) + bytes(rj[:R - 1]))  # version 3: the CRC covers the index
-    data[oj: oj + R] = rj
+    rj[R - 1] = S._crc8_bytewise(struct.pack("<I", j) + bytes(rj[: R - 1]))  # version 3: the CRC covers the index
+    data[oj : oj + R] = rj
     r = S.StreamReader()
     with pytest.raises(ValueError, match=f"record {j} reuses the child slot"):
         r.feed(bytes(data[: oj + R]))

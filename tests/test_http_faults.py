@@ -53,11 +53,11 @@ class FaultHandler(BaseHTTPRequestHandler):
             self.send_header("Last-Modified", _lastmod(etag))
         self.send_header("Content-Length", str(end - start + 1))
         self.end_headers()
-        body = data[start: end + 1]
+        body = data[start : end + 1]
         if srv.drip:
             for i in range(len(body)):
                 try:
-                    self.wfile.write(body[i: i + 1])
+                    self.wfile.write(body[i : i + 1])
                     self.wfile.flush()
                 except OSError:
                     return
@@ -81,8 +81,9 @@ class _QuietServer(ThreadingHTTPServer):
 
 
 class FaultServer:
-    def __init__(self, data, *, new_data=None, swap_after=None, ranges=True, send_etag=True, drip=0.0,
-                 drip_headers=False):
+    def __init__(
+        self, data, *, new_data=None, swap_after=None, ranges=True, send_etag=True, drip=0.0, drip_headers=False
+    ):
         self.httpd = _QuietServer(("127.0.0.1", 0), FaultHandler)
         self.httpd.daemon_threads = True
         h = self.httpd
@@ -129,9 +130,14 @@ def test_file_replaced_mid_download_is_detected_not_stitched(two_streams, serve,
     a, b, full_a = two_streams
     assert len(a) == len(b)  # same size: only the validator can tell them apart
     srv = serve(a, new_data=b, swap_after=2 if ranges else 1, ranges=ranges)
-    res = H.fetch_stream(srv.url, chunk_size=1500, read_size=1500 if ranges else 400, timeout=2,
-                         percent=90 if ranges else None,
-                         on_chunk=(None if ranges else lambda r, n: r.bytes_received < 1200))
+    res = H.fetch_stream(
+        srv.url,
+        chunk_size=1500,
+        read_size=1500 if ranges else 400,
+        timeout=2,
+        percent=90 if ranges else None,
+        on_chunk=(None if ranges else lambda r, n: r.bytes_received < 1200),
+    )
     if ranges:
         assert res.status == H.CHANGED and not res.ok, str(res)
         assert "changed mid-download" in res.message and "discard" in res.message

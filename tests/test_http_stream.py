@@ -51,7 +51,7 @@ class Handler(BaseHTTPRequestHandler):
         self.send_header("Content-Length", str(end - start + 1))
         self.send_header("Accept-Ranges", "bytes" if srv.mode == "range" else "none")
         self.end_headers()
-        body = data[start: end + 1]
+        body = data[start : end + 1]
         for at, action in ((srv.stall_at, "stall"), (srv.cut_at, "cut")):
             if at is not None and start <= at <= end:
                 self.wfile.write(body[: at - start])
@@ -114,8 +114,13 @@ def test_range_download_complete_with_callbacks(stream, serve, http11):
     data, full, info = stream
     srv = serve(data, http11=http11)
     seen = []
-    res = H.fetch_stream(srv.url, chunk_size=1000, read_size=300, timeout=2,
-                         on_chunk=lambda r, new: seen.append((r.bytes_received, r.num_gaussians, new)))
+    res = H.fetch_stream(
+        srv.url,
+        chunk_size=1000,
+        read_size=300,
+        timeout=2,
+        on_chunk=lambda r, new: seen.append((r.bytes_received, r.num_gaussians, new)),
+    )
     assert res.status == H.COMPLETE and res.ok, str(res)
     assert res.used_ranges and res.requests == -(-len(data) // 1000)
     assert all(g == (info.count_for_bytes(b) if b >= info.header_size else 0) for b, g, _ in seen)
@@ -188,8 +193,9 @@ def test_redirect_budget_and_cancel(stream, serve):
     assert_prefix(res.avatar(), full, n)
     res = H.fetch_stream(srv.url, chunk_size=700, timeout=2, max_bytes=1500)
     assert res.status == H.BUDGET and res.bytes_received == 1500
-    res = H.fetch_stream(srv.url, chunk_size=700, read_size=100, timeout=2,
-                         on_chunk=lambda r, new: r.bytes_received < 1000)
+    res = H.fetch_stream(
+        srv.url, chunk_size=700, read_size=100, timeout=2, on_chunk=lambda r, new: r.bytes_received < 1000
+    )
     assert res.status == H.CANCELLED and res.bytes_received == 1000
 
 
@@ -233,7 +239,9 @@ def test_cuts_inside_every_level_of_a_coarse_stream(serve):
     cuts |= {info.bytes_for_count(int(e) - max(1, int(c) // 2)) + 5 for e, c in zip(ends, info.level_counts)}
     for at in sorted(c for c in cuts if info.header_size < c < len(data)):
         srv = serve(data, cut_at=at)
-        res = H.fetch_stream(srv.url, template_faces=av.forest.template_faces, chunk_size=4096, read_size=256, timeout=2)
+        res = H.fetch_stream(
+            srv.url, template_faces=av.forest.template_faces, chunk_size=4096, read_size=256, timeout=2
+        )
         assert res.status == H.CUT, str(res)
         n = info.count_for_bytes(at)
         assert res.num_gaussians == n

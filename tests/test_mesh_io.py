@@ -28,8 +28,10 @@ def test_reads_what_trimesh_reads(tmp_path, kind):
 
 def test_obj_quads_slashes_negative_indices_and_errors(tmp_path):
     p = tmp_path / "q.obj"
-    p.write_text("# comment\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0 1.0\nvt 0 0\nvn 0 0 1\n"
-                 "f 1/1/1 2/1/1 3/1/1 4/1/1\nf -4//1 -3//1 -1//1  # tail\n")
+    p.write_text(
+        "# comment\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0 1.0\nvt 0 0\nvn 0 0 1\n"
+        "f 1/1/1 2/1/1 3/1/1 4/1/1\nf -4//1 -3//1 -1//1  # tail\n"
+    )
     v, f = mesh_io.read_mesh(p)
     assert v.shape == (4, 3)
     assert f.tolist() == [[0, 1, 2], [2, 3, 0], [0, 1, 3]]  # quads split as trimesh splits them

@@ -15,13 +15,30 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def _run(tmp, *args):
-    env = dict(os.environ, DATA=str(tmp / "data"), OUT=str(tmp / "runs"), REPORT=str(tmp / "report"),
-               PRESET="tiny", ITERS="24", ABL_ITERS="20", UNIFORM_DEPTH="1", BENCH="0", PY=sys.executable,
-               EVAL_ARGS="--views 2 --curve-points 3",
-               DATA_ARGS="--resolution-scale 0.08 --sequences 3 --frames 1 --cameras 4 --surface-levels 1",
-               NUMBA_NUM_THREADS="1", OMP_NUM_THREADS="1")
-    return subprocess.run(["bash", os.path.join(ROOT, "scripts", "run_paper_table.sh"), *args], env=env, cwd=ROOT,
-                          capture_output=True, text=True, timeout=1500)
+    env = dict(
+        os.environ,
+        DATA=str(tmp / "data"),
+        OUT=str(tmp / "runs"),
+        REPORT=str(tmp / "report"),
+        PRESET="tiny",
+        ITERS="24",
+        ABL_ITERS="20",
+        UNIFORM_DEPTH="1",
+        BENCH="0",
+        PY=sys.executable,
+        EVAL_ARGS="--views 2 --curve-points 3",
+        DATA_ARGS="--resolution-scale 0.08 --sequences 3 --frames 1 --cameras 4 --surface-levels 1",
+        NUMBA_NUM_THREADS="1",
+        OMP_NUM_THREADS="1",
+    )
+    return subprocess.run(
+        ["bash", os.path.join(ROOT, "scripts", "run_paper_table.sh"), *args],
+        env=env,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=1500,
+    )
 
 
 @pytest.mark.slow
@@ -64,8 +81,15 @@ def test_run_paper_table_small(tmp_path):
         with Image.open(report_dir / f"strip_full_{split}.png") as im:
             assert im.size == (5 * 44, 64 + 16)
     md = (report_dir / "paper_table.md").read_text()
-    for text in ("## Table 1", "27.89 / 0.851", "## Table 3", "29.87 / 20.06", "mean ± sd", "peak RSS",
-                 "## Acceptance"):
+    for text in (
+        "## Table 1",
+        "27.89 / 0.851",
+        "## Table 3",
+        "29.87 / 20.06",
+        "mean ± sd",
+        "peak RSS",
+        "## Acceptance",
+    ):
         assert text in md, text
     for name in ("paper_quality_vs_gaussians.png", "depth.png", "report.md"):
         assert (report_dir / name).exists(), name

@@ -13,8 +13,13 @@ ENV = dict(os.environ, NUMBA_NUM_THREADS="1", OMP_NUM_THREADS="1")
 
 
 def run_script(name, *args):
-    out = subprocess.run([sys.executable, os.path.join(ROOT, "scripts", name), *args], capture_output=True, text=True,
-                         timeout=600, env=ENV)
+    out = subprocess.run(
+        [sys.executable, os.path.join(ROOT, "scripts", name), *args],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=ENV,
+    )
     assert out.returncode == 0, out.stderr[-3000:]
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -26,8 +31,21 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
     from progressive_avatars.core.stream import format as stream
     from progressive_avatars.core.avatar.avatar import Avatar
 
-    res = run_script("export.py", "--run", tiny_run, "--stream", str(tmp_path / "a.pavs"), "--ply", str(tmp_path / "f.ply"),
-                     "--budget", "100", "--frame", "0", "--max-views", "8")
+    res = run_script(
+        "export.py",
+        "--run",
+        tiny_run,
+        "--stream",
+        str(tmp_path / "a.pavs"),
+        "--ply",
+        str(tmp_path / "f.ply"),
+        "--budget",
+        "100",
+        "--frame",
+        "0",
+        "--max-views",
+        "8",
+    )
     trained = Avatar.load(os.path.join(tiny_run, "avatar.npz"))
     assert res["gaussians"] == trained.num_gaussians == res["ply_gaussians"]
     assert res["bytes"] == os.path.getsize(tmp_path / "a.pavs")
@@ -38,18 +56,53 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
     assert np.all(np.diff(decoded.forest.level) >= 0)
     assert np.array_equal(np.bincount(decoded.forest.level), trained.forest.level_counts())
     # Any budget exports: 0 % holds no whole Gaussian, so the PLY is empty but valid, with a note.
-    out = subprocess.run([sys.executable, os.path.join(ROOT, "scripts", "export.py"), "--run", tiny_run, "--stream",
-                          str(tmp_path / "b.pavs"), "--ply", str(tmp_path / "e.ply"), "--budget", "0", "--max-views", "8"],
-                         capture_output=True, text=True, timeout=600, env=ENV)
+    out = subprocess.run(
+        [
+            sys.executable,
+            os.path.join(ROOT, "scripts", "export.py"),
+            "--run",
+            tiny_run,
+            "--stream",
+            str(tmp_path / "b.pavs"),
+            "--ply",
+            str(tmp_path / "e.ply"),
+            "--budget",
+            "0",
+            "--max-views",
+            "8",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=ENV,
+    )
     assert out.returncode == 0 and "holds no whole Gaussian" in out.stderr, out.stderr[-2000:]
     assert json.loads(out.stdout.strip().splitlines()[-1])["ply_gaussians"] == 0
     assert PlyData.read(str(tmp_path / "e.ply"))["vertex"].count == 0
 
     report_dir = tmp_path / "report"
-    run_script("evaluate.py", "--run", tiny_run, "--out", str(report_dir), "--budgets", "25,100", "--views", "2",
-               "--curve-points", "3", "--no-progress", "--compare", f"again={tiny_run}",
-               "--compare", f"tiny_seed1={tiny_run}", "--name", "tiny",
-               "--about", "The tiny run against itself.")
+    run_script(
+        "evaluate.py",
+        "--run",
+        tiny_run,
+        "--out",
+        str(report_dir),
+        "--budgets",
+        "25,100",
+        "--views",
+        "2",
+        "--curve-points",
+        "3",
+        "--no-progress",
+        "--compare",
+        f"again={tiny_run}",
+        "--compare",
+        f"tiny_seed1={tiny_run}",
+        "--name",
+        "tiny",
+        "--about",
+        "The tiny run against itself.",
+    )
     rep = json.load(open(report_dir / "report.json"))
     assert set(rep["budgets"]) == {"25", "100"}
     full = rep["budgets"]["100"]
@@ -66,8 +119,14 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
     assert fh["header_bytes"] < fh["head_bytes"] < fh["base_bytes"] < rep["stream_bytes"]
     assert set(rep["ablations"]["root_order"]["orders"]) == {"forest", "spatial", "importance", "both", "auto"}
     assert "psnr_non_decreasing" in rep["done_when"]
-    for png in ("psnr_vs_bytes.png", "strip_nvs.png", "strip_nes.png", "depth.png", "psnr_vs_time.png",
-                "quality_vs_gaussians.png"):
+    for png in (
+        "psnr_vs_bytes.png",
+        "strip_nvs.png",
+        "strip_nes.png",
+        "depth.png",
+        "psnr_vs_time.png",
+        "quality_vs_gaussians.png",
+    ):
         assert (report_dir / png).stat().st_size > 1000, png
     md = (report_dir / "report.md").read_text()
     assert "| 100 % |" in md and "First whole head" in md
@@ -97,12 +156,25 @@ def test_seed_groups():
     from progressive_avatars.core.evaluate.plots import seed_group, seed_groups, seed_pairs
 
     def run(psnr, gaussians, prefixes):
-        return {"gaussians": gaussians, "nvs": {"psnr": psnr},
-                "level_prefixes_nvs": {k: {"psnr": v} for k, v in enumerate(prefixes)}}
+        return {
+            "gaussians": gaussians,
+            "nvs": {"psnr": psnr},
+            "level_prefixes_nvs": {k: {"psnr": v} for k, v in enumerate(prefixes)},
+        }
 
-    assert seed_group("a_w0.3_seed12") == "a_w0.3" and seed_group("seed1") == "seed1" and seed_group("a_seedx") == "a_seedx"
-    g = seed_groups({"a": run(24.0, 100, [20.0, 23.0, 24.0]), "a_seed1": run(25.0, 110, [21.0, 24.0]),
-                     "a_seed2": run(26.0, 120, [22.0, 25.0, 26.0]), "b": run(30.0, 5, [30.0])})
+    assert (
+        seed_group("a_w0.3_seed12") == "a_w0.3"
+        and seed_group("seed1") == "seed1"
+        and seed_group("a_seedx") == "a_seedx"
+    )
+    g = seed_groups(
+        {
+            "a": run(24.0, 100, [20.0, 23.0, 24.0]),
+            "a_seed1": run(25.0, 110, [21.0, 24.0]),
+            "a_seed2": run(26.0, 120, [22.0, 25.0, 26.0]),
+            "b": run(30.0, 5, [30.0]),
+        }
+    )
     assert set(g) == {"a"}  # a group needs two runs
     a = g["a"]
     assert a["n"] == 3 and a["runs"] == ["a", "a_seed1", "a_seed2"]
@@ -112,9 +184,15 @@ def test_seed_groups():
     assert a["level_prefixes_nvs_mean"] == pytest.approx({"0": 21.0, "1": 24.0})  # levels all three have
 
     # Paired differences: only over the seeds both groups have, and only with two or more.
-    runs = {"a": run(24.0, 1, [24.0]), "a_seed1": run(25.0, 1, [25.0]), "a_seed2": run(26.0, 1, [26.0]),
-            "b": run(23.5, 1, [23.5]), "b_seed2": run(25.0, 1, [25.0]),
-            "c": run(20.0, 1, [20.0]), "c_seed5": run(20.0, 1, [20.0])}
+    runs = {
+        "a": run(24.0, 1, [24.0]),
+        "a_seed1": run(25.0, 1, [25.0]),
+        "a_seed2": run(26.0, 1, [26.0]),
+        "b": run(23.5, 1, [23.5]),
+        "b_seed2": run(25.0, 1, [25.0]),
+        "c": run(20.0, 1, [20.0]),
+        "c_seed5": run(20.0, 1, [20.0]),
+    }
     pairs = seed_pairs(runs)
     assert [(p["a"], p["b"], p["seeds"]) for p in pairs] == [("a", "b", [0, 2])]
     assert pairs[0]["diffs"] == pytest.approx([0.5, 1.0]) and pairs[0]["mean"] == pytest.approx(0.75)
@@ -122,11 +200,26 @@ def test_seed_groups():
 
 
 def test_scripts_report_bad_input(tmp_path):
-    out = subprocess.run([sys.executable, os.path.join(ROOT, "scripts", "evaluate.py"), "--run", str(tmp_path),
-                          "--out", str(tmp_path / "r")], capture_output=True, text=True, env=ENV)
+    out = subprocess.run(
+        [
+            sys.executable,
+            os.path.join(ROOT, "scripts", "evaluate.py"),
+            "--run",
+            str(tmp_path),
+            "--out",
+            str(tmp_path / "r"),
+        ],
+        capture_output=True,
+        text=True,
+        env=ENV,
+    )
     assert out.returncode == 2 and "no trained avatar" in out.stderr
-    out = subprocess.run([sys.executable, os.path.join(ROOT, "scripts", "export.py"), "--run", str(tmp_path)],
-                         capture_output=True, text=True, env=ENV)
+    out = subprocess.run(
+        [sys.executable, os.path.join(ROOT, "scripts", "export.py"), "--run", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        env=ENV,
+    )
     assert out.returncode != 0 and "nothing to do" in out.stderr
 
 
@@ -140,8 +233,18 @@ def test_report_is_a_library_function(tiny_run, tmp_path):
         build_report(ReportOptions(run=tiny_run, out=str(tmp_path / "bad"), budgets=(0, 100)))
     out = tmp_path / "lib"
     out.mkdir()
-    rep = build_report(ReportOptions(run=tiny_run, out=str(out), budgets=(100,), strips=(100,), views=1,
-                                     curve_points=2, curve_views=1, progress=False))
+    rep = build_report(
+        ReportOptions(
+            run=tiny_run,
+            out=str(out),
+            budgets=(100,),
+            strips=(100,),
+            views=1,
+            curve_points=2,
+            curve_views=1,
+            progress=False,
+        )
+    )
     assert rep["budgets"]["100"]["gaussians"] == rep["gaussians"] > 0
     assert json.load(open(out / "report.json"))["budgets"]["100"]["gaussians"] == rep["gaussians"]
     assert (out / "report.md").read_text().startswith("#")

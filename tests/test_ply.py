@@ -19,8 +19,14 @@ def gaussians():
     verts, faces = sphere_mesh(5, 8)
     forest = random_forest(faces, rng, depth=2)
     N = forest.num_faces
-    av = Avatar(forest, rng.normal(0, 0.3, (N, 3)), rng.normal(-1, 0.3, (N, 3)), rng.normal(size=(N, 4)),
-                rng.normal(0, 2, N), rng.normal(0, 0.8, (N, 3)))
+    av = Avatar(
+        forest,
+        rng.normal(0, 0.3, (N, 3)),
+        rng.normal(-1, 0.3, (N, 3)),
+        rng.normal(size=(N, 4)),
+        rng.normal(0, 2, N),
+        rng.normal(0, 0.8, (N, 3)),
+    )
     return av.gaussians(verts)
 
 
@@ -59,8 +65,13 @@ def test_read_ply_roundtrip(tmp_path, gaussians, monkeypatch):
 
 
 def test_extreme_values_stay_finite(tmp_path):
-    g = {"means": np.zeros((2, 3)), "quats": np.zeros((2, 4)), "scales": np.array([[0.0, 1, 1], [1, 1, 1]]),
-         "opacities": np.array([0.0, 1.0]), "colors": np.array([[0, 0, 0], [1, 1, 1.0]])}
+    g = {
+        "means": np.zeros((2, 3)),
+        "quats": np.zeros((2, 4)),
+        "scales": np.array([[0.0, 1, 1], [1, 1, 1]]),
+        "opacities": np.array([0.0, 1.0]),
+        "colors": np.array([[0, 0, 0], [1, 1, 1.0]]),
+    }
     p = tmp_path / "e.ply"
     P.write_ply(p, g)
     back = P.read_ply(p)

@@ -72,10 +72,17 @@ def test_every_broken_file_reported_before_training(data_copy, tmp_path):
     ds = Dataset(data_copy, "train")  # indexing still works: files are only checked lazily
     problems = dataset_problems(ds, progress=False)
     text = "\n".join(problems)
-    for needle in (f"{img[0]}: image: size 13x20", f"{img[1]}: image: cannot be decoded", f"{m2}: mask: size 10x10",
-                   f"{data_copy / meshes[0]}", "NaN", f"{data_copy / meshes[2]}: file not found",
-                   "frames[3]: transform_matrix", "frames[4]: principal point cx is nan",
-                   "frames[5].timestep_index is"):
+    for needle in (
+        f"{img[0]}: image: size 13x20",
+        f"{img[1]}: image: cannot be decoded",
+        f"{m2}: mask: size 10x10",
+        f"{data_copy / meshes[0]}",
+        "NaN",
+        f"{data_copy / meshes[2]}: file not found",
+        "frames[3]: transform_matrix",
+        "frames[4]: principal point cx is nan",
+        "frames[5].timestep_index is",
+    ):
         assert needle in text, (needle, text)
     assert len(problems) == 9, text
     # The trainer refuses before its first iteration, naming every file in one message.
@@ -164,21 +171,25 @@ def test_scale_overflow_stops_training_with_the_trainers_message(tiny_dataset, t
     tr = Trainer(tiny_dataset, str(tmp_path / "r"), config_for("tiny", eval_every=1000), check_data=False)
     with torch.no_grad():
         tr.model.params["d_log_scale"][3, 0] = 95.0  # exp overflows float32
-    with pytest.raises(FloatingPointError, match="Gaussian scales became NaN/inf; training stopped, last checkpoint kept"):
+    with pytest.raises(
+        FloatingPointError, match="Gaussian scales became NaN/inf; training stopped, last checkpoint kept"
+    ):
         tr.step()
 
 
 @pytest.mark.slow  # a training run or a subprocess
 def test_train_script_reports_disk_full(tiny_dataset, tmp_path):
-    code = ("import errno, sys; sys.argv[0] = 'train.py'; sys.path.insert(0, %r);"
-            "import progressive_avatars.core.io.atomic as A;"
-            "real = A.atomic_savez\n"
-            "def full(path, **a):\n"
-            "    raise OSError(errno.ENOSPC, 'No space left on device', str(path))\n"
-            "A.atomic_savez = full\n"
-            "import progressive_avatars.core.train as T; T.atomic_savez = full\n"
-            "import train; sys.exit(train.main(['--data', %r, '--out', %r, '--preset', 'tiny', '--iterations', '2',"
-            " '--no-progress']))") % (os.path.join(ROOT, "scripts"), tiny_dataset, str(tmp_path / "r"))
+    code = (
+        "import errno, sys; sys.argv[0] = 'train.py'; sys.path.insert(0, %r);"
+        "import progressive_avatars.core.io.atomic as A;"
+        "real = A.atomic_savez\n"
+        "def full(path, **a):\n"
+        "    raise OSError(errno.ENOSPC, 'No space left on device', str(path))\n"
+        "A.atomic_savez = full\n"
+        "import progressive_avatars.core.train as T; T.atomic_savez = full\n"
+        "import train; sys.exit(train.main(['--data', %r, '--out', %r, '--preset', 'tiny', '--iterations', '2',"
+        " '--no-progress']))"
+    ) % (os.path.join(ROOT, "scripts"), tiny_dataset, str(tmp_path / "r"))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 3, out.stderr
     assert "error: disk full: No space left on device" in out.stderr and "last checkpoint" in out.stderr
@@ -188,8 +199,21 @@ def test_train_script_reports_disk_full(tiny_dataset, tmp_path):
 # -- export -----------------------------------------------------------------------------
 @pytest.mark.parametrize("budget", ["150", "-1", "nan"])  # 0 writes an empty PLY (tests/test_pipeline.py)
 def test_export_budget_refused_clearly(tiny_run, tmp_path, budget):
-    out = subprocess.run([sys.executable, os.path.join(ROOT, "scripts", "export.py"), "--run", tiny_run, "--ply",
-                          str(tmp_path / "x.ply"), "--budget", budget], capture_output=True, text=True, timeout=300)
+    out = subprocess.run(
+        [
+            sys.executable,
+            os.path.join(ROOT, "scripts", "export.py"),
+            "--run",
+            tiny_run,
+            "--ply",
+            str(tmp_path / "x.ply"),
+            "--budget",
+            budget,
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert out.returncode == 2 and "--budget" in out.stderr and "Traceback" not in out.stderr, out.stderr
 
 
@@ -248,8 +272,14 @@ def test_numpy_evaluator_matches_torch_at_absurd_unit_scales(unit):
     verts, faces = sphere_mesh(8, 10)
     forest = random_forest(faces, rng, depth=2, frac=0.5)
     N = forest.num_faces
-    av = Avatar(forest, rng.normal(0, .3, (N, 3)), rng.normal(-1, .5, (N, 3)), rng.normal(size=(N, 4)),
-                rng.normal(size=N), rng.normal(size=(N, 3)))
+    av = Avatar(
+        forest,
+        rng.normal(0, 0.3, (N, 3)),
+        rng.normal(-1, 0.5, (N, 3)),
+        rng.normal(size=(N, 4)),
+        rng.normal(size=N),
+        rng.normal(size=(N, 3)),
+    )
     m1, q1, s1 = [x.copy() for x in av.evaluator()(verts)]
     mk, qk, sk = [x.copy() for x in av.evaluator()(verts * unit)]
     np.testing.assert_allclose(qk, q1, atol=2e-5)

@@ -1,7 +1,6 @@
 """The differentiable rasteriser (core/render/rasterize.py) against the dense float64 reference
 (core/render/reference.py), finite differences, and itself (contrib, means2d, depth)."""
 
-
 import numpy as np
 import pytest
 import torch
@@ -86,8 +85,7 @@ def test_forward_matches_reference(dtype):
     assert isinstance(out, RenderOutput)
     assert out.image.shape == (H, W, 3) and out.image.dtype == dtype
     assert out.alpha.shape == (H, W) and out.contrib.shape == (len(params[0]),)
-    ref_img, ref_alpha, ref_contrib = render_reference(*[p.double() for p in params[:5]], cam,
-                                                       params[5].double())
+    ref_img, ref_alpha, ref_contrib = render_reference(*[p.double() for p in params[:5]], cam, params[5].double())
     assert float((out.image.double() - ref_img).abs().max()) <= 1e-4
     assert float((out.alpha.double() - ref_alpha).abs().max()) <= 1e-4
     assert torch.allclose(out.contrib.double(), ref_contrib, rtol=1e-4, atol=1e-4)
@@ -177,9 +175,17 @@ def test_early_termination_matches_reference():
     n = 40
     z = np.linspace(1.0, 2.0, n)
     pc = np.stack([rng.uniform(-0.05, 0.05, n) * z, rng.uniform(-0.05, 0.05, n) * z, z], 1)
-    params = [torch.tensor(x) for x in (world_from_camera(cam, pc), rng.normal(size=(n, 4)),
-                                         rng.uniform(0.1, 0.2, (n, 3)) * z[:, None], rng.uniform(0.6, 0.95, n),
-                                         rng.uniform(0, 1, (n, 3)), np.array([0.3, 0.3, 0.3]))]
+    params = [
+        torch.tensor(x)
+        for x in (
+            world_from_camera(cam, pc),
+            rng.normal(size=(n, 4)),
+            rng.uniform(0.1, 0.2, (n, 3)) * z[:, None],
+            rng.uniform(0.6, 0.95, n),
+            rng.uniform(0, 1, (n, 3)),
+            np.array([0.3, 0.3, 0.3]),
+        )
+    ]
     wi, wa = loss_weights(7)
     ours = leaves(params)
     out = render(*ours[:5], cam, ours[5])
@@ -284,23 +290,30 @@ def _bad(**changes):
     return kw
 
 
-@pytest.mark.parametrize("changes, message", [
-    (lambda kw: {"means": kw["means"].clone().index_fill_(0, torch.tensor([1]), float("nan"))},
-     "means contain NaN or inf"),
-    (lambda kw: {"means": kw["means"].clone().index_fill_(0, torch.tensor([2]), float("inf"))},
-     "means contain NaN or inf"),
-    (lambda kw: {"scales": kw["scales"].clone().index_fill_(0, torch.tensor([0]), 0.0)}, "scales must be"),
-    (lambda kw: {"scales": -kw["scales"]}, "scales must be"),
-    (lambda kw: {"opacities": kw["opacities"] + 1.0}, "opacities must be"),
-    (lambda kw: {"opacities": -kw["opacities"]}, "opacities must be"),
-    (lambda kw: {"quats": torch.zeros_like(kw["quats"])}, "quats must have non-zero norm"),
-    (lambda kw: {"quats": kw["quats"][:-1]}, "quats must have shape"),
-    (lambda kw: {"colors": kw["colors"][:-1]}, "colors must have shape"),
-    (lambda kw: {"means": kw["means"][:, :2]}, "means must have shape"),
-    (lambda kw: {"opacities": kw["opacities"][:, None]}, "opacities must have shape"),
-    (lambda kw: {"background": torch.zeros(4, dtype=torch.float64)}, "background must have shape"),
-    (lambda kw: {"camera": "not a camera"}, "camera must be"),
-])
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        (
+            lambda kw: {"means": kw["means"].clone().index_fill_(0, torch.tensor([1]), float("nan"))},
+            "means contain NaN or inf",
+        ),
+        (
+            lambda kw: {"means": kw["means"].clone().index_fill_(0, torch.tensor([2]), float("inf"))},
+            "means contain NaN or inf",
+        ),
+        (lambda kw: {"scales": kw["scales"].clone().index_fill_(0, torch.tensor([0]), 0.0)}, "scales must be"),
+        (lambda kw: {"scales": -kw["scales"]}, "scales must be"),
+        (lambda kw: {"opacities": kw["opacities"] + 1.0}, "opacities must be"),
+        (lambda kw: {"opacities": -kw["opacities"]}, "opacities must be"),
+        (lambda kw: {"quats": torch.zeros_like(kw["quats"])}, "quats must have non-zero norm"),
+        (lambda kw: {"quats": kw["quats"][:-1]}, "quats must have shape"),
+        (lambda kw: {"colors": kw["colors"][:-1]}, "colors must have shape"),
+        (lambda kw: {"means": kw["means"][:, :2]}, "means must have shape"),
+        (lambda kw: {"opacities": kw["opacities"][:, None]}, "opacities must have shape"),
+        (lambda kw: {"background": torch.zeros(4, dtype=torch.float64)}, "background must have shape"),
+        (lambda kw: {"camera": "not a camera"}, "camera must be"),
+    ],
+)
 def test_bad_input_raises_clear_value_error(changes, message):
     kw = _bad()
     kw.update(changes(kw))

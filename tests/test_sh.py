@@ -16,7 +16,7 @@ from tests.helpers import random_forest, sphere_mesh
 def fibonacci_sphere(n):
     i = np.arange(n) + 0.5
     z = 1 - 2 * i / n
-    phi = np.pi * (1 + 5 ** 0.5) * i
+    phi = np.pi * (1 + 5**0.5) * i
     r = np.sqrt(1 - z * z)
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], 1)
 
@@ -69,8 +69,15 @@ def test_avatar_colours_depend_on_the_view_and_survive_save(tmp_path):
     back = Avatar.load(tmp_path / "a.npz")
     np.testing.assert_array_equal(back.f_rest, av.f_rest)
     with pytest.raises(ValueError, match="not a whole degree"):
-        Avatar(av.forest, av.d_mu, av.d_log_scale, av.d_rot, av.opacity_logit, av.f_dc,
-               f_rest=np.zeros((av.num_gaussians, 4, 3)))
+        Avatar(
+            av.forest,
+            av.d_mu,
+            av.d_log_scale,
+            av.d_rot,
+            av.opacity_logit,
+            av.f_dc,
+            f_rest=np.zeros((av.num_gaussians, 4, 3)),
+        )
 
 
 def test_ply_carries_every_band_in_3dgs_order(tmp_path):
@@ -127,18 +134,23 @@ def test_training_with_sh_bands(tiny_dataset, tmp_path):
 
     run = str(tmp_path / "run")
     args = ["--run", run, "--stream", str(tmp_path / "s.pavs"), "--ply", str(tmp_path / "f.ply"), "--max-views", "4"]
-    refused = subprocess.run([sys.executable, f"{ROOT}/scripts/export.py", *args], capture_output=True, text=True,
-                             timeout=600, env=ENV)
+    refused = subprocess.run(
+        [sys.executable, f"{ROOT}/scripts/export.py", *args], capture_output=True, text=True, timeout=600, env=ENV
+    )
     assert refused.returncode == 2 and "--drop-sh" in refused.stderr and not (tmp_path / "s.pavs").exists()
     res = run_script("export.py", *args, "--drop-sh")
     assert res["ply_gaussians"] == av.num_gaussians
     vert = PlyData.read(str(tmp_path / "f.ply"))["vertex"]
     K = av.f_rest.shape[1]
-    assert K == 8 and [n for n in vert.data.dtype.names if n.startswith("f_rest_")] == [f"f_rest_{j}" for j in range(3 * K)]
+    assert K == 8 and [n for n in vert.data.dtype.names if n.startswith("f_rest_")] == [
+        f"f_rest_{j}" for j in range(3 * K)
+    ]
     rest = np.stack([np.stack([vert[f"f_rest_{c * K + k}"] for c in range(3)], 1) for k in range(K)], 1)
+
     # Same rows as the trained avatar's bands, in stream order (compare as sorted row sets).
     def rows(a):
         a = a.reshape(len(a), -1)
         return a[np.lexsort(a.T[::-1])]
+
     np.testing.assert_array_equal(rows(rest), rows(av.f_rest))
     np.testing.assert_array_equal(read_ply(tmp_path / "f.ply")["sh_rest"], rest)

@@ -22,8 +22,15 @@ def make_avatar(seed=0, n_lat=4, n_lon=6, depth=3, frac=0.5, coarse=False):
     verts, faces = sphere_mesh(n_lat, n_lon)
     forest = random_forest(faces, rng, depth=depth, frac=frac, coarse_from=verts if coarse else None)
     N = forest.num_faces
-    av = Avatar(forest, rng.normal(0, 0.4, (N, 3)), rng.normal(-1.0, 0.6, (N, 3)), rng.normal(size=(N, 4)),
-                rng.normal(0, 2.0, N), rng.normal(0, 1.0, (N, 3)), meta={"name": "test", "stream": "stale"})
+    av = Avatar(
+        forest,
+        rng.normal(0, 0.4, (N, 3)),
+        rng.normal(-1.0, 0.6, (N, 3)),
+        rng.normal(size=(N, 4)),
+        rng.normal(0, 2.0, N),
+        rng.normal(0, 1.0, (N, 3)),
+        meta={"name": "test", "stream": "stale"},
+    )
     return verts, av, rng.random(N)
 
 
@@ -62,8 +69,16 @@ def test_format_constants_match_document():
     offs = {n: S.QUANT_DTYPE.fields[n][1] for n in S.QUANT_DTYPE.names}
     assert offs == {"geo": 0, "rot": 8, "parent": 12, "ls": 15, "opa": 18, "col": 19, "crc": 22}
     offs = {n: S.LOSSLESS_DTYPE.fields[n][1] for n in S.LOSSLESS_DTYPE.names}
-    assert offs == {"link": 0, "split_logits": 4, "d_mu": 16, "d_log_scale": 28, "d_rot": 40,
-                    "opacity_logit": 56, "f_dc": 60, "crc": 72}
+    assert offs == {
+        "link": 0,
+        "split_logits": 4,
+        "d_mu": 16,
+        "d_log_scale": 28,
+        "d_rot": 40,
+        "opacity_logit": 56,
+        "f_dc": 60,
+        "crc": 72,
+    }
     assert S._crc8_bytewise(b"123456789") == 0xF4 and "0xF4" in doc
     assert S.crc8(np.frombuffer(b"123456789", np.uint8))[0] == 0xF4
     assert zlib.crc32(b"123456789") == 0xCBF43926 and "0xCBF43926" in doc
@@ -71,19 +86,27 @@ def test_format_constants_match_document():
     assert [S._crc8_bytewise(r.tobytes()) for r in rows] == S.crc8(rows).tolist()
     # version 3: the CRC-8 of u32le(record index) || record bytes
     first = 0x01FFFFF0
-    assert [S._crc8_bytewise(struct.pack("<I", first + i) + r.tobytes()) for i, r in enumerate(rows)] == \
-        S.crc8_indexed(rows, first).tolist()
+    assert [S._crc8_bytewise(struct.pack("<I", first + i) + r.tobytes()) for i, r in enumerate(rows)] == S.crc8_indexed(
+        rows, first
+    ).tolist()
 
 
 def test_header_layout_is_the_documented_one(small):
     _, av, _, data, _ = small
     magic, version, flags, hsize, N, F0, R, B, L, K, thash, M, T, CL = struct.unpack_from("<8sHHIIIHHHH16sIII", data)
     f = av.forest
-    assert (magic, version, flags, R, B, N, F0) == (S.MAGIC, 3, S.FLAG_TEMPLATE, 23, 8, av.num_gaussians,
-                                                    len(f.template_faces))
+    assert (magic, version, flags, R, B, N, F0) == (
+        S.MAGIC,
+        3,
+        S.FLAG_TEMPLATE,
+        23,
+        8,
+        av.num_gaussians,
+        len(f.template_faces),
+    )
     assert K == f.num_coarse_levels == 2 and CL > 0
     pos = 60 + 4 * L + 104  # the coarse table: zlib of int32 columns (a deltas, b - a, c - a)
-    cols = np.frombuffer(zlib.decompress(data[pos: pos + CL]), "<i4").reshape(3, -1)
+    cols = np.frombuffer(zlib.decompress(data[pos : pos + CL]), "<i4").reshape(3, -1)
     a = np.cumsum(cols[0])
     table = np.stack([a, a + cols[1], a + cols[2]], 1)
     assert sorted(map(tuple, table)) == sorted(map(tuple, f.coarse_faces))
@@ -94,7 +117,7 @@ def test_header_layout_is_the_documented_one(small):
     info = S.read_header(data)
     assert len(data) == info.total_bytes == hsize + N * 23 + 4 * -(-N // B)
     # first block CRC as documented: crc32(u32 header_crc || u32 0 || records)
-    blk = data[hsize: hsize + 8 * 23]
+    blk = data[hsize : hsize + 8 * 23]
     want = zlib.crc32(struct.pack("<II", info.header_crc, 0) + blk)
     assert struct.unpack_from("<I", data, hsize + 8 * 23)[0] == want
     assert info.level_counts == tuple(av.forest.level_counts())
@@ -102,11 +125,13 @@ def test_header_layout_is_the_documented_one(small):
     # the root records name their rows of [coarse table; template], each level its own rows
     roots = info.num_roots
     assert roots == f.num_roots == len(f.coarse_faces) + F0
-    refs = [int.from_bytes(data[info.record_offset(i) + 12: info.record_offset(i) + 15], "little") for i in range(roots)]
+    refs = [
+        int.from_bytes(data[info.record_offset(i) + 12 : info.record_offset(i) + 15], "little") for i in range(roots)
+    ]
     assert sorted(refs) == list(range(roots))
     starts = np.concatenate([[0], np.cumsum(info.level_counts)])
     for lv in range(K + 1):
-        assert sorted(refs[starts[lv]: starts[lv + 1]]) == list(range(starts[lv], starts[lv + 1]))
+        assert sorted(refs[starts[lv] : starts[lv + 1]]) == list(range(starts[lv], starts[lv + 1]))
     full = S.read_stream(data)
     rows = np.concatenate([table, f.template_faces])
     np.testing.assert_array_equal(full.forest.root_faces, rows[refs])
@@ -127,7 +152,7 @@ def test_stream_order_levels_then_importance():
         key = list(zip(-imp[sel], sel))
         assert key == sorted(key)
     f2 = f.reorder(order)  # parents before children, roots first
-    assert np.all(f2.parent[f2.num_roots:] < np.arange(f2.num_roots, f2.num_faces))
+    assert np.all(f2.parent[f2.num_roots :] < np.arange(f2.num_roots, f2.num_faces))
     # None: index order within each level
     o = S.stream_order(f)
     assert np.array_equal(o, np.lexsort((np.arange(f.num_faces), f.level)))
@@ -162,10 +187,16 @@ def test_quantised_roundtrip_error_bounds(tmp_path):
     o = info.order
     ref = Avatar(av.forest.reorder(o), *(getattr(av, n)[o] for n in PARAMS))
     q = info.quant.astype(np.float64)
-    assert len(q) == 26 and np.array_equal(q[:18].reshape(3, 2, 3), np.stack([
-        [S._f32_floor(ref.d_mu.min(0)), S._f32_ceil(ref.d_mu.max(0))],
-        [S._f32_floor(ref.d_log_scale.min(0)), S._f32_ceil(ref.d_log_scale.max(0))],
-        q[12:18].reshape(2, 3)]))
+    assert len(q) == 26 and np.array_equal(
+        q[:18].reshape(3, 2, 3),
+        np.stack(
+            [
+                [S._f32_floor(ref.d_mu.min(0)), S._f32_ceil(ref.d_mu.max(0))],
+                [S._f32_floor(ref.d_log_scale.min(0)), S._f32_ceil(ref.d_log_scale.max(0))],
+                q[12:18].reshape(2, 3),
+            ]
+        ),
+    )
     q = q[:18].reshape(3, 2, 3)
     step_mu = (q[0, 1] - q[0, 0]) / 4095
     step_ls = (q[1, 1] - q[1, 0]) / 255
@@ -205,13 +236,16 @@ def test_quantiser_edge_values():
     rot[1] = [0, 0, 0, -2]  # w = 0: kept as it is
     rot[2] = [0.5, 0.5, 0.5, 0.5]  # w half-way between two codes
     rot[3] = [-1.2, 0, 1.6, 0]  # w < 0: coded as -q, the same rotation
-    av = Avatar(forest, np.zeros((N, 3)), np.full((N, 3), -2.0), rot, np.r_[np.full(N - 1, 30.0), -30.0],
-                np.full((N, 3), -5.0))  # constant fields: zero-width ranges, colours below 0
+    av = Avatar(
+        forest, np.zeros((N, 3)), np.full((N, 3), -2.0), rot, np.r_[np.full(N - 1, 30.0), -30.0], np.full((N, 3), -5.0)
+    )  # constant fields: zero-width ranges, colours below 0
     out = S.read_stream(S.encode_stream(av))
     assert np.all(np.isfinite(out.forest.split_logits))
     assert np.allclose(out.forest.barycentrics(), av.forest.barycentrics(), atol=1e-6)
     assert np.all(out.d_mu == 0) and np.all(out.d_log_scale == -2.0)
-    assert np.allclose(out.d_rot[0], [1, 0, 0, 0], atol=1e-3) and np.allclose(np.abs(out.d_rot[1]), [0, 0, 0, 1], atol=1e-3)
+    assert np.allclose(out.d_rot[0], [1, 0, 0, 0], atol=1e-3) and np.allclose(
+        np.abs(out.d_rot[1]), [0, 0, 0, 1], atol=1e-3
+    )
     assert np.allclose(out.d_rot[2], 0.5, atol=1 / 510 + 1e-6)
     assert np.allclose(out.d_rot[3], [0.6, 0, -0.8, 0], atol=2 / 510 + 1e-6)
     assert np.all(sh_to_rgb(out.f_dc) == 0)
@@ -236,7 +270,7 @@ def _slow_decode(rec: bytes, quant, version=2, root=None) -> dict:
 
     mu = [affine((geo >> (12 * k)) & 0xFFF, f32(q[0, 0, k]), f32((q[0, 1, k] - q[0, 0, k]) / 4095)) for k in range(3)]
     b0, b1 = (geo >> 36) & 0xFFF, (geo >> 48) & 0xFFF
-    split = [f32(math.log(max(b, 2.0 ** -20) / 4095)) for b in (b0, b1, 4095 - b0 - b1)]
+    split = [f32(math.log(max(b, 2.0**-20) / 4095)) for b in (b0, b1, 4095 - b0 - b1)]
     if version == 1:  # smallest three, 10 bits each; the largest from the unit norm
         v = [affine((rot >> (10 * k)) & 0x3FF, f32(-1 / math.sqrt(2)), f32(math.sqrt(2) / 1023)) for k in range(3)]
         s = f32(f32(f32(v[0] * v[0]) + f32(v[1] * v[1])) + f32(v[2] * v[2]))
@@ -247,13 +281,22 @@ def _slow_decode(rec: bytes, quant, version=2, root=None) -> dict:
         d_rot = [affine(rec[8 + k], f32(quant[18 + k]), f32((quant[22 + k] - quant[18 + k]) / 255)) for k in range(4)]
     ls = [affine(rec[15 + k], f32(q[1, 0, k]), f32((q[1, 1, k] - q[1, 0, k]) / 255)) for k in range(3)]
     alpha = (rec[18] + 0.5) / 256
-    fdc = [affine(rec[19 + k], f32((q[2, 0, k] - 0.5) / SH_C0), f32((q[2, 1, k] - q[2, 0, k]) / (255 * SH_C0)))
-           for k in range(3)]
+    fdc = [
+        affine(rec[19 + k], f32((q[2, 0, k] - 0.5) / SH_C0), f32((q[2, 1, k] - q[2, 0, k]) / (255 * SH_C0)))
+        for k in range(3)
+    ]
     if version < 3:
         root = parent == 0xFFFFFF
-    return {"d_mu": mu, "split_logits": split, "d_rot": d_rot, "d_log_scale": ls,
-            "opacity_logit": [f32(math.log(alpha / (1 - alpha)))], "f_dc": fdc,
-            "parent": [-1 if root else parent], "slot": [-1 if root else (geo >> 60) & 3]}
+    return {
+        "d_mu": mu,
+        "split_logits": split,
+        "d_rot": d_rot,
+        "d_log_scale": ls,
+        "opacity_logit": [f32(math.log(alpha / (1 - alpha)))],
+        "f_dc": fdc,
+        "parent": [-1 if root else parent],
+        "slot": [-1 if root else (geo >> 60) & 3],
+    }
 
 
 def test_decoded_records_match_an_independent_slow_decode():
@@ -263,7 +306,7 @@ def test_decoded_records_match_an_independent_slow_decode():
     out = S.read_stream(data)
     r = S.StreamReader()
     for i in range(0, len(data), 97):
-        r.feed(data[i: i + 97])
+        r.feed(data[i : i + 97])
     chunked = r.avatar()
     got = {**fields(out), **{n: getattr(out, n) for n in PARAMS}}
     got_c = {**fields(chunked), **{n: getattr(chunked, n) for n in PARAMS}}
@@ -282,7 +325,7 @@ def _assert_slow_decode(data, info, decoded):
     nroots = info.num_roots if info.version >= 3 else info.num_template_faces
     for i in range(info.num_records):
         o = info.record_offset(i)
-        rec = data[o: o + 23]
+        rec = data[o : o + 23]
         if info.version >= 3:  # the record CRC-8 covers u32le(i) first
             assert S._crc8_bytewise(struct.pack("<I", i) + rec[:22]) == rec[22]
         want = _slow_decode(rec, info.quant, info.version, root=i < nroots)
@@ -304,11 +347,13 @@ def test_version_1_streams_still_read():
     out = S.read_stream(data)
     r = S.StreamReader()
     for i in range(0, len(data), 101):
-        r.feed(data[i: i + 101])
+        r.feed(data[i : i + 101])
     decoded = [{**fields(a), **{n: getattr(a, n) for n in PARAMS}} for a in (out, r.avatar())]
     _assert_slow_decode(data, info, decoded)
-    bigs = {int.from_bytes(data[info.record_offset(i) + 8: info.record_offset(i) + 12], "little") >> 30
-            for i in range(info.num_records)}
+    bigs = {
+        int.from_bytes(data[info.record_offset(i) + 8 : info.record_offset(i) + 12], "little") >> 30
+        for i in range(info.num_records)
+    }
     assert bigs == {0, 1, 2, 3}  # every placement of the largest rotation component exercised
     assert np.allclose(np.linalg.norm(out.d_rot, axis=1), 1, atol=1e-5)
 
@@ -323,7 +368,7 @@ def test_version_2_streams_still_read_bit_for_bit():
     assert (info.version, info.num_records, info.num_coarse_levels) == (2, 267, 0)
     r = S.StreamReader()
     for i in range(0, len(data), 61):
-        r.feed(data[i: i + 61])
+        r.feed(data[i : i + 61])
     for got in (S.read_stream(data), r.avatar()):
         f = got.forest
         for name in ("parent", "slot", "split_logits", "template_faces") + PARAMS:
@@ -344,12 +389,20 @@ def test_trusted_forest_and_avatar_equal_the_validated_constructors():
     r = S.StreamReader()
     r.feed(data)
     ends = info.level_ends()
-    for n in sorted({1, ends[0] - 1, ends[0], ends[0] + 1, F0 - 1, F0, F0 + 1, ends[3], info.num_records - 1,
-                     info.num_records}):
+    for n in sorted(
+        {1, ends[0] - 1, ends[0], ends[0] + 1, F0 - 1, F0, F0 + 1, ends[3], info.num_records - 1, info.num_records}
+    ):
         a = r.avatar(n)
         f = a.forest
-        ref_f = Forest(f.template_faces, f.parent, f.slot, f.split_logits, coarse_faces=f.coarse_faces,
-                       coarse_counts=f.coarse_counts, root_ref=f.root_ref)
+        ref_f = Forest(
+            f.template_faces,
+            f.parent,
+            f.slot,
+            f.split_logits,
+            coarse_faces=f.coarse_faces,
+            coarse_counts=f.coarse_counts,
+            root_ref=f.root_ref,
+        )
         assert set(vars(a.forest)) == set(vars(ref_f))
         for k, v in vars(ref_f).items():
             got = getattr(a.forest, k)
@@ -408,7 +461,7 @@ def test_runs_and_growth_paths(monkeypatch, quantize):
     for step in (1, 23, 64, 1000):
         r = S.StreamReader()
         for i in range(0, len(data), step):
-            r.feed(data[i: i + step])
+            r.feed(data[i : i + step])
             if (i // step) % 17 == 0:
                 n = info.count_for_bytes(min(len(data), i + step))
                 assert r.num_gaussians == n
@@ -423,12 +476,12 @@ def test_duplicate_child_slot_names_the_second_record():
     lv1 = info.level_ends()[0]
     i, j = lv1 + 1, lv1 + 2  # two level-1 records: give j the (parent, slot) of i
     oi, oj = info.record_offset(i), info.record_offset(j)
-    ri, rj = bytearray(data[oi: oi + 23]), bytearray(data[oj: oj + 23])
+    ri, rj = bytearray(data[oi : oi + 23]), bytearray(data[oj : oj + 23])
     rj[12:15] = ri[12:15]
     geo = int.from_bytes(rj[0:8], "little") & ~(3 << 60) | (int.from_bytes(ri[0:8], "little") & (3 << 60))
     rj[0:8] = geo.to_bytes(8, "little")
     rj[22] = S._crc8_bytewise(struct.pack("<I", j) + bytes(rj[:22]))
-    data[oj: oj + 23] = rj
+    data[oj : oj + 23] = rj
     r = S.StreamReader()
     with pytest.raises(ValueError, match=f"record {j} reuses the child slot"):
         r.feed(bytes(data[: oj + 23]))  # j's block incomplete: its CRC-8 passes
@@ -455,7 +508,7 @@ def test_reader_random_chunks_matches_prefixes(small):
         pos = 0
         while pos < len(data):
             step = int(rng.integers(1, 3 if trial == 0 else 400))
-            got = r.feed(data[pos: pos + step])
+            got = r.feed(data[pos : pos + step])
             before = info.count_for_bytes(pos) if pos >= info.header_size else 0
             pos = min(len(data), pos + step)
             n = info.count_for_bytes(pos) if pos >= info.header_size else 0
@@ -551,19 +604,19 @@ def test_structurally_invalid_records_are_refused():
     info = S.read_header(bytes(data))
     i = info.num_roots + 2
     o = info.record_offset(i)
-    rec = bytearray(data[o: o + 23])
+    rec = bytearray(data[o : o + 23])
     rec[12:15] = (i + 5).to_bytes(3, "little")  # parent after the child
     rec[22] = S._crc8_bytewise(struct.pack("<I", i) + bytes(rec[:22]))
-    data[o: o + 23] = rec
+    data[o : o + 23] = rec
     with pytest.raises(ValueError, match=f"record {i} is structurally invalid"):
         S.read_stream(bytes(data[: o + 23]))  # block incomplete: CRC-8 passes, structure fails
     # lossless: the link's two slot bits can say 3, which no face has
     data = bytearray(S.encode_stream(av, imp, quantize=False, records_per_block=4))
     o = S.read_header(bytes(data)).record_offset(i)
-    rec = bytearray(data[o: o + 73])
+    rec = bytearray(data[o : o + 73])
     rec[3] |= 0xC0
     rec[72] = S._crc8_bytewise(struct.pack("<I", i) + bytes(rec[:72]))
-    data[o: o + 73] = rec
+    data[o : o + 73] = rec
     with pytest.raises(ValueError, match=f"record {i} is structurally invalid"):
         S.read_stream(bytes(data[: o + 73]))
 
@@ -675,8 +728,15 @@ def test_write_is_atomic(tmp_path, monkeypatch):
 
 # -- property test ------------------------------------------------------------------------
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(seed=st.integers(0, 10_000), depth=st.integers(0, 3), frac=st.floats(0.1, 1.0),
-       quantize=st.booleans(), block=st.integers(1, 40), cut=st.floats(0, 1), chunk=st.integers(1, 700))
+@given(
+    seed=st.integers(0, 10_000),
+    depth=st.integers(0, 3),
+    frac=st.floats(0.1, 1.0),
+    quantize=st.booleans(),
+    block=st.integers(1, 40),
+    cut=st.floats(0, 1),
+    chunk=st.integers(1, 700),
+)
 def test_property_random_forests(seed, depth, frac, quantize, block, cut, chunk):
     verts, av, imp = make_avatar(seed, n_lat=3, n_lon=4, depth=depth, frac=frac)
     data = S.encode_stream(av, imp, quantize=quantize, records_per_block=block)
@@ -691,7 +751,7 @@ def test_property_random_forests(seed, depth, frac, quantize, block, cut, chunk)
     assert_prefix(S.read_stream(data[:k]), full, n)
     r = S.StreamReader()
     for i in range(0, k, chunk):
-        r.feed(data[i: min(k, i + chunk)])
+        r.feed(data[i : min(k, i + chunk)])
     assert r.num_gaussians == n
     assert_prefix(r.avatar(), full, n)
     g = full.gaussians(verts)
@@ -703,10 +763,10 @@ def _set_record(data, info, i, edit):
     """Apply edit(bytearray record) to record i and re-seal its CRC-8 (as a buggy writer would)."""
     o = info.record_offset(i)
     R = info.record_size
-    rec = bytearray(data[o: o + R])
+    rec = bytearray(data[o : o + R])
     edit(rec)
     rec[R - 1] = S._crc8_bytewise(struct.pack("<I", i) + bytes(rec[: R - 1]))
-    data[o: o + R] = rec
+    data[o : o + R] = rec
 
 
 @pytest.mark.parametrize("quantize", [True, False])
@@ -734,11 +794,12 @@ def test_coarse_stream_roundtrip_and_every_record_boundary_renders(quantize):
     r = S.StreamReader()
     covered = []
     for i in range(len(data)):  # byte by byte: every record boundary
-        if r.feed(data[i: i + 1]):
+        if r.feed(data[i : i + 1]):
             a = r.avatar()
             g = a.gaussians(verts)
-            image, alpha, _ = render_numpy(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], cam,
-                                           np.zeros(3, np.float32))
+            image, alpha, _ = render_numpy(
+                g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], cam, np.zeros(3, np.float32)
+            )
             assert np.all(np.isfinite(image)) and a.num_gaussians == r.num_gaussians
             covered.append(a.num_gaussians)
     assert covered == list(range(1, info.num_records + 1))
@@ -756,7 +817,7 @@ def test_root_references_are_checked():
         S.read_stream(bytes(bad[: info.record_offset(3)]))
     # two roots naming the same row: the second is named
     bad = bytearray(data)
-    first = bytes(data[info.record_offset(0) + 12: info.record_offset(0) + 15])
+    first = bytes(data[info.record_offset(0) + 12 : info.record_offset(0) + 15])
     _set_record(bad, info, 2, lambda rec: rec.__setitem__(slice(12, 15), first))
     with pytest.raises(ValueError, match="record 2 names a root triangle an earlier record already holds"):
         S.read_stream(bytes(bad[: info.record_offset(3)]))
@@ -776,9 +837,9 @@ def test_swapped_records_are_caught_by_the_indexed_crc8():
     info = S.read_header(bytes(data))
     i, j = 5, 6
     oi, oj, R = info.record_offset(i), info.record_offset(j), info.record_size
-    ri, rj = bytes(data[oi: oi + R]), bytes(data[oj: oj + R])
+    ri, rj = bytes(data[oi : oi + R]), bytes(data[oj : oj + R])
     assert ri != rj
-    data[oi: oi + R], data[oj: oj + R] = rj, ri
+    data[oi : oi + R], data[oj : oj + R] = rj, ri
     with pytest.raises(ValueError, match=f"record {i} .*CRC-8"):
         S.read_stream(bytes(data[: info.record_offset(10)]))
 
@@ -792,9 +853,9 @@ def test_log_scale_ranges_are_clamped_and_refused():
     data = bytearray(S.encode_stream(av, imp))
     info = S.read_header(bytes(data))
     pos = 60 + 4 * info.num_levels + 4 * 9  # ls_hi[0]
-    data[pos: pos + 4] = struct.pack("<f", 1000.0)
+    data[pos : pos + 4] = struct.pack("<f", 1000.0)
     H = info.header_size
-    data[H - 4: H] = struct.pack("<I", zlib.crc32(bytes(data[: H - 4])))
+    data[H - 4 : H] = struct.pack("<I", zlib.crc32(bytes(data[: H - 4])))
     with pytest.raises(ValueError, match="log-scale beyond"):
         S.read_stream(bytes(data))
 
@@ -810,15 +871,25 @@ def test_cut_inside_every_level_with_trained_level_sizes():
     from progressive_avatars.core.avatar.forest import Forest
 
     cf, counts = coarse.build_coarse(verts, faces)
-    f = Forest(faces, coarse_faces=cf, coarse_counts=counts,
-               root_ref=np.concatenate([np.arange(len(cf)), len(cf) + coarse.spread_order(coarse.centroids(verts, faces))]))
+    f = Forest(
+        faces,
+        coarse_faces=cf,
+        coarse_counts=counts,
+        root_ref=np.concatenate([np.arange(len(cf)), len(cf) + coarse.spread_order(coarse.centroids(verts, faces))]),
+    )
     for frac in (0.5, 0.147, 0.3):  # the trained run's fraction of each level's faces that split
         leaves = f.splittable()
         leaves = leaves[f.level[leaves] == f.max_level]
         f.split(leaves[rng.random(len(leaves)) < frac])
     N = f.num_faces
-    av = Avatar(f, rng.normal(0, 0.3, (N, 3)), rng.normal(-1, 0.3, (N, 3)), rng.normal(size=(N, 4)),
-                rng.normal(0, 1, N), rng.normal(0, 1, (N, 3)))
+    av = Avatar(
+        f,
+        rng.normal(0, 0.3, (N, 3)),
+        rng.normal(-1, 0.3, (N, 3)),
+        rng.normal(size=(N, 4)),
+        rng.normal(0, 1, N),
+        rng.normal(0, 1, (N, 3)),
+    )
     data = S.encode_stream(av, rng.random(N), vertices=verts)
     info = S.read_header(data)
     ends = info.level_ends()
@@ -830,8 +901,9 @@ def test_cut_inside_every_level_with_trained_level_sizes():
         g = out.gaussians(verts)
         assert all(np.all(np.isfinite(v)) for v in g.values())
         lv = out.forest.level
-        assert np.all(np.diff(lv) >= 0) and np.array_equal(np.bincount(lv), np.minimum(np.diff(np.r_[0, ends]),
-                                                                                   np.maximum(n - starts, 0))[: lv.max() + 1])
+        assert np.all(np.diff(lv) >= 0) and np.array_equal(
+            np.bincount(lv), np.minimum(np.diff(np.r_[0, ends]), np.maximum(n - starts, 0))[: lv.max() + 1]
+        )
         d = out.forest.depth_per_root()
         assert np.count_nonzero(d >= 0) == int(np.clip(n - ends[1], 0, len(faces)))
 

@@ -24,7 +24,7 @@ def _face_regions(v, f):
     mouth = (z > 0.06) & (np.abs(y - S.MOUTH_Y) < 0.008) & (np.abs(x) < 0.022)
     back = (z < -0.05) & (y > -0.05)
     cheeks = (z > 0.03) & (np.abs(np.abs(x) - 0.05) < 0.01) & (np.abs(y + 0.025) < 0.01)
-    scalp = (y > 0.09)
+    scalp = y > 0.09
     return dict(eyes=eyes, mouth=mouth, back=back, cheeks=cheeks, scalp=scalp)
 
 
@@ -59,8 +59,13 @@ def test_rig_smooth_finite_and_jaw_opens(template):
     full = {"jaw": 1.0, "blink": 1.0, "smile": 1.0, "rotation": (25.0, 15.0, 10.0), "translation": (0.02, 0.01, 0.0)}
     prev = S.pose_head(v, S.neutral_params())
     for a in np.linspace(0.05, 1.0, 20):  # small parameter steps move vertices by small amounts
-        p = {"jaw": a, "blink": a, "smile": a, "rotation": tuple(a * np.array(full["rotation"])),
-             "translation": tuple(a * np.array(full["translation"]))}
+        p = {
+            "jaw": a,
+            "blink": a,
+            "smile": a,
+            "rotation": tuple(a * np.array(full["rotation"])),
+            "translation": tuple(a * np.array(full["translation"])),
+        }
         cur = S.pose_head(v, p)
         assert np.all(np.isfinite(cur))
         assert np.abs(cur - prev).max() < 0.012
@@ -95,8 +100,10 @@ def test_coarse_template_dataset_tracks_the_same_imaged_head(tmp_path):
     with np.load(tmp_path / "coarse" / "detail.npz") as z:
         assert z["face_detail"].shape == (1280,)
     for T in range(4):
-        with np.load(tmp_path / "coarse" / "meshes" / f"{T:05d}.npz") as c, \
-                np.load(tmp_path / "fine" / "meshes" / f"{T:05d}.npz") as f:
+        with (
+            np.load(tmp_path / "coarse" / "meshes" / f"{T:05d}.npz") as c,
+            np.load(tmp_path / "fine" / "meshes" / f"{T:05d}.npz") as f,
+        ):
             assert np.array_equal(c["vertices"], f["vertices"][:642])
     for name in sorted(os.listdir(tmp_path / "fine" / "images")):
         a = np.asarray(Image.open(tmp_path / "fine" / "images" / name))
@@ -143,7 +150,9 @@ def test_tiny_dataset(tmp_path):
         assert (fr["w"], fr["h"]) == (22, 32) and isinstance(fr["cx"], float)
         assert 0 < mask.mean() / 255 < 0.8 and len(np.unique(mask)) > 2  # anti-aliased coverage
         assert np.all(img[mask == 0] == 255)  # composited over white
-        cam = Camera.from_c2w_opengl(fr["transform_matrix"], fr["fl_x"], fr["fl_y"], fr["cx"], fr["cy"], fr["w"], fr["h"])
+        cam = Camera.from_c2w_opengl(
+            fr["transform_matrix"], fr["fl_x"], fr["fl_y"], fr["cx"], fr["cy"], fr["w"], fr["h"]
+        )
         with np.load(out / fr["mesh_path"]) as z:
             verts = z["vertices"]
         assert verts.shape == v.shape
@@ -187,7 +196,7 @@ def test_paper_head_flame_sized_uneven_and_finer_imaged_surface():
     for name in ("back", "scalp"):
         assert np.median(area[r[name]]) > 6.0 * fine, name
     assert np.degrees(mesh.face_angles.min()) > 2.0
-    off = np.linalg.norm(fv[:len(tv)] - tv, axis=1)
+    off = np.linalg.norm(fv[: len(tv)] - tv, axis=1)
     scalp = tv[:, 1] > 0.09
     cheeks = (tv[:, 2] > 0.03) & (np.abs(np.abs(tv[:, 0]) - 0.05) < 0.01) & (np.abs(tv[:, 1] + 0.025) < 0.01)
     assert 0.001 < np.median(off[scalp]) < 0.004  # hair volume the template lacks
@@ -196,6 +205,7 @@ def test_paper_head_flame_sized_uneven_and_finer_imaged_surface():
     # apart differ more than under the default albedo
     pts = fv[(fv[:, 1] > 0.09) | (fv[:, 1] < -0.212)].astype(np.float64)
     step = np.array([0.0003, 0.0002, 0.0001])
-    jump = {name: np.abs(fn(pts) - fn(pts + step)).mean() for name, fn in
-            (("paper", S.paper_albedo), ("default", S.albedo))}
+    jump = {
+        name: np.abs(fn(pts) - fn(pts + step)).mean() for name, fn in (("paper", S.paper_albedo), ("default", S.albedo))
+    }
     assert jump["paper"] > 1.5 * jump["default"], jump

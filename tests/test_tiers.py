@@ -92,3 +92,12 @@ def test_ruff_bans_training_imports_in_the_blender_tier(tmp_path):
     finally:
         os.remove(bad)
     assert caught.returncode != 0 and "torch" in caught.stdout, caught.stdout
+
+
+def test_code_is_formatted():
+    """ruff format (pyproject [tool.ruff], line length 120) leaves every file as it is."""
+    ruff = shutil.which("ruff") or os.path.join(os.path.dirname(sys.executable), "ruff")
+    if not os.path.exists(ruff):
+        pytest.skip("ruff is not installed")
+    out = subprocess.run([ruff, "format", "--check", "."], cwd=ROOT, capture_output=True, text=True)
+    assert out.returncode == 0, out.stdout + out.stderr

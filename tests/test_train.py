@@ -51,8 +51,19 @@ def test_kill_and_resume_matches_uninterrupted_run(tiny_dataset, tmp_path):
 def test_killed_process_resumes(tiny_dataset, tmp_path):
     """A real kill: the training process is terminated mid-run, then --resume finishes it."""
     run = tmp_path / "killed"
-    cmd = [sys.executable, os.path.join(ROOT, "scripts", "train.py"), "--data", tiny_dataset, "--out", str(run),
-           "--preset", "tiny", "--iterations", "40", "--no-progress"]
+    cmd = [
+        sys.executable,
+        os.path.join(ROOT, "scripts", "train.py"),
+        "--data",
+        tiny_dataset,
+        "--out",
+        str(run),
+        "--preset",
+        "tiny",
+        "--iterations",
+        "40",
+        "--no-progress",
+    ]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     ck = run / "checkpoint.npz"
     import time
@@ -88,8 +99,13 @@ def test_extreme_expressions_stay_finite(tiny_dataset, tmp_path):
     from progressive_avatars.core.io.data import Dataset
 
     iterations = 10 * config_for("tiny").iterations
-    tr = Trainer(tiny_dataset, str(tmp_path / "x"), config_for("tiny", iterations=iterations, eval_every=10**6,
-                                                               grow_every=50, grow_start=50, checkpoint_every=10**6))
+    tr = Trainer(
+        tiny_dataset,
+        str(tmp_path / "x"),
+        config_for(
+            "tiny", iterations=iterations, eval_every=10**6, grow_every=50, grow_start=50, checkpoint_every=10**6
+        ),
+    )
     rng = np.random.default_rng(0)
     base_getitem = Dataset.__getitem__
 
@@ -111,8 +127,20 @@ def test_extreme_expressions_stay_finite(tiny_dataset, tmp_path):
 def test_bad_preset_and_data_errors(tmp_path):
     with pytest.raises(ValueError, match="unknown preset"):
         config_for("huge")
-    out = subprocess.run([sys.executable, os.path.join(ROOT, "scripts", "train.py"), "--data", str(tmp_path / "nope"),
-                          "--out", str(tmp_path / "r"), "--preset", "tiny"], capture_output=True, text=True)
+    out = subprocess.run(
+        [
+            sys.executable,
+            os.path.join(ROOT, "scripts", "train.py"),
+            "--data",
+            str(tmp_path / "nope"),
+            "--out",
+            str(tmp_path / "r"),
+            "--preset",
+            "tiny",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert out.returncode == 2 and "error:" in out.stderr and "nope" in out.stderr
 
 
@@ -125,7 +153,9 @@ def test_level_weights_scale_each_level_loss(tiny_dataset, tmp_path):
         tr = Trainer(tiny_dataset, str(tmp_path / name), cfg)
         p = tr.model.params
         with torch.no_grad():
-            reg = (cfg.position_reg * losses.position_reg(p["d_mu"]) + cfg.scale_reg * losses.scale_reg(p["d_log_scale"])).item()
+            reg = (
+                cfg.position_reg * losses.position_reg(p["d_mu"]) + cfg.scale_reg * losses.scale_reg(p["d_log_scale"])
+            ).item()
         assert tr.model.forest.max_level == 0  # the first step supervises level 0 only
         return tr.step()["loss"], reg, tr.grad_sum.copy()
 
@@ -145,9 +175,22 @@ def test_level_weights_scale_each_level_loss(tiny_dataset, tmp_path):
     for bad in ((-1.0,), (0.0, 0.0), (float("nan"),)):
         with pytest.raises(ValueError, match="level weights"):
             config_for("tiny", level_weights=bad)
-    out = subprocess.run([sys.executable, os.path.join(ROOT, "scripts", "train.py"), "--data", tiny_dataset,
-                          "--out", str(tmp_path / "r"), "--preset", "tiny", "--level-weights", "1,-2"],
-                         capture_output=True, text=True)
+    out = subprocess.run(
+        [
+            sys.executable,
+            os.path.join(ROOT, "scripts", "train.py"),
+            "--data",
+            tiny_dataset,
+            "--out",
+            str(tmp_path / "r"),
+            "--preset",
+            "tiny",
+            "--level-weights",
+            "1,-2",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert out.returncode == 2 and "level weights" in out.stderr
 
 
@@ -162,8 +205,14 @@ def test_train_script_runs_as_blender_would(tiny_dataset, tmp_path):
         f" '--data', {tiny_dataset!r}, '--out', {str(run)!r}, '--preset', 'tiny', '--iterations', '12', '--no-progress']\n"
         f"runpy.run_path({os.path.join(ROOT, 'scripts', 'train.py')!r}, run_name='__main__')\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600,
-                         cwd=str(tmp_path), env=dict(os.environ, PYTHONPATH=""))
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=str(tmp_path),
+        env=dict(os.environ, PYTHONPATH=""),
+    )
     assert out.returncode == 0, out.stderr[-2000:]
     assert Avatar.load(run / "avatar.npz").num_gaussians > 0
 
@@ -184,7 +233,7 @@ def _flame_mode_dataset(tiny_dataset, tmp_path):
     model.save_npz(model_path)
     (root / "flame_param").mkdir()
     prm = random_params(64, seed=3, scale=0.05)
-    one = lambda t: {k: (v if k in ("shape", "static_offset") else v[t:t + 1]) for k, v in prm.items()}  # noqa: E731
+    one = lambda t: {k: (v if k in ("shape", "static_offset") else v[t : t + 1]) for k, v in prm.items()}  # noqa: E731
     np.savez(root / "canonical_flame_param.npz", **one(0))
     timesteps = set()
     for split in ("train", "val", "test"):
@@ -208,8 +257,19 @@ def test_flame_mode_dataset_trains_and_exports(tiny_dataset, tmp_path):
     root, model, model_path, timesteps, _ = _flame_mode_dataset(tiny_dataset, tmp_path)
     run = tmp_path / "run"
     env = dict(os.environ, PYTHONPATH="")
-    base = [sys.executable, os.path.join(ROOT, "scripts", "train.py"), "--data", str(root), "--out", str(run),
-            "--preset", "tiny", "--iterations", "8", "--no-progress"]
+    base = [
+        sys.executable,
+        os.path.join(ROOT, "scripts", "train.py"),
+        "--data",
+        str(root),
+        "--out",
+        str(run),
+        "--preset",
+        "tiny",
+        "--iterations",
+        "8",
+        "--no-progress",
+    ]
     out = subprocess.run(base, capture_output=True, text=True, timeout=600, env=env)
     assert out.returncode == 2 and "--flame-model" in out.stderr  # FLAME mode without a model: a clear error
     out = subprocess.run(base + ["--flame-model", model_path], capture_output=True, text=True, timeout=600, env=env)
@@ -218,17 +278,40 @@ def test_flame_mode_dataset_trains_and_exports(tiny_dataset, tmp_path):
     assert len(av.forest.template_faces) == len(model.faces) and np.all(np.isfinite(av.d_mu))
     assert av.forest.num_roots == len(model.faces) + len(av.forest.coarse_faces)
     assert json.loads((run / "config.json").read_text())["flame_model"] == model_path
-    out = subprocess.run([sys.executable, os.path.join(ROOT, "scripts", "export.py"), "--run", str(run), "--ply",
-                          str(tmp_path / "f.ply"), "--frame", str(min(timesteps)), "--max-views", "4"],
-                         capture_output=True, text=True, timeout=600, env=env)
+    out = subprocess.run(
+        [
+            sys.executable,
+            os.path.join(ROOT, "scripts", "export.py"),
+            "--run",
+            str(run),
+            "--ply",
+            str(tmp_path / "f.ply"),
+            "--frame",
+            str(min(timesteps)),
+            "--max-views",
+            "4",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=env,
+    )
     assert out.returncode == 0, out.stderr[-2000:]
     assert json.loads(out.stdout.splitlines()[-1])["ply_gaussians"] == av.num_gaussians
 
 
 def test_flame_refinement_learns_resumes_and_is_saved(tiny_dataset, tmp_path):
     root, model, model_path, timesteps, one = _flame_mode_dataset(tiny_dataset, tmp_path)
-    cfg = config_for("tiny", iterations=16, grow_every=8, grow_start=8, checkpoint_every=8, eval_every=1000,
-                     flame_model=model_path, refine_flame=True)
+    cfg = config_for(
+        "tiny",
+        iterations=16,
+        grow_every=8,
+        grow_start=8,
+        checkpoint_every=8,
+        eval_every=1000,
+        flame_model=model_path,
+        refine_flame=True,
+    )
     full = Trainer(str(root), str(tmp_path / "full"), cfg)
     full.run(progress=False)
     part = Trainer(str(root), str(tmp_path / "part"), cfg)
@@ -258,8 +341,10 @@ def test_paper_cpu_preset_schedule_and_bounded_cache():
     cfg = config_for("paper-cpu")
     assert cfg.max_depth == 4 and cfg.iterations * 0.4 <= 2 * 3600
     assert 16.7 <= cfg.max_faces / 8192 <= 18  # base <= 6 % of the records, as the paper's
-    caps = [Trainer.depth_cap(SimpleNamespace(cfg=cfg), it) for it in range(cfg.grow_start, cfg.iterations + 1,
-                                                                             cfg.grow_every)]
+    caps = [
+        Trainer.depth_cap(SimpleNamespace(cfg=cfg), it)
+        for it in range(cfg.grow_start, cfg.iterations + 1, cfg.grow_every)
+    ]
     last_growth = int(cfg.grow_stop * cfg.iterations)
     assert caps[0] == 1 and max(caps) == 4 and caps == sorted(caps)
     assert Trainer.depth_cap(SimpleNamespace(cfg=cfg), last_growth - cfg.grow_every) == 4  # splits at depth 4 happen
@@ -294,8 +379,6 @@ def _ssim_dense_reference(a, b):
 
 
 @pytest.mark.parametrize("size", [(11, 11), (37, 23), (128, 88)])
-
-
 def test_fused_ssim_matches_dense_window_and_metrics(size):
     """The fused CPU SSIM (and its separable torch fallback) against the dense 11x11 window in
     value and gradient, and against core.train.metrics (numpy, float64)."""
@@ -304,7 +387,7 @@ def test_fused_ssim_matches_dense_window_and_metrics(size):
 
     rng = np.random.default_rng(size[0])
     b = torch.tensor(rng.uniform(0, 1, size + (3,)), dtype=torch.float32)
-    a0 = (0.6 * b + 0.4 * torch.tensor(rng.uniform(0, 1, size + (3,)), dtype=torch.float32))
+    a0 = 0.6 * b + 0.4 * torch.tensor(rng.uniform(0, 1, size + (3,)), dtype=torch.float32)
     values, grads = [], []
     for fn in (losses.ssim, losses.ssim_torch, _ssim_dense_reference):
         a = a0.clone().requires_grad_(True)
@@ -323,8 +406,9 @@ def test_steps_are_deterministic_for_seed_and_any_numba_thread_count(tiny_datase
     threads (binding, rasteriser and SSIM kernels sum in fixed orders)."""
     import numba
 
-    cfg = config_for("tiny", iterations=8, grow_every=3, grow_start=3, eval_every=1000, checkpoint_every=1000,
-                     grad_threshold=0.0)  # every seen leaf splits: the determinism covers growth
+    cfg = config_for(
+        "tiny", iterations=8, grow_every=3, grow_start=3, eval_every=1000, checkpoint_every=1000, grad_threshold=0.0
+    )  # every seen leaf splits: the determinism covers growth
     results = []
     for k, threads in enumerate([numba.config.NUMBA_NUM_THREADS, 1, numba.config.NUMBA_NUM_THREADS]):
         numba.set_num_threads(threads)
@@ -361,7 +445,7 @@ def test_coarse_levels_on_by_default_and_switchable(tiny_dataset, tmp_path):
     tr.grad_count[:] = 1.0
     tr._grow(cfg.grow_start)
     f = tr.model.forest
-    assert f.level_counts()[3] > 0 and np.all(f.level[f.num_roots:] >= 3) and f.max_depth == 1
+    assert f.level_counts()[3] > 0 and np.all(f.level[f.num_roots :] >= 3) and f.max_depth == 1
     off = Trainer(tiny_dataset, str(tmp_path / "off"), config_for("tiny", coarse_levels=()))
     assert off.model.forest.num_coarse_levels == 0 and off.model.forest.level_counts().tolist() == [F0]
 

@@ -19,6 +19,7 @@ from ..io.atomic import atomic_savez
 from .forest import Forest
 from ..geometry.sh import SH_C0
 from ..io.safe_io import check_npz, loads_json
+
 PARAM_NAMES = ("d_mu", "d_log_scale", "d_rot", "opacity_logit", "f_dc")
 PARAM_WIDTH = {"d_mu": 3, "d_log_scale": 3, "d_rot": 4, "opacity_logit": None, "f_dc": 3}
 # exp(88.73) overflows float32: a residual log-scale at or above this is an infinite scale.
@@ -64,8 +65,10 @@ class Avatar:
             setattr(self, name, arr)
         if self.d_log_scale.size and self.d_log_scale.max() >= LOG_SCALE_MAX:
             i = int(np.argmax(self.d_log_scale.max(axis=1)))
-            raise ValueError(f"Avatar: d_log_scale of face {i} is {float(self.d_log_scale[i].max()):g}, at or above "
-                             f"{LOG_SCALE_MAX:.2f} (its scale would be infinite)")
+            raise ValueError(
+                f"Avatar: d_log_scale of face {i} is {float(self.d_log_scale[i].max()):g}, at or above "
+                f"{LOG_SCALE_MAX:.2f} (its scale would be infinite)"
+            )
 
     @classmethod
     def from_verified(cls, forest: Forest, params: dict, meta: dict) -> "Avatar":
@@ -116,8 +119,9 @@ class Avatar:
     def evaluator(self, ids=None, weights=None, capacity=None, rows=None) -> binding.GaussianEvaluator:
         """A per-frame evaluator of this avatar's Gaussians (faces `ids`, default all; output
         rows `rows`, default 0..n-1)."""
-        return binding.GaussianEvaluator(self.forest, self.d_mu, self.d_log_scale, self.d_rot, ids=ids,
-                                         weights=weights, capacity=capacity, rows=rows)
+        return binding.GaussianEvaluator(
+            self.forest, self.d_mu, self.d_log_scale, self.d_rot, ids=ids, weights=weights, capacity=capacity, rows=rows
+        )
 
     def gaussians(self, vertices: np.ndarray, ids=None, weights=None, camera_center=None) -> dict:
         """World-space, activated Gaussians for one frame's mesh vertices [V,3].
@@ -148,7 +152,6 @@ class Avatar:
 
     @classmethod
     def load(cls, path) -> "Avatar":
-
         check_npz(path, allow_text=("meta_json",))  # bounded before numpy allocates
         with np.load(path, allow_pickle=False) as data:
             forest = Forest.from_state(data, source=str(path))
@@ -157,7 +160,11 @@ class Avatar:
                 raise ValueError(f"{path}: not an avatar file, missing {missing}")
             meta = loads_json(str(data["meta_json"]), f"{path}: meta_json") if "meta_json" in data else {}
             try:
-                return cls(forest, *(data[n] for n in PARAM_NAMES), meta=meta,
-                           f_rest=data["f_rest"] if "f_rest" in data else None)
+                return cls(
+                    forest,
+                    *(data[n] for n in PARAM_NAMES),
+                    meta=meta,
+                    f_rest=data["f_rest"] if "f_rest" in data else None,
+                )
             except ValueError as exc:
                 raise ValueError(f"{path}: {exc}") from None

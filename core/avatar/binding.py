@@ -160,7 +160,8 @@ class _PlaneEvaluator:
         Wd = np.asarray(W, np.float64)
         centroid = Wd[:, 0, 1:] + (Wd[:, 1, 1:] + Wd[:, 2, 1:]) / 3
         self._coef = np.ascontiguousarray(
-            np.stack([Wd[:, 1, 1], Wd[:, 1, 2], Wd[:, 2, 1], Wd[:, 2, 2], centroid[:, 0], centroid[:, 1]]), self.dtype)
+            np.stack([Wd[:, 1, 1], Wd[:, 1, 2], Wd[:, 2, 1], Wd[:, 2, 2], centroid[:, 0], centroid[:, 1]]), self.dtype
+        )
         self._degenerate = np.zeros(n, bool)
         self._tri = np.ascontiguousarray(np.asarray(forest.root_faces, np.int64).T)  # [3,R]: coarse and template roots
         self._pack = None
@@ -226,7 +227,7 @@ class _PlaneEvaluator:
         """Rows of pack for faces sl: a fresh block from np.repeat, or gathered into out."""
         if runs is not None:
             first, counts = runs
-            return np.repeat(pack[:, first:first + len(counts)], counts, axis=1)
+            return np.repeat(pack[:, first : first + len(counts)], counts, axis=1)
         root = self.root[sl]
         for row in range(len(pack)):  # 1-D takes are far faster than one 2-D take along axis 1
             np.take(pack[row], root, out=out[row])
@@ -356,8 +357,9 @@ class GaussianEvaluator(_PlaneEvaluator):
     ROOT_ROWS = 19  # the 15 plane rows, then the root frame's quaternion (wxyz)
     SCRATCH_ROWS = 40
 
-    def __init__(self, forest: Forest, d_mu, d_log_scale, d_rot, ids=None, weights=None, capacity=None, chunk=None,
-                 rows=None):
+    def __init__(
+        self, forest: Forest, d_mu, d_log_scale, d_rot, ids=None, weights=None, capacity=None, chunk=None, rows=None
+    ):
         given = np.arange(forest.num_faces) if ids is None else np.asarray(ids, np.int64)
         order = np.argsort(forest.root[given], kind="stable")
         super().__init__(forest, given[order], weights, np.float32, chunk)
@@ -419,8 +421,14 @@ class GaussianEvaluator(_PlaneEvaluator):
         if bad is not None:
             base, e1, e2 = parts
             r_bad, s_bad = frames_from_edges(e1, e2)
-            m, sc, q = compose(base + (e1 + e2) / 3, r_bad, s_bad, self.d_mu[:, bad].T,
-                               np.log(self.exp_scale[:, bad].T), self.q_res[:, bad].T)
+            m, sc, q = compose(
+                base + (e1 + e2) / 3,
+                r_bad,
+                s_bad,
+                self.d_mu[:, bad].T,
+                np.log(self.exp_scale[:, bad].T),
+                self.q_res[:, bad].T,
+            )
             rows = self.rows[bad]
             self.means[rows], self.scales[rows], self.quats[rows] = m, sc, q
         return self.means, self.quats, self.scales
@@ -519,8 +527,9 @@ _HAMILTON = (  # (a index, b index, sign) per output component of a ⊗ b
 )
 
 
-def evaluate(forest: Forest, vertices: np.ndarray, ids=None, weights=None, dtype=np.float32,
-             with_vertices: bool = False) -> FaceGeometry:
+def evaluate(
+    forest: Forest, vertices: np.ndarray, ids=None, weights=None, dtype=np.float32, with_vertices: bool = False
+) -> FaceGeometry:
     """Frames of forest faces on one frame [V,3] or a batch of frames [T,V,3] (fresh arrays).
 
     For repeated evaluation of the same faces, keep a FaceEvaluator instead.
@@ -532,7 +541,9 @@ def evaluate(forest: Forest, vertices: np.ndarray, ids=None, weights=None, dtype
     if verts.ndim == 2:
         g = ev(verts, with_vertices)
         return FaceGeometry(g.t.copy(), g.r.copy(), g.s.copy(), g.vertices, g.edges)
-    parts = [FaceGeometry(*(None if x is None else x.copy() for x in vars(ev(f, with_vertices)).values())) for f in verts]
+    parts = [
+        FaceGeometry(*(None if x is None else x.copy() for x in vars(ev(f, with_vertices)).values())) for f in verts
+    ]
     pick = lambda name: None if getattr(parts[0], name) is None else np.stack([getattr(p, name) for p in parts])  # noqa: E731
     return FaceGeometry(pick("t"), pick("r"), pick("s"), pick("vertices"), pick("edges"))
 

@@ -36,8 +36,9 @@ def _edge_graph(vertices, faces):
     w = np.linalg.norm(vertices[e[:, 0]] - vertices[e[:, 1]], axis=1)
     w = np.maximum(w, 1e-12)  # (scipy drops explicit zeros: keep coincident vertices connected)
     V = len(vertices)
-    g = coo_matrix((np.concatenate([w, w]), (np.concatenate([e[:, 0], e[:, 1]]), np.concatenate([e[:, 1], e[:, 0]]))),
-                   shape=(V, V))
+    g = coo_matrix(
+        (np.concatenate([w, w]), (np.concatenate([e[:, 0], e[:, 1]]), np.concatenate([e[:, 1], e[:, 0]]))), shape=(V, V)
+    )
     return g.tocsr()
 
 

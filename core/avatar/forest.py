@@ -55,8 +55,17 @@ class Forest:
     template (negative for coarse faces); only template faces and their descendants split.
     """
 
-    def __init__(self, template_faces, parent=None, slot=None, split_logits=None, *, coarse_faces=None,
-                 coarse_counts=(), root_ref=None):
+    def __init__(
+        self,
+        template_faces,
+        parent=None,
+        slot=None,
+        split_logits=None,
+        *,
+        coarse_faces=None,
+        coarse_counts=(),
+        root_ref=None,
+    ):
         faces = np.ascontiguousarray(template_faces, dtype=np.int32)
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
             raise ValueError(f"Forest: template faces must be a non-empty [F,3] array, got shape {faces.shape}")
@@ -67,8 +76,9 @@ class Forest:
         C = sum(self.coarse_counts)
         coarse = np.zeros((0, 3), np.int32) if coarse_faces is None else np.ascontiguousarray(coarse_faces, np.int32)
         if coarse.ndim != 2 or coarse.shape[1] != 3 or len(coarse) != C or any(c < 1 for c in self.coarse_counts):
-            raise ValueError(f"Forest: coarse faces {coarse.shape} disagree with the coarse level counts "
-                             f"{list(self.coarse_counts)}")
+            raise ValueError(
+                f"Forest: coarse faces {coarse.shape} disagree with the coarse level counts {list(self.coarse_counts)}"
+            )
         if C and (coarse.min() < 0 or coarse.max() > faces.max()):
             raise ValueError("Forest: coarse faces must be triangles of template vertices")
         self.coarse_faces = coarse
@@ -114,8 +124,9 @@ class Forest:
     def _root_levels(self) -> np.ndarray:
         C = self.num_coarse
         ends = np.cumsum(self.coarse_counts)
-        return np.where(self.root_ref < C, np.searchsorted(ends, self.root_ref, side="right"),
-                        self.num_coarse_levels).astype(np.int8)
+        return np.where(
+            self.root_ref < C, np.searchsorted(ends, self.root_ref, side="right"), self.num_coarse_levels
+        ).astype(np.int8)
 
     def _derive(self):
         R, N = len(self.root_ref), len(self.parent)
@@ -123,8 +134,7 @@ class Forest:
         idx = np.arange(N)
         if N < R or len(self.slot) != N:
             raise ValueError("Forest: parent/slot arrays shorter than the roots")
-        if R and (self.root_ref.min() < 0 or self.root_ref.max() >= C + F0
-                  or len(np.unique(self.root_ref)) != R):
+        if R and (self.root_ref.min() < 0 or self.root_ref.max() >= C + F0 or len(np.unique(self.root_ref)) != R):
             raise ValueError("Forest: root references must be distinct rows of the coarse + template table")
         if np.any(self.parent[:R] != -1):
             raise ValueError("Forest: the first faces must be the roots (parent -1)")
@@ -267,8 +277,15 @@ class Forest:
         return self._like(parent, self.slot[order], self.split_logits[order], self.root_ref[order[:R]])
 
     def _like(self, parent, slot, split_logits, root_ref) -> "Forest":
-        return Forest(self.template_faces, parent, slot, split_logits, coarse_faces=self.coarse_faces,
-                      coarse_counts=self.coarse_counts, root_ref=root_ref)
+        return Forest(
+            self.template_faces,
+            parent,
+            slot,
+            split_logits,
+            coarse_faces=self.coarse_faces,
+            coarse_counts=self.coarse_counts,
+            root_ref=root_ref,
+        )
 
     def prefix(self, n: int) -> "Forest":
         """The first n faces (any n >= 1: parents precede children; a prefix shorter than the
@@ -276,7 +293,9 @@ class Forest:
         n = int(n)
         if not 1 <= n <= self.num_faces:
             raise ValueError(f"Forest.prefix: n must be in [1, {self.num_faces}], got {n}")
-        return self._like(self.parent[:n], self.slot[:n], self.split_logits[:n], self.root_ref[: min(n, self.num_roots)])
+        return self._like(
+            self.parent[:n], self.slot[:n], self.split_logits[:n], self.root_ref[: min(n, self.num_roots)]
+        )
 
     # -- geometry -------------------------------------------------------------------------
     def barycentrics(self, logits=None) -> np.ndarray:
@@ -305,8 +324,9 @@ class Forest:
     def state(self, prefix: str = "forest_") -> dict:
         return {
             # version 2 adds the coarse table and root_ref; plain forests stay readable by version 1 readers
-            prefix + "version": np.array(2 if self.num_coarse or not np.array_equal(
-                self.root_ref, np.arange(len(self.root_ref))) else 1),
+            prefix + "version": np.array(
+                2 if self.num_coarse or not np.array_equal(self.root_ref, np.arange(len(self.root_ref))) else 1
+            ),
             prefix + "template_faces": self.template_faces,
             prefix + "parent": self.parent,
             prefix + "slot": self.slot,
@@ -317,8 +337,20 @@ class Forest:
         }
 
     @classmethod
-    def from_verified(cls, template_faces, parent, slot, split_logits, children, level, root, *,
-                      coarse_faces=None, coarse_counts=(), root_ref=None) -> "Forest":
+    def from_verified(
+        cls,
+        template_faces,
+        parent,
+        slot,
+        split_logits,
+        children,
+        level,
+        root,
+        *,
+        coarse_faces=None,
+        coarse_counts=(),
+        root_ref=None,
+    ) -> "Forest":
         """A Forest from arrays already checked against every rule ``_derive`` enforces (roots
         first, parents precede children in the previous level, slots 0..2 and unique), with
         children/level/root derived by the caller: the stream reader verifies the structure as
@@ -347,11 +379,18 @@ class Forest:
         try:
             extra = {}
             if prefix + "root_ref" in data:  # (older files: no coarse levels, roots in template order)
-                extra = dict(coarse_faces=data[prefix + "coarse_faces"],
-                             coarse_counts=tuple(data[prefix + "coarse_counts"].tolist()),
-                             root_ref=data[prefix + "root_ref"])
-            return cls(data[prefix + "template_faces"], data[prefix + "parent"], data[prefix + "slot"],
-                       data[prefix + "split_logits"], **extra)
+                extra = dict(
+                    coarse_faces=data[prefix + "coarse_faces"],
+                    coarse_counts=tuple(data[prefix + "coarse_counts"].tolist()),
+                    root_ref=data[prefix + "root_ref"],
+                )
+            return cls(
+                data[prefix + "template_faces"],
+                data[prefix + "parent"],
+                data[prefix + "slot"],
+                data[prefix + "split_logits"],
+                **extra,
+            )
         except ValueError as exc:
             raise ValueError(f"{source}: {exc}") from None
 

@@ -107,19 +107,24 @@ def load_avatar(path, template_faces=None) -> tuple[Avatar, Budget]:
         tmpl = None if info.template_embedded else template_faces
         avatar = stream.read_stream(path, template_faces=tmpl)
         if avatar is None:
-            raise ValueError(f"{path}: the stream holds no complete Gaussian record ({size} of "
-                             f"{info.total_bytes} bytes arrived; the first record ends at byte "
-                             f"{info.bytes_for_count(1)})")
+            raise ValueError(
+                f"{path}: the stream holds no complete Gaussian record ({size} of "
+                f"{info.total_bytes} bytes arrived; the first record ends at byte "
+                f"{info.bytes_for_count(1)})"
+            )
     elif head[:2] == b"PK":  # zip container: numpy's .npz
         try:
             avatar = Avatar.load(path)
         except (ValueError, KeyError, OSError) as exc:
             msg = str(exc).replace(f"{path}: ", "")
-            raise ValueError(f"{path}: not an avatar file (a ProgressiveAvatars stream .pavs or avatar .npz): "
-                             f"{msg}") from None
+            raise ValueError(
+                f"{path}: not an avatar file (a ProgressiveAvatars stream .pavs or avatar .npz): {msg}"
+            ) from None
     else:
-        raise ValueError(f"{path}: not a ProgressiveAvatars stream or avatar .npz (the file starts with "
-                         f"{bytes(head[:8])!r}; streams start with {stream.MAGIC if stream else 'their magic'!r})")
+        raise ValueError(
+            f"{path}: not a ProgressiveAvatars stream or avatar .npz (the file starts with "
+            f"{bytes(head[:8])!r}; streams start with {stream.MAGIC if stream else 'their magic'!r})"
+        )
     budget = Budget(avatar.num_gaussians, avatar.forest.level.copy(), os.path.getsize(path), info)
     return avatar, budget
 
@@ -133,7 +138,9 @@ def check_mesh(avatar: Avatar, budget: Budget, faces) -> None:
     if budget.info is not None:
         _stream_module().check_template(budget.info, faces)
     elif faces.shape != avatar.forest.template_faces.shape or not np.array_equal(faces, avatar.forest.template_faces):
-        raise ValueError(f"the mesh's faces {faces.shape} are not the avatar's template {avatar.forest.template_faces.shape}")
+        raise ValueError(
+            f"the mesh's faces {faces.shape} are not the avatar's template {avatar.forest.template_faces.shape}"
+        )
 
 
 def srgb_to_linear(c: np.ndarray) -> np.ndarray:
@@ -183,13 +190,16 @@ def splat_evaluator(avatar: Avatar, count: int | None = None, weights=None, orde
 
 # -- subdivision depth display -------------------------------------------------------------
 # A perceptual ramp (dark blue → teal → yellow), sampled at depth / max(max_depth, 1).
-_RAMP = np.array([
-    [0.050, 0.030, 0.280],
-    [0.150, 0.300, 0.620],
-    [0.100, 0.600, 0.600],
-    [0.450, 0.800, 0.300],
-    [0.990, 0.900, 0.150],
-], np.float32)
+_RAMP = np.array(
+    [
+        [0.050, 0.030, 0.280],
+        [0.150, 0.300, 0.620],
+        [0.100, 0.600, 0.600],
+        [0.450, 0.800, 0.300],
+        [0.990, 0.900, 0.150],
+    ],
+    np.float32,
+)
 
 
 NOT_ARRIVED = -1  # depth of a face none of whose Gaussians has arrived
@@ -305,8 +315,9 @@ def render_job(job_path: str, out_path: str) -> None:
     with np.load(job_path, allow_pickle=False) as d:
         cam = Camera(d["R"], d["t"], *[float(x) for x in d["intr"]], int(d["size"][0]), int(d["size"][1]))
         # 3DGS clamps SH colours at 0 (PLY splats keep their exact, possibly negative, DC for export).
-        out = render_numpy(d["means"], d["quats"], d["scales"], d["opacities"], np.maximum(d["colors"], 0), cam,
-                           d["background"])
+        out = render_numpy(
+            d["means"], d["quats"], d["scales"], d["opacities"], np.maximum(d["colors"], 0), cam, d["background"]
+        )
     image, alpha = out[0], out[1]
     rgba = np.concatenate([np.asarray(image, np.float32), np.asarray(alpha, np.float32)[..., None]], -1)
     np.save(out_path, rgba)

@@ -31,7 +31,13 @@ def psnr_vs_bytes(path, curve, budgets):
     for key, entry in budgets.items():
         ax.plot(entry["bytes"] / 1e6, entry["nvs"]["psnr"], "s", color="C1")
         ax.plot(entry["bytes"] / 1e6, entry["nes"]["psnr"], "^", color="C2")
-        ax.annotate(f"{key}%", (entry["bytes"] / 1e6, entry["nvs"]["psnr"]), textcoords="offset points", xytext=(4, -10), fontsize=7)
+        ax.annotate(
+            f"{key}%",
+            (entry["bytes"] / 1e6, entry["nvs"]["psnr"]),
+            textcoords="offset points",
+            xytext=(4, -10),
+            fontsize=7,
+        )
     ax.plot([], [], "s", color="C1", label="NVS at budgets")
     ax.plot([], [], "^", color="C2", label="NES at budgets")
     ax.set_xlabel("bytes received (MB)")
@@ -60,7 +66,9 @@ def budget_strip(path, renderer, info, budgets, view_index=0):
         titles.append(f"{b:g}% ({n:,} G)")
     panels.append(sample.image)
     titles.append("ground truth")
-    fig, axes = plt.subplots(1, len(panels), figsize=(2.0 * len(panels), 2.0 * sample.image.shape[0] / sample.image.shape[1] + 0.4))
+    fig, axes = plt.subplots(
+        1, len(panels), figsize=(2.0 * len(panels), 2.0 * sample.image.shape[0] / sample.image.shape[1] + 0.4)
+    )
     for ax, im, title in zip(np.atleast_1d(axes), panels, titles):
         ax.imshow(np.clip(im, 0, 1), interpolation="nearest")
         ax.set_title(title, fontsize=8)
@@ -94,16 +102,36 @@ def depth_picture(path, avatar, dataset, views=(0,)):
         verts = dataset.vertices_at(info.timestep_index)
         geo = evaluate(avatar.forest, verts, ids=base)
         # Opaque, face-sized discs so the colour reads as a surface.
-        means, scales, quats = compose(geo.t, geo.r, geo.s, np.zeros((F0, 3)), np.log(np.tile([0.55, 0.05, 0.55], (F0, 1))),
-                                       np.tile([1.0, 0, 0, 0], (F0, 1)))
-        img, _, _ = render_numpy(means, quats, scales, np.full(F0, 0.99, np.float32), depth_colors(base_depth),
-                                 info.camera, np.ones(3, np.float32))
+        means, scales, quats = compose(
+            geo.t,
+            geo.r,
+            geo.s,
+            np.zeros((F0, 3)),
+            np.log(np.tile([0.55, 0.05, 0.55], (F0, 1))),
+            np.tile([1.0, 0, 0, 0], (F0, 1)),
+        )
+        img, _, _ = render_numpy(
+            means,
+            quats,
+            scales,
+            np.full(F0, 0.99, np.float32),
+            depth_colors(base_depth),
+            info.camera,
+            np.ones(3, np.float32),
+        )
         full = evaluate(avatar.forest, verts)
         m2, s2, q2 = compose(full.t, full.r, full.s, avatar.d_mu, avatar.d_log_scale, avatar.d_rot)
         from ..avatar.avatar import sh_to_rgb, sigmoid
 
-        ref, _, _ = render_numpy(m2, q2, s2, sigmoid(avatar.opacity_logit), sh_to_rgb(avatar.f_dc), info.camera,
-                                 np.asarray(dataset.background, np.float32))
+        ref, _, _ = render_numpy(
+            m2,
+            q2,
+            s2,
+            sigmoid(avatar.opacity_logit),
+            sh_to_rgb(avatar.f_dc),
+            info.camera,
+            np.asarray(dataset.background, np.float32),
+        )
         axes[0, col].imshow(np.clip(ref, 0, 1))
         axes[1, col].imshow(np.clip(img, 0, 1))
         axes[0, col].axis("off")
@@ -113,7 +141,9 @@ def depth_picture(path, avatar, dataset, views=(0,)):
     hist = np.bincount(depth, minlength=int(depth.max()) + 1)
     cols = depth_colors(np.arange(len(hist)), int(depth.max()))
     handles = [plt.Rectangle((0, 0), 1, 1, color=cols[d]) for d in range(len(hist))]
-    fig.legend(handles, [f"depth {d}: {hist[d]} faces" for d in range(len(hist))], loc="lower center", ncol=2, fontsize=7)
+    fig.legend(
+        handles, [f"depth {d}: {hist[d]} faces" for d in range(len(hist))], loc="lower center", ncol=2, fontsize=7
+    )
     return _save(fig, path)
 
 
@@ -151,9 +181,13 @@ def training_summary(rows: list[dict], tail: int = 4) -> dict:
     for differences between runs."""
     vals = [r["val_psnr"] for r in rows if "val_psnr" in r][-tail:]
     last = rows[-1] if rows else {}
-    return {"iterations": last.get("iteration"), "seconds": last.get("seconds"),
-            "val_tail_mean": float(np.mean(vals)) if vals else None,
-            "val_tail_sd": float(np.std(vals, ddof=1)) if len(vals) > 1 else None, "val_tail_n": len(vals)}
+    return {
+        "iterations": last.get("iteration"),
+        "seconds": last.get("seconds"),
+        "val_tail_mean": float(np.mean(vals)) if vals else None,
+        "val_tail_sd": float(np.std(vals, ddof=1)) if len(vals) > 1 else None,
+        "val_tail_n": len(vals),
+    }
 
 
 def seed_group(name: str) -> str:
@@ -182,13 +216,21 @@ def seed_pairs(runs: dict) -> list[dict]:
     out = []
     names = list(by)
     for i, a in enumerate(names):
-        for b in names[i + 1:]:
+        for b in names[i + 1 :]:
             seeds = sorted(set(by[a]) & set(by[b]))
             if len(seeds) < 2:
                 continue
             d = np.array([by[a][k] - by[b][k] for k in seeds])
-            out.append({"a": a, "b": b, "seeds": seeds, "diffs": d.tolist(), "mean": float(d.mean()),
-                        "sd": float(d.std(ddof=1))})
+            out.append(
+                {
+                    "a": a,
+                    "b": b,
+                    "seeds": seeds,
+                    "diffs": d.tolist(),
+                    "mean": float(d.mean()),
+                    "sd": float(d.std(ddof=1)),
+                }
+            )
     return out
 
 
@@ -204,13 +246,21 @@ def seed_groups(runs: dict) -> dict:
         psnr = np.array([e["nvs"]["psnr"] for _, e in members], np.float64)
         gs = np.array([e["gaussians"] for _, e in members], np.float64)
         levels = set.intersection(*(set(map(str, e["level_prefixes_nvs"])) for _, e in members))
-        prefixes = {k: float(np.mean([{str(a): b for a, b in e["level_prefixes_nvs"].items()}[k]["psnr"]
-                                       for _, e in members])) for k in sorted(levels, key=int)}
-        out[group] = {"runs": [n for n, _ in members], "n": len(members),
-                      "nvs_psnr_mean": float(psnr.mean()), "nvs_psnr_sd": float(psnr.std(ddof=1)),
-                      "nvs_psnr_min": float(psnr.min()), "nvs_psnr_max": float(psnr.max()),
-                      "gaussians_mean": float(gs.mean()), "gaussians_sd": float(gs.std(ddof=1)),
-                      "level_prefixes_nvs_mean": prefixes}
+        prefixes = {
+            k: float(np.mean([{str(a): b for a, b in e["level_prefixes_nvs"].items()}[k]["psnr"] for _, e in members]))
+            for k in sorted(levels, key=int)
+        }
+        out[group] = {
+            "runs": [n for n, _ in members],
+            "n": len(members),
+            "nvs_psnr_mean": float(psnr.mean()),
+            "nvs_psnr_sd": float(psnr.std(ddof=1)),
+            "nvs_psnr_min": float(psnr.min()),
+            "nvs_psnr_max": float(psnr.max()),
+            "gaussians_mean": float(gs.mean()),
+            "gaussians_sd": float(gs.std(ddof=1)),
+            "level_prefixes_nvs_mean": prefixes,
+        }
     return out
 
 
@@ -266,11 +316,27 @@ def quality_vs_gaussians(path, report: dict):
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6.2, 3.8))
     b = sorted(report["budgets"].values(), key=lambda e: e["gaussians"])
-    ax.plot([e["gaussians"] for e in b], [e["nvs"]["psnr"] for e in b], "-o", color="k", lw=2, ms=5,
-            label="this run: stream budgets (quantised)", zorder=5)
+    ax.plot(
+        [e["gaussians"] for e in b],
+        [e["nvs"]["psnr"] for e in b],
+        "-o",
+        color="k",
+        lw=2,
+        ms=5,
+        label="this run: stream budgets (quantised)",
+        zorder=5,
+    )
     lp = a["level_prefixes"]
-    ax.plot([lp["counts"][k] for k in lp["nvs"]], [v["psnr"] for v in lp["nvs"].values()], "s", color="k", ms=5,
-            mfc="none", label="this run: level prefixes", zorder=5)
+    ax.plot(
+        [lp["counts"][k] for k in lp["nvs"]],
+        [v["psnr"] for v in lp["nvs"].values()],
+        "s",
+        color="k",
+        ms=5,
+        mfc="none",
+        label="this run: level prefixes",
+        zorder=5,
+    )
     style = _group_styles(a["compare"])
     for name, c in a["compare"].items():
         colour, label = style[name]
@@ -302,10 +368,17 @@ def done_when(r: dict) -> dict:
     curve = r.get("curve_nvs", [])
     out = {}
     pts = [(c["percent"], c["coverage"]) for c in curve if c["percent"] >= 2 - 1e-9 and "coverage" in c]
-    pts += [(float(k), e["nvs"]["coverage"]) for k, e in r["budgets"].items() if float(k) >= 2 and "coverage" in e["nvs"]]
+    pts += [
+        (float(k), e["nvs"]["coverage"]) for k, e in r["budgets"].items() if float(k) >= 2 and "coverage" in e["nvs"]
+    ]
     if pts:
         worst = min(pts, key=lambda x: x[1])
-        out["coverage_from_2pct"] = {"min": worst[1], "at_percent": worst[0], "threshold": 0.95, "met": worst[1] >= 0.95}
+        out["coverage_from_2pct"] = {
+            "min": worst[1],
+            "at_percent": worst[0],
+            "threshold": 0.95,
+            "met": worst[1] >= 0.95,
+        }
     if curve:
         ok, drop = _non_decreasing([c["psnr"] for c in curve], 0.05)
         out["psnr_non_decreasing"] = {"worst_drop_db": drop, "slack": 0.05, "met": ok}
@@ -325,141 +398,225 @@ def done_when(r: dict) -> dict:
 
 def report_markdown(r: dict) -> str:
     ds = r.get("data_summary") or {}
-    about = (f" ({ds['width']}x{ds['height']} px images, tracked template {ds['faces']:,} faces)"
-             if {"width", "height", "faces"} <= set(ds) else "")
-    lines = [f"# Evaluation report", "", f"- run: `{r['run']}`", f"- data: `{r['data']}`{about}",
-             f"- machine: {r['machine']}", f"- date: {r['date']}", f"- command: `{r['command']}`",
-             f"- stream: {r['stream_bytes']:,} bytes, {r['gaussians']:,} Gaussians "
-             f"({r['bytes_per_gaussian']:.1f} B/Gaussian with header), levels {r['level_counts']}"]
+    about = (
+        f" ({ds['width']}x{ds['height']} px images, tracked template {ds['faces']:,} faces)"
+        if {"width", "height", "faces"} <= set(ds)
+        else ""
+    )
+    lines = [
+        f"# Evaluation report",
+        "",
+        f"- run: `{r['run']}`",
+        f"- data: `{r['data']}`{about}",
+        f"- machine: {r['machine']}",
+        f"- date: {r['date']}",
+        f"- command: `{r['command']}`",
+        f"- stream: {r['stream_bytes']:,} bytes, {r['gaussians']:,} Gaussians "
+        f"({r['bytes_per_gaussian']:.1f} B/Gaussian with header), levels {r['level_counts']}",
+    ]
     if r.get("about"):
         lines += ["", r["about"]]
     own = r.get("training", {}).get("this run", {})
     if own.get("seconds") is not None:
-        lines.append(f"- training (from the run's metrics log): {own['iterations']} iterations, "
-                     f"{own['seconds']:.0f} s wall time ({own['seconds'] / 60:.1f} min)")
+        lines.append(
+            f"- training (from the run's metrics log): {own['iterations']} iterations, "
+            f"{own['seconds']:.0f} s wall time ({own['seconds'] / 60:.1f} min)"
+        )
     cov = all("coverage" in e["nvs"] for e in r["budgets"].values())
-    lines += ["",
-             "| budget | Gaussians | bytes | NVS PSNR / SSIM | NES PSNR / SSIM |" + (" NVS / NES coverage |" if cov else "")
-             + " render ms |", "|---|---|---|---|---|---|" + ("---|" if cov else "")]
+    lines += [
+        "",
+        "| budget | Gaussians | bytes | NVS PSNR / SSIM | NES PSNR / SSIM |"
+        + (" NVS / NES coverage |" if cov else "")
+        + " render ms |",
+        "|---|---|---|---|---|---|" + ("---|" if cov else ""),
+    ]
     for key, e in r["budgets"].items():
         c = f" {e['nvs']['coverage']:.3f} / {e['nes']['coverage']:.3f} |" if cov else ""
-        lines.append(f"| {key} % | {e['gaussians']:,} | {e['bytes']:,} | {e['nvs']['psnr']:.2f} / {e['nvs']['ssim']:.3f} | "
-                     f"{e['nes']['psnr']:.2f} / {e['nes']['ssim']:.3f} |{c} {e['render_ms']:.1f} |")
+        lines.append(
+            f"| {key} % | {e['gaussians']:,} | {e['bytes']:,} | {e['nvs']['psnr']:.2f} / {e['nvs']['ssim']:.3f} | "
+            f"{e['nes']['psnr']:.2f} / {e['nes']['ssim']:.3f} |{c} {e['render_ms']:.1f} |"
+        )
     fh = r.get("first_head")
     if fh:
-        lines += ["", f"First whole head ({'the coarsest level' if fh['coarse_levels'] else 'the template level'}, "
-                  f"{fh['head_gaussians']:,} Gaussians; header {fh['header_bytes']:,} B included, template "
-                  f"{'embedded' if fh.get('template_embedded') else 'not embedded: the receiver has it'}) and the whole base "
-                  f"(every coarse and template face, {fh['base_gaussians']:,} Gaussians):", "",
-                  "| | bytes | % of stream | at 1 Mbit/s | at 10 Mbit/s | at 100 Mbit/s |", "|---|---|---|---|---|---|"]
+        lines += [
+            "",
+            f"First whole head ({'the coarsest level' if fh['coarse_levels'] else 'the template level'}, "
+            f"{fh['head_gaussians']:,} Gaussians; header {fh['header_bytes']:,} B included, template "
+            f"{'embedded' if fh.get('template_embedded') else 'not embedded: the receiver has it'}) and the whole base "
+            f"(every coarse and template face, {fh['base_gaussians']:,} Gaussians):",
+            "",
+            "| | bytes | % of stream | at 1 Mbit/s | at 10 Mbit/s | at 100 Mbit/s |",
+            "|---|---|---|---|---|---|",
+        ]
         for what in ("head", "base"):
-            lines.append(f"| {'first whole head' if what == 'head' else 'whole base'} | {fh[what + '_bytes']:,} | "
-                         f"{100 * fh[what + '_bytes'] / fh['total_bytes']:.2f} | "
-                         + " | ".join(f"{1e3 * fh[f'{what}_seconds_{m}mbit']:.1f} ms" for m in (1, 10, 100)) + " |")
+            lines.append(
+                f"| {'first whole head' if what == 'head' else 'whole base'} | {fh[what + '_bytes']:,} | "
+                f"{100 * fh[what + '_bytes'] / fh['total_bytes']:.2f} | "
+                + " | ".join(f"{1e3 * fh[f'{what}_seconds_{m}mbit']:.1f} ms" for m in (1, 10, 100))
+                + " |"
+            )
     curve = r.get("curve_nvs", [])
     if curve and "coverage" in curve[0]:
-        lines += ["", f"PSNR-against-bytes curve in {len(curve)} steps ({r.get('curve_views', '?')} NVS views each): "
-                  "percent: PSNR dB / mask coverage", "",
-                  "<details><summary>all points</summary>", "",
-                  ", ".join(f"{c['percent']:.0f}: {c['psnr']:.2f} / {c['coverage']:.3f}" for c in curve), "", "</details>"]
+        lines += [
+            "",
+            f"PSNR-against-bytes curve in {len(curve)} steps ({r.get('curve_views', '?')} NVS views each): "
+            "percent: PSNR dB / mask coverage",
+            "",
+            "<details><summary>all points</summary>",
+            "",
+            ", ".join(f"{c['percent']:.0f}: {c['psnr']:.2f} / {c['coverage']:.3f}" for c in curve),
+            "",
+            "</details>",
+        ]
     dw = r.get("done_when")
     if dw:
         lines += ["", "Issue 16 criteria on this run:", ""]
-        names = {"coverage_from_2pct": lambda d: f"mask coverage ≥ 0.95 from 2 %: min {d['min']:.3f} at {d['at_percent']:g} %",
-                 "psnr_non_decreasing": lambda d: f"NVS PSNR non-decreasing in 1 % steps (0.05 dB slack): worst drop {d['worst_drop_db']:.3f} dB",
-                 "coverage_non_decreasing": lambda d: f"coverage non-decreasing: worst drop {d['worst_drop']:.4f}",
-                 "psnr_5_within_3db": lambda d: f"NVS PSNR at 5 % within 3 dB of 100 %: {d['gap_db']:.2f} dB below",
-                 "coarse_cost_100": lambda d: f"coarse levels cost ≤ 0.1 dB at 100 %: {d['cost_db']:+.3f} dB"}
+        names = {
+            "coverage_from_2pct": lambda d: f"mask coverage ≥ 0.95 from 2 %: min {d['min']:.3f} at {d['at_percent']:g} %",
+            "psnr_non_decreasing": lambda d: f"NVS PSNR non-decreasing in 1 % steps (0.05 dB slack): worst drop {d['worst_drop_db']:.3f} dB",
+            "coverage_non_decreasing": lambda d: f"coverage non-decreasing: worst drop {d['worst_drop']:.4f}",
+            "psnr_5_within_3db": lambda d: f"NVS PSNR at 5 % within 3 dB of 100 %: {d['gap_db']:.2f} dB below",
+            "coarse_cost_100": lambda d: f"coarse levels cost ≤ 0.1 dB at 100 %: {d['cost_db']:+.3f} dB",
+        }
         for k, d in dw.items():
             lines.append(f"- {'met' if d['met'] else '**not met**'}: {names[k](d)}")
     a = r["ablations"]
     lines += ["", "## Ablations (NVS PSNR in mask)", ""]
     ro = a["random_order_25"]
-    lines.append(f"- 25 %: importance-ranked {ro['ranked']['psnr']:.2f} dB vs random order within levels {ro['random']['psnr']:.2f} dB")
+    lines.append(
+        f"- 25 %: importance-ranked {ro['ranked']['psnr']:.2f} dB vs random order within levels {ro['random']['psnr']:.2f} dB"
+    )
     io = a["importance_only_50"]
-    lines.append(f"- 50 %: levels then importance {io['levels_then_importance']['psnr']:.2f} dB vs importance only {io['importance_only']['psnr']:.2f} dB")
+    lines.append(
+        f"- 50 %: levels then importance {io['levels_then_importance']['psnr']:.2f} dB vs importance only {io['importance_only']['psnr']:.2f} dB"
+    )
     q = a["quantisation_100"]
-    lines.append(f"- 100 %: quantised {q['quantised']['psnr']:.3f} dB ({q['bytes_quantised']:,} B) vs float32 "
-                 f"{q['float32']['psnr']:.3f} dB ({q['bytes_float32']:,} B): loss {q['psnr_loss_db']:.3f} dB")
+    lines.append(
+        f"- 100 %: quantised {q['quantised']['psnr']:.3f} dB ({q['bytes_quantised']:,} B) vs float32 "
+        f"{q['float32']['psnr']:.3f} dB ({q['bytes_float32']:,} B): loss {q['psnr_loss_db']:.3f} dB"
+    )
     ro = a.get("root_order")
     if ro:
         cuts = list(ro["cuts"])
-        lines += ["", "Order of the roots inside their levels, at cuts inside a root level (NVS PSNR / coverage; "
-                  "forest: as trained, the template level in template order; spatial: spread over the head, "
-                  "core/avatar/coarse.py; importance: descending; both: spatial dyadic blocks, each by importance; auto: spatial in level 0, "
-                  "importance in the later root levels):", "",
-                  "| order | " + " | ".join(f"{c} ({ro['cuts'][c]:,} G)" for c in cuts) + " |",
-                  "|---|" + "---|" * len(cuts)]
+        lines += [
+            "",
+            "Order of the roots inside their levels, at cuts inside a root level (NVS PSNR / coverage; "
+            "forest: as trained, the template level in template order; spatial: spread over the head, "
+            "core/avatar/coarse.py; importance: descending; both: spatial dyadic blocks, each by importance; auto: spatial in level 0, "
+            "importance in the later root levels):",
+            "",
+            "| order | " + " | ".join(f"{c} ({ro['cuts'][c]:,} G)" for c in cuts) + " |",
+            "|---|" + "---|" * len(cuts),
+        ]
         for how, vals in ro["orders"].items():
-            lines.append(f"| {how} | " + " | ".join(f"{vals[c]['psnr']:.2f} / {vals[c]['coverage']:.3f}" for c in cuts) + " |")
+            lines.append(
+                f"| {how} | " + " | ".join(f"{vals[c]['psnr']:.2f} / {vals[c]['coverage']:.3f}" for c in cuts) + " |"
+            )
     cv = a.get("coarse_vs_none")
     if cv:
-        lines += ["", f"With against without coarse levels (the same model trained without them: `{cv['run']}`; "
-                  f"streams {cv['bytes_with']:,} / {cv['bytes_without']:,} B; first whole head "
-                  f"{cv['first_head_with']['head_bytes']:,} / {cv['first_head_without']['head_bytes']:,} B), NVS:", "",
-                  "| budget | with: Gaussians, PSNR / SSIM, coverage | without: Gaussians, PSNR / SSIM, coverage | Δ PSNR |",
-                  "|---|---|---|---|"]
+        lines += [
+            "",
+            f"With against without coarse levels (the same model trained without them: `{cv['run']}`; "
+            f"streams {cv['bytes_with']:,} / {cv['bytes_without']:,} B; first whole head "
+            f"{cv['first_head_with']['head_bytes']:,} / {cv['first_head_without']['head_bytes']:,} B), NVS:",
+            "",
+            "| budget | with: Gaussians, PSNR / SSIM, coverage | without: Gaussians, PSNR / SSIM, coverage | Δ PSNR |",
+            "|---|---|---|---|",
+        ]
         for b, e in cv["budgets"].items():
             w, o = e["with"], e["without"]
-            lines.append(f"| {b} % | {w['gaussians']:,}, {w['psnr']:.2f} / {w['ssim']:.3f}, {w['coverage']:.3f} | "
-                         f"{o['gaussians']:,}, {o['psnr']:.2f} / {o['ssim']:.3f}, {o['coverage']:.3f} | "
-                         f"{w['psnr'] - o['psnr']:+.2f} |")
+            lines.append(
+                f"| {b} % | {w['gaussians']:,}, {w['psnr']:.2f} / {w['ssim']:.3f}, {w['coverage']:.3f} | "
+                f"{o['gaussians']:,}, {o['psnr']:.2f} / {o['ssim']:.3f}, {o['coverage']:.3f} | "
+                f"{w['psnr'] - o['psnr']:+.2f} |"
+            )
     lp = a["level_prefixes"]
-    lines.append("- level prefixes: " + ", ".join(f"level ≤{k}: {lp['counts'][k]:,} G, {v['psnr']:.2f} dB" for k, v in lp["nvs"].items()))
+    lines.append(
+        "- level prefixes: "
+        + ", ".join(f"level ≤{k}: {lp['counts'][k]:,} G, {v['psnr']:.2f} dB" for k, v in lp["nvs"].items())
+    )
     sd = a["single_asset_vs_discrete"]
     lines.append(f"- one stream {sd['stream_bytes']:,} B vs separately stored budgets {sd['discrete_sum_bytes']:,} B")
     if a.get("compare"):
         t = r.get("time_to_psnr", {})
         train = r.get("training", {})
-        lines += ["", "Other runs on the same views (100 %; level prefixes are NVS PSNR of levels ≤ k). *val tail*: "
-                  "mean ± sd of the last evaluations in the run's training log (8 views each): how much a run's "
-                  "score moves near the end of training. Training seconds depend on what else ran on the machine. "
-                  "This run is scored from its quantised stream, the others from their float32 avatars (the "
-                  "quantisation loss is in the list above).", "",
-                  f"| run | Gaussians | NVS PSNR | Δ vs this run | level prefixes | val tail | iterations / seconds "
-                  f"to {t.get('target', float('nan')):.2f} dB | training s |", "|---|---|---|---|---|---|---|---|"]
+        lines += [
+            "",
+            "Other runs on the same views (100 %; level prefixes are NVS PSNR of levels ≤ k). *val tail*: "
+            "mean ± sd of the last evaluations in the run's training log (8 views each): how much a run's "
+            "score moves near the end of training. Training seconds depend on what else ran on the machine. "
+            "This run is scored from its quantised stream, the others from their float32 avatars (the "
+            "quantisation loss is in the list above).",
+            "",
+            f"| run | Gaussians | NVS PSNR | Δ vs this run | level prefixes | val tail | iterations / seconds "
+            f"to {t.get('target', float('nan')):.2f} dB | training s |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
         main_psnr = r["budgets"]["100"]["nvs"]["psnr"] if "100" in r["budgets"] else None
-        entries = {"this run": {"gaussians": r["gaussians"], "nvs": {"psnr": main_psnr},
-                                "level_prefixes_nvs": lp["nvs"]}} if main_psnr is not None else {}
+        entries = (
+            {"this run": {"gaussians": r["gaussians"], "nvs": {"psnr": main_psnr}, "level_prefixes_nvs": lp["nvs"]}}
+            if main_psnr is not None
+            else {}
+        )
         entries.update(a["compare"])
         for name, c in entries.items():
             label = f"`{r['name']}` (this run)" if name == "this run" and r.get("name") else f"`{name}`"
             pref = ", ".join(f"≤{k}: {v['psnr']:.2f}" for k, v in c["level_prefixes_nvs"].items())
             tr = train.get(name, {})
-            tail = (f"{tr['val_tail_mean']:.2f} ± {tr['val_tail_sd']:.2f}" if tr.get("val_tail_sd") is not None else "")
+            tail = f"{tr['val_tail_mean']:.2f} ± {tr['val_tail_sd']:.2f}" if tr.get("val_tail_sd") is not None else ""
             its = t.get("iterations", {})
-            reach = "" if name not in its else "never" if its[name] is None else f"{its[name]} / {t['seconds'][name]:.0f}"
+            reach = (
+                "" if name not in its else "never" if its[name] is None else f"{its[name]} / {t['seconds'][name]:.0f}"
+            )
             secs = f"{tr['seconds']:.0f}" if tr.get("seconds") is not None else ""
             delta = c["nvs"]["psnr"] - main_psnr if main_psnr is not None else float("nan")
-            lines.append(f"| {label} | {c['gaussians']:,} | {c['nvs']['psnr']:.2f} | {delta:+.2f} | {pref} | {tail} | "
-                         f"{reach} | {secs} |")
+            lines.append(
+                f"| {label} | {c['gaussians']:,} | {c['nvs']['psnr']:.2f} | {delta:+.2f} | {pref} | {tail} | "
+                f"{reach} | {secs} |"
+            )
         lines.append("")
     if r.get("seed_groups"):
-        lines += ["", "Runs that differ only by their seed (`NAME_seed<k>`; the run named without a suffix is seed 0): "
-                  "mean ± sd over seeds (sample sd), the range, and the mean level-prefix PSNRs. "
-                  "All scored from float32 avatars.", "",
-                  "| runs | seeds | Gaussians | NVS PSNR mean ± sd | min .. max | level prefixes (mean) |",
-                  "|---|---|---|---|---|---|"]
+        lines += [
+            "",
+            "Runs that differ only by their seed (`NAME_seed<k>`; the run named without a suffix is seed 0): "
+            "mean ± sd over seeds (sample sd), the range, and the mean level-prefix PSNRs. "
+            "All scored from float32 avatars.",
+            "",
+            "| runs | seeds | Gaussians | NVS PSNR mean ± sd | min .. max | level prefixes (mean) |",
+            "|---|---|---|---|---|---|",
+        ]
         for group, g in r["seed_groups"].items():
             pref = ", ".join(f"≤{k}: {v:.2f}" for k, v in g["level_prefixes_nvs_mean"].items())
-            lines.append(f"| `{group}` | {g['n']} | {g['gaussians_mean']:,.0f} ± {g['gaussians_sd']:,.0f} | "
-                         f"{g['nvs_psnr_mean']:.3f} ± {g['nvs_psnr_sd']:.3f} | {g['nvs_psnr_min']:.2f} .. "
-                         f"{g['nvs_psnr_max']:.2f} | {pref} |")
+            lines.append(
+                f"| `{group}` | {g['n']} | {g['gaussians_mean']:,.0f} ± {g['gaussians_sd']:,.0f} | "
+                f"{g['nvs_psnr_mean']:.3f} ± {g['nvs_psnr_sd']:.3f} | {g['nvs_psnr_min']:.2f} .. "
+                f"{g['nvs_psnr_max']:.2f} | {pref} |"
+            )
         lines.append("")
     if r.get("seed_pairs"):
-        lines += ["", "Paired by seed (the seed draws the sequence of training views, so with all levels "
-                  "supervised two runs with the same seed see the same views in the same order): NVS PSNR of "
-                  "the first minus the second, per seed and mean ± sd.", "",
-                  "| first | second | seeds | difference per seed (dB) | mean ± sd (dB) |", "|---|---|---|---|---|"]
+        lines += [
+            "",
+            "Paired by seed (the seed draws the sequence of training views, so with all levels "
+            "supervised two runs with the same seed see the same views in the same order): NVS PSNR of "
+            "the first minus the second, per seed and mean ± sd.",
+            "",
+            "| first | second | seeds | difference per seed (dB) | mean ± sd (dB) |",
+            "|---|---|---|---|---|",
+        ]
         for p in r["seed_pairs"]:
             per = ", ".join(f"{d:+.3f}" for d in p["diffs"])
-            lines.append(f"| `{p['a']}` | `{p['b']}` | {', '.join(map(str, p['seeds']))} | {per} | "
-                         f"{p['mean']:+.3f} ± {p['sd']:.3f} |")
+            lines.append(
+                f"| `{p['a']}` | `{p['b']}` | {', '.join(map(str, p['seeds']))} | {per} | "
+                f"{p['mean']:+.3f} ± {p['sd']:.3f} |"
+            )
         lines.append("")
     if "depth_vs_detail" in r:
         d = r["depth_vs_detail"]
-        lines += ["", f"Depth follows detail: Spearman ρ = {d['spearman']:.3f}; mean depth on the most detailed quarter of "
-                  f"faces {d['mean_depth_detailed_quartile']:.2f} vs smoothest quarter {d['mean_depth_smooth_quartile']:.2f}."]
+        lines += [
+            "",
+            f"Depth follows detail: Spearman ρ = {d['spearman']:.3f}; mean depth on the most detailed quarter of "
+            f"faces {d['mean_depth_detailed_quartile']:.2f} vs smoothest quarter {d['mean_depth_smooth_quartile']:.2f}.",
+        ]
     lines += ["", "## Figures", ""] + [f"![{k}]({v})" for k, v in r.get("figures", {}).items()]
     return "\n".join(lines) + "\n"
 
@@ -467,6 +624,7 @@ def report_markdown(r: dict) -> str:
 # --------------------------------------------------------------------------------------
 # the paper's layout (scripts/evaluate.py --paper-table)
 # --------------------------------------------------------------------------------------
+
 
 def full_resolution_strip(path, renderer, info, budgets, view_index=0):
     """One view at each budget and the ground truth side by side at the dataset's own pixel
@@ -510,14 +668,27 @@ def seed_curves_vs_gaussians(path, curves: dict):
             hi = min(max(p["gaussians"] for p in pts) for pts in seeds.values())
             if hi > lo:
                 xs = np.geomspace(lo, hi, 8)
-                ys = np.array([np.interp(np.log(xs), np.log([p["gaussians"] for p in pts]), [p["psnr"] for p in pts])
-                               for pts in seeds.values()])
-                ax.errorbar(xs, ys.mean(0), yerr=ys.std(0, ddof=1), fmt="-o", ms=3, capsize=2, color=colour,
-                            label=f"{group}: mean ± sd over {len(seeds)} seeds")
+                ys = np.array(
+                    [
+                        np.interp(np.log(xs), np.log([p["gaussians"] for p in pts]), [p["psnr"] for p in pts])
+                        for pts in seeds.values()
+                    ]
+                )
+                ax.errorbar(
+                    xs,
+                    ys.mean(0),
+                    yerr=ys.std(0, ddof=1),
+                    fmt="-o",
+                    ms=3,
+                    capsize=2,
+                    color=colour,
+                    label=f"{group}: mean ± sd over {len(seeds)} seeds",
+                )
                 continue
         pts = next(iter(seeds.values()))
-        ax.plot([p["gaussians"] for p in pts], [p["psnr"] for p in pts], "-o", ms=3, color=colour,
-                label=f"{group} (1 seed)")
+        ax.plot(
+            [p["gaussians"] for p in pts], [p["psnr"] for p in pts], "-o", ms=3, color=colour, label=f"{group} (1 seed)"
+        )
     ax.set_xscale("log")
     ax.set_xlabel("Gaussians rendered (stream prefix, log)")
     ax.set_ylabel("NVS PSNR in mask (dB)")
@@ -559,20 +730,30 @@ def paper_table_markdown(r: dict) -> str:
     pt = r["paper_table"]
     ds = r.get("data_summary") or {}
     size = f"{ds['width']}x{ds['height']} px" if {"width", "height"} <= set(ds) else "?"
-    lines = ["# The paper's tables on our data", "",
-             f"- run: `{r['run']}`; data: `{r['data']}` ({size}, template {ds.get('faces', '?'):,} faces)"
-             if isinstance(ds.get("faces"), int) else f"- run: `{r['run']}`; data: `{r['data']}` ({size})",
-             f"- machine: {r['machine']}", f"- date: {r['date']}", f"- command: `{r['command']}`",
-             f"- stream: {r['stream_bytes']:,} bytes, {r['gaussians']:,} Gaussians, levels {r['level_counts']}",
-             "- paper: ProgressiveAvatars on NeRSemble at 550x802 px, RTX 4090 (DESIGN.md). Ours: the synthetic head, "
-             "scored from the quantised stream; PSNR/SSIM inside the foreground mask; render ms of the CPU renderer "
-             "at the dataset's size (the paper gives FPS on a GPU).", ""]
+    lines = [
+        "# The paper's tables on our data",
+        "",
+        f"- run: `{r['run']}`; data: `{r['data']}` ({size}, template {ds.get('faces', '?'):,} faces)"
+        if isinstance(ds.get("faces"), int)
+        else f"- run: `{r['run']}`; data: `{r['data']}` ({size})",
+        f"- machine: {r['machine']}",
+        f"- date: {r['date']}",
+        f"- command: `{r['command']}`",
+        f"- stream: {r['stream_bytes']:,} bytes, {r['gaussians']:,} Gaussians, levels {r['level_counts']}",
+        "- paper: ProgressiveAvatars on NeRSemble at 550x802 px, RTX 4090 (DESIGN.md). Ours: the synthetic head, "
+        "scored from the quantised stream; PSNR/SSIM inside the foreground mask; render ms of the CPU renderer "
+        "at the dataset's size (the paper gives FPS on a GPU).",
+        "",
+    ]
     if r.get("about"):
         lines += [r["about"], ""]
-    lines += ["## Table 1: budgets", "",
-              "| budget | NVS PSNR / SSIM | paper | NVS gap to 100 % (paper) | NES PSNR / SSIM | paper | "
-              "NES gap (paper) | Gaussians (paper) | MB (paper) | render ms (paper FPS) |",
-              "|---|---|---|---|---|---|---|---|---|---|"]
+    lines += [
+        "## Table 1: budgets",
+        "",
+        "| budget | NVS PSNR / SSIM | paper | NVS gap to 100 % (paper) | NES PSNR / SSIM | paper | "
+        "NES gap (paper) | Gaussians (paper) | MB (paper) | render ms (paper FPS) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for key, row in sorted(pt["table1"].items(), key=lambda kv: float(kv[0])):
         p = row.get("paper", {})
         lines.append(
@@ -583,42 +764,74 @@ def paper_table_markdown(r: dict) -> str:
             f"{_fmt(p.get('nes_psnr'), '.2f')} / {_fmt(p.get('nes_ssim'), '.3f')} | "
             f"{_fmt(row.get('nes_gap'), '.2f')} ({_fmt(p.get('nes_gap'), '.2f')}) | "
             f"{row['gaussians']:,} ({_fmt(p.get('gaussians'), ',')}) | {row['mb']:.2f} ({_fmt(p.get('mb'), '.2f')}) | "
-            f"{row['render_ms']:.0f} ({_fmt(p.get('fps'), 'd')}) |")
+            f"{row['render_ms']:.0f} ({_fmt(p.get('fps'), 'd')}) |"
+        )
     g = PAPER_GAUSSIANAVATARS
-    lines += ["", f"Paper's GaussianAvatars: NVS {g[0]:.2f} / {g[1]:.3f}, NES {g[2]:.2f} / {g[3]:.3f}, "
-              f"{g[4]:,} Gaussians, {g[5]:.2f} MB.", "", "## Table 3: ablations (NVS PSNR)", "",
-              "| ablation | ours | paper |", "|---|---|---|"]
+    lines += [
+        "",
+        f"Paper's GaussianAvatars: NVS {g[0]:.2f} / {g[1]:.3f}, NES {g[2]:.2f} / {g[3]:.3f}, "
+        f"{g[4]:,} Gaussians, {g[5]:.2f} MB.",
+        "",
+        "## Table 3: ablations (NVS PSNR)",
+        "",
+        "| ablation | ours | paper |",
+        "|---|---|---|",
+    ]
     t3 = pt["table3"]
     if "finest_only_35" in t3:
         f = t3["finest_only_35"]
-        lines.append(f"| 35 %: multi-level supervision / finest level only | {f['multi_level']:.2f} / "
-                     f"{f['finest_only']:.2f} | {f['paper'][0]:.2f} / {f['paper'][1]:.2f} |")
+        lines.append(
+            f"| 35 %: multi-level supervision / finest level only | {f['multi_level']:.2f} / "
+            f"{f['finest_only']:.2f} | {f['paper'][0]:.2f} / {f['paper'][1]:.2f} |"
+        )
     else:
         lines.append("| 35 %: finest level only | not run (no --finest-only) | 29.87 / 20.06 |")
     ro = t3["random_order_25"]
-    lines.append(f"| 25 %: importance-ranked / random within levels | {ro['ranked']:.2f} / {ro['random']:.2f} | "
-                 f"{ro['paper'][0]:.2f} / {ro['paper'][1]:.2f} |")
+    lines.append(
+        f"| 25 %: importance-ranked / random within levels | {ro['ranked']:.2f} / {ro['random']:.2f} | "
+        f"{ro['paper'][0]:.2f} / {ro['paper'][1]:.2f} |"
+    )
     io = t3["importance_only_50"]
-    lines.append(f"| 50 %: levels then importance / importance only | {io['levels']:.2f} / "
-                 f"{io['importance_only']:.2f} | holes (no number) |")
+    lines.append(
+        f"| 50 %: levels then importance / importance only | {io['levels']:.2f} / "
+        f"{io['importance_only']:.2f} | holes (no number) |"
+    )
     vs = r.get("adaptive_vs_uniform")
     lines += ["", "## Adaptive against uniform subdivision at matched Gaussian counts", ""]
     if vs:
-        lines += ["Both streams cut to the smaller of the two runs' Gaussian counts (same seed), NVS PSNR.", "",
-                  "| seed | Gaussians | adaptive | uniform | adaptive − uniform | totals (adaptive / uniform) |",
-                  "|---|---|---|---|---|---|"]
+        lines += [
+            "Both streams cut to the smaller of the two runs' Gaussian counts (same seed), NVS PSNR.",
+            "",
+            "| seed | Gaussians | adaptive | uniform | adaptive − uniform | totals (adaptive / uniform) |",
+            "|---|---|---|---|---|---|",
+        ]
         for p in vs["pairs"]:
-            lines.append(f"| {p['seed']} | {p['gaussians']:,} | {p['adaptive']:.2f} | {p['uniform']:.2f} | "
-                         f"{p['diff']:+.2f} | {p['adaptive_total']:,} / {p['uniform_total']:,} |")
+            lines.append(
+                f"| {p['seed']} | {p['gaussians']:,} | {p['adaptive']:.2f} | {p['uniform']:.2f} | "
+                f"{p['diff']:+.2f} | {p['adaptive_total']:,} / {p['uniform_total']:,} |"
+            )
         lines.append(f"| mean ± sd | | | | {vs['mean']:+.2f} ± {_fmt(vs['sd'], '.2f')} ({vs['n']} seeds) | |")
     else:
         lines.append("not run (no --uniform)")
-    lines += ["", "## Training", "", "| run | iterations | training s (steps) | wall s (all invocations) | peak RSS MB |",
-              "|---|---|---|---|---|"]
+    lines += [
+        "",
+        "## Training",
+        "",
+        "| run | iterations | training s (steps) | wall s (all invocations) | peak RSS MB |",
+        "|---|---|---|---|---|",
+    ]
     for name, res in r.get("resources", {}).items():
-        lines.append(f"| {name} | {_fmt(res['iterations'], 'd')} | {_fmt(res['train_seconds'], '.0f')} | "
-                     f"{_fmt(res['wall_seconds'], '.0f')} | {_fmt(res['peak_rss_mb'], '.0f')} |")
-    lines += ["", "## Acceptance (issue 17)", "", "| criterion | ours | target | paper | met |", "|---|---|---|---|---|"]
+        lines.append(
+            f"| {name} | {_fmt(res['iterations'], 'd')} | {_fmt(res['train_seconds'], '.0f')} | "
+            f"{_fmt(res['wall_seconds'], '.0f')} | {_fmt(res['peak_rss_mb'], '.0f')} |"
+        )
+    lines += [
+        "",
+        "## Acceptance (issue 17)",
+        "",
+        "| criterion | ours | target | paper | met |",
+        "|---|---|---|---|---|",
+    ]
     for name, c in pt["checks"].items():
         ours = c["ours"]
         ours = f"{ours:.3f}" if isinstance(ours, float) else str(ours)
@@ -627,6 +840,7 @@ def paper_table_markdown(r: dict) -> str:
         met = {True: "yes", False: "**no**", None: "?"}[c["ok"]]
         lines.append(f"| {name} | {ours} | {c['target']} | {paper} | {met} |")
     figs = r.get("figures", {})
-    lines += ["", "## Figures", ""] + [f"![{k}]({v})" for k, v in figs.items()
-                                        if k.startswith(("strip_full", "paper_quality", "depth", "psnr_vs"))]
+    lines += ["", "## Figures", ""] + [
+        f"![{k}]({v})" for k, v in figs.items() if k.startswith(("strip_full", "paper_quality", "depth", "psnr_vs"))
+    ]
     return "\n".join(lines) + "\n"

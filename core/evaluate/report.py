@@ -70,10 +70,16 @@ RATES_MBIT = (1, 10, 100)
 def first_head(info) -> dict:
     """Bytes (header included) and seconds at 1/10/100 Mbit/s to the first whole head (the
     coarsest level; the template level without coarse levels) and to the whole base."""
-    out = {"coarse_levels": info.num_coarse_levels, "header_bytes": info.header_size,
-           "template_embedded": info.template_embedded,
-           "head_gaussians": info.head_records, "head_bytes": info.head_bytes,
-           "base_gaussians": info.num_roots, "base_bytes": info.base_bytes, "total_bytes": info.total_bytes}
+    out = {
+        "coarse_levels": info.num_coarse_levels,
+        "header_bytes": info.header_size,
+        "template_embedded": info.template_embedded,
+        "head_gaussians": info.head_records,
+        "head_bytes": info.head_bytes,
+        "base_gaussians": info.num_roots,
+        "base_bytes": info.base_bytes,
+        "total_bytes": info.total_bytes,
+    }
     for r in RATES_MBIT:
         out[f"head_seconds_{r}mbit"] = info.head_bytes * 8 / (r * 1e6)
         out[f"base_seconds_{r}mbit"] = info.base_bytes * 8 / (r * 1e6)
@@ -110,15 +116,31 @@ def coarse_ablation(run0, data, rest, nvs_renderer, info, nvs_split, views, scra
     av0 = runs.load_run_avatar(run0)
     W0 = runs.run_importance(run0, av0, data, progress=progress)
     p0 = os.path.join(scratch, "no_coarse.pavs")
-    info0 = stream.write_stream(p0, av0, W0, quantize=True, drop_sh=True, vertices=rest, root_order=root_order,
-                                embed_template=info.template_embedded)
+    info0 = stream.write_stream(
+        p0,
+        av0,
+        W0,
+        quantize=True,
+        drop_sh=True,
+        vertices=rest,
+        root_order=root_order,
+        embed_template=info.template_embedded,
+    )
     r0 = SplitRenderer(stream.read_stream(p0, template_faces=nvs_split.faces), nvs_split, views)
-    out = {"run": os.path.abspath(run0), "bytes_with": info.total_bytes, "bytes_without": info0.total_bytes,
-           "first_head_with": first_head(info), "first_head_without": first_head(info0), "budgets": {}}
+    out = {
+        "run": os.path.abspath(run0),
+        "bytes_with": info.total_bytes,
+        "bytes_without": info0.total_bytes,
+        "first_head_with": first_head(info),
+        "first_head_without": first_head(info0),
+        "budgets": {},
+    }
     for b in (2, 5, 100):
         n1, n0 = int(info.count_for_percent(b)), int(info0.count_for_percent(b))
-        out["budgets"][str(b)] = {"with": {"gaussians": n1, **nvs_renderer.score(np.arange(n1))},
-                                  "without": {"gaussians": n0, **r0.score(np.arange(n0))}}
+        out["budgets"][str(b)] = {
+            "with": {"gaussians": n1, **nvs_renderer.score(np.arange(n1))},
+            "without": {"gaussians": n0, **r0.score(np.arange(n0))},
+        }
     return out
 
 
@@ -173,8 +195,11 @@ def _paper_extras(args, report, streamed, info, rend, splits, data, progress):
         report["ablations"]["finest_only_35"] = {
             "run": os.path.abspath(args.finest_only),
             "multi_level": {**nvs.score(np.arange(n_ours)), "gaussians": n_ours},
-            "finest_only": {**SplitRenderer(other, splits["nvs"], args.views).score(np.arange(n_other)),
-                            "gaussians": n_other}}
+            "finest_only": {
+                **SplitRenderer(other, splits["nvs"], args.views).score(np.arange(n_other)),
+                "gaussians": n_other,
+            },
+        }
     # Adaptive (this run = seed 0, and --adaptive runs) against uniform (--uniform), per seed: both
     # streams cut to the smaller of the two Gaussian counts, so the counts match exactly.
     adaptive = _seeded(args.adaptive, first=("this run", args.run))
@@ -188,34 +213,51 @@ def _paper_extras(args, report, streamed, info, rend, splits, data, progress):
             streams[(group, seed)] = (av, inf)
             r = SplitRenderer(av, splits["nvs"], curve_views)
             counts = np.unique(np.geomspace(int(av.forest.level_counts()[0]), av.num_gaussians, 6).astype(int))
-            curves.setdefault(group, {})[seed] = [{"gaussians": int(n), "psnr": r.score(np.arange(n))["psnr"]}
-                                                 for n in counts]
+            curves.setdefault(group, {})[seed] = [
+                {"gaussians": int(n), "psnr": r.score(np.arange(n))["psnr"]} for n in counts
+            ]
     for seed in sorted(set(adaptive) & set(uniform)):
         (a_av, _), (u_av, _) = streams[("adaptive", seed)], streams[("uniform", seed)]
         n = min(a_av.num_gaussians, u_av.num_gaussians)
         a = SplitRenderer(a_av, splits["nvs"], args.views).score(np.arange(n))
         u = SplitRenderer(u_av, splits["nvs"], args.views).score(np.arange(n))
-        pairs.append({"seed": seed, "gaussians": n, "adaptive": a["psnr"], "uniform": u["psnr"],
-                      "adaptive_total": a_av.num_gaussians, "uniform_total": u_av.num_gaussians,
-                      "diff": a["psnr"] - u["psnr"]})
+        pairs.append(
+            {
+                "seed": seed,
+                "gaussians": n,
+                "adaptive": a["psnr"],
+                "uniform": u["psnr"],
+                "adaptive_total": a_av.num_gaussians,
+                "uniform_total": u_av.num_gaussians,
+                "diff": a["psnr"] - u["psnr"],
+            }
+        )
     report["quality_curves"] = curves
     if pairs:
         d = np.array([p["diff"] for p in pairs])
-        report["adaptive_vs_uniform"] = {"pairs": pairs, "diffs": d.tolist(), "n": len(d), "mean": float(d.mean()),
-                                         "sd": float(d.std(ddof=1)) if len(d) > 1 else None}
+        report["adaptive_vs_uniform"] = {
+            "pairs": pairs,
+            "diffs": d.tolist(),
+            "n": len(d),
+            "mean": float(d.mean()),
+            "sd": float(d.std(ddof=1)) if len(d) > 1 else None,
+        }
     if curves:
         figs["paper_quality_vs_gaussians"] = plots.seed_curves_vs_gaussians(
-            os.path.join(args.out, "paper_quality_vs_gaussians.png"), curves)
+            os.path.join(args.out, "paper_quality_vs_gaussians.png"), curves
+        )
     # Training wall time and peak memory of every run (metrics log; scripts/train.py's resources.jsonl).
     runs_used = {"this run": args.run, **({"finest only": args.finest_only} if args.finest_only else {})}
     runs_used.update({f"adaptive seed {k}": r for k, (_, r) in adaptive.items() if r != args.run})
     runs_used.update({f"uniform seed {k}": r for k, (_, r) in uniform.items()})
     report["resources"] = {name: plots.run_resources(run) for name, run in runs_used.items()}
-    budgets = [float(k) for k in report["budgets"] if k in ("5", "25", "50", "100")] or \
-        [float(k) for k in report["budgets"]]  # the paper's columns when the report has them
+    budgets = [float(k) for k in report["budgets"] if k in ("5", "25", "50", "100")] or [
+        float(k) for k in report["budgets"]
+    ]  # the paper's columns when the report has them
     for k, r in rend.items():
-        figs[f"strip_full_{k}"] = plots.full_resolution_strip(os.path.join(args.out, f"strip_full_{k}.png"), r, info,
-                                                              budgets)
+        figs[f"strip_full_{k}"] = plots.full_resolution_strip(
+            os.path.join(args.out, f"strip_full_{k}.png"), r, info, budgets
+        )
     return figs
 
 
@@ -237,16 +279,28 @@ def build_report(args: ReportOptions) -> dict:
     W = runs.run_importance(args.run, avatar, data, progress=progress)
     stream_path = os.path.join(args.run, "avatar.pavs")
     if avatar.sh_degree:
-        print(f"note: the avatar has SH degree {avatar.sh_degree}; the stream (and so this report) carries its "
-              "DC colour only", file=sys.stderr)
+        print(
+            f"note: the avatar has SH degree {avatar.sh_degree}; the stream (and so this report) carries its "
+            "DC colour only",
+            file=sys.stderr,
+        )
     rest = splits["nvs"].canonical_vertices  # spread-out root order (core/avatar/coarse.py)
-    info = stream.write_stream(stream_path, avatar, W, quantize=True, metadata={"run": os.path.abspath(args.run)},
-                               drop_sh=True, vertices=rest, root_order=args.root_order,
-                               embed_template=args.embed_template)
+    info = stream.write_stream(
+        stream_path,
+        avatar,
+        W,
+        quantize=True,
+        metadata={"run": os.path.abspath(args.run)},
+        drop_sh=True,
+        vertices=rest,
+        root_order=args.root_order,
+        embed_template=args.embed_template,
+    )
     scratch = tempfile.mkdtemp(prefix="pa_eval_")
     lossless_path = os.path.join(scratch, "lossless.pavs")  # only to measure what quantisation costs
-    stream.write_stream(lossless_path, avatar, W, quantize=False, drop_sh=True, vertices=rest,
-                        root_order=args.root_order)
+    stream.write_stream(
+        lossless_path, avatar, W, quantize=False, drop_sh=True, vertices=rest, root_order=args.root_order
+    )
     streamed = stream.read_stream(stream_path, template_faces=splits["nvs"].faces)
     exact = stream.read_stream(lossless_path)
     order = info.order
@@ -254,11 +308,19 @@ def build_report(args: ReportOptions) -> dict:
     total_bytes = os.path.getsize(stream_path)
 
     rend = {k: SplitRenderer(streamed, ds, args.views) for k, ds in splits.items()}
-    report = {"run": os.path.abspath(args.run), "data": os.path.abspath(data), "data_summary": _data_summary(data),
-              "about": args.about, "name": args.name,
-              "stream_bytes": total_bytes,
-              "bytes_per_gaussian": total_bytes / streamed.num_gaussians, "gaussians": streamed.num_gaussians,
-              "level_counts": streamed.forest.level_counts().tolist(), "budgets": {}, "ablations": {}}
+    report = {
+        "run": os.path.abspath(args.run),
+        "data": os.path.abspath(data),
+        "data_summary": _data_summary(data),
+        "about": args.about,
+        "name": args.name,
+        "stream_bytes": total_bytes,
+        "bytes_per_gaussian": total_bytes / streamed.num_gaussians,
+        "gaussians": streamed.num_gaussians,
+        "level_counts": streamed.forest.level_counts().tolist(),
+        "budgets": {},
+        "ablations": {},
+    }
     for b in budgets:
         n = int(info.count_for_percent(b))
         ids = np.arange(n)
@@ -268,8 +330,10 @@ def build_report(args: ReportOptions) -> dict:
         entry["render_ms"] = entry["nvs"]["render_ms"]
         report["budgets"][f"{b:g}"] = entry
         if progress:
-            print(f"budget {b:g}%: {n} Gaussians, NVS {entry['nvs']['psnr']:.2f} dB "
-                  f"(coverage {entry['nvs']['coverage']:.3f}), NES {entry['nes']['psnr']:.2f} dB")
+            print(
+                f"budget {b:g}%: {n} Gaussians, NVS {entry['nvs']['psnr']:.2f} dB "
+                f"(coverage {entry['nvs']['coverage']:.3f}), NES {entry['nes']['psnr']:.2f} dB"
+            )
 
     # PSNR and coverage against bytes, many budgets (NVS, fewer views to keep it quick).
     curve_r = SplitRenderer(streamed, splits["nvs"], args.curve_views)
@@ -277,8 +341,15 @@ def build_report(args: ReportOptions) -> dict:
     for b in np.linspace(100 / args.curve_points, 100, args.curve_points):
         n = int(info.count_for_percent(b))
         sc = curve_r.score(np.arange(n), ssim=False)
-        curve.append({"percent": float(b), "bytes": int(info.bytes_for_count(n)), "gaussians": n,
-                      "psnr": sc["psnr"], "coverage": sc["coverage"]})
+        curve.append(
+            {
+                "percent": float(b),
+                "bytes": int(info.bytes_for_count(n)),
+                "gaussians": n,
+                "psnr": sc["psnr"],
+                "coverage": sc["coverage"],
+            }
+        )
     report["curve_nvs"] = curve
     report["curve_views"] = len(curve_r.views)
     report["first_head"] = first_head(info)
@@ -290,40 +361,76 @@ def build_report(args: ReportOptions) -> dict:
     nvs = rend["nvs"]
     abl["root_order"] = root_order_ablation(avatar, W, rest, info, SplitRenderer(avatar, splits["nvs"], args.views))
     if args.no_coarse_run:
-        abl["coarse_vs_none"] = coarse_ablation(args.no_coarse_run, data, rest, rend["nvs"], info, splits["nvs"],
-                                                args.views, scratch, progress, args.root_order)
+        abl["coarse_vs_none"] = coarse_ablation(
+            args.no_coarse_run,
+            data,
+            rest,
+            rend["nvs"],
+            info,
+            splits["nvs"],
+            args.views,
+            scratch,
+            progress,
+            args.root_order,
+        )
     n25, n50 = int(info.count_for_percent(25)), int(info.count_for_percent(50))
     rand = random_within_levels(streamed.forest.level, seed=0)[:n25]
-    abl["random_order_25"] = {"ranked": report["budgets"].get("25", {}).get("nvs") or nvs.score(np.arange(n25)),
-                              "random": nvs.score(np.sort(rand)), "gaussians": n25}
+    abl["random_order_25"] = {
+        "ranked": report["budgets"].get("25", {}).get("nvs") or nvs.score(np.arange(n25)),
+        "random": nvs.score(np.sort(rand)),
+        "gaussians": n25,
+    }
     imp = importance_only(W_stream)[:n50]
-    abl["importance_only_50"] = {"levels_then_importance": nvs.score(np.arange(n50)),
-                                 "importance_only": nvs.score(np.sort(imp)), "gaussians": n50}
+    abl["importance_only_50"] = {
+        "levels_then_importance": nvs.score(np.arange(n50)),
+        "importance_only": nvs.score(np.sort(imp)),
+        "gaussians": n50,
+    }
     exact_nvs = SplitRenderer(exact, splits["nvs"], args.views)
-    abl["quantisation_100"] = {"quantised": nvs.score(np.arange(streamed.num_gaussians)),
-                               "float32": exact_nvs.score(np.arange(exact.num_gaussians)),
-                               "bytes_quantised": total_bytes, "bytes_float32": os.path.getsize(lossless_path)}
-    abl["quantisation_100"]["psnr_loss_db"] = (abl["quantisation_100"]["float32"]["psnr"]
-                                              - abl["quantisation_100"]["quantised"]["psnr"])
-    abl["level_prefixes"] = {"counts": _levels_prefixes(streamed), "nvs": _score_prefixes(nvs, _levels_prefixes(streamed))}
+    abl["quantisation_100"] = {
+        "quantised": nvs.score(np.arange(streamed.num_gaussians)),
+        "float32": exact_nvs.score(np.arange(exact.num_gaussians)),
+        "bytes_quantised": total_bytes,
+        "bytes_float32": os.path.getsize(lossless_path),
+    }
+    abl["quantisation_100"]["psnr_loss_db"] = (
+        abl["quantisation_100"]["float32"]["psnr"] - abl["quantisation_100"]["quantised"]["psnr"]
+    )
+    abl["level_prefixes"] = {
+        "counts": _levels_prefixes(streamed),
+        "nvs": _score_prefixes(nvs, _levels_prefixes(streamed)),
+    }
     sizes = {f"{b:g}": int(info.bytes_for_count(int(info.count_for_percent(b)))) for b in budgets}
-    abl["single_asset_vs_discrete"] = {"stream_bytes": total_bytes, "discrete_sum_bytes": int(sum(sizes.values())),
-                                      "discrete_budgets": sizes}
+    abl["single_asset_vs_discrete"] = {
+        "stream_bytes": total_bytes,
+        "discrete_sum_bytes": int(sum(sizes.values())),
+        "discrete_budgets": sizes,
+    }
     for spec in args.compare:
         name, _, other = spec.partition("=")
         other_av = runs.load_run_avatar(other)
         other_rend = SplitRenderer(other_av, splits["nvs"], args.views)
-        entry = {"run": os.path.abspath(other), "gaussians": other_av.num_gaussians,
-                 "level_counts": other_av.forest.level_counts().tolist(),
-                 "nvs": other_rend.score(np.arange(other_av.num_gaussians))}
+        entry = {
+            "run": os.path.abspath(other),
+            "gaussians": other_av.num_gaussians,
+            "level_counts": other_av.forest.level_counts().tolist(),
+            "nvs": other_rend.score(np.arange(other_av.num_gaussians)),
+        }
         level = other_av.forest.level
-        entry["level_prefixes_nvs"] = {int(lvl): other_rend.score(np.flatnonzero(level <= lvl))
-                                       for lvl in range(int(level.max()) + 1)}
+        entry["level_prefixes_nvs"] = {
+            int(lvl): other_rend.score(np.flatnonzero(level <= lvl)) for lvl in range(int(level.max()) + 1)
+        }
         abl.setdefault("compare", {})[name] = entry
     grouped = dict(abl.get("compare", {}))
     if args.name:  # this run joins its seeds' group, scored like them from its float32 avatar
-        grouped = {args.name: {"gaussians": avatar.num_gaussians, "nvs": abl["quantisation_100"]["float32"],
-                               "level_prefixes_nvs": _score_prefixes(exact_nvs, _levels_prefixes(exact))}, **grouped}
+        grouped = {
+            args.name: {
+                "gaussians": avatar.num_gaussians,
+                "nvs": abl["quantisation_100"]["float32"],
+                "level_prefixes_nvs": _score_prefixes(exact_nvs, _levels_prefixes(exact)),
+            },
+            **grouped,
+        }
     report["seed_groups"] = plots.seed_groups(grouped)
     report["seed_pairs"] = plots.seed_pairs(grouped)
 
@@ -342,18 +449,24 @@ def build_report(args: ReportOptions) -> dict:
         figs[f"strip_{k}"] = plots.budget_strip(os.path.join(args.out, f"strip_{k}.png"), r, info, strips)
     figs["depth"] = plots.depth_picture(os.path.join(args.out, "depth.png"), streamed, splits["nes"])
     logs = {"this run": os.path.join(args.run, "metrics.jsonl")}
-    logs.update({spec.partition("=")[0]: os.path.join(spec.partition("=")[2], "metrics.jsonl") for spec in args.compare})
+    logs.update(
+        {spec.partition("=")[0]: os.path.join(spec.partition("=")[2], "metrics.jsonl") for spec in args.compare}
+    )
     logs = {k: v for k, v in logs.items() if os.path.exists(v)}
     if logs:
         figs["psnr_vs_time"] = plots.psnr_vs_time(os.path.join(args.out, "psnr_vs_time.png"), logs)
         rows = {k: plots.read_log(v) for k, v in logs.items()}
         finals = [max(r.get("val_psnr", -np.inf) for r in rs) for rs in rows.values()]
         target = min(finals) - 0.5  # a level every run reaches, so the times compare
-        report["time_to_psnr"] = {"target": float(target),
-                                  "seconds": {k: plots.first_reaching(rs, target, "seconds") for k, rs in rows.items()},
-                                  "iterations": {k: plots.first_reaching(rs, target, "iteration") for k, rs in rows.items()}}
+        report["time_to_psnr"] = {
+            "target": float(target),
+            "seconds": {k: plots.first_reaching(rs, target, "seconds") for k, rs in rows.items()},
+            "iterations": {k: plots.first_reaching(rs, target, "iteration") for k, rs in rows.items()},
+        }
         report["training"] = {k: plots.training_summary(rs) for k, rs in rows.items()}
-    figs["quality_vs_gaussians"] = plots.quality_vs_gaussians(os.path.join(args.out, "quality_vs_gaussians.png"), report)
+    figs["quality_vs_gaussians"] = plots.quality_vs_gaussians(
+        os.path.join(args.out, "quality_vs_gaussians.png"), report
+    )
     if args.paper_table:
         figs.update(_paper_extras(args, report, streamed, info, rend, splits, data, progress))
     report["figures"] = {k: os.path.basename(v) for k, v in figs.items() if v}

@@ -68,9 +68,15 @@ class SplitRenderer:
             cov.append(float(np.count_nonzero(alpha[inside] >= 0.5)) / max(int(np.count_nonzero(inside)), 1))
             ms.append(seconds * 1e3)
         nan = float("nan")
-        return {"psnr": float(np.mean(psnr_m)), "ssim": float(np.mean(ssim_m)) if ssim else nan,
-                "psnr_full_image": float(np.mean(psnr_w)), "ssim_full_image": float(np.mean(ssim_w)) if ssim else nan,
-                "coverage": float(np.mean(cov)), "views": len(self.views), "render_ms": float(np.median(ms))}
+        return {
+            "psnr": float(np.mean(psnr_m)),
+            "ssim": float(np.mean(ssim_m)) if ssim else nan,
+            "psnr_full_image": float(np.mean(psnr_w)),
+            "ssim_full_image": float(np.mean(ssim_w)) if ssim else nan,
+            "coverage": float(np.mean(cov)),
+            "views": len(self.views),
+            "render_ms": float(np.median(ms)),
+        }
 
 
 def random_within_levels(level: np.ndarray, seed: int = 0) -> np.ndarray:
@@ -103,9 +109,15 @@ PAPER_TABLE1 = {
 PAPER_GAUSSIANAVATARS = (31.10, 0.937, 25.80, 0.911, 163829, 41.90, 271)
 PAPER_TABLE3 = {"mls_35": 29.87, "finest_only_35": 20.06, "ranked_25": 29.14, "random_25": 28.40}
 # issue 17's acceptance thresholds (NVS dB unless said)
-PAPER_TARGETS = {"detail_db": 3.0, "base_bytes_max": 0.06, "growth_min": 12.0,
-                 "gap_max": {"5": 3.0, "25": 1.5, "50": 0.8}, "ranked_minus_random": 0.5,
-                 "mls_minus_finest": 5.0, "adaptive_minus_uniform": 0.3}
+PAPER_TARGETS = {
+    "detail_db": 3.0,
+    "base_bytes_max": 0.06,
+    "growth_min": 12.0,
+    "gap_max": {"5": 3.0, "25": 1.5, "50": 0.8},
+    "ranked_minus_random": 0.5,
+    "mls_minus_finest": 5.0,
+    "adaptive_minus_uniform": 0.3,
+}
 
 
 def _monotone(values) -> bool:
@@ -124,27 +136,50 @@ def paper_table(report: dict) -> dict:
         if key not in PAPER_TABLE1:  # the paper's rows only (the report has more budgets)
             continue
         p = PAPER_TABLE1.get(key)
-        row = {"nvs_psnr": e["nvs"]["psnr"], "nvs_ssim": e["nvs"]["ssim"], "nes_psnr": e["nes"]["psnr"],
-               "nes_ssim": e["nes"]["ssim"], "gaussians": e["gaussians"], "mb": e["bytes"] / 1e6,
-               "render_ms": e["render_ms"]}
+        row = {
+            "nvs_psnr": e["nvs"]["psnr"],
+            "nvs_ssim": e["nvs"]["ssim"],
+            "nes_psnr": e["nes"]["psnr"],
+            "nes_ssim": e["nes"]["ssim"],
+            "gaussians": e["gaussians"],
+            "mb": e["bytes"] / 1e6,
+            "render_ms": e["render_ms"],
+        }
         if full is not None:
             row["nvs_gap"] = full["nvs"]["psnr"] - e["nvs"]["psnr"]
             row["nes_gap"] = full["nes"]["psnr"] - e["nes"]["psnr"]
         if p is not None:
-            row["paper"] = {"nvs_psnr": p[0], "nvs_ssim": p[1], "nes_psnr": p[2], "nes_ssim": p[3], "gaussians": p[4],
-                            "mb": p[5], "fps": p[6], "nvs_gap": PAPER_TABLE1["100"][0] - p[0],
-                            "nes_gap": PAPER_TABLE1["100"][2] - p[2]}
+            row["paper"] = {
+                "nvs_psnr": p[0],
+                "nvs_ssim": p[1],
+                "nes_psnr": p[2],
+                "nes_ssim": p[3],
+                "gaussians": p[4],
+                "mb": p[5],
+                "fps": p[6],
+                "nvs_gap": PAPER_TABLE1["100"][0] - p[0],
+                "nes_gap": PAPER_TABLE1["100"][2] - p[2],
+            }
         rows[key] = row
     a = report["ablations"]
-    t3 = {"random_order_25": {"ranked": a["random_order_25"]["ranked"]["psnr"],
-                              "random": a["random_order_25"]["random"]["psnr"],
-                              "paper": (PAPER_TABLE3["ranked_25"], PAPER_TABLE3["random_25"])},
-          "importance_only_50": {"levels": a["importance_only_50"]["levels_then_importance"]["psnr"],
-                                 "importance_only": a["importance_only_50"]["importance_only"]["psnr"]}}
+    t3 = {
+        "random_order_25": {
+            "ranked": a["random_order_25"]["ranked"]["psnr"],
+            "random": a["random_order_25"]["random"]["psnr"],
+            "paper": (PAPER_TABLE3["ranked_25"], PAPER_TABLE3["random_25"]),
+        },
+        "importance_only_50": {
+            "levels": a["importance_only_50"]["levels_then_importance"]["psnr"],
+            "importance_only": a["importance_only_50"]["importance_only"]["psnr"],
+        },
+    }
     if "finest_only_35" in a:
         f = a["finest_only_35"]
-        t3["finest_only_35"] = {"multi_level": f["multi_level"]["psnr"], "finest_only": f["finest_only"]["psnr"],
-                                "paper": (PAPER_TABLE3["mls_35"], PAPER_TABLE3["finest_only_35"])}
+        t3["finest_only_35"] = {
+            "multi_level": f["multi_level"]["psnr"],
+            "finest_only": f["finest_only"]["psnr"],
+            "paper": (PAPER_TABLE3["mls_35"], PAPER_TABLE3["finest_only_35"]),
+        }
     T = PAPER_TARGETS
     checks = {}
 
@@ -158,43 +193,81 @@ def paper_table(report: dict) -> dict:
     base = lp.get(K, lp.get(str(K)))
     if full is not None and base is not None:
         d = full["nvs"]["psnr"] - base["psnr"]
-        check("detail: NVS 100 % minus the base level alone (dB)", d, f">= {T['detail_db']}", 3.58,
-              d >= T["detail_db"])
+        check("detail: NVS 100 % minus the base level alone (dB)", d, f">= {T['detail_db']}", 3.58, d >= T["detail_db"])
     counts = report["level_counts"]
     base_share = report["base_bytes"] / report["stream_bytes"] if report.get("base_bytes") else None
-    check("base share of the stream's bytes (header with the embedded template included)", base_share,
-          f"<= {T['base_bytes_max']}", 2.60 / 43.42, None if base_share is None else base_share <= T["base_bytes_max"])
+    check(
+        "base share of the stream's bytes (header with the embedded template included)",
+        base_share,
+        f"<= {T['base_bytes_max']}",
+        2.60 / 43.42,
+        None if base_share is None else base_share <= T["base_bytes_max"],
+    )
     if report.get("base_bytes") and report.get("header_bytes") is not None:
         h = report["header_bytes"]
         share = (report["base_bytes"] - h) / max(report["stream_bytes"] - h, 1)
-        check("base share of the record bytes (header excluded)", share, f"<= {T['base_bytes_max']}", 2.60 / 43.42,
-              share <= T["base_bytes_max"])
+        check(
+            "base share of the record bytes (header excluded)",
+            share,
+            f"<= {T['base_bytes_max']}",
+            2.60 / 43.42,
+            share <= T["base_bytes_max"],
+        )
     growth = report["gaussians"] / max(sum(counts[: K + 1]), 1)
     check("growth: all Gaussians / base", growth, f">= {T['growth_min']}", 169438 / 10144, growth >= T["growth_min"])
     for key, limit in T["gap_max"].items():
         if key in rows and "nvs_gap" in rows[key]:
             g = rows[key]["nvs_gap"]
-            check(f"NVS gap to 100 % at {key} % (dB)", g, f"<= {limit}", rows[key].get("paper", {}).get("nvs_gap"),
-                  g <= limit)
+            check(
+                f"NVS gap to 100 % at {key} % (dB)",
+                g,
+                f"<= {limit}",
+                rows[key].get("paper", {}).get("nvs_gap"),
+                g <= limit,
+            )
     d = t3["random_order_25"]["ranked"] - t3["random_order_25"]["random"]
-    check("ranked minus random at 25 % (dB)", d, f">= {T['ranked_minus_random']}", 29.14 - 28.40,
-          d >= T["ranked_minus_random"])
+    check(
+        "ranked minus random at 25 % (dB)",
+        d,
+        f">= {T['ranked_minus_random']}",
+        29.14 - 28.40,
+        d >= T["ranked_minus_random"],
+    )
     if "finest_only_35" in t3:
         d = t3["finest_only_35"]["multi_level"] - t3["finest_only_35"]["finest_only"]
-        check("multi-level minus finest-only at 35 % (dB)", d, f">= {T['mls_minus_finest']}", 29.87 - 20.06,
-              d >= T["mls_minus_finest"])
+        check(
+            "multi-level minus finest-only at 35 % (dB)",
+            d,
+            f">= {T['mls_minus_finest']}",
+            29.87 - 20.06,
+            d >= T["mls_minus_finest"],
+        )
     else:
-        check("multi-level minus finest-only at 35 % (dB)", "not run", f">= {T['mls_minus_finest']}",
-              29.87 - 20.06, None)
+        check(
+            "multi-level minus finest-only at 35 % (dB)", "not run", f">= {T['mls_minus_finest']}", 29.87 - 20.06, None
+        )
     vs = report.get("adaptive_vs_uniform")
     if vs:
-        ok = vs["n"] > 1 and vs["mean"] >= T["adaptive_minus_uniform"] and all(
-            x >= T["adaptive_minus_uniform"] for x in vs["diffs"])
-        check("adaptive minus uniform at matched Gaussians, NVS (dB), every seed", vs["mean"],
-              f">= {T['adaptive_minus_uniform']} on > 1 seed", None, ok)
+        ok = (
+            vs["n"] > 1
+            and vs["mean"] >= T["adaptive_minus_uniform"]
+            and all(x >= T["adaptive_minus_uniform"] for x in vs["diffs"])
+        )
+        check(
+            "adaptive minus uniform at matched Gaussians, NVS (dB), every seed",
+            vs["mean"],
+            f">= {T['adaptive_minus_uniform']} on > 1 seed",
+            None,
+            ok,
+        )
     else:
-        check("adaptive minus uniform at matched Gaussians, NVS (dB), every seed", "not run",
-              f">= {T['adaptive_minus_uniform']} on > 1 seed", None, None)
+        check(
+            "adaptive minus uniform at matched Gaussians, NVS (dB), every seed",
+            "not run",
+            f">= {T['adaptive_minus_uniform']} on > 1 seed",
+            None,
+            None,
+        )
     order = sorted(budgets, key=float)
     mono = all(_monotone([budgets[k][s][m] for k in order]) for s in ("nvs", "nes") for m in ("psnr", "ssim"))
     check("every budget's quality monotone (NVS, NES; PSNR, SSIM)", mono, "True", True, mono)

@@ -46,8 +46,17 @@ DEFAULT_N_SHAPE = 300
 # FLAME size) without a per-frame Python loop.
 _CHUNK = 64
 
-FLAME_PARAM_KEYS = ("shape", "expr", "rotation", "neck_pose", "jaw_pose", "eyes_pose",
-                    "translation", "static_offset", "dynamic_offset")
+FLAME_PARAM_KEYS = (
+    "shape",
+    "expr",
+    "rotation",
+    "neck_pose",
+    "jaw_pose",
+    "eyes_pose",
+    "translation",
+    "static_offset",
+    "dynamic_offset",
+)
 
 
 class FlameModelError(ValueError):
@@ -153,8 +162,11 @@ def _as_dtype(d) -> np.dtype:
 def _checked_shape(shape) -> tuple:
     if isinstance(shape, int):
         shape = (shape,)
-    if not isinstance(shape, tuple) or len(shape) > _MAX_DIMS or not all(
-            isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape):
+    if (
+        not isinstance(shape, tuple)
+        or len(shape) > _MAX_DIMS
+        or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape)
+    ):
         raise pickle.UnpicklingError(f"array shape {shape!r} refused")
     count = 1
     for s in shape:
@@ -302,21 +314,28 @@ def _sparse_to_dense(stub: _SparseStub, source: str, key: str, depth: int) -> np
     except (TypeError, ValueError, OverflowError):
         raise FlameModelError(f"{source}: sparse '{key}' ({stub.origin}) has a malformed shape") from None
     if len(shape) != 2 or min(shape) < 0 or shape[0] * shape[1] > MAX_ARRAY_ELEMENTS:
-        raise FlameModelError(f"{source}: sparse '{key}' ({stub.origin}) declares shape {shape}: refused "
-                              f"(two dimensions, at most {MAX_ARRAY_ELEMENTS} elements dense)")
+        raise FlameModelError(
+            f"{source}: sparse '{key}' ({stub.origin}) declares shape {shape}: refused "
+            f"(two dimensions, at most {MAX_ARRAY_ELEMENTS} elements dense)"
+        )
     part = lambda name: _to_array(st[name], source, f"{key}.{name}", depth + 1)  # noqa: E731
     try:
         if kind in ("csc", "csr"):
             data, indices, indptr = part("data"), part("indices").astype(np.int64), part("indptr").astype(np.int64)
             n_major = shape[1] if kind == "csc" else shape[0]
-            if indptr.shape != (n_major + 1,) or indptr[0] != 0 or np.any(np.diff(indptr) < 0) \
-                    or indptr[-1] != len(indices) or len(indices) != len(data):
+            if (
+                indptr.shape != (n_major + 1,)
+                or indptr[0] != 0
+                or np.any(np.diff(indptr) < 0)
+                or indptr[-1] != len(indices)
+                or len(indices) != len(data)
+            ):
                 raise ValueError("inconsistent indptr / indices / data")
             major = np.repeat(np.arange(n_major), np.diff(indptr))
             rows, cols = (indices, major) if kind == "csc" else (major, indices)
         else:
             coords = st.get("coords")
-            rows, cols = (coords if coords is not None else (st["row"], st["col"]))
+            rows, cols = coords if coords is not None else (st["row"], st["col"])
             rows = _to_array(rows, source, key, depth + 1).astype(np.int64)
             cols = _to_array(cols, source, key, depth + 1).astype(np.int64)
             data = part("data")
@@ -485,9 +504,17 @@ class FlameModel:
     def save_npz(self, path: str) -> None:
         """Write the model as a plain .npz (no pickles): the safe form to keep around."""
         kintree = np.stack([self.parents, np.arange(self.n_joints)]).astype(np.int64)
-        np.savez(path, v_template=self.v_template, f=self.faces, shapedirs=self.shapedirs,
-                 posedirs=self.posedirs, J_regressor=self.J_regressor, weights=self.weights,
-                 kintree_table=kintree, n_shape=np.int64(self.n_shape))
+        np.savez(
+            path,
+            v_template=self.v_template,
+            f=self.faces,
+            shapedirs=self.shapedirs,
+            posedirs=self.posedirs,
+            J_regressor=self.J_regressor,
+            weights=self.weights,
+            kintree_table=kintree,
+            n_shape=np.int64(self.n_shape),
+        )
 
     def forward(self, **params) -> np.ndarray:
         """Vertices float32 [T,V,3]; see :func:`flame_forward` for the parameters."""
@@ -508,8 +535,10 @@ def _model_from_mapping(d: dict, source: str, n_shape: int | None) -> FlameModel
     if _first(d, "kintree_table", "parents") is None:
         missing.append("kintree_table")
     if missing:
-        raise FlameModelError(f"{source}: not a FLAME model, missing keys {missing} "
-                              f"(has {sorted(k for k in d if isinstance(k, str))[:40]})")
+        raise FlameModelError(
+            f"{source}: not a FLAME model, missing keys {missing} "
+            f"(has {sorted(k for k in d if isinstance(k, str))[:40]})"
+        )
     arr = {k: _to_array(d[k], source, k) for k in ("v_template", "shapedirs", "posedirs", "J_regressor", "weights")}
     faces = _to_array(_first(d, "f", "faces"), source, "f")
     if "kintree_table" in d:
@@ -524,8 +553,17 @@ def _model_from_mapping(d: dict, source: str, n_shape: int | None) -> FlameModel
     if n_shape is None:
         stored = d.get("n_shape")
         n_shape = int(np.asarray(_to_array(stored, source, "n_shape"))) if stored is not None else DEFAULT_N_SHAPE
-    return FlameModel(arr["v_template"], faces, arr["shapedirs"], arr["posedirs"], arr["J_regressor"],
-                      arr["weights"], parents, n_shape, source)
+    return FlameModel(
+        arr["v_template"],
+        faces,
+        arr["shapedirs"],
+        arr["posedirs"],
+        arr["J_regressor"],
+        arr["weights"],
+        parents,
+        n_shape,
+        source,
+    )
 
 
 def load_flame_model(path, n_shape: int | None = None) -> FlameModel:
@@ -538,8 +576,10 @@ def load_flame_model(path, n_shape: int | None = None) -> FlameModel:
         return path
     path = os.fspath(path)
     if not os.path.isfile(path):
-        raise FileNotFoundError(f"{path}: FLAME model file not found (FLAME is not shipped; point to your own "
-                                "generic_model.pkl / flame2023.pkl)")
+        raise FileNotFoundError(
+            f"{path}: FLAME model file not found (FLAME is not shipped; point to your own "
+            "generic_model.pkl / flame2023.pkl)"
+        )
     with open(path, "rb") as f:
         magic = f.read(4)
     if magic.startswith(b"PK"):
@@ -548,7 +588,9 @@ def load_flame_model(path, n_shape: int | None = None) -> FlameModel:
             with np.load(path, allow_pickle=False) as z:
                 d = {k: z[k] for k in z.files}
         except ValueError as exc:
-            raise FlameModelError(f"{path}: npz arrays must be plain numeric arrays (no pickled objects): {exc}") from exc
+            raise FlameModelError(
+                f"{path}: npz arrays must be plain numeric arrays (no pickled objects): {exc}"
+            ) from exc
     else:
         d = restricted_load(path)
         if not isinstance(d, dict):
@@ -556,8 +598,9 @@ def load_flame_model(path, n_shape: int | None = None) -> FlameModel:
     try:
         return _model_from_mapping(d, path, n_shape)
     except (RecursionError, MemoryError) as exc:  # backstop: the checks above should come first
-        raise FlameModelError(f"{path}: refused, the model's arrays are too large or too deeply nested "
-                              f"({type(exc).__name__})") from None
+        raise FlameModelError(
+            f"{path}: refused, the model's arrays are too large or too deeply nested ({type(exc).__name__})"
+        ) from None
 
 
 # --------------------------------------------------------------------------------------
@@ -586,7 +629,9 @@ def _coeffs(x, n_model: int, T: int, what: str) -> np.ndarray:
         raise ValueError(f"{what}: expected 1 or {T} rows of coefficients, got {x.shape[0]}")
     n = min(n_model, x.shape[1])
     if x.shape[1] > n_model and np.any(x[:, n_model:] != 0):
-        raise ValueError(f"{what} has {x.shape[1]} non-zero coefficients but the model has only {n_model} {what} components")
+        raise ValueError(
+            f"{what} has {x.shape[1]} non-zero coefficients but the model has only {n_model} {what} components"
+        )
     out[:, :n] = x[:, :n]
     return out
 
@@ -606,37 +651,72 @@ def _offset(x, T: int, V: int, what: str):
     x = np.asarray(x, np.float64)
     x = x.reshape((-1,) + x.shape[-2:]) if x.ndim >= 2 else x
     if x.ndim != 3 or x.shape[1:] != (V, 3) or x.shape[0] not in (1, T):
-        hint = " (GaussianAvatars' teeth-augmented FLAME has 5143 vertices; plain FLAME 5023)" if x.ndim == 3 and x.shape[1] != V else ""
+        hint = (
+            " (GaussianAvatars' teeth-augmented FLAME has 5143 vertices; plain FLAME 5023)"
+            if x.ndim == 3 and x.shape[1] != V
+            else ""
+        )
         raise ValueError(f"{what}: expected [1|T,{V},3], got {x.shape}{hint}")
     return x
 
 
-def prepare_params(model: FlameModel, shape=None, expr=None, rotation=None, neck_pose=None, jaw_pose=None,
-                   eyes_pose=None, translation=None, static_offset=None, dynamic_offset=None, pose=None):
+def prepare_params(
+    model: FlameModel,
+    shape=None,
+    expr=None,
+    rotation=None,
+    neck_pose=None,
+    jaw_pose=None,
+    eyes_pose=None,
+    translation=None,
+    static_offset=None,
+    dynamic_offset=None,
+    pose=None,
+):
     """Normalise FLAME parameters to float64 arrays with a leading frame axis T.
 
     Returns (T, betas [T,K], full pose [T,J,3], translation [T,3], offsets [1|T,V,3] or None).
     ``pose`` [T,J*3] overrides the named joint poses (for models whose joints differ from FLAME's).
     """
     V, J = model.n_vertices, model.n_joints
-    raw = {"shape": shape, "expr": expr, "rotation": rotation, "neck_pose": neck_pose, "jaw_pose": jaw_pose,
-           "eyes_pose": eyes_pose, "translation": translation, "pose": pose, "dynamic_offset": dynamic_offset}
+    raw = {
+        "shape": shape,
+        "expr": expr,
+        "rotation": rotation,
+        "neck_pose": neck_pose,
+        "jaw_pose": jaw_pose,
+        "eyes_pose": eyes_pose,
+        "translation": translation,
+        "pose": pose,
+        "dynamic_offset": dynamic_offset,
+    }
     arrays = {}
     for k, v in raw.items():
         if v is not None:
             v = np.asarray(v, np.float64)
             arrays[k] = v.reshape(1, -1) if v.ndim <= 1 else v
     T = _frames_of(arrays)
-    betas = np.concatenate([_coeffs(arrays.get("shape"), model.n_shape, T, "shape"),
-                            _coeffs(arrays.get("expr"), model.n_expr, T, "expression")], axis=1)
+    betas = np.concatenate(
+        [
+            _coeffs(arrays.get("shape"), model.n_shape, T, "shape"),
+            _coeffs(arrays.get("expr"), model.n_expr, T, "expression"),
+        ],
+        axis=1,
+    )
     if pose is not None:
         full = _pose(pose, T, 3 * J, "pose").reshape(T, J, 3)
     else:
         if J != 5:
             raise ValueError(f"the model has {J} joints, not FLAME's 5: pass pose=[T,{3 * J}] explicitly")
-        full = np.concatenate([_pose(rotation, T, 3, "rotation"), _pose(neck_pose, T, 3, "neck_pose"),
-                               _pose(jaw_pose, T, 3, "jaw_pose"), _pose(eyes_pose, T, 6, "eyes_pose")],
-                              axis=1).reshape(T, 5, 3)
+        full = np.concatenate(
+            [
+                _pose(rotation, T, 3, "rotation"),
+                _pose(neck_pose, T, 3, "neck_pose"),
+                _pose(jaw_pose, T, 3, "jaw_pose"),
+                _pose(eyes_pose, T, 6, "eyes_pose"),
+            ],
+            axis=1,
+        ).reshape(T, 5, 3)
     transl = _pose(translation, T, 3, "translation")
     offsets = _offset(static_offset, T, V, "static_offset")
     dyn = _offset(dynamic_offset, T, V, "dynamic_offset")
@@ -676,17 +756,29 @@ def _skin_chunk(model: FlameModel, betas, full_pose, transl, offsets) -> np.ndar
     return verts + transl[:, None, :]
 
 
-def flame_forward(model: FlameModel, shape=None, expr=None, rotation=None, neck_pose=None, jaw_pose=None,
-                  eyes_pose=None, translation=None, static_offset=None, dynamic_offset=None, pose=None,
-                  dtype=np.float32) -> np.ndarray:
+def flame_forward(
+    model: FlameModel,
+    shape=None,
+    expr=None,
+    rotation=None,
+    neck_pose=None,
+    jaw_pose=None,
+    eyes_pose=None,
+    translation=None,
+    static_offset=None,
+    dynamic_offset=None,
+    pose=None,
+    dtype=np.float32,
+) -> np.ndarray:
     """FLAME vertices [T,V,3] for T frames (computed in float64, returned as ``dtype``).
 
     shape [S] or [1|T,S]; expr [1|T,E]; rotation, neck_pose, jaw_pose, translation [1|T,3]
     (axis-angle); eyes_pose [1|T,6]; static_offset [1,V,3]; dynamic_offset [1|T,V,3].
     Missing parameters are zero. Fewer coefficients than the model has are zero-padded.
     """
-    T, betas, full, transl, offsets = prepare_params(model, shape, expr, rotation, neck_pose, jaw_pose,
-                                                     eyes_pose, translation, static_offset, dynamic_offset, pose)
+    T, betas, full, transl, offsets = prepare_params(
+        model, shape, expr, rotation, neck_pose, jaw_pose, eyes_pose, translation, static_offset, dynamic_offset, pose
+    )
     out = np.empty((T, model.n_vertices, 3), dtype=dtype)
     for s in range(0, T, _CHUNK):
         e = min(T, s + _CHUNK)

@@ -98,7 +98,9 @@ class FlameRig:
 
     def pose_key_names(self) -> list[str]:
         """Names of the pose-corrective keys: ``pose_<bone>_<row><col>``."""
-        return [f"pose_{self.bone_names[k]}_{a}{b}" for k in range(1, self.n_joints) for a in range(3) for b in range(3)]
+        return [
+            f"pose_{self.bone_names[k]}_{a}{b}" for k in range(1, self.n_joints) for a in range(3) for b in range(3)
+        ]
 
     def expr_key_names(self) -> list[str]:
         return [f"expr_{e:03d}" for e in range(self.expr_deltas.shape[0])]
@@ -109,9 +111,20 @@ class FlameRig:
         q = self.quaternions[sel]
         q = q / np.linalg.norm(q, axis=-1, keepdims=True)
         w, x, y, z = np.moveaxis(q, -1, 0)
-        R = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-                      2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-                      2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)
+        R = np.stack(
+            [
+                1 - 2 * (y * y + z * z),
+                2 * (x * y - w * z),
+                2 * (x * z + w * y),
+                2 * (x * y + w * z),
+                1 - 2 * (x * x + z * z),
+                2 * (y * z - w * x),
+                2 * (x * z - w * y),
+                2 * (y * z + w * x),
+                1 - 2 * (x * x + y * y),
+            ],
+            -1,
+        )
         R = R.reshape(q.shape[:-1] + (3, 3)) * self.scales[sel][..., None, None]
         return _homogeneous(R, self.locations[sel])
 
@@ -127,8 +140,11 @@ class FlameRig:
         else:
             feat = self.pose_values[sel]
         V = self.basis.shape[0]
-        shaped = (self.basis[None] + (self.expr_values[sel] @ self.expr_deltas.reshape(-1, V * 3)).reshape(T, V, 3)
-                  + (feat @ self.pose_deltas.reshape(-1, V * 3)).reshape(T, V, 3))
+        shaped = (
+            self.basis[None]
+            + (self.expr_values[sel] @ self.expr_deltas.reshape(-1, V * 3)).reshape(T, V, 3)
+            + (feat @ self.pose_deltas.reshape(-1, V * 3)).reshape(T, V, 3)
+        )
         B = _translation(self.rest_joints)  # [J,4,4]
         P = np.empty_like(L)
         for k in range(J):  # a handful of joints, each batched over frames
@@ -167,7 +183,9 @@ def build_flame_rig(model: FlameModel, params: dict, bone_names=None) -> FlameRi
         basis = basis + offsets[0]
     expr = betas[:, S:]
     expr_deltas = np.moveaxis(model.shapedirs[:, :, S:], 2, 0)  # [E,V,3]
-    expr_scale = np.maximum(1.0, np.abs(expr).max(axis=0, initial=0.0) / (SLIDER_LIMIT * 0.999)) if T else np.ones(expr.shape[1])
+    expr_scale = (
+        np.maximum(1.0, np.abs(expr).max(axis=0, initial=0.0) / (SLIDER_LIMIT * 0.999)) if T else np.ones(expr.shape[1])
+    )
     if np.any(betas[:, :S] != betas[:1, :S]):
         raise ValueError("identity shape changes over the sequence; a rig has one basis shape")
 
@@ -206,11 +224,25 @@ def build_flame_rig(model: FlameModel, params: dict, bone_names=None) -> FlameRi
     # Neighbouring frames on the same hemisphere, so interpolated keys turn the short way.
     flip = np.cumprod(np.where(np.sum(quats[1:] * quats[:-1], axis=-1) < 0, -1.0, 1.0), axis=0)
     quats[1:] *= flip[..., None]
-    names = tuple(bone_names) if bone_names is not None else (
-        FLAME_BONE_NAMES if J == len(FLAME_BONE_NAMES) else tuple(f"joint_{k}" for k in range(J)))
+    names = (
+        tuple(bone_names)
+        if bone_names is not None
+        else (FLAME_BONE_NAMES if J == len(FLAME_BONE_NAMES) else tuple(f"joint_{k}" for k in range(J)))
+    )
     return FlameRig(
-        faces=model.faces, basis=basis, expr_deltas=expr_deltas * expr_scale[:, None, None],
-        expr_values=expr / expr_scale, expr_scale=expr_scale,
-        pose_deltas=np.moveaxis(model.posedirs, 2, 0), pose_values=(R[:, 1:] - np.eye(3)).reshape(T, -1),
-        rest_joints=rest_joints, parents=parents.copy(), weights=model.weights,
-        locations=L[:, :, :3, 3], quaternions=quats, scales=scales, bone_names=names, ignored=tuple(ignored))
+        faces=model.faces,
+        basis=basis,
+        expr_deltas=expr_deltas * expr_scale[:, None, None],
+        expr_values=expr / expr_scale,
+        expr_scale=expr_scale,
+        pose_deltas=np.moveaxis(model.posedirs, 2, 0),
+        pose_values=(R[:, 1:] - np.eye(3)).reshape(T, -1),
+        rest_joints=rest_joints,
+        parents=parents.copy(),
+        weights=model.weights,
+        locations=L[:, :, :3, 3],
+        quaternions=quats,
+        scales=scales,
+        bone_names=names,
+        ignored=tuple(ignored),
+    )

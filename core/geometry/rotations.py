@@ -11,8 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["quat_normalize", "quat_multiply", "quat_to_rotmat", "rotmat_to_quat", "axis_angle_to_matrix",
-           "quat_rows"]
+__all__ = ["quat_normalize", "quat_multiply", "quat_to_rotmat", "rotmat_to_quat", "axis_angle_to_matrix", "quat_rows"]
 
 
 def _is_torch(x) -> bool:
@@ -55,22 +54,36 @@ def quat_normalize(q):
 def quat_multiply(a, b):
     aw, ax, ay, az = _parts(a)
     bw, bx, by, bz = _parts(b)
-    return _stack([
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    ], -1, a)
+    return _stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        -1,
+        a,
+    )
 
 
 def quat_to_rotmat(q):
     """Rotation matrices [...,3,3] of quaternions [...,4] (normalised here)."""
     w, x, y, z = _parts(quat_normalize(q))
-    m = _stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], -1, q)
+    m = _stack(
+        [
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
+        ],
+        -1,
+        q,
+    )
     return m.reshape(tuple(q.shape[:-1]) + (3, 3))
 
 
@@ -80,15 +93,22 @@ def quat_rows(R) -> np.ndarray:
     four algebraic forms it uses the one whose pivot component is largest, so no division by a
     near-zero component ever happens."""
     tr = R[0][0] + R[1][1] + R[2][2]
-    piv = np.stack([1 + tr, 1 + R[0][0] - R[1][1] - R[2][2], 1 - R[0][0] + R[1][1] - R[2][2],
-                    1 - R[0][0] - R[1][1] + R[2][2]])
+    piv = np.stack(
+        [1 + tr, 1 + R[0][0] - R[1][1] - R[2][2], 1 - R[0][0] + R[1][1] - R[2][2], 1 - R[0][0] - R[1][1] + R[2][2]]
+    )
     k = np.argmax(piv, axis=0)
     p = 0.5 * np.sqrt(np.maximum(np.take_along_axis(piv, k[None], 0)[0], 1e-30))
     inv = 0.25 / p
     a, b, c = R[2][1] - R[1][2], R[0][2] - R[2][0], R[1][0] - R[0][1]
     d, e, f = R[0][1] + R[1][0], R[0][2] + R[2][0], R[1][2] + R[2][1]
-    cand = np.stack([[p, a * inv, b * inv, c * inv], [a * inv, p, d * inv, e * inv],
-                     [b * inv, d * inv, p, f * inv], [c * inv, e * inv, f * inv, p]])  # [4 pivots, 4, ...]
+    cand = np.stack(
+        [
+            [p, a * inv, b * inv, c * inv],
+            [a * inv, p, d * inv, e * inv],
+            [b * inv, d * inv, p, f * inv],
+            [c * inv, e * inv, f * inv, p],
+        ]
+    )  # [4 pivots, 4, ...]
     q = np.take_along_axis(cand, k[None, None], 0)[0]
     q *= np.where(q[0] < 0, -1, 1).astype(q.dtype)
     q /= np.sqrt(np.sum(q * q, axis=0))
@@ -113,12 +133,15 @@ def rotmat_to_quat(R):
     d = m[..., 0, 1] + m[..., 1, 0]
     e = m[..., 0, 2] + m[..., 2, 0]
     f = m[..., 1, 2] + m[..., 2, 1]
-    cand = torch.stack([
-        torch.stack([p, a * inv, b * inv, c * inv], -1),
-        torch.stack([a * inv, p, d * inv, e * inv], -1),
-        torch.stack([b * inv, d * inv, p, f * inv], -1),
-        torch.stack([c * inv, e * inv, f * inv, p], -1),
-    ], -2)
+    cand = torch.stack(
+        [
+            torch.stack([p, a * inv, b * inv, c * inv], -1),
+            torch.stack([a * inv, p, d * inv, e * inv], -1),
+            torch.stack([b * inv, d * inv, p, f * inv], -1),
+            torch.stack([c * inv, e * inv, f * inv, p], -1),
+        ],
+        -2,
+    )
     q = torch.gather(cand, -2, k[..., None].expand(k.shape[:-1] + (1, 4)))[..., 0, :]
     q = torch.where(q[..., :1] < 0, -q, q)
     return quat_normalize(q)

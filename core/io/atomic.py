@@ -32,7 +32,7 @@ def clean_stale_temps(path) -> list:
     for name in names:
         if not (name.startswith(base + ".") and name.endswith(".tmp")):
             continue
-        pid = name[len(base) + 1: -4]
+        pid = name[len(base) + 1 : -4]
         if pid.isdigit() and int(pid) != os.getpid() and not _pid_alive(int(pid)):
             try:
                 os.remove(os.path.join(folder, name))

@@ -136,7 +136,9 @@ def _select(n: int, frames, source: str) -> np.ndarray:
     """Positions 0..n-1 asked for (None: all), validated."""
     if frames is None:
         return np.arange(n)
-    idx = np.asarray(list(frames) if not isinstance(frames, (np.ndarray, range)) else frames, dtype=np.int64).reshape(-1)
+    idx = np.asarray(list(frames) if not isinstance(frames, (np.ndarray, range)) else frames, dtype=np.int64).reshape(
+        -1
+    )
     if idx.size and (idx.min() < -n or idx.max() >= n):
         raise DataError(f"{source}: frame index out of range for a sequence of {n} frames: {idx.tolist()[:10]}")
     return np.where(idx < 0, idx + n, idx)
@@ -155,9 +157,11 @@ def _npz(path: str) -> dict:
 
 def _need_model(flame_model, source: str) -> FlameModel:
     if flame_model is None:
-        raise DataError(f"{source}: FLAME parameters need a FLAME model file (your own generic_model.pkl / "
-                        "flame2023.pkl): set the FLAME model in the add-on preferences or the importer, or "
-                        "pass --flame-model to the scripts")
+        raise DataError(
+            f"{source}: FLAME parameters need a FLAME model file (your own generic_model.pkl / "
+            "flame2023.pkl): set the FLAME model in the add-on preferences or the importer, or "
+            "pass --flame-model to the scripts"
+        )
     return load_flame_model(flame_model)
 
 
@@ -311,9 +315,13 @@ def read_nersemble_tracking(path, frames=None, flame_model=None, evaluate=True):
             raise DataError(f"{path}: '{key}' has {v.shape[0]} rows, expected 1 or {T}")
         return v[sel] if v.shape[0] == T else np.broadcast_to(v, (len(sel), width))
 
-    params = {"shape": np.asarray(d["shape"]).reshape(-1, np.asarray(d["shape"]).shape[-1])[:1] if "shape" in d else None,
-              "expr": rows("expression", d["expression"].shape[-1]), "jaw_pose": rows("jaw", 3),
-              "neck_pose": rows("neck", 3), "eyes_pose": rows("eyes", 6)}
+    params = {
+        "shape": np.asarray(d["shape"]).reshape(-1, np.asarray(d["shape"]).shape[-1])[:1] if "shape" in d else None,
+        "expr": rows("expression", d["expression"].shape[-1]),
+        "jaw_pose": rows("jaw", 3),
+        "neck_pose": rows("neck", 3),
+        "eyes_pose": rows("eyes", 6),
+    }
     params = {k: v for k, v in params.items() if v is not None}
     if "rotation_matrices" in d:
         R = np.asarray(d["rotation_matrices"], np.float64).reshape(-1, 3, 3)
@@ -401,11 +409,14 @@ def _read_mesh_npz_folder(path: str, files: list, frames) -> MeshSequence:
         return MeshSequence(first.faces, first.vertices[:0], np.zeros(0, np.int64), None, path)
     for i, p in zip(sel.tolist(), parts):
         if p.n_frames != 1:
-            raise DataError(f"{os.path.join(path, files[i])}: holds {p.n_frames} frames; a folder of mesh npz "
-                            "files needs one frame per file (or import that file alone)")
+            raise DataError(
+                f"{os.path.join(path, files[i])}: holds {p.n_frames} frames; a folder of mesh npz "
+                "files needs one frame per file (or import that file alone)"
+            )
         if p.faces.shape != parts[0].faces.shape or not np.array_equal(p.faces, parts[0].faces):
-            raise DataError(f"{os.path.join(path, files[i])}: faces differ from {files[sel[0]]}: frames must "
-                            "share one topology")
+            raise DataError(
+                f"{os.path.join(path, files[i])}: faces differ from {files[sel[0]]}: frames must share one topology"
+            )
     verts = np.concatenate([p.vertices for p in parts])
     return MeshSequence(parts[0].faces, verts, _ids_from([files[i] for i in sel.tolist()], len(sel)), None, path)
 
@@ -426,8 +437,10 @@ def read_flame_track(path, frames=None) -> FlameTrack:
 
 
 def _not_flame(path):
-    raise DataError(f"{path}: holds meshes, not FLAME parameters; a rig needs a VHAP, GaussianAvatars "
-                    "flame_param or NeRSemble tracking file")
+    raise DataError(
+        f"{path}: holds meshes, not FLAME parameters; a rig needs a VHAP, GaussianAvatars "
+        "flame_param or NeRSemble tracking file"
+    )
 
 
 def _read(path, frames, flame_model, evaluate):
@@ -439,12 +452,18 @@ def _read(path, frames, flame_model, evaluate):
         for js in ("transforms.json", "transforms_train.json", "transforms_val.json", "transforms_test.json"):
             if js in names:  # a dataset root: its tracked geometry over the split's timesteps
                 if not evaluate:
-                    raise DataError(f"{path}: a dataset folder; for FLAME parameters point to its flame_param "
-                                    "folder or a tracked-parameter npz")
-                split = None if js == "transforms.json" else js[len("transforms_"):-len(".json")]
+                    raise DataError(
+                        f"{path}: a dataset folder; for FLAME parameters point to its flame_param "
+                        "folder or a tracked-parameter npz"
+                    )
+                split = None if js == "transforms.json" else js[len("transforms_") : -len(".json")]
                 return Dataset(path, split, flame_model=flame_model).sequence(frames)
         npz = sorted((n for n in names if n.endswith(".npz")), key=natural_key)
-        if npz and not os.path.isdir(os.path.join(path, "flame_param")) and "vertices" in _npz(os.path.join(path, npz[0])):
+        if (
+            npz
+            and not os.path.isdir(os.path.join(path, "flame_param"))
+            and "vertices" in _npz(os.path.join(path, npz[0]))
+        ):
             if not evaluate:
                 _not_flame(path)
             return _read_mesh_npz_folder(path, npz, frames)
@@ -461,8 +480,9 @@ def _read(path, frames, flame_model, evaluate):
     if low.endswith(_MESH_EXTS):
         v, f = _load_mesh_file(path)
         sel = _select(1, frames, path)
-        return MeshSequence(f, _check_vertices(v, path)[None][sel], _ids_from([os.path.basename(path)], 1)[sel],
-                            None, path)
+        return MeshSequence(
+            f, _check_vertices(v, path)[None][sel], _ids_from([os.path.basename(path)], 1)[sel], None, path
+        )
     if low.endswith(".npz"):
         d = _npz(path)
         if "vertices" in d:
@@ -473,8 +493,10 @@ def _read(path, frames, flame_model, evaluate):
             return read_nersemble_tracking(path, frames, flame_model, evaluate)
         if _flame_keys(d):
             return _read_flame_stacked(path, d, frames, flame_model, "timestep_id", evaluate)
-        raise DataError(f"{path}: unrecognised npz (keys {sorted(d)}): expected a mesh npz (vertices, faces), "
-                        "VHAP/GaussianAvatars FLAME parameters or a NeRSemble FLAME tracking file")
+        raise DataError(
+            f"{path}: unrecognised npz (keys {sorted(d)}): expected a mesh npz (vertices, faces), "
+            "VHAP/GaussianAvatars FLAME parameters or a NeRSemble FLAME tracking file"
+        )
     raise DataError(f"{path}: unsupported sequence format (expected .npz, .obj, .ply or a folder of them)")
 
 
@@ -548,8 +570,15 @@ class Dataset:
     without bound (they are small).
     """
 
-    def __init__(self, root, split: str | None = "train", downscale: float = 1.0, cache_images: int = 256,
-                 flame_model=None, cache_bytes: int | None = None):
+    def __init__(
+        self,
+        root,
+        split: str | None = "train",
+        downscale: float = 1.0,
+        cache_images: int = 256,
+        flame_model=None,
+        cache_bytes: int | None = None,
+    ):
         self.root = os.path.abspath(os.fspath(root))
         self.split = split
         if not (downscale > 0):
@@ -563,7 +592,11 @@ class Dataset:
         # split=None reads transforms.json (VHAP's export of every frame).
         json_path = os.path.join(self.root, "transforms.json" if split is None else f"transforms_{split}.json")
         if not os.path.isfile(json_path):
-            have = sorted(f for f in os.listdir(self.root) if f.startswith("transforms")) if os.path.isdir(self.root) else []
+            have = (
+                sorted(f for f in os.listdir(self.root) if f.startswith("transforms"))
+                if os.path.isdir(self.root)
+                else []
+            )
             raise MissingFileError(f"{json_path}: split '{split}' not found (present: {have or 'none'})")
         self.json_path = json_path
         try:
@@ -598,8 +631,10 @@ class Dataset:
             self.faces = _check_faces(d["faces"], canon_path, self.canonical_vertices.shape[0])
         else:
             if flame_model is None:
-                raise DataError(f"{json_path}: FLAME-mode dataset (flame_param_path) needs a FLAME model file: "
-                                "set the FLAME model in the add-on preferences, or pass --flame-model")
+                raise DataError(
+                    f"{json_path}: FLAME-mode dataset (flame_param_path) needs a FLAME model file: "
+                    "set the FLAME model in the add-on preferences, or pass --flame-model"
+                )
             self.flame_model = load_flame_model(flame_model)
             canon_path = os.path.join(self.root, "canonical_flame_param.npz")
             self.canonical_vertices = self._flame_vertices(canon_path)
@@ -754,8 +789,12 @@ class Dataset:
             mask = np.ones(image.shape[:2], np.float32)
         if alpha is not None:
             # Transparent pixels take the dataset background, as the renderer's will.
-            a = np.asarray(alpha.resize(target, Image.Resampling.BOX) if alpha.size != target else alpha,
-                           dtype=np.float32)[..., None] / 255.0
+            a = (
+                np.asarray(
+                    alpha.resize(target, Image.Resampling.BOX) if alpha.size != target else alpha, dtype=np.float32
+                )[..., None]
+                / 255.0
+            )
             image = image * a + self.background * (1.0 - a)
         return image, mask
 
@@ -771,7 +810,8 @@ class Dataset:
             self._images[i] = pair
             self.cached_bytes += size
             while len(self._images) > self.cache_images or (
-                    self.cache_bytes is not None and self.cached_bytes > self.cache_bytes):
+                self.cache_bytes is not None and self.cached_bytes > self.cache_bytes
+            ):
                 _, (im, m) = self._images.popitem(last=False)
                 self.cached_bytes -= im.nbytes + m.nbytes
         return pair
@@ -783,8 +823,16 @@ class Dataset:
         i = int(i) % n
         info = self.frames[i]
         image, mask = self.images(i)
-        return Sample(info.camera, image, mask, self.vertices_at(info.timestep_index), info.timestep_index,
-                      info.camera_index, i, info.image_path)
+        return Sample(
+            info.camera,
+            image,
+            mask,
+            self.vertices_at(info.timestep_index),
+            info.timestep_index,
+            info.camera_index,
+            i,
+            info.image_path,
+        )
 
     def __iter__(self):
         for i in range(len(self)):
@@ -795,6 +843,9 @@ class Dataset:
         positions in ``self.timesteps``; None = all)."""
         ts = self.timesteps[_select(len(self.timesteps), frames, self.json_path)]
         # One mesh file (or one FLAME evaluation) per timestep, each cached.
-        verts = np.stack([self.vertices_at(t) for t in ts.tolist()]) if len(ts) else \
-            np.zeros((0, self.n_vertices, 3), np.float32)
+        verts = (
+            np.stack([self.vertices_at(t) for t in ts.tolist()])
+            if len(ts)
+            else np.zeros((0, self.n_vertices, 3), np.float32)
+        )
         return MeshSequence(self.faces, verts, ts, None, self.json_path)

@@ -57,8 +57,10 @@ def _triangles(poly: np.ndarray, sizes: np.ndarray, path: str) -> np.ndarray:
 _OBJ_V = re.compile(rb"^[ \t]*v[ \t]+(\S+)[ \t]+(\S+)[ \t]+(\S+)", re.M)
 _OBJ_F = re.compile(rb"^[ \t]*f[ \t]", re.M)
 _C = rb"(-?\d+)(?:/[-\d/]*)?"
-_OBJ_TRI_QUAD = re.compile(rb"^[ \t]*f[ \t]+" + _C + rb"[ \t]+" + _C + rb"[ \t]+" + _C
-                           + rb"(?:[ \t]+" + _C + rb")?[ \t]*(?:#[^\n]*)?\r?$", re.M)
+_OBJ_TRI_QUAD = re.compile(
+    rb"^[ \t]*f[ \t]+" + _C + rb"[ \t]+" + _C + rb"[ \t]+" + _C + rb"(?:[ \t]+" + _C + rb")?[ \t]*(?:#[^\n]*)?\r?$",
+    re.M,
+)
 
 
 def read_obj_bytes(data: bytes, path: str = "<obj>"):
@@ -69,8 +71,10 @@ def read_obj_bytes(data: bytes, path: str = "<obj>"):
     n_lines = len(_OBJ_F.findall(data))
     rows = _OBJ_TRI_QUAD.findall(data)
     if len(rows) != n_lines:
-        raise MeshFormatError(f"{path}: {n_lines - len(rows)} face lines are neither triangles nor quads "
-                              "(or are unreadable); only triangles and quads are read")
+        raise MeshFormatError(
+            f"{path}: {n_lines - len(rows)} face lines are neither triangles nor quads "
+            "(or are unreadable); only triangles and quads are read"
+        )
     if not rows:
         return v, np.zeros((0, 3), np.int64)
     cells = np.array(rows, dtype=bytes)  # [F,4], the 4th empty for triangles
@@ -82,9 +86,24 @@ def read_obj_bytes(data: bytes, path: str = "<obj>"):
 
 
 # -- PLY -----------------------------------------------------------------------------------
-_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+_PLY_TYPES = {
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
+}
 
 
 def _ply_header(data: bytes, path: str):
@@ -145,8 +164,9 @@ def read_ply_bytes(data: bytes, path: str = "<ply>"):
         k = int(np.frombuffer(data, end + count_t, count=1, offset=pos)[0])
         dt = np.dtype([("n", end + count_t), ("i", end + index_t, (k,))])
         if pos + dt.itemsize * n > len(data):
-            raise MeshFormatError(f"{path}: the face element is cut short or its polygons differ in size "
-                                  f"(first has {k} corners)")
+            raise MeshFormatError(
+                f"{path}: the face element is cut short or its polygons differ in size (first has {k} corners)"
+            )
         arr = np.frombuffer(data, dt, count=n, offset=pos)
         if (arr["n"] != k).any():
             raise MeshFormatError(f"{path}: faces with different corner counts (first has {k})")
@@ -164,7 +184,7 @@ def _ply_ascii(text: bytes, elements, path):
     at = 0
     v = f = None
     for name, n, props in elements:
-        block = lines[at: at + n]
+        block = lines[at : at + n]
         at += n
         if len(block) < n:
             raise MeshFormatError(f"{path}: element '{name}' is cut short ({len(block)} of {n} rows)")
@@ -188,6 +208,6 @@ def _ply_ascii(text: bytes, elements, path):
             if (arr[:, 0] != k).any():
                 raise MeshFormatError(f"{path}: faces with different corner counts (first has {k})")
             poly = np.zeros((n, 4), np.int64)
-            poly[:, :k] = arr[:, 1: 1 + min(k, 4)]
+            poly[:, :k] = arr[:, 1 : 1 + min(k, 4)]
             f = _triangles(poly, np.full(n, k), path)
     return v, (np.zeros((0, 3), np.int64) if f is None else f)

@@ -18,14 +18,33 @@ import numpy as np
 from .atomic import atomic_open
 from ..avatar.avatar import SH_C0
 
-PROPERTIES = ("x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
-              "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3")
+PROPERTIES = (
+    "x",
+    "y",
+    "z",
+    "nx",
+    "ny",
+    "nz",
+    "f_dc_0",
+    "f_dc_1",
+    "f_dc_2",
+    "opacity",
+    "scale_0",
+    "scale_1",
+    "scale_2",
+    "rot_0",
+    "rot_1",
+    "rot_2",
+    "rot_3",
+)
 VERTEX_DTYPE = np.dtype([(name, "<f4") for name in PROPERTIES])
 
 
 def _properties(k_rest: int) -> tuple:
     i = PROPERTIES.index("opacity")
     return PROPERTIES[:i] + tuple(f"f_rest_{j}" for j in range(3 * k_rest)) + PROPERTIES[i:]
+
+
 _EPS = 1e-7  # keeps logit(0 or 1) and log(0) finite: PLY readers choke on inf
 
 
@@ -46,8 +65,14 @@ def _rows(gaussians: dict) -> np.ndarray:
     rest = np.asarray(gaussians.get("sh_rest", np.zeros((n, 0, 3))), np.float64)
     if rest.ndim != 3 or rest.shape[0] != n or rest.shape[2] != 3:
         raise ValueError(f"write_ply: sh_rest must be [N,K,3], got {rest.shape}")
-    for name, arr in (("means", means), ("quats", quats), ("scales", scales), ("opacities", opac), ("colors", colors),
-                      ("sh_rest", rest)):
+    for name, arr in (
+        ("means", means),
+        ("quats", quats),
+        ("scales", scales),
+        ("opacities", opac),
+        ("colors", colors),
+        ("sh_rest", rest),
+    ):
         if not np.all(np.isfinite(arr)):
             raise ValueError(f"write_ply: {name} contains NaN or inf")
     qn = np.linalg.norm(quats, axis=1, keepdims=True)
@@ -69,8 +94,11 @@ def _rows(gaussians: dict) -> np.ndarray:
 
 
 def ply_header(n: int, k_rest: int = 0) -> bytes:
-    lines = ["ply", "format binary_little_endian 1.0", "comment ProgressiveAvatars 3DGS export",
-             f"element vertex {n}"] + [f"property float {p}" for p in _properties(k_rest)] + ["end_header"]
+    lines = (
+        ["ply", "format binary_little_endian 1.0", "comment ProgressiveAvatars 3DGS export", f"element vertex {n}"]
+        + [f"property float {p}" for p in _properties(k_rest)]
+        + ["end_header"]
+    )
     return ("\n".join(lines) + "\n").encode("ascii")
 
 
@@ -85,8 +113,24 @@ def write_ply(path, gaussians: dict) -> int:
     return len(rows)
 
 
-_PLY_SIZES = {"char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2, "uint16": 2,
-              "int": 4, "int32": 4, "uint": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+_PLY_SIZES = {
+    "char": 1,
+    "int8": 1,
+    "uchar": 1,
+    "uint8": 1,
+    "short": 2,
+    "int16": 2,
+    "ushort": 2,
+    "uint16": 2,
+    "int": 4,
+    "int32": 4,
+    "uint": 4,
+    "uint32": 4,
+    "float": 4,
+    "float32": 4,
+    "double": 8,
+    "float64": 8,
+}
 _MAX_PLY_HEADER = 1 << 16
 
 
@@ -101,8 +145,9 @@ def _check_ply_header(path: str) -> None:
         raise ValueError(f"{path}: not a PLY file (bad magic or no end_header in the first {_MAX_PLY_HEADER} bytes)")
     body = size - (head.find(b"\n", end) + 1 if head.find(b"\n", end) >= 0 else len(head))
     lines = head[:end].decode("ascii", "replace").splitlines()
-    binary = any(ln.split()[:2] in (["format", "binary_little_endian"], ["format", "binary_big_endian"])
-                 for ln in lines)
+    binary = any(
+        ln.split()[:2] in (["format", "binary_little_endian"], ["format", "binary_big_endian"]) for ln in lines
+    )
     need, rows, row_bytes = 0, 0, 0
     for line in lines + ["element _end 0"]:
         parts = line.split()
@@ -116,8 +161,10 @@ def _check_ply_header(path: str) -> None:
         elif len(parts) >= 3 and parts[0] == "property":
             row_bytes += _PLY_SIZES.get(parts[2] if parts[1] == "list" else parts[1], 1)
     if need > body:
-        raise ValueError(f"{path}: PLY header declares elements needing at least {need} bytes, the file holds "
-                         f"{body}: truncated or forged, refused before reading")
+        raise ValueError(
+            f"{path}: PLY header declares elements needing at least {need} bytes, the file holds "
+            f"{body}: truncated or forged, refused before reading"
+        )
 
 
 def _read_vertices(path: str) -> np.ndarray:
@@ -136,9 +183,24 @@ def _read_vertices(path: str) -> np.ndarray:
         if "vertex" not in ply:
             raise ValueError(f"{path}: PLY file has no vertex element")
         return ply["vertex"].data
-    types = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8", "uchar": "u1", "uint8": "u1",
-             "char": "i1", "int8": "i1", "short": "<i2", "int16": "<i2", "ushort": "<u2", "uint16": "<u2",
-             "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4"}
+    types = {
+        "float": "<f4",
+        "float32": "<f4",
+        "double": "<f8",
+        "float64": "<f8",
+        "uchar": "u1",
+        "uint8": "u1",
+        "char": "i1",
+        "int8": "i1",
+        "short": "<i2",
+        "int16": "<i2",
+        "ushort": "<u2",
+        "uint16": "<u2",
+        "int": "<i4",
+        "int32": "<i4",
+        "uint": "<u4",
+        "uint32": "<u4",
+    }
     with open(path, "rb") as fh:
         if fh.readline().strip() != b"ply":
             raise ValueError(f"{path}: not a PLY file (bad magic)")
@@ -154,7 +216,9 @@ def _read_vertices(path: str) -> np.ndarray:
                 fmt = parts[1]
             elif parts[0] == "element":
                 if element == "vertex":
-                    raise ValueError(f"{path}: only files whose vertex element comes last are supported without plyfile")
+                    raise ValueError(
+                        f"{path}: only files whose vertex element comes last are supported without plyfile"
+                    )
                 element = parts[1]
                 if element == "vertex":
                     count = int(parts[2])
@@ -193,8 +257,11 @@ def read_ply(path) -> dict:
     if n_rest % 3 or any(f"f_rest_{j}" not in names for j in range(n_rest)):
         raise ValueError(f"{path}: f_rest_* properties must be f_rest_0..f_rest_(3K-1), got {n_rest}")
     K = n_rest // 3
-    rest = np.stack([col(*(f"f_rest_{c * K + k}" for c in range(3))) for k in range(K)], axis=1) if K else \
-        np.zeros((len(v), 0, 3))
+    rest = (
+        np.stack([col(*(f"f_rest_{c * K + k}" for c in range(3))) for k in range(K)], axis=1)
+        if K
+        else np.zeros((len(v), 0, 3))
+    )
     return {
         "sh_rest": rest.astype(np.float32),
         "means": col("x", "y", "z").astype(np.float32),
@@ -212,8 +279,9 @@ def importance_order(gaussians: dict) -> np.ndarray:
     ties keep file order."""
     s = np.asarray(gaussians["scales"], np.float64)
     # Volumes in log space: products of three tiny scales underflow float32.
-    key = np.log(np.maximum(np.asarray(gaussians["opacities"], np.float64), 1e-12)) + \
-        np.log(np.maximum(s, 1e-30)).sum(axis=1)
+    key = np.log(np.maximum(np.asarray(gaussians["opacities"], np.float64), 1e-12)) + np.log(np.maximum(s, 1e-30)).sum(
+        axis=1
+    )
     return np.argsort(-key, kind="stable")
 
 

@@ -63,8 +63,9 @@ def run_importance(run: str, avatar: Avatar, data: str, max_views: int | None = 
     from .data import Dataset
     from ..render.importance import face_importance
 
-    W = face_importance(avatar, Dataset(data, "train", flame_model=run_flame_model(run)), max_views=max_views,
-                        progress=progress)
+    W = face_importance(
+        avatar, Dataset(data, "train", flame_model=run_flame_model(run)), max_views=max_views, progress=progress
+    )
     from .atomic import atomic_open
 
     with atomic_open(path) as fh:
@@ -76,5 +77,9 @@ def run_importance(run: str, avatar: Avatar, data: str, max_views: int | None = 
 
 def reordered(avatar: Avatar, order: np.ndarray) -> Avatar:
     """The avatar with faces permuted (new face i = old face order[i])."""
-    return Avatar(avatar.forest.reorder(order), *(getattr(avatar, n)[order] for n in PARAM_NAMES), meta=avatar.meta,
-                  f_rest=avatar.f_rest[order])
+    return Avatar(
+        avatar.forest.reorder(order),
+        *(getattr(avatar, n)[order] for n in PARAM_NAMES),
+        meta=avatar.meta,
+        f_rest=avatar.f_rest[order],
+    )

@@ -29,8 +29,9 @@ MAX_JSON_DEPTH = 64
 _REFUSED_KINDS = "OV"
 
 
-def check_npz(path, *, max_elements: int = MAX_ARRAY_ELEMENTS, max_total: int = MAX_NPZ_ELEMENTS,
-              allow_text: tuple = ()) -> dict:
+def check_npz(
+    path, *, max_elements: int = MAX_ARRAY_ELEMENTS, max_total: int = MAX_NPZ_ELEMENTS, allow_text: tuple = ()
+) -> dict:
     """Read every member's npy header of the npz ``path`` and refuse, before anything is
     allocated, object or structured members, members that declare more than
     ``max_elements`` elements (``max_total`` over the file), or more bytes than the archive
@@ -63,14 +64,18 @@ def check_npz(path, *, max_elements: int = MAX_ARRAY_ELEMENTS, max_total: int = 
             for s in shape:
                 count *= int(s)  # Python ints: no overflow
             if count > max_elements:
-                raise ValueError(f"{path}: member '{name}' declares {count} elements {tuple(shape)}, "
-                                 f"over the bound of {max_elements}; refused before allocating")
+                raise ValueError(
+                    f"{path}: member '{name}' declares {count} elements {tuple(shape)}, "
+                    f"over the bound of {max_elements}; refused before allocating"
+                )
             total += count
             if total > max_total:
                 raise ValueError(f"{path}: members declare {total} elements in all, over the bound of {max_total}")
             if count * dtype.itemsize > info.file_size:
-                raise ValueError(f"{path}: member '{name}' declares {count * dtype.itemsize} bytes of data but the "
-                                 f"archive stores {info.file_size}: truncated or forged")
+                raise ValueError(
+                    f"{path}: member '{name}' declares {count * dtype.itemsize} bytes of data but the "
+                    f"archive stores {info.file_size}: truncated or forged"
+                )
             out[name] = (tuple(shape), dtype)
     return out
 
@@ -84,7 +89,7 @@ def json_depth(data) -> int:
     raw = data.encode("utf-8", "surrogatepass") if isinstance(data, str) else bytes(data)
     raw = _JSON_STRING.sub(b'""', raw)
     b = np.frombuffer(raw, np.uint8)
-    step = (np.isin(b, (ord("["), ord("{"))).astype(np.int64) - np.isin(b, (ord("]"), ord("}"))))
+    step = np.isin(b, (ord("["), ord("{"))).astype(np.int64) - np.isin(b, (ord("]"), ord("}")))
     return int(np.cumsum(step).max(initial=0))
 
 

@@ -33,16 +33,21 @@ def _frame_rows(ds: Dataset) -> list:
 
 
 def _whole(value) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool) or (
-        isinstance(value, float) and np.isfinite(value) and value.is_integer())
+    return (
+        isinstance(value, int)
+        and not isinstance(value, bool)
+        or (isinstance(value, float) and np.isfinite(value) and value.is_integer())
+    )
 
 
 def _camera_problems(cam, where: str) -> list:
     out = []
     R = np.asarray(cam.R)
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or abs(np.linalg.det(R) - 1.0) > 1e-3:
-        out.append(f"{where}: transform_matrix: the rotation part is not a rotation (det {np.linalg.det(R):.3g}; "
-                   "an all-zero or scaled matrix?)")
+        out.append(
+            f"{where}: transform_matrix: the rotation part is not a rotation (det {np.linalg.det(R):.3g}; "
+            "an all-zero or scaled matrix?)"
+        )
     for name in ("fx", "fy", "cx", "cy"):
         v = getattr(cam, name)
         if not np.isfinite(v):
@@ -77,8 +82,9 @@ def dataset_problems(ds: Dataset, progress: bool = True) -> list:
         for key in ("timestep_index", "camera_index"):
             if key in fr and not _whole(fr[key]):
                 problems.append(f"{ds.json_path}: frames[{i}].{key} is {fr[key]!r}, not a whole number")
-    for ts in tqdm(ds.timesteps.tolist(), desc=f"checking {ds.split or 'all'} meshes", disable=not progress,
-                   leave=False):
+    for ts in tqdm(
+        ds.timesteps.tolist(), desc=f"checking {ds.split or 'all'} meshes", disable=not progress, leave=False
+    ):
         try:
             ds.vertices_at(ts)
         except (DataError, OSError, ValueError, KeyError) as exc:
@@ -98,5 +104,7 @@ def validate_dataset(ds: Dataset, progress: bool = True) -> None:
     if problems:
         listed = "\n  ".join(problems[:_MAX_LISTED])
         more = f"\n  ... and {len(problems) - _MAX_LISTED} more" if len(problems) > _MAX_LISTED else ""
-        raise DataError(f"{ds.root}: the '{ds.split}' split has {len(problems)} problem(s); fix them before "
-                        f"training:\n  {listed}{more}")
+        raise DataError(
+            f"{ds.root}: the '{ds.split}' split has {len(problems)} problem(s); fix them before "
+            f"training:\n  {listed}{more}"
+        )

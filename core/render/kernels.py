@@ -45,8 +45,16 @@ ALPHA_MAX = 0.99
 T_MIN = 1e-4
 # Only explicit prange loops run in parallel: numba would otherwise turn every np.zeros and
 # array expression into its own parallel region, and each launch is costly on a busy machine.
-_PARALLEL = dict(prange=True, numpy=False, reduction=False, setitem=False, stencil=False, fusion=False,
-                 comprehension=False, inplace_binop=False)
+_PARALLEL = dict(
+    prange=True,
+    numpy=False,
+    reduction=False,
+    setitem=False,
+    stencil=False,
+    fusion=False,
+    comprehension=False,
+    inplace_binop=False,
+)
 # Slack on the pixel box so that rounding can never drop a pixel at the exact boundary.
 _BOX_SLACK = 1.0 + 1e-6
 
@@ -59,12 +67,14 @@ def fov_limits(width, height, fx, fy, cx, cy):
     """gsplat's Jacobian clamp: x/z, y/z kept within the frustum widened by 30 % of tan(fov/2)."""
     tan_x = 0.5 * width / fx
     tan_y = 0.5 * height / fy
-    return np.array([
-        cx / fx + 0.3 * tan_x,  # x/z >= -this
-        (width - cx) / fx + 0.3 * tan_x,  # x/z <= this
-        cy / fy + 0.3 * tan_y,
-        (height - cy) / fy + 0.3 * tan_y,
-    ])
+    return np.array(
+        [
+            cx / fx + 0.3 * tan_x,  # x/z >= -this
+            (width - cx) / fx + 0.3 * tan_x,  # x/z <= this
+            cy / fy + 0.3 * tan_y,
+            (height - cy) / fy + 0.3 * tan_y,
+        ]
+    )
 
 
 @njit(cache=True)
@@ -105,8 +115,32 @@ def _jacobian(x, y, z, fx, fy, lim):
 
 
 @njit(cache=True)
-def _project_one(g, means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, lim, width, height, near,
-                 eps2d, R, Mc, xy, conic, depth, rect, radii, cut):
+def _project_one(
+    g,
+    means,
+    quats,
+    scales,
+    opacities,
+    Rc,
+    tc,
+    fx,
+    fy,
+    cx,
+    cy,
+    lim,
+    width,
+    height,
+    near,
+    eps2d,
+    R,
+    Mc,
+    xy,
+    conic,
+    depth,
+    rect,
+    radii,
+    cut,
+):
     """One Gaussian of project_forward (R, Mc: scratch)."""
     px = Rc[0, 0] * means[g, 0] + Rc[0, 1] * means[g, 1] + Rc[0, 2] * means[g, 2] + tc[0]
     py = Rc[1, 0] * means[g, 0] + Rc[1, 1] * means[g, 1] + Rc[1, 2] * means[g, 2] + tc[1]
@@ -160,8 +194,7 @@ def _project_one(g, means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, lim
 
 
 @njit(parallel=_PARALLEL, cache=True)
-def project_forward(means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, lim, width, height,
-                    near, eps2d):
+def project_forward(means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, lim, width, height, near, eps2d):
     """Per Gaussian: 2D mean, conic (inverse cov2d as a, b, c), camera z, pixel box, radius.
 
     rect[g] = (i0, j0, i1, j1), the inclusive range of pixel columns/rows that can receive
@@ -179,8 +212,32 @@ def project_forward(means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, lim
         R = np.empty((3, 3))
         Mc = np.empty((3, 3))
         for g in range(blk * BLOCK, min(n, (blk + 1) * BLOCK)):
-            _project_one(g, means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, lim, width,
-                         height, near, eps2d, R, Mc, xy, conic, depth, rect, radii, cut)
+            _project_one(
+                g,
+                means,
+                quats,
+                scales,
+                opacities,
+                Rc,
+                tc,
+                fx,
+                fy,
+                cx,
+                cy,
+                lim,
+                width,
+                height,
+                near,
+                eps2d,
+                R,
+                Mc,
+                xy,
+                conic,
+                depth,
+                rect,
+                radii,
+                cut,
+            )
     return xy, conic, depth, rect, radii, cut
 
 
@@ -301,8 +358,32 @@ def _tile_bounds(t, tiles_x, width, height):
 
 
 @njit(cache=True)
-def _forward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, background, width, height,
-                  tiles_x, T, acc, lst, done, active, contrib_isect, image, t_final, last, glevel, upto):
+def _forward_tile(
+    t,
+    tile_start,
+    ids,
+    xy,
+    conic,
+    opacities,
+    cut,
+    colors,
+    rect,
+    background,
+    width,
+    height,
+    tiles_x,
+    T,
+    acc,
+    lst,
+    done,
+    active,
+    contrib_isect,
+    image,
+    t_final,
+    last,
+    glevel,
+    upto,
+):
     """Composite one tile front to back, Gaussians with glevel <= upto only. Each Gaussian
     visits only the chords of its ellipse inside the tile, and skips rows whose pixels have
     all stopped (bit masks in ``active``)."""
@@ -396,8 +477,9 @@ def _forward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, b
 
 
 @njit(parallel=_PARALLEL, cache=True)
-def raster_forward(tile_start, ids, xy, conic, opacities, cut, colors, rect, background, width, height,
-                   tiles_x, glevel, upto):
+def raster_forward(
+    tile_start, ids, xy, conic, opacities, cut, colors, rect, background, width, height, tiles_x, glevel, upto
+):
     """Front-to-back compositing, parallel over tiles, of one image per entry of ``upto``:
     image l composites the Gaussians g with glevel[g] <= upto[l] (levels of a forest share
     the projection, depth order and tile lists; a level only skips entries).
@@ -422,10 +504,32 @@ def raster_forward(tile_start, ids, xy, conic, opacities, cut, colors, rect, bac
         done = np.empty(TILE * TILE, np.bool_)
         active = np.empty(TILE, np.int64)
         for l in range(n_img):
-            _forward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, background, width,
-                          height, tiles_x, T, acc, lst, done, active,
-                          contrib_isect if l == n_img - 1 else no_contrib, image[l], t_final[l], last[l],
-                          glevel, upto[l])
+            _forward_tile(
+                t,
+                tile_start,
+                ids,
+                xy,
+                conic,
+                opacities,
+                cut,
+                colors,
+                rect,
+                background,
+                width,
+                height,
+                tiles_x,
+                T,
+                acc,
+                lst,
+                done,
+                active,
+                contrib_isect if l == n_img - 1 else no_contrib,
+                image[l],
+                t_final[l],
+                last[l],
+                glevel,
+                upto[l],
+            )
     contrib = np.zeros(n)
     for k in range(ids.shape[0]):
         contrib[ids[k]] += contrib_isect[k]
@@ -433,9 +537,38 @@ def raster_forward(tile_start, ids, xy, conic, opacities, cut, colors, rect, bac
 
 
 @njit(cache=True)
-def _backward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, background, t_final,
-                   last, grad_image, grad_alpha, width, height, tiles_x, T, behind, gimg, galpha, tfin,
-                   lst, row_last, gcol, grads_isect, gbg, glevel, upto, finest):
+def _backward_tile(
+    t,
+    tile_start,
+    ids,
+    xy,
+    conic,
+    opacities,
+    cut,
+    colors,
+    rect,
+    background,
+    t_final,
+    last,
+    grad_image,
+    grad_alpha,
+    width,
+    height,
+    tiles_x,
+    T,
+    behind,
+    gimg,
+    galpha,
+    tfin,
+    lst,
+    row_last,
+    gcol,
+    grads_isect,
+    gbg,
+    glevel,
+    upto,
+    finest,
+):
     """Back-to-front recomputation of one tile for the image of Gaussians with glevel <= upto
     (see raster_backward), adding into grads_isect (and, when ``finest``, the screen-space
     gradient into its last two columns too); rows whose pixels all stopped before Gaussian k
@@ -539,8 +672,26 @@ def _backward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, 
 
 
 @njit(parallel=_PARALLEL, cache=True)
-def raster_backward(tile_start, ids, xy, conic, opacities, cut, colors, rect, background, t_final, last,
-                    grad_image, grad_alpha, width, height, tiles_x, glevel, upto):
+def raster_backward(
+    tile_start,
+    ids,
+    xy,
+    conic,
+    opacities,
+    cut,
+    colors,
+    rect,
+    background,
+    t_final,
+    last,
+    grad_image,
+    grad_alpha,
+    width,
+    height,
+    tiles_x,
+    glevel,
+    upto,
+):
     """Back-to-front recomputation per pixel (3DGS): from the saved final T and last index,
     T before Gaussian i is T_after / (1 - alpha_i), and the colour behind it is accumulated
     as we go. Per pixel and Gaussian i (C = sum_i c_i a_i T_i + T_N bg, A = 1 - T_N):
@@ -572,9 +723,38 @@ def raster_backward(tile_start, ids, xy, conic, opacities, cut, colors, rect, ba
         row_last = np.empty(TILE, np.int64)
         gcol = np.empty(n_ch)
         for l in range(n_img):
-            _backward_tile(t, tile_start, ids, xy, conic, opacities, cut, colors, rect, background, t_final[l],
-                           last[l], grad_image[l], grad_alpha[l], width, height, tiles_x, T, behind, gimg, galpha,
-                           tfin, lst, row_last, gcol, grads_isect, gbg_tile[t], glevel, upto[l], l == n_img - 1)
+            _backward_tile(
+                t,
+                tile_start,
+                ids,
+                xy,
+                conic,
+                opacities,
+                cut,
+                colors,
+                rect,
+                background,
+                t_final[l],
+                last[l],
+                grad_image[l],
+                grad_alpha[l],
+                width,
+                height,
+                tiles_x,
+                T,
+                behind,
+                gimg,
+                galpha,
+                tfin,
+                lst,
+                row_last,
+                gcol,
+                grads_isect,
+                gbg_tile[t],
+                glevel,
+                upto[l],
+                l == n_img - 1,
+            )
     grads = np.zeros((n, width_g))
     for k in range(ids.shape[0]):
         g = ids[k]
@@ -588,8 +768,29 @@ def raster_backward(tile_start, ids, xy, conic, opacities, cut, colors, rect, ba
 
 
 @njit(cache=True)
-def _project_backward_one(g, means, quats, scales, Rc, tc, fx, fy, lim, eps2d, grad_uv, grad_conic,
-                          grad_depth, R, Mc, A, GA, GM, g_means, g_quats, g_scales):
+def _project_backward_one(
+    g,
+    means,
+    quats,
+    scales,
+    Rc,
+    tc,
+    fx,
+    fy,
+    lim,
+    eps2d,
+    grad_uv,
+    grad_conic,
+    grad_depth,
+    R,
+    Mc,
+    A,
+    GA,
+    GM,
+    g_means,
+    g_quats,
+    g_scales,
+):
     """One Gaussian of project_backward (R, Mc, A, GA, GM: scratch)."""
     px = Rc[0, 0] * means[g, 0] + Rc[0, 1] * means[g, 1] + Rc[0, 2] * means[g, 2] + tc[0]
     py = Rc[1, 0] * means[g, 0] + Rc[1, 1] * means[g, 1] + Rc[1, 2] * means[g, 2] + tc[1]
@@ -648,12 +849,9 @@ def _project_backward_one(g, means, quats, scales, Rc, tc, fx, fy, lim, eps2d, g
     d22 = GM[2, 2] * s[2]
     # dR/dq of the rotation in _camera_factor, contracted with dL/dR = (d_ij).
     gw = 2.0 * (-qz * d01 + qy * d02 + qz * d10 - qx * d12 - qy * d20 + qx * d21)
-    gx = 2.0 * (qy * d01 + qz * d02 + qy * d10 - 2.0 * qx * d11 - qw * d12 + qz * d20
-                + qw * d21 - 2.0 * qx * d22)
-    gy = 2.0 * (-2.0 * qy * d00 + qx * d01 + qw * d02 + qx * d10 + qz * d12 - qw * d20
-                + qz * d21 - 2.0 * qy * d22)
-    gz = 2.0 * (-2.0 * qz * d00 - qw * d01 + qx * d02 + qw * d10 - 2.0 * qz * d11 + qy * d12
-                + qx * d20 + qy * d21)
+    gx = 2.0 * (qy * d01 + qz * d02 + qy * d10 - 2.0 * qx * d11 - qw * d12 + qz * d20 + qw * d21 - 2.0 * qx * d22)
+    gy = 2.0 * (-2.0 * qy * d00 + qx * d01 + qw * d02 + qx * d10 + qz * d12 - qw * d20 + qz * d21 - 2.0 * qy * d22)
+    gz = 2.0 * (-2.0 * qz * d00 - qw * d01 + qx * d02 + qw * d10 - 2.0 * qz * d11 + qy * d12 + qx * d20 + qy * d21)
     # Through q/|q|: drop the radial part, scale by 1/|q|.
     dot = gw * qw + gx * qx + gy * qy + gz * qz
     g_quats[g, 0] = (gw - dot * qw) / qn
@@ -684,8 +882,7 @@ def _project_backward_one(g, means, quats, scales, Rc, tc, fx, fy, lim, eps2d, g
 
 
 @njit(parallel=_PARALLEL, cache=True)
-def project_backward(means, quats, scales, Rc, tc, fx, fy, lim, eps2d, radii, grad_uv, grad_conic,
-                     grad_depth):
+def project_backward(means, quats, scales, Rc, tc, fx, fy, lim, eps2d, radii, grad_uv, grad_conic, grad_depth):
     """Chain rule from (u, v), conic and camera z back to means, quats (wxyz, unnormalised) and scales.
 
     With A = J Mc (2x3), cov2d = A A^T + eps2d I, conic Q = cov2d^-1:
@@ -707,7 +904,27 @@ def project_backward(means, quats, scales, Rc, tc, fx, fy, lim, eps2d, radii, gr
         GM = np.empty((3, 3))
         for g in range(blk * BLOCK, min(n, (blk + 1) * BLOCK)):
             if radii[g] != 0:
-                _project_backward_one(g, means, quats, scales, Rc, tc, fx, fy, lim, eps2d, grad_uv,
-                                      grad_conic, grad_depth, R, Mc, A, GA, GM, g_means, g_quats,
-                                      g_scales)
+                _project_backward_one(
+                    g,
+                    means,
+                    quats,
+                    scales,
+                    Rc,
+                    tc,
+                    fx,
+                    fy,
+                    lim,
+                    eps2d,
+                    grad_uv,
+                    grad_conic,
+                    grad_depth,
+                    R,
+                    Mc,
+                    A,
+                    GA,
+                    GM,
+                    g_means,
+                    g_quats,
+                    g_scales,
+                )
     return g_means, g_quats, g_scales

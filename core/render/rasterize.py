@@ -64,13 +64,16 @@ def _validate(means, quats, scales, opacities, colors, background, camera, near,
     for name, x, tail in (("quats", quats, (4,)), ("scales", scales, (3,)), ("opacities", opacities, ())):
         if _shape(x) != (n,) + tail:
             raise ValueError(
-                f"render: {name} must have shape {[n, *tail]} to match means [N={n}, 3], got {list(_shape(x))}")
+                f"render: {name} must have shape {[n, *tail]} to match means [N={n}, 3], got {list(_shape(x))}"
+            )
     if len(_shape(colors)) != 2 or _shape(colors)[0] != n or _shape(colors)[1] < 1:
         raise ValueError(f"render: colors must have shape [N={n}, C] with C >= 1, got {list(_shape(colors))}")
     n_ch = _shape(colors)[1]
     if background is not None and _shape(background) != (n_ch,):
-        raise ValueError(f"render: background must have shape [{n_ch}] (one value per colour channel), "
-                         f"got {list(_shape(background))}")
+        raise ValueError(
+            f"render: background must have shape [{n_ch}] (one value per colour channel), "
+            f"got {list(_shape(background))}"
+        )
     if not _all_finite(means):
         raise ValueError("render: means contain NaN or inf")
     if not _all_finite(quats):
@@ -103,16 +106,35 @@ def _f64(x) -> np.ndarray:
 
 
 def _camera_args(camera: Camera):
-    return (np.ascontiguousarray(camera.R, np.float64), np.ascontiguousarray(camera.t, np.float64),
-            float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy))
+    return (
+        np.ascontiguousarray(camera.R, np.float64),
+        np.ascontiguousarray(camera.t, np.float64),
+        float(camera.fx),
+        float(camera.fy),
+        float(camera.cx),
+        float(camera.cy),
+    )
 
 
 def _tiles(camera: Camera):
     return -(-camera.width // rk.TILE), -(-camera.height // rk.TILE)
 
 
-def _cpu_forward(means, quats, scales, opacities, colors, background, camera, near, eps2d,
-                 means2d_offset=None, with_depth=False, glevel=None, upto=None):
+def _cpu_forward(
+    means,
+    quats,
+    scales,
+    opacities,
+    colors,
+    background,
+    camera,
+    near,
+    eps2d,
+    means2d_offset=None,
+    with_depth=False,
+    glevel=None,
+    upto=None,
+):
     """Numpy float64 forward of one image per entry of ``upto`` (image l: Gaussians with
     glevel <= upto[l]; default one image of all); returns images [L,H,W,C], final
     transmittances [L,H,W], the last image's contrib, radii and the state the backward needs."""
@@ -122,7 +144,8 @@ def _cpu_forward(means, quats, scales, opacities, colors, background, camera, ne
     W, H = camera.width, camera.height
     lim = rk.fov_limits(W, H, fx, fy, cx, cy)
     xy, conic, depth, rect, radii, cut = rk.project_forward(
-        means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, lim, W, H, float(near), float(eps2d))
+        means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, lim, W, H, float(near), float(eps2d)
+    )
     if means2d_offset is not None:
         xy += means2d_offset
     visible = np.flatnonzero((radii != 0) & (glevel <= upto.max()))
@@ -133,44 +156,74 @@ def _cpu_forward(means, quats, scales, opacities, colors, background, camera, ne
         colors = np.concatenate([colors, depth[:, None]], axis=1)
         background = np.concatenate([background, [0.0]])
     image, t_final, last, contrib = rk.raster_forward(
-        tile_start, ids, xy, conic, opacities, cut, colors, rect, background, W, H, tiles_x, glevel, upto)
-    state = dict(xy=xy, conic=conic, cut=cut, rect=rect, radii=radii, tile_start=tile_start, ids=ids,
-                 t_final=t_final, last=last, colors=colors, background=background, lim=lim, glevel=glevel,
-                 upto=upto)
+        tile_start, ids, xy, conic, opacities, cut, colors, rect, background, W, H, tiles_x, glevel, upto
+    )
+    state = dict(
+        xy=xy,
+        conic=conic,
+        cut=cut,
+        rect=rect,
+        radii=radii,
+        tile_start=tile_start,
+        ids=ids,
+        t_final=t_final,
+        last=last,
+        colors=colors,
+        background=background,
+        lim=lim,
+        glevel=glevel,
+        upto=upto,
+    )
     return image, t_final, contrib, radii, state
 
 
-def _cpu_backward(state, means, quats, scales, opacities, camera, eps2d, grad_image, grad_alpha,
-                  with_depth):
+def _cpu_backward(state, means, quats, scales, opacities, camera, eps2d, grad_image, grad_alpha, with_depth):
     Rc, tc, fx, fy, _, _ = _camera_args(camera)
     tiles_x, _ = _tiles(camera)
     grads, g_bg = rk.raster_backward(
-        state["tile_start"], state["ids"], state["xy"], state["conic"], opacities, state["cut"], state["colors"],
-        state["rect"], state["background"], state["t_final"], state["last"], grad_image, grad_alpha,
-        camera.width, camera.height, tiles_x, state["glevel"], state["upto"])
-    g_uv = np.ascontiguousarray(grads[:, rk.G_U:rk.G_V + 1])
+        state["tile_start"],
+        state["ids"],
+        state["xy"],
+        state["conic"],
+        opacities,
+        state["cut"],
+        state["colors"],
+        state["rect"],
+        state["background"],
+        state["t_final"],
+        state["last"],
+        grad_image,
+        grad_alpha,
+        camera.width,
+        camera.height,
+        tiles_x,
+        state["glevel"],
+        state["upto"],
+    )
+    g_uv = np.ascontiguousarray(grads[:, rk.G_U : rk.G_V + 1])
     g_uv_last = grads[:, -2:]  # the last image's own screen-space gradient
-    g_conic = np.ascontiguousarray(grads[:, rk.G_CA:rk.G_CC + 1])
-    g_colors = grads[:, rk.G_COLOR:-2]
+    g_conic = np.ascontiguousarray(grads[:, rk.G_CA : rk.G_CC + 1])
+    g_colors = grads[:, rk.G_COLOR : -2]
     if with_depth:
         g_depth = np.ascontiguousarray(g_colors[:, -1])
         g_colors, g_bg = g_colors[:, :-1], g_bg[:-1]
     else:
         g_depth = np.zeros(len(means))
     g_means, g_quats, g_scales = rk.project_backward(
-        means, quats, scales, Rc, tc, fx, fy, state["lim"], float(eps2d), state["radii"], g_uv, g_conic,
-        g_depth)
+        means, quats, scales, Rc, tc, fx, fy, state["lim"], float(eps2d), state["radii"], g_uv, g_conic, g_depth
+    )
     return g_means, g_quats, g_scales, grads[:, rk.G_OPAC], g_colors, g_bg, g_uv_last
 
 
 class _RasterizeCPU(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, colors, background, means2d, camera, near, eps2d,
-                with_depth, glevel, upto):
+    def forward(
+        ctx, means, quats, scales, opacities, colors, background, means2d, camera, near, eps2d, with_depth, glevel, upto
+    ):
         arrays = [_f64(x) for x in (means, quats, scales, opacities, colors, background)]
         image, t_final, contrib, radii, state = _cpu_forward(
-            *arrays, camera, near, eps2d, means2d_offset=_f64(means2d), with_depth=with_depth, glevel=glevel,
-            upto=upto)
+            *arrays, camera, near, eps2d, means2d_offset=_f64(means2d), with_depth=with_depth, glevel=glevel, upto=upto
+        )
         ctx.camera, ctx.eps2d, ctx.with_depth = camera, eps2d, with_depth
         ctx.arrays, ctx.state = arrays, state
         ctx.kinds = [(x.dtype, x.device) for x in (means, quats, scales, opacities, colors, background, means2d)]
@@ -191,7 +244,8 @@ class _RasterizeCPU(torch.autograd.Function):
         g_img = _f64(grad_image) if grad_image is not None else np.zeros((n_img, H, W, n_out))
         g_alpha = _f64(grad_alpha) if grad_alpha is not None else np.zeros((n_img, H, W))
         g_means, g_quats, g_scales, g_opac, g_colors, g_bg, g_uv = _cpu_backward(
-            ctx.state, means, quats, scales, opacities, ctx.camera, ctx.eps2d, g_img, g_alpha, ctx.with_depth)
+            ctx.state, means, quats, scales, opacities, ctx.camera, ctx.eps2d, g_img, g_alpha, ctx.with_depth
+        )
 
         def out(x, i):
             if not ctx.needs_input_grad[i]:
@@ -199,12 +253,24 @@ class _RasterizeCPU(torch.autograd.Function):
             dtype, device = ctx.kinds[i]
             return torch.from_numpy(np.ascontiguousarray(x)).to(device=device, dtype=dtype)
 
-        return (out(g_means, 0), out(g_quats, 1), out(g_scales, 2), out(g_opac, 3), out(g_colors, 4),
-                out(g_bg, 5), out(g_uv, 6), None, None, None, None, None, None)
+        return (
+            out(g_means, 0),
+            out(g_quats, 1),
+            out(g_scales, 2),
+            out(g_opac, 3),
+            out(g_colors, 4),
+            out(g_bg, 5),
+            out(g_uv, 6),
+            None,
+            None,
+            None,
+            None,
+            None,
+            None,
+        )
 
 
-def render_numpy(means, quats, scales, opacities, colors, camera, background=None, *, near=0.01,
-                 eps2d=0.3):
+def render_numpy(means, quats, scales, opacities, colors, camera, background=None, *, near=0.01, eps2d=0.3):
     """Forward only, numpy in and out: (image [H,W,C] float32, alpha [H,W] float32, contrib [N])."""
     means, quats, scales, opacities, colors = (np.asarray(x) for x in (means, quats, scales, opacities, colors))
     background = None if background is None else np.asarray(background)
@@ -228,22 +294,32 @@ def gsplat_available() -> bool:
     return True
 
 
-def _render_gsplat(means, quats, scales, opacities, colors, background, camera, near, eps2d, return_depth,
-                   compute_contrib):
+def _render_gsplat(
+    means, quats, scales, opacities, colors, background, camera, near, eps2d, return_depth, compute_contrib
+):
     from gsplat import rasterization
 
     dev, dtype = means.device, means.dtype
     viewmats = torch.as_tensor(camera.viewmat(), dtype=torch.float32, device=dev)[None]
     Ks = torch.as_tensor(camera.K(), dtype=torch.float32, device=dev)[None]
     f32 = [x.float() for x in (means, quats, scales, opacities, colors)]
-    common = dict(viewmats=viewmats, Ks=Ks, width=camera.width, height=camera.height, near_plane=near,
-                  eps2d=eps2d, packed=False, rasterize_mode="classic")
+    common = dict(
+        viewmats=viewmats,
+        Ks=Ks,
+        width=camera.width,
+        height=camera.height,
+        near_plane=near,
+        eps2d=eps2d,
+        packed=False,
+        rasterize_mode="classic",
+    )
     n_ch = colors.shape[1]
     bg = background.float()[None] if background is not None else None
     if return_depth:
         bg = torch.cat([bg, bg.new_zeros(1, 1)], dim=1) if bg is not None else None
     render_colors, render_alphas, meta = rasterization(
-        *f32, backgrounds=bg, render_mode="RGB+ED" if return_depth else "RGB", **common)
+        *f32, backgrounds=bg, render_mode="RGB+ED" if return_depth else "RGB", **common
+    )
     image = render_colors[0, ..., :n_ch].to(dtype)
     alpha = render_alphas[0, ..., 0].to(dtype)
     depth = render_colors[0, ..., n_ch].to(dtype) if return_depth else None
@@ -253,12 +329,17 @@ def _render_gsplat(means, quats, scales, opacities, colors, background, camera, 
     means2d = torch.zeros(n, 2, device=dev, dtype=dtype, requires_grad=True)
     m2d = meta["means2d"]
     if m2d.requires_grad:
+
         def _mirror(grad):
             g = grad.reshape(-1, n, 2)[0].detach().to(dtype)
             means2d.grad = g.clone() if means2d.grad is None else means2d.grad + g
+
         m2d.register_hook(_mirror)
-    radii = meta["radii"].reshape(n, -1).amax(-1).to(torch.int32) if meta["radii"].numel() else \
-        torch.zeros(n, dtype=torch.int32, device=dev)
+    radii = (
+        meta["radii"].reshape(n, -1).amax(-1).to(torch.int32)
+        if meta["radii"].numel()
+        else torch.zeros(n, dtype=torch.int32, device=dev)
+    )
     contrib = None
     if compute_contrib:
         # sum_pixels alpha*T is the gradient of the summed image w.r.t. a constant per-Gaussian colour.
@@ -272,8 +353,21 @@ def _render_gsplat(means, quats, scales, opacities, colors, background, camera, 
 # ----------------------------------------------------------------------------- public API
 
 
-def render(means, quats, scales, opacities, colors, camera, background=None, *, near=0.01, eps2d=0.3,
-           return_depth=False, backend="auto", compute_contrib=True) -> RenderOutput:
+def render(
+    means,
+    quats,
+    scales,
+    opacities,
+    colors,
+    camera,
+    background=None,
+    *,
+    near=0.01,
+    eps2d=0.3,
+    return_depth=False,
+    backend="auto",
+    compute_contrib=True,
+) -> RenderOutput:
     """Rasterise activated Gaussians seen by ``camera``.
 
     means [N,3], quats [N,4] wxyz (normalised here), scales [N,3] > 0 (std-devs, metres),
@@ -293,8 +387,9 @@ def render(means, quats, scales, opacities, colors, camera, background=None, *, 
     if use_gsplat:
         if not (means.is_cuda and gsplat_available()):
             raise ValueError("render: backend='gsplat' needs CUDA tensors and an importable gsplat")
-        return _render_gsplat(means, quats, scales, opacities, colors, background, camera, near, eps2d,
-                              return_depth, compute_contrib)
+        return _render_gsplat(
+            means, quats, scales, opacities, colors, background, camera, near, eps2d, return_depth, compute_contrib
+        )
 
     n, n_ch = means.shape[0], colors.shape[1]
     if background is None:
@@ -303,8 +398,20 @@ def render(means, quats, scales, opacities, colors, camera, background=None, *, 
     track = torch.is_grad_enabled() and any(x.requires_grad for x in tensors)
     means2d = torch.zeros(n, 2, dtype=means.dtype, device=means.device, requires_grad=track)
     image, alpha, contrib, radii = _RasterizeCPU.apply(
-        means, quats, scales, opacities, colors, background, means2d, camera, float(near), float(eps2d),
-        bool(return_depth), None, None)
+        means,
+        quats,
+        scales,
+        opacities,
+        colors,
+        background,
+        means2d,
+        camera,
+        float(near),
+        float(eps2d),
+        bool(return_depth),
+        None,
+        None,
+    )
     image, alpha = image[0], alpha[0]
     depth = None
     if return_depth:
@@ -315,8 +422,21 @@ def render(means, quats, scales, opacities, colors, camera, background=None, *, 
     return RenderOutput(image=image, alpha=alpha, means2d=means2d, contrib=contrib, radii=radii, depth=depth)
 
 
-def render_levels(means, quats, scales, opacities, colors, camera, background=None, *, level, upto, near=0.01,
-                  eps2d=0.3, backend="auto") -> list:
+def render_levels(
+    means,
+    quats,
+    scales,
+    opacities,
+    colors,
+    camera,
+    background=None,
+    *,
+    level,
+    upto,
+    near=0.01,
+    eps2d=0.3,
+    backend="auto",
+) -> list:
     """Several images of nested subsets in one pass: image k shows the Gaussians whose
     ``level`` [N] (ints, e.g. the forest level of each face) is <= ``upto[k]``, exactly as
     ``render`` of that subset would (same order, same pixels). On the CPU the subsets share
@@ -342,8 +462,20 @@ def render_levels(means, quats, scales, opacities, colors, camera, background=No
         outs = []
         for u in upto:  # gsplat renders each subset on its own
             ids = torch.as_tensor(np.flatnonzero(lv <= u), device=means.device)
-            outs.append(render(means[ids], quats[ids], scales[ids], opacities[ids], colors[ids], camera, background,
-                               near=near, eps2d=eps2d, backend=backend))
+            outs.append(
+                render(
+                    means[ids],
+                    quats[ids],
+                    scales[ids],
+                    opacities[ids],
+                    colors[ids],
+                    camera,
+                    background,
+                    near=near,
+                    eps2d=eps2d,
+                    backend=backend,
+                )
+            )
         return outs
     _validate(means, quats, scales, opacities, colors, background, camera, near, eps2d)
     n, n_ch = means.shape[0], colors.shape[1]
@@ -352,8 +484,24 @@ def render_levels(means, quats, scales, opacities, colors, camera, background=No
     track = torch.is_grad_enabled() and any(x.requires_grad for x in tensors)
     means2d = torch.zeros(n, 2, dtype=means.dtype, device=means.device, requires_grad=track)
     images, alphas, contrib, radii = _RasterizeCPU.apply(
-        means, quats, scales, opacities, colors, background, means2d, camera, float(near), float(eps2d), False,
-        np.ascontiguousarray(lv, np.int64), np.asarray(upto, np.int64))
+        means,
+        quats,
+        scales,
+        opacities,
+        colors,
+        background,
+        means2d,
+        camera,
+        float(near),
+        float(eps2d),
+        False,
+        np.ascontiguousarray(lv, np.int64),
+        np.asarray(upto, np.int64),
+    )
     last = len(upto) - 1
-    return [RenderOutput(image=images[k], alpha=alphas[k], means2d=means2d, contrib=contrib if k == last else None,
-                         radii=radii) for k in range(len(upto))]
+    return [
+        RenderOutput(
+            image=images[k], alpha=alphas[k], means2d=means2d, contrib=contrib if k == last else None, radii=radii
+        )
+        for k in range(len(upto))
+    ]

@@ -44,8 +44,9 @@ def project(means, quats, scales, camera, near=0.01, eps2d=0.3):
     return uv, conic, z, valid
 
 
-def render_reference(means, quats, scales, opacities, colors, camera, background=None, *, near=0.01,
-                     eps2d=0.3, means2d=None):
+def render_reference(
+    means, quats, scales, opacities, colors, camera, background=None, *, near=0.01, eps2d=0.3, means2d=None
+):
     """Returns (image [H,W,C], alpha [H,W], contrib [N]); ``means2d`` [N,2] is added to the 2D means."""
     dt = means.dtype
     W, H = camera.width, camera.height

@@ -41,8 +41,15 @@ def warm_up():
     quats = np.tile(np.array([1, 0, 0, 0], np.float32), (n, 1))
     scales = np.full((n, 3), 0.02, np.float32)
     cam = Camera(np.eye(3), np.array([0.0, 0.0, 1.0]), 40.0, 40.0, 16.0, 16.0, 32, 32)
-    render_numpy(means, quats, scales, np.full(n, 0.5, np.float32), np.full((n, 3), 0.5, np.float32), cam,
-                 np.zeros(3, np.float32))
+    render_numpy(
+        means,
+        quats,
+        scales,
+        np.full(n, 0.5, np.float32),
+        np.full((n, 3), 0.5, np.float32),
+        cam,
+        np.zeros(3, np.float32),
+    )
 
 
 def serve(inp=None, out=None) -> int:

@@ -59,31 +59,52 @@ LOSSLESS_RECORD = 73
 QUANT_ROOT = 0xFFFFFF
 LOSSLESS_ROOT = 0x3FFFFFFF
 
-QUANT_DTYPE = np.dtype({
-    "names": ["geo", "rot", "parent", "ls", "opa", "col", "crc"],
-    "formats": ["<u8", "<u4", ("u1", 3), ("u1", 3), "u1", ("u1", 3), "u1"],
-    "offsets": [0, 8, 12, 15, 18, 19, 22],
-    "itemsize": QUANT_RECORD,
-})
-LOSSLESS_DTYPE = np.dtype({
-    "names": ["link", "split_logits", "d_mu", "d_log_scale", "d_rot", "opacity_logit", "f_dc", "crc"],
-    "formats": ["<u4", ("<f4", 3), ("<f4", 3), ("<f4", 3), ("<f4", 4), "<f4", ("<f4", 3), "u1"],
-    "offsets": [0, 4, 16, 28, 40, 56, 60, 72],
-    "itemsize": LOSSLESS_RECORD,
-})
+QUANT_DTYPE = np.dtype(
+    {
+        "names": ["geo", "rot", "parent", "ls", "opa", "col", "crc"],
+        "formats": ["<u8", "<u4", ("u1", 3), ("u1", 3), "u1", ("u1", 3), "u1"],
+        "offsets": [0, 8, 12, 15, 18, 19, 22],
+        "itemsize": QUANT_RECORD,
+    }
+)
+LOSSLESS_DTYPE = np.dtype(
+    {
+        "names": ["link", "split_logits", "d_mu", "d_log_scale", "d_rot", "opacity_logit", "f_dc", "crc"],
+        "formats": ["<u4", ("<f4", 3), ("<f4", 3), ("<f4", 3), ("<f4", 4), "<f4", ("<f4", 3), "u1"],
+        "offsets": [0, 4, 16, 28, 40, 56, 60, 72],
+        "itemsize": LOSSLESS_RECORD,
+    }
+)
 # The quantised record as (possibly unaligned, overlapping) little words, one per code, so that
 # every code is one load plus at most one shift or mask, vectorised over a whole record range:
 # mx = u16@0 & 0xFFF, my = u16@1 >> 4, mz = u16@3 & 0xFFF, b0 = u16@4 >> 4, b1 = u16@6 & 0xFFF,
 # top = u8@7 >> 4 (slot, reserved bits), r0 = u16@8 & 0x3FF, r1 = (u16@9 >> 2) & 0x3FF,
 # r2 = (u16@10 >> 4) & 0x3FF, big = u8@11 >> 6 (version 1), rq = u8[4]@8 (version 2),
 # parent = u32@12 & 0xFFFFFF (FORMAT.md 3.1).
-_QUANT_WORDS = np.dtype({
-    "names": ["mx", "my", "mz", "b0", "b1", "top", "r0", "r1", "r2", "big", "rq", "p32", "ls", "opa", "col"],
-    "formats": ["<u2", "<u2", "<u2", "<u2", "<u2", "u1", "<u2", "<u2", "<u2", "u1", ("u1", 4), "<u4", ("u1", 3), "u1",
-                ("u1", 3)],
-    "offsets": [0, 1, 3, 4, 6, 7, 8, 9, 10, 11, 8, 12, 15, 18, 19],
-    "itemsize": QUANT_RECORD,
-})
+_QUANT_WORDS = np.dtype(
+    {
+        "names": ["mx", "my", "mz", "b0", "b1", "top", "r0", "r1", "r2", "big", "rq", "p32", "ls", "opa", "col"],
+        "formats": [
+            "<u2",
+            "<u2",
+            "<u2",
+            "<u2",
+            "<u2",
+            "u1",
+            "<u2",
+            "<u2",
+            "<u2",
+            "u1",
+            ("u1", 4),
+            "<u4",
+            ("u1", 3),
+            "u1",
+            ("u1", 3),
+        ],
+        "offsets": [0, 1, 3, 4, 6, 7, 8, 9, 10, 11, 8, 12, 15, 18, 19],
+        "itemsize": QUANT_RECORD,
+    }
+)
 assert QUANT_DTYPE.itemsize == QUANT_RECORD and LOSSLESS_DTYPE.itemsize == LOSSLESS_RECORD
 
 
@@ -168,7 +189,7 @@ _ROT_STEP = np.float32(2.0 * _SQRT1_2 / 1023.0)  # version 1 rotations
 _ROT_LO = np.float32(-_SQRT1_2)
 _OPA_ALPHA = (np.arange(256) + 0.5) / 256.0
 _OPA_LUT = np.log(_OPA_ALPHA / (1.0 - _OPA_ALPHA)).astype(np.float32)
-_BARY_LUT = np.log(np.maximum(np.arange(4096, dtype=np.float64), 2.0 ** -20) / 4095.0).astype(np.float32)
+_BARY_LUT = np.log(np.maximum(np.arange(4096, dtype=np.float64), 2.0**-20) / 4095.0).astype(np.float32)
 _BARY_LUT_REV = np.ascontiguousarray(_BARY_LUT[::-1])  # [s] = _BARY_LUT[4095 - s]
 
 
@@ -178,7 +199,7 @@ def quant_ranges(quant) -> dict:
     q = np.asarray(quant, np.float64).ravel()
     if len(q) not in (18, 26):
         raise StreamError(f"quantisation table of {len(q)} floats (expected 18 or 26)")
-    out = {name: (q[6 * k: 6 * k + 3], q[6 * k + 3: 6 * k + 6]) for k, name in enumerate(("mu", "ls", "c"))}
+    out = {name: (q[6 * k : 6 * k + 3], q[6 * k + 3 : 6 * k + 6]) for k, name in enumerate(("mu", "ls", "c"))}
     if len(q) == 26:
         out["rot"] = (q[18:22], q[22:26])
     return out
@@ -346,13 +367,22 @@ class StreamInfo:
 
     def summary(self) -> dict:
         return {
-            "version": self.version, "lossless": self.lossless, "records": self.num_records,
-            "template_faces": self.num_template_faces, "levels": list(self.level_counts),
-            "record_size": self.record_size, "records_per_block": self.records_per_block,
-            "header_bytes": self.header_size, "total_bytes": self.total_bytes,
-            "bytes_per_gaussian": self.bytes_per_gaussian, "base_bytes": self.base_bytes,
-            "template_hash": self.template_hash_hex, "template_embedded": self.template_embedded,
-            "coarse_levels": self.num_coarse_levels, "head_records": self.head_records, "head_bytes": self.head_bytes,
+            "version": self.version,
+            "lossless": self.lossless,
+            "records": self.num_records,
+            "template_faces": self.num_template_faces,
+            "levels": list(self.level_counts),
+            "record_size": self.record_size,
+            "records_per_block": self.records_per_block,
+            "header_bytes": self.header_size,
+            "total_bytes": self.total_bytes,
+            "bytes_per_gaussian": self.bytes_per_gaussian,
+            "base_bytes": self.base_bytes,
+            "template_hash": self.template_hash_hex,
+            "template_embedded": self.template_embedded,
+            "coarse_levels": self.num_coarse_levels,
+            "head_records": self.head_records,
+            "head_bytes": self.head_bytes,
         }
 
 
@@ -372,9 +402,21 @@ def _encode_header(info: StreamInfo, template_blob: bytes, meta_blob: bytes, coa
     ]
     fixed = FIXED_SIZE_V3 if v3 else FIXED_SIZE
     size = fixed + 4 * L + len(parts[2]) + len(coarse_blob) + len(template_blob) + len(meta_blob) + 4
-    parts[0] = FIXED_HEADER.pack(MAGIC, info.version, info.flags, size, info.num_records, info.num_template_faces,
-                                 info.record_size, info.records_per_block, L, info.num_coarse_levels if v3 else 0,
-                                 info.template_hash, len(meta_blob), len(template_blob))
+    parts[0] = FIXED_HEADER.pack(
+        MAGIC,
+        info.version,
+        info.flags,
+        size,
+        info.num_records,
+        info.num_template_faces,
+        info.record_size,
+        info.records_per_block,
+        L,
+        info.num_coarse_levels if v3 else 0,
+        info.template_hash,
+        len(meta_blob),
+        len(template_blob),
+    )
     if v3:
         parts[0] += struct.pack("<I", len(coarse_blob))
     body = b"".join(parts)
@@ -412,8 +454,10 @@ def _parse_fixed(buf, source: str):
         K, reserved = reserved, 0
         CL = struct.unpack_from("<I", buf, FIXED_SIZE)[0]
     if version not in READ_VERSIONS:
-        raise StreamError(f"{source}: stream format version {version} is not supported (this reader: "
-                         f"{', '.join(map(str, READ_VERSIONS))})")
+        raise StreamError(
+            f"{source}: stream format version {version} is not supported (this reader: "
+            f"{', '.join(map(str, READ_VERSIONS))})"
+        )
     if flags & ~KNOWN_FLAGS:
         raise StreamError(f"{source}: unknown header flags 0x{flags:04x} at offset 10")
     lossless = bool(flags & FLAG_LOSSLESS)
@@ -439,9 +483,22 @@ def _parse_fixed(buf, source: str):
         problems.append(f"header size {hsize} (fields imply {expect}, limit {MAX_HEADER})")
     if problems:
         raise StreamError(f"{source}: invalid stream header: " + "; ".join(problems))
-    return dict(version=version, flags=flags, header_size=hsize, num_records=N, num_template_faces=F0,
-                record_size=R, records_per_block=B, num_levels=L, template_hash=thash, M=M, T=T, K=K, CL=CL,
-                fixed=fixed)
+    return dict(
+        version=version,
+        flags=flags,
+        header_size=hsize,
+        num_records=N,
+        num_template_faces=F0,
+        record_size=R,
+        records_per_block=B,
+        num_levels=L,
+        template_hash=thash,
+        M=M,
+        T=T,
+        K=K,
+        CL=CL,
+        fixed=fixed,
+    )
 
 
 def _parse_header(buf, source: str) -> StreamInfo:
@@ -451,32 +508,41 @@ def _parse_header(buf, source: str) -> StreamInfo:
     stored = struct.unpack_from("<I", buf, H - 4)[0]
     actual = zlib.crc32(bytes(buf[: H - 4]))
     if stored != actual:
-        raise StreamError(f"{source}: header checksum mismatch (stored 0x{stored:08x}, computed 0x{actual:08x}, "
-                         f"header bytes 0..{H - 1}): the header is corrupted")
+        raise StreamError(
+            f"{source}: header checksum mismatch (stored 0x{stored:08x}, computed 0x{actual:08x}, "
+            f"header bytes 0..{H - 1}): the header is corrupted"
+        )
     pos = f["fixed"]
     L, K = f["num_levels"], f["K"]
-    counts = np.frombuffer(bytes(buf[pos: pos + 4 * L]), "<u4").astype(np.int64)
+    counts = np.frombuffer(bytes(buf[pos : pos + 4 * L]), "<u4").astype(np.int64)
     pos += 4 * L
     if counts[K] != f["num_template_faces"] or counts.sum() != f["num_records"] or np.any(counts < 1):
-        raise StreamError(f"{source}: level counts {counts.tolist()} disagree with N={f['num_records']}, "
-                         f"F0={f['num_template_faces']} (template level {K})")
+        raise StreamError(
+            f"{source}: level counts {counts.tolist()} disagree with N={f['num_records']}, "
+            f"F0={f['num_template_faces']} (template level {K})"
+        )
     quant = None
     if not f["flags"] & FLAG_LOSSLESS:
         size = QUANT_TABLE_SIZE[f["version"]]
-        quant = np.frombuffer(bytes(buf[pos: pos + size]), "<f4").astype(np.float32)
+        quant = np.frombuffer(bytes(buf[pos : pos + size]), "<f4").astype(np.float32)
         pos += size
         ranges = quant_ranges(quant)
-        if (not np.all(np.isfinite(quant)) or any(np.any(lo > hi) for lo, hi in ranges.values())
-                or np.any(np.abs(np.concatenate(ranges["ls"])) > LOG_SCALE_LIMIT)):
-            raise StreamError(f"{source}: invalid quantisation ranges in the header (lo > hi, not finite, or a "
-                             f"log-scale beyond +-{LOG_SCALE_LIMIT:g}): {quant.tolist()}")
+        if (
+            not np.all(np.isfinite(quant))
+            or any(np.any(lo > hi) for lo, hi in ranges.values())
+            or np.any(np.abs(np.concatenate(ranges["ls"])) > LOG_SCALE_LIMIT)
+        ):
+            raise StreamError(
+                f"{source}: invalid quantisation ranges in the header (lo > hi, not finite, or a "
+                f"log-scale beyond +-{LOG_SCALE_LIMIT:g}): {quant.tolist()}"
+            )
     coarse = None
     if K:
-        coarse = _decode_coarse(bytes(buf[pos: pos + f["CL"]]), int(counts[:K].sum()), source)
+        coarse = _decode_coarse(bytes(buf[pos : pos + f["CL"]]), int(counts[:K].sum()), source)
         pos += f["CL"]
     template = None
     if f["T"]:
-        blob = bytes(buf[pos: pos + f["T"]])
+        blob = bytes(buf[pos : pos + f["T"]])
         pos += f["T"]
         want = 12 * f["num_template_faces"]
         try:
@@ -492,7 +558,7 @@ def _parse_header(buf, source: str) -> StreamInfo:
     meta = {}
     if f["M"]:
         try:
-            meta = loads_json(bytes(buf[pos: pos + f["M"]]).decode("utf-8"), f"{source}: metadata")
+            meta = loads_json(bytes(buf[pos : pos + f["M"]]).decode("utf-8"), f"{source}: metadata")
         except (UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise StreamError(f"{source}: metadata is not valid UTF-8 JSON: {exc}") from None
         except ValueError as exc:  # nested too deeply: loads_json's message names the source
@@ -500,11 +566,26 @@ def _parse_header(buf, source: str) -> StreamInfo:
         if not isinstance(meta, dict):
             raise StreamError(f"{source}: metadata must be a JSON object")
     if coarse is not None and template is not None and coarse.max() > template.max():
-        raise StreamError(f"{source}: coarse triangles name vertex {coarse.max()}, the template has "
-                         f"{template.max() + 1} vertices")
-    return StreamInfo(f["version"], f["flags"], H, f["num_records"], f["num_template_faces"], f["record_size"],
-                      f["records_per_block"], tuple(int(c) for c in counts), f["template_hash"], quant, meta,
-                      template, stored, num_coarse_levels=K, coarse_faces=coarse)
+        raise StreamError(
+            f"{source}: coarse triangles name vertex {coarse.max()}, the template has {template.max() + 1} vertices"
+        )
+    return StreamInfo(
+        f["version"],
+        f["flags"],
+        H,
+        f["num_records"],
+        f["num_template_faces"],
+        f["record_size"],
+        f["records_per_block"],
+        tuple(int(c) for c in counts),
+        f["template_hash"],
+        quant,
+        meta,
+        template,
+        stored,
+        num_coarse_levels=K,
+        coarse_faces=coarse,
+    )
 
 
 def _encode_coarse(tris) -> bytes:
@@ -536,15 +617,21 @@ def check_template(header: StreamInfo, faces) -> None:
     """Refuse to bind a stream to a mesh whose topology is not the stream's template."""
     faces = np.asarray(faces)
     if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) != header.num_template_faces:
-        raise TemplateMismatch(f"template mismatch: the stream was made for {header.num_template_faces} template faces, "
-                         f"the mesh has faces of shape {faces.shape}")
+        raise TemplateMismatch(
+            f"template mismatch: the stream was made for {header.num_template_faces} template faces, "
+            f"the mesh has faces of shape {faces.shape}"
+        )
     h = template_hash(faces)
     if h != header.template_hash:
-        raise TemplateMismatch(f"template mismatch: the mesh's topology hash {h.hex()} differs from the stream's "
-                         f"{header.template_hash.hex()} (same face count, different faces)")
+        raise TemplateMismatch(
+            f"template mismatch: the mesh's topology hash {h.hex()} differs from the stream's "
+            f"{header.template_hash.hex()} (same face count, different faces)"
+        )
     if header.coarse_faces is not None and len(header.coarse_faces) and header.coarse_faces.max() > faces.max():
-        raise TemplateMismatch(f"template mismatch: the stream's coarse triangles name vertex {header.coarse_faces.max()}, "
-                         f"the mesh has {faces.max() + 1} vertices")
+        raise TemplateMismatch(
+            f"template mismatch: the stream's coarse triangles name vertex {header.coarse_faces.max()}, "
+            f"the mesh has {faces.max() + 1} vertices"
+        )
 
 
 def read_header(source) -> StreamInfo:
@@ -637,8 +724,9 @@ def stream_order(forest: Forest, importance=None, root_key=None) -> np.ndarray:
 
 
 # -- writer -------------------------------------------------------------------------------
-def _quantize_records(av: Avatar, bary: np.ndarray, quant: np.ndarray, version: int = VERSION,
-                      root_ref=None) -> np.ndarray:
+def _quantize_records(
+    av: Avatar, bary: np.ndarray, quant: np.ndarray, version: int = VERSION, root_ref=None
+) -> np.ndarray:
     N = av.num_gaussians
     rec = np.zeros(N, QUANT_DTYPE)
     q = quant_ranges(quant)
@@ -653,9 +741,14 @@ def _quantize_records(av: Avatar, bary: np.ndarray, quant: np.ndarray, version: 
     b0 = np.rint(bary[:, 0] * 4095).astype(np.int64)
     b1 = np.minimum(np.rint(bary[:, 1] * 4095).astype(np.int64), 4095 - b0)
     slot = np.maximum(av.forest.slot.astype(np.int64), 0).astype(np.uint64)
-    rec["geo"] = (mu[:, 0] | (mu[:, 1] << np.uint64(12)) | (mu[:, 2] << np.uint64(24))
-                  | (b0.astype(np.uint64) << np.uint64(36)) | (b1.astype(np.uint64) << np.uint64(48))
-                  | (slot << np.uint64(60)))
+    rec["geo"] = (
+        mu[:, 0]
+        | (mu[:, 1] << np.uint64(12))
+        | (mu[:, 2] << np.uint64(24))
+        | (b0.astype(np.uint64) << np.uint64(36))
+        | (b1.astype(np.uint64) << np.uint64(48))
+        | (slot << np.uint64(60))
+    )
 
     rc = codes(_unit_quaternions(av.d_rot), *q["rot"], 256).astype(np.uint32)
     rec["rot"] = rc[:, 0] | (rc[:, 1] << np.uint32(8)) | (rc[:, 2] << np.uint32(16)) | (rc[:, 3] << np.uint32(24))
@@ -670,7 +763,7 @@ def _quantize_records(av: Avatar, bary: np.ndarray, quant: np.ndarray, version: 
     c = 0.5 + SH_C0 * av.f_dc.astype(np.float64)
     rec["col"] = codes(c, *q["c"], 256).astype(np.uint8)
     raw = rec.view(np.uint8).reshape(N, QUANT_RECORD)
-    rec["crc"] = crc8_indexed(raw[:, :QUANT_RECORD - 1], 0) if version >= 3 else crc8(raw[:, :QUANT_RECORD - 1])
+    rec["crc"] = crc8_indexed(raw[:, : QUANT_RECORD - 1], 0) if version >= 3 else crc8(raw[:, : QUANT_RECORD - 1])
     return rec
 
 
@@ -687,8 +780,7 @@ def _lossless_records(av: Avatar, version: int = VERSION, root_ref=None) -> np.n
     if not np.all(np.isfinite(av.forest.split_logits)):
         raise ValueError("write_stream: split logits contain NaN or inf")
     raw = rec.view(np.uint8).reshape(N, LOSSLESS_RECORD)
-    rec["crc"] = (crc8_indexed(raw[:, :LOSSLESS_RECORD - 1], 0) if version >= 3
-                  else crc8(raw[:, :LOSSLESS_RECORD - 1]))
+    rec["crc"] = crc8_indexed(raw[:, : LOSSLESS_RECORD - 1], 0) if version >= 3 else crc8(raw[:, : LOSSLESS_RECORD - 1])
     return rec
 
 
@@ -707,8 +799,16 @@ def _quant_table(av: Avatar) -> np.ndarray:
     c_hi = np.maximum(c.max(0), c_lo)
     r = _unit_quaternions(av.d_rot)
     lim = LOG_SCALE_LIMIT
-    parts = [av.d_mu.min(0), av.d_mu.max(0), np.clip(av.d_log_scale.min(0), -lim, lim),
-             np.clip(av.d_log_scale.max(0), -lim, lim), c_lo, c_hi, r.min(0), r.max(0)]
+    parts = [
+        av.d_mu.min(0),
+        av.d_mu.max(0),
+        np.clip(av.d_log_scale.min(0), -lim, lim),
+        np.clip(av.d_log_scale.max(0), -lim, lim),
+        c_lo,
+        c_hi,
+        r.min(0),
+        r.max(0),
+    ]
     table = []
     for i, p in enumerate(parts):
         table.append(_f32_floor(p) if i % 2 == 0 else _f32_ceil(p))
@@ -717,10 +817,20 @@ def _quant_table(av: Avatar) -> np.ndarray:
     return table
 
 
-def write_stream(path, avatar: Avatar, importance=None, *, quantize: bool = True, metadata=None,
-                 embed_template: bool = True, records_per_block: int = DEFAULT_BLOCK,
-                 drop_sh: bool = False, root_order: str | None = None, vertices=None,
-                 version: int = VERSION) -> StreamInfo:
+def write_stream(
+    path,
+    avatar: Avatar,
+    importance=None,
+    *,
+    quantize: bool = True,
+    metadata=None,
+    embed_template: bool = True,
+    records_per_block: int = DEFAULT_BLOCK,
+    drop_sh: bool = False,
+    root_order: str | None = None,
+    vertices=None,
+    version: int = VERSION,
+) -> StreamInfo:
     """Write `avatar` as a stream (atomically). Returns its header; `.order` maps stream index
     to the avatar's face index. Records carry the DC colour only: an avatar with higher SH
     bands is refused unless ``drop_sh`` (then the metadata says which degree was dropped).
@@ -732,9 +842,11 @@ def write_stream(path, avatar: Avatar, importance=None, *, quantize: bool = True
     ``version=2`` writes the previous format (no coarse levels, roots in template order)."""
     forest = avatar.forest
     if avatar.sh_degree and not drop_sh:
-        raise ValueError(f"write_stream: the avatar has SH degree {avatar.sh_degree}; stream records carry the "
-                         "DC colour only (docs/FORMAT.md). Pass drop_sh=True (export.py --drop-sh) to stream "
-                         "its view-independent colour, or export a PLY to keep every band")
+        raise ValueError(
+            f"write_stream: the avatar has SH degree {avatar.sh_degree}; stream records carry the "
+            "DC colour only (docs/FORMAT.md). Pass drop_sh=True (export.py --drop-sh) to stream "
+            "its view-independent colour, or export a PLY to keep every band"
+        )
     N, F0 = forest.num_faces, forest.num_roots
     if not 1 <= int(records_per_block) <= 0xFFFF:
         raise ValueError(f"write_stream: records_per_block must be in [1, 65535], got {records_per_block}")
@@ -745,8 +857,10 @@ def write_stream(path, avatar: Avatar, importance=None, *, quantize: bool = True
         raise ValueError(f"write_stream: can write versions 2 and {VERSION}, not {version}")
     C, K = forest.num_coarse, forest.num_coarse_levels
     if forest.num_roots != C + len(forest.template_faces):
-        raise ValueError(f"write_stream: the avatar holds {forest.num_roots} of its {C + len(forest.template_faces)} "
-                         "roots (a prefix); streams start from every root")
+        raise ValueError(
+            f"write_stream: the avatar holds {forest.num_roots} of its {C + len(forest.template_faces)} "
+            "roots (a prefix); streams start from every root"
+        )
     if root_order is None:
         root_order = "auto" if vertices is not None else "forest"
     if version == 2:
@@ -760,7 +874,9 @@ def write_stream(path, avatar: Avatar, importance=None, *, quantize: bool = True
     coarse_rows = forest.coarse_faces
     if C:
         starts = np.concatenate([[0], np.cumsum(forest.coarse_counts)])
-        perm = np.concatenate([a + np.lexsort(forest.coarse_faces[a:b].T[::-1]) for a, b in zip(starts[:-1], starts[1:])])
+        perm = np.concatenate(
+            [a + np.lexsort(forest.coarse_faces[a:b].T[::-1]) for a, b in zip(starts[:-1], starts[1:])]
+        )
         coarse_rows = forest.coarse_faces[perm]
         row_of[perm] = np.arange(C)
     root_ref = row_of[f2.root_ref]
@@ -785,16 +901,29 @@ def write_stream(path, avatar: Avatar, importance=None, *, quantize: bool = True
         quant = None
         recs = _lossless_records(av, version, root_ref)
     R = recs.dtype.itemsize
-    info = StreamInfo(version, flags, 0, N, len(tmpl), R, int(records_per_block), level_counts, template_hash(tmpl),
-                      quant, meta, tmpl.astype(np.int32) if embed_template else None, num_coarse_levels=K,
-                      coarse_faces=coarse_rows.astype(np.int32) if K else None)
+    info = StreamInfo(
+        version,
+        flags,
+        0,
+        N,
+        len(tmpl),
+        R,
+        int(records_per_block),
+        level_counts,
+        template_hash(tmpl),
+        quant,
+        meta,
+        tmpl.astype(np.int32) if embed_template else None,
+        num_coarse_levels=K,
+        coarse_faces=coarse_rows.astype(np.int32) if K else None,
+    )
     header = _encode_header(info, template_blob, meta_blob, _encode_coarse(coarse_rows) if K else b"")
     raw = recs.tobytes()
     B = info.records_per_block
     prefix = struct.pack("<I", info.header_crc)
     parts = [header]
     for bi in range(info.num_blocks):  # per block, not per record
-        block = raw[bi * B * R: min(N, (bi + 1) * B) * R]
+        block = raw[bi * B * R : min(N, (bi + 1) * B) * R]
         crc = zlib.crc32(block, zlib.crc32(prefix + struct.pack("<I", bi)))
         parts.append(block)
         parts.append(struct.pack("<I", crc))
@@ -852,9 +981,14 @@ _RUN = 32768
 _FIRST_CAP = 1 << 20
 
 _COLUMNS = (  # name, row shape, dtype; widest first so every column stays aligned
-    ("parent", (), np.int64), ("split_logits", (3,), np.float32), ("d_mu", (3,), np.float32),
-    ("d_log_scale", (3,), np.float32), ("d_rot", (4,), np.float32), ("opacity_logit", (), np.float32),
-    ("f_dc", (3,), np.float32), ("slot", (), np.int8),
+    ("parent", (), np.int64),
+    ("split_logits", (3,), np.float32),
+    ("d_mu", (3,), np.float32),
+    ("d_log_scale", (3,), np.float32),
+    ("d_rot", (4,), np.float32),
+    ("opacity_logit", (), np.float32),
+    ("f_dc", (3,), np.float32),
+    ("slot", (), np.int8),
 )
 
 
@@ -868,7 +1002,7 @@ def _carve(spec, n):
     buf = np.empty(sum(sizes), np.uint8)
     out, off = {}, 0
     for (name, tail, dt), size in zip(spec, sizes):
-        out[name] = buf[off: off + size].view(dt).reshape((n,) + tuple(tail))
+        out[name] = buf[off : off + size].view(dt).reshape((n,) + tuple(tail))
         off += size
     return out
 
@@ -906,11 +1040,31 @@ class _Columns:
         return self.cols[name][:n]
 
 
-def _trusted_forest(template_faces, parent, slot, split_logits, children, level, root,
-                    coarse_faces=None, coarse_counts=(), root_ref=None) -> Forest:
+def _trusted_forest(
+    template_faces,
+    parent,
+    slot,
+    split_logits,
+    children,
+    level,
+    root,
+    coarse_faces=None,
+    coarse_counts=(),
+    root_ref=None,
+) -> Forest:
     """The reader has checked every rule Forest._derive enforces (see Forest.from_verified)."""
-    return Forest.from_verified(template_faces, parent, slot, split_logits, children, level, root,
-                                coarse_faces=coarse_faces, coarse_counts=coarse_counts, root_ref=root_ref)
+    return Forest.from_verified(
+        template_faces,
+        parent,
+        slot,
+        split_logits,
+        children,
+        level,
+        root,
+        coarse_faces=coarse_faces,
+        coarse_counts=coarse_counts,
+        root_ref=root_ref,
+    )
 
 
 def _trusted_avatar(forest, params, meta) -> Avatar:
@@ -975,8 +1129,12 @@ class StreamReader:
         before = self._n
         self.bytes_received += len(mv)
         if self.complete:
-            self._fail(StreamError(f"{self.source}: {len(mv)} unexpected bytes after the end of the stream "
-                                  f"(offset {self.bytes_received - len(mv)})"))
+            self._fail(
+                StreamError(
+                    f"{self.source}: {len(mv)} unexpected bytes after the end of the stream "
+                    f"(offset {self.bytes_received - len(mv)})"
+                )
+            )
         try:
             if self.header is None:
                 buf = mv
@@ -994,7 +1152,7 @@ class StreamReader:
                 header = _parse_header(buf, self.source)
                 self._start(header)
                 self._pending = bytearray()
-                mv = memoryview(buf)[header.header_size:]
+                mv = memoryview(buf)[header.header_size :]
             if len(mv):
                 self._consume(mv)
         except ValueError as exc:
@@ -1008,14 +1166,16 @@ class StreamReader:
     def _block_error(self, bi, nbytes):
         h = self.header
         o = h.header_size + bi * h.block_bytes
-        return StreamError(f"{self.source}: block {bi} (records {bi * h.records_per_block}.."
-                          f"{min(h.num_records, (bi + 1) * h.records_per_block) - 1}, bytes "
-                          f"{o}..{o + nbytes + 3}) fails its CRC-32: corrupted")
+        return StreamError(
+            f"{self.source}: block {bi} (records {bi * h.records_per_block}.."
+            f"{min(h.num_records, (bi + 1) * h.records_per_block) - 1}, bytes "
+            f"{o}..{o + nbytes + 3}) fails its CRC-32: corrupted"
+        )
 
     def _seeds(self, first, m) -> list:
         """CRC-32 state after u32(header_crc) ‖ u32(block index), for blocks first..first+m-1."""
         if self._seed_table is not None:
-            return self._seed_table[first: first + m].tolist()
+            return self._seed_table[first : first + m].tolist()
         return [zlib.crc32(bi.to_bytes(4, "little"), self._crc_seed) for bi in range(first, first + m)]
 
     def _block_crc(self, bi, data) -> int:
@@ -1047,13 +1207,15 @@ class StreamReader:
                 mv = mv[need:]
                 blk = bytes(pend)
                 pend.clear()
-                if self._block_crc(bi, blk[: nrec * R]) != int.from_bytes(blk[nrec * R:], "little"):
+                if self._block_crc(bi, blk[: nrec * R]) != int.from_bytes(blk[nrec * R :], "little"):
                     err = self._block_error(bi, nrec * R)
                 else:
                     i0 = bi * B
                     lo = max(end, i0)
                     dst = raw.reserve(i0 + nrec)
-                    dst[lo: i0 + nrec] = np.frombuffer(blk, np.uint8, (i0 + nrec - lo) * R, (lo - i0) * R).reshape(-1, R)
+                    dst[lo : i0 + nrec] = np.frombuffer(blk, np.uint8, (i0 + nrec - lo) * R, (lo - i0) * R).reshape(
+                        -1, R
+                    )
                     end = i0 + nrec
                     self._block = bi + 1
         if err is None and not pend:
@@ -1066,7 +1228,7 @@ class StreamReader:
                 blocks = np.frombuffer(mv, np.uint8, m * S).reshape(m, S)
                 stored = blocks[:, BR:].copy().view("<u4").ravel().tolist()
                 crc32 = zlib.crc32
-                crcs = [crc32(mv[o: o + BR], seed) for o, seed in zip(range(0, m * S, S), self._seeds(bi, m))]
+                crcs = [crc32(mv[o : o + BR], seed) for o, seed in zip(range(0, m * S, S), self._seeds(bi, m))]
                 good = m
                 if crcs != stored:
                     good = next(j for j in range(m) if crcs[j] != stored[j])
@@ -1074,18 +1236,18 @@ class StreamReader:
                 if good:
                     i0 = bi * B
                     dst = raw.reserve(i0 + good * B)
-                    dst[i0: i0 + good * B].reshape(good, B, R)[...] = blocks[:good, :BR].reshape(good, B, R)
+                    dst[i0 : i0 + good * B].reshape(good, B, R)[...] = blocks[:good, :BR].reshape(good, B, R)
                     end = i0 + good * B
                     self._block = bi + good
                 del blocks
-                mv = mv[m * S:]
+                mv = mv[m * S :]
             # The short last block, if it is complete.
             bi = self._block
             if err is None and bi == nblocks - 1 and N % B:
                 nrec = N - bi * B
                 size = nrec * R + 4
                 if len(mv) >= size:
-                    if self._block_crc(bi, mv[: nrec * R]) != int.from_bytes(mv[nrec * R: size], "little"):
+                    if self._block_crc(bi, mv[: nrec * R]) != int.from_bytes(mv[nrec * R : size], "little"):
                         err = self._block_error(bi, nrec * R)
                     else:
                         i0 = bi * B
@@ -1097,8 +1259,10 @@ class StreamReader:
             if err is None:
                 if self._block >= nblocks:
                     if len(mv):
-                        err = StreamError(f"{self.source}: {len(mv)} unexpected bytes after the end of the stream "
-                                         f"(offset {h.total_bytes})")
+                        err = StreamError(
+                            f"{self.source}: {len(mv)} unexpected bytes after the end of the stream "
+                            f"(offset {h.total_bytes})"
+                        )
                 else:
                     pend += mv
         if err is None and pend and self._block < nblocks:
@@ -1110,12 +1274,14 @@ class StreamReader:
             if hi > lo:
                 dst = raw.reserve(hi)
                 rows = dst[lo:hi]
-                rows[...] = np.frombuffer(bytes(pend[(lo - i0) * R: (hi - i0) * R]), np.uint8).reshape(-1, R)
+                rows[...] = np.frombuffer(bytes(pend[(lo - i0) * R : (hi - i0) * R]), np.uint8).reshape(-1, R)
                 ok = (crc8_indexed(rows[:, :-1], lo) if h.version >= 3 else crc8(rows[:, :-1])) == rows[:, -1]
                 if not ok.all():
                     bad = lo + int(np.argmin(ok))
-                    err = StreamError(f"{self.source}: record {bad} (offset {h.record_offset(bad)}, block "
-                                     f"{bad // B}) fails its CRC-8: corrupted")
+                    err = StreamError(
+                        f"{self.source}: record {bad} (offset {h.record_offset(bad)}, block "
+                        f"{bad // B}) fails its CRC-8: corrupted"
+                    )
                     hi = bad
                 end = max(end, hi)
         if end > a:
@@ -1231,7 +1397,7 @@ class StreamReader:
                 first[np.unique(refs, return_index=True)[1]] = True
                 k = int(np.argmax((old > 0) | ~first))
                 problem = f"record {i0 + k} names a root triangle an earlier record already holds"
-            self._root_ref.reserve(i0 + m)[i0: i0 + min(k, m)] = refs[: min(k, m)]
+            self._root_ref.reserve(i0 + m)[i0 : i0 + min(k, m)] = refs[: min(k, m)]
         if nr:
             par[:nr] = -1
             slt[:nr] = -1
@@ -1294,8 +1460,9 @@ class StreamReader:
             else:
                 scratch = _decode_scratch(min(_RUN, b - a))
                 for c0 in range(0, b - a, _RUN):  # cache-sized runs: small, reused temporaries
-                    _decode_quantised(raw[c0: c0 + _RUN], {k: v[c0: c0 + _RUN] for k, v in out.items()}, self._steps,
-                                      scratch)
+                    _decode_quantised(
+                        raw[c0 : c0 + _RUN], {k: v[c0 : c0 + _RUN] for k, v in out.items()}, self._steps, scratch
+                    )
         for name in PARAM_NAMES + ("split_logits",):
             self._cols.valid[name] = b
         self._decoded = b
@@ -1324,18 +1491,27 @@ class StreamReader:
             return None
         tmpl = self.template_faces
         if tmpl is None:
-            raise ValueError(f"{self.source}: the stream does not embed its template; pass template_faces "
-                             f"(a mesh with topology hash {self.header.template_hash_hex})")
+            raise ValueError(
+                f"{self.source}: the stream does not embed its template; pass template_faces "
+                f"(a mesh with topology hash {self.header.template_hash_hex})"
+            )
         self._decode()
         h = self.header
         F0 = h.num_template_faces
         c = self._cols
         forest = self._forest(tmpl, n)
         meta = dict(h.metadata)
-        meta["stream"] = {"records": n, "total_records": h.num_records, "base_complete": n >= self._nroots,
-                          "head_complete": n >= h.head_records, "coarse_levels": h.num_coarse_levels,
-                          "lossless": h.lossless, "template_hash": h.template_hash_hex,
-                          "bytes": h.bytes_for_count(n), "total_bytes": h.total_bytes}
+        meta["stream"] = {
+            "records": n,
+            "total_records": h.num_records,
+            "base_complete": n >= self._nroots,
+            "head_complete": n >= h.head_records,
+            "coarse_levels": h.num_coarse_levels,
+            "lossless": h.lossless,
+            "template_hash": h.template_hash_hex,
+            "bytes": h.bytes_for_count(n),
+            "total_bytes": h.total_bytes,
+        }
         params = [c.hand_out(name, n) for name in PARAM_NAMES]
         if self._finite:
             return _trusted_avatar(forest, params, meta)
@@ -1366,16 +1542,30 @@ class StreamReader:
             root_ref = np.arange(nroot, dtype=np.int64)
         K = h.num_coarse_levels
         coarse = h.coarse_faces if K else np.zeros((0, 3), np.int32)
-        return _trusted_forest(np.asarray(tmpl, np.int32), parent, self._cols.hand_out("slot", n),
-                               self._cols.hand_out("split_logits", n), children, level, root,
-                               coarse, tuple(h.level_counts[:K]), root_ref)
+        return _trusted_forest(
+            np.asarray(tmpl, np.int32),
+            parent,
+            self._cols.hand_out("slot", n),
+            self._cols.hand_out("split_logits", n),
+            children,
+            level,
+            root,
+            coarse,
+            tuple(h.level_counts[:K]),
+            root_ref,
+        )
 
 
 def _decode_scratch(n) -> dict:
     """Contiguous work rows for _decode_quantised over runs of up to n records (allocated once
     per decode: fresh large allocations would page-fault on every run)."""
-    return {"f": np.empty((6, n), np.float32), "e": np.empty((4, n), np.float32),
-            "t16": np.empty(n, np.uint16), "ix": np.empty((2, n), np.intp), "zero": np.zeros(n, np.float32)}
+    return {
+        "f": np.empty((6, n), np.float32),
+        "e": np.empty((4, n), np.float32),
+        "t16": np.empty(n, np.uint16),
+        "ix": np.empty((2, n), np.intp),
+        "zero": np.zeros(n, np.float32),
+    }
 
 
 def _decode_quantised(raw, out, steps, scratch):
@@ -1396,8 +1586,9 @@ def _decode_quantised(raw, out, steps, scratch):
     # positions (12-bit affine codes)
     lo, step = steps["mu"]
     mu = out["d_mu"]
-    for k, (op, field, arg) in enumerate(((np.bitwise_and, "mx", m12), (np.right_shift, "my", np.uint16(4)),
-                                          (np.bitwise_and, "mz", m12))):
+    for k, (op, field, arg) in enumerate(
+        ((np.bitwise_and, "mx", m12), (np.right_shift, "my", np.uint16(4)), (np.bitwise_and, "mz", m12))
+    ):
         a[...] = op(rec[field], arg, out=t16)
         mul(a, step[k], out=a)
         add(a, lo[k], out=mu[:, k])
@@ -1507,11 +1698,11 @@ def read_stream(source, *, percent=None, max_bytes=None, max_gaussians=None, tem
             return None
         if _fixed_size(head) > FIXED_SIZE:
             more = _fixed_size(head) - FIXED_SIZE
-            head = bytes(head) + bytes(data[FIXED_SIZE:FIXED_SIZE + more] if is_bytes else fh.read(more))
+            head = bytes(head) + bytes(data[FIXED_SIZE : FIXED_SIZE + more] if is_bytes else fh.read(more))
         H = _header_size_if_known(head, name)
         if H is None:
             return None
-        rest = data[len(head):H] if is_bytes else fh.read(H - len(head))
+        rest = data[len(head) : H] if is_bytes else fh.read(H - len(head))
         if len(head) + len(rest) < H:
             return None
         reader.feed(bytes(head) + bytes(rest))

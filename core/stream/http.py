@@ -67,8 +67,10 @@ class FetchResult:
         return self.reader.avatar()
 
     def __str__(self):
-        return (f"{self.status}: {self.num_gaussians} Gaussians verified from {self.bytes_received} bytes of "
-                f"{self.url} ({self.requests} requests{', ranges' if self.used_ranges else ''}) {self.message}").strip()
+        return (
+            f"{self.status}: {self.num_gaussians} Gaussians verified from {self.bytes_received} bytes of "
+            f"{self.url} ({self.requests} requests{', ranges' if self.used_ranges else ''}) {self.message}"
+        ).strip()
 
 
 class _Watchdog:
@@ -99,8 +101,9 @@ class _Watchdog:
                 got = self.reader.bytes_received - b0
                 if got < self.min_rate * (now - w0):
                     self.reason = TOO_SLOW
-                    self.message = (f"{got} bytes in {now - w0:.1f} s, under the minimum rate of "
-                                    f"{self.min_rate:g} bytes/s")
+                    self.message = (
+                        f"{got} bytes in {now - w0:.1f} s, under the minimum rate of {self.min_rate:g} bytes/s"
+                    )
                 w0, b0 = now, self.reader.bytes_received
             if self.reason:
                 conn = self.conn
@@ -126,11 +129,24 @@ def _validator(resp) -> str | None:
     return resp.getheader("Last-Modified")
 
 
-def fetch_stream(url: str, *, reader: StreamReader | None = None, template_faces=None, chunk_size: int = 1 << 20,
-                 read_size: int = 1 << 16, timeout: float = 10.0, on_chunk=None, max_bytes: int | None = None,
-                 percent: float | None = None, headers: dict | None = None, max_redirects: int = 5,
-                 deadline: float | None = None, min_rate: float | None = 1024.0, rate_window: float = 10.0,
-                 validator: str | None = None) -> FetchResult:
+def fetch_stream(
+    url: str,
+    *,
+    reader: StreamReader | None = None,
+    template_faces=None,
+    chunk_size: int = 1 << 20,
+    read_size: int = 1 << 16,
+    timeout: float = 10.0,
+    on_chunk=None,
+    max_bytes: int | None = None,
+    percent: float | None = None,
+    headers: dict | None = None,
+    max_redirects: int = 5,
+    deadline: float | None = None,
+    min_rate: float | None = 1024.0,
+    rate_window: float = 10.0,
+    validator: str | None = None,
+) -> FetchResult:
     """Download `url` progressively into a StreamReader (a new one, or `reader` to resume).
 
     on_chunk(reader, new_gaussians) runs after each piece (every `read_size` bytes at most);
@@ -198,8 +214,11 @@ def fetch_stream(url: str, *, reader: StreamReader | None = None, template_faces
             # field, inside the first 56, says which).
             if len(head) >= FIXED_SIZE and len(head) >= _fixed_size(head):
                 f = _parse_fixed(head, url)
-                fixed_total[0] = (f["header_size"] + f["num_records"] * f["record_size"]
-                                  + 4 * -(-f["num_records"] // f["records_per_block"]))
+                fixed_total[0] = (
+                    f["header_size"]
+                    + f["num_records"] * f["record_size"]
+                    + 4 * -(-f["num_records"] // f["records_per_block"])
+                )
         new = reader.feed(data)
         if on_chunk is not None and on_chunk(reader, new) is False:
             res.status, res.message = CANCELLED, "stopped by the callback"
@@ -214,8 +233,10 @@ def fetch_stream(url: str, *, reader: StreamReader | None = None, template_faces
             return False
         if v is not None and v != res.validator:
             res.status = CHANGED
-            res.message = (f"the file on the server changed mid-download ({what}: {res.validator} -> {v}); "
-                           f"the {reader.bytes_received} bytes received belong to the old file: discard them")
+            res.message = (
+                f"the file on the server changed mid-download ({what}: {res.validator} -> {v}); "
+                f"the {reader.bytes_received} bytes received belong to the old file: discard them"
+            )
             return True
         return False
 
@@ -276,16 +297,21 @@ def fetch_stream(url: str, *, reader: StreamReader | None = None, template_faces
             if resp.status == 206:
                 m = _CONTENT_RANGE.match(resp.getheader("Content-Range") or "")
                 if not m or int(m.group(1)) != start:
-                    res.status, res.message = HTTP_ERROR, f"unexpected Content-Range {resp.getheader('Content-Range')!r}"
+                    res.status, res.message = (
+                        HTTP_ERROR,
+                        f"unexpected Content-Range {resp.getheader('Content-Range')!r}",
+                    )
                     break
                 if changed(resp, "validator"):
                     break
                 if m.group(3) != "*":
                     if total_seen is not None and int(m.group(3)) != total_seen:
                         res.status = CHANGED
-                        res.message = (f"the file on the server changed mid-download (size {total_seen} -> "
-                                       f"{m.group(3)}); the {reader.bytes_received} bytes received belong to the "
-                                       "old file: discard them")
+                        res.message = (
+                            f"the file on the server changed mid-download (size {total_seen} -> "
+                            f"{m.group(3)}); the {reader.bytes_received} bytes received belong to the "
+                            "old file: discard them"
+                        )
                         break
                     total_seen = int(m.group(3))
                 res.used_ranges = True

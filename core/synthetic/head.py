@@ -60,6 +60,7 @@ _SHAPE_RMAX = 0.42
 # small helpers
 # --------------------------------------------------------------------------------------
 
+
 def _smoothstep(e0, e1, x):
     t = np.clip((np.asarray(x, np.float64) - e0) / (e1 - e0), 0.0, 1.0)
     return t * t * (3.0 - 2.0 * t)
@@ -85,6 +86,7 @@ def _rotation_xyz(yaw, pitch, roll):
 # shape: an implicit head (smooth union of ellipsoids and cylinders), meshed by pushing a
 # warped icosphere out along rays from an interior point
 # --------------------------------------------------------------------------------------
+
 
 def _sd_ellipsoid(p, c, r):
     # Quilez's bound: close to a true distance near the surface, which keeps the smooth
@@ -149,9 +151,9 @@ def _radial_distance(dirs, steps=90, refine=20):
     r = np.linspace(_SHAPE_RMAX, 0.0, steps)
     inside = np.empty((len(dirs), steps), bool)
     for k0 in range(0, len(dirs), 4096):  # bounded memory
-        d = dirs[k0:k0 + 4096]
+        d = dirs[k0 : k0 + 4096]
         pts = _SHAPE_CENTER + d[:, None, :] * r[None, :, None]
-        inside[k0:k0 + 4096] = head_sdf(pts) < 0
+        inside[k0 : k0 + 4096] = head_sdf(pts) < 0
     first = np.argmax(inside, axis=1)  # first step (from outside) that is inside
     if not np.all(inside[np.arange(len(dirs)), first]):
         raise RuntimeError("synthetic head: a ray from the centre never enters the shape")
@@ -259,6 +261,7 @@ def _template_cached(subdivisions):
     sphere = trimesh.creation.icosphere(subdivisions=subdivisions)
     dirs = _normalize(np.asarray(sphere.vertices, np.float64))
     faces = np.asarray(sphere.faces, np.int64)
+
     # Uneven tessellation like FLAME: in the arclength parameter (where angles are roughly
     # surface distances), a broad pull toward the face and strong pulls toward the eyes and
     # the mouth; the scalp and the neck keep what remains (coarse).
@@ -324,16 +327,16 @@ def pose_head(template_vertices, params) -> np.ndarray:
     # Smile / pucker act on the mouth region before the jaw, so the lips follow the jaw.
     if smile > 0:
         for sx in (1.0, -1.0):
-            g = np.exp(-((x - sx * MOUTH_HALF_WIDTH) ** 2 + (y - MOUTH_Y) ** 2) / (2 * 0.013 ** 2)) * front
+            g = np.exp(-((x - sx * MOUTH_HALF_WIDTH) ** 2 + (y - MOUTH_Y) ** 2) / (2 * 0.013**2)) * front
             out[:, 0] += sx * 0.0065 * smile * g
             out[:, 1] += 0.0055 * smile * g
             out[:, 2] -= 0.002 * smile * g
-            cheek = np.exp(-((x - sx * 0.042) ** 2 + (y + 0.03) ** 2) / (2 * 0.016 ** 2)) * front
+            cheek = np.exp(-((x - sx * 0.042) ** 2 + (y + 0.03) ** 2) / (2 * 0.016**2)) * front
             out[:, 1] += 0.003 * smile * cheek
             out[:, 2] += 0.003 * smile * cheek
     elif smile < 0:
         pucker = -smile
-        g = np.exp(-(x ** 2 / (2 * 0.022 ** 2) + (y - MOUTH_Y) ** 2 / (2 * 0.013 ** 2))) * front
+        g = np.exp(-(x**2 / (2 * 0.022**2) + (y - MOUTH_Y) ** 2 / (2 * 0.013**2))) * front
         out[:, 0] -= 0.32 * pucker * x * g
         out[:, 2] += 0.008 * pucker * g
 
@@ -347,7 +350,13 @@ def pose_head(template_vertices, params) -> np.ndarray:
         low, up = -EYE_HALF_OPENING, EYE_HALF_OPENING + 0.0008
         # smooth in v (no kinks a coarse triangle could not follow), ~0 at the lower lid,
         # full at the upper lid, back to 0 below the brow
-        shift = 0.92 * amount * (up - low) * _smoothstep(low - 0.002, up, v) * (1.0 - _smoothstep(up + 0.001, up + 0.009, v))
+        shift = (
+            0.92
+            * amount
+            * (up - low)
+            * _smoothstep(low - 0.002, up, v)
+            * (1.0 - _smoothstep(up + 0.001, up + 0.009, v))
+        )
         window = 1.0 - _smoothstep(0.9, 1.45, np.abs(x - ex) / EYE_HALF_WIDTH)
         out[:, 1] -= shift * window * _smoothstep(0.04, 0.065, z)
 
@@ -390,11 +399,28 @@ _TRAIN_MIXES = (
     {"blink": (1.0, 3), "smile": (0.6, 1), "tz": (0.02, 1), "yaw": (-12.0, 1)},
     {"jaw": (0.5, 1), "smile": (0.5, 2), "yaw": (10.0, 1), "pitch": (6.0, 2), "roll": (-6.0, 1)},
 )
-_TEST_MIX = {"jaw": (0.85, 1), "smile": (-0.8, 1), "blink": (0.9, 2), "yaw": (-20.0, 1),
-             "roll": (12.0, 1), "pitch": (-8.0, 2), "tx": (-0.015, 1), "ty": (0.01, 1)}
+_TEST_MIX = {
+    "jaw": (0.85, 1),
+    "smile": (-0.8, 1),
+    "blink": (0.9, 2),
+    "yaw": (-20.0, 1),
+    "roll": (12.0, 1),
+    "pitch": (-8.0, 2),
+    "tx": (-0.015, 1),
+    "ty": (0.01, 1),
+}
 _ONE_SIDED = ("jaw", "blink")
-_MIX_NAMES = ("jaw", "smile-blink", "pucker-yaw", "blink-nod", "talk-roll", "turn", "pucker-talk",
-              "blink-smile-dolly", "mixed")
+_MIX_NAMES = (
+    "jaw",
+    "smile-blink",
+    "pucker-yaw",
+    "blink-nod",
+    "talk-roll",
+    "turn",
+    "pucker-talk",
+    "blink-smile-dolly",
+    "mixed",
+)
 
 
 def sequence_params(sequence: int, frame: int, frames: int, sequences: int = 10, seed: int = 0) -> dict:
@@ -468,7 +494,7 @@ def _value_noise(q, seed):
 def _fbm(q, octaves, seed):
     total, amp, norm = np.zeros(len(q)), 1.0, 0.0
     for o in range(octaves):
-        total += amp * _value_noise(q * (2.0 ** o), seed + 17 * o)
+        total += amp * _value_noise(q * (2.0**o), seed + 17 * o)
         norm += amp
         amp *= 0.5
     return total / norm
@@ -509,13 +535,17 @@ def albedo(points) -> np.ndarray:
     col += (0.035 * _smoothstep(0.0, 0.09, y))[:, None] * np.array([1.0, 0.95, 0.8])
     col *= (1.0 - 0.10 * _smoothstep(-0.12, -0.2, y))[:, None]  # neck a shade darker
     for sx in (1.0, -1.0):
-        g = np.exp(-((x - sx * 0.046) ** 2 + (y + 0.022) ** 2) / (2 * 0.019 ** 2)) * _smoothstep(0.02, 0.06, z)
+        g = np.exp(-((x - sx * 0.046) ** 2 + (y + 0.022) ** 2) / (2 * 0.019**2)) * _smoothstep(0.02, 0.06, z)
         col = _mix(col, BLUSH, 0.45 * g)
     front = z > 0.04
 
     # stubble: crisp dark dots on chin, jaw and upper lip (3D cell dots cut by the surface)
-    beard = (_smoothstep(-0.036, -0.046, y) * _smoothstep(-0.128, -0.112, y) * _smoothstep(-0.02, 0.02, z)
-             * (1.0 - _smoothstep(0.055, 0.07, ax) * _smoothstep(-0.07, -0.06, y)))
+    beard = (
+        _smoothstep(-0.036, -0.046, y)
+        * _smoothstep(-0.128, -0.112, y)
+        * _smoothstep(-0.02, 0.02, z)
+        * (1.0 - _smoothstep(0.055, 0.07, ax) * _smoothstep(-0.07, -0.06, y))
+    )
     sel = np.nonzero(beard > 0.01)[0]
     if len(sel):
         cell = 0.0024
@@ -533,7 +563,7 @@ def albedo(points) -> np.ndarray:
     if len(sel):
         xs, dy = x[sel], y[sel] - MOUTH_Y
         u = np.clip(1.0 - (xs / 0.025) ** 2, 0.0, 1.0)
-        upper_h = 0.0082 * np.sqrt(u) - 0.0016 * np.exp(-xs ** 2 / (2 * 0.0035 ** 2)) * np.sqrt(u)
+        upper_h = 0.0082 * np.sqrt(u) - 0.0016 * np.exp(-(xs**2) / (2 * 0.0035**2)) * np.sqrt(u)
         lower_h = 0.0098 * np.sqrt(np.clip(1.0 - (xs / 0.0235) ** 2, 0.0, 1.0))
         inside = np.where(dy >= 0, dy - upper_h, -dy - lower_h)
         lip = _edge(inside, 0.00025)
@@ -557,7 +587,7 @@ def albedo(points) -> np.ndarray:
             continue
         dx, dy = x[sel] - ex, y[sel] - ey
         u = np.clip(1.0 - (dx / EYE_HALF_WIDTH) ** 2, 0.0, 1.0)
-        half = EYE_HALF_OPENING * u ** 0.75
+        half = EYE_HALF_OPENING * u**0.75
         lid_up = dy - half
         opening = np.maximum(lid_up, -dy - 0.85 * half)
         r = np.hypot(dx, dy)
@@ -583,8 +613,9 @@ def albedo(points) -> np.ndarray:
         centre = ey + 0.0185 + 0.005 * (1.0 - (s / 0.02) ** 2) - 0.002 * (s > 0.01) * (s - 0.01) / 0.01
         thick = 0.0034 * (1.0 - 0.55 * _smoothstep(-0.015, 0.022, s))
         band = _edge(np.abs(y[sel] - centre) - thick, 0.0004) * _edge(np.abs(s) - 0.022, 0.002)
-        strokes = _value_noise(np.stack([(s + 0.4 * (y[sel] - centre)) / 0.0007, (y[sel] - centre) / 0.004,
-                                         np.zeros_like(s)], 1), 53)
+        strokes = _value_noise(
+            np.stack([(s + 0.4 * (y[sel] - centre)) / 0.0007, (y[sel] - centre) / 0.004, np.zeros_like(s)], 1), 53
+        )
         browcol = HAIR[None, :] * (0.6 + 0.7 * strokes)[:, None]
         col[sel] = _mix(col[sel], browcol, band * (0.75 + 0.25 * strokes))
 
@@ -592,8 +623,9 @@ def albedo(points) -> np.ndarray:
     hc = p - np.array([0.0, 0.015, -0.012])
     phi = np.arctan2(hc[:, 0], hc[:, 2])
     aphi = np.degrees(np.abs(phi))
-    hairline = np.interp(aphi, [0, 35, 62, 80, 88, 96, 112, 140, 180],
-                         [0.074, 0.068, 0.05, 0.03, -0.012, 0.034, 0.03, -0.04, -0.072])
+    hairline = np.interp(
+        aphi, [0, 35, 62, 80, 88, 96, 112, 140, 180], [0.074, 0.068, 0.05, 0.03, -0.012, 0.034, 0.03, -0.04, -0.072]
+    )
     sel = np.nonzero(y > hairline - 0.01)[0]
     if len(sel):
         ps, phs = p[sel], phi[sel]
@@ -607,7 +639,7 @@ def albedo(points) -> np.ndarray:
         q1 = np.stack([arc / 0.0021, along / 0.018, np.zeros(len(sel))], 1)
         q2 = np.stack([arc / 0.0055, along / 0.03, np.ones(len(sel)) * 7.0], 1)
         strands = 0.55 * _value_noise(q1, 71) + 0.45 * _value_noise(q2, 73)
-        shine = np.exp(-((theta - 0.75) / 0.18) ** 2)  # a soft sheen band across the top
+        shine = np.exp(-(((theta - 0.75) / 0.18) ** 2))  # a soft sheen band across the top
         haircol = HAIR[None, :] * (0.35 + 1.3 * strands)[:, None] + (0.10 * shine * strands)[:, None]
         col[sel] = _mix(col[sel], haircol, hairmask)
 
@@ -630,7 +662,7 @@ def albedo(points) -> np.ndarray:
         ink = bit & (colk < 3) & (gy >= 0) & (gy < 5) & ~word_gap & (np.abs(ph) < 2.2)
         c = _mix(c, INK, ink * band)
         shirt = _edge(ys + 0.206, 0.0003)
-        stripes = (np.floor(arc / 0.0042).astype(np.int64) % 2 == 0)
+        stripes = np.floor(arc / 0.0042).astype(np.int64) % 2 == 0
         shirtcol = np.where(stripes[:, None], SHIRT[None, :], WHITE[None, :])
         piping = _edge(np.abs(ys + 0.2075) - 0.0012, 0.0002)
         shirtcol = _mix(shirtcol, INK, piping)
@@ -677,8 +709,13 @@ def held_out_camera(cameras: int) -> int:
     return int(cameras) // 2
 
 
-def make_cameras(cameras: int = 16, resolution: int = 128, distance: float = 1.0,
-                 spread_deg: float = 65.0, frame_height_m: float = 0.42) -> list[Camera]:
+def make_cameras(
+    cameras: int = 16,
+    resolution: int = 128,
+    distance: float = 1.0,
+    spread_deg: float = 65.0,
+    frame_height_m: float = 0.42,
+) -> list[Camera]:
     """A frontal arc like NeRSemble's: azimuth -spread..spread, alternating elevations.
 
     ``frame_height_m``: the height of the world slice (at the target) the image spans, so
@@ -699,17 +736,20 @@ def make_intersector(mesh: trimesh.Trimesh):
     """Embree (embreex) when installed, else trimesh's rtree intersector (much slower)."""
     try:
         from trimesh.ray import ray_pyembree
+
         if getattr(ray_pyembree, "_embree_version", None) is not None or _has_embreex():
             return ray_pyembree.RayMeshIntersector(mesh), "embree"
     except Exception:  # no embreex, or an incompatible build
         pass
     from trimesh.ray import ray_triangle
+
     return ray_triangle.RayMeshIntersector(mesh), "rtree"
 
 
 def _has_embreex():
     try:
         import embreex  # noqa: F401
+
         return True
     except ImportError:
         return False
@@ -767,8 +807,16 @@ def shade(albedo_rgb, normals, view_dirs):
     return np.clip(albedo_rgb * (AMBIENT + DIFFUSE * lam)[:, None], 0.0, 1.0)
 
 
-def render_views(vertices, faces, cameras, canonical=None, supersample: int = 2,
-                 background=(1.0, 1.0, 1.0), stats: dict | None = None, albedo_fn=None):
+def render_views(
+    vertices,
+    faces,
+    cameras,
+    canonical=None,
+    supersample: int = 2,
+    background=(1.0, 1.0, 1.0),
+    stats: dict | None = None,
+    albedo_fn=None,
+):
     """Ray-cast ground truth of a posed mesh from each camera.
 
     vertices [V,3] posed; canonical [V,3] where the texture is evaluated (default: the head
@@ -819,6 +867,7 @@ def render_views(vertices, faces, cameras, canonical=None, supersample: int = 2,
 # the dataset
 # --------------------------------------------------------------------------------------
 
+
 def _to_u8(a):
     return np.clip(np.round(np.asarray(a) * 255.0), 0, 255).astype(np.uint8)
 
@@ -829,10 +878,16 @@ def _frame_record(cam: Camera, T: int, C: int, S: int) -> dict:
         "file_path": f"images/{name}",
         "fg_mask_path": f"fg_masks/{name}",
         "transform_matrix": cam.c2w_opengl().tolist(),
-        "fl_x": float(cam.fx), "fl_y": float(cam.fy), "cx": float(cam.cx), "cy": float(cam.cy),
-        "w": int(cam.width), "h": int(cam.height),
-        "timestep_index": int(T), "camera_index": int(C),
-        "mesh_path": f"meshes/{T:05d}.npz", "sequence": int(S),
+        "fl_x": float(cam.fx),
+        "fl_y": float(cam.fy),
+        "cx": float(cam.cx),
+        "cy": float(cam.cy),
+        "w": int(cam.width),
+        "h": int(cam.height),
+        "timestep_index": int(T),
+        "camera_index": int(C),
+        "mesh_path": f"meshes/{T:05d}.npz",
+        "sequence": int(S),
     }
 
 
@@ -850,8 +905,15 @@ def _write_timestep(job, s, f, stats):
     verts = pose_head(tv, params)
     np.savez(os.path.join(out, "meshes", f"{T:05d}.npz"), vertices=verts)
     shown = verts if rv.shape == tv.shape else pose_head(rv, params)
-    images, masks = render_views(shown, job["rf"], job["cams"], canonical=rv, supersample=job["supersample"],
-                                 stats=stats, albedo_fn=job["albedo_fn"])
+    images, masks = render_views(
+        shown,
+        job["rf"],
+        job["cams"],
+        canonical=rv,
+        supersample=job["supersample"],
+        stats=stats,
+        albedo_fn=job["albedo_fn"],
+    )
     for C in range(len(job["cams"])):
         name = f"{T:05d}_{C:02d}.png"
         Image.fromarray(_to_u8(images[C]), "RGB").save(os.path.join(out, "images", name))
@@ -864,10 +926,20 @@ def _timestep_from_job(step):
     return stats.get("rays", 0), stats.get("hits", 0), stats.get("intersector", "none")
 
 
-def make_dataset(out, resolution: int = 128, cameras: int = 16, sequences: int = 10, frames: int = 8,
-                 seed: int = 0, progress: bool = True, supersample: int = 2,
-                 template_subdivisions: int = 4, detail: str = "default", workers: int = 1,
-                 surface_levels: int = PAPER_SURFACE_LEVELS) -> dict:
+def make_dataset(
+    out,
+    resolution: int = 128,
+    cameras: int = 16,
+    sequences: int = 10,
+    frames: int = 8,
+    seed: int = 0,
+    progress: bool = True,
+    supersample: int = 2,
+    template_subdivisions: int = 4,
+    detail: str = "default",
+    workers: int = 1,
+    surface_levels: int = PAPER_SURFACE_LEVELS,
+) -> dict:
     """Write the synthetic mesh-mode dataset into ``out``; returns a summary dict.
 
     Global timestep T = sequence * frames + frame. Splits: the last sequence is the test
@@ -906,8 +978,16 @@ def make_dataset(out, resolution: int = 128, cameras: int = 16, sequences: int =
     cams = make_cameras(cameras, resolution)
     held = held_out_camera(cameras)
     test_seq = sequences - 1
-    seq_info = [{"index": s, "name": sequence_name(s, sequences), "split": "test" if s == test_seq else "train",
-                 "timestep_start": s * frames, "num_timesteps": frames} for s in range(sequences)]
+    seq_info = [
+        {
+            "index": s,
+            "name": sequence_name(s, sequences),
+            "split": "test" if s == test_seq else "train",
+            "timestep_start": s * frames,
+            "num_timesteps": frames,
+        }
+        for s in range(sequences)
+    ]
     splits = {"train": [], "val": [], "test": []}
     everything = []
     stats: dict = {}
@@ -915,9 +995,20 @@ def make_dataset(out, resolution: int = 128, cameras: int = 16, sequences: int =
     bar = None
     if progress:
         from tqdm import tqdm
+
         bar = tqdm(total=len(steps), desc="synthetic head", unit="timestep")
-    job = dict(out=out, frames=frames, sequences=sequences, seed=seed, tv=tv, rv=rv, rf=rf, cams=cams,
-               supersample=supersample, albedo_fn=albedo_fn)
+    job = dict(
+        out=out,
+        frames=frames,
+        sequences=sequences,
+        seed=seed,
+        tv=tv,
+        rv=rv,
+        rf=rf,
+        cams=cams,
+        supersample=supersample,
+        albedo_fn=albedo_fn,
+    )
     for s, f in steps:
         T = s * frames + f
         for C, cam in enumerate(cams):
@@ -952,11 +1043,15 @@ def make_dataset(out, resolution: int = 128, cameras: int = 16, sequences: int =
         bar.close()
 
     def write(name, recs, seqs):
-        doc = {"background": [1.0, 1.0, 1.0], "mode": "mesh", "canonical_mesh_path": "canonical_mesh.npz",
-               "sequences": [seq_info[i] for i in seqs],
-               "timestep_indices": sorted({r["timestep_index"] for r in recs}),
-               "camera_indices": sorted({r["camera_index"] for r in recs}),
-               "frames": recs}
+        doc = {
+            "background": [1.0, 1.0, 1.0],
+            "mode": "mesh",
+            "canonical_mesh_path": "canonical_mesh.npz",
+            "sequences": [seq_info[i] for i in seqs],
+            "timestep_indices": sorted({r["timestep_index"] for r in recs}),
+            "camera_indices": sorted({r["camera_index"] for r in recs}),
+            "frames": recs,
+        }
         with open(os.path.join(out, name), "w") as fh:
             json.dump(doc, fh, indent=1)
 
@@ -968,13 +1063,27 @@ def make_dataset(out, resolution: int = 128, cameras: int = 16, sequences: int =
     seconds = time.perf_counter() - t0
     w, h = image_size(resolution)
     summary = {
-        "out": out, "width": w, "height": h, "cameras": cameras, "sequences": sequences, "frames": frames,
-        "timesteps": len(steps), "images": len(everything), "train": len(splits["train"]),
-        "val": len(splits["val"]), "test": len(splits["test"]), "held_out_camera": held,
-        "test_sequence": test_seq, "vertices": int(len(tv)), "faces": int(len(tf)),
-        "supersample": supersample, "rays": int(stats.get("rays", 0)),
-        "detail": detail, "imaged_faces": int(len(rf)),
-        "intersector": stats.get("intersector", "none"), "seconds": seconds,
+        "out": out,
+        "width": w,
+        "height": h,
+        "cameras": cameras,
+        "sequences": sequences,
+        "frames": frames,
+        "timesteps": len(steps),
+        "images": len(everything),
+        "train": len(splits["train"]),
+        "val": len(splits["val"]),
+        "test": len(splits["test"]),
+        "held_out_camera": held,
+        "test_sequence": test_seq,
+        "vertices": int(len(tv)),
+        "faces": int(len(tf)),
+        "supersample": supersample,
+        "rays": int(stats.get("rays", 0)),
+        "detail": detail,
+        "imaged_faces": int(len(rf)),
+        "intersector": stats.get("intersector", "none"),
+        "seconds": seconds,
         "rays_per_second": stats.get("rays", 0) / max(seconds, 1e-9),
     }
     with open(os.path.join(out, "summary.json"), "w") as fh:
@@ -1021,7 +1130,7 @@ def contact_sheet(dataset_dir, path, rows: int = 4) -> str:
 
 
 def _activity(p):
-    return (p["jaw"] + p["blink"] + abs(p["smile"]) + sum(abs(a) for a in p["rotation"]) / 25.0)
+    return p["jaw"] + p["blink"] + abs(p["smile"]) + sum(abs(a) for a in p["rotation"]) / 25.0
 
 
 def render_closeup(path, height: int = 384, supersample: int = 3, detail: str = "default") -> str:
@@ -1037,10 +1146,12 @@ def render_closeup(path, height: int = 384, supersample: int = 3, detail: str = 
     w = int(round(height * 0.8))
     f = height / 0.30
     cam = Camera.look_at((0.0, 0.0, 1.0), (0.0, -0.01, 0.0), (0.0, 1.0, 0.0), f, f, w / 2.0, height / 2.0, w, height)
-    poses = [neutral_params(),
-             {"jaw": 1.0, "blink": 1.0},
-             {"smile": 1.0},
-             {"smile": -1.0, "rotation": (20.0, 0.0, 0.0)}]
+    poses = [
+        neutral_params(),
+        {"jaw": 1.0, "blink": 1.0},
+        {"smile": 1.0},
+        {"smile": -1.0, "rotation": (20.0, 0.0, 0.0)},
+    ]
     tiles = []
     for p in poses:
         img, _ = render_views(pose_head(tv, p), tf, [cam], canonical=tv, supersample=supersample, albedo_fn=albedo_fn)
@@ -1055,7 +1166,6 @@ def render_closeup(path, height: int = 384, supersample: int = 3, detail: str = 
 # FLAME-like uneven density, imaged from a much finer, displaced surface with detail the
 # template cannot represent, most of it where the template is coarse
 # --------------------------------------------------------------------------------------
-
 
 
 def _octahedron():
@@ -1080,6 +1190,7 @@ def _paper_warp(dirs):
     """Uneven tessellation like FLAME's, stronger than the default head's: pulls toward the face,
     the eyes, the mouth and the nose (in the arclength parameter); the scalp, the back of the head
     and the neck keep what remains."""
+
     def toward(point):
         return _geometric_to_parameter(_direction_to(point)[None])[0]
 
@@ -1098,8 +1209,9 @@ def _hairline_mask(p):
     hc = p - np.array([0.0, 0.015, -0.012])
     phi = np.arctan2(hc[:, 0], hc[:, 2])
     aphi = np.degrees(np.abs(phi))
-    hairline = np.interp(aphi, [0, 35, 62, 80, 88, 96, 112, 140, 180],
-                         [0.074, 0.068, 0.05, 0.03, -0.012, 0.034, 0.03, -0.04, -0.072])
+    hairline = np.interp(
+        aphi, [0, 35, 62, 80, 88, 96, 112, 140, 180], [0.074, 0.068, 0.05, 0.03, -0.012, 0.034, 0.03, -0.04, -0.072]
+    )
     sel = np.nonzero(p[:, 1] > hairline - 0.01)[0]
     ps, hs, phi = p[sel], hc[sel], phi[sel]
     theta = np.arccos(np.clip(hs[:, 1] / np.maximum(np.linalg.norm(hs, axis=1), 1e-9), -1, 1))
@@ -1154,8 +1266,11 @@ def paper_displacement(points, normals) -> np.ndarray:
     for sx in (1.0, -1.0):
         r, w = _ear_coords(p, sx)
         # helix rim, antihelix ridge, the concha's hollow
-        folds = (0.0016 * np.exp(-((r - 0.8) / 0.07) ** 2) + 0.0011 * np.exp(-((r - 0.5) / 0.06) ** 2)
-                 - 0.0022 * (1.0 - _smoothstep(0.2, 0.38, r)))
+        folds = (
+            0.0016 * np.exp(-(((r - 0.8) / 0.07) ** 2))
+            + 0.0011 * np.exp(-(((r - 0.5) / 0.06) ** 2))
+            - 0.0022 * (1.0 - _smoothstep(0.2, 0.38, r))
+        )
         d += w * folds
     collar = _edge(np.abs(y + 0.2095) - 0.0032, 0.0004)  # a folded collar band stands out
     d += 0.0022 * collar
@@ -1186,12 +1301,16 @@ def paper_albedo(points) -> np.ndarray:
         fine = _strands(p[sel], theta, phi, 0.0006, 0.012, 111)
         gaps = _smoothstep(0.25, 0.08, _strands(p[sel], theta, phi, 0.0009, 0.03, 113))
         mult = (0.55 + 0.9 * fine) * (1.0 - 0.6 * gaps)
-        sheen = 0.12 * np.exp(-((theta - 0.8) / 0.12) ** 2) * fine
+        sheen = 0.12 * np.exp(-(((theta - 0.8) / 0.12) ** 2)) * fine
         c = col[sel] * mult[:, None] + sheen[:, None]
         col[sel] = _mix(col[sel], c, hair)
     # fine stubble between the coarse dots
-    beard = (_smoothstep(-0.036, -0.046, y) * _smoothstep(-0.128, -0.112, y) * _smoothstep(-0.02, 0.02, z)
-             * (1.0 - _smoothstep(0.055, 0.07, ax) * _smoothstep(-0.07, -0.06, y)))
+    beard = (
+        _smoothstep(-0.036, -0.046, y)
+        * _smoothstep(-0.128, -0.112, y)
+        * _smoothstep(-0.02, 0.02, z)
+        * (1.0 - _smoothstep(0.055, 0.07, ax) * _smoothstep(-0.07, -0.06, y))
+    )
     sel = np.nonzero(beard > 0.01)[0]
     if len(sel):
         q = p[sel] / 0.0011
@@ -1209,8 +1328,11 @@ def paper_albedo(points) -> np.ndarray:
         r, w = r[keep], w[keep]
         if len(sel):
             rs = r
-            crease = (np.exp(-((rs - 0.66) / 0.035) ** 2) + np.exp(-((rs - 0.93) / 0.03) ** 2)
-                      + 0.8 * (1.0 - _smoothstep(0.25, 0.36, rs)))
+            crease = (
+                np.exp(-(((rs - 0.66) / 0.035) ** 2))
+                + np.exp(-(((rs - 0.93) / 0.03) ** 2))
+                + 0.8 * (1.0 - _smoothstep(0.25, 0.36, rs))
+            )
             col[sel] *= (1.0 - 0.45 * np.clip(crease, 0, 1) * w)[:, None]
     # shirt: a fine weave, a placket seam and buttons with four holes
     sel = np.nonzero(y < -0.205)[0]
@@ -1256,7 +1378,7 @@ def _paper_cached(template_levels, surface_levels):
     fine = verts.copy()
     n = vertex_normals(verts, sf)
     fine += n * paper_displacement(verts, n)[:, None]
-    tv = verts[:len(tdirs)]
+    tv = verts[: len(tdirs)]
     return (tv.astype(np.float32), tf.astype(np.int32), fine.astype(np.float32), sf.astype(np.int32))
 
 

@@ -36,8 +36,16 @@ from numba import njit, prange
 from ..avatar.binding import MIN_EDGE, MIN_SCALE
 from ..avatar.forest import Forest
 
-_PARALLEL = dict(prange=True, numpy=False, reduction=False, setitem=False, stencil=False, fusion=False,
-                 comprehension=False, inplace_binop=False)
+_PARALLEL = dict(
+    prange=True,
+    numpy=False,
+    reduction=False,
+    setitem=False,
+    stencil=False,
+    fusion=False,
+    comprehension=False,
+    inplace_binop=False,
+)
 _EPS64 = 8 * np.finfo(np.float64).eps
 # Root rows: v0 (3), X (3), N (3), Z (3), L, a, b, good
 _R_V0, _R_X, _R_N, _R_Z, _R_L, _R_A, _R_B, _R_GOOD = 0, 3, 6, 9, 12, 13, 14, 15
@@ -412,8 +420,7 @@ def bind_backward(verts, tri, pack, order, root_start, W, d_mu, d_log_scale, d_r
         good = g[_R_GOOD] != 0.0
         for k in range(root_start[root], root_start[root + 1]):
             f = order[k]
-            sc, t0, t1, t2, c, s, ell, p1, q1, p2, q2, cx, cz, proper = _face_frame(
-                verts, tri, pack, root, f, W[f], r)
+            sc, t0, t1, t2, c, s, ell, p1, q1, p2, q2, cx, cz, proper = _face_frame(verts, tri, pack, root, f, W[f], r)
             gm0 = g_means[f, 0]
             gm1 = g_means[f, 1]
             gm2 = g_means[f, 2]
@@ -526,12 +533,12 @@ def bind_backward(verts, tri, pack, order, root_start, W, d_mu, d_log_scale, d_r
         for i in range(3):
             E1[i] = verts[i1, i] - verts[i0, i]
             E2[i] = verts[i2, i] - verts[i0, i]
-        X = g[_R_X:_R_X + 3]
-        Nv = g[_R_N:_R_N + 3]
-        Z = g[_R_Z:_R_Z + 3]
-        gX = acc[_R_X:_R_X + 3].copy()
-        gN = acc[_R_N:_R_N + 3].copy()
-        gZ = acc[_R_Z:_R_Z + 3]
+        X = g[_R_X : _R_X + 3]
+        Nv = g[_R_N : _R_N + 3]
+        Z = g[_R_Z : _R_Z + 3]
+        gX = acc[_R_X : _R_X + 3].copy()
+        gN = acc[_R_N : _R_N + 3].copy()
+        gZ = acc[_R_Z : _R_Z + 3]
         gE1 = np.zeros(3)
         gE2 = np.zeros(3)
         ga = acc[_R_A]
@@ -623,14 +630,16 @@ class _Bind(torch.autograd.Function):
     @staticmethod
     def forward(ctx, vertices, split_logits, d_mu, d_log_scale, d_rot, plan):
         n = plan.forest.num_faces
-        if split_logits.shape != (n, 3) or d_mu.shape != (n, 3) or d_log_scale.shape != (n, 3) or \
-                d_rot.shape != (n, 4):
-            raise ValueError(f"FaceBinding: parameters must have {n} rows (split_logits, d_mu, d_log_scale [N,3], "
-                             f"d_rot [N,4]), got {tuple(split_logits.shape)}, {tuple(d_mu.shape)}, "
-                             f"{tuple(d_log_scale.shape)}, {tuple(d_rot.shape)}")
+        if split_logits.shape != (n, 3) or d_mu.shape != (n, 3) or d_log_scale.shape != (n, 3) or d_rot.shape != (n, 4):
+            raise ValueError(
+                f"FaceBinding: parameters must have {n} rows (split_logits, d_mu, d_log_scale [N,3], "
+                f"d_rot [N,4]), got {tuple(split_logits.shape)}, {tuple(d_mu.shape)}, "
+                f"{tuple(d_log_scale.shape)}, {tuple(d_rot.shape)}"
+            )
         if vertices.dim() != 2 or vertices.shape[1] != 3 or vertices.shape[0] <= int(plan.tri.max()):
-            raise ValueError(f"FaceBinding: vertices must be [V,3] with V > {int(plan.tri.max())}, got "
-                             f"{tuple(vertices.shape)}")
+            raise ValueError(
+                f"FaceBinding: vertices must be [V,3] with V > {int(plan.tri.max())}, got {tuple(vertices.shape)}"
+            )
         verts = _f64(vertices)
         bary, W = weights_forward(_f64(split_logits), plan.parent, plan.slot, plan.forest.num_roots)
         pack = roots_forward(verts, plan.tri)
@@ -650,7 +659,8 @@ class _Bind(torch.autograd.Function):
         gs = _f64(g_scales) if g_scales is not None else zeros(3)
         gq = _f64(g_quats) if g_quats is not None else zeros(4)
         g_root, gW, g_dmu, g_dls, g_drot = bind_backward(
-            verts, plan.tri, pack, plan.order, plan.root_start, W, *arrays, gm, gs, gq)
+            verts, plan.tri, pack, plan.order, plan.root_start, W, *arrays, gm, gs, gq
+        )
         g_verts = g_logits = None
         if ctx.needs_input_grad[0]:
             g_verts = scatter_roots(g_root, plan.tri, verts.shape[0])

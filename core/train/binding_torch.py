@@ -36,8 +36,9 @@ def frames_from_edges(e1: torch.Tensor, e2: torch.Tensor, normal: torch.Tensor |
     has2 = n2.detach() > MIN_EDGE
     axis_x = torch.zeros_like(e1)
     axis_x[..., 0] = 1
-    x = torch.where(has1[..., None], _safe_unit(e1, n1, has1),
-                    torch.where(has2[..., None], _safe_unit(e2, n2, has2), axis_x))
+    x = torch.where(
+        has1[..., None], _safe_unit(e1, n1, has1), torch.where(has2[..., None], _safe_unit(e2, n2, has2), axis_x)
+    )
     own = torch.linalg.cross(x, e2)
     own_n = _norm(own)
     own_flat = ~has2 | (own_n.detach() <= eps * n2.detach())
@@ -96,8 +97,9 @@ class TorchForest:
             s = slot[:, None]
             new_w0 = torch.where(s == 0, w0, torch.where(s == 1, w0 + d1, w0 + d2))
             new_d1 = torch.where(s == 0, d1, torch.where(s == 1, d2 - d1, -d2))
-            new_d2 = torch.where(s == 0, b1 * d1 + b2 * d2,
-                                 torch.where(s == 1, b2 * d2 - (b0 + b2) * d1, b1 * d1 - (b0 + b1) * d2))
+            new_d2 = torch.where(
+                s == 0, b1 * d1 + b2 * d2, torch.where(s == 1, b2 * d2 - (b0 + b2) * d1, b1 * d1 - (b0 + b1) * d2)
+            )
             W = W.index_copy(0, ids, torch.stack([new_w0, new_d1, new_d2], dim=1))
         return W
 

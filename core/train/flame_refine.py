@@ -43,13 +43,17 @@ class FlameRefiner:
         self.static_offset = None if so is None else torch.tensor(np.asarray(so, np.float32))
         self.base = {
             "expr": torch.tensor(np.stack([_row(p, "expr", E) for p in per]), dtype=torch.float32),
-            "pose": torch.tensor(np.stack([np.concatenate([_row(p, k, w) for k, w in POSE_WIDTHS]) for p in per]),
-                                 dtype=torch.float32),
+            "pose": torch.tensor(
+                np.stack([np.concatenate([_row(p, k, w) for k, w in POSE_WIDTHS]) for p in per]), dtype=torch.float32
+            ),
             "translation": torch.tensor(np.stack([_row(p, "translation", 3) for p in per]), dtype=torch.float32),
         }
         self.delta = {k: torch.zeros_like(v).requires_grad_(True) for k, v in self.base.items()}
-        self.lrs = {"expr": lrs.get("flame_expr", 1e-3), "pose": lrs.get("flame_pose", 1e-5),
-                    "translation": lrs.get("flame_translation", 1e-6)}
+        self.lrs = {
+            "expr": lrs.get("flame_expr", 1e-3),
+            "pose": lrs.get("flame_pose", 1e-5),
+            "translation": lrs.get("flame_translation", 1e-6),
+        }
         self.opt = torch.optim.Adam([{"params": [self.delta[k]], "lr": self.lrs[k]} for k in _DELTAS], eps=1e-15)
 
     def has(self, timestep) -> bool:
@@ -59,11 +63,15 @@ class FlameRefiner:
         """Refined FLAME parameters (torch) of the given rows, as FlameTorch takes them."""
         p = {k: self.base[k][rows] + self.delta[k][rows] for k in _DELTAS}
         pose = p["pose"]
-        out = {"shape": self.shape, "expr": p["expr"], "translation": p["translation"],
-               "static_offset": self.static_offset}
+        out = {
+            "shape": self.shape,
+            "expr": p["expr"],
+            "translation": p["translation"],
+            "static_offset": self.static_offset,
+        }
         o = 0
         for key, w in POSE_WIDTHS:
-            out[key] = pose[:, o:o + w]
+            out[key] = pose[:, o : o + w]
             o += w
         return out
 
@@ -98,19 +106,23 @@ class FlameRefiner:
         for k in _DELTAS:
             key = f"flame_delta_{k}"
             if key not in d:
-                raise ValueError(f"{source}: the checkpoint has no FLAME corrections; resume with the same "
-                                 "--refine-flame setting")
+                raise ValueError(
+                    f"{source}: the checkpoint has no FLAME corrections; resume with the same --refine-flame setting"
+                )
             arr = np.asarray(d[key])
             if arr.shape != tuple(self.delta[k].shape):
-                raise ValueError(f"{source}: FLAME {k} corrections have shape {arr.shape}, the dataset needs "
-                                 f"{tuple(self.delta[k].shape)}")
+                raise ValueError(
+                    f"{source}: FLAME {k} corrections have shape {arr.shape}, the dataset needs "
+                    f"{tuple(self.delta[k].shape)}"
+                )
             with torch.no_grad():
                 self.delta[k].copy_(torch.from_numpy(arr))
             if f"flame_adam_m_{k}" in d:
                 self.opt.state[self.delta[k]] = {
                     "step": torch.tensor(float(d[f"flame_adam_step_{k}"])),
                     "exp_avg": torch.from_numpy(np.array(d[f"flame_adam_m_{k}"])),
-                    "exp_avg_sq": torch.from_numpy(np.array(d[f"flame_adam_v_{k}"]))}
+                    "exp_avg_sq": torch.from_numpy(np.array(d[f"flame_adam_v_{k}"])),
+                }
 
     @torch.no_grad()
     def refined_arrays(self) -> dict:

@@ -68,14 +68,32 @@ class FlameTorch(torch.nn.Module):
             x = torch.cat([x, x.new_zeros((x.shape[0], n_model - n))], dim=1)
         return x.expand(T, n_model)
 
-    def forward(self, shape=None, expr=None, rotation=None, neck_pose=None, jaw_pose=None, eyes_pose=None,
-                translation=None, static_offset=None, dynamic_offset=None, pose=None) -> torch.Tensor:
+    def forward(
+        self,
+        shape=None,
+        expr=None,
+        rotation=None,
+        neck_pose=None,
+        jaw_pose=None,
+        eyes_pose=None,
+        translation=None,
+        static_offset=None,
+        dynamic_offset=None,
+        pose=None,
+    ) -> torch.Tensor:
         """Vertices [T,V,3]; same parameters and broadcasting as ``flame.flame_forward``."""
         V, J = self.n_vertices, self.n_joints
         T = 1
-        for name, x, w in (("shape", shape, self.n_shape), ("expr", expr, self.n_expr), ("rotation", rotation, 3),
-                           ("neck_pose", neck_pose, 3), ("jaw_pose", jaw_pose, 3), ("eyes_pose", eyes_pose, 6),
-                           ("translation", translation, 3), ("pose", pose, 3 * J)):
+        for name, x, w in (
+            ("shape", shape, self.n_shape),
+            ("expr", expr, self.n_expr),
+            ("rotation", rotation, 3),
+            ("neck_pose", neck_pose, 3),
+            ("jaw_pose", jaw_pose, 3),
+            ("eyes_pose", eyes_pose, 6),
+            ("translation", translation, 3),
+            ("pose", pose, 3 * J),
+        ):
             if x is not None and torch.as_tensor(x).dim() >= 2 and torch.as_tensor(x).shape[0] != 1:
                 n = torch.as_tensor(x).shape[0]
                 if T not in (1, n):
@@ -83,16 +101,23 @@ class FlameTorch(torch.nn.Module):
                 T = n
         if dynamic_offset is not None and torch.as_tensor(dynamic_offset).dim() == 3:
             T = max(T, torch.as_tensor(dynamic_offset).shape[0])
-        betas = torch.cat([self._coeffs(shape, self.n_shape, T, "shape"),
-                           self._coeffs(expr, self.n_expr, T, "expression")], dim=1)
+        betas = torch.cat(
+            [self._coeffs(shape, self.n_shape, T, "shape"), self._coeffs(expr, self.n_expr, T, "expression")], dim=1
+        )
         if pose is not None:
             full = self._rows(pose, T, 3 * J, "pose").reshape(T, J, 3)
         else:
             if J != 5:
                 raise ValueError(f"the model has {J} joints, not FLAME's 5: pass pose=[T,{3 * J}]")
-            full = torch.cat([self._rows(rotation, T, 3, "rotation"), self._rows(neck_pose, T, 3, "neck_pose"),
-                              self._rows(jaw_pose, T, 3, "jaw_pose"), self._rows(eyes_pose, T, 6, "eyes_pose")],
-                             dim=1).reshape(T, 5, 3)
+            full = torch.cat(
+                [
+                    self._rows(rotation, T, 3, "rotation"),
+                    self._rows(neck_pose, T, 3, "neck_pose"),
+                    self._rows(jaw_pose, T, 3, "jaw_pose"),
+                    self._rows(eyes_pose, T, 6, "eyes_pose"),
+                ],
+                dim=1,
+            ).reshape(T, 5, 3)
         transl = self._rows(translation, T, 3, "translation")
 
         v_shaped = self.v_template + (betas @ self.shape_basis).reshape(T, V, 3)

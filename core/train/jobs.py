@@ -50,8 +50,11 @@ def _train(args) -> int:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="progressive_avatars.core.train.jobs", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        prog="progressive_avatars.core.train.jobs",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     sub = ap.add_subparsers(dest="job", required=True)
     t = sub.add_parser("train", help="train an avatar, then write its stream")
     t.add_argument("--data", required=True, help="dataset folder (transforms_train.json, ...)")

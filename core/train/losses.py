@@ -27,7 +27,14 @@ def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     the five local moments with the separable window, SSIM and its derivatives in the moments;
     the backward is the window's transpose applied to those. Elsewhere: ssim_torch.
     """
-    if a.is_cuda or a.dtype != torch.float32 or b.requires_grad or a.dim() != 3 or a.shape != b.shape or min(a.shape[:2]) < 11:
+    if (
+        a.is_cuda
+        or a.dtype != torch.float32
+        or b.requires_grad
+        or a.dim() != 3
+        or a.shape != b.shape
+        or min(a.shape[:2]) < 11
+    ):
         return ssim_torch(a, b)
     return _SSIM.apply(a, b)
 

@@ -20,8 +20,8 @@ def _blur(img: np.ndarray, k: np.ndarray) -> np.ndarray:
     H, W = img.shape[:2]
     if H < n or W < n:
         raise ValueError(f"SSIM needs images of at least {n}x{n}, got {W}x{H}")
-    cols = sum(k[i] * img[i:H - n + 1 + i] for i in range(n))  # n taps, not a pixel loop
-    return sum(k[i] * cols[:, i:W - n + 1 + i] for i in range(n))
+    cols = sum(k[i] * img[i : H - n + 1 + i] for i in range(n))  # n taps, not a pixel loop
+    return sum(k[i] * cols[:, i : W - n + 1 + i] for i in range(n))
 
 
 def ssim_map(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -14,12 +14,14 @@ from ..geometry import sh
 from ..avatar.avatar import PARAM_NAMES, Avatar
 from ..avatar.forest import Forest
 
+
 class TorchAvatar:
     def __init__(self, avatar: Avatar, device="cpu"):
         self.device = torch.device(device)
         self.forest = avatar.forest
-        self.params = {name: torch.tensor(getattr(avatar, name), device=self.device).requires_grad_(True)
-                       for name in PARAM_NAMES}
+        self.params = {
+            name: torch.tensor(getattr(avatar, name), device=self.device).requires_grad_(True) for name in PARAM_NAMES
+        }
         self.params["split_logits"] = torch.tensor(self.forest.split_logits, device=self.device).requires_grad_(True)
         if avatar.sh_degree:
             self.params["f_rest"] = torch.tensor(avatar.f_rest, device=self.device).requires_grad_(True)
@@ -27,8 +29,16 @@ class TorchAvatar:
         self._structure_changed()
 
     @classmethod
-    def from_template(cls, faces, color=(0.5, 0.5, 0.5), opacity=0.7, log_scale=(np.log(0.5), np.log(0.1), np.log(0.5)),
-                      device="cpu", sh_degree: int = 0, coarse=None) -> "TorchAvatar":
+    def from_template(
+        cls,
+        faces,
+        color=(0.5, 0.5, 0.5),
+        opacity=0.7,
+        log_scale=(np.log(0.5), np.log(0.1), np.log(0.5)),
+        device="cpu",
+        sh_degree: int = 0,
+        coarse=None,
+    ) -> "TorchAvatar":
         """`coarse`: None, or (coarse_faces, coarse_counts, root_ref or None), the table and
         counts from core.coarse.build_coarse."""
         if coarse is None:
@@ -47,8 +57,9 @@ class TorchAvatar:
 
     def _structure_changed(self):
         self.binding = binding_kernels.FaceBinding(self.forest)
-        self.level_ids = [torch.as_tensor(self.forest.cumulative(lvl), device=self.device)
-                          for lvl in range(self.forest.max_level + 1)]
+        self.level_ids = [
+            torch.as_tensor(self.forest.cumulative(lvl), device=self.device) for lvl in range(self.forest.max_level + 1)
+        ]
 
     @property
     def num_faces(self) -> int:
@@ -59,8 +70,9 @@ class TorchAvatar:
         colours seen from ``camera_center`` up to the active SH degree."""
         p = self.params
         # float64 numba kernels (binding_kernels); binding_torch is their test reference
-        means, scales, quats = self.binding.gaussians(vertices, p["split_logits"], p["d_mu"], p["d_log_scale"],
-                                                      p["d_rot"])
+        means, scales, quats = self.binding.gaussians(
+            vertices, p["split_logits"], p["d_mu"], p["d_log_scale"], p["d_rot"]
+        )
         degree = min(self.active_sh_degree, self.sh_degree) if camera_center is not None else 0
         if degree:
             c = torch.as_tensor(np.asarray(camera_center), dtype=means.dtype, device=means.device).reshape(1, 3)

@@ -35,11 +35,23 @@ class Growth:
     first within the face budget) or uniform (every leaf under the depth cap: the ablation).
     The depth cap rises from 1 to max_depth between grow_start and grow_stop."""
 
-    def __init__(self, *, iterations: int, max_depth: int, grow_every: int, grow_start: int, grow_stop: float,
-                 grad_threshold: float, max_faces: int, uniform: bool = False):
+    def __init__(
+        self,
+        *,
+        iterations: int,
+        max_depth: int,
+        grow_every: int,
+        grow_start: int,
+        grow_stop: float,
+        grad_threshold: float,
+        max_faces: int,
+        uniform: bool = False,
+    ):
         if grow_every < 1 or max_depth < 0 or max_faces < 0 or not 0 <= grow_stop <= 1:
-            raise ValueError(f"growth: grow_every >= 1, max_depth >= 0, max_faces >= 0 and grow_stop in [0, 1] "
-                             f"(got {grow_every}, {max_depth}, {max_faces}, {grow_stop})")
+            raise ValueError(
+                f"growth: grow_every >= 1, max_depth >= 0, max_faces >= 0 and grow_stop in [0, 1] "
+                f"(got {grow_every}, {max_depth}, {max_faces}, {grow_stop})"
+            )
         if not np.isfinite(grad_threshold) or grad_threshold < 0:
             raise ValueError(f"growth: grad_threshold must be finite and >= 0, got {grad_threshold}")
         self.iterations, self.max_depth, self.grow_every = int(iterations), int(max_depth), int(grow_every)
@@ -48,14 +60,24 @@ class Growth:
 
     @classmethod
     def from_config(cls, cfg) -> "Growth":
-        return cls(iterations=cfg.iterations, max_depth=cfg.max_depth, grow_every=cfg.grow_every,
-                   grow_start=cfg.grow_start, grow_stop=cfg.grow_stop, grad_threshold=cfg.grad_threshold,
-                   max_faces=cfg.max_faces, uniform=cfg.uniform)
+        return cls(
+            iterations=cfg.iterations,
+            max_depth=cfg.max_depth,
+            grow_every=cfg.grow_every,
+            grow_start=cfg.grow_start,
+            grow_stop=cfg.grow_stop,
+            grad_threshold=cfg.grad_threshold,
+            max_faces=cfg.max_faces,
+            uniform=cfg.uniform,
+        )
 
     def due(self, it: int) -> bool:
         """Whether the forest grows after iteration ``it`` (uniform growth starts at once)."""
-        return ((self.uniform or it >= self.grow_start) and it % self.grow_every == 0
-                and it <= self.grow_stop * self.iterations)
+        return (
+            (self.uniform or it >= self.grow_start)
+            and it % self.grow_every == 0
+            and it <= self.grow_stop * self.iterations
+        )
 
     def depth_cap(self, it: int) -> int:
         span = max(1, int(self.grow_stop * self.iterations) - self.grow_start)

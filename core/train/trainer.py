@@ -56,11 +56,20 @@ class TrainConfig:
     lambda_ssim: float = 0.2
     position_reg: float = 0.01
     scale_reg: float = 1.0
-    lr: dict = field(default_factory=lambda: {
-        "split_logits": 1e-2, "d_mu": 5e-3, "d_log_scale": 2e-2, "d_rot": 1e-3,
-        "opacity_logit": 5e-2, "f_dc": 2.5e-3 * 4, "f_rest": 2.5e-3 * 4 / 20,
-        "flame_expr": 1e-3, "flame_pose": 1e-5, "flame_translation": 1e-6,
-    })
+    lr: dict = field(
+        default_factory=lambda: {
+            "split_logits": 1e-2,
+            "d_mu": 5e-3,
+            "d_log_scale": 2e-2,
+            "d_rot": 1e-3,
+            "opacity_logit": 5e-2,
+            "f_dc": 2.5e-3 * 4,
+            "f_rest": 2.5e-3 * 4 / 20,
+            "flame_expr": 1e-3,
+            "flame_pose": 1e-5,
+            "flame_translation": 1e-6,
+        }
+    )
     lr_final_ratio: float = 0.01  # position lr decays exponentially to this fraction
     seed: int = 0
     downscale: float = 1.0
@@ -73,23 +82,66 @@ class TrainConfig:
 
 PRESETS = {
     # Seconds: for tests and smoke runs.
-    "tiny": dict(iterations=60, max_depth=2, grow_every=15, grow_start=15, grow_stop=0.8, max_faces=20000,
-                 log_every=10, eval_every=30, eval_views=2, checkpoint_every=20, sh_every=20),
+    "tiny": dict(
+        iterations=60,
+        max_depth=2,
+        grow_every=15,
+        grow_start=15,
+        grow_stop=0.8,
+        max_faces=20000,
+        log_every=10,
+        eval_every=30,
+        eval_views=2,
+        checkpoint_every=20,
+        sh_every=20,
+    ),
     # The synthetic default on a 2-core CPU (<= 30 min).
-    "cpu": dict(iterations=4000, max_depth=3, grow_every=150, grow_start=150, grow_stop=0.7, max_faces=40000,
-                grad_threshold=2e-4, log_every=25, eval_every=250, eval_views=8, checkpoint_every=250),
+    "cpu": dict(
+        iterations=4000,
+        max_depth=3,
+        grow_every=150,
+        grow_start=150,
+        grow_stop=0.7,
+        max_faces=40000,
+        grad_threshold=2e-4,
+        log_every=25,
+        eval_every=250,
+        eval_views=8,
+        checkpoint_every=250,
+    ),
     # The paper-scale synthetic head (make_synthetic.py --preset paper: 8192-face template, 540
     # training images of 550x802) on a 2-core CPU: depth 4, growth every 500 of 15k iterations
     # up to ~17x the base (max_faces 140k; the paper grows 16.7x; records are fixed-size, so the
     # base is <= 6 % of the record bytes only from 16.7x), sized for <= 2 h ASSUMING ~0.4 s per
     # iteration at that scale (15k x 0.4 s = 100 min, plus evaluations and checkpoints); the image cache is held
     # to 1 GiB (~150 of the 540 frames; decoding a frame again costs far less than an iteration).
-    "paper-cpu": dict(iterations=15000, max_depth=4, grow_every=500, grow_start=500, grow_stop=0.7,
-                      max_faces=140000, grad_threshold=2e-4, log_every=50, eval_every=1000, eval_views=8,
-                      checkpoint_every=500, image_cache_mb=1024.0),
+    "paper-cpu": dict(
+        iterations=15000,
+        max_depth=4,
+        grow_every=500,
+        grow_start=500,
+        grow_stop=0.7,
+        max_faces=140000,
+        grad_threshold=2e-4,
+        log_every=50,
+        eval_every=1000,
+        eval_views=8,
+        checkpoint_every=500,
+        image_cache_mb=1024.0,
+    ),
     # GPU, the paper's depth.
-    "paper": dict(iterations=60000, max_depth=4, grow_every=2000, grow_start=2000, grow_stop=0.8, max_faces=250000,
-                  log_every=100, eval_every=5000, eval_views=16, checkpoint_every=5000),
+    "paper": dict(
+        iterations=60000,
+        max_depth=4,
+        grow_every=2000,
+        grow_start=2000,
+        grow_stop=0.8,
+        max_faces=250000,
+        log_every=100,
+        eval_every=5000,
+        eval_views=16,
+        checkpoint_every=5000,
+    ),
 }
 
 
@@ -127,8 +179,8 @@ class Adam:
     def step(self, params: dict, lr_scale: dict | None = None):
         b1, b2 = self.betas
         self.steps += 1
-        c1 = (1 - b1 ** self.steps).to(torch.float32)
-        c2 = (1 - b2 ** self.steps).to(torch.float32)
+        c1 = (1 - b1**self.steps).to(torch.float32)
+        c2 = (1 - b2**self.steps).to(torch.float32)
         for name, p in params.items():
             if p.grad is None:
                 continue
@@ -182,8 +234,10 @@ def _check_same_data(out_dir: str, data_dir: str) -> None:
         return  # no readable config: the checkpoint's template check below still applies
     now = os.path.abspath(data_dir)
     if was and os.path.realpath(was) != os.path.realpath(now):
-        raise ValueError(f"{out_dir}: --resume with a different --data: this run was trained on {was}, not {now}; "
-                         "resume with the same --data, or train into a new --out folder")
+        raise ValueError(
+            f"{out_dir}: --resume with a different --data: this run was trained on {was}, not {now}; "
+            "resume with the same --data, or train into a new --out folder"
+        )
 
 
 def _check_gaussians(it: int, g: dict):
@@ -193,13 +247,21 @@ def _check_gaussians(it: int, g: dict):
         _check_finite(it, **{f"Gaussian {k}": v for k, v in g.items()})
         bad = g["scales"] <= 0
         if bool(bad.any()):
-            raise FloatingPointError(f"iteration {it}: Gaussian scales underflowed to 0; training stopped, "
-                                     "last checkpoint kept")
+            raise FloatingPointError(
+                f"iteration {it}: Gaussian scales underflowed to 0; training stopped, last checkpoint kept"
+            )
 
 
 class Trainer:
-    def __init__(self, data_dir: str, out_dir: str, config: TrainConfig, resume: bool = False,
-                 check_data: bool = True, progress: bool = False):
+    def __init__(
+        self,
+        data_dir: str,
+        out_dir: str,
+        config: TrainConfig,
+        resume: bool = False,
+        check_data: bool = True,
+        progress: bool = False,
+    ):
         self.data_dir, self.out_dir, self.cfg = data_dir, out_dir, config
         # Policies first: a wrong supervision mode or growth setting fails before any file is made.
         self.supervision = Supervision(config.supervision)
@@ -208,12 +270,19 @@ class Trainer:
         self.ckpt_path = os.path.join(out_dir, "checkpoint.npz")
         if resume and os.path.exists(self.ckpt_path):
             _check_same_data(out_dir, data_dir)
-        self.train = Dataset(data_dir, "train", downscale=config.downscale, cache_images=100000,
-                             flame_model=config.flame_model, cache_bytes=int(config.image_cache_mb * 2**20))
+        self.train = Dataset(
+            data_dir,
+            "train",
+            downscale=config.downscale,
+            cache_images=100000,
+            flame_model=config.flame_model,
+            cache_bytes=int(config.image_cache_mb * 2**20),
+        )
         # No validation split is fine; a broken one is an error, not silently dropped.
         if os.path.isfile(os.path.join(self.train.root, "transforms_val.json")):
-            self.val = Dataset(data_dir, "val", downscale=config.downscale, cache_images=64,
-                               flame_model=config.flame_model)
+            self.val = Dataset(
+                data_dir, "val", downscale=config.downscale, cache_images=64, flame_model=config.flame_model
+            )
         else:
             self.val = None
         if check_data:
@@ -226,8 +295,10 @@ class Trainer:
         self.refiner = None
         if config.refine_flame:
             if self.train.mode != "flame":
-                raise ValueError(f"{data_dir}: FLAME refinement needs a FLAME-mode dataset (flame_param_path "
-                                 "frames) and --flame-model")
+                raise ValueError(
+                    f"{data_dir}: FLAME refinement needs a FLAME-mode dataset (flame_param_path "
+                    "frames) and --flame-model"
+                )
             from .flame_refine import FlameRefiner
 
             self.refiner = FlameRefiner(self.train, config.lr)
@@ -285,8 +356,17 @@ class Trainer:
         loss = torch.zeros(())
         finest = None
         # One projection, sort and tile binning shared by every supervised level.
-        outs = render_levels(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], sample.camera,
-                             self.background, level=self.model.forest.level, upto=levels)
+        outs = render_levels(
+            g["means"],
+            g["quats"],
+            g["scales"],
+            g["opacities"],
+            g["colors"],
+            sample.camera,
+            self.background,
+            level=self.model.forest.level,
+            upto=levels,
+        )
         for lvl, out in zip(levels, outs):
             ids = self.model.level_ids[top]  # every level's output covers all faces (means2d, radii)
             w = level_weight(c, lvl) * (c.coarse_weight if lvl < self.model.forest.num_coarse_levels else 1.0)
@@ -355,9 +435,15 @@ class Trainer:
             arrays.update(self.refiner.state())
         arrays["grad_sum"] = self.grad_sum
         arrays["grad_count"] = self.grad_count
-        arrays["state_json"] = np.array(json.dumps({
-            "iteration": self.iteration, "elapsed": self.elapsed, "rng": self.rng.bit_generator.state,
-        }))
+        arrays["state_json"] = np.array(
+            json.dumps(
+                {
+                    "iteration": self.iteration,
+                    "elapsed": self.elapsed,
+                    "rng": self.rng.bit_generator.state,
+                }
+            )
+        )
         atomic_savez(self.ckpt_path, **arrays)
 
     def _load_checkpoint(self):
@@ -369,14 +455,21 @@ class Trainer:
             from ..avatar.avatar import Avatar
 
             if not np.array_equal(forest.template_faces, np.asarray(self.train.faces)):
-                raise ValueError(f"{self.ckpt_path}: the checkpoint's template mesh ({len(forest.template_faces)} "
-                                 f"faces) is not {self.data_dir}'s ({len(self.train.faces)} faces); resume with the "
-                                 "--data it was trained on, or train into a new --out folder")
-            av = Avatar(forest, *(d["param_" + n] for n in PARAM_NAMES),
-                        f_rest=d["param_f_rest"] if "param_f_rest" in d else None)
+                raise ValueError(
+                    f"{self.ckpt_path}: the checkpoint's template mesh ({len(forest.template_faces)} "
+                    f"faces) is not {self.data_dir}'s ({len(self.train.faces)} faces); resume with the "
+                    "--data it was trained on, or train into a new --out folder"
+                )
+            av = Avatar(
+                forest,
+                *(d["param_" + n] for n in PARAM_NAMES),
+                f_rest=d["param_f_rest"] if "param_f_rest" in d else None,
+            )
             if av.sh_degree != self.cfg.sh_degree:
-                raise ValueError(f"{self.ckpt_path}: checkpoint has SH degree {av.sh_degree}, the configuration "
-                                 f"{self.cfg.sh_degree}; resume with the same --sh-degree")
+                raise ValueError(
+                    f"{self.ckpt_path}: checkpoint has SH degree {av.sh_degree}, the configuration "
+                    f"{self.cfg.sh_degree}; resume with the same --sh-degree"
+                )
             self.model = TorchAvatar(av)
             with torch.no_grad():
                 self.model.params["split_logits"].copy_(torch.from_numpy(d["param_split_logits"]))
@@ -405,8 +498,12 @@ class Trainer:
 
     def save_avatar(self) -> str:
         path = os.path.join(self.out_dir, "avatar.npz")
-        meta = {"data": os.path.abspath(self.data_dir), "iterations": self.iteration, "train_seconds": self.elapsed,
-                "config": asdict(self.cfg)}
+        meta = {
+            "data": os.path.abspath(self.data_dir),
+            "iterations": self.iteration,
+            "train_seconds": self.elapsed,
+            "config": asdict(self.cfg),
+        }
         self.model.to_avatar(meta).save(path)
         if self.refiner is not None:
             atomic_savez(os.path.join(self.out_dir, "flame_refined.npz"), **self.refiner.refined_arrays())
@@ -419,8 +516,7 @@ class Trainer:
 
         c = self.cfg
         end = c.iterations if stop_after is None else min(c.iterations, self.iteration + stop_after)
-        bar = tqdm(total=c.iterations, initial=self.iteration, disable=not progress, dynamic_ncols=True,
-                   desc="train")
+        bar = tqdm(total=c.iterations, initial=self.iteration, disable=not progress, dynamic_ncols=True, desc="train")
         recent = []
         while self.iteration < end:
             t0 = time.perf_counter()
@@ -435,23 +531,39 @@ class Trainer:
             record = None
             if it % c.log_every == 0 or it == c.iterations:
                 counts = self.model.forest.level_counts().tolist()
-                record = {"iteration": it, "seconds": round(self.elapsed, 3), "loss": stats["loss"],
-                          "train_psnr": float(np.mean(recent)), "faces": int(sum(counts)), "level_counts": counts}
+                record = {
+                    "iteration": it,
+                    "seconds": round(self.elapsed, 3),
+                    "loss": stats["loss"],
+                    "train_psnr": float(np.mean(recent)),
+                    "faces": int(sum(counts)),
+                    "level_counts": counts,
+                }
                 recent = []
             if it % c.eval_every == 0 or it == c.iterations:
                 record = record or {"iteration": it, "seconds": round(self.elapsed, 3)}
                 record.update(self.evaluate(c.eval_views))
             if record:
                 self._log(record)
-                bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{record.get('train_psnr', stats['psnr']):.2f}",
-                                levels="/".join(map(str, self.model.forest.level_counts())), refresh=False)
+                bar.set_postfix(
+                    loss=f"{stats['loss']:.4f}",
+                    psnr=f"{record.get('train_psnr', stats['psnr']):.2f}",
+                    levels="/".join(map(str, self.model.forest.level_counts())),
+                    refresh=False,
+                )
             if grown:
-                bar.write(f"iteration {it}: split {grown} faces, depth cap {self.depth_cap(it)}, "
-                          f"{self.model.num_faces} Gaussians")
+                bar.write(
+                    f"iteration {it}: split {grown} faces, depth cap {self.depth_cap(it)}, "
+                    f"{self.model.num_faces} Gaussians"
+                )
             bar.update(1)
             if it % c.checkpoint_every == 0 or it == end:
                 self._save_checkpoint()
         bar.close()
         path = self.save_avatar()
-        return {"avatar": path, "iterations": self.iteration, "seconds": self.elapsed,
-                "level_counts": self.model.forest.level_counts().tolist()}
+        return {
+            "avatar": path,
+            "iterations": self.iteration,
+            "seconds": self.elapsed,
+            "level_counts": self.model.forest.level_counts().tolist(),
+        }

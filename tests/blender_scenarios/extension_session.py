@@ -1,10 +1,12 @@
 """Blender session run by test_blender_extension.py (a real file so it can be read, linted and run by hand)."""
+
 import json, os, sys, time, traceback
 import numpy as np
 import bpy
 
 zip_path, seq_path, stream_path, trainer, out, flame_path, params_path = sys.argv[-7:]
 R = {"errors": []}
+
 
 def section(name):
     def deco(fn):
@@ -14,24 +16,38 @@ def section(name):
         except Exception:
             R["errors"].append(name + ": " + traceback.format_exc())
         R.setdefault("seconds", {})[name] = round(time.perf_counter() - t0, 3)
+
     return deco
+
 
 @section("install")
 def _():
     bpy.ops.extensions.package_install_files(filepath=zip_path, repo="user_default", enable_on_install=True)
     R["addon_enabled"] = "bl_ext.user_default.progressive_avatars" in bpy.context.preferences.addons
-    R["operators"] = {name: hasattr(getattr(bpy.ops, name.split(".")[0]), name.split(".")[1]) for name in (
-        "import_scene.progressive_avatars_sequence", "import_scene.progressive_avatars_cameras",
-        "object.progressive_avatars_load", "object.progressive_avatars_depth_colors",
-        "export_scene.progressive_avatars_ply", "render.progressive_avatars_splats",
-        "progressive_avatars.train", "progressive_avatars.train_cancel")}
+    R["operators"] = {
+        name: hasattr(getattr(bpy.ops, name.split(".")[0]), name.split(".")[1])
+        for name in (
+            "import_scene.progressive_avatars_sequence",
+            "import_scene.progressive_avatars_cameras",
+            "object.progressive_avatars_load",
+            "object.progressive_avatars_depth_colors",
+            "export_scene.progressive_avatars_ply",
+            "render.progressive_avatars_splats",
+            "progressive_avatars.train",
+            "progressive_avatars.train_cancel",
+        )
+    }
     R["panels"] = [n for n in ("PA_PT_main", "PA_PT_avatar", "PA_PT_depth", "PA_PT_train") if hasattr(bpy.types, n)]
-    R["import_menu"] = any("progressive_avatars" in getattr(f, "__module__", "")
-                           for f in bpy.types.TOPBAR_MT_file_import._dyn_ui_initialize())
+    R["import_menu"] = any(
+        "progressive_avatars" in getattr(f, "__module__", "")
+        for f in bpy.types.TOPBAR_MT_file_import._dyn_ui_initialize()
+    )
+
 
 pkg = "bl_ext.user_default.progressive_avatars"
 ext = sys.modules.get(pkg)
 R["extension_dir"] = os.path.dirname(ext.__file__) if ext else None
+
 
 def verts_of(obj):
     dg = bpy.context.evaluated_depsgraph_get()
@@ -39,6 +55,7 @@ def verts_of(obj):
     a = np.empty(len(me.vertices) * 3, np.float32)
     me.vertices.foreach_get("co", a)
     return a.reshape(-1, 3)
+
 
 def preview_state(pv):
     dg = bpy.context.evaluated_depsgraph_get()
@@ -63,9 +80,11 @@ def preview_state(pv):
     xf = xf.reshape(n, 4, 4).transpose(0, 2, 1)[inst]
     return n, pos.reshape(-1, 3)[by_rank], rot.reshape(-1, 4)[by_rank], scl.reshape(-1, 3)[by_rank], xf
 
+
 arrays = {}
 for ob in list(bpy.data.objects):  # the factory startup cube/light/camera would enclose the head
     bpy.data.objects.remove(ob)
+
 
 @section("import")
 def _():
@@ -82,6 +101,7 @@ def _():
         bpy.context.scene.frame_set(bpy.context.scene.frame_start + t)
         arrays[f"seq_{t}"] = verts_of(obj)
 
+
 @section("load")
 def _():
     mesh = bpy.data.objects[R["mesh_name"]]
@@ -91,11 +111,18 @@ def _():
     R["preview_name"] = pv.name
     st = pv.pa_avatar
     R["load_result"] = list(res)
-    R["at25"] = {"count": st.count, "total": st.total, "mb": st.megabytes, "level": st.level_reached,
-                 "status": st.status}
+    R["at25"] = {
+        "count": st.count,
+        "total": st.total,
+        "mb": st.megabytes,
+        "level": st.level_reached,
+        "status": st.status,
+    }
     R["at25_instances"] = preview_state(pv)[0]
     # slider change timing (count within what is evaluated: only the modifier input moves)
-    t0 = time.perf_counter(); st.budget = 20.0; bpy.context.evaluated_depsgraph_get()
+    t0 = time.perf_counter()
+    st.budget = 20.0
+    bpy.context.evaluated_depsgraph_get()
     R["slider_seconds"] = time.perf_counter() - t0
     st.budget = 25.0
     for t in (3, 6):
@@ -115,6 +142,7 @@ def _():
     R["active_color"] = mesh.data.color_attributes.active_color_name
     R["legend"] = [[i.depth, i.faces] for i in mesh.pa_mesh.depth_legend]
 
+
 @section("export")
 def _():
     pv = bpy.data.objects[R["preview_name"]]
@@ -124,12 +152,14 @@ def _():
     bpy.ops.export_scene.progressive_avatars_ply(filepath=os.path.join(out, "frame.ply"))
     R["export_count"] = pv.pa_avatar.count
 
+
 @section("camera")
 def _():
     cam_mod = sys.modules[pkg + ".core.geometry.camera"]
     seq_mod = sys.modules[pkg + ".blender_addon.sequence"]
     from bpy_extras.object_utils import world_to_camera_view
     from mathutils import Vector
+
     cam = cam_mod.Camera.look_at([0.1, 0.05, 0.6], [0, 0, 0], [0, 1, 0], 500.0, 500.0, 180.0, 110.0, 320, 240)
     obj, s = seq_mod.add_camera(bpy.context, "test_cam", cam, z_up=True)
     bpy.context.scene.render.resolution_x, bpy.context.scene.render.resolution_y = s["resolution"]
@@ -143,6 +173,7 @@ def _():
         uv_bl.append([c.x * 320, (1 - c.y) * 240])
     R["camera_uv_err"] = float(np.abs(np.array(uv_bl) - uv_core).max())
     bpy.data.objects.remove(obj)
+
 
 @section("train")
 def _():
@@ -159,6 +190,7 @@ def _():
     R["train"]["loaded"] = os.path.basename(pv.pa_avatar.filepath)
     R["preview_name"] = pv.name
 
+
 @section("errors_reported")
 def _():
     try:
@@ -166,6 +198,7 @@ def _():
         R["missing_file"] = "no error"
     except RuntimeError as exc:  # operator reports ERROR -> RuntimeError under bpy.ops
         R["missing_file"] = str(exc).splitlines()[0]
+
 
 @section("save_reload")
 def _():
@@ -177,11 +210,16 @@ def _():
     bpy.ops.wm.open_mainfile(filepath=path)
     pv = bpy.data.objects[R["preview_name"]]
     st = pv.pa_avatar
-    R["reload"] = {"budget": st.budget, "count": st.count, "filepath": os.path.basename(st.filepath),
-                   "source": st.source.name if st.source else None, "is_preview": st.is_preview,
-                   "frame": bpy.context.scene.frame_current - bpy.context.scene.frame_start,
-                   "instances": preview_state(pv)[0],
-                   "attributes": sorted(a.name for a in pv.data.attributes if not a.name.startswith("."))}
+    R["reload"] = {
+        "budget": st.budget,
+        "count": st.count,
+        "filepath": os.path.basename(st.filepath),
+        "source": st.source.name if st.source else None,
+        "is_preview": st.is_preview,
+        "frame": bpy.context.scene.frame_current - bpy.context.scene.frame_start,
+        "instances": preview_state(pv)[0],
+        "attributes": sorted(a.name for a in pv.data.attributes if not a.name.startswith(".")),
+    }
     st.budget = 60.0
     bpy.context.scene.frame_set(bpy.context.scene.frame_start + 4)
     n, pos, *_ = preview_state(pv)
@@ -192,6 +230,7 @@ def _():
     d = np.empty(len(mesh.data.polygons), np.int32)
     mesh.data.attributes["pa_depth"].data.foreach_get("value", d)
     arrays["reload_depth"] = d
+
 
 @section("render")
 def _():
@@ -205,15 +244,22 @@ def _():
     co.location = (0.0, -0.75, 0.0)
     co.rotation_euler = (np.pi / 2, 0.0, 0.0)
     bpy.context.scene.camera = co
-    world = bpy.data.worlds.new("pa_world"); world.color = (0.0, 0.0, 0.0); bpy.context.scene.world = world
+    world = bpy.data.worlds.new("pa_world")
+    world.color = (0.0, 0.0, 0.0)
+    bpy.context.scene.world = world
     bpy.context.scene.view_settings.view_transform = "Standard"
     bpy.context.scene.render.engine = "CYCLES"
     bpy.context.scene.cycles.device = "CPU"
     bpy.context.scene.cycles.samples = 8
     bpy.context.scene.cycles.use_denoising = False
     bpy.context.scene.cycles.transparent_max_bounces = 64
-    bpy.context.scene.render.resolution_x, bpy.context.scene.render.resolution_y, bpy.context.scene.render.resolution_percentage = 96, 96, 100
-    bpy.context.scene.render.threads_mode = "FIXED"; bpy.context.scene.render.threads = 2
+    (
+        bpy.context.scene.render.resolution_x,
+        bpy.context.scene.render.resolution_y,
+        bpy.context.scene.render.resolution_percentage,
+    ) = 96, 96, 100
+    bpy.context.scene.render.threads_mode = "FIXED"
+    bpy.context.scene.render.threads = 2
     for b in (5, 100):
         pv.pa_avatar.budget = float(b)
         bpy.context.scene.render.filepath = os.path.join(out, f"render_{b}.png")
@@ -221,6 +267,7 @@ def _():
         bpy.ops.render.render(write_still=True)
         R[f"render_{b}_seconds"] = time.perf_counter() - t0
         R[f"render_{b}_count"] = pv.pa_avatar.count
+
 
 @section("render_splats")
 def _():
@@ -236,10 +283,18 @@ def _():
     img.pixels.foreach_get(px)
     arrays["splats_image"] = px.reshape(img.size[1], img.size[0], 4)[::-1]  # rows top-down
     co = bpy.context.scene.camera
-    R["splats"] = {"result": list(res), "count": pv.pa_avatar.count, "preview_matrix": [list(r) for r in pv.matrix_world],
-                   "camera_matrix": [list(r) for r in co.matrix_world], "lens": co.data.lens,
-                   "sensor": co.data.sensor_width, "shift": [co.data.shift_x, co.data.shift_y], "size": list(img.size),
-                   "frame": bpy.context.scene.frame_current - bpy.context.scene.frame_start}
+    R["splats"] = {
+        "result": list(res),
+        "count": pv.pa_avatar.count,
+        "preview_matrix": [list(r) for r in pv.matrix_world],
+        "camera_matrix": [list(r) for r in co.matrix_world],
+        "lens": co.data.lens,
+        "sensor": co.data.sensor_width,
+        "shift": [co.data.shift_x, co.data.shift_y],
+        "size": list(img.size),
+        "frame": bpy.context.scene.frame_current - bpy.context.scene.frame_start,
+    }
+
 
 @section("mesh_edit")
 def _():
@@ -258,9 +313,11 @@ def _():
     arrays["unedit_pos"] = preview_state(pv)[1]
     arrays["unedit_verts"] = verts_of(mesh)
 
+
 @section("url")
 def _():
     import http.server, threading
+
     data = open(stream_path, "rb").read()
 
     class Handler(http.server.BaseHTTPRequestHandler):
@@ -292,9 +349,15 @@ def _():
     for name in ("avatar.pavs", "cut.pavs"):
         res = bpy.ops.object.progressive_avatars_load(url=f"{base}/{name}", budget=100.0)
         pv = [c for c in mesh.children if c.pa_avatar.is_preview][0]
-        R["url"][name] = {"result": list(res), "total": pv.pa_avatar.total, "count": pv.pa_avatar.count,
-                          "instances": preview_state(pv)[0], "file": os.path.getsize(bpy.path.abspath(pv.pa_avatar.filepath))}
+        R["url"][name] = {
+            "result": list(res),
+            "total": pv.pa_avatar.total,
+            "count": pv.pa_avatar.count,
+            "instances": preview_state(pv)[0],
+            "file": os.path.getsize(bpy.path.abspath(pv.pa_avatar.filepath)),
+        }
     srv.shutdown()
+
 
 @section("undo")
 def _():
@@ -313,10 +376,14 @@ def _():
     bpy.ops.ed.undo_push(message="budget 100")
     bpy.ops.ed.undo()
     pv, sc = bpy.data.objects[name], bpy.context.scene  # undo replaced the Python objects
-    R["undo"] = {"budget": pv.pa_avatar.budget, "frame": sc.frame_current - sc.frame_start,
-                 "file": bpy.path.abspath(pv.pa_avatar.filepath)}
+    R["undo"] = {
+        "budget": pv.pa_avatar.budget,
+        "frame": sc.frame_current - sc.frame_start,
+        "file": bpy.path.abspath(pv.pa_avatar.filepath),
+    }
     pv.pa_avatar.budget = 100.0
     arrays["undo_pos"] = preview_state(pv)[1]
+
 
 @section("rig")
 def _():
@@ -335,10 +402,17 @@ def _():
     arm = obj.parent
     key = obj.data.shape_keys
     drivers = key.animation_data.drivers
-    R["rig"] = {"result": list(res), "keys": [k.name for k in key.key_blocks], "bones": [b.name for b in arm.data.bones],
-                "groups": [g.name for g in obj.vertex_groups], "modifiers": [m.type for m in obj.modifiers],
-                "drivers": len(drivers), "simple": all(d.driver.is_simple_expression and d.driver.is_valid for d in drivers),
-                "rest": [[list(row) for row in b.matrix_local] for b in arm.data.bones], "frame_range": [bpy.context.scene.frame_start, bpy.context.scene.frame_end]}
+    R["rig"] = {
+        "result": list(res),
+        "keys": [k.name for k in key.key_blocks],
+        "bones": [b.name for b in arm.data.bones],
+        "groups": [g.name for g in obj.vertex_groups],
+        "modifiers": [m.type for m in obj.modifiers],
+        "drivers": len(drivers),
+        "simple": all(d.driver.is_simple_expression and d.driver.is_valid for d in drivers),
+        "rest": [[list(row) for row in b.matrix_local] for b in arm.data.bones],
+        "frame_range": [bpy.context.scene.frame_start, bpy.context.scene.frame_end],
+    }
     w = np.zeros((len(obj.data.vertices), len(obj.vertex_groups)), np.float32)
     for g in obj.vertex_groups:  # test-side read-back only
         for i in range(len(obj.data.vertices)):
@@ -350,10 +424,12 @@ def _():
     for t in __FRAMES__:
         bpy.context.scene.frame_set(3 + t)
         arrays[f"rig_{t}"] = verts_of(obj)
+
     # Artist edits at frame 3+3: an expression coefficient and the jaw's rotation (its
     # pose-corrective keys follow the bone through their drivers).
     def curve(owner, path, index=0):
         return owner.animation_data.action.fcurve_ensure_for_datablock(owner, path, index=index)
+
     fc = curve(key, 'key_blocks["expr_000"].value')
     fc.keyframe_points[3].co[1] = 2.5
     fc.update()
@@ -364,6 +440,7 @@ def _():
         fc.update()
     bpy.context.scene.frame_set(3 + 3)
     arrays["rig_edit_3"] = verts_of(obj)
+
 
 np.savez(os.path.join(out, "arrays.npz"), **arrays)
 print("PA_REPORT " + json.dumps(R, default=str))

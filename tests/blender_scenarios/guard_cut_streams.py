@@ -1,9 +1,11 @@
 """Blender session run by test_blender_guard.py, appended to guard_prelude.py (which defines ARGS, R, PKG and the helpers)."""
+
 res, mesh = import_mesh(ARGS["seq"])
 R["import"] = res
 sc = bpy.context.scene
 bpy.context.view_layer.objects.active = mesh
 ext = sys.modules[PKG + ".blender_addon.depth"]
+
 
 @section("cuts")
 def _():
@@ -16,8 +18,9 @@ def _():
         pv = preview_of(mesh)
         if res == ["FINISHED"]:
             sc.frame_set(sc.frame_start + 1)
-            r.update(total=pv.pa_avatar.total, count=pv.pa_avatar.count, instances=instances(pv),
-                     status=pv.pa_avatar.status)
+            r.update(
+                total=pv.pa_avatar.total, count=pv.pa_avatar.count, instances=instances(pv), status=pv.pa_avatar.status
+            )
             arrays[f"pos_{name}"] = positions(pv)
             d = np.empty(len(mesh.data.polygons), np.int32)
             mesh.data.attributes["pa_depth"].data.foreach_get("value", d)
@@ -34,9 +37,11 @@ def _():
             r["preview_left"] = pv is not None
         R["cuts"][name] = r
 
+
 @section("url")
 def _():
     import http.server, threading
+
     blobs = {os.path.basename(p): open(p, "rb").read() for p in ARGS["url_streams"]}
 
     class Handler(http.server.BaseHTTPRequestHandler):
@@ -65,14 +70,18 @@ def _():
         r = {"result": res}
         pv = preview_of(mesh)
         if res == ["FINISHED"]:
-            r.update(total=pv.pa_avatar.total, instances=instances(pv),
-                     file=os.path.getsize(bpy.path.abspath(pv.pa_avatar.filepath)))
+            r.update(
+                total=pv.pa_avatar.total,
+                instances=instances(pv),
+                file=os.path.getsize(bpy.path.abspath(pv.pa_avatar.filepath)),
+            )
             arrays[f"urlpos_{key}"] = positions(pv)
             bpy.data.objects.remove(pv)
         else:
             r["unchanged"] = scene_state() == before
         R["url"][key] = r
     srv.shutdown()
+
 
 @section("rollback")
 def _():
@@ -83,15 +92,22 @@ def _():
     old = preview_of(mesh).name
     before = scene_state()
     orig = ext.apply_depth
+
     def boom(*a, **k):
         raise RuntimeError("injected failure")
+
     ext.apply_depth = boom
     try:
         res = run_op(bpy.ops.object.progressive_avatars_load, filepath=ARGS["cuts"]["level2"])
     finally:
         ext.apply_depth = orig
-    R["rollback"] = {"result": res, "unchanged": scene_state() == before, "diff": [
-        k for k in before if scene_state()[k] != before[k]], "old_kept": preview_of(mesh).name == old}
+    R["rollback"] = {
+        "result": res,
+        "unchanged": scene_state() == before,
+        "diff": [k for k in before if scene_state()[k] != before[k]],
+        "old_kept": preview_of(mesh).name == old,
+    }
+
 
 @section("depth_toggle")
 def _():
@@ -112,16 +128,23 @@ def _():
     d = np.empty(len(me.polygons), np.int32)
     me.attributes["pa_depth"].data.foreach_get("value", d)
     arrays["depth_toggle"] = d
-    R["on"] = {"active": me.color_attributes.active_color_name, "shading": sorted({sp.shading.color_type for sp in spaces}),
-               "legend": [[i.depth, i.faces, list(i.color)] for i in mesh.pa_mesh.depth_legend], "views": len(spaces)}
+    R["on"] = {
+        "active": me.color_attributes.active_color_name,
+        "shading": sorted({sp.shading.color_type for sp in spaces}),
+        "legend": [[i.depth, i.faces, list(i.color)] for i in mesh.pa_mesh.depth_legend],
+        "views": len(spaces),
+    }
     pv.pa_avatar.budget = 20.0  # colours follow the budget (20 %: inside the template level of this cut)
     me.color_attributes["pa_depth_color"].data.foreach_get("color", col)
     arrays["depth_colors_low"] = col.reshape(-1, 4).copy()
     R["on_low_count"] = pv.pa_avatar.count
     pv.pa_avatar.budget = 100.0
     R["toggle_off"] = run_op(bpy.ops.object.progressive_avatars_depth_colors)
-    R["off"] = {"active": me.color_attributes.active_color_name, "shading": sorted({sp.shading.color_type for sp in spaces}),
-                "colour_attrs": sorted(a.name for a in me.color_attributes)}
+    R["off"] = {
+        "active": me.color_attributes.active_color_name,
+        "shading": sorted({sp.shading.color_type for sp in spaces}),
+        "colour_attrs": sorted(a.name for a in me.color_attributes),
+    }
     # Level k only
     R["levels"] = {}
     run_op(bpy.ops.object.progressive_avatars_load, filepath=ARGS["full"])
@@ -134,6 +157,7 @@ def _():
     mesh_name = mesh.name
     bpy.data.objects.remove(mesh)
     R["deleted_mesh"] = run_op(bpy.ops.object.progressive_avatars_depth_colors)
+
 
 @section("topology")
 def _():
@@ -173,6 +197,7 @@ def _():
     R["topology"]["render_only_subsurf"] = [pv.pa_avatar.status, instances(pv)]
     bpy.data.objects.remove(pv)
     bpy.data.objects.remove(mesh)
+
 
 np.savez(os.path.join(ARGS["out"], "arrays.npz"), **arrays)
 print("PA_REPORT " + json.dumps(R, default=str))

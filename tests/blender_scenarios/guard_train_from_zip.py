@@ -1,8 +1,10 @@
 """Blender session run by test_blender_guard.py, appended to guard_prelude.py (which defines ARGS, R, PKG and the helpers)."""
+
 prefs = bpy.context.preferences.addons[PKG].preferences
 st = bpy.context.scene.pa_train
 sc = bpy.context.scene
 R["extension_dir"] = os.path.dirname(sys.modules[PKG].__file__)
+
 
 @section("train")
 def _():
@@ -21,10 +23,18 @@ def _():
         t0 = time.perf_counter()
         res = run_op(bpy.ops.progressive_avatars.train)
         pv = preview_of(mesh)
-        R["train"][kind] = {"result": res, "seconds": time.perf_counter() - t0, "message": st.message,
-                            "loaded": bpy.path.abspath(pv.pa_avatar.filepath), "total": pv.pa_avatar.total,
-                            "instances": instances(pv), "status": pv.pa_avatar.status, "mesh": mesh.name,
-                            "previews": [o.name for o in bpy.data.objects if o.pa_avatar.is_preview and o.pa_avatar.source == mesh]}
+        R["train"][kind] = {
+            "result": res,
+            "seconds": time.perf_counter() - t0,
+            "message": st.message,
+            "loaded": bpy.path.abspath(pv.pa_avatar.filepath),
+            "total": pv.pa_avatar.total,
+            "instances": instances(pv),
+            "status": pv.pa_avatar.status,
+            "mesh": mesh.name,
+            "previews": [o.name for o in bpy.data.objects if o.pa_avatar.is_preview and o.pa_avatar.source == mesh],
+        }
+
 
 @section("messages")
 def _():
@@ -62,6 +72,7 @@ def _():
     # Avatar paths: absolute in an unsaved file, relative ("//") once saved; a moved project
     # (the .blend and the avatar moved together) still finds its avatar.
     import shutil
+
     res, mesh = import_mesh(ARGS["seq"])
     bpy.context.view_layer.objects.active = mesh
     M["load_unsaved"] = run_op(bpy.ops.object.progressive_avatars_load, filepath=ARGS["stream"])
@@ -95,9 +106,12 @@ def _():
     M["bad_python_render"] = run_op(bpy.ops.render.progressive_avatars_splats)
     addon_prefs.python_path = ARGS["python"]
     pv.pa_avatar.budget = 50.0  # PLY export with plyfile blocked
-    M["export_half"] = [run_op(bpy.ops.export_scene.progressive_avatars_ply, filepath=os.path.join(ARGS["out"], "h.ply")),
-                        pv.pa_avatar.count]
+    M["export_half"] = [
+        run_op(bpy.ops.export_scene.progressive_avatars_ply, filepath=os.path.join(ARGS["out"], "h.ply")),
+        pv.pa_avatar.count,
+    ]
     M["tab"] = bpy.types.PA_PT_main.bl_category
+
 
 np.savez(os.path.join(ARGS["out"], "arrays.npz"), **arrays)
 print("PA_REPORT " + json.dumps(R, default=str))

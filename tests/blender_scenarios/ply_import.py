@@ -1,5 +1,7 @@
 """Blender session run by test_blender_ply.py (a real file so it can be read, linted and run by hand)."""
+
 import importlib.util, json, os, sys, traceback
+
 root, ply_path, out, blocked = sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[4].split(",")
 
 
@@ -16,9 +18,12 @@ sys.meta_path.insert(0, Block())
 import bpy
 import numpy as np
 
-spec = importlib.util.spec_from_file_location("pa_blk", os.path.join(root, "__init__.py"),
-                                              submodule_search_locations=[root])
-pkg = importlib.util.module_from_spec(spec); sys.modules["pa_blk"] = pkg; spec.loader.exec_module(pkg)
+spec = importlib.util.spec_from_file_location(
+    "pa_blk", os.path.join(root, "__init__.py"), submodule_search_locations=[root]
+)
+pkg = importlib.util.module_from_spec(spec)
+sys.modules["pa_blk"] = pkg
+spec.loader.exec_module(pkg)
 pkg.register()
 R = {"errors": []}
 A = {}
@@ -31,9 +36,12 @@ try:
     st = obj.pa_avatar
     R["total"], R["bands"] = st.total, int(obj["pa_sh_bands"])
     me = obj.data
+
     def read(name, width, dtype=np.float32, field="value"):
-        a = np.empty(len(me.vertices) * width, dtype); me.attributes[name].data.foreach_get(field, a)
+        a = np.empty(len(me.vertices) * width, dtype)
+        me.attributes[name].data.foreach_get(field, a)
         return a.reshape(-1, width) if width > 1 else a
+
     A["position"] = read("position", 3, field="vector")
     A["rank"] = read("rank", 1, np.int32)
     A["color"] = read("color", 4, field="color")
@@ -41,11 +49,14 @@ try:
     R["count_40"], R["mb_40"] = st.count, st.megabytes
     mod = obj.modifiers["PA Splats"]
     ng = mod.node_group
-    key = next(i.identifier for i in ng.interface.items_tree if getattr(i, "name", "") == "Count" and i.in_out == "INPUT")
+    key = next(
+        i.identifier for i in ng.interface.items_tree if getattr(i, "name", "") == "Count" and i.in_out == "INPUT"
+    )
     R["modifier_count"] = mod[key]
     dg = bpy.context.evaluated_depsgraph_get()
-    R["instances"] = sum(1 for inst in dg.object_instances if inst.is_instance and inst.parent
-                         and inst.parent.original == obj)
+    R["instances"] = sum(
+        1 for inst in dg.object_instances if inst.is_instance and inst.parent and inst.parent.original == obj
+    )
     exp = os.path.join(out, "export_40.ply")
     R["export"] = list(bpy.ops.export_scene.progressive_avatars_ply(filepath=exp, world_space=False))
     obj.location = (1.0, 2.0, 3.0)
@@ -54,7 +65,8 @@ try:
     R["export_world"] = list(bpy.ops.export_scene.progressive_avatars_ply(filepath=expw, world_space=True))
     res2 = bpy.ops.import_scene.progressive_avatars_splat_ply(filepath=ply_path, order="FILE")
     o2 = bpy.context.active_object
-    rk = np.empty(len(o2.data.vertices), np.int32); o2.data.attributes["rank"].data.foreach_get("value", rk)
+    rk = np.empty(len(o2.data.vertices), np.int32)
+    o2.data.attributes["rank"].data.foreach_get("value", rk)
     A["rank_file"] = rk
     o2.pa_avatar.budget = 0.0
     R["count_0"] = o2.pa_avatar.count

@@ -1,11 +1,17 @@
 """Blender session run by test_blender_splat_look.py (a real file so it can be read, linted and run by hand)."""
+
 import importlib.util, json, os, sys, traceback
+
 root, src, out = sys.argv[1:4]
 import bpy
 import numpy as np
-spec = importlib.util.spec_from_file_location("pa_look", os.path.join(root, "__init__.py"),
-                                              submodule_search_locations=[root])
-pkg = importlib.util.module_from_spec(spec); sys.modules["pa_look"] = pkg; spec.loader.exec_module(pkg)
+
+spec = importlib.util.spec_from_file_location(
+    "pa_look", os.path.join(root, "__init__.py"), submodule_search_locations=[root]
+)
+pkg = importlib.util.module_from_spec(spec)
+sys.modules["pa_look"] = pkg
+spec.loader.exec_module(pkg)
 pkg.register()
 ply_import = sys.modules["pa_look.blender_addon.ply_import"]
 look = sys.modules["pa_look.blender_addon.splat_look"]
@@ -18,22 +24,32 @@ try:
     with np.load(src) as d:
         g = {k: d[k] for k in d.files}
     obj = ply_import.create_splat_object(bpy.context, "splats", g)
-    cam = bpy.data.cameras.new("cam"); cam.lens = 50
-    co = bpy.data.objects.new("cam", cam); sc.collection.objects.link(co)
-    co.location = (0.0, -0.6, 0.0); co.rotation_euler = (np.pi / 2, 0.0, 0.0)
+    cam = bpy.data.cameras.new("cam")
+    cam.lens = 50
+    co = bpy.data.objects.new("cam", cam)
+    sc.collection.objects.link(co)
+    co.location = (0.0, -0.6, 0.0)
+    co.rotation_euler = (np.pi / 2, 0.0, 0.0)
     sc.camera = co
-    world = bpy.data.worlds.new("w"); sc.world = world
-    for node in (world.node_tree.nodes if world.node_tree else ()):
+    world = bpy.data.worlds.new("w")
+    sc.world = world
+    for node in world.node_tree.nodes if world.node_tree else ():
         if node.type == "BACKGROUND":
             node.inputs["Color"].default_value = (0, 0, 0, 1)
-    sc.render.engine = "CYCLES"; sc.cycles.device = "CPU"; sc.cycles.samples = 32; sc.cycles.use_denoising = False
+    sc.render.engine = "CYCLES"
+    sc.cycles.device = "CPU"
+    sc.cycles.samples = 32
+    sc.cycles.use_denoising = False
     R["changed"] = sorted(look.configure_scene(sc))
-    sc.render.resolution_x = sc.render.resolution_y = 64; sc.render.resolution_percentage = 100
-    sc.render.threads_mode = "FIXED"; sc.render.threads = 2
+    sc.render.resolution_x = sc.render.resolution_y = 64
+    sc.render.resolution_percentage = 100
+    sc.render.threads_mode = "FIXED"
+    sc.render.threads = 2
     sc.render.filepath = os.path.join(out, "cycles.png")
     bpy.ops.render.render(write_still=True)
-    c = pdata.camera_from_blender(np.array(co.matrix_world), cam.lens, cam.sensor_width, cam.shift_x, cam.shift_y,
-                                  64, 64, z_up=False)
+    c = pdata.camera_from_blender(
+        np.array(co.matrix_world), cam.lens, cam.sensor_width, cam.shift_x, cam.shift_y, 64, 64, z_up=False
+    )
     R["camera"] = {"R": c.R.tolist(), "t": c.t.tolist(), "intr": [c.fx, c.fy, c.cx, c.cy]}
     R["material_method"] = bpy.data.materials["PA Splat"].surface_render_method
 except Exception:
