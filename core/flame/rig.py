@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry.rotations import rotmat_to_quat
+from ..geometry.rotations import quat_to_rotmat, rotmat_to_quat
 from .model import FlameModel, axis_angle_to_matrix, prepare_params
 
 __all__ = ["FlameRig", "build_flame_rig", "SLIDER_LIMIT", "FLAME_BONE_NAMES", "quat_from_matrix"]
@@ -109,23 +109,8 @@ class FlameRig:
         """Bones' local poses [T,J,4,4] = T(location) R(quaternion) S(scale), as Blender builds them."""
         sel = slice(None) if frames is None else np.asarray(frames)
         q = self.quaternions[sel]
-        q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-        w, x, y, z = np.moveaxis(q, -1, 0)
-        R = np.stack(
-            [
-                1 - 2 * (y * y + z * z),
-                2 * (x * y - w * z),
-                2 * (x * z + w * y),
-                2 * (x * y + w * z),
-                1 - 2 * (x * x + z * z),
-                2 * (y * z - w * x),
-                2 * (x * z - w * y),
-                2 * (y * z + w * x),
-                1 - 2 * (x * x + y * y),
-            ],
-            -1,
-        )
-        R = R.reshape(q.shape[:-1] + (3, 3)) * self.scales[sel][..., None, None]
+        R = quat_to_rotmat(q)
+        R = R * self.scales[sel][..., None, None]
         return _homogeneous(R, self.locations[sel])
 
     def vertices(self, frames=None, pose_from_bones: bool = True) -> np.ndarray:

@@ -35,17 +35,8 @@ from numba import njit, prange
 
 from ..avatar.binding import MIN_EDGE, MIN_SCALE
 from ..avatar.forest import Forest
+from ..render.kernels import _PARALLEL  # only explicit prange loops run in parallel
 
-_PARALLEL = dict(
-    prange=True,
-    numpy=False,
-    reduction=False,
-    setitem=False,
-    stencil=False,
-    fusion=False,
-    comprehension=False,
-    inplace_binop=False,
-)
 _EPS64 = 8 * np.finfo(np.float64).eps
 # Root rows: v0 (3), X (3), N (3), Z (3), L, a, b, good
 _R_V0, _R_X, _R_N, _R_Z, _R_L, _R_A, _R_B, _R_GOOD = 0, 3, 6, 9, 12, 13, 14, 15
