@@ -89,6 +89,35 @@ def _readers(S, data: bytes, faces) -> dict:
     return {"v": verify, "vd": verify_decode, "c": chunked, "f": full}
 
 
+def old_against_new(av, imp, reps) -> str:
+    """f6907ae's read_stream against this tree's on the same version-2 stream, and this tree's
+    on version 3, round-robin in one process: the machine's speed, not the format's, moves the
+    absolute figures between runs on different days."""
+    import importlib
+
+    from bench_train import OLD_COMMIT, old_package
+
+    from progressive_avatars.core.stream import format as S
+
+    old_package()
+    O = importlib.import_module("pa_old.core.stream")
+    faces = av.forest.template_faces
+    v2 = S.encode_stream(av, imp, embed_template=False, version=2)
+    v3 = S.encode_stream(av, imp, embed_template=False)
+    fns = {
+        f"{OLD_COMMIT} reader, version 2": lambda: O.read_stream(v2, template_faces=faces),
+        "this reader, version 2": lambda: S.read_stream(v2, template_faces=faces),
+        "this reader, version 3": lambda: S.read_stream(v3, template_faces=faces),
+    }
+    times = _times(fns, reps)
+    sizes = {k: len(v2) if "version 2" in k else len(v3) for k in fns}
+    return (
+        "Same run, read_stream of the quantised stream without template (MB/s, best / median): "
+        + ", ".join(f"{k} {sizes[k] / 1e6 / t[0]:.0f} / {sizes[k] / 1e6 / t[1]:.0f}" for k, t in times.items())
+        + "."
+    )
+
+
 def run(quick: bool = False) -> str:
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     from progressive_avatars.core.stream import format as S
@@ -165,6 +194,8 @@ def run(quick: bool = False) -> str:
         "64 KiB pieces -> Avatar MB/s | read_stream MB/s | base level bytes (faces) | base s @ 10 Mbit/s | write s |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
         *rows,
+        "",
+        old_against_new(av, imp, reps),
         "",
     ]
     return "\n".join(lines)
