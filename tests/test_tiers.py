@@ -11,7 +11,7 @@ import textwrap
 import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-BLOCKED = ("torch", "numba", "trimesh", "PIL", "scipy", "matplotlib", "plyfile")
+BLOCKED = ("torch", "numba", "trimesh", "PIL", "scipy", "matplotlib", "plyfile", "tqdm")
 BLENDER_TIER = ("geometry", "avatar", "stream", "io", "flame", "bridge")
 
 # Run in a subprocess: a blocked name must fail at import wherever it is imported from.

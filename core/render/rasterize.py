@@ -353,6 +353,15 @@ def _render_gsplat(
 # ----------------------------------------------------------------------------- public API
 
 
+def _cpu_inputs(means, colors, background, tensors):
+    """The CPU path's background (zeros by default) and screen-space gradient leaf means2d."""
+    if background is None:
+        background = torch.zeros(colors.shape[1], dtype=means.dtype, device=means.device)
+    # Only a graph that will be differentiated needs the screen-space gradient leaf.
+    track = torch.is_grad_enabled() and any(x.requires_grad for x in tensors)
+    return background, torch.zeros(means.shape[0], 2, dtype=means.dtype, device=means.device, requires_grad=track)
+
+
 def render(
     means,
     quats,
@@ -391,12 +400,7 @@ def render(
             means, quats, scales, opacities, colors, background, camera, near, eps2d, return_depth, compute_contrib
         )
 
-    n, n_ch = means.shape[0], colors.shape[1]
-    if background is None:
-        background = torch.zeros(n_ch, dtype=means.dtype, device=means.device)
-    # Only a graph that will be differentiated needs the screen-space gradient leaf.
-    track = torch.is_grad_enabled() and any(x.requires_grad for x in tensors)
-    means2d = torch.zeros(n, 2, dtype=means.dtype, device=means.device, requires_grad=track)
+    background, means2d = _cpu_inputs(means, colors, background, tensors)
     image, alpha, contrib, radii = _RasterizeCPU.apply(
         means,
         quats,
@@ -415,6 +419,7 @@ def render(
     image, alpha = image[0], alpha[0]
     depth = None
     if return_depth:
+        n_ch = colors.shape[1]
         # Channel n_ch carries sum_i z_i alpha_i T_i; dividing by alpha gives the expected z.
         acc = image[..., n_ch]
         depth = torch.where(alpha > 1e-10, acc / alpha.clamp_min(1e-10), torch.zeros_like(acc))
@@ -478,11 +483,7 @@ def render_levels(
             )
         return outs
     _validate(means, quats, scales, opacities, colors, background, camera, near, eps2d)
-    n, n_ch = means.shape[0], colors.shape[1]
-    if background is None:
-        background = torch.zeros(n_ch, dtype=means.dtype, device=means.device)
-    track = torch.is_grad_enabled() and any(x.requires_grad for x in tensors)
-    means2d = torch.zeros(n, 2, dtype=means.dtype, device=means.device, requires_grad=track)
+    background, means2d = _cpu_inputs(means, colors, background, tensors)
     images, alphas, contrib, radii = _RasterizeCPU.apply(
         means,
         quats,

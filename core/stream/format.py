@@ -847,7 +847,7 @@ def write_stream(
             "DC colour only (docs/FORMAT.md). Pass drop_sh=True (export.py --drop-sh) to stream "
             "its view-independent colour, or export a PLY to keep every band"
         )
-    N, F0 = forest.num_faces, forest.num_roots
+    N = forest.num_faces
     if not 1 <= int(records_per_block) <= 0xFFFF:
         raise ValueError(f"write_stream: records_per_block must be in [1, 65535], got {records_per_block}")
     limit = QUANT_ROOT if quantize else LOSSLESS_ROOT
@@ -1038,39 +1038,6 @@ class _Columns:
     def hand_out(self, name, n) -> np.ndarray:
         self.shared = True
         return self.cols[name][:n]
-
-
-def _trusted_forest(
-    template_faces,
-    parent,
-    slot,
-    split_logits,
-    children,
-    level,
-    root,
-    coarse_faces=None,
-    coarse_counts=(),
-    root_ref=None,
-) -> Forest:
-    """The reader has checked every rule Forest._derive enforces (see Forest.from_verified)."""
-    return Forest.from_verified(
-        template_faces,
-        parent,
-        slot,
-        split_logits,
-        children,
-        level,
-        root,
-        coarse_faces=coarse_faces,
-        coarse_counts=coarse_counts,
-        root_ref=root_ref,
-    )
-
-
-def _trusted_avatar(forest, params, meta) -> Avatar:
-    """Float32 arrays of the right shapes known to be finite (see Avatar.from_verified); the
-    format carries SH degree 0."""
-    return Avatar.from_verified(forest, dict(zip(PARAM_NAMES, params)), meta)
 
 
 def _block_seeds(header_crc: int, n: int) -> np.ndarray:
@@ -1497,7 +1464,6 @@ class StreamReader:
             )
         self._decode()
         h = self.header
-        F0 = h.num_template_faces
         c = self._cols
         forest = self._forest(tmpl, n)
         meta = dict(h.metadata)
@@ -1514,7 +1480,8 @@ class StreamReader:
         }
         params = [c.hand_out(name, n) for name in PARAM_NAMES]
         if self._finite:
-            return _trusted_avatar(forest, params, meta)
+            # Verified record by record: no second validation pass (the format carries SH degree 0).
+            return Avatar.from_verified(forest, dict(zip(PARAM_NAMES, params)), meta)
         return Avatar(forest, *params, meta=meta)
 
     def _forest(self, tmpl, n) -> Forest:
@@ -1542,7 +1509,7 @@ class StreamReader:
             root_ref = np.arange(nroot, dtype=np.int64)
         K = h.num_coarse_levels
         coarse = h.coarse_faces if K else np.zeros((0, 3), np.int32)
-        return _trusted_forest(
+        return Forest.from_verified(  # _check verified every rule Forest._derive enforces
             np.asarray(tmpl, np.int32),
             parent,
             self._cols.hand_out("slot", n),
@@ -1550,9 +1517,9 @@ class StreamReader:
             children,
             level,
             root,
-            coarse,
-            tuple(h.level_counts[:K]),
-            root_ref,
+            coarse_faces=coarse,
+            coarse_counts=tuple(h.level_counts[:K]),
+            root_ref=root_ref,
         )
 
 
