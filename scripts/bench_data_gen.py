@@ -1,4 +1,4 @@
-"""Benchmark of synthetic dataset generation (core/synthetic/head.py).
+"""Benchmark of synthetic dataset generation (core/synthetic/dataset.py).
 
     python scripts/bench_data_gen.py [--quick]
 
@@ -22,7 +22,7 @@ import sys as _sys
 _sys.path.insert(0, _os.path.dirname(_os.path.abspath(__file__)))
 import _bootstrap
 
-from progressive_avatars.core.synthetic import head as synthetic
+from progressive_avatars.core.synthetic import dataset, surface
 
 
 def _machine() -> str:
@@ -48,9 +48,9 @@ def run(quick: bool = False) -> str:
     command = "python scripts/make_synthetic.py --out DIR " + " ".join(f"--{k} {v}" for k, v in config.items())
     with tempfile.TemporaryDirectory(prefix="pa_bench_synth_") as tmp:
         t0 = time.perf_counter()
-        synthetic.head_template()  # build (or reuse) the template outside the timed generation
+        surface.head_template()  # build (or reuse) the template outside the timed generation
         t_template = time.perf_counter() - t0
-        s = synthetic.make_dataset(os.path.join(tmp, "ds"), progress=False, **config)
+        s = dataset.make_dataset(os.path.join(tmp, "ds"), progress=False, **config)
     lines = [
         "## Synthetic dataset generation" + (" (quick)" if quick else ""),
         "",

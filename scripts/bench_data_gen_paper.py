@@ -24,7 +24,7 @@ _sys.path.insert(0, _os.path.dirname(_os.path.abspath(__file__)))
 import _bootstrap  # noqa: F401
 
 from bench_data_gen import _machine
-from progressive_avatars.core.synthetic import head as synthetic
+from progressive_avatars.core.synthetic import dataset, surface
 
 PRESET_IMAGES = 16 * 10 * 4
 WORKERS = 2
@@ -37,14 +37,14 @@ def _cpu():
 
 def run(quick: bool = False) -> str:
     load = os.getloadavg()[0]
-    synthetic._paper_cached.cache_clear()
+    surface._paper_cached.cache_clear()
     c0, w0 = _cpu(), time.perf_counter()
-    tv, tf, fv, ff = synthetic.paper_head()
+    tv, tf, fv, ff = surface.paper_head()
     build_cpu, build_wall = _cpu() - c0, time.perf_counter() - w0
     cameras, frames = 2, 1
     with tempfile.TemporaryDirectory(prefix="pa_bench_paper_") as tmp:
         c0, w0 = _cpu(), time.perf_counter()
-        s = synthetic.make_dataset(
+        s = dataset.make_dataset(
             os.path.join(tmp, "ds"),
             resolution=802,
             cameras=cameras,

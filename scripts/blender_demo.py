@@ -34,14 +34,14 @@ def builtin_inputs(folder, frames=24, seed=0):
     """The synthetic head posed over `frames` frames, and a stream of Gaussians on it coloured
     by the head's procedural albedo (a stand-in when no trained run exists)."""
     from progressive_avatars.core.avatar import binding
-    from progressive_avatars.core.synthetic import head as synthetic
+    from progressive_avatars.core.synthetic import rig, surface, texture
     from progressive_avatars.core.avatar.avatar import SH_C0, Avatar
     from progressive_avatars.core.avatar.forest import Forest
     from progressive_avatars.core.stream.format import write_stream
 
     rng = np.random.default_rng(seed)
-    v, f = synthetic.head_template(4)
-    verts = np.stack([synthetic.pose_head(v, synthetic.sequence_params(0, t, frames)) for t in range(frames)])
+    v, f = surface.head_template(4)
+    verts = np.stack([rig.pose_head(v, rig.sequence_params(0, t, frames)) for t in range(frames)])
     seq = os.path.join(folder, "sequence.npz")
     np.savez(seq, vertices=verts.astype(np.float32), faces=f)
     forest = Forest(f)
@@ -49,12 +49,12 @@ def builtin_inputs(folder, frames=24, seed=0):
     for _ in range(2):  # deeper where the albedo varies most: eyes, mouth, hair line
         leaves = forest.leaves()
         t = binding.evaluate(forest, v, ids=leaves).t
-        detail = np.linalg.norm(synthetic.albedo(t) - synthetic.albedo(t * 1.01), axis=1)
+        detail = np.linalg.norm(texture.albedo(t) - texture.albedo(t * 1.01), axis=1)
         forest.split(leaves[detail > np.quantile(detail, 0.6)])
     geo = binding.evaluate(forest, v)
     av = Avatar.initial(forest)
     N = forest.num_faces
-    av.f_dc[:] = (synthetic.albedo(geo.t) - 0.5) / SH_C0
+    av.f_dc[:] = (texture.albedo(geo.t) - 0.5) / SH_C0
     av.d_log_scale[:] = np.log(0.55) + rng.normal(0, 0.05, (N, 3))
     av.d_log_scale[:, 1] = np.log(0.12)  # flat along the normal, like trained surface splats
     av.opacity_logit[:] = 3.0

@@ -8,7 +8,7 @@
 
 --preset paper: 16 cameras at 550x802 px, 10 sequences of 4 frames (9 train, 1 novel-expression
 test; camera 8 held out), the 8192-face paper-scale template (FLAME-like uneven density) and images
-ray-cast from its 16x finer displaced surface (core/synthetic/head.py paper_head), two worker processes.
+ray-cast from its 16x finer displaced surface (core/synthetic/surface.py paper_head), two worker processes.
 Options given explicitly override the preset's.
 
 Writes canonical_mesh.npz, meshes/, images/, fg_masks/, transforms_{train,val,test}.json,
@@ -27,7 +27,7 @@ import sys as _sys
 _sys.path.insert(0, _os.path.dirname(_os.path.abspath(__file__)))
 import _bootstrap
 
-from progressive_avatars.core.synthetic import head as synthetic
+from progressive_avatars.core.synthetic import dataset
 
 
 PRESETS = {
@@ -102,13 +102,13 @@ def main(argv=None):
         ap.error("--resolution-scale must be positive")
     kw["resolution"] = max(8, int(round(kw["resolution"] * args.resolution_scale)))
 
-    summary = synthetic.make_dataset(args.out, seed=args.seed, progress=not args.quiet, **kw)
-    sheet = synthetic.contact_sheet(args.out, os.path.join(args.out, "contact_sheet.png"))
+    summary = dataset.make_dataset(args.out, seed=args.seed, progress=not args.quiet, **kw)
+    sheet = dataset.contact_sheet(args.out, os.path.join(args.out, "contact_sheet.png"))
     if args.contact_sheet:
         os.makedirs(os.path.dirname(os.path.abspath(args.contact_sheet)), exist_ok=True)
         shutil.copyfile(sheet, args.contact_sheet)
     if args.closeup:
-        synthetic.render_closeup(args.closeup, height=args.closeup_height, detail=kw.get("detail", "default"))
+        dataset.render_closeup(args.closeup, height=args.closeup_height, detail=kw.get("detail", "default"))
     s = summary
     print(
         f"wrote {s['out']}: {s['timesteps']} timesteps x {s['cameras']} cameras = {s['images']} images "

@@ -6,7 +6,7 @@ import pytest
 @pytest.fixture(scope="session")
 def tiny_dataset(tmp_path_factory):
     """A small synthetic multi-view head dataset, generated once per test session."""
-    from progressive_avatars.core.synthetic.head import make_dataset
+    from progressive_avatars.core.synthetic.dataset import make_dataset
 
     out = tmp_path_factory.mktemp("synthetic")
     make_dataset(str(out), resolution=40, cameras=5, sequences=3, frames=2, seed=0, progress=False)

@@ -194,7 +194,7 @@ def test_manifest_validates_and_builds(session):
     # Training and export run from the zip (core/train/jobs.py); the synthetic-data generator and the
     # evaluation report/plots are not shipped.
     assert {"core/train/jobs.py", "core/train/trainer.py", "core/io/run.py", "core/io/mesh_io.py"} <= set(names)
-    assert not {"core/synthetic/head.py", "core/evaluate/sweep.py", "core/evaluate/plots.py"} & set(names)
+    assert not {"core/synthetic/dataset.py", "core/evaluate/sweep.py", "core/evaluate/plots.py"} & set(names)
 
 
 def test_installs_and_enables_in_clean_blender(session):

@@ -121,7 +121,7 @@ def test_broken_val_split_is_an_error_not_dropped(data_copy, tmp_path):
 
 # -- training ---------------------------------------------------------------------------
 def test_resume_with_other_data_refused(tiny_dataset, tmp_path):
-    from progressive_avatars.core.synthetic.head import make_dataset
+    from progressive_avatars.core.synthetic.dataset import make_dataset
 
     cfg = config_for("tiny", iterations=3, checkpoint_every=2, eval_every=1000, log_every=1)
     run = tmp_path / "run"

@@ -8,20 +8,20 @@ import pytest
 import trimesh
 from PIL import Image
 
-from progressive_avatars.core.synthetic import head as S
+from progressive_avatars.core.synthetic import dataset, raycast, rig, surface, texture
 from progressive_avatars.core.geometry.camera import Camera
 
 
 @pytest.fixture(scope="module")
 def template():
-    return S.head_template()
+    return surface.head_template()
 
 
 def _face_regions(v, f):
     c = v[f].mean(axis=1)
     x, y, z = c.T
     eyes = (z > 0.06) & (np.abs(y - 0.018) < 0.008) & (np.abs(np.abs(x) - 0.032) < 0.012)
-    mouth = (z > 0.06) & (np.abs(y - S.MOUTH_Y) < 0.008) & (np.abs(x) < 0.022)
+    mouth = (z > 0.06) & (np.abs(y - surface.MOUTH_Y) < 0.008) & (np.abs(x) < 0.022)
     back = (z < -0.05) & (y > -0.05)
     cheeks = (z > 0.03) & (np.abs(np.abs(x) - 0.05) < 0.01) & (np.abs(y + 0.025) < 0.01)
     scalp = y > 0.09
@@ -48,16 +48,16 @@ def test_template_watertight_sized_and_uneven(template):
 
 def test_rig_smooth_finite_and_jaw_opens(template):
     v, _ = template
-    assert np.array_equal(S.pose_head(v, S.neutral_params()), v)
+    assert np.array_equal(rig.pose_head(v, rig.neutral_params()), v)
     # lowest frontal vertex of the face (above the throat)
     chin = np.argmin(np.where((v[:, 2] > 0.06) & (np.abs(v[:, 0]) < 0.01) & (v[:, 1] > -0.14), v[:, 1], np.inf))
     assert -0.13 < v[chin, 1] < -0.09
-    opened = S.pose_head(v, {"jaw": 1.0})
+    opened = rig.pose_head(v, {"jaw": 1.0})
     assert opened[chin, 1] < v[chin, 1] - 0.01
     forehead = np.argmax(np.where(v[:, 2] > 0.05, v[:, 1], -np.inf))
     assert np.allclose(opened[forehead], v[forehead], atol=1e-6)
     full = {"jaw": 1.0, "blink": 1.0, "smile": 1.0, "rotation": (25.0, 15.0, 10.0), "translation": (0.02, 0.01, 0.0)}
-    prev = S.pose_head(v, S.neutral_params())
+    prev = rig.pose_head(v, rig.neutral_params())
     for a in np.linspace(0.05, 1.0, 20):  # small parameter steps move vertices by small amounts
         p = {
             "jaw": a,
@@ -66,21 +66,21 @@ def test_rig_smooth_finite_and_jaw_opens(template):
             "rotation": tuple(a * np.array(full["rotation"])),
             "translation": tuple(a * np.array(full["translation"])),
         }
-        cur = S.pose_head(v, p)
+        cur = rig.pose_head(v, p)
         assert np.all(np.isfinite(cur))
         assert np.abs(cur - prev).max() < 0.012
         prev = cur
     for smile in (-1.0, 1.0):
-        assert np.all(np.isfinite(S.pose_head(v, {"smile": smile})))
+        assert np.all(np.isfinite(rig.pose_head(v, {"smile": smile})))
     # sequences are smooth in time and the test sequence differs from all training ones
-    seq = [S.sequence_params(0, k, 8) for k in range(8)]
+    seq = [rig.sequence_params(0, k, 8) for k in range(8)]
     jaws = np.array([p["jaw"] for p in seq])
     assert np.abs(np.diff(jaws)).max() < 0.6 and jaws.max() > 0.5
 
 
 def test_detail_higher_on_scalp_eyes_lips_than_cheeks(template):
     v, f = template
-    d = S.face_detail(v, f)
+    d = texture.face_detail(v, f)
     assert d.shape == (len(f),) and d.dtype == np.float32 and np.all(np.isfinite(d))
     r = _face_regions(v, f)
     cheeks = np.mean(d[r["cheeks"]])
@@ -92,8 +92,8 @@ def test_coarse_template_dataset_tracks_the_same_imaged_head(tmp_path):
     """--template-subdivisions 3: a 1280-face tracked mesh whose vertices are a subset of the
     imaged 5120-face surface in every frame (same rig), and the very same images."""
     kw = dict(resolution=24, cameras=2, sequences=2, frames=2, progress=False)
-    S.make_dataset(tmp_path / "fine", **kw)
-    summary = S.make_dataset(tmp_path / "coarse", template_subdivisions=3, **kw)
+    dataset.make_dataset(tmp_path / "fine", **kw)
+    summary = dataset.make_dataset(tmp_path / "coarse", template_subdivisions=3, **kw)
     assert summary["faces"] == 1280 and summary["vertices"] == 642
     with np.load(tmp_path / "coarse" / "canonical_mesh.npz") as z:
         assert z["faces"].shape == (1280, 3) and z["faces"].max() == 641
@@ -113,9 +113,9 @@ def test_coarse_template_dataset_tracks_the_same_imaged_head(tmp_path):
 
 def test_tiny_dataset(tmp_path):
     out = tmp_path / "ds"
-    summary = S.make_dataset(out, resolution=32, cameras=4, sequences=2, frames=2, progress=False)
+    summary = dataset.make_dataset(out, resolution=32, cameras=4, sequences=2, frames=2, progress=False)
     assert summary["images"] == 2 * 2 * 4
-    v, f = S.head_template()
+    v, f = surface.head_template()
     with np.load(out / "canonical_mesh.npz") as z:
         assert z["faces"].dtype == np.int32 and z["vertices"].dtype == np.float32
         assert z["vertices"].shape == v.shape and np.array_equal(z["faces"], f)
@@ -128,7 +128,7 @@ def test_tiny_dataset(tmp_path):
             docs[split] = json.load(fh)
         assert docs[split]["background"] == [1.0, 1.0, 1.0]
         assert isinstance(docs[split]["sequences"], list)
-    held = S.held_out_camera(4)
+    held = raycast.held_out_camera(4)
     train, val, test = docs["train"]["frames"], docs["val"]["frames"], docs["test"]["frames"]
     # 1 training sequence x 2 frames x 3 cameras; held-out camera on training timesteps; test sequence x all cameras
     assert len(train) == 1 * 2 * 3 and len(val) == 1 * 2 * 1 and len(test) == 1 * 2 * 4
@@ -156,7 +156,7 @@ def test_tiny_dataset(tmp_path):
         with np.load(out / fr["mesh_path"]) as z:
             verts = z["vertices"]
         assert verts.shape == v.shape
-        vn = S.vertex_normals(verts, f)
+        vn = surface.vertex_normals(verts, f)
         facing = np.einsum("nd,nd->n", vn, cam.center - verts) > 0
         uv, depth = cam.project(verts[facing])
         assert np.all(depth > 0)
@@ -169,11 +169,11 @@ def test_tiny_dataset(tmp_path):
 
 def test_render_views_pixel_centres_and_coverage(template):
     v, f = template
-    cams = S.make_cameras(2, resolution=24)
-    images, masks = S.render_views(v, f, cams, supersample=1)
+    cams = raycast.make_cameras(2, resolution=24)
+    images, masks = raycast.render_views(v, f, cams, supersample=1)
     assert images.shape == (2, 24, 16, 3) and masks.shape == (2, 24, 16)
     assert set(np.unique(masks)) <= {0.0, 1.0}
-    origins, dirs = S.camera_rays(cams[0], 1)
+    origins, dirs = raycast.camera_rays(cams[0], 1)
     uv, _ = cams[0].project(origins[0, 0] + dirs * 1.0)
     j, i = np.mgrid[0:24, 0:16]
     assert np.allclose(uv[..., 0], i + 0.5) and np.allclose(uv[..., 1], j + 0.5)
@@ -185,7 +185,7 @@ def test_paper_head_flame_sized_uneven_and_finer_imaged_surface():
     (eyes, mouth and nose several times denser than the scalp, back of the head and neck), and
     an imaged surface 4x finer per subdivision level whose first vertices are the template's,
     displaced off it by millimetres where the template is coarse (hair, ears, collar)."""
-    tv, tf, fv, ff = S.paper_head(surface_levels=1)  # one level finer keeps the test quick
+    tv, tf, fv, ff = surface.paper_head(surface_levels=1)  # one level finer keeps the test quick
     assert 8000 <= len(tf) <= 12000 and len(ff) == 4 * len(tf)
     mesh = trimesh.Trimesh(tv, tf, process=False)
     assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0
@@ -206,6 +206,7 @@ def test_paper_head_flame_sized_uneven_and_finer_imaged_surface():
     pts = fv[(fv[:, 1] > 0.09) | (fv[:, 1] < -0.212)].astype(np.float64)
     step = np.array([0.0003, 0.0002, 0.0001])
     jump = {
-        name: np.abs(fn(pts) - fn(pts + step)).mean() for name, fn in (("paper", S.paper_albedo), ("default", S.albedo))
+        name: np.abs(fn(pts) - fn(pts + step)).mean()
+        for name, fn in (("paper", texture.paper_albedo), ("default", texture.albedo))
     }
     assert jump["paper"] > 1.5 * jump["default"], jump
