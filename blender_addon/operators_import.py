@@ -48,7 +48,7 @@ class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
     )
 
     def execute(self, context):
-        from ..core.io import data
+        from ..core.io import sequences
         from ..core.flame import model as flame
         from ..core.flame import rig as flame_rig
 
@@ -64,13 +64,13 @@ class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
         try:
             rig = None
             if self.as_rig:
-                seq = data.read_flame_track(path)
+                seq = sequences.read_flame_track(path)
                 try:
                     rig = flame_rig.build_flame_rig(flame.load_flame_model(model), seq.params)
                 except ValueError as exc:  # parameters that do not fit the model
-                    raise data.DataError(f"{path}: {exc}") from exc
+                    raise sequences.DataError(f"{path}: {exc}") from exc
             else:
-                seq = data.read_sequence(path, flame_model=model)
+                seq = sequences.read_sequence(path, flame_model=model)
         except Exception as exc:  # the readers' messages name the file and the problem
             self.report({"ERROR"}, f"Cannot read sequence: {exc}")
             return {"CANCELLED"}
@@ -124,11 +124,11 @@ class PA_OT_import_cameras(bpy.types.Operator):
         return {"RUNNING_MODAL"}
 
     def execute(self, context):
-        from ..core.io import data
+        from ..core.io.dataset import Dataset
 
         root = bpy.path.abspath(self.directory)
         try:
-            cams = data.Dataset(root, self.split, flame_model=prefs.flame_model(context) or None).cameras
+            cams = Dataset(root, self.split, flame_model=prefs.flame_model(context) or None).cameras
         except Exception as exc:
             self.report({"ERROR"}, f"Cannot read dataset cameras: {exc}")
             return {"CANCELLED"}

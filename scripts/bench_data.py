@@ -24,7 +24,7 @@ import time
 import numpy as np
 
 from progressive_avatars.core.geometry.camera import Camera
-from progressive_avatars.core.io.data import Dataset
+from progressive_avatars.core.io.dataset import Dataset
 
 
 def _write_tiny_dataset(root: str, cameras: int, timesteps: int, size: int) -> None:

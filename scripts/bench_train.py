@@ -64,7 +64,7 @@ def old_package():
 
 
 # Where each module lives in this tree's tier folders; the old tree (f6907ae) is flat.
-_NEW_PLACES = {"camera": "geometry.camera", "data": "io.data", "losses": "train.losses"}
+_NEW_PLACES = {"camera": "geometry.camera", "data": "io.dataset", "losses": "train.losses"}
 
 
 def _in(train_mod, name):

@@ -145,12 +145,12 @@ def main(argv=None):
     stream = find_stream(args.run) if args.run else None
     camera = None
     if stream and args.data:
-        from progressive_avatars.core.io import data
+        from progressive_avatars.core.io.dataset import Dataset
 
         ds = (
-            data.Dataset(args.data, "test")
+            Dataset(args.data, "test")
             if os.path.exists(os.path.join(args.data, "transforms_test.json"))
-            else data.Dataset(args.data, "train")
+            else Dataset(args.data, "train")
         )
         seq = ds.sequence()
         sequence = os.path.join(out, "sequence.npz")

@@ -60,7 +60,7 @@ def main(argv=None):
         return 2
     stream_path = args.stream or os.path.join(args.run, "avatar.pavs")
     try:
-        from progressive_avatars.core.io.data import Dataset
+        from progressive_avatars.core.io.dataset import Dataset
 
         ds = Dataset(data, None, flame_model=runs.run_flame_model(args.run, args.flame_model))
         info = stream.write_stream(

@@ -210,7 +210,7 @@ def main(argv=None):
     args = ap.parse_args(_own_args() if argv is None else argv)
     from PIL import Image
 
-    from progressive_avatars.core.io import data
+    from progressive_avatars.core.io.dataset import Dataset
     from progressive_avatars.core.geometry.camera import Camera
     from progressive_avatars.core.render.rasterize import render_numpy
 
@@ -223,7 +223,7 @@ def main(argv=None):
     if stream is None:
         raise SystemExit(f"{args.run}: no .pavs stream in this run")
     split = "test" if os.path.exists(os.path.join(args.data, "transforms_test.json")) else "train"
-    ds = data.Dataset(args.data, split)
+    ds = Dataset(args.data, split)
     seq = ds.sequence()
     sequence = os.path.join(out, "sequence.npz")
     np.savez(sequence, vertices=seq.vertices, faces=seq.faces)

@@ -68,7 +68,7 @@ def _no_error(rep, name):
 @pytest.fixture(scope="module")
 def cut_session(tiny_run, tiny_dataset, tmp_path_factory):
     from progressive_avatars.core.avatar.avatar import Avatar
-    from progressive_avatars.core.io.data import Dataset
+    from progressive_avatars.core.io.dataset import Dataset
     from progressive_avatars.core.stream.format import read_header, write_stream
 
     tmp = str(tmp_path_factory.mktemp("guard"))
@@ -327,7 +327,7 @@ def train_session(tiny_dataset, tmp_path_factory):
     from test_train import _flame_mode_dataset
 
     from progressive_avatars.core.avatar.avatar import Avatar
-    from progressive_avatars.core.io.data import Dataset
+    from progressive_avatars.core.io.dataset import Dataset
     from progressive_avatars.core.stream.format import write_stream
     from tests.helpers import random_forest, sphere_mesh
 

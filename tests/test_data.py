@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from progressive_avatars.core.geometry.camera import Camera
-from progressive_avatars.core.io.data import (
+from progressive_avatars.core.io.dataset import Dataset
+from progressive_avatars.core.io.sequences import (
     DataError,
-    Dataset,
     MeshSequence,
     MissingFileError,
     read_flame_param_folder,
@@ -471,7 +471,7 @@ def test_flame_mode_dataset(tmp_path, flame_model):
 
 
 def test_flame_track_reads_parameters_without_a_model(tmp_path, flame_model):
-    from progressive_avatars.core.io.data import read_flame_track
+    from progressive_avatars.core.io.sequences import read_flame_track
 
     prm = random_params(4, seed=8)
     np.savez(tmp_path / "tracked.npz", **prm)

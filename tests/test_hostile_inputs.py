@@ -388,7 +388,8 @@ def test_refused_duplicate_keeps_a_correct_forest(block):
 
 
 def test_dataset_json_nesting_bounded(tmp_path):
-    from progressive_avatars.core.io.data import DataError, Dataset
+    from progressive_avatars.core.io.dataset import Dataset
+    from progressive_avatars.core.io.sequences import DataError
 
     (tmp_path / "transforms_train.json").write_text('{"frames": ' + "[" * 3000 + "]" * 3000 + "}")
     with pytest.raises(DataError, match=r"transforms_train\.json: invalid JSON.*nested 3001 levels"):

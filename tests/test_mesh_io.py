@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from progressive_avatars.core.io import mesh_io
-from progressive_avatars.core.io.data import DataError, read_sequence
+from progressive_avatars.core.io.sequences import DataError, read_sequence
 from tests.helpers import sphere_mesh
 
 

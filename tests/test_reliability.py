@@ -15,7 +15,8 @@ from progressive_avatars.core.io import atomic
 from progressive_avatars.core.avatar.avatar import LOG_SCALE_MAX, Avatar
 from progressive_avatars.core.avatar.binding import quat_normalize
 from progressive_avatars.core.train.binding_torch import quat_normalize as quat_normalize_torch
-from progressive_avatars.core.io.data import DataError, Dataset
+from progressive_avatars.core.io.dataset import Dataset
+from progressive_avatars.core.io.sequences import DataError
 from progressive_avatars.core.train.trainer import Trainer, config_for
 from progressive_avatars.core.io.validate import dataset_problems
 from tests.helpers import random_forest, sphere_mesh

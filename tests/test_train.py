@@ -96,7 +96,7 @@ def test_adam_grows_with_new_rows():
 @pytest.mark.slow  # a training run or a subprocess
 def test_extreme_expressions_stay_finite(tiny_dataset, tmp_path):
     """10x the tiny preset's iterations on exaggerated meshes (crumpled, repeated vertices) never goes NaN."""
-    from progressive_avatars.core.io.data import Dataset
+    from progressive_avatars.core.io.dataset import Dataset
 
     iterations = 10 * config_for("tiny").iterations
     tr = Trainer(

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..io import run as runs
-from ..io.data import Dataset
+from ..io.dataset import Dataset
 from ..stream import format as stream
 from . import plots
 from .sweep import SplitRenderer, importance_only, random_within_levels

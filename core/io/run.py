@@ -60,7 +60,7 @@ def run_importance(run: str, avatar: Avatar, data: str, max_views: int | None = 
             W = np.load(path, allow_pickle=False)
             if W.shape == (avatar.num_gaussians,):
                 return W
-    from .data import Dataset
+    from .dataset import Dataset
     from ..render.importance import face_importance
 
     W = face_importance(

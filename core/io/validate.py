@@ -16,7 +16,8 @@ import os
 
 import numpy as np
 
-from .data import DataError, Dataset
+from .dataset import Dataset
+from .sequences import DataError
 from .safe_io import loads_json
 
 __all__ = ["validate_dataset", "dataset_problems"]

@@ -20,7 +20,7 @@ import torch
 
 from . import losses
 from ..avatar.avatar import PARAM_NAMES
-from ..io.data import Dataset
+from ..io.dataset import Dataset
 from ..io.atomic import atomic_open, atomic_savez
 from ..avatar.forest import Forest
 from .model import TorchAvatar

@@ -1,39 +1,32 @@
-"""Mesh sequences, sequence readers and dataset loading (layout: docs/DATASET.md).
+"""Mesh sequences and the sequence readers Blender's importers call (layout: docs/DATASET.md).
 
 Sequence readers turn the tracked-geometry formats users have into one ``MeshSequence``
 (fixed faces, per-frame vertices), evaluating only the frames asked for:
 - GaussianAvatars/VHAP per-frame folder ``flame_param/*.npz`` (needs a FLAME model),
 - VHAP ``tracked_flame_params_*.npz`` (T-stacked; needs a FLAME model),
 - NeRSemble benchmark FLAME tracking npz (needs a FLAME model),
-- mesh npz (``vertices`` [T,V,3] + ``faces``), a folder of OBJ/PLY frames (trimesh).
+- mesh npz (``vertices`` [T,V,3] + ``faces``), a folder of OBJ/PLY frames (core/io/mesh_io.py),
+- a dataset root (``transforms_*.json``): its tracked geometry, through ``dataset.Dataset``.
 
-``Dataset`` reads the GaussianAvatars/VHAP ``transforms_{split}.json`` layout in FLAME mode
-(``flame_param_path``) or mesh mode (``mesh_path``), loading images lazily through an LRU cache.
-
-numpy only at module level (this module runs inside Blender): PIL and trimesh are imported
-where images or OBJ/PLY files are read.
+Blender tier: numpy only (this module runs inside Blender).
 """
 
 from __future__ import annotations
 
 import os
 import re
-from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry.camera import Camera
 from ..flame.model import FlameModel, flame_forward, load_flame_model
-from .safe_io import check_npz, loads_json
+from .safe_io import check_npz
+
 
 __all__ = [
     "DataError",
     "MissingFileError",
     "MeshSequence",
-    "Sample",
-    "FrameInfo",
-    "Dataset",
     "read_sequence",
     "read_flame_track",
     "FlameTrack",
@@ -46,7 +39,6 @@ __all__ = [
 ]
 
 _MESH_EXTS = (".obj", ".ply")
-_IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 
 
 class DataError(ValueError):
@@ -457,6 +449,8 @@ def _read(path, frames, flame_model, evaluate):
                         "folder or a tracked-parameter npz"
                     )
                 split = None if js == "transforms.json" else js[len("transforms_") : -len(".json")]
+                from .dataset import Dataset  # dataset.py builds on this module's readers
+
                 return Dataset(path, split, flame_model=flame_model).sequence(frames)
         npz = sorted((n for n in names if n.endswith(".npz")), key=natural_key)
         if (
@@ -498,354 +492,3 @@ def _read(path, frames, flame_model, evaluate):
             "VHAP/GaussianAvatars FLAME parameters or a NeRSemble FLAME tracking file"
         )
     raise DataError(f"{path}: unsupported sequence format (expected .npz, .obj, .ply or a folder of them)")
-
-
-# --------------------------------------------------------------------------------------
-# Dataset
-
-
-@dataclass(frozen=True)
-class FrameInfo:
-    """One row of ``transforms_{split}.json``, resolved (no pixels loaded)."""
-
-    index: int
-    image_path: str
-    mask_path: str | None
-    camera: Camera  # already scaled for the dataset's downscale
-    full_size: tuple  # (w, h) as stored in the JSON
-    timestep_index: int
-    camera_index: int
-    geometry_path: str
-
-
-@dataclass
-class Sample:
-    camera: Camera
-    image: np.ndarray  # float32 [H,W,3] in [0,1]
-    mask: np.ndarray  # float32 [H,W] in [0,1]
-    vertices: np.ndarray  # float32 [V,3]
-    timestep_index: int
-    camera_index: int
-    index: int = -1
-    image_path: str = ""
-
-
-def _to_8bit(im, path: str, what: str):
-    """16-bit greyscale PNGs (PIL modes I;16*, I) rescaled to 8-bit L: PIL's own convert
-    clips them at 255, so they would read as pure white."""
-    if im.mode in ("I;16", "I;16L", "I;16B", "I"):
-        from PIL import Image
-
-        a = np.asarray(im, dtype=np.float64)
-        if a.size and (a.min() < 0 or a.max() > 65535):
-            raise DataError(f"{path}: {what} has 32-bit pixel values outside 0..65535")
-        return Image.fromarray(np.round(a * (255.0 / 65535.0)).astype(np.uint8), "L")
-    if im.mode not in ("RGB", "RGBA", "L", "LA", "P", "1", "CMYK", "YCbCr"):
-        raise DataError(f"{path}: {what} has pixel format {im.mode!r}; use 8-bit RGB/RGBA/L or 16-bit greyscale PNG")
-    return im
-
-
-def _resolve(root: str, rel: str) -> str:
-    return os.path.normpath(rel if os.path.isabs(rel) else os.path.join(root, rel))
-
-
-def _find_image(root: str, rel: str, json_path: str, what: str) -> str:
-    p = _resolve(root, rel)
-    if os.path.isfile(p):
-        return p
-    if not os.path.splitext(p)[1]:
-        for ext in _IMAGE_EXTS:
-            if os.path.isfile(p + ext):
-                return p + ext
-    raise MissingFileError(f"{p}: {what} listed in {json_path} not found")
-
-
-class Dataset:
-    """GaussianAvatars/VHAP layout: ``root/transforms_{split}.json`` + images, masks, geometry.
-
-    ``downscale`` divides the image size (2.0: half width and height); intrinsics scale with
-    it. Images are decoded on access and kept in an LRU cache of at most ``cache_images`` entries
-    (0 disables it) and, when ``cache_bytes`` is given, at most that many bytes of decoded
-    image and mask arrays (a paper-scale frame is ~7 MB); per-timestep vertices are cached
-    without bound (they are small).
-    """
-
-    def __init__(
-        self,
-        root,
-        split: str | None = "train",
-        downscale: float = 1.0,
-        cache_images: int = 256,
-        flame_model=None,
-        cache_bytes: int | None = None,
-    ):
-        self.root = os.path.abspath(os.fspath(root))
-        self.split = split
-        if not (downscale > 0):
-            raise ValueError(f"downscale must be positive, got {downscale}")
-        self.downscale = float(downscale)
-        self.cache_images = int(cache_images)
-        self.cache_bytes = None if cache_bytes is None else int(cache_bytes)
-        self.cached_bytes = 0  # bytes of the arrays in the image cache now
-        self._images: OrderedDict[int, tuple] = OrderedDict()
-        self._verts: dict[int, np.ndarray] = {}
-        # split=None reads transforms.json (VHAP's export of every frame).
-        json_path = os.path.join(self.root, "transforms.json" if split is None else f"transforms_{split}.json")
-        if not os.path.isfile(json_path):
-            have = (
-                sorted(f for f in os.listdir(self.root) if f.startswith("transforms"))
-                if os.path.isdir(self.root)
-                else []
-            )
-            raise MissingFileError(f"{json_path}: split '{split}' not found (present: {have or 'none'})")
-        self.json_path = json_path
-        try:
-            with open(json_path, "rb") as f:
-                meta = loads_json(f.read(), json_path)  # nesting bounded (safe_io)
-        except (ValueError, UnicodeDecodeError) as exc:
-            raise DataError(f"{json_path}: invalid JSON ({exc})") from exc
-        rows = meta.get("frames") if isinstance(meta, dict) else None
-        if not rows:
-            raise DataError(f"{json_path}: no frames (the '{split}' split is empty)")
-        bg = meta.get("background", [1.0, 1.0, 1.0])
-        self.background = np.asarray(bg, np.float32).reshape(-1)
-        if self.background.shape != (3,) or not np.all(np.isfinite(self.background)):
-            raise DataError(f"{json_path}: 'background' must be [r,g,b], got {bg!r}")
-
-        mesh_mode = "mesh_path" in rows[0]
-        self.mode = "mesh" if mesh_mode else "flame"
-        geo_key = "mesh_path" if mesh_mode else "flame_param_path"
-        if not mesh_mode and "flame_param_path" not in rows[0]:
-            raise DataError(f"{json_path}: frame 0 has neither 'mesh_path' nor 'flame_param_path'")
-
-        self.flame_model = None
-        if mesh_mode:
-            canon_path = _resolve(self.root, meta.get("canonical_mesh_path") or "canonical_mesh.npz")
-            d = _npz(canon_path)
-            for key in ("vertices", "faces"):
-                if key not in d:
-                    raise DataError(f"{canon_path}: missing key '{key}' (has {sorted(d)})")
-            self.canonical_vertices = _check_vertices(d["vertices"], canon_path)
-            if self.canonical_vertices.ndim != 2:
-                raise DataError(f"{canon_path}: 'vertices' must be [V,3], got {self.canonical_vertices.shape}")
-            self.faces = _check_faces(d["faces"], canon_path, self.canonical_vertices.shape[0])
-        else:
-            if flame_model is None:
-                raise DataError(
-                    f"{json_path}: FLAME-mode dataset (flame_param_path) needs a FLAME model file: "
-                    "set the FLAME model in the add-on preferences, or pass --flame-model"
-                )
-            self.flame_model = load_flame_model(flame_model)
-            canon_path = os.path.join(self.root, "canonical_flame_param.npz")
-            self.canonical_vertices = self._flame_vertices(canon_path)
-            self.faces = self.flame_model.faces
-        self.n_vertices = self.canonical_vertices.shape[0]
-
-        frames, cams, geo = [], {}, {}
-        for i, fr in enumerate(rows):
-            where = f"{json_path}: frames[{i}]"
-            for key in ("file_path", "transform_matrix", "timestep_index", "camera_index", geo_key):
-                if key not in fr:
-                    raise DataError(f"{where}: missing key '{key}'")
-            cam_full, full_size = self._camera(fr, meta, where)
-            cam = cam_full if self.downscale == 1.0 else cam_full.scaled(1.0 / self.downscale)
-            img = _find_image(self.root, fr["file_path"], json_path, "image")
-            mask = fr.get("fg_mask_path")
-            mask = _find_image(self.root, mask, json_path, "mask") if mask else None
-            ts, ci = int(fr["timestep_index"]), int(fr["camera_index"])
-            gpath = _resolve(self.root, fr[geo_key])
-            if ts in geo and geo[ts] != gpath:
-                raise DataError(f"{where}: timestep {ts} refers to {gpath}, an earlier frame to {geo[ts]}")
-            geo[ts] = gpath
-            cams.setdefault(ci, cam)
-            frames.append(FrameInfo(i, img, mask, cam, full_size, ts, ci, gpath))
-        self.frames = frames
-        self.cameras = cams
-        self._geometry = geo
-        self.timesteps = np.array(sorted(geo), dtype=np.int64)
-
-    # -- metadata ----------------------------------------------------------------------
-
-    @staticmethod
-    def _camera(fr: dict, meta: dict, where: str):
-        def get(key):
-            return fr[key] if key in fr else meta.get(key)
-
-        w, h = get("w"), get("h")
-        if w is None or h is None:
-            raise DataError(f"{where}: missing image size 'w'/'h' (per frame or at the top level)")
-        w, h = int(w), int(h)
-        fx, fy = get("fl_x"), get("fl_y")
-        if fx is None and get("camera_angle_x") is not None:
-            fx = 0.5 * w / np.tan(0.5 * float(get("camera_angle_x")))
-        if fx is None:
-            raise DataError(f"{where}: missing focal length 'fl_x' (or 'camera_angle_x')")
-        fy = fx if fy is None else fy
-        cx = get("cx")
-        cy = get("cy")
-        cx = w / 2.0 if cx is None else float(cx)
-        cy = h / 2.0 if cy is None else float(cy)
-        c2w = np.asarray(fr["transform_matrix"], dtype=np.float64)
-        if c2w.shape not in ((4, 4), (3, 4)):
-            raise DataError(f"{where}: transform_matrix must be 4x4, got {c2w.shape}")
-        if c2w.shape == (3, 4):
-            c2w = np.vstack([c2w, [0.0, 0.0, 0.0, 1.0]])
-        try:
-            return Camera.from_c2w_opengl(c2w, float(fx), float(fy), cx, cy, w, h), (w, h)
-        except ValueError as exc:
-            raise DataError(f"{where}: {exc}") from exc
-
-    def __len__(self) -> int:
-        return len(self.frames)
-
-    def frame_info(self, i: int) -> FrameInfo:
-        return self.frames[i]
-
-    # -- geometry ----------------------------------------------------------------------
-
-    def _flame_vertices(self, path: str) -> np.ndarray:
-        d = _flame_keys(_npz(path))
-        if not d:
-            raise DataError(f"{path}: no FLAME parameters (expected keys {', '.join(_ALIASES)})")
-        v = _evaluate_flame(d, self.flame_model, path)
-        if v.shape[0] != 1:
-            raise DataError(f"{path}: expected parameters of one frame, got {v.shape[0]}")
-        return _check_vertices(v[0], path)
-
-    def flame_params_at(self, timestep_index: int) -> dict:
-        """The tracked FLAME parameters of a timestep (FLAME mode), as stored."""
-        ts = int(timestep_index)
-        if self.mode != "flame":
-            raise DataError(f"{self.json_path}: a mesh-mode dataset has no FLAME parameters")
-        if ts not in self._geometry:
-            raise KeyError(f"{self.json_path}: no timestep {ts} in split '{self.split}'")
-        d = _flame_keys(_npz(self._geometry[ts]))
-        if not d:
-            raise DataError(f"{self._geometry[ts]}: no FLAME parameters (expected keys {', '.join(_ALIASES)})")
-        return d
-
-    def vertices_at(self, timestep_index: int) -> np.ndarray:
-        """Mesh vertices float32 [V,3] of a timestep (cached)."""
-        ts = int(timestep_index)
-        v = self._verts.get(ts)
-        if v is not None:
-            return v
-        if ts not in self._geometry:
-            raise KeyError(f"{self.json_path}: no timestep {ts} in split '{self.split}'")
-        path = self._geometry[ts]
-        if self.mode == "mesh":
-            d = _npz(path)
-            if "vertices" not in d:
-                raise DataError(f"{path}: mesh npz needs 'vertices' [V,3] (has {sorted(d)})")
-            v = _check_vertices(d["vertices"], path, self.n_vertices)
-            if v.ndim != 2:
-                raise DataError(f"{path}: 'vertices' must be [V,3], got {v.shape}")
-        else:
-            v = self._flame_vertices(path)
-            if v.shape[0] != self.n_vertices:
-                raise DataError(f"{path}: {v.shape[0]} vertices, canonical has {self.n_vertices}")
-        self._verts[ts] = v
-        return v
-
-    # -- pixels --------------------------------------------------------------------------
-
-    def _load_pixels(self, info: FrameInfo):
-        from PIL import Image  # decoded on demand only
-
-        cam = info.camera
-        target = (cam.width, cam.height)
-        full = info.full_size
-
-        def read(path, what):
-            try:
-                im = Image.open(path)
-                im.load()
-            except Exception as exc:
-                raise DataError(f"{path}: cannot read {what} ({type(exc).__name__}: {exc})") from exc
-            if im.size != full and im.size != target:
-                want = f"{full[0]}x{full[1]}" + (f" or {target[0]}x{target[1]} (downscaled)" if target != full else "")
-                raise DataError(f"{path}: {what} is {im.size[0]}x{im.size[1]}, {self.json_path} says {want}")
-            return _to_8bit(im, path, what)
-
-        im = read(info.image_path, "image")
-        alpha = None
-        if im.mode in ("RGBA", "LA") or (im.mode == "P" and "transparency" in im.info):
-            im = im.convert("RGBA")
-            alpha = im.getchannel("A")
-        rgb = im.convert("RGB")
-        if rgb.size != target:
-            rgb = rgb.resize(target, Image.Resampling.BOX)
-        image = np.asarray(rgb, dtype=np.float32) / 255.0
-        if info.mask_path is not None:
-            m = read(info.mask_path, "mask")
-            m = m.convert("L")
-        else:
-            m = alpha
-        if m is not None:
-            if m.size != target:
-                m = m.resize(target, Image.Resampling.BOX)
-            mask = np.asarray(m, dtype=np.float32) / 255.0
-        else:
-            mask = np.ones(image.shape[:2], np.float32)
-        if alpha is not None:
-            # Transparent pixels take the dataset background, as the renderer's will.
-            a = (
-                np.asarray(
-                    alpha.resize(target, Image.Resampling.BOX) if alpha.size != target else alpha, dtype=np.float32
-                )[..., None]
-                / 255.0
-            )
-            image = image * a + self.background * (1.0 - a)
-        return image, mask
-
-    def images(self, i: int):
-        """(image float32 [H,W,3], mask float32 [H,W]) of frame i, through the LRU cache."""
-        hit = self._images.get(i)
-        if hit is not None:
-            self._images.move_to_end(i)
-            return hit
-        pair = self._load_pixels(self.frames[i])
-        size = pair[0].nbytes + pair[1].nbytes
-        if self.cache_images > 0 and (self.cache_bytes is None or size <= self.cache_bytes):
-            self._images[i] = pair
-            self.cached_bytes += size
-            while len(self._images) > self.cache_images or (
-                self.cache_bytes is not None and self.cached_bytes > self.cache_bytes
-            ):
-                _, (im, m) = self._images.popitem(last=False)
-                self.cached_bytes -= im.nbytes + m.nbytes
-        return pair
-
-    def __getitem__(self, i: int) -> Sample:
-        n = len(self.frames)
-        if not -n <= int(i) < n:
-            raise IndexError(f"{self.json_path}: frame {i} out of range (0..{n - 1})")
-        i = int(i) % n
-        info = self.frames[i]
-        image, mask = self.images(i)
-        return Sample(
-            info.camera,
-            image,
-            mask,
-            self.vertices_at(info.timestep_index),
-            info.timestep_index,
-            info.camera_index,
-            i,
-            info.image_path,
-        )
-
-    def __iter__(self):
-        for i in range(len(self)):
-            yield self[i]
-
-    def sequence(self, frames=None) -> MeshSequence:
-        """The split's geometry as a MeshSequence over its sorted timesteps (``frames``:
-        positions in ``self.timesteps``; None = all)."""
-        ts = self.timesteps[_select(len(self.timesteps), frames, self.json_path)]
-        # One mesh file (or one FLAME evaluation) per timestep, each cached.
-        verts = (
-            np.stack([self.vertices_at(t) for t in ts.tolist()])
-            if len(ts)
-            else np.zeros((0, self.n_vertices, 3), np.float32)
-        )
-        return MeshSequence(self.faces, verts, ts, None, self.json_path)
