@@ -12,7 +12,7 @@ import json
 import bpy
 import numpy as np
 
-from ..core.bridge import preview as preview_data
+from ..core.bridge.depth import depth_colors, depth_legend, depth_per_face, per_corner
 
 DEPTH_ATTR = "pa_depth"
 COLOR_ATTR = "pa_depth_color"
@@ -27,7 +27,7 @@ def apply_depth(obj, forest, count=None, max_level=None):
     the forest's)."""
     me = obj.data
     top = forest.max_depth if max_level is None else max(int(max_level), forest.max_depth)
-    depth = preview_data.depth_per_face(forest, len(me.polygons), count)
+    depth = depth_per_face(forest, len(me.polygons), count)
     attr = me.attributes.get(DEPTH_ATTR)
     if attr is not None and (attr.domain != "FACE" or attr.data_type != "INT"):
         me.attributes.remove(attr)
@@ -39,7 +39,7 @@ def apply_depth(obj, forest, count=None, max_level=None):
     state.depth_max_level = top
     legend = state.depth_legend
     legend.clear()
-    for d, n, rgb in preview_data.depth_legend(depth, top):
+    for d, n, rgb in depth_legend(depth, top):
         item = legend.add()
         item.depth, item.faces, item.color = d, n, rgb
     if state.depth_shown:
@@ -54,7 +54,7 @@ def _write_colors(me, depth, max_level):
         attr = me.color_attributes.new(COLOR_ATTR, "FLOAT_COLOR", "CORNER")
     totals = np.empty(len(me.polygons), np.int32)
     me.polygons.foreach_get("loop_total", totals)
-    colors = preview_data.per_corner(preview_data.depth_colors(depth, max_level), totals)
+    colors = per_corner(depth_colors(depth, max_level), totals)
     attr.data.foreach_set("color", np.ascontiguousarray(colors, np.float32).ravel())
     me.color_attributes.active_color = attr
 

@@ -8,7 +8,10 @@ import bpy
 import numpy as np
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
-from ..core.bridge import preview as preview_data
+from ..core.bridge.budget import check_mesh, load_avatar
+from ..core.bridge.depth import depth_per_face
+from ..core.bridge.splats import preview_order, static_attributes
+from ..core.bridge.transforms import camera_from_blender, transform_gaussians
 from ..core.avatar.avatar import sh_to_rgb, sigmoid
 from . import ADDON_PACKAGE, depth, prefs, preview, runtime
 
@@ -108,11 +111,11 @@ def load_avatar_onto(context, mesh_obj, path, budget=100.0):
     the preview fail anyway, whatever it made is removed and the previous preview stays."""
     abspath = runtime.resolve(path)
     faces = mesh_faces(mesh_obj.data)
-    avatar, budget_info = preview_data.load_avatar(abspath, faces)
-    preview_data.check_mesh(avatar, budget_info, faces)
+    avatar, budget_info = load_avatar(abspath, faces)
+    check_mesh(avatar, budget_info, faces)
     count = budget_info.count_for_percent(budget)
-    preview_data.depth_per_face(avatar.forest, len(faces), count)  # raises before any change
-    static = preview_data.static_attributes(avatar, preview_data.preview_order(avatar))
+    depth_per_face(avatar.forest, len(faces), count)  # raises before any change
+    static = static_attributes(avatar, preview_order(avatar))
     old = [c for c in mesh_obj.children if c.pa_avatar.is_preview]
     name = f"{mesh_obj.name}_splats"
     before = _snapshot()
@@ -261,7 +264,7 @@ def current_gaussians(context, obj, world=True):
     points = e.point_of_rank[:count]  # the preview rows of ranks 0..count-1
     means, quats, scales = ev.means[points], ev.quats[points], ev.scales[points]
     if world:
-        means, quats, scales = preview_data.transform_gaussians(np.array(obj.matrix_world), means, quats, scales)
+        means, quats, scales = transform_gaussians(np.array(obj.matrix_world), means, quats, scales)
     # The model's own colours (sRGB-encoded, what it was trained on), not the preview's linear
     # display colours: export and rendering must reproduce the trained avatar.
     av = e.avatar
@@ -340,7 +343,7 @@ class PA_OT_render_splats(bpy.types.Operator):
         h = int(r.resolution_y * r.resolution_percentage / 100)
         try:
             g = current_gaussians(context, preview_of(context), world=True)
-            cam = preview_data.camera_from_blender(
+            cam = camera_from_blender(
                 np.array(cam_obj.matrix_world),
                 cam_obj.data.lens,
                 cam_obj.data.sensor_width,

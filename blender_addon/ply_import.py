@@ -19,7 +19,8 @@ import numpy as np
 from bpy_extras.io_utils import ImportHelper
 
 from ..core.io import ply as core_ply
-from ..core.bridge import preview as preview_data
+from ..core.bridge.splats import srgb_to_linear
+from ..core.bridge.transforms import transform_gaussians
 from ..core.avatar.avatar import SH_C0
 from . import preview
 
@@ -50,7 +51,7 @@ def create_splat_object(context, name, g, order="FILE", source_path=""):
     rank = np.empty(n, np.int32)
     rank[by_rank] = np.arange(n, dtype=np.int32)
     rgba = np.ones((n, 4), np.float32)
-    rgba[:, :3] = preview_data.srgb_to_linear(g["colors"])
+    rgba[:, :3] = srgb_to_linear(g["colors"])
     me = bpy.data.meshes.new(name)
     try:
         return _fill(context, me, name, g, n, rank, rgba, source_path)
@@ -135,7 +136,7 @@ def current_gaussians(obj, world=True):
     scales = _read(me, "scale", 3)[sel]
     f_dc = _read(me, _F_DC, 3)[sel].astype(np.float64)
     if world:
-        means, quats, scales = preview_data.transform_gaussians(np.array(obj.matrix_world), means, quats, scales)
+        means, quats, scales = transform_gaussians(np.array(obj.matrix_world), means, quats, scales)
     k_rest = int(obj.get("pa_sh_bands", 0))
     rest = (
         np.stack([_read(me, _rest_name(k), 3)[sel] for k in range(k_rest)], axis=1)

@@ -244,14 +244,14 @@ def store_image(rgba, name="PA Splats"):
     """The render (sRGB-encoded RGBA, rows top-down) as a float Blender image, scene-linear."""
     import bpy
 
-    from ..core.bridge import preview as preview_data
+    from ..core.bridge.splats import srgb_to_linear
 
     h, w = rgba.shape[:2]
     img = bpy.data.images.get(name) or bpy.data.images.new(name, w, h, alpha=True, float_buffer=True)
     if tuple(img.size) != (w, h):
         img.scale(w, h)
     rgba = np.array(rgba, np.float32)
-    rgba[..., :3] = preview_data.srgb_to_linear(rgba[..., :3])  # float images hold scene-linear values
+    rgba[..., :3] = srgb_to_linear(rgba[..., :3])  # float images hold scene-linear values
     img.pixels.foreach_set(np.ascontiguousarray(rgba[::-1]).ravel())  # Blender rows run bottom-up
     img.update()
     return img

@@ -9,7 +9,7 @@ expression sliders or the bone rotations gives FLAME's own result.
 import bpy
 import numpy as np
 
-from ..core.bridge import preview as preview_data
+from ..core.bridge.transforms import Y_UP_TO_Z_UP
 from . import sequence
 
 # Entry (a, b) of R - I from a quaternion (w, x, y, z), normalised so that interpolated
@@ -143,7 +143,7 @@ def build_rig_objects(context, rig, name, frame_start, z_up=True):
     context.collection.objects.link(obj)
     arm_obj = _add_armature(context, rig, name)
     if z_up:
-        arm_obj.matrix_world = sequence._matrix(preview_data.Y_UP_TO_Z_UP)
+        arm_obj.matrix_world = sequence._matrix(Y_UP_TO_Z_UP)
     obj.parent = arm_obj
     obj.matrix_parent_inverse.identity()
     _add_vertex_groups(context, obj, rig)

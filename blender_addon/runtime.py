@@ -9,7 +9,8 @@ import os
 import bpy
 import numpy as np
 
-from ..core.bridge import preview as preview_data
+from ..core.bridge.budget import load_avatar
+from ..core.bridge.splats import preview_order, splat_evaluator
 from . import preview
 
 
@@ -27,9 +28,9 @@ def mesh_faces(me):
 class _Entry:
     def __init__(self, path, loaded=None, template_faces=None):
         self.path = path
-        self.avatar, self.budget = loaded or preview_data.load_avatar(path, template_faces)
+        self.avatar, self.budget = loaded or load_avatar(path, template_faces)
         self.weights = self.avatar.forest.weights()
-        self.order = preview_data.preview_order(self.avatar)  # stream rank of each preview point
+        self.order = preview_order(self.avatar)  # stream rank of each preview point
         self.point_of_rank = np.argsort(self.order)
         self.evaluator = None
         self.n_vertices = int(self.avatar.forest.template_faces.max()) + 1
@@ -38,7 +39,7 @@ class _Entry:
 
     def evaluator_for(self, count):
         if self.evaluator is None or self.evaluator.n != count:
-            self.evaluator = preview_data.splat_evaluator(self.avatar, count, self.weights, self.order)
+            self.evaluator = splat_evaluator(self.avatar, count, self.weights, self.order)
         return self.evaluator
 
 

@@ -3,7 +3,7 @@
 import bpy
 import numpy as np
 
-from ..core.bridge import preview as preview_data
+from ..core.bridge.transforms import Y_UP_TO_Z_UP, blender_camera
 
 
 def _keyframe_interp(name):
@@ -73,7 +73,7 @@ def build_sequence_object(context, seq, name, frame_start, z_up=True):
     obj = bpy.data.objects.new(name, me)
     context.collection.objects.link(obj)
     if z_up:
-        obj.matrix_world = _matrix(preview_data.Y_UP_TO_Z_UP)
+        obj.matrix_world = _matrix(Y_UP_TO_Z_UP)
     if seq.n_frames > 1:
         add_sequence_keys(obj, seq.vertices, frame_start)
     scene = context.scene
@@ -92,7 +92,7 @@ def _matrix(m):
 
 
 def add_camera(context, name, camera, z_up=True):
-    s = preview_data.blender_camera(camera, z_up=z_up)
+    s = blender_camera(camera, z_up=z_up)
     cam = bpy.data.cameras.new(name)
     cam.sensor_fit = s["sensor_fit"]
     cam.sensor_width = s["sensor_width"]

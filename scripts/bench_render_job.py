@@ -38,7 +38,7 @@ OLD_LOADER = (  # the one-shot loader Render Splats ran before the worker
     "root = sys.argv[1]\n"
     "spec = importlib.util.spec_from_file_location('pa_ext', root + '/__init__.py', submodule_search_locations=[root])\n"
     "m = importlib.util.module_from_spec(spec); sys.modules['pa_ext'] = m; spec.loader.exec_module(m)\n"
-    "from pa_ext.core.bridge.preview import render_job\n"
+    "from pa_ext.core.bridge.render_job import render_job\n"
     "render_job(sys.argv[2], sys.argv[3])\n"
 )
 

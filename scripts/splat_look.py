@@ -46,7 +46,7 @@ import bpy, numpy as np
 pkg.register()
 seq_mod = sys.modules["pa_look.blender_addon.sequence"]
 ops = sys.modules["pa_look.blender_addon.operators_avatar"]
-pdata = sys.modules["pa_look.core.preview_data"]
+pdata = sys.modules["pa_look.core.bridge.transforms"]
 from pa_look.core.camera import Camera
 for ob in list(bpy.data.objects):
     bpy.data.objects.remove(ob)

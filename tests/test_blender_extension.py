@@ -182,7 +182,7 @@ def test_manifest_validates_and_builds(session):
     (zp,) = session["zips"]
     names = zipfile.ZipFile(zp).namelist()
     assert "blender_manifest.toml" in names and "__init__.py" in names
-    assert "blender_addon/__init__.py" in names and "core/bridge/preview.py" in names
+    assert "blender_addon/__init__.py" in names and "core/bridge/budget.py" in names
     leaked = [
         n
         for n in names
@@ -354,7 +354,7 @@ def test_save_reload_keeps_state(session):
         session["arrays"]["reload_pos_4"][:n], av.gaussians(session["verts"][4])["means"][:n], atol=1e-5
     )
     # Depth follows the budget: the deepest level among the first count_60 Gaussians per face.
-    from progressive_avatars.core.bridge.preview import depth_per_face
+    from progressive_avatars.core.bridge.depth import depth_per_face
 
     want = depth_per_face(av.forest, av.forest.num_roots, n)
     np.testing.assert_array_equal(session["arrays"]["reload_depth"], want)
@@ -382,7 +382,8 @@ def test_cycles_renders_show_coloured_splats(session):
 def test_render_splats_operator_matches_core_render(session):
     rep = _report(session)
     _no_error(rep, "render_splats")
-    from progressive_avatars.core.bridge import preview as preview_data
+    from progressive_avatars.core.bridge.splats import srgb_to_linear
+    from progressive_avatars.core.bridge.transforms import camera_from_blender, transform_gaussians
     from progressive_avatars.core.render.rasterize import render_numpy
 
     r = rep["splats"]
@@ -391,18 +392,14 @@ def test_render_splats_operator_matches_core_render(session):
     n = r["count"]
     assert n == _stream().read_header(session["stream"]).count_for_percent(50)
     g = av.gaussians(session["verts"][r["frame"]], ids=np.arange(n))
-    means, quats, scales = preview_data.transform_gaussians(
-        np.array(r["preview_matrix"]), g["means"], g["quats"], g["scales"]
-    )
+    means, quats, scales = transform_gaussians(np.array(r["preview_matrix"]), g["means"], g["quats"], g["scales"])
     w, h = r["size"]
-    cam = preview_data.camera_from_blender(
-        np.array(r["camera_matrix"]), r["lens"], r["sensor"], *r["shift"], w, h, z_up=False
-    )
+    cam = camera_from_blender(np.array(r["camera_matrix"]), r["lens"], r["sensor"], *r["shift"], w, h, z_up=False)
     image, alpha = render_numpy(means, quats, scales, g["opacities"], g["colors"], cam, np.zeros(3, np.float32))[:2]
     got = session["arrays"]["splats_image"]
     assert alpha.max() > 0.5 and (alpha > 0.01).mean() > 0.05  # the head is in view, not a blank frame
     # Rendered with the model's (sRGB) colours, stored scene-linear as Blender float images are.
-    np.testing.assert_allclose(got[..., :3], preview_data.srgb_to_linear(image), atol=1e-4)
+    np.testing.assert_allclose(got[..., :3], srgb_to_linear(image), atol=1e-4)
     np.testing.assert_allclose(got[..., 3], alpha, atol=1e-4)
 
 

@@ -144,7 +144,7 @@ def test_nothing_blocked_was_imported(cut_session):
 def test_cut_streams_load_and_preview_what_arrived(cut_session):
     """Cut at 1/3/10/50 % (no embedded template: the header is small) and inside every
     level: each loads, shows exactly the verified records, on the mesh's frame."""
-    from progressive_avatars.core.bridge import preview as preview_data
+    from progressive_avatars.core.bridge.depth import depth_per_face
 
     rep, arrays, seq = cut_session["rep"], cut_session["arrays"], cut_session["seq"]
     _no_error(rep, "cuts")
@@ -167,7 +167,7 @@ def test_cut_streams_load_and_preview_what_arrived(cut_session):
         ref = av.gaussians(seq.vertices[1].astype(np.float32))
         np.testing.assert_allclose(arrays[f"pos_{name}"], ref["means"], atol=1e-5, rtol=0)
         depth = arrays[f"depth_{name}"]
-        expected = preview_data.depth_per_face(av.forest, h.num_template_faces)  # core's answer
+        expected = depth_per_face(av.forest, h.num_template_faces)  # core's answer
         np.testing.assert_array_equal(depth, expected)
         legend = dict((d, c) for d, c in r["legend"])
         assert legend.get(-1, 0) == int((expected < 0).sum())
@@ -236,7 +236,7 @@ def test_failed_load_leaves_scene_as_it_was(cut_session):
 
 @pytest.mark.slow
 def test_depth_colours_toggle_and_levels(cut_session):
-    from progressive_avatars.core.bridge import preview as preview_data
+    from progressive_avatars.core.bridge.depth import NOT_ARRIVED_COLOR, depth_colors, depth_per_face
 
     rep, arrays, seq = cut_session["rep"], cut_session["arrays"], cut_session["seq"]
     _no_error(rep, "depth_toggle")
@@ -249,11 +249,9 @@ def test_depth_colours_toggle_and_levels(cut_session):
     top = len(h.level_counts) - 1 - h.num_coarse_levels  # the whole avatar's deepest depth: the colour scale
 
     def colours(d):  # what core says each face shows: its depth's colour, or "not arrived"
-        return np.where(
-            (d < 0)[:, None], preview_data.NOT_ARRIVED_COLOR, preview_data.depth_colors(np.maximum(d, 0), top)
-        )
+        return np.where((d < 0)[:, None], NOT_ARRIVED_COLOR, depth_colors(np.maximum(d, 0), top))
 
-    expected = preview_data.depth_per_face(av.forest, len(depth))
+    expected = depth_per_face(av.forest, len(depth))
     np.testing.assert_array_equal(depth, expected)
     arrived = int((expected >= 0).sum())
     assert 0 < arrived < len(depth)  # a third of the template level: some faces arrived, most not
@@ -261,11 +259,11 @@ def test_depth_colours_toggle_and_levels(cut_session):
     np.testing.assert_allclose(corner, np.broadcast_to(colours(expected)[:, None], corner.shape), atol=1e-6)
     legend = rep["on"]["legend"]
     assert legend[0][:2] == [-1, len(depth) - arrived]
-    np.testing.assert_allclose(legend[0][2], preview_data.NOT_ARRIVED_COLOR[:3], atol=1e-6)
+    np.testing.assert_allclose(legend[0][2], NOT_ARRIVED_COLOR[:3], atol=1e-6)
     m = rep["on_low_count"]  # colours follow the budget
     low = arrays["depth_colors_low"].reshape(-1, 3, 4)
     assert 0 < m < n
-    d_low = preview_data.depth_per_face(av.forest, len(depth), m)
+    d_low = depth_per_face(av.forest, len(depth), m)
     assert 0 < int((d_low >= 0).sum()) < arrived  # fewer faces than at the whole cut, but some
     low_expected = colours(d_low)
     np.testing.assert_allclose(low, np.broadcast_to(low_expected[:, None], low.shape), atol=1e-6)

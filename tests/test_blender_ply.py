@@ -103,7 +103,7 @@ def test_import_keeps_positions_and_ranks_by_importance(ply_session):
     assert np.all(np.diff(key[order]) <= 1e-12 * key.max())  # most opaque x largest first
     np.testing.assert_array_equal(arr["rank_file"], np.arange(3000))
     # Colours: the DC colour, stored linear (Blender colour attributes are scene-linear).
-    from progressive_avatars.core.bridge.preview import srgb_to_linear
+    from progressive_avatars.core.bridge.splats import srgb_to_linear
 
     np.testing.assert_allclose(arr["color"][:, :3], srgb_to_linear(g["colors"]), atol=1e-6)
 

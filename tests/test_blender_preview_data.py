@@ -1,11 +1,21 @@
-"""core/bridge/preview.py: the numpy side of the Blender preview (no bpy needed)."""
+"""core/bridge/ (budget, splats, depth, transforms): the numpy side of the Blender preview (no bpy needed)."""
 
 import numpy as np
 
 from progressive_avatars.core.avatar import binding
 import pytest
 
-from progressive_avatars.core.bridge import preview as preview_data
+from progressive_avatars.core.bridge.budget import Budget
+from progressive_avatars.core.bridge.depth import (
+    NOT_ARRIVED,
+    NOT_ARRIVED_COLOR,
+    depth_colors,
+    depth_legend,
+    depth_per_face,
+    per_corner,
+)
+from progressive_avatars.core.bridge.splats import preview_order, splat_evaluator
+from progressive_avatars.core.bridge.transforms import blender_camera, camera_from_blender, transform_gaussians
 from progressive_avatars.core.avatar.avatar import Avatar
 from progressive_avatars.core.avatar.binding import quat_to_rotmat
 from progressive_avatars.core.geometry.camera import Camera
@@ -32,9 +42,9 @@ def test_splat_evaluator_matches_core_compose(q):
     geo = binding.evaluate(av.forest, verts.astype(np.float64), dtype=np.float64)
     m, s, qq = binding.compose(geo.t, geo.r, geo.s, av.d_mu, av.d_log_scale, av.d_rot)
     ref = {"means": m, "scales": s, "quats": qq}
-    layouts = (None, preview_data.preview_order(av))  # stream order; grouped by root (Blender's)
+    layouts = (None, preview_order(av))  # stream order; grouped by root (Blender's)
     for count, order in [(c, o) for c in (None, av.num_gaussians // 3) for o in layouts]:
-        ev = preview_data.splat_evaluator(av, count, av.forest.weights(), order)
+        ev = splat_evaluator(av, count, av.forest.weights(), order)
         means, quats, scales = ev(verts)
         n = ev.n
         assert means.shape == (av.num_gaussians, 3)
@@ -48,7 +58,7 @@ def test_splat_evaluator_matches_core_compose(q):
 def test_budget_fallback_and_levels():
     rng = np.random.default_rng(2)
     av, _ = _avatar(rng)
-    b = preview_data.Budget(av.num_gaussians, av.forest.level.copy(), 1000)
+    b = Budget(av.num_gaussians, av.forest.level.copy(), 1000)
     assert b.count_for_percent(0) == 0 and b.count_for_percent(100) == av.num_gaussians
     assert b.count_for_percent(150) == av.num_gaussians
     n = b.count_for_percent(50)
@@ -58,20 +68,20 @@ def test_budget_fallback_and_levels():
 
 def test_depth_colours_and_legend():
     depth = np.array([0, 1, 2, 2, 3, 0])
-    cols = preview_data.depth_colors(depth, 3)
+    cols = depth_colors(depth, 3)
     assert cols.shape == (6, 4) and cols.dtype == np.float32
     assert np.all((cols >= 0) & (cols <= 1))
     assert not np.allclose(cols[0], cols[4])
-    legend = preview_data.depth_legend(depth)
+    legend = depth_legend(depth)
     assert [(d, n) for d, n, _ in legend] == [(0, 2), (1, 1), (2, 2), (3, 1)]
-    corners = preview_data.per_corner(cols, np.array([3, 3, 4, 3, 3, 3]))
+    corners = per_corner(cols, np.array([3, 3, 4, 3, 3, 3]))
     assert len(corners) == 19 and np.allclose(corners[6:10], cols[2])
 
 
 def test_blender_camera_round_trip():
     cam = Camera.look_at([0.2, 0.1, 0.7], [0, 0, 0], [0, 1, 0], 600.0, 600.0, 190.0, 130.0, 320, 240)
-    s = preview_data.blender_camera(cam)
-    back = preview_data.camera_from_blender(
+    s = blender_camera(cam)
+    back = camera_from_blender(
         s["matrix_world"], s["lens"], s["sensor_width"], s["shift_x"], s["shift_y"], *s["resolution"]
     )
     pts = np.random.default_rng(0).normal(0, 0.1, (10, 3))
@@ -85,7 +95,7 @@ def test_transform_gaussians_rigid():
     M = np.eye(4)
     M[:3, :3] = quat_to_rotmat(np.array([0.3, 0.1, 0.8, 0.2])) * 2.0
     M[:3, 3] = [1, 2, 3]
-    means, quats, scales = preview_data.transform_gaussians(M, g["means"], g["quats"], g["scales"])
+    means, quats, scales = transform_gaussians(M, g["means"], g["quats"], g["scales"])
     moved = av.gaussians((v @ M[:3, :3].T + M[:3, 3]).astype(np.float32))
     np.testing.assert_allclose(means, moved["means"], atol=1e-5)
     np.testing.assert_allclose(scales, moved["scales"], rtol=1e-4)
@@ -100,16 +110,16 @@ def test_depth_per_face_of_a_prefix_marks_faces_not_arrived():
     av, _ = _avatar(rng)
     forest = av.forest
     F0 = forest.num_roots
-    full = preview_data.depth_per_face(forest, F0)
+    full = depth_per_face(forest, F0)
     np.testing.assert_array_equal(full, forest.depth_per_root())
-    cut = preview_data.depth_per_face(forest, F0, F0 // 3)
-    assert (cut[: F0 // 3] == 0).all() and (cut[F0 // 3 :] == preview_data.NOT_ARRIVED).all()
-    cols = preview_data.depth_colors(cut, forest.max_level)
-    np.testing.assert_array_equal(cols[F0 // 3 :], np.broadcast_to(preview_data.NOT_ARRIVED_COLOR, (F0 - F0 // 3, 4)))
-    assert not np.allclose(cols[0], preview_data.NOT_ARRIVED_COLOR)
-    legend = preview_data.depth_legend(cut, forest.max_level)
+    cut = depth_per_face(forest, F0, F0 // 3)
+    assert (cut[: F0 // 3] == 0).all() and (cut[F0 // 3 :] == NOT_ARRIVED).all()
+    cols = depth_colors(cut, forest.max_level)
+    np.testing.assert_array_equal(cols[F0 // 3 :], np.broadcast_to(NOT_ARRIVED_COLOR, (F0 - F0 // 3, 4)))
+    assert not np.allclose(cols[0], NOT_ARRIVED_COLOR)
+    legend = depth_legend(cut, forest.max_level)
     assert [(d, n) for d, n, _ in legend] == [(-1, F0 - F0 // 3), (0, F0 // 3)] + [
         (d, 0) for d in range(1, forest.max_level + 1)
     ]
     with pytest.raises(ValueError, match="template faces"):
-        preview_data.depth_per_face(forest, F0 - 1)
+        depth_per_face(forest, F0 - 1)

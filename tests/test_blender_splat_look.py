@@ -77,7 +77,7 @@ def test_cycles_splat_look_matches_the_rasteriser(tmp_path):
     assert "view_transform" in rep["changed"] and "cycles.transparent_max_bounces" in rep["changed"]
     c = rep["camera"]
     cam = Camera(np.array(c["R"]), np.array(c["t"]), *c["intr"], 64, 64)
-    from progressive_avatars.core.bridge.preview import srgb_to_linear
+    from progressive_avatars.core.bridge.splats import srgb_to_linear
 
     lin, alpha, _ = render_numpy(
         g["means"], g["quats"], g["scales"], g["opacities"], srgb_to_linear(g["colors"]), cam, np.zeros(3, np.float32)

@@ -77,8 +77,8 @@ def budget_strip(path, renderer, info, budgets, view_index=0):
 
 
 def depth_colors(depth: np.ndarray, max_depth: int | None = None) -> np.ndarray:
-    """RGB per depth, the same ramp as the Blender depth display (core.bridge.preview)."""
-    from ..bridge.preview import depth_colors as rgba
+    """RGB per depth, the same ramp as the Blender depth display (core.bridge.depth)."""
+    from ..bridge.depth import depth_colors as rgba
 
     return rgba(depth, max_depth)[:, :3]
 

@@ -6,7 +6,7 @@ another interpreter. Starting one per render pays the interpreter, torch and num
 alive between renders and warms the kernels once, before its first job arrives.
 
 Protocol (JSON lines): the client writes ``{"id": k, "job": npz, "out": npy}`` per render
-(the npz as ``preview_data.render_job`` reads it); the worker answers with ``{"ready": ...}``
+(the npz as ``core.bridge.render_job`` reads it); the worker answers with ``{"ready": ...}``
 once, then per job ``{"id": k, "stage": name, "progress": p}`` lines and a final
 ``{"id": k, "done": true, "seconds": s}`` or ``{"id": k, "error": message}``. End of input
 ends the worker. Cancelling a render is killing the process: a running kernel cannot be
@@ -61,7 +61,7 @@ def serve(inp=None, out=None) -> int:
     except Exception as exc:  # no numba/torch, broken install: say so, then exit
         _say(out, ready=False, error=f"{type(exc).__name__}: {exc}")
         return 1
-    from ..bridge.preview import render_job
+    from ..bridge.render_job import render_job
 
     _say(out, ready=True, seconds=round(time.perf_counter() - t0, 3), pid=os.getpid())
     for line in inp:

@@ -165,7 +165,7 @@ def _():
     bpy.context.scene.render.resolution_x, bpy.context.scene.render.resolution_y = s["resolution"]
     pts = np.random.default_rng(0).normal(0, 0.05, (20, 3))
     uv_core, _ = cam.project(pts)
-    z_up = np.array(sys.modules[pkg + ".core.bridge.preview"].Y_UP_TO_Z_UP)
+    z_up = np.array(sys.modules[pkg + ".core.bridge.transforms"].Y_UP_TO_Z_UP)
     uv_bl = []
     for p in pts:
         q = z_up[:3, :3] @ p

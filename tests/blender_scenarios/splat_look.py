@@ -15,7 +15,7 @@ spec.loader.exec_module(pkg)
 pkg.register()
 ply_import = sys.modules["pa_look.blender_addon.ply_import"]
 look = sys.modules["pa_look.blender_addon.splat_look"]
-pdata = sys.modules["pa_look.core.bridge.preview"]
+pdata = sys.modules["pa_look.core.bridge.transforms"]
 R = {}
 try:
     for ob in list(bpy.data.objects):

@@ -1,0 +1,26 @@
+"""The out-of-Blender side of *Render Splats*: render the Gaussians the add-on saved with the
+core rasteriser. Blender tier at module level (numpy); it runs in the configured Python,
+which imports core.render (numba) when a job runs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+# -- render job (runs in the configured Python, outside Blender) ---------------------------
+def render_job(job_path: str, out_path: str) -> None:
+    """Render the Gaussians saved by the add-on in ``job_path`` (npz) to ``out_path`` (.npy
+    RGBA float32 [H,W,4]) with the core rasteriser."""
+    from ..geometry.camera import Camera
+    from ..render.rasterize import render_numpy
+
+    with np.load(job_path, allow_pickle=False) as d:
+        cam = Camera(d["R"], d["t"], *[float(x) for x in d["intr"]], int(d["size"][0]), int(d["size"][1]))
+        # 3DGS clamps SH colours at 0 (PLY splats keep their exact, possibly negative, DC for export).
+        out = render_numpy(
+            d["means"], d["quats"], d["scales"], d["opacities"], np.maximum(d["colors"], 0), cam, d["background"]
+        )
+    image, alpha = out[0], out[1]
+    rgba = np.concatenate([np.asarray(image, np.float32), np.asarray(alpha, np.float32)[..., None]], -1)
+    np.save(out_path, rgba)
