@@ -88,7 +88,7 @@ def test_gaussian_evaluator_matches_compose_in_any_row_layout():
     N = forest.num_faces
     d_mu, d_ls, d_rot = rng.normal(0, 0.5, (N, 3)), rng.normal(-1, 0.3, (N, 3)), rng.normal(size=(N, 4))
     geo = binding.evaluate(forest, verts, dtype=np.float64)
-    ref_m, ref_s, ref_q = binding.compose(geo.t, geo.r, geo.s, d_mu, d_ls, d_rot)
+    ref_m, ref_q, ref_s = binding.compose(geo.t, geo.r, geo.s, d_mu, d_ls, d_rot)
     ids = rng.permutation(N)[: N // 2]
     rows = rng.choice(3 * N, len(ids), replace=False)
     cases = [
@@ -143,7 +143,7 @@ def test_compose_matches_independent_covariance_construction():
     N = forest.num_faces
     d_mu, d_ls, d_rot = rng.normal(0, 0.5, (N, 3)), rng.normal(0, 0.5, (N, 3)), rng.normal(size=(N, 4))
     geo = binding.evaluate(forest, verts, dtype=np.float64)
-    means, scales, quats = binding.compose(geo.t, geo.r, geo.s, d_mu, d_ls, d_rot)
+    means, quats, scales = binding.compose(geo.t, geo.r, geo.s, d_mu, d_ls, d_rot)
     for i in rng.choice(N, 20, replace=False):
         # Independent: the Gaussian's local frame is r · R(ΔR), its covariance R S² Rᵀ.
         R_local = Rotation.from_quat(d_rot[i, [1, 2, 3, 0]]).as_matrix()
@@ -174,8 +174,8 @@ def test_numpy_and_torch_agree_float32():
         rng.normal(0, 0.3, (N, 3)).astype(np.float32),
         rng.normal(size=(N, 4)).astype(np.float32),
     )
-    m_np, s_np, q_np = binding.compose(geo.t, geo.r, geo.s, *res)
-    m_t, s_t, q_t = binding_torch.compose(t, r, s, *map(torch.tensor, res))
+    m_np, q_np, s_np = binding.compose(geo.t, geo.r, geo.s, *res)
+    m_t, q_t, s_t = binding_torch.compose(t, r, s, *map(torch.tensor, res))
     np.testing.assert_allclose(m_t.numpy(), m_np, atol=1e-6)
     np.testing.assert_allclose(s_t.numpy(), s_np, rtol=1e-5)
     np.testing.assert_allclose(np.abs((q_t.numpy() * q_np).sum(-1)), 1, atol=1e-5)
@@ -196,7 +196,7 @@ def test_torch_gradients_match_finite_differences():
 
     def f(v, logits):
         t, r, s = tf.evaluate(v, tf.weights(logits))
-        m, sc, q = binding_torch.compose(t, r, s, d_mu, d_ls, d_rot)
+        m, q, sc = binding_torch.compose(t, r, s, d_mu, d_ls, d_rot)
         return (torch.cat([m, sc, q * 1e-2], -1) * proj).sum()
 
     assert torch.autograd.gradcheck(f, (v, logits), eps=1e-7, atol=1e-6, rtol=1e-4)
@@ -274,15 +274,15 @@ def test_binding_kernels_match_torch_reference_values_and_gradients():
     np.testing.assert_allclose(plan.weights(forest.split_logits), forest.weights(), atol=1e-15)
     ref = binding_torch.compose(*tf.evaluate(v, tf.weights(logits)), d_mu, d_ls, d_rot)
     new = plan.gaussians(*inputs)
-    sign = torch.sign((ref[2] * new[2]).sum(-1, keepdim=True)).detach()  # quaternions are defined up to sign
-    for a, b in zip(ref[:2] + (ref[2],), new[:2] + (new[2] * sign,)):
+    sign = torch.sign((ref.quats * new.quats).sum(-1, keepdim=True)).detach()  # quaternions are defined up to sign
+    for a, b in zip(ref, new._replace(quats=new.quats * sign)):
         np.testing.assert_allclose(b.detach().numpy(), a.detach().numpy(), atol=1e-14)
     cot = [torch.tensor(rng.normal(size=x.shape)) for x in ref]
 
     def grads(out, flip):
         for p in inputs:
             p.grad = None
-        ((out[0] * cot[0]).sum() + (out[1] * cot[1]).sum() + (out[2] * flip * cot[2]).sum()).backward()
+        ((out.means * cot[0]).sum() + (out.quats * flip * cot[1]).sum() + (out.scales * cot[2]).sum()).backward()
         return [p.grad.clone() for p in inputs]
 
     for name, a, b in zip(
@@ -305,7 +305,7 @@ def test_binding_kernels_gradcheck():
     proj = torch.tensor(rng.normal(size=(forest.num_faces, 10)))
 
     def f(*xs):
-        m, sc, q = plan.gaussians(*xs)
+        m, q, sc = plan.gaussians(*xs)
         return (torch.cat([m, sc, q * 1e-2], -1) * proj).sum()
 
     assert torch.autograd.gradcheck(f, inputs, eps=1e-7, atol=1e-6, rtol=1e-4)
@@ -332,7 +332,7 @@ def test_training_binding_matches_inference_at_depth_6_with_learned_splits():
     zero = torch.zeros(N, 3)
     ident = torch.zeros(N, 4)
     ident[:, 0] = 1
-    m, s, q = binding_kernels.FaceBinding(forest).gaussians(
+    m, q, s = binding_kernels.FaceBinding(forest).gaussians(
         torch.tensor(v32), torch.tensor(forest.split_logits), zero, zero, ident
     )
     scale = g64.s[finest]
@@ -362,7 +362,7 @@ def test_binding_kernels_degenerate_roots_stay_finite():
     inputs = _kernel_inputs(forest, v, rng)
     out = binding_kernels.FaceBinding(forest).gaussians(*inputs)
     assert all(torch.isfinite(x).all() for x in out)
-    assert torch.all(out[1] > 0)
+    assert torch.all(out.scales > 0)
     sum(x.sum() for x in out).backward()
     assert all(torch.isfinite(p.grad).all() for p in inputs)
 
@@ -383,7 +383,7 @@ def test_binding_kernels_deterministic_across_thread_counts():
         for p in inputs:
             p.grad = None
         out = plan.gaussians(*inputs)
-        (out[0].sum() + out[1].square().sum() + out[2][:, 1].sum()).backward()
+        (out.means.sum() + out.scales.square().sum() + out.quats[:, 1].sum()).backward()
         results.append([x.detach().clone() for x in out] + [p.grad.clone() for p in inputs])
     numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
     for other in results[1:]:

@@ -40,7 +40,7 @@ def test_splat_evaluator_matches_core_compose(q):
     verts = (v @ quat_to_rotmat(np.array(q, float)).T).astype(np.float32)  # large rotations: small-w path
     # Reference: the generic float64 path (evaluate + compose), not the evaluator under test.
     geo = binding.evaluate(av.forest, verts.astype(np.float64), dtype=np.float64)
-    m, s, qq = binding.compose(geo.t, geo.r, geo.s, av.d_mu, av.d_log_scale, av.d_rot)
+    m, qq, s = binding.compose(geo.t, geo.r, geo.s, av.d_mu, av.d_log_scale, av.d_rot)
     ref = {"means": m, "scales": s, "quats": qq}
     layouts = (None, preview_order(av))  # stream order; grouped by root (Blender's)
     for count, order in [(c, o) for c in (None, av.num_gaussians // 3) for o in layouts]:

@@ -291,5 +291,5 @@ def test_numpy_evaluator_matches_torch_at_absurd_unit_scales(unit):
     tf = TorchForest(forest)
     v = torch.tensor(verts * unit, dtype=torch.float32)
     t, r, s = tf.evaluate(v, tf.weights(torch.tensor(forest.split_logits)))
-    mt, st, qt = compose(t, r, s, *(torch.tensor(getattr(av, n)) for n in ("d_mu", "d_log_scale", "d_rot")))
+    mt, qt, st = compose(t, r, s, *(torch.tensor(getattr(av, n)) for n in ("d_mu", "d_log_scale", "d_rot")))
     np.testing.assert_allclose(np.abs(np.sum(qt.numpy() * qk, axis=1)), 1.0, atol=1e-4)  # same rotation (±q)

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .forest import Forest
+from ..geometry.gaussians import Gaussians
 from ..geometry.rotations import quat_multiply, quat_normalize, quat_rows as _quat_rows, quat_to_rotmat, rotmat_to_quat  # noqa: F401
 
 MIN_SCALE = 1e-10  # metres; keeps degenerate faces' Gaussians valid (positive scale)
@@ -395,10 +396,10 @@ class GaussianEvaluator(_PlaneEvaluator):
         self.quats[:, 0] = 1
 
     def __call__(self, vertices):
-        """Returns (means, quats, scales) for mesh vertices [V,3]; this frame's Gaussians are in
-        the rows given (default [0, n)); other rows keep what they held."""
+        """Returns ``Gaussians`` (means, quats, scales) for mesh vertices [V,3]; this frame's
+        Gaussians are in the rows given (default [0, n)); other rows keep what they held."""
         if self.n == 0:
-            return self.means, self.quats, self.scales
+            return Gaussians(self.means, self.quats, self.scales)
         pack, good, rv0, E1, E2 = self._roots(vertices)
         R = [[pack[3 + 3 * j + i] for j in range(3)] for i in range(3)]  # columns x, normal, z
         pack[15:19] = _quat_rows(R)
@@ -421,7 +422,7 @@ class GaussianEvaluator(_PlaneEvaluator):
         if bad is not None:
             base, e1, e2 = parts
             r_bad, s_bad = frames_from_edges(e1, e2)
-            m, sc, q = compose(
+            m, q, sc = compose(
                 base + (e1 + e2) / 3,
                 r_bad,
                 s_bad,
@@ -431,7 +432,7 @@ class GaussianEvaluator(_PlaneEvaluator):
             )
             rows = self.rows[bad]
             self.means[rows], self.scales[rows], self.quats[rows] = m, sc, q
-        return self.means, self.quats, self.scales
+        return Gaussians(self.means, self.quats, self.scales)
 
     def _assemble(self, g, sl, scratch, u, v, cx, cz, s, target, means, quats, scales):
         l0, l1, l2, ch, sh = scratch[9:14]
@@ -552,9 +553,9 @@ def compose(t, r, s, d_mu, d_log_scale, d_rot):
     """World Gaussians from face frames and residuals: μ = s·r·Δμ + t, S = s·exp(ΔS), R = r ⊗ ΔR.
 
     Shapes broadcast over leading axes: t [...,n,3], r [...,n,3,3], s [...,n]; residuals [n,...].
-    Returns means [...,n,3], scales [...,n,3], quats [...,n,4] (wxyz, unit).
+    Returns ``Gaussians``: means [...,n,3], quats [...,n,4] (wxyz, unit), scales [...,n,3].
     """
     means = s[..., None] * np.einsum("...ij,...j->...i", r, d_mu) + t
     scales = s[..., None] * np.exp(d_log_scale)
     quats = quat_multiply(rotmat_to_quat(r), quat_normalize(d_rot))
-    return means, scales, quats
+    return Gaussians(means, quats, scales)

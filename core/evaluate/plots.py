@@ -102,7 +102,7 @@ def depth_picture(path, avatar, dataset, views=(0,)):
         verts = dataset.vertices_at(info.timestep_index)
         geo = evaluate(avatar.forest, verts, ids=base)
         # Opaque, face-sized discs so the colour reads as a surface.
-        means, scales, quats = compose(
+        means, quats, scales = compose(
             geo.t,
             geo.r,
             geo.s,
@@ -120,7 +120,7 @@ def depth_picture(path, avatar, dataset, views=(0,)):
             np.ones(3, np.float32),
         )
         full = evaluate(avatar.forest, verts)
-        m2, s2, q2 = compose(full.t, full.r, full.s, avatar.d_mu, avatar.d_log_scale, avatar.d_rot)
+        m2, q2, s2 = compose(full.t, full.r, full.s, avatar.d_mu, avatar.d_log_scale, avatar.d_rot)
         from ..avatar.avatar import sh_to_rgb, sigmoid
 
         ref, _, _ = render_numpy(

@@ -45,7 +45,7 @@ class SplitRenderer:
         verts = self.dataset.vertices_at(info.timestep_index)
         av = self.avatar
         geo = evaluate(av.forest, verts, ids=ids, weights=self.weights)
-        means, scales, quats = compose(geo.t, geo.r, geo.s, av.d_mu[ids], av.d_log_scale[ids], av.d_rot[ids])
+        means, quats, scales = compose(geo.t, geo.r, geo.s, av.d_mu[ids], av.d_log_scale[ids], av.d_rot[ids])
         t0 = time.perf_counter()
         image, alpha, _ = render_numpy(means, quats, scales, self.opac[ids], self.rgb[ids], info.camera, self.bg)
         seconds = time.perf_counter() - t0

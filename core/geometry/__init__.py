@@ -1,1 +1,1 @@
-"""Geometry helpers: cameras, rotations, spherical harmonics. Blender tier: numpy and stdlib only."""
+"""Geometry helpers: cameras, rotations, spherical harmonics, the Gaussians type. Blender tier: numpy and stdlib only."""

@@ -35,6 +35,7 @@ from numba import njit, prange
 
 from ..avatar.binding import MIN_EDGE, MIN_SCALE
 from ..avatar.forest import Forest
+from ..geometry.gaussians import Gaussians
 from ..render.kernels import _PARALLEL  # only explicit prange loops run in parallel
 
 _EPS64 = 8 * np.finfo(np.float64).eps
@@ -609,8 +610,10 @@ class FaceBinding:
         return full
 
     def gaussians(self, vertices, split_logits, d_mu, d_log_scale, d_rot):
-        """(means, scales, quats) as torch tensors in d_mu's dtype, differentiable in every input."""
-        return _Bind.apply(vertices, split_logits, d_mu, d_log_scale, d_rot, self)
+        """``Gaussians`` (means, quats, scales) as torch tensors in d_mu's dtype, differentiable in
+        every input."""
+        means, scales, quats = _Bind.apply(vertices, split_logits, d_mu, d_log_scale, d_rot, self)
+        return Gaussians(means, quats, scales)
 
 
 def _f64(x: torch.Tensor) -> np.ndarray:

@@ -11,6 +11,7 @@ import torch
 
 from ..avatar.binding import MIN_EDGE
 from ..avatar.forest import Forest
+from ..geometry.gaussians import Gaussians
 from ..geometry.rotations import quat_multiply, quat_normalize, quat_to_rotmat, rotmat_to_quat  # noqa: F401
 
 
@@ -129,8 +130,8 @@ class TorchForest:
 
 
 def compose(t, r, s, d_mu, d_log_scale, d_rot):
-    """μ = s·r·Δμ + t, S = s·exp(ΔS), R = r ⊗ ΔR (wxyz); see binding.compose."""
+    """μ = s·r·Δμ + t, S = s·exp(ΔS), R = r ⊗ ΔR (wxyz): ``Gaussians`` of tensors; see binding.compose."""
     means = s[..., None] * torch.einsum("...ij,...j->...i", r, d_mu) + t
     scales = s[..., None] * torch.exp(d_log_scale)
     quats = quat_multiply(rotmat_to_quat(r), quat_normalize(d_rot))
-    return means, scales, quats
+    return Gaussians(means, quats, scales)

@@ -70,7 +70,7 @@ class TorchAvatar:
         colours seen from ``camera_center`` up to the active SH degree."""
         p = self.params
         # float64 numba kernels (binding_kernels); binding_torch is their test reference
-        means, scales, quats = self.binding.gaussians(
+        means, quats, scales = self.binding.gaussians(
             vertices, p["split_logits"], p["d_mu"], p["d_log_scale"], p["d_rot"]
         )
         degree = min(self.active_sh_degree, self.sh_degree) if camera_center is not None else 0
