@@ -1,7 +1,8 @@
 """Train operator: training in the configured Python (torch is not in Blender).
 
 The extension trains from its own folder (core/train/jobs.py, loaded under a private package
-name, so no checkout and no other installed copy is involved); a train script set in the
+name, so no checkout and no other installed copy is involved; in an installed extension the
+training tier comes from its inner archive, unpacked by training_tier.py); a train script set in the
 preferences (a checkout's scripts/train.py) is run instead when given. The result is loaded
 onto the mesh that started training (stored on the scene, so it survives undo).
 """
@@ -15,7 +16,8 @@ import threading
 
 import bpy
 
-from . import prefs
+from . import prefs, training_tier
+from ..core.bridge import payload
 
 _PERCENT = re.compile(r"(\d+(?:\.\d+)?)\s*%")
 _FRACTION = re.compile(r"(?:iter(?:ation)?|it|step)?\s*[=:]?\s*(\d+)\s*/\s*(\d+)", re.IGNORECASE)
@@ -39,14 +41,7 @@ def find_result(run_dir):
     return max(cands, key=os.path.getmtime) if cands else None
 
 
-_RUNNER = (
-    "import importlib.util, sys\n"
-    "root = sys.argv.pop(1)\n"
-    "spec = importlib.util.spec_from_file_location('pa_ext', root + '/__init__.py', submodule_search_locations=[root])\n"
-    "m = importlib.util.module_from_spec(spec); sys.modules['pa_ext'] = m; spec.loader.exec_module(m)\n"
-    "from pa_ext.core.train import jobs\n"
-    "sys.exit(jobs.main(sys.argv[1:]))\n"
-)
+_RUNNER = payload.loader("from pa_ext.core.train import jobs\nsys.exit(jobs.main(sys.argv[1:]))\n")
 
 
 def _extension_root():
@@ -89,7 +84,11 @@ def _command(context):
                 + flame
             )
         return cmds, out
-    cmd = [python, "-u", "-c", _RUNNER, _extension_root(), "train", "--data", data, "--out", out] + flame
+    try:
+        tier = training_tier.folder(_extension_root())
+    except OSError as exc:
+        raise RuntimeError(str(exc)) from exc
+    cmd = [python, "-u", "-c", _RUNNER, _extension_root(), tier, "train", "--data", data, "--out", out] + flame
     if st.preset:
         cmd += ["--preset", st.preset]
     if st.iterations:

@@ -19,14 +19,10 @@ import time
 
 import numpy as np
 
-_LOADER = (
-    "import importlib.util, sys\n"
-    "root = sys.argv[1]\n"
-    "spec = importlib.util.spec_from_file_location('pa_ext', root + '/__init__.py', submodule_search_locations=[root])\n"
-    "m = importlib.util.module_from_spec(spec); sys.modules['pa_ext'] = m; spec.loader.exec_module(m)\n"
-    "from pa_ext.core.render.worker import serve\n"
-    "sys.exit(serve())\n"
-)
+from . import training_tier
+from ..core.bridge import payload
+
+_LOADER = payload.loader("from pa_ext.core.render.worker import serve\nsys.exit(serve())\n")
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
@@ -59,7 +55,7 @@ class RenderWorker:
         self.error = ""
         self.started = time.perf_counter()
         self.proc = subprocess.Popen(
-            [python, "-c", _LOADER, root],
+            [python, "-c", _LOADER, root, training_tier.folder(root)],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,

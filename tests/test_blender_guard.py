@@ -36,12 +36,9 @@ def build_zip(tmp):
     ext = _blender_ext()
     dist = os.path.join(tmp, "dist")
     os.makedirs(dist, exist_ok=True)
-    build = subprocess.run(
-        [sys.executable, ext, "build", "--source-dir", ROOT, "--output-dir", dist], capture_output=True, text=True
-    )
-    assert build.returncode == 0, build.stdout + build.stderr
-    (z,) = [os.path.join(dist, z) for z in os.listdir(dist) if z.endswith(".zip")]
-    return z
+    from progressive_avatars.core.bridge.payload import build_extension
+
+    return build_extension(ROOT, dist, ext)  # the training tier as the zip's inner archive
 
 
 def run_scenario(tmp, body, args, timeout=600):

@@ -101,3 +101,64 @@ def test_code_is_formatted():
         pytest.skip("ruff is not installed")
     out = subprocess.run([ruff, "format", "--check", "."], cwd=ROOT, capture_output=True, text=True)
     assert out.returncode == 0, out.stdout + out.stderr
+
+
+def _blender_ext():
+    import importlib.util
+
+    spec = importlib.util.find_spec("bpy")  # finds the module without importing it
+    if spec is None or not spec.submodule_search_locations:
+        pytest.skip("bpy module not installed (its blender_ext.py builds the zip)")
+    base = list(spec.submodule_search_locations)[0]
+    return os.path.join(base, "5.0", "scripts", "addons_core", "bl_pkg", "cli", "blender_ext.py")
+
+
+def test_extension_zip_ships_the_blender_tier_and_the_training_tier_as_data(tmp_path):
+    """The zip's importable package is exactly the Blender tier and blender_addon/: Blender can
+    never import render/ or train/ from it. The training tier is the inner archive, and the
+    loader the Train and Render Splats operators run finds it once unpacked (no checkout)."""
+    import zipfile
+
+    from progressive_avatars.core.bridge import payload
+
+    zpath = payload.build_extension(ROOT, str(tmp_path / "dist"), _blender_ext())
+    with zipfile.ZipFile(zpath) as z:
+        names = z.namelist()
+        inner = z.read(payload.PAYLOAD)
+        z.extractall(tmp_path / "ext")
+    py = [n for n in names if n.endswith(".py")]
+    core_pkgs = {n.split("/")[1] for n in py if n.startswith("core/") and n.count("/") == 2}
+    assert core_pkgs == set(BLENDER_TIER), core_pkgs
+    assert all(n == "__init__.py" or n.split("/")[0] in ("blender_addon", "core") for n in py), py
+    assert "core/__init__.py" in py and "blender_addon/__init__.py" in py
+    # Every Blender-tier and add-on module of the checkout is shipped, nothing else.
+    want = []
+    for top in [os.path.join("core", p) for p in BLENDER_TIER] + ["blender_addon"]:
+        want += [
+            os.path.join(top, f).replace(os.sep, "/") for f in os.listdir(os.path.join(ROOT, top)) if f.endswith(".py")
+        ]
+    assert sorted(py) == sorted(want + ["__init__.py", "core/__init__.py"])
+    # The payload: exactly the training tier's modules.
+    (tmp_path / "inner.pyz").write_bytes(inner)
+    with zipfile.ZipFile(tmp_path / "inner.pyz") as z:
+        members = sorted(z.namelist())
+    want = sorted(
+        f"core/{t}/{f}" for t in payload.TIERS for f in os.listdir(os.path.join(ROOT, "core", t)) if f.endswith(".py")
+    )
+    assert members == want
+    # Unpacked into a user folder (once: the same folder the second time), the loader imports the
+    # training tier from there under the private package name, the rest from the extension.
+    ext = str(tmp_path / "ext")
+    tier = payload.unpack(os.path.join(ext, payload.PAYLOAD), str(tmp_path / "user"))
+    assert payload.unpack(os.path.join(ext, payload.PAYLOAD), str(tmp_path / "user")) == tier
+    body = "import pa_ext.core.train.jobs as j, pa_ext.core.io.run as r\nprint(j.__file__)\nprint(r.__file__)\n"
+    block = "import sys; sys.modules['progressive_avatars'] = None\n"  # no checkout
+    out = subprocess.run(
+        [sys.executable, "-c", block + payload.loader(body), ext, tier],
+        capture_output=True,
+        text=True,
+        cwd=str(tmp_path),
+    )
+    assert out.returncode == 0, out.stdout + out.stderr
+    jobs, run = out.stdout.split()
+    assert jobs == os.path.join(tier, "core", "train", "jobs.py") and run == os.path.join(ext, "core", "io", "run.py")
