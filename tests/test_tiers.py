@@ -162,3 +162,21 @@ def test_extension_zip_ships_the_blender_tier_and_the_training_tier_as_data(tmp_
     assert out.returncode == 0, out.stdout + out.stderr
     jobs, run = out.stdout.split()
     assert jobs == os.path.join(tier, "core", "train", "jobs.py") and run == os.path.join(ext, "core", "io", "run.py")
+
+
+def test_architecture_module_map_matches_the_folders():
+    """docs/ARCHITECTURE.md's module map names every core module and no module that is gone
+    (a row may list siblings: "core/train/model.py, losses.py")."""
+    doc = open(os.path.join(ROOT, "docs", "ARCHITECTURE.md")).read()
+    named = set()
+    for row in doc.splitlines():
+        if row.startswith("| core/"):
+            parts = [p.strip() for p in row.split("|")[1].split(",")]
+            base = os.path.dirname(parts[0])
+            named |= {p if "/" in p else f"{base}/{p}" for p in parts}
+    present = set()
+    for folder, _, files in os.walk(os.path.join(ROOT, "core")):
+        rel = os.path.relpath(folder, ROOT).replace(os.sep, "/")
+        present |= {f"{rel}/{f}" for f in files if f.endswith(".py") and f != "__init__.py"}
+    assert not present - named, f"modules missing from the map: {sorted(present - named)}"
+    assert not named - present, f"the map names modules that do not exist: {sorted(named - present)}"
