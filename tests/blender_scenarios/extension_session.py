@@ -1,6 +1,6 @@
 """Blender session run by test_blender_extension.py (a real file so it can be read, linted and run by hand)."""
 
-import json, os, sys, time, traceback
+import importlib, json, os, sys, time, traceback
 import numpy as np
 import bpy
 
@@ -155,7 +155,7 @@ def _():
 
 @section("camera")
 def _():
-    cam_mod = sys.modules[pkg + ".core.geometry.camera"]
+    cam_mod = importlib.import_module(pkg + ".core.geometry.camera")  # not imported by the add-on itself
     seq_mod = sys.modules[pkg + ".blender_addon.sequence"]
     from bpy_extras.object_utils import world_to_camera_view
     from mathutils import Vector
@@ -165,7 +165,7 @@ def _():
     bpy.context.scene.render.resolution_x, bpy.context.scene.render.resolution_y = s["resolution"]
     pts = np.random.default_rng(0).normal(0, 0.05, (20, 3))
     uv_core, _ = cam.project(pts)
-    z_up = np.array(sys.modules[pkg + ".core.bridge.transforms"].Y_UP_TO_Z_UP)
+    z_up = np.array(importlib.import_module(pkg + ".core.bridge.transforms").Y_UP_TO_Z_UP)
     uv_bl = []
     for p in pts:
         q = z_up[:3, :3] @ p
