@@ -317,9 +317,9 @@ sys.meta_path.insert(0, _NoCheckout())
 
 @pytest.fixture(scope="module")
 def train_session(tiny_dataset, tmp_path_factory):
-    sys.path.insert(0, os.path.dirname(__file__))
     import trimesh
-    from test_train import _flame_mode_dataset
+
+    from tests.test_train import _flame_mode_dataset
 
     from progressive_avatars.core.avatar.avatar import Avatar
     from progressive_avatars.core.io.dataset import Dataset

@@ -181,16 +181,16 @@ def test_scale_overflow_stops_training_with_the_trainers_message(tiny_dataset, t
 @pytest.mark.slow  # a training run or a subprocess
 def test_train_script_reports_disk_full(tiny_dataset, tmp_path):
     code = (
-        "import errno, sys; sys.argv[0] = 'train.py'; sys.path.insert(0, %r);"
+        "import errno, runpy, sys;"
         "import progressive_avatars.core.io.atomic as A;"
         "real = A.atomic_savez\n"
         "def full(path, **a):\n"
         "    raise OSError(errno.ENOSPC, 'No space left on device', str(path))\n"
         "A.atomic_savez = full\n"
         "import progressive_avatars.core.train as T; T.atomic_savez = full\n"
-        "import train; sys.exit(train.main(['--data', %r, '--out', %r, '--preset', 'tiny', '--iterations', '2',"
-        " '--no-progress']))"
-    ) % (os.path.join(ROOT, "scripts"), tiny_dataset, str(tmp_path / "r"))
+        "sys.argv = [%r, '--data', %r, '--out', %r, '--preset', 'tiny', '--iterations', '2', '--no-progress']\n"
+        "runpy.run_path(sys.argv[0], run_name='__main__')"
+    ) % (os.path.join(ROOT, "scripts", "train.py"), tiny_dataset, str(tmp_path / "r"))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 3, out.stderr
     assert "error: disk full: No space left on device" in out.stderr and "last checkpoint" in out.stderr
