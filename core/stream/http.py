@@ -18,7 +18,8 @@ import time
 from dataclasses import dataclass, field
 from urllib.parse import urljoin, urlsplit
 
-from .format import FIXED_SIZE, FIXED_SIZE_V3, StreamError, StreamReader, _fixed_size, _parse_fixed
+from .format import FIXED_SIZE, FIXED_SIZE_V3, StreamError, _fixed_size, _parse_fixed
+from .reader import StreamReader
 
 COMPLETE = "complete"  # the whole stream arrived and verified
 BUDGET = "budget"  # stopped at the requested budget (everything inside it verified)
