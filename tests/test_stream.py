@@ -115,11 +115,13 @@ def test_format_constants_match_document():
 
 def test_header_layout_is_the_documented_one(small):
     _, av, _, data, _ = small
-    magic, version, flags, hsize, N, F0, R, B, L, K, thash, M, T, CL = struct.unpack_from("<8sHHIIIHHHH16sIII", data)
+    fixed = struct.unpack_from("<8sHHIIIHHHH16sIIII", data)
+    magic, version, flags, hsize, N, F0, R, B, L, K, thash, M, T, CL, E = fixed
     f = av.forest
+    assert E == read_header(data).num_exceptions == 0  # no outliers in this avatar
     assert (magic, version, flags, R, B, N, F0) == (
         MAGIC,
-        3,
+        4,
         FLAG_TEMPLATE,
         23,
         8,
@@ -127,14 +129,14 @@ def test_header_layout_is_the_documented_one(small):
         len(f.template_faces),
     )
     assert K == f.num_coarse_levels == 2 and CL > 0
-    pos = 60 + 4 * L + 104  # the coarse table: zlib of int32 columns (a deltas, b - a, c - a)
+    pos = 64 + 4 * L + 104  # the coarse table: zlib of int32 columns (a deltas, b - a, c - a)
     cols = np.frombuffer(zlib.decompress(data[pos : pos + CL]), "<i4").reshape(3, -1)
     a = np.cumsum(cols[0])
     table = np.stack([a, a + cols[1], a + cols[2]], 1)
     assert sorted(map(tuple, table)) == sorted(map(tuple, f.coarse_faces))
     assert thash == template_hash(av.forest.template_faces)
     assert thash == __import__("hashlib").sha256(av.forest.template_faces.astype("<i4").tobytes()).digest()[:16]
-    assert hsize == 60 + 4 * L + 104 + CL + T + M + 4
+    assert hsize == 64 + 4 * L + 104 + CL + T + M + 4
     assert struct.unpack_from("<I", data, hsize - 4)[0] == zlib.crc32(data[: hsize - 4])
     info = read_header(data)
     assert len(data) == info.total_bytes == hsize + N * 23 + 4 * -(-N // B)
@@ -284,7 +286,7 @@ def _slow_decode(rec: bytes, quant, version=2, root=None) -> dict:
     geo, rot = int.from_bytes(rec[0:8], "little"), int.from_bytes(rec[8:12], "little")
     parent = int.from_bytes(rec[12:15], "little")
     quant = np.asarray(quant, np.float64)
-    assert len(quant) == {1: 18, 2: 26, 3: 26}[version]
+    assert len(quant) == {1: 18, 2: 26, 3: 26, 4: 26}[version]
     q = quant[:18].reshape(3, 2, 3)
 
     def affine(code, lo32, step32):
@@ -323,6 +325,8 @@ def _slow_decode(rec: bytes, quant, version=2, root=None) -> dict:
 
 def test_decoded_records_match_an_independent_slow_decode():
     _, av, imp = make_avatar(11, n_lat=5, n_lon=7)
+    av.d_mu[3, 1] = 40.0  # outliers: the version 4 exceptions table is decoded as documented too
+    av.f_dc[8] = (-30.0, 50.0, 2e3)
     data = encode_stream(av, imp, records_per_block=16)
     info = read_header(data)
     out = read_stream(data)
@@ -332,12 +336,17 @@ def test_decoded_records_match_an_independent_slow_decode():
     chunked = r.avatar()
     got = {**fields(out), **{n: getattr(out, n) for n in PARAMS}}
     got_c = {**fields(chunked), **{n: getattr(chunked, n) for n in PARAMS}}
-    assert info.version == 3
+    assert info.version == 4 and info.num_exceptions >= 3
     _assert_slow_decode(data, info, (got, got_c))
-    # the previous version, written by this writer, decodes as the document says too
+    # the previous versions, written by this writer, decode as the document says too
+    data3 = encode_stream(av, imp, records_per_block=16, version=3)
+    info3 = read_header(data3)
+    assert info3.version == 3 and info3.header_size == info.header_size - 4 - 9 * info.num_exceptions
+    out3 = read_stream(data3)
+    _assert_slow_decode(data3, info3, ({**fields(out3), **{n: getattr(out3, n) for n in PARAMS}},))
     data2 = encode_stream(av, imp, records_per_block=16, version=2)
     info2 = read_header(data2)
-    assert info2.version == 2 and info2.header_size == info.header_size - 4
+    assert info2.version == 2 and info2.header_size == info3.header_size - 4
     out2 = read_stream(data2)
     _assert_slow_decode(data2, info2, ({**fields(out2), **{n: getattr(out2, n) for n in PARAMS}},))
 
@@ -351,6 +360,16 @@ def _assert_slow_decode(data, info, decoded):
         if info.version >= 3:  # the record CRC-8 covers u32le(i) first
             assert _crc8_bytewise(struct.pack("<I", i) + rec[:22]) == rec[22]
         want = _slow_decode(rec, info.quant, info.version, root=i < nroots)
+        if info.version >= 4:  # FORMAT.md 3.2: an exception replaces its component exactly
+            blob = data[64 + 4 * info.num_levels + 104 :]
+            E = info.num_exceptions
+            for e in range(E):
+                if struct.unpack_from("<I", blob, 4 * e)[0] == i:
+                    comp, value = blob[4 * E + e], np.frombuffer(blob, "<f4", 1, 5 * E + 4 * e)[0]
+                    name, k = [("d_mu", 0), ("d_log_scale", 3), ("f_dc", 6), ("d_rot", 9)][
+                        np.searchsorted([3, 6, 9], comp, "right")
+                    ]
+                    want[name][comp - k] = value
         for name, vals in want.items():
             dt = np.int64 if name == "parent" else np.int8 if name == "slot" else np.float32
             w = np.asarray(vals, dt)
@@ -397,6 +416,30 @@ def test_version_2_streams_still_read_bit_for_bit():
             arr = getattr(f if name in ("parent", "slot", "split_logits", "template_faces") else got, name)
             assert arr.dtype == want[name].dtype and arr.tobytes() == want[name].tobytes(), name
         assert np.array_equal(f.root_faces, want["template_faces"])
+
+
+def test_version_3_streams_still_read_bit_for_bit():
+    """tests/data/stream_v3.pavs was written by the version 3 writer (coarse levels, min..max
+    ranges, no exceptions table); stream_v3_decoded.npz holds what the version 3 reader decoded
+    from it. This reader returns the same bits, through read_stream and fed in pieces."""
+    here = os.path.join(os.path.dirname(__file__), "data")
+    data = open(os.path.join(here, "stream_v3.pavs"), "rb").read()
+    want = np.load(os.path.join(here, "stream_v3_decoded.npz"))
+    info = read_header(data)
+    assert (info.version, info.num_records, info.num_coarse_levels, info.num_exceptions) == (3, 304, 2, 0)
+    q = 60 + 4 * info.num_levels  # a 60-byte fixed part, then the level counts, then the 26 ranges
+    assert np.frombuffer(data[q : q + 104], "<f4").tobytes() == info.quant.tobytes()
+    r = StreamReader()
+    for i in range(0, len(data), 53):
+        r.feed(data[i : i + 53])
+    for got in (read_stream(data), r.avatar()):
+        f = got.forest
+        for name in ("parent", "slot", "split_logits", "template_faces", "coarse_faces", "root_ref") + PARAMS:
+            arr = getattr(
+                f if name in ("parent", "slot", "split_logits", "template_faces", "coarse_faces", "root_ref") else got,
+                name,
+            )
+            assert arr.dtype == want[name].dtype and arr.tobytes() == want[name].tobytes(), name
 
 
 def test_trusted_forest_and_avatar_equal_the_validated_constructors():
@@ -597,7 +640,7 @@ def test_header_errors(small, tmp_path):
     bad[H - 10] ^= 1  # inside the metadata
     with pytest.raises(ValueError, match="header checksum"):
         read_stream(bytes(bad))
-    for v in (0, 4):
+    for v in (0, 5):
         bad = bytearray(data)
         bad[8:10] = struct.pack("<H", v)
         with pytest.raises(ValueError, match=f"version {v} is not supported"):

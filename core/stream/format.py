@@ -35,18 +35,38 @@ class TemplateMismatch(ValueError):
 
 
 MAGIC = b"PAVS\r\n\x1a\n"
-VERSION = 3  # what the writer writes
-READ_VERSIONS = (1, 2, 3)  # what the reader reads (1: smallest-three rotations, 2: no coarse levels; FORMAT.md 7)
+VERSION = 4  # what the writer writes
+# what the reader reads (1: smallest-three rotations, 2: no coarse levels, 3: no exceptions table; FORMAT.md 7)
+READ_VERSIONS = (1, 2, 3, 4)
 FLAG_LOSSLESS = 1
 FLAG_TEMPLATE = 2
 KNOWN_FLAGS = FLAG_LOSSLESS | FLAG_TEMPLATE
 FIXED_HEADER = struct.Struct("<8sHHIIIHHHH16sII")
 FIXED_SIZE = FIXED_HEADER.size  # 56: versions 1 and 2; version 3 adds u32 coarse_length
 FIXED_SIZE_V3 = FIXED_SIZE + 4
-QUANT_TABLE_SIZE = {1: 18 * 4, 2: 26 * 4, 3: 26 * 4}  # by version
+FIXED_SIZE_V4 = FIXED_SIZE_V3 + 4  # version 4 adds u32 num_exceptions
+FIXED_SIZE_MAX = FIXED_SIZE_V4
+QUANT_TABLE_SIZE = {1: 18 * 4, 2: 26 * 4, 3: 26 * 4, 4: 26 * 4}  # by version
 # |log-scale| bound of header ranges: exp() of more overflows float32 (88.7) in a renderer; the
 # writer clamps to it, readers refuse a header beyond it (FORMAT.md 3.1).
 LOG_SCALE_LIMIT = 80.0
+# |value| bound of version 4 header ranges and exception values for positions and colours: the
+# affine decode (lo + code * step in float32) then stays far from float32 overflow (FORMAT.md 3.2).
+RANGE_LIMIT = 1e30
+# Version 4 exceptions table (FORMAT.md 3.2): per entry u32 record index, u8 component, f32 value.
+EXCEPTION_SIZE = 9
+# The 13 components an exception can carry, in table order: d_mu x y z, d_log_scale x y z,
+# f_dc r g b, d_rot w x y z (the unit quaternion with w >= 0 the record codes).
+EXCEPTION_COMPONENTS = tuple(
+    (name, k) for name, w in (("d_mu", 3), ("d_log_scale", 3), ("f_dc", 3), ("d_rot", 4)) for k in range(w)
+)
+
+
+def max_exceptions(num_records: int) -> int:
+    """Most exception entries a version 4 stream of num_records records may carry."""
+    return max(16, int(num_records) // 1000)
+
+
 MAX_HEADER = 256 << 20
 DEFAULT_BLOCK = 256
 QUANT_RECORD = 23
@@ -240,6 +260,13 @@ class StreamInfo:
     order: np.ndarray | None = field(default=None, repr=False, compare=False)
     num_coarse_levels: int = 0  # version 3: levels 0..K-1 are coarse, level K the template
     coarse_faces: np.ndarray | None = field(default=None, repr=False, compare=False)  # [C,3], grouped by level
+    # version 4: (record index int64 [E], component uint8 [E], value float32 [E]), sorted by
+    # (index, component); values replace the decoded component exactly (FORMAT.md 3.2)
+    exceptions: tuple | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def num_exceptions(self) -> int:
+        return 0 if self.exceptions is None else len(self.exceptions[0])
 
     @property
     def num_roots(self) -> int:
@@ -368,25 +395,36 @@ class StreamInfo:
             "coarse_levels": self.num_coarse_levels,
             "head_records": self.head_records,
             "head_bytes": self.head_bytes,
+            "exceptions": self.num_exceptions,
         }
 
 
 StreamHeader = StreamInfo
 
 
+def _encode_exceptions(exceptions) -> bytes:
+    """FORMAT.md 3.2: the E record indices (u32), then the E components (u8), then the E values (f32)."""
+    idx, comp, val = exceptions
+    return np.asarray(idx, "<u4").tobytes() + np.asarray(comp, "u1").tobytes() + np.asarray(val, "<f4").tobytes()
+
+
 def _encode_header(info: StreamInfo, template_blob: bytes, meta_blob: bytes, coarse_blob: bytes = b"") -> bytes:
     L = len(info.level_counts)
     v3 = info.version >= 3
+    v4 = info.version >= 4
+    E = info.num_exceptions
     parts = [
         None,  # fixed part, filled once the size is known
         np.asarray(info.level_counts, "<u4").tobytes(),
         b"" if info.lossless else np.asarray(info.quant, "<f4").tobytes(),
+        _encode_exceptions(info.exceptions) if E else b"",
         coarse_blob,
         template_blob,
         meta_blob,
     ]
-    fixed = FIXED_SIZE_V3 if v3 else FIXED_SIZE
-    size = fixed + 4 * L + len(parts[2]) + len(coarse_blob) + len(template_blob) + len(meta_blob) + 4
+    assert v4 or not E
+    fixed = FIXED_SIZE_V4 if v4 else FIXED_SIZE_V3 if v3 else FIXED_SIZE
+    size = fixed + sum(len(p) for p in parts[1:]) + 4
     parts[0] = FIXED_HEADER.pack(
         MAGIC,
         info.version,
@@ -404,6 +442,8 @@ def _encode_header(info: StreamInfo, template_blob: bytes, meta_blob: bytes, coa
     )
     if v3:
         parts[0] += struct.pack("<I", len(coarse_blob))
+    if v4:
+        parts[0] += struct.pack("<I", E)
     body = b"".join(parts)
     crc = zlib.crc32(body)
     info.header_size = size
@@ -418,9 +458,14 @@ def _check_magic(buf, source: str) -> None:
 
 
 def _fixed_size(buf) -> int:
-    """Bytes of the fixed header part (the version is at offset 8: 56 before version 3, 60 from it)."""
-    if len(buf) >= 10 and struct.unpack_from("<H", buf, 8)[0] >= 3:
-        return FIXED_SIZE_V3
+    """Bytes of the fixed header part (the version is at offset 8: 56 before version 3, 60 in
+    version 3, 64 from version 4)."""
+    if len(buf) >= 10:
+        version = struct.unpack_from("<H", buf, 8)[0]
+        if version >= 4:
+            return FIXED_SIZE_V4
+        if version == 3:
+            return FIXED_SIZE_V3
     return FIXED_SIZE
 
 
@@ -434,10 +479,12 @@ def _header_size_if_known(buf, source: str):
 def _parse_fixed(buf, source: str):
     _check_magic(buf, source)
     (magic, version, flags, hsize, N, F0, R, B, L, reserved, thash, M, T) = FIXED_HEADER.unpack_from(buf, 0)
-    K, CL = 0, 0  # version 3: coarse levels (offset 30, reserved before) and coarse table bytes
+    K, CL, E = 0, 0, 0  # version 3: coarse levels (offset 30, reserved before) and coarse table bytes
     if version >= 3 and version in READ_VERSIONS:
         K, reserved = reserved, 0
         CL = struct.unpack_from("<I", buf, FIXED_SIZE)[0]
+    if version >= 4 and version in READ_VERSIONS:  # version 4: exceptions table entries
+        E = struct.unpack_from("<I", buf, FIXED_SIZE_V3)[0]
     if version not in READ_VERSIONS:
         raise StreamError(
             f"{source}: stream format version {version} is not supported (this reader: "
@@ -462,8 +509,10 @@ def _parse_fixed(buf, source: str):
         problems.append(f"template length {T} disagrees with flag bit 1")
     if K >= L or bool(K) != bool(CL):
         problems.append(f"coarse levels {K} with {L} levels and a coarse table of {CL} bytes")
-    fixed = FIXED_SIZE_V3 if version >= 3 else FIXED_SIZE
-    expect = fixed + 4 * L + (0 if lossless else QUANT_TABLE_SIZE[version]) + CL + T + M + 4
+    if E and (lossless or E > max_exceptions(N)):
+        problems.append(f"{E} exceptions (at most {max_exceptions(N)} for N={N}, none in a lossless stream)")
+    fixed = FIXED_SIZE_V4 if version >= 4 else FIXED_SIZE_V3 if version == 3 else FIXED_SIZE
+    expect = fixed + 4 * L + (0 if lossless else QUANT_TABLE_SIZE[version]) + EXCEPTION_SIZE * E + CL + T + M + 4
     if hsize != expect or hsize > MAX_HEADER:
         problems.append(f"header size {hsize} (fields imply {expect}, limit {MAX_HEADER})")
     if problems:
@@ -482,6 +531,7 @@ def _parse_fixed(buf, source: str):
         T=T,
         K=K,
         CL=CL,
+        E=E,
         fixed=fixed,
     )
 
@@ -516,11 +566,17 @@ def _parse_header(buf, source: str) -> StreamInfo:
             not np.all(np.isfinite(quant))
             or any(np.any(lo > hi) for lo, hi in ranges.values())
             or np.any(np.abs(np.concatenate(ranges["ls"])) > LOG_SCALE_LIMIT)
+            or (f["version"] >= 4 and np.any(np.abs(quant) > RANGE_LIMIT))
         ):
             raise StreamError(
-                f"{source}: invalid quantisation ranges in the header (lo > hi, not finite, or a "
-                f"log-scale beyond +-{LOG_SCALE_LIMIT:g}): {quant.tolist()}"
+                f"{source}: invalid quantisation ranges in the header (lo > hi, not finite, a "
+                f"log-scale beyond +-{LOG_SCALE_LIMIT:g}, or from version 4 a value beyond +-{RANGE_LIMIT:g}): "
+                f"{quant.tolist()}"
             )
+    exceptions = None
+    if f["E"]:
+        exceptions = _parse_exceptions(bytes(buf[pos : pos + EXCEPTION_SIZE * f["E"]]), f["num_records"], source)
+        pos += EXCEPTION_SIZE * f["E"]
     coarse = None
     if K:
         coarse = _decode_coarse(bytes(buf[pos : pos + f["CL"]]), int(counts[:K].sum()), source)
@@ -570,7 +626,31 @@ def _parse_header(buf, source: str) -> StreamInfo:
         stored,
         num_coarse_levels=K,
         coarse_faces=coarse,
+        exceptions=exceptions,
     )
+
+
+def _parse_exceptions(blob: bytes, N: int, source: str):
+    """The version 4 exceptions table (FORMAT.md 3.2), checked: record indices below N,
+    components below 13, (index, component) strictly increasing, values finite and within the
+    limits the writer keeps (log-scales +-LOG_SCALE_LIMIT, the rest +-RANGE_LIMIT)."""
+    E = len(blob) // EXCEPTION_SIZE
+    idx = np.frombuffer(blob, "<u4", E).astype(np.int64)
+    comp = np.frombuffer(blob, "u1", E, 4 * E).copy()
+    val = np.frombuffer(blob, "<f4", E, 5 * E).astype(np.float32)
+    key = idx * len(EXCEPTION_COMPONENTS) + comp
+    is_ls = (comp >= 3) & (comp < 6)
+    limit = np.where(is_ls, LOG_SCALE_LIMIT, RANGE_LIMIT)
+    problems = []
+    if np.any(idx >= N) or np.any(comp >= len(EXCEPTION_COMPONENTS)):
+        problems.append("a record index or component out of range")
+    if np.any(np.diff(key) <= 0):
+        problems.append("entries not in strictly increasing (record, component) order")
+    if not np.all(np.isfinite(val)) or np.any(np.abs(val.astype(np.float64)) > limit):
+        problems.append(f"a value not finite or beyond its limit (log-scale {LOG_SCALE_LIMIT:g}, else {RANGE_LIMIT:g})")
+    if problems:
+        raise StreamError(f"{source}: invalid exceptions table in the header: " + "; ".join(problems))
+    return idx, comp, val
 
 
 def _encode_coarse(tris) -> bytes:

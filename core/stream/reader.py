@@ -520,6 +520,8 @@ class StreamReader:
                     _decode_quantised(
                         raw[c0 : c0 + _RUN], {k: v[c0 : c0 + _RUN] for k, v in out.items()}, self._steps, scratch
                     )
+                if self.header.exceptions is not None:
+                    _apply_exceptions(cols, self.header.exceptions, a, b)
         for name in PARAM_NAMES + ("split_logits",):
             self._cols.valid[name] = b
         self._decoded = b
@@ -611,6 +613,20 @@ class StreamReader:
             coarse_counts=tuple(h.level_counts[:K]),
             root_ref=root_ref,
         )
+
+
+def _apply_exceptions(cols, exceptions, a: int, b: int) -> None:
+    """Version 4 (FORMAT.md 3.2): the exceptions of records a..b-1 replace their decoded
+    components with the exact values (vectorised per parameter, never per record)."""
+    idx, comp, val = exceptions
+    i, j = np.searchsorted(idx, [a, b])
+    if i == j:
+        return
+    idx, comp, val = idx[i:j], comp[i:j], val[i:j]
+    for name, first, width in (("d_mu", 0, 3), ("d_log_scale", 3, 3), ("f_dc", 6, 3), ("d_rot", 9, 4)):
+        sel = (comp >= first) & (comp < first + width)
+        if sel.any():
+            cols[name][idx[sel], comp[sel] - first] = val[sel]
 
 
 def read_stream(source, *, percent=None, max_bytes=None, max_gaussians=None, template_faces=None) -> Avatar | None:

@@ -4,6 +4,7 @@ checksums, written atomically (numpy only: runs in Blender)."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import struct
 import zlib
@@ -21,6 +22,7 @@ from .format import (
     LOSSLESS_RECORD,
     LOSSLESS_ROOT,
     QUANT_DTYPE,
+    RANGE_LIMIT,
     QUANT_RECORD,
     QUANT_ROOT,
     StreamInfo,
@@ -31,6 +33,7 @@ from .format import (
     _f32_floor,
     crc8,
     crc8_indexed,
+    max_exceptions,
     quant_ranges,
     template_hash,
 )
@@ -106,28 +109,79 @@ def _unit_quaternions(d_rot) -> np.ndarray:
     return np.where(r[:, :1] < 0, -r, r)
 
 
-def _quant_table(av: Avatar) -> np.ndarray:
+# Version 4 robust ranges (FORMAT.md 3.2): a component's fence spans its k-th smallest to k-th
+# largest value, k = max(max_exceptions(N), N / 100) (so neither end moves for up to that many
+# outliers), widened by that width on either side; values beyond it are escaped (carried exactly
+# in the header), the farthest first, at most max_exceptions(N) of them; the range is the hull
+# of the rest.
+FENCE_TRIM = 0.01
+FENCE_WIDEN = 1.0
+
+
+def _coded_values(av: Avatar) -> np.ndarray:
+    """[N,13] float64: each component as the quantised record codes it (EXCEPTION_COMPONENTS
+    order): d_mu within +-RANGE_LIMIT, log-scales within +-LOG_SCALE_LIMIT, the colour
+    0.5 + SH_C0 f_dc within [0, RANGE_LIMIT] (a renderer clamps negative colour to 0), the
+    unit quaternion with w >= 0."""
     c = 0.5 + SH_C0 * av.f_dc.astype(np.float64)
-    c_lo = np.maximum(c.min(0), 0.0)
-    c_hi = np.maximum(c.max(0), c_lo)
-    r = _unit_quaternions(av.d_rot)
-    lim = LOG_SCALE_LIMIT
-    parts = [
-        av.d_mu.min(0),
-        av.d_mu.max(0),
-        np.clip(av.d_log_scale.min(0), -lim, lim),
-        np.clip(av.d_log_scale.max(0), -lim, lim),
-        c_lo,
-        c_hi,
-        r.min(0),
-        r.max(0),
-    ]
-    table = []
-    for i, p in enumerate(parts):
-        table.append(_f32_floor(p) if i % 2 == 0 else _f32_ceil(p))
-    table = np.concatenate(table).astype(np.float32)
-    table[6:12] = np.clip(table[6:12], -lim, lim)  # (outward rounding must not pass the limit)
-    return table
+    return np.concatenate(
+        [
+            np.clip(av.d_mu.astype(np.float64), -RANGE_LIMIT, RANGE_LIMIT),
+            np.clip(av.d_log_scale.astype(np.float64), -LOG_SCALE_LIMIT, LOG_SCALE_LIMIT),
+            np.clip(c, 0.0, RANGE_LIMIT),
+            _unit_quaternions(av.d_rot),
+        ],
+        axis=1,
+    )
+
+
+def _escapes(x: np.ndarray) -> np.ndarray:
+    """[N,13] bool: the values a version 4 stream carries exactly (see FENCE_TRIM)."""
+    N = len(x)
+    cap = max_exceptions(N)
+    k = min(max(cap, math.ceil(FENCE_TRIM * N)), (N - 1) // 2)
+    part = np.partition(x, (k, N - 1 - k), axis=0)
+    p_lo, p_hi = part[k], part[N - 1 - k]
+    # width floor: a (near-)constant component does not escape rounding-level differences
+    w = np.maximum(p_hi - p_lo, 1e-6 * np.maximum(np.maximum(np.abs(p_lo), np.abs(p_hi)), 1.0))
+    excess = np.maximum((p_lo - FENCE_WIDEN * w) - x, x - (p_hi + FENCE_WIDEN * w))
+    score = np.where(excess > 0, excess / w, 0.0).ravel()
+    out = score > 0
+    if out.sum() > cap:  # keep the cap farthest (in fence widths); the others widen the range
+        keep = np.argpartition(-score, cap - 1)[:cap]
+        out[:] = False
+        out[keep] = True
+    return out.reshape(x.shape)
+
+
+def _quant_table(av: Avatar, version: int = VERSION):
+    """(26-float table, exceptions or None). Versions 2-3: each range the min..max of the coded
+    values; version 4: robust ranges plus the exceptions table (FORMAT.md 3.2). Either way every
+    table value and decoded value stays finite in float32 (limits above)."""
+    x = _coded_values(av)
+    esc = _escapes(x) if version >= 4 else np.zeros(x.shape, bool)
+    lo = np.where(esc, np.inf, x).min(0)
+    hi = np.where(esc, -np.inf, x).max(0)
+    parts = [lo[0:3], hi[0:3], lo[3:6], hi[3:6], lo[6:9], hi[6:9], lo[9:13], hi[9:13]]
+    table = np.concatenate([_f32_floor(p) if i % 2 == 0 else _f32_ceil(p) for i, p in enumerate(parts)])
+    table = table.astype(np.float32)
+    lim32 = _f32_floor(RANGE_LIMIT)  # (outward rounding must not pass the limits)
+    table[6:12] = np.clip(table[6:12], -LOG_SCALE_LIMIT, LOG_SCALE_LIMIT)
+    table = np.clip(table, -lim32, lim32)
+    if not esc.any():
+        return table, None
+    rows, comps = np.nonzero(esc)  # row-major: sorted by (record, component)
+    params = np.concatenate(
+        [
+            np.clip(av.d_mu.astype(np.float64), -RANGE_LIMIT, RANGE_LIMIT),
+            np.clip(av.d_log_scale.astype(np.float64), -LOG_SCALE_LIMIT, LOG_SCALE_LIMIT),
+            np.clip(av.f_dc.astype(np.float64), -RANGE_LIMIT, RANGE_LIMIT),
+            _unit_quaternions(av.d_rot),
+        ],
+        axis=1,
+    )
+    vals = np.clip(params[rows, comps].astype(np.float32), -lim32, lim32)
+    return table, (rows.astype(np.int64), comps.astype(np.uint8), vals)
 
 
 def write_stream(
@@ -152,7 +206,8 @@ def write_stream(
     default "auto" when rest-pose `vertices` are given, else the forest's order. The avatar's
     training settings (meta "config") stay out of the header (they are in the run folder):
     time to the first whole head counts.
-    ``version=2`` writes the previous format (no coarse levels, roots in template order)."""
+    ``version=3`` writes the previous format (min..max quantisation ranges, no exceptions table),
+    ``version=2`` the one before (no coarse levels, roots in template order)."""
     forest = avatar.forest
     if avatar.sh_degree and not drop_sh:
         raise ValueError(
@@ -166,8 +221,8 @@ def write_stream(
     limit = QUANT_ROOT if quantize else LOSSLESS_ROOT
     if N > limit:
         raise ValueError(f"write_stream: {N} Gaussians exceed this record type's limit of {limit}")
-    if version not in (2, VERSION):
-        raise ValueError(f"write_stream: can write versions 2 and {VERSION}, not {version}")
+    if version not in (2, 3, VERSION):
+        raise ValueError(f"write_stream: can write versions 2, 3 and {VERSION}, not {version}")
     C, K = forest.num_coarse, forest.num_coarse_levels
     if forest.num_roots != C + len(forest.template_faces):
         raise ValueError(
@@ -208,10 +263,10 @@ def write_stream(
     flags = (0 if quantize else FLAG_LOSSLESS) | (FLAG_TEMPLATE if embed_template else 0)
     level_counts = tuple(int(c) for c in f2.level_counts())
     if quantize:
-        quant = _quant_table(av)
+        quant, exceptions = _quant_table(av, version)
         recs = _quantize_records(av, f2.barycentrics(), quant, version, root_ref)
     else:
-        quant = None
+        quant, exceptions = None, None
         recs = _lossless_records(av, version, root_ref)
     R = recs.dtype.itemsize
     info = StreamInfo(
@@ -229,6 +284,7 @@ def write_stream(
         tmpl.astype(np.int32) if embed_template else None,
         num_coarse_levels=K,
         coarse_faces=coarse_rows.astype(np.int32) if K else None,
+        exceptions=exceptions,
     )
     header = _encode_header(info, template_blob, meta_blob, _encode_coarse(coarse_rows) if K else b"")
     raw = recs.tobytes()
