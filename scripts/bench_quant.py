@@ -83,6 +83,7 @@ def main(argv=None) -> int:
     ap.add_argument("--data", required=True, help="its dataset (the val split scores the rendering loss)")
     ap.add_argument("--views", type=int, default=16, help="val views rendered for the PSNR")
     ap.add_argument("--out", required=True, help="the Markdown section is written here")
+    ap.add_argument("--about", default="", help="a sentence on the avatar (how it was trained), printed as given")
     args = ap.parse_args(_bootstrap.script_args() if argv is None else argv)
 
     from bench_common import header
@@ -158,6 +159,7 @@ def main(argv=None) -> int:
         f"- avatar: `{args.run}` ({N:,} Gaussians, levels {avatar.forest.level_counts().tolist()}); "
         f"load average {os.getloadavg()[0]:.1f} on a shared machine",
         f"- exceptions cap for this avatar: max(16, N/1000) = {max_exceptions(N)}",
+        *([f"- about: {args.about}"] if args.about else []),
         "",
         "Per-Gaussian quantisation error, mean / worst over the Gaussians not edited (position in face "
         "scales, log-scale, rendered colour max(0.5 + C0 f_dc, 0), rotation in degrees); *edited* is the "

@@ -91,7 +91,7 @@ def _readers(S, data: bytes, faces) -> dict:
 
 def old_against_new(av, imp, reps) -> str:
     """f6907ae's read_stream against this tree's on the same version-2 stream, and this tree's
-    on version 3, round-robin in one process: the machine's speed, not the format's, moves the
+    on versions 3 and 4, round-robin in one process: the machine's speed, not the format's, moves the
     absolute figures between runs on different days."""
     import importlib
 
@@ -104,14 +104,16 @@ def old_against_new(av, imp, reps) -> str:
     old = importlib.import_module("pa_old.core.stream")
     faces = av.forest.template_faces
     v2 = W.encode_stream(av, imp, embed_template=False, version=2)
-    v3 = W.encode_stream(av, imp, embed_template=False)
+    v3 = W.encode_stream(av, imp, embed_template=False, version=3)
+    v4 = W.encode_stream(av, imp, embed_template=False)
     fns = {
         f"{OLD_COMMIT} reader, version 2": lambda: old.read_stream(v2, template_faces=faces),
         "this reader, version 2": lambda: S.read_stream(v2, template_faces=faces),
         "this reader, version 3": lambda: S.read_stream(v3, template_faces=faces),
+        "this reader, version 4": lambda: S.read_stream(v4, template_faces=faces),
     }
     times = _times(fns, reps)
-    sizes = {k: len(v2) if "version 2" in k else len(v3) for k in fns}
+    sizes = {k: len({"2": v2, "3": v3, "4": v4}[k[-1]]) for k in fns}
     return (
         "Same run, read_stream of the quantised stream without template (MB/s, best / median): "
         + ", ".join(f"{k} {sizes[k] / 1e6 / t[0]:.0f} / {sizes[k] / 1e6 / t[1]:.0f}" for k, t in times.items())
