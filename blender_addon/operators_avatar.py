@@ -42,7 +42,7 @@ def _fetch(url, template_faces=None):
     if not bpy.app.online_access:
         raise PermissionError("Online access is disabled (Preferences > System > Network)")
     from ..core.stream import http as http_stream
-    from ..core.stream.format import StreamReader
+    from ..core.stream.reader import StreamReader
 
     name = os.path.basename(urllib.parse.urlparse(url).path) or "avatar.pavs"
     try:

@@ -50,6 +50,7 @@ HEADINGS = {  # how each section's heading starts, to read the current page back
     "data_gen_paper": "## Paper-scale synthetic dataset generation",
     "gpu": "## GPU:",
     "train": "## Training iteration:",
+    "quant": "## Robust quantisation",  # scripts/bench_quant.py, included with --section quant=FILE
 }
 
 

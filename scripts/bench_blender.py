@@ -47,7 +47,7 @@ def grid_mesh(n_vertices=5023, cols=70):
 def make_inputs(folder, frames, gaussians):
     from progressive_avatars.core.avatar.avatar import Avatar
     from progressive_avatars.core.avatar.forest import Forest
-    from progressive_avatars.core.stream.format import write_stream
+    from progressive_avatars.core.stream.writer import write_stream
 
     rng = np.random.default_rng(0)
     v, f = grid_mesh()

@@ -91,26 +91,29 @@ def _readers(S, data: bytes, faces) -> dict:
 
 def old_against_new(av, imp, reps) -> str:
     """f6907ae's read_stream against this tree's on the same version-2 stream, and this tree's
-    on version 3, round-robin in one process: the machine's speed, not the format's, moves the
+    on versions 3 and 4, round-robin in one process: the machine's speed, not the format's, moves the
     absolute figures between runs on different days."""
     import importlib
 
     from bench_train import OLD_COMMIT, old_package
 
-    from progressive_avatars.core.stream import format as S
+    from progressive_avatars.core.stream import reader as S
+    from progressive_avatars.core.stream import writer as W
 
     old_package()
-    O = importlib.import_module("pa_old.core.stream")
+    old = importlib.import_module("pa_old.core.stream")
     faces = av.forest.template_faces
-    v2 = S.encode_stream(av, imp, embed_template=False, version=2)
-    v3 = S.encode_stream(av, imp, embed_template=False)
+    v2 = W.encode_stream(av, imp, embed_template=False, version=2)
+    v3 = W.encode_stream(av, imp, embed_template=False, version=3)
+    v4 = W.encode_stream(av, imp, embed_template=False)
     fns = {
-        f"{OLD_COMMIT} reader, version 2": lambda: O.read_stream(v2, template_faces=faces),
+        f"{OLD_COMMIT} reader, version 2": lambda: old.read_stream(v2, template_faces=faces),
         "this reader, version 2": lambda: S.read_stream(v2, template_faces=faces),
         "this reader, version 3": lambda: S.read_stream(v3, template_faces=faces),
+        "this reader, version 4": lambda: S.read_stream(v4, template_faces=faces),
     }
     times = _times(fns, reps)
-    sizes = {k: len(v2) if "version 2" in k else len(v3) for k in fns}
+    sizes = {k: len({"2": v2, "3": v3, "4": v4}[k[-1]]) for k in fns}
     return (
         "Same run, read_stream of the quantised stream without template (MB/s, best / median): "
         + ", ".join(f"{k} {sizes[k] / 1e6 / t[0]:.0f} / {sizes[k] / 1e6 / t[1]:.0f}" for k, t in times.items())
@@ -120,7 +123,8 @@ def old_against_new(av, imp, reps) -> str:
 
 def run(quick: bool = False) -> str:
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    from progressive_avatars.core.stream import format as S
+    from progressive_avatars.core.stream import reader as S
+    from progressive_avatars.core.stream import writer as W
 
     verts, av, imp = build_avatar(quick)
     reps = 3 if quick else 25
@@ -134,7 +138,7 @@ def run(quick: bool = False) -> str:
             for embed in (True, False):
                 p = os.path.join(d, f"s{quant}{embed}.pavs")
                 t = time.perf_counter()
-                info = S.write_stream(p, av, imp, quantize=quant, embed_template=embed)
+                info = W.write_stream(p, av, imp, quantize=quant, embed_template=embed)
                 wt = time.perf_counter() - t
                 with open(p, "rb") as fh:
                     data = fh.read()
@@ -169,7 +173,7 @@ def run(quick: bool = False) -> str:
         npv = "?"
     cmd = "python scripts/bench_stream.py" + (" --quick" if quick else "")
     lines += [
-        "## Stream benchmark (core/stream/format.py, docs/FORMAT.md)",
+        "## Stream benchmark (core/stream/, docs/FORMAT.md)",
         "",
         f"- date: {datetime.datetime.now().isoformat(timespec='seconds')}",
         f"- command: `{cmd}`",

@@ -37,7 +37,7 @@ def builtin_inputs(folder, frames=24, seed=0):
     from progressive_avatars.core.synthetic import rig, surface, texture
     from progressive_avatars.core.avatar.avatar import SH_C0, Avatar
     from progressive_avatars.core.avatar.forest import Forest
-    from progressive_avatars.core.stream.format import write_stream
+    from progressive_avatars.core.stream.writer import write_stream
 
     rng = np.random.default_rng(seed)
     v, f = surface.head_template(4)

@@ -49,7 +49,8 @@ def main(argv=None):
         ap.error(f"--max-views must be at least 1, got {args.max_views}")
 
     from progressive_avatars.core.io import run as runs
-    from progressive_avatars.core.stream import format as stream
+    from progressive_avatars.core.stream.reader import read_stream
+    from progressive_avatars.core.stream.writer import write_stream
 
     try:
         avatar = runs.load_run_avatar(args.run)
@@ -63,7 +64,7 @@ def main(argv=None):
         from progressive_avatars.core.io.dataset import Dataset
 
         ds = Dataset(data, None, flame_model=runs.run_flame_model(args.run, args.flame_model))
-        info = stream.write_stream(
+        info = write_stream(
             stream_path,
             avatar,
             W,
@@ -82,7 +83,7 @@ def main(argv=None):
         from progressive_avatars.core.io.ply import write_ply
         from progressive_avatars.core.avatar.avatar import sh_to_rgb
 
-        part = stream.read_stream(stream_path, percent=args.budget)
+        part = read_stream(stream_path, percent=args.budget)
         if args.frame not in set(int(t) for t in ds.timesteps):
             print(
                 f"error: {data}: no timestep {args.frame} (have {ds.timesteps[0]}..{ds.timesteps[-1]})", file=sys.stderr

@@ -50,7 +50,7 @@ def _clean_env(tmp):
 def make_inputs(folder):
     """A sphere sequence (mesh npz) and a stream written by core (its template = the mesh)."""
     from progressive_avatars.core.avatar.avatar import Avatar
-    from progressive_avatars.core.stream.format import write_stream
+    from progressive_avatars.core.stream.writer import write_stream
 
     rng = np.random.default_rng(7)
     v, f = sphere_mesh(10, 14, radius=0.1)
@@ -173,10 +173,16 @@ def _no_error(rep, name):
     assert not errs, errs[0]
 
 
-def _stream():
-    from progressive_avatars.core.stream import format as stream
+def _read_header(path):
+    from progressive_avatars.core.stream.format import read_header
 
-    return stream
+    return read_header(path)
+
+
+def _read_stream(path):
+    from progressive_avatars.core.stream.reader import read_stream
+
+    return read_stream(path)
 
 
 def test_manifest_validates_and_builds(session):
@@ -257,7 +263,7 @@ def test_undo_leaves_no_stale_points(session):
     rep = _report(session)
     _no_error(rep, "undo")
     assert rep["undo"]["budget"] == 30.0
-    av = _stream().read_stream(rep["undo"]["file"])  # the last URL load: a cut stream
+    av = _read_stream(rep["undo"]["file"])  # the last URL load: a cut stream
     ref = av.gaussians(session["verts"][rep["undo"]["frame"]])
     np.testing.assert_allclose(session["arrays"]["undo_pos"], ref["means"], atol=1e-5, rtol=0)
 
@@ -265,7 +271,7 @@ def test_undo_leaves_no_stale_points(session):
 def test_budget_shows_stream_count(session):
     rep = _report(session)
     _no_error(rep, "load")
-    info = _stream().read_header(session["stream"])
+    info = _read_header(session["stream"])
     assert rep["at25"]["count"] == info.count_for_percent(25)
     assert rep["at25_instances"] == info.count_for_percent(25)
     assert rep["at100_instances"] == info.num_records
@@ -279,8 +285,8 @@ def test_frames_match_core_evaluation(session):
     _no_error(rep, "load")
     from progressive_avatars.core.avatar.binding import quat_to_rotmat
 
-    av = _stream().read_stream(session["stream"])
-    n = _stream().read_header(session["stream"]).count_for_percent(25)
+    av = _read_stream(session["stream"])
+    n = _read_header(session["stream"]).count_for_percent(25)
     verts = session["verts"]
     for t in (3, 6):
         ref = av.gaussians(verts[t])
@@ -302,7 +308,7 @@ def test_frames_match_core_evaluation(session):
 def test_depth_attribute_and_legend(session):
     rep = _report(session)
     _no_error(rep, "load")
-    forest = _stream().read_stream(session["stream"]).forest
+    forest = _read_stream(session["stream"]).forest
     np.testing.assert_array_equal(session["arrays"]["depth"], forest.depth_per_root())
     assert rep["depth_color_domain"] == "CORNER"
     assert rep["active_color"] == "pa_depth_color"
@@ -315,9 +321,9 @@ def test_export_ply_current_frame_budget(session):
     from progressive_avatars.core.io.ply import read_ply
 
     g = read_ply(os.path.join(session["out"], "frame.ply"))
-    av = _stream().read_stream(session["stream"])
+    av = _read_stream(session["stream"])
     n = rep["export_count"]
-    assert n == _stream().read_header(session["stream"]).count_for_percent(50)
+    assert n == _read_header(session["stream"]).count_for_percent(50)
     ref = av.gaussians(session["verts"][2])
     np.testing.assert_allclose(g["means"], ref["means"][:n], atol=1e-5)
     # The model's own colours and opacities (once the preview's linear display colours leaked in).
@@ -345,13 +351,13 @@ def test_save_reload_keeps_state(session):
     rep = _report(session)
     _no_error(rep, "save_reload")
     r = rep["reload"]
-    info = _stream().read_header(session["stream"])
+    info = _read_header(session["stream"])
     assert r["is_preview"] and r["source"] == rep["mesh_name"] and r["filepath"] == "avatar.pavs"
     assert r["budget"] == pytest.approx(30.0) and r["count"] == info.count_for_percent(30)
     assert r["instances"] == info.count_for_percent(30)
     assert {"rotation", "scale", "opacity", "color", "level", "rank"} <= set(r["attributes"])
     assert r["instances_60"] == r["count_60"] == info.count_for_percent(60)
-    av = _stream().read_stream(session["stream"])
+    av = _read_stream(session["stream"])
     n = r["count_60"]
     np.testing.assert_allclose(
         session["arrays"]["reload_pos_4"][:n], av.gaussians(session["verts"][4])["means"][:n], atol=1e-5
@@ -391,9 +397,9 @@ def test_render_splats_operator_matches_core_render(session):
 
     r = rep["splats"]
     assert r["result"] == ["FINISHED"]
-    av = _stream().read_stream(session["stream"])
+    av = _read_stream(session["stream"])
     n = r["count"]
-    assert n == _stream().read_header(session["stream"]).count_for_percent(50)
+    assert n == _read_header(session["stream"]).count_for_percent(50)
     g = av.gaussians(session["verts"][r["frame"]], ids=np.arange(n))
     means, quats, scales = transform_gaussians(np.array(r["preview_matrix"]), g["means"], g["quats"], g["scales"])
     w, h = r["size"]
@@ -411,7 +417,7 @@ def test_preview_follows_a_modifier_deformation(session):
     depsgraph handler), and removing it moves it back."""
     rep = _report(session)
     _no_error(rep, "mesh_edit")
-    av = _stream().read_stream(session["stream"])
+    av = _read_stream(session["stream"])
     a = session["arrays"]
     assert np.abs(a["edit_verts"] - a["unedit_verts"]).max() > 1e-3  # the twist really deformed the mesh
     np.testing.assert_allclose(a["edit_pos"], av.gaussians(a["edit_verts"])["means"], atol=1e-5)
@@ -424,7 +430,7 @@ def test_url_streaming_keeps_the_verified_prefix(session):
     rep = _report(session)
     _no_error(rep, "url")
     assert "Online access is disabled" in rep["url_offline"]
-    info = _stream().read_header(session["stream"])
+    info = _read_header(session["stream"])
     whole, cut = rep["url"]["avatar.pavs"], rep["url"]["cut.pavs"]
     assert whole["result"] == ["FINISHED"] and whole["total"] == whole["instances"] == info.num_records
     assert whole["file"] == info.total_bytes

@@ -66,7 +66,8 @@ def _no_error(rep, name):
 def cut_session(tiny_run, tiny_dataset, tmp_path_factory):
     from progressive_avatars.core.avatar.avatar import Avatar
     from progressive_avatars.core.io.dataset import Dataset
-    from progressive_avatars.core.stream.format import read_header, write_stream
+    from progressive_avatars.core.stream.format import read_header
+    from progressive_avatars.core.stream.writer import write_stream
 
     tmp = str(tmp_path_factory.mktemp("guard"))
     out = os.path.join(tmp, "out")
@@ -126,7 +127,7 @@ def cut_session(tiny_run, tiny_dataset, tmp_path_factory):
 
 
 def _expected(path, faces):
-    from progressive_avatars.core.stream.format import read_stream
+    from progressive_avatars.core.stream.reader import read_stream
 
     return read_stream(path, template_faces=faces)
 
@@ -214,7 +215,7 @@ def test_cut_url_transfers(cut_session):
         assert r["file"] == h.bytes_for_count(n)
         faces = None if h.template_embedded else seq.faces
         path = cut_session["bare"] if not h.template_embedded else cut_session["full"]
-        from progressive_avatars.core.stream.format import read_stream
+        from progressive_avatars.core.stream.reader import read_stream
 
         ref = read_stream(path, max_gaussians=n, template_faces=faces).gaussians(seq.vertices[1].astype(np.float32))
         np.testing.assert_allclose(arrays[f"urlpos_{key}"], ref["means"], atol=1e-5, rtol=0)
@@ -292,7 +293,7 @@ def test_topology_changing_modifier_is_refused(cut_session, kind):
         assert "2562" in r["status"] and "5120" in r["status"]
     assert r["instances"] == 0
     assert r["shape_keys"] == ["", n]
-    from progressive_avatars.core.stream.format import read_stream
+    from progressive_avatars.core.stream.reader import read_stream
 
     ref = read_stream(cut_session["bare"], template_faces=seq.faces).gaussians(seq.vertices[1].astype(np.float32))
     np.testing.assert_allclose(arrays[f"topo_pos_{kind}"], ref["means"], atol=1e-5, rtol=0)
@@ -323,7 +324,7 @@ def train_session(tiny_dataset, tmp_path_factory):
 
     from progressive_avatars.core.avatar.avatar import Avatar
     from progressive_avatars.core.io.dataset import Dataset
-    from progressive_avatars.core.stream.format import write_stream
+    from progressive_avatars.core.stream.writer import write_stream
     from tests.helpers import random_forest, sphere_mesh
 
     tmp = str(tmp_path_factory.mktemp("train"))

@@ -14,7 +14,9 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from progressive_avatars.core.stream import format as S
+from progressive_avatars.core.stream.format import _crc8_bytewise, read_header
+from progressive_avatars.core.stream.reader import StreamReader, read_stream
+from progressive_avatars.core.stream.writer import encode_stream, write_stream
 from progressive_avatars.core.avatar.avatar import Avatar
 from progressive_avatars.core.flame.model import FlameModelError, load_flame_model
 from progressive_avatars.core.io.ply import read_ply, write_ply
@@ -300,11 +302,11 @@ def test_stream_with_deeply_nested_metadata_refused(tmp_path):
     for _ in range(MAX_JSON_DEPTH + 20):
         nested = {"n": nested}
     p = tmp_path / "deep_meta.pavs"
-    S.write_stream(str(p), av, metadata={"deep": nested})
+    write_stream(str(p), av, metadata={"deep": nested})
     with pytest.raises(ValueError, match=r"deep_meta\.pavs: metadata: JSON nested \d+ levels deep"):
-        S.read_stream(str(p))
+        read_stream(str(p))
     with pytest.raises(ValueError, match="JSON nested"):
-        S.StreamReader().feed(p.read_bytes())
+        StreamReader().feed(p.read_bytes())
 
 
 # -- bounded fuzzing ----------------------------------------------------------------------
@@ -338,7 +340,7 @@ def test_fuzz_stream_reader_refuses_cleanly(edits, cut):
     verts, faces = sphere_mesh(3, 4)
     if not hasattr(test_fuzz_stream_reader_refuses_cleanly, "data"):
         av = Avatar.initial(random_forest(faces, np.random.default_rng(2), depth=2))
-        test_fuzz_stream_reader_refuses_cleanly.data = S.encode_stream(
+        test_fuzz_stream_reader_refuses_cleanly.data = encode_stream(
             av, records_per_block=4, metadata={"k": [1, {"a": 2}]}
         )
     data = bytearray(test_fuzz_stream_reader_refuses_cleanly.data)
@@ -346,7 +348,7 @@ def test_fuzz_stream_reader_refuses_cleanly(edits, cut):
         data[pos % len(data)] = val
     data = bytes(data[: int(cut * len(data))])
     try:
-        av = S.read_stream(data)
+        av = read_stream(data)
     except ValueError:
         return
     if av is not None:
@@ -360,10 +362,10 @@ def test_refused_duplicate_keeps_a_correct_forest(block):
     from tests.test_stream import assert_prefix, make_avatar
 
     _, av, imp = make_avatar(15)
-    clean = S.encode_stream(av, imp, records_per_block=block)
+    clean = encode_stream(av, imp, records_per_block=block)
     data = bytearray(clean)
-    info = S.read_header(clean)
-    full = S.read_stream(clean)
+    info = read_header(clean)
+    full = read_stream(clean)
     lv1 = info.level_ends()[0]
     i, j = lv1 + 1, lv1 + 2  # two level-1 records: give j the (parent, slot) of i
     oi, oj = info.record_offset(i), info.record_offset(j)
@@ -372,16 +374,16 @@ def test_refused_duplicate_keeps_a_correct_forest(block):
     rj[12:15] = ri[12:15]
     geo = int.from_bytes(rj[0:8], "little") & ~(3 << 60) | (int.from_bytes(ri[0:8], "little") & (3 << 60))
     rj[0:8] = geo.to_bytes(8, "little")
-    rj[R - 1] = S._crc8_bytewise(struct.pack("<I", j) + bytes(rj[: R - 1]))  # version 3: the CRC covers the index
+    rj[R - 1] = _crc8_bytewise(struct.pack("<I", j) + bytes(rj[: R - 1]))  # version 3: the CRC covers the index
     data[oj : oj + R] = rj
-    r = S.StreamReader()
+    r = StreamReader()
     with pytest.raises(ValueError, match=f"record {j} reuses the child slot"):
         r.feed(bytes(data[: oj + R]))
     assert r.num_gaussians == j
     kept = r.avatar()
     assert_prefix(kept, full, j)
     # The kept forest is the clean prefix's forest: i keeps its place as its parent's child.
-    ref = S.read_stream(clean[: info.bytes_for_count(j)])
+    ref = read_stream(clean[: info.bytes_for_count(j)])
     np.testing.assert_array_equal(kept.forest.children, ref.forest.children)
     p = int(kept.forest.parent[i])
     assert i in kept.forest.children[p]

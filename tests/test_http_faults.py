@@ -11,7 +11,9 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 import pytest
 
 from progressive_avatars.core.stream import http as H
-from progressive_avatars.core.stream import format as S
+from progressive_avatars.core.stream.format import FIXED_SIZE_MAX, read_header
+from progressive_avatars.core.stream.reader import read_stream
+from progressive_avatars.core.stream.writer import encode_stream
 from progressive_avatars.core.avatar.avatar import Avatar
 from tests.test_stream import assert_prefix, make_avatar
 
@@ -120,9 +122,9 @@ def two_streams():
     _, av, imp = make_avatar(11, n_lat=6, n_lon=10, depth=3)
     # The replacement: same forest and size, other colours (a re-export after more training).
     av2 = Avatar(av.forest, av.d_mu, av.d_log_scale, av.d_rot, av.opacity_logit, av.f_dc + 0.5, meta=av.meta)
-    a = S.encode_stream(av, imp, records_per_block=16)
-    b = S.encode_stream(av2, imp, records_per_block=16)
-    return a, b, S.read_stream(a)
+    a = encode_stream(av, imp, records_per_block=16)
+    b = encode_stream(av2, imp, records_per_block=16)
+    return a, b, read_stream(a)
 
 
 @pytest.mark.parametrize("ranges", [True, False], ids=["if-range", "server-ignores-range"])
@@ -165,11 +167,11 @@ def test_last_modified_used_without_etag(two_streams, serve):
 @pytest.mark.parametrize("percent", [0, 1, 10, 50, 99])
 def test_percent_budget_exact_before_header(two_streams, serve, percent):
     a, _, full = two_streams
-    info = S.read_header(a)
+    info = read_header(a)
     assert len(a) < (1 << 20)  # under the default first request size: was downloaded whole
     srv = serve(a)
     res = H.fetch_stream(srv.url, timeout=2, percent=percent)
-    want = max(S.FIXED_SIZE if percent else 0, min(len(a), int(percent / 100 * len(a))))
+    want = max(FIXED_SIZE_MAX if percent else 0, min(len(a), int(percent / 100 * len(a))))  # the fixed part first
     assert res.status == H.BUDGET, str(res)
     assert res.bytes_received == want, (res.bytes_received, want)
     n = info.count_for_percent(percent)
@@ -209,7 +211,7 @@ def test_nested_json_metadata_reported_as_corrupt(serve):
     nested = {}
     for _ in range(200):
         nested = {"n": nested}
-    data = S.encode_stream(av, imp, metadata={"deep": nested})
+    data = encode_stream(av, imp, metadata={"deep": nested})
     srv = serve(data)
     res = H.fetch_stream(srv.url, timeout=2)
     assert res.status == H.CORRUPT and "JSON nested" in res.message, str(res)

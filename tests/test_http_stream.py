@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 from progressive_avatars.core.stream import http as H
-from progressive_avatars.core.stream import format as S
+from progressive_avatars.core.stream.format import StreamError, TemplateMismatch, read_header
+from progressive_avatars.core.stream.reader import read_stream
+from progressive_avatars.core.stream.writer import encode_stream
 from tests.test_stream import assert_prefix, make_avatar
 
 
@@ -91,8 +93,8 @@ class Server:
 @pytest.fixture(scope="module")
 def stream():
     _, av, imp = make_avatar(11, n_lat=6, n_lon=10, depth=3)
-    data = S.encode_stream(av, imp, records_per_block=16)
-    return data, S.read_stream(data), S.read_header(data)
+    data = encode_stream(av, imp, records_per_block=16)
+    return data, read_stream(data), read_header(data)
 
 
 @pytest.fixture
@@ -217,11 +219,11 @@ def test_only_verification_failures_are_corrupt(stream, serve):
     data, full, info = stream
     bad = bytearray(data)
     bad[info.record_offset(3) + 2] ^= 0x21
-    with pytest.raises(S.StreamError):
-        S.read_stream(bytes(bad), template_faces=full.forest.template_faces)
+    with pytest.raises(StreamError):
+        read_stream(bytes(bad), template_faces=full.forest.template_faces)
     other = full.forest.template_faces[::-1].copy()
-    with pytest.raises(S.TemplateMismatch):
-        S.read_stream(data, template_faces=other)
+    with pytest.raises(TemplateMismatch):
+        read_stream(data, template_faces=other)
     res = H.fetch_stream(serve(data).url, template_faces=other, timeout=2)
     assert res.status == H.REFUSED and "template mismatch" in res.message, str(res)
 
@@ -231,9 +233,9 @@ def test_cuts_inside_every_level_of_a_coarse_stream(serve):
     inside every level: each download keeps exactly the whole verified records, and they bind
     to the whole template (a cut inside a root level is a spread-out subset of its roots)."""
     verts, av, imp = make_avatar(31, n_lat=10, n_lon=14, depth=3, coarse=True)
-    data = S.encode_stream(av, imp, records_per_block=16, embed_template=False)
-    full = S.read_stream(data, template_faces=av.forest.template_faces)
-    info = S.read_header(data)
+    data = encode_stream(av, imp, records_per_block=16, embed_template=False)
+    full = read_stream(data, template_faces=av.forest.template_faces)
+    info = read_header(data)
     ends = info.level_ends()
     cuts = {int(p / 100 * len(data)) for p in (1, 3, 10, 50)}
     cuts |= {info.bytes_for_count(int(e) - max(1, int(c) // 2)) + 5 for e, c in zip(ends, info.level_counts)}

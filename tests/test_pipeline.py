@@ -28,7 +28,7 @@ def run_script(name, *args):
 def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
     from plyfile import PlyData
 
-    from progressive_avatars.core.stream import format as stream
+    from progressive_avatars.core.stream.reader import read_stream
     from progressive_avatars.core.avatar.avatar import Avatar
 
     res = run_script(
@@ -51,7 +51,7 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
     assert res["bytes"] == os.path.getsize(tmp_path / "a.pavs")
     ply = PlyData.read(str(tmp_path / "f.ply"))
     assert ply["vertex"].count == trained.num_gaussians
-    decoded = stream.read_stream(str(tmp_path / "a.pavs"))
+    decoded = read_stream(str(tmp_path / "a.pavs"))
     # Stream order: level by level, parents first; the same multiset of levels as trained.
     assert np.all(np.diff(decoded.forest.level) >= 0)
     assert np.array_equal(np.bincount(decoded.forest.level), trained.forest.level_counts())

@@ -9,7 +9,8 @@ import torch
 from progressive_avatars.core.geometry import sh
 from progressive_avatars.core.avatar.avatar import Avatar
 from progressive_avatars.core.io.ply import read_ply, write_ply
-from progressive_avatars.core.stream.format import read_stream, write_stream
+from progressive_avatars.core.stream.reader import read_stream
+from progressive_avatars.core.stream.writer import write_stream
 from tests.helpers import random_forest, sphere_mesh
 
 

@@ -1,4 +1,4 @@
-"""The progressive stream (core/stream/format.py) against itself and against docs/FORMAT.md."""
+"""The progressive stream (core/stream/) against itself and against docs/FORMAT.md."""
 
 import math
 import os
@@ -9,7 +9,29 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from progressive_avatars.core.stream import format as S
+from progressive_avatars.core.stream.format import (
+    FIXED_SIZE,
+    FIXED_SIZE_V3,
+    FLAG_TEMPLATE,
+    LOG_SCALE_LIMIT,
+    LOSSLESS_DTYPE,
+    LOSSLESS_RECORD,
+    MAGIC,
+    QUANT_DTYPE,
+    QUANT_RECORD,
+    _crc8_bytewise,
+    _f32_ceil,
+    _f32_floor,
+    check_template,
+    crc8,
+    crc8_indexed,
+    read_header,
+    template_hash,
+)
+from progressive_avatars.core.stream.order import root_keys, stream_order
+from progressive_avatars.core.stream import reader as stream_reader
+from progressive_avatars.core.stream.reader import StreamReader, read_stream
+from progressive_avatars.core.stream.writer import encode_stream, write_stream
 from progressive_avatars.core.avatar.avatar import SH_C0, Avatar, sigmoid, sh_to_rgb
 from progressive_avatars.core.avatar.forest import Forest
 from tests.helpers import random_forest, sphere_mesh
@@ -37,8 +59,8 @@ def make_avatar(seed=0, n_lat=4, n_lon=6, depth=3, frac=0.5, coarse=False):
 @pytest.fixture(scope="module")
 def small():
     verts, av, imp = make_avatar(coarse=True)  # coarse levels, spread-out roots: every version 3 path
-    data = S.encode_stream(av, imp, records_per_block=8, metadata={"k": [1, 2]})
-    full = S.read_stream(data)
+    data = encode_stream(av, imp, records_per_block=8, metadata={"k": [1, 2]})
+    full = read_stream(data)
     return verts, av, imp, data, full
 
 
@@ -64,11 +86,11 @@ def assert_prefix(avatar, full, n):
 # -- format constants (FORMAT.md) ---------------------------------------------------------
 def test_format_constants_match_document():
     doc = open(os.path.join(os.path.dirname(__file__), "..", "docs", "FORMAT.md"), encoding="utf-8").read()
-    assert S.MAGIC == bytes.fromhex("504156530D0A1A0A")
-    assert S.FIXED_SIZE == 56 and S.FIXED_SIZE_V3 == 60 and S.QUANT_RECORD == 23 and S.LOSSLESS_RECORD == 73
-    offs = {n: S.QUANT_DTYPE.fields[n][1] for n in S.QUANT_DTYPE.names}
+    assert MAGIC == bytes.fromhex("504156530D0A1A0A")
+    assert FIXED_SIZE == 56 and FIXED_SIZE_V3 == 60 and QUANT_RECORD == 23 and LOSSLESS_RECORD == 73
+    offs = {n: QUANT_DTYPE.fields[n][1] for n in QUANT_DTYPE.names}
     assert offs == {"geo": 0, "rot": 8, "parent": 12, "ls": 15, "opa": 18, "col": 19, "crc": 22}
-    offs = {n: S.LOSSLESS_DTYPE.fields[n][1] for n in S.LOSSLESS_DTYPE.names}
+    offs = {n: LOSSLESS_DTYPE.fields[n][1] for n in LOSSLESS_DTYPE.names}
     assert offs == {
         "link": 0,
         "split_logits": 4,
@@ -79,42 +101,44 @@ def test_format_constants_match_document():
         "f_dc": 60,
         "crc": 72,
     }
-    assert S._crc8_bytewise(b"123456789") == 0xF4 and "0xF4" in doc
-    assert S.crc8(np.frombuffer(b"123456789", np.uint8))[0] == 0xF4
+    assert _crc8_bytewise(b"123456789") == 0xF4 and "0xF4" in doc
+    assert crc8(np.frombuffer(b"123456789", np.uint8))[0] == 0xF4
     assert zlib.crc32(b"123456789") == 0xCBF43926 and "0xCBF43926" in doc
     rows = np.random.default_rng(1).integers(0, 256, (50, 72), dtype=np.uint8)
-    assert [S._crc8_bytewise(r.tobytes()) for r in rows] == S.crc8(rows).tolist()
+    assert [_crc8_bytewise(r.tobytes()) for r in rows] == crc8(rows).tolist()
     # version 3: the CRC-8 of u32le(record index) || record bytes
     first = 0x01FFFFF0
-    assert [S._crc8_bytewise(struct.pack("<I", first + i) + r.tobytes()) for i, r in enumerate(rows)] == S.crc8_indexed(
+    assert [_crc8_bytewise(struct.pack("<I", first + i) + r.tobytes()) for i, r in enumerate(rows)] == crc8_indexed(
         rows, first
     ).tolist()
 
 
 def test_header_layout_is_the_documented_one(small):
     _, av, _, data, _ = small
-    magic, version, flags, hsize, N, F0, R, B, L, K, thash, M, T, CL = struct.unpack_from("<8sHHIIIHHHH16sIII", data)
+    fixed = struct.unpack_from("<8sHHIIIHHHH16sIIII", data)
+    magic, version, flags, hsize, N, F0, R, B, L, K, thash, M, T, CL, E = fixed
     f = av.forest
+    assert E == read_header(data).num_exceptions == 0  # no outliers in this avatar
     assert (magic, version, flags, R, B, N, F0) == (
-        S.MAGIC,
-        3,
-        S.FLAG_TEMPLATE,
+        MAGIC,
+        4,
+        FLAG_TEMPLATE,
         23,
         8,
         av.num_gaussians,
         len(f.template_faces),
     )
     assert K == f.num_coarse_levels == 2 and CL > 0
-    pos = 60 + 4 * L + 104  # the coarse table: zlib of int32 columns (a deltas, b - a, c - a)
+    pos = 64 + 4 * L + 104  # the coarse table: zlib of int32 columns (a deltas, b - a, c - a)
     cols = np.frombuffer(zlib.decompress(data[pos : pos + CL]), "<i4").reshape(3, -1)
     a = np.cumsum(cols[0])
     table = np.stack([a, a + cols[1], a + cols[2]], 1)
     assert sorted(map(tuple, table)) == sorted(map(tuple, f.coarse_faces))
-    assert thash == S.template_hash(av.forest.template_faces)
+    assert thash == template_hash(av.forest.template_faces)
     assert thash == __import__("hashlib").sha256(av.forest.template_faces.astype("<i4").tobytes()).digest()[:16]
-    assert hsize == 60 + 4 * L + 104 + CL + T + M + 4
+    assert hsize == 64 + 4 * L + 104 + CL + T + M + 4
     assert struct.unpack_from("<I", data, hsize - 4)[0] == zlib.crc32(data[: hsize - 4])
-    info = S.read_header(data)
+    info = read_header(data)
     assert len(data) == info.total_bytes == hsize + N * 23 + 4 * -(-N // B)
     # first block CRC as documented: crc32(u32 header_crc || u32 0 || records)
     blk = data[hsize : hsize + 8 * 23]
@@ -132,7 +156,7 @@ def test_header_layout_is_the_documented_one(small):
     starts = np.concatenate([[0], np.cumsum(info.level_counts)])
     for lv in range(K + 1):
         assert sorted(refs[starts[lv] : starts[lv + 1]]) == list(range(starts[lv], starts[lv + 1]))
-    full = S.read_stream(data)
+    full = read_stream(data)
     rows = np.concatenate([table, f.template_faces])
     np.testing.assert_array_equal(full.forest.root_faces, rows[refs])
 
@@ -142,7 +166,7 @@ def test_stream_order_levels_then_importance():
     _, av, imp = make_avatar(3)
     f = av.forest
     imp = np.round(imp * 4) / 4  # plenty of ties
-    order = S.stream_order(f, imp)
+    order = stream_order(f, imp)
     assert np.array_equal(np.sort(order), np.arange(f.num_faces))
     assert np.array_equal(order[: f.num_roots], np.arange(f.num_roots))
     lv = f.level[order]
@@ -154,20 +178,20 @@ def test_stream_order_levels_then_importance():
     f2 = f.reorder(order)  # parents before children, roots first
     assert np.all(f2.parent[f2.num_roots :] < np.arange(f2.num_roots, f2.num_faces))
     # None: index order within each level
-    o = S.stream_order(f)
+    o = stream_order(f)
     assert np.array_equal(o, np.lexsort((np.arange(f.num_faces), f.level)))
     with pytest.raises(ValueError, match="NaN"):
-        S.stream_order(f, np.full(f.num_faces, np.nan))
+        stream_order(f, np.full(f.num_faces, np.nan))
     with pytest.raises(ValueError, match="values"):
-        S.stream_order(f, imp[:-1])
+        stream_order(f, imp[:-1])
 
 
 # -- round trips --------------------------------------------------------------------------
 def test_lossless_roundtrip_is_exact(tmp_path):
     verts, av, imp = make_avatar(1)
     p = tmp_path / "a.pavs"
-    info = S.write_stream(p, av, imp, quantize=False)
-    out = S.read_stream(p)
+    info = write_stream(p, av, imp, quantize=False)
+    out = read_stream(p)
     o = info.order
     ref = av.forest.reorder(o)
     assert info.lossless and info.record_size == 73
@@ -182,8 +206,8 @@ def test_lossless_roundtrip_is_exact(tmp_path):
 
 def test_quantised_roundtrip_error_bounds(tmp_path):
     verts, av, imp = make_avatar(2, n_lat=6, n_lon=8)
-    info = S.write_stream(tmp_path / "q.pavs", av, imp)
-    out = S.read_stream(tmp_path / "q.pavs")
+    info = write_stream(tmp_path / "q.pavs", av, imp)
+    out = read_stream(tmp_path / "q.pavs")
     o = info.order
     ref = Avatar(av.forest.reorder(o), *(getattr(av, n)[o] for n in PARAMS))
     q = info.quant.astype(np.float64)
@@ -191,8 +215,8 @@ def test_quantised_roundtrip_error_bounds(tmp_path):
         q[:18].reshape(3, 2, 3),
         np.stack(
             [
-                [S._f32_floor(ref.d_mu.min(0)), S._f32_ceil(ref.d_mu.max(0))],
-                [S._f32_floor(ref.d_log_scale.min(0)), S._f32_ceil(ref.d_log_scale.max(0))],
+                [_f32_floor(ref.d_mu.min(0)), _f32_ceil(ref.d_mu.max(0))],
+                [_f32_floor(ref.d_log_scale.min(0)), _f32_ceil(ref.d_log_scale.max(0))],
                 q[12:18].reshape(2, 3),
             ]
         ),
@@ -239,7 +263,7 @@ def test_quantiser_edge_values():
     av = Avatar(
         forest, np.zeros((N, 3)), np.full((N, 3), -2.0), rot, np.r_[np.full(N - 1, 30.0), -30.0], np.full((N, 3), -5.0)
     )  # constant fields: zero-width ranges, colours below 0
-    out = S.read_stream(S.encode_stream(av))
+    out = read_stream(encode_stream(av))
     assert np.all(np.isfinite(out.forest.split_logits))
     assert np.allclose(out.forest.barycentrics(), av.forest.barycentrics(), atol=1e-6)
     assert np.all(out.d_mu == 0) and np.all(out.d_log_scale == -2.0)
@@ -262,7 +286,7 @@ def _slow_decode(rec: bytes, quant, version=2, root=None) -> dict:
     geo, rot = int.from_bytes(rec[0:8], "little"), int.from_bytes(rec[8:12], "little")
     parent = int.from_bytes(rec[12:15], "little")
     quant = np.asarray(quant, np.float64)
-    assert len(quant) == {1: 18, 2: 26, 3: 26}[version]
+    assert len(quant) == {1: 18, 2: 26, 3: 26, 4: 26}[version]
     q = quant[:18].reshape(3, 2, 3)
 
     def affine(code, lo32, step32):
@@ -301,22 +325,29 @@ def _slow_decode(rec: bytes, quant, version=2, root=None) -> dict:
 
 def test_decoded_records_match_an_independent_slow_decode():
     _, av, imp = make_avatar(11, n_lat=5, n_lon=7)
-    data = S.encode_stream(av, imp, records_per_block=16)
-    info = S.read_header(data)
-    out = S.read_stream(data)
-    r = S.StreamReader()
+    av.d_mu[3, 1] = 40.0  # outliers: the version 4 exceptions table is decoded as documented too
+    av.f_dc[8] = (-30.0, 50.0, 2e3)
+    data = encode_stream(av, imp, records_per_block=16)
+    info = read_header(data)
+    out = read_stream(data)
+    r = StreamReader()
     for i in range(0, len(data), 97):
         r.feed(data[i : i + 97])
     chunked = r.avatar()
     got = {**fields(out), **{n: getattr(out, n) for n in PARAMS}}
     got_c = {**fields(chunked), **{n: getattr(chunked, n) for n in PARAMS}}
-    assert info.version == 3
+    assert info.version == 4 and info.num_exceptions >= 3
     _assert_slow_decode(data, info, (got, got_c))
-    # the previous version, written by this writer, decodes as the document says too
-    data2 = S.encode_stream(av, imp, records_per_block=16, version=2)
-    info2 = S.read_header(data2)
-    assert info2.version == 2 and info2.header_size == info.header_size - 4
-    out2 = S.read_stream(data2)
+    # the previous versions, written by this writer, decode as the document says too
+    data3 = encode_stream(av, imp, records_per_block=16, version=3)
+    info3 = read_header(data3)
+    assert info3.version == 3 and info3.header_size == info.header_size - 4 - 9 * info.num_exceptions
+    out3 = read_stream(data3)
+    _assert_slow_decode(data3, info3, ({**fields(out3), **{n: getattr(out3, n) for n in PARAMS}},))
+    data2 = encode_stream(av, imp, records_per_block=16, version=2)
+    info2 = read_header(data2)
+    assert info2.version == 2 and info2.header_size == info3.header_size - 4
+    out2 = read_stream(data2)
     _assert_slow_decode(data2, info2, ({**fields(out2), **{n: getattr(out2, n) for n in PARAMS}},))
 
 
@@ -327,8 +358,18 @@ def _assert_slow_decode(data, info, decoded):
         o = info.record_offset(i)
         rec = data[o : o + 23]
         if info.version >= 3:  # the record CRC-8 covers u32le(i) first
-            assert S._crc8_bytewise(struct.pack("<I", i) + rec[:22]) == rec[22]
+            assert _crc8_bytewise(struct.pack("<I", i) + rec[:22]) == rec[22]
         want = _slow_decode(rec, info.quant, info.version, root=i < nroots)
+        if info.version >= 4:  # FORMAT.md 3.2: an exception replaces its component exactly
+            blob = data[64 + 4 * info.num_levels + 104 :]
+            E = info.num_exceptions
+            for e in range(E):
+                if struct.unpack_from("<I", blob, 4 * e)[0] == i:
+                    comp, value = blob[4 * E + e], np.frombuffer(blob, "<f4", 1, 5 * E + 4 * e)[0]
+                    name, k = [("d_mu", 0), ("d_log_scale", 3), ("f_dc", 6), ("d_rot", 9)][
+                        np.searchsorted([3, 6, 9], comp, "right")
+                    ]
+                    want[name][comp - k] = value
         for name, vals in want.items():
             dt = np.int64 if name == "parent" else np.int8 if name == "slot" else np.float32
             w = np.asarray(vals, dt)
@@ -340,12 +381,12 @@ def test_version_1_streams_still_read():
     """tests/data/stream_v1.pavs was written by the version 1 writer (smallest-three
     rotations, 18-float quantisation table); this reader decodes it as FORMAT.md 7 says."""
     data = open(os.path.join(os.path.dirname(__file__), "data", "stream_v1.pavs"), "rb").read()
-    info = S.read_header(data)
+    info = read_header(data)
     assert (info.version, info.num_records, len(info.quant)) == (1, 557, 18)
     M, T = struct.unpack_from("<II", data, 48)
     assert info.header_size == 56 + 4 * info.num_levels + 72 + T + M + 4
-    out = S.read_stream(data)
-    r = S.StreamReader()
+    out = read_stream(data)
+    r = StreamReader()
     for i in range(0, len(data), 101):
         r.feed(data[i : i + 101])
     decoded = [{**fields(a), **{n: getattr(a, n) for n in PARAMS}} for a in (out, r.avatar())]
@@ -364,17 +405,41 @@ def test_version_2_streams_still_read_bit_for_bit():
     here = os.path.join(os.path.dirname(__file__), "data")
     data = open(os.path.join(here, "stream_v2.pavs"), "rb").read()
     want = np.load(os.path.join(here, "stream_v2_decoded.npz"))
-    info = S.read_header(data)
+    info = read_header(data)
     assert (info.version, info.num_records, info.num_coarse_levels) == (2, 267, 0)
-    r = S.StreamReader()
+    r = StreamReader()
     for i in range(0, len(data), 61):
         r.feed(data[i : i + 61])
-    for got in (S.read_stream(data), r.avatar()):
+    for got in (read_stream(data), r.avatar()):
         f = got.forest
         for name in ("parent", "slot", "split_logits", "template_faces") + PARAMS:
             arr = getattr(f if name in ("parent", "slot", "split_logits", "template_faces") else got, name)
             assert arr.dtype == want[name].dtype and arr.tobytes() == want[name].tobytes(), name
         assert np.array_equal(f.root_faces, want["template_faces"])
+
+
+def test_version_3_streams_still_read_bit_for_bit():
+    """tests/data/stream_v3.pavs was written by the version 3 writer (coarse levels, min..max
+    ranges, no exceptions table); stream_v3_decoded.npz holds what the version 3 reader decoded
+    from it. This reader returns the same bits, through read_stream and fed in pieces."""
+    here = os.path.join(os.path.dirname(__file__), "data")
+    data = open(os.path.join(here, "stream_v3.pavs"), "rb").read()
+    want = np.load(os.path.join(here, "stream_v3_decoded.npz"))
+    info = read_header(data)
+    assert (info.version, info.num_records, info.num_coarse_levels, info.num_exceptions) == (3, 304, 2, 0)
+    q = 60 + 4 * info.num_levels  # a 60-byte fixed part, then the level counts, then the 26 ranges
+    assert np.frombuffer(data[q : q + 104], "<f4").tobytes() == info.quant.tobytes()
+    r = StreamReader()
+    for i in range(0, len(data), 53):
+        r.feed(data[i : i + 53])
+    for got in (read_stream(data), r.avatar()):
+        f = got.forest
+        for name in ("parent", "slot", "split_logits", "template_faces", "coarse_faces", "root_ref") + PARAMS:
+            arr = getattr(
+                f if name in ("parent", "slot", "split_logits", "template_faces", "coarse_faces", "root_ref") else got,
+                name,
+            )
+            assert arr.dtype == want[name].dtype and arr.tobytes() == want[name].tobytes(), name
 
 
 def test_trusted_forest_and_avatar_equal_the_validated_constructors():
@@ -383,10 +448,10 @@ def test_trusted_forest_and_avatar_equal_the_validated_constructors():
     import dataclasses
 
     _, av, imp = make_avatar(12, coarse=True)
-    data = S.encode_stream(av, imp, records_per_block=8)
-    info = S.read_header(data)
+    data = encode_stream(av, imp, records_per_block=8)
+    info = read_header(data)
     F0 = info.num_roots
-    r = S.StreamReader()
+    r = StreamReader()
     r.feed(data)
     ends = info.level_ends()
     for n in sorted(
@@ -423,9 +488,9 @@ def test_avatars_own_their_arrays():
     """The reader hands its decoded columns to an Avatar without copying; later feeds, later
     avatars and edits of a handed-out avatar must not affect one another."""
     _, av, imp = make_avatar(13)
-    data = S.encode_stream(av, imp, records_per_block=8)
-    full = S.read_stream(data)
-    r = S.StreamReader()
+    data = encode_stream(av, imp, records_per_block=8)
+    full = read_stream(data)
+    r = StreamReader()
     half = len(data) // 2
     r.feed(data[:half])
     a1 = r.avatar()
@@ -452,14 +517,14 @@ def test_runs_and_growth_paths(monkeypatch, quantize):
     """Streams longer than one vectorised run and than the first allocation (shrunk here so a
     small stream crosses both many times) decode the same, whole or chunked."""
     _, av, imp = make_avatar(14, n_lat=5, n_lon=7)
-    data = S.encode_stream(av, imp, quantize=quantize, records_per_block=5)
-    full = S.read_stream(data)
-    info = S.read_header(data)
-    monkeypatch.setattr(S, "_RUN", 7)
-    monkeypatch.setattr(S, "_FIRST_CAP", 3)
-    assert_prefix(S.read_stream(data), full, full.num_gaussians)
+    data = encode_stream(av, imp, quantize=quantize, records_per_block=5)
+    full = read_stream(data)
+    info = read_header(data)
+    monkeypatch.setattr(stream_reader, "_RUN", 7)
+    monkeypatch.setattr(stream_reader, "_FIRST_CAP", 3)
+    assert_prefix(read_stream(data), full, full.num_gaussians)
     for step in (1, 23, 64, 1000):
-        r = S.StreamReader()
+        r = StreamReader()
         for i in range(0, len(data), step):
             r.feed(data[i : i + step])
             if (i // step) % 17 == 0:
@@ -471,8 +536,8 @@ def test_runs_and_growth_paths(monkeypatch, quantize):
 
 def test_duplicate_child_slot_names_the_second_record():
     _, av, imp = make_avatar(15)
-    data = bytearray(S.encode_stream(av, imp, records_per_block=4))
-    info = S.read_header(bytes(data))
+    data = bytearray(encode_stream(av, imp, records_per_block=4))
+    info = read_header(bytes(data))
     lv1 = info.level_ends()[0]
     i, j = lv1 + 1, lv1 + 2  # two level-1 records: give j the (parent, slot) of i
     oi, oj = info.record_offset(i), info.record_offset(j)
@@ -480,9 +545,9 @@ def test_duplicate_child_slot_names_the_second_record():
     rj[12:15] = ri[12:15]
     geo = int.from_bytes(rj[0:8], "little") & ~(3 << 60) | (int.from_bytes(ri[0:8], "little") & (3 << 60))
     rj[0:8] = geo.to_bytes(8, "little")
-    rj[22] = S._crc8_bytewise(struct.pack("<I", j) + bytes(rj[:22]))
+    rj[22] = _crc8_bytewise(struct.pack("<I", j) + bytes(rj[:22]))
     data[oj : oj + 23] = rj
-    r = S.StreamReader()
+    r = StreamReader()
     with pytest.raises(ValueError, match=f"record {j} reuses the child slot"):
         r.feed(bytes(data[: oj + 23]))  # j's block incomplete: its CRC-8 passes
     assert r.num_gaussians == j  # i and everything before it stay available
@@ -491,9 +556,9 @@ def test_duplicate_child_slot_names_the_second_record():
 # -- the any-prefix property --------------------------------------------------------------
 def test_every_byte_prefix_yields_exactly_the_whole_verified_records(small):
     _, av, _, data, full = small
-    info = S.read_header(data)
+    info = read_header(data)
     for k in range(len(data) + 1):
-        got = S.read_stream(data[:k])
+        got = read_stream(data[:k])
         n = info.count_for_bytes(k) if k >= info.header_size else 0
         assert_prefix(got, full, n)
     assert info.count_for_bytes(len(data)) == av.num_gaussians
@@ -501,10 +566,10 @@ def test_every_byte_prefix_yields_exactly_the_whole_verified_records(small):
 
 def test_reader_random_chunks_matches_prefixes(small):
     _, av, _, data, full = small
-    info = S.read_header(data)
+    info = read_header(data)
     rng = np.random.default_rng(7)
     for trial in range(6):
-        r = S.StreamReader(source="chunks")
+        r = StreamReader(source="chunks")
         pos = 0
         while pos < len(data):
             step = int(rng.integers(1, 3 if trial == 0 else 400))
@@ -524,17 +589,17 @@ def test_reader_random_chunks_matches_prefixes(small):
 
 def test_every_single_byte_flip_is_detected(small):
     _, _, _, data, full = small
-    info = S.read_header(data)
+    info = read_header(data)
     rng = np.random.default_rng(3)
     for j in range(len(data)):
         bad = bytearray(data)
         bad[j] ^= int(rng.integers(1, 256))
         with pytest.raises(ValueError):
-            S.read_stream(bytes(bad))
+            read_stream(bytes(bad))
         # truncated after the flip: an error, or (flip in the unverifiable tail) a clean prefix
         k = int(rng.integers(j + 1, len(data) + 1))
         try:
-            got = S.read_stream(bytes(bad[:k]))
+            got = read_stream(bytes(bad[:k]))
         except ValueError:
             continue
         n = info.count_for_bytes(k) if k >= info.header_size else 0
@@ -545,17 +610,17 @@ def test_every_single_byte_flip_is_detected(small):
 
 def test_corrupt_block_and_record_errors_name_the_place(small):
     _, _, _, data, _ = small
-    info = S.read_header(data)
+    info = read_header(data)
     bad = bytearray(data)
     off = info.record_offset(20) + 3  # record 20: block 2 (8 records per block)
     bad[off] ^= 0x10
     with pytest.raises(ValueError, match=r"block 2 .*CRC-32"):
-        S.read_stream(bytes(bad))
+        read_stream(bytes(bad))
     # inside an incomplete block only the record's CRC-8 can tell
     end = info.record_offset(22)
     with pytest.raises(ValueError, match=r"record 20 .*CRC-8"):
-        S.read_stream(bytes(bad[:end]))
-    r = S.StreamReader()
+        read_stream(bytes(bad[:end]))
+    r = StreamReader()
     with pytest.raises(ValueError):
         r.feed(bytes(bad[:end]))
     assert r.num_gaussians == 20  # everything verified before the bad record is kept
@@ -566,59 +631,59 @@ def test_corrupt_block_and_record_errors_name_the_place(small):
 def test_header_errors(small, tmp_path):
     _, _, _, data, _ = small
     with pytest.raises(ValueError, match="bad magic"):
-        S.read_stream(b"PAVX")
+        read_stream(b"PAVX")
     with pytest.raises(ValueError, match="bad magic"):
-        S.read_stream(b"GIF89a" + data[6:])
-    assert S.read_stream(data[:5]) is None  # truncation is not an error
-    H = S.read_header(data).header_size
+        read_stream(b"GIF89a" + data[6:])
+    assert read_stream(data[:5]) is None  # truncation is not an error
+    H = read_header(data).header_size
     bad = bytearray(data)
     bad[H - 10] ^= 1  # inside the metadata
     with pytest.raises(ValueError, match="header checksum"):
-        S.read_stream(bytes(bad))
-    for v in (0, 4):
+        read_stream(bytes(bad))
+    for v in (0, 5):
         bad = bytearray(data)
         bad[8:10] = struct.pack("<H", v)
         with pytest.raises(ValueError, match=f"version {v} is not supported"):
-            S.read_stream(bytes(bad))
+            read_stream(bytes(bad))
     v1 = bytearray(data)  # a version 1 header is 32 bytes shorter (no rotation ranges)
     v1[8:10] = struct.pack("<H", 1)
     with pytest.raises(ValueError, match="header size"):
-        S.read_stream(bytes(v1))
+        read_stream(bytes(v1))
     fl = bytearray(data)
-    fl[10:12] = struct.pack("<H", 0x80 | S.FLAG_TEMPLATE)
+    fl[10:12] = struct.pack("<H", 0x80 | FLAG_TEMPLATE)
     with pytest.raises(ValueError, match="flags"):
-        S.read_stream(bytes(fl))
+        read_stream(bytes(fl))
     with pytest.raises(ValueError, match="after the end"):
-        S.read_stream(data + b"\0")
+        read_stream(data + b"\0")
     p = tmp_path / "t.pavs"
     p.write_bytes(data[: H + 100])
-    assert S.read_stream(p).num_gaussians == S.read_header(data).count_for_bytes(H + 100)
+    assert read_stream(p).num_gaussians == read_header(data).count_for_bytes(H + 100)
     with pytest.raises(ValueError, match="truncated inside the stream header"):
-        S.read_header(data[: H - 1])
+        read_header(data[: H - 1])
 
 
 def test_structurally_invalid_records_are_refused():
     """A well-checksummed record that breaks the forest rules (a buggy writer) is refused."""
     _, av, imp = make_avatar(4)
-    data = bytearray(S.encode_stream(av, imp, records_per_block=4))
-    info = S.read_header(bytes(data))
+    data = bytearray(encode_stream(av, imp, records_per_block=4))
+    info = read_header(bytes(data))
     i = info.num_roots + 2
     o = info.record_offset(i)
     rec = bytearray(data[o : o + 23])
     rec[12:15] = (i + 5).to_bytes(3, "little")  # parent after the child
-    rec[22] = S._crc8_bytewise(struct.pack("<I", i) + bytes(rec[:22]))
+    rec[22] = _crc8_bytewise(struct.pack("<I", i) + bytes(rec[:22]))
     data[o : o + 23] = rec
     with pytest.raises(ValueError, match=f"record {i} is structurally invalid"):
-        S.read_stream(bytes(data[: o + 23]))  # block incomplete: CRC-8 passes, structure fails
+        read_stream(bytes(data[: o + 23]))  # block incomplete: CRC-8 passes, structure fails
     # lossless: the link's two slot bits can say 3, which no face has
-    data = bytearray(S.encode_stream(av, imp, quantize=False, records_per_block=4))
-    o = S.read_header(bytes(data)).record_offset(i)
+    data = bytearray(encode_stream(av, imp, quantize=False, records_per_block=4))
+    o = read_header(bytes(data)).record_offset(i)
     rec = bytearray(data[o : o + 73])
     rec[3] |= 0xC0
-    rec[72] = S._crc8_bytewise(struct.pack("<I", i) + bytes(rec[:72]))
+    rec[72] = _crc8_bytewise(struct.pack("<I", i) + bytes(rec[:72]))
     data[o : o + 73] = rec
     with pytest.raises(ValueError, match=f"record {i} is structurally invalid"):
-        S.read_stream(bytes(data[: o + 73]))
+        read_stream(bytes(data[: o + 73]))
 
 
 # -- template binding ---------------------------------------------------------------------
@@ -626,82 +691,82 @@ def test_template_mismatch_is_refused(tmp_path):
     verts, av, imp = make_avatar(5)
     faces = av.forest.template_faces
     p = tmp_path / "n.pavs"
-    info = S.write_stream(p, av, imp, embed_template=False)
+    info = write_stream(p, av, imp, embed_template=False)
     assert not info.template_embedded
     other = faces.copy()
     other[[0, 1]] = other[[1, 0]]
     with pytest.raises(ValueError, match="template mismatch"):
-        S.check_template(info, other)
+        check_template(info, other)
     with pytest.raises(ValueError, match="template mismatch"):
-        S.check_template(info, faces[:-1])
+        check_template(info, faces[:-1])
     with pytest.raises(ValueError, match="template mismatch"):
-        S.read_stream(p, template_faces=other)
+        read_stream(p, template_faces=other)
     with pytest.raises(ValueError, match="does not embed its template"):
-        S.read_stream(p)
-    S.check_template(info, faces)
-    out = S.read_stream(p, template_faces=faces)
-    emb = S.read_stream(S.encode_stream(av, imp))
+        read_stream(p)
+    check_template(info, faces)
+    out = read_stream(p, template_faces=faces)
+    emb = read_stream(encode_stream(av, imp))
     for n in PARAMS:
         np.testing.assert_array_equal(getattr(out, n), getattr(emb, n))
-    assert S.read_header(p).total_bytes < S.read_header(S.encode_stream(av, imp)).total_bytes
+    assert read_header(p).total_bytes < read_header(encode_stream(av, imp)).total_bytes
 
 
 def test_partial_base_level():
     _, av, imp = make_avatar(6)
-    data = S.encode_stream(av, imp)
-    full = S.read_stream(data)
-    out = S.read_stream(data, max_gaussians=5)
+    data = encode_stream(av, imp)
+    full = read_stream(data)
+    out = read_stream(data, max_gaussians=5)
     assert out.num_gaussians == 5 and out.forest.num_roots == 5
     # the forest keeps the whole template (a mesh binds to it) and holds 5 of its roots
     np.testing.assert_array_equal(out.forest.template_faces, av.forest.template_faces)
     assert out.forest.depth_per_root().tolist().count(-1) == len(av.forest.template_faces) - 5
     assert out.meta["stream"]["base_complete"] is False
-    assert S.read_stream(data, max_gaussians=av.forest.num_roots).meta["stream"]["base_complete"] is True
+    assert read_stream(data, max_gaussians=av.forest.num_roots).meta["stream"]["base_complete"] is True
     np.testing.assert_array_equal(out.d_mu, full.d_mu[:5])
 
 
 # -- budgets ------------------------------------------------------------------------------
 def test_budgets(small, tmp_path):
     _, av, _, data, full = small
-    info = S.read_header(data)
+    info = read_header(data)
     p = tmp_path / "b.pavs"
     p.write_bytes(data)
     N = av.num_gaussians
     assert info.count_for_percent(100) == N and info.count_for_percent(0) == 0
-    assert S.read_stream(p, percent=0) is None
+    assert read_stream(p, percent=0) is None
     for pct in (5, 25, 50, 77.7, 100):
         n = info.count_for_percent(pct)
         assert n == info.count_for_bytes(int(pct / 100 * info.total_bytes))
-        assert_prefix(S.read_stream(p, percent=pct), full, n)
-        assert_prefix(S.read_stream(data, percent=pct), full, n)
+        assert_prefix(read_stream(p, percent=pct), full, n)
+        assert_prefix(read_stream(data, percent=pct), full, n)
         assert info.count_for_percent(info.percent_for_count(n)) >= n
     counts = [info.count_for_percent(x) for x in np.linspace(0, 100, 101)]
     assert counts == sorted(counts)
     for n in range(N + 1):
         k = info.bytes_for_count(n)
         assert info.count_for_bytes(k) >= n and (n == 0 or info.count_for_bytes(k - 1) < n)
-    assert_prefix(S.read_stream(p, max_bytes=info.bytes_for_count(40)), full, 40)
-    assert_prefix(S.read_stream(p, max_gaussians=41), full, 41)
-    assert_prefix(S.read_stream(p, max_gaussians=41, max_bytes=info.bytes_for_count(30), percent=100), full, 30)
+    assert_prefix(read_stream(p, max_bytes=info.bytes_for_count(40)), full, 40)
+    assert_prefix(read_stream(p, max_gaussians=41), full, 41)
+    assert_prefix(read_stream(p, max_gaussians=41, max_bytes=info.bytes_for_count(30), percent=100), full, 30)
     assert info.base_bytes == info.bytes_for_count(info.num_roots)
     assert info.head_bytes == info.bytes_for_count(info.level_counts[0]) < info.base_bytes
     with pytest.raises(ValueError):
-        S.read_stream(p, percent=101)
+        read_stream(p, percent=101)
     with pytest.raises(ValueError):
-        S.read_stream(p, max_bytes=-1)
+        read_stream(p, max_bytes=-1)
 
 
 def test_budget_reads_only_what_it_needs(tmp_path):
     """A budgeted read verifies the block of its last record, not the file's tail."""
     _, av, imp = make_avatar(8)
-    data = bytearray(S.encode_stream(av, imp, records_per_block=8))
-    info = S.read_header(bytes(data))
+    data = bytearray(encode_stream(av, imp, records_per_block=8))
+    info = read_header(bytes(data))
     data[-3] ^= 0xFF  # damage the last block
     p = tmp_path / "c.pavs"
     p.write_bytes(bytes(data))
-    assert S.read_stream(p, max_gaussians=16).num_gaussians == 16
+    assert read_stream(p, max_gaussians=16).num_gaussians == 16
     with pytest.raises(ValueError):
-        S.read_stream(p)
+        read_stream(p)
     assert info.block_end_for_count(16) == info.header_size + 2 * info.block_bytes
 
 
@@ -709,20 +774,20 @@ def test_budget_reads_only_what_it_needs(tmp_path):
 def test_write_is_atomic(tmp_path, monkeypatch):
     _, av, imp = make_avatar(9)
     p = tmp_path / "s.pavs"
-    S.write_stream(p, av, imp)
+    write_stream(p, av, imp)
     before = p.read_bytes()
 
     def boom(*a, **k):
         raise OSError("disk full")
 
-    monkeypatch.setattr(S.os, "replace", boom)
+    monkeypatch.setattr(os, "replace", boom)
     with pytest.raises(OSError):
-        S.write_stream(p, av, imp, quantize=False)
+        write_stream(p, av, imp, quantize=False)
     assert p.read_bytes() == before
     assert os.listdir(tmp_path) == ["s.pavs"]
     monkeypatch.undo()
     with pytest.raises(ValueError, match="JSON"):
-        S.write_stream(p, av, imp, metadata={"x": object()})
+        write_stream(p, av, imp, metadata={"x": object()})
     assert p.read_bytes() == before
 
 
@@ -739,17 +804,17 @@ def test_write_is_atomic(tmp_path, monkeypatch):
 )
 def test_property_random_forests(seed, depth, frac, quantize, block, cut, chunk):
     verts, av, imp = make_avatar(seed, n_lat=3, n_lon=4, depth=depth, frac=frac)
-    data = S.encode_stream(av, imp, quantize=quantize, records_per_block=block)
-    info = S.read_header(data)
-    full = S.read_stream(data)
+    data = encode_stream(av, imp, quantize=quantize, records_per_block=block)
+    info = read_header(data)
+    full = read_stream(data)
     assert full.num_gaussians == av.num_gaussians
     if not quantize:
         for n in PARAMS:
-            np.testing.assert_array_equal(getattr(full, n), getattr(av, n)[S.stream_order(av.forest, imp)])
+            np.testing.assert_array_equal(getattr(full, n), getattr(av, n)[stream_order(av.forest, imp)])
     k = int(cut * len(data))
     n = info.count_for_bytes(k)
-    assert_prefix(S.read_stream(data[:k]), full, n)
-    r = S.StreamReader()
+    assert_prefix(read_stream(data[:k]), full, n)
+    r = StreamReader()
     for i in range(0, k, chunk):
         r.feed(data[i : min(k, i + chunk)])
     assert r.num_gaussians == n
@@ -765,7 +830,7 @@ def _set_record(data, info, i, edit):
     R = info.record_size
     rec = bytearray(data[o : o + R])
     edit(rec)
-    rec[R - 1] = S._crc8_bytewise(struct.pack("<I", i) + bytes(rec[: R - 1]))
+    rec[R - 1] = _crc8_bytewise(struct.pack("<I", i) + bytes(rec[: R - 1]))
     data[o : o + R] = rec
 
 
@@ -777,10 +842,10 @@ def test_coarse_stream_roundtrip_and_every_record_boundary_renders(quantize):
     from progressive_avatars.core.render.rasterize import render_numpy
 
     verts, av, imp = make_avatar(21, coarse=True)
-    data = S.encode_stream(av, imp, quantize=quantize, records_per_block=8)
-    info = S.read_header(data)
-    full = S.read_stream(data)
-    o = S.stream_order(av.forest, imp)
+    data = encode_stream(av, imp, quantize=quantize, records_per_block=8)
+    info = read_header(data)
+    full = read_stream(data)
+    o = stream_order(av.forest, imp)
     ref = av.forest.reorder(o)
     np.testing.assert_array_equal(full.forest.root_faces, ref.root_faces)
     np.testing.assert_array_equal(full.forest.level, ref.level)
@@ -791,7 +856,7 @@ def test_coarse_stream_roundtrip_and_every_record_boundary_renders(quantize):
     g_ref, g_out = av.gaussians(verts), full.gaussians(verts)
     assert np.abs(g_ref["means"][o] - g_out["means"]).max() < (1e-6 if not quantize else 0.02)
     cam = Camera.look_at([0, 0, 0.5], [0, 0, 0], [0, 1, 0], 40, 40, 12, 12, 24, 24)
-    r = S.StreamReader()
+    r = StreamReader()
     covered = []
     for i in range(len(data)):  # byte by byte: every record boundary
         if r.feed(data[i : i + 1]):
@@ -807,57 +872,57 @@ def test_coarse_stream_roundtrip_and_every_record_boundary_renders(quantize):
 
 def test_root_references_are_checked():
     verts, av, imp = make_avatar(22, coarse=True)
-    data = S.encode_stream(av, imp, records_per_block=64)
-    info = S.read_header(data)
+    data = encode_stream(av, imp, records_per_block=64)
+    info = read_header(data)
     c0 = info.level_counts[0]
     # a coarse-level-0 root naming a row of coarse level 1
     bad = bytearray(data)
     _set_record(bad, info, 1, lambda rec: rec.__setitem__(slice(12, 15), (c0 + 1).to_bytes(3, "little")))
     with pytest.raises(ValueError, match="record 1 is structurally invalid"):
-        S.read_stream(bytes(bad[: info.record_offset(3)]))
+        read_stream(bytes(bad[: info.record_offset(3)]))
     # two roots naming the same row: the second is named
     bad = bytearray(data)
     first = bytes(data[info.record_offset(0) + 12 : info.record_offset(0) + 15])
     _set_record(bad, info, 2, lambda rec: rec.__setitem__(slice(12, 15), first))
     with pytest.raises(ValueError, match="record 2 names a root triangle an earlier record already holds"):
-        S.read_stream(bytes(bad[: info.record_offset(3)]))
+        read_stream(bytes(bad[: info.record_offset(3)]))
     # a template-level root (level 2) naming a coarse row
     t = info.level_ends()[1] + 1
     bad = bytearray(data)
     _set_record(bad, info, t, lambda rec: rec.__setitem__(slice(12, 15), (0).to_bytes(3, "little")))
     with pytest.raises(ValueError, match=f"record {t} is structurally invalid"):
-        S.read_stream(bytes(bad[: info.record_offset(t + 1)]))
+        read_stream(bytes(bad[: info.record_offset(t + 1)]))
 
 
 def test_swapped_records_are_caught_by_the_indexed_crc8():
     """Version 3 seeds each record's CRC-8 with its index: two whole records swapped inside an
     incomplete block (where no block CRC-32 can tell yet) fail."""
     _, av, imp = make_avatar(23, coarse=True)
-    data = bytearray(S.encode_stream(av, imp, records_per_block=64))
-    info = S.read_header(bytes(data))
+    data = bytearray(encode_stream(av, imp, records_per_block=64))
+    info = read_header(bytes(data))
     i, j = 5, 6
     oi, oj, R = info.record_offset(i), info.record_offset(j), info.record_size
     ri, rj = bytes(data[oi : oi + R]), bytes(data[oj : oj + R])
     assert ri != rj
     data[oi : oi + R], data[oj : oj + R] = rj, ri
     with pytest.raises(ValueError, match=f"record {i} .*CRC-8"):
-        S.read_stream(bytes(data[: info.record_offset(10)]))
+        read_stream(bytes(data[: info.record_offset(10)]))
 
 
 def test_log_scale_ranges_are_clamped_and_refused():
     _, av, imp = make_avatar(24)
     av.d_log_scale[3] = [85.0, -300.0, 1.0]  # beyond the format's +-80 (Avatar itself refuses >= 88.72)
-    out = S.read_stream(S.encode_stream(av, imp))
-    assert np.all(np.abs(out.d_log_scale) <= S.LOG_SCALE_LIMIT)
+    out = read_stream(encode_stream(av, imp))
+    assert np.all(np.abs(out.d_log_scale) <= LOG_SCALE_LIMIT)
     assert np.all(np.isfinite(np.exp(out.d_log_scale.astype(np.float32))))
-    data = bytearray(S.encode_stream(av, imp))
-    info = S.read_header(bytes(data))
+    data = bytearray(encode_stream(av, imp))
+    info = read_header(bytes(data))
     pos = 60 + 4 * info.num_levels + 4 * 9  # ls_hi[0]
     data[pos : pos + 4] = struct.pack("<f", 1000.0)
     H = info.header_size
     data[H - 4 : H] = struct.pack("<I", zlib.crc32(bytes(data[: H - 4])))
     with pytest.raises(ValueError, match="log-scale beyond"):
-        S.read_stream(bytes(data))
+        read_stream(bytes(data))
 
 
 def test_cut_inside_every_level_with_trained_level_sizes():
@@ -890,13 +955,13 @@ def test_cut_inside_every_level_with_trained_level_sizes():
         rng.normal(0, 1, N),
         rng.normal(0, 1, (N, 3)),
     )
-    data = S.encode_stream(av, rng.random(N), vertices=verts)
-    info = S.read_header(data)
+    data = encode_stream(av, rng.random(N), vertices=verts)
+    info = read_header(data)
     ends = info.level_ends()
     starts = np.concatenate([[0], ends[:-1]])
     cuts = sorted({int(x) for a, b in zip(starts, ends) for x in (a + 1, (a + b) // 2, b - 1, b)})
     for n in cuts:
-        out = S.read_stream(data, max_bytes=info.bytes_for_count(n))
+        out = read_stream(data, max_bytes=info.bytes_for_count(n))
         assert out.num_gaussians == n
         g = out.gaussians(verts)
         assert all(np.all(np.isfinite(v)) for v in g.values())
@@ -919,7 +984,7 @@ def test_root_orders():
     R, lv = f.num_roots, f.level[: f.num_roots]
     cen = coarse.centroids(verts, f.root_faces)
     for how in ("spatial", "importance", "auto", "both"):
-        o = S.stream_order(f, imp, S.root_keys(f, how, imp, verts))
+        o = stream_order(f, imp, root_keys(f, how, imp, verts))
         assert np.array_equal(np.sort(o[:R]), np.arange(R)) and np.all(np.diff(f.level[o]) >= 0)
         for level in range(f.num_coarse_levels + 1):
             got = o[:R][lv[o[:R]] == level]
@@ -928,6 +993,6 @@ def test_root_orders():
                 assert np.array_equal(got, ids[coarse.spread_order(cen[ids])])
             elif how in ("importance", "auto"):
                 assert np.all(np.diff(imp[got]) <= 0)
-    assert np.array_equal(S.stream_order(f, imp)[:R], np.arange(R))
+    assert np.array_equal(stream_order(f, imp)[:R], np.arange(R))
     with pytest.raises(ValueError, match="importance"):
-        S.root_keys(f, "importance")
+        root_keys(f, "importance")

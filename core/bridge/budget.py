@@ -91,7 +91,9 @@ def load_avatar(path, template_faces=None) -> tuple[Avatar, Budget]:
         except ValueError as exc:  # a stream cut inside its header
             raise ValueError(f"{exc}; no Gaussian arrived (the stream's records start after its header)") from None
         tmpl = None if info.template_embedded else template_faces
-        avatar = stream.read_stream(path, template_faces=tmpl)
+        from ..stream.reader import read_stream
+
+        avatar = read_stream(path, template_faces=tmpl)
         if avatar is None:
             raise ValueError(
                 f"{path}: the stream holds no complete Gaussian record ({size} of "

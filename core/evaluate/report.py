@@ -22,7 +22,9 @@ import numpy as np
 
 from ..io import run as runs
 from ..io.dataset import Dataset
-from ..stream import format as stream
+from ..stream.order import ROOT_ORDERS, root_keys, stream_order
+from ..stream.reader import read_stream
+from ..stream.writer import write_stream
 from . import plots
 from .sweep import SplitRenderer, importance_only, random_within_levels
 
@@ -89,8 +91,6 @@ def first_head(info) -> dict:
 def root_order_ablation(avatar, W, rest, info, renderer) -> dict:
     """NVS quality of prefixes that end inside a root level (a coarse level, the template
     level), for each order of the roots inside their levels."""
-    from ..stream import format as stream
-
     ends = info.level_ends()
     K = info.num_coarse_levels
     starts = np.concatenate([[0], ends[:-1]])
@@ -100,8 +100,8 @@ def root_order_ablation(avatar, W, rest, info, renderer) -> dict:
         for frac in (0.25, 0.5):
             cuts[f"level {lv} + {frac:.0%}"] = a + max(1, int(frac * size))
     out = {"cuts": cuts, "orders": {}}
-    for how in stream.ROOT_ORDERS:
-        order = stream.stream_order(avatar.forest, W, stream.root_keys(avatar.forest, how, W, rest))
+    for how in ROOT_ORDERS:
+        order = stream_order(avatar.forest, W, root_keys(avatar.forest, how, W, rest))
         out["orders"][how] = {k: renderer.score(np.sort(order[:n]), ssim=False) for k, n in cuts.items()}
     return out
 
@@ -110,13 +110,12 @@ def coarse_ablation(run0, data, rest, nvs_renderer, info, nvs_split, views, scra
     """This run against `run0` (trained without coarse levels) at 2, 5 and 100 % of each one's
     own stream (same writer settings)."""
     from ..io import run as runs
-    from ..stream import format as stream
     from .sweep import SplitRenderer
 
     av0 = runs.load_run_avatar(run0)
     W0 = runs.run_importance(run0, av0, data, progress=progress)
     p0 = os.path.join(scratch, "no_coarse.pavs")
-    info0 = stream.write_stream(
+    info0 = write_stream(
         p0,
         av0,
         W0,
@@ -126,7 +125,7 @@ def coarse_ablation(run0, data, rest, nvs_renderer, info, nvs_split, views, scra
         root_order=root_order,
         embed_template=info.template_embedded,
     )
-    r0 = SplitRenderer(stream.read_stream(p0, template_faces=nvs_split.faces), nvs_split, views)
+    r0 = SplitRenderer(read_stream(p0, template_faces=nvs_split.faces), nvs_split, views)
     out = {
         "run": os.path.abspath(run0),
         "bytes_with": info.total_bytes,
@@ -158,13 +157,12 @@ def _run_stream(run, data, progress):
     """(stream-ordered quantised avatar, StreamInfo) of a trained run: importance (cached in the
     run), then RUN/avatar.pavs."""
     from ..io import run as runs
-    from ..stream import format as stream
 
     avatar = runs.load_run_avatar(run)
     W = runs.run_importance(run, avatar, data, progress=progress)
     path = os.path.join(run, "avatar.pavs")
-    info = stream.write_stream(path, avatar, W, quantize=True, metadata={"run": os.path.abspath(run)}, drop_sh=True)
-    return stream.read_stream(path), info
+    info = write_stream(path, avatar, W, quantize=True, metadata={"run": os.path.abspath(run)}, drop_sh=True)
+    return read_stream(path), info
 
 
 def _seeded(specs, first=None):
@@ -285,7 +283,7 @@ def build_report(args: ReportOptions) -> dict:
             file=sys.stderr,
         )
     rest = splits["nvs"].canonical_vertices  # spread-out root order (core/avatar/coarse.py)
-    info = stream.write_stream(
+    info = write_stream(
         stream_path,
         avatar,
         W,
@@ -298,11 +296,9 @@ def build_report(args: ReportOptions) -> dict:
     )
     scratch = tempfile.mkdtemp(prefix="pa_eval_")
     lossless_path = os.path.join(scratch, "lossless.pavs")  # only to measure what quantisation costs
-    stream.write_stream(
-        lossless_path, avatar, W, quantize=False, drop_sh=True, vertices=rest, root_order=args.root_order
-    )
-    streamed = stream.read_stream(stream_path, template_faces=splits["nvs"].faces)
-    exact = stream.read_stream(lossless_path)
+    write_stream(lossless_path, avatar, W, quantize=False, drop_sh=True, vertices=rest, root_order=args.root_order)
+    streamed = read_stream(stream_path, template_faces=splits["nvs"].faces)
+    exact = read_stream(lossless_path)
     order = info.order
     W_stream = W[order]
     total_bytes = os.path.getsize(stream_path)

@@ -3,7 +3,9 @@
 Both return (vertices [V,3] float64, faces [F,3] int64) with vertices in file order and
 faces in file order; quads are split into two triangles (a, b, c), (c, d, a) in place (as trimesh did).
 Parsing is done by regular expressions and numpy over the whole text or buffer, never by a
-Python loop over vertices or faces. Errors name the file and the problem.
+Python loop over vertices or faces. Errors name the file and the problem; hostile files (too
+large, giant lines, absurd indices, non-finite coordinates) are refused before or while parsing
+with bounded memory (core/io/safe_io.py), never with MemoryError or a traceback.
 """
 
 from __future__ import annotations
@@ -12,6 +14,11 @@ import os
 import re
 
 import numpy as np
+
+from .safe_io import check_line_lengths, read_bounded
+
+# A mesh file is parsed in memory: refuse larger ones before reading (a 1M-vertex OBJ is ~60 MB).
+MAX_MESH_BYTES = 1 << 30
 
 
 class MeshFormatError(ValueError):
@@ -23,8 +30,12 @@ def read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{path}: file not found")
     low = path.lower()
-    with open(path, "rb") as fh:
-        data = fh.read()
+    if not low.endswith((".obj", ".ply")):
+        raise MeshFormatError(f"{path}: not an .obj or .ply mesh")
+    try:
+        data = read_bounded(path, MAX_MESH_BYTES, "mesh file")
+    except ValueError as exc:
+        raise MeshFormatError(str(exc)) from None
     if low.endswith(".obj"):
         v, f = read_obj_bytes(data, path)
     elif low.endswith(".ply"):
@@ -33,6 +44,9 @@ def read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
         raise MeshFormatError(f"{path}: not an .obj or .ply mesh")
     if len(v) == 0:
         raise MeshFormatError(f"{path}: mesh has no vertices")
+    if not np.all(np.isfinite(v)):
+        bad = int(np.flatnonzero(~np.isfinite(v).all(1))[0])
+        raise MeshFormatError(f"{path}: vertex {bad} has a NaN or infinite coordinate")
     if len(f) and (f.min() < 0 or f.max() >= len(v)):
         raise MeshFormatError(f"{path}: face vertex indices outside 0..{len(v) - 1}")
     return v, f
@@ -63,11 +77,25 @@ _OBJ_TRI_QUAD = re.compile(
 )
 
 
+_OBJ_V_LINE = re.compile(rb"^[ \t]*v[ \t]", re.M)
+
+
 def read_obj_bytes(data: bytes, path: str = "<obj>"):
     try:
-        v = np.array(_OBJ_V.findall(data), dtype=np.float64).reshape(-1, 3)
+        check_line_lengths(data, path)
+    except ValueError as exc:
+        raise MeshFormatError(str(exc)) from None
+    coords = _OBJ_V.findall(data)
+    n_v = len(_OBJ_V_LINE.findall(data))
+    if len(coords) != n_v:
+        raise MeshFormatError(f"{path}: {n_v - len(coords)} vertex lines hold fewer than 3 coordinates")
+    try:
+        v = np.array(coords, dtype=np.float64).reshape(-1, 3)
     except ValueError as exc:
         raise MeshFormatError(f"{path}: unreadable vertex coordinates ({exc})") from None
+    if not np.all(np.isfinite(v)):
+        bad = int(np.flatnonzero(~np.isfinite(v).all(1))[0])
+        raise MeshFormatError(f"{path}: vertex {bad} has a NaN or infinite coordinate {v[bad].tolist()}")
     n_lines = len(_OBJ_F.findall(data))
     rows = _OBJ_TRI_QUAD.findall(data)
     if len(rows) != n_lines:
@@ -80,8 +108,14 @@ def read_obj_bytes(data: bytes, path: str = "<obj>"):
     cells = np.array(rows, dtype=bytes)  # [F,4], the 4th empty for triangles
     sizes = np.where(cells[:, 3] == b"", 3, 4)
     cells[:, 3] = np.where(sizes == 4, cells[:, 3], cells[:, 0])
+    if cells.dtype.itemsize > 18:  # (the longest cell) beyond int64, and beyond any vertex count
+        raise MeshFormatError(f"{path}: a face names a vertex index with more than 18 digits")
     idx = cells.astype(np.int64)
+    if np.any(idx == 0):
+        raise MeshFormatError(f"{path}: a face names vertex 0 (OBJ indices start at 1; negative ones count back)")
     idx = np.where(idx < 0, idx + len(v), idx - 1)  # OBJ is 1-based; negatives count back
+    if idx.min() < 0 or idx.max() >= len(v):
+        raise MeshFormatError(f"{path}: face vertex indices outside 1..{len(v)} (or -{len(v)}..-1)")
     return v, _triangles(idx, sizes, path)
 
 
@@ -119,6 +153,10 @@ def _ply_header(data: bytes, path: str):
         if w[0] == "format":
             fmt = w[1]
         elif w[0] == "element":
+            if len(w) != 3 or not w[2].isdigit():
+                raise MeshFormatError(
+                    f"{path}: malformed PLY element line {line.strip()!r} (count must be a whole number)"
+                )
             elements.append((w[1], int(w[2]), []))
         elif w[0] == "property" and elements:
             if w[1] == "list":
@@ -139,6 +177,10 @@ def read_ply_bytes(data: bytes, path: str = "<ply>"):
     if "vertex" not in names:
         raise MeshFormatError(f"{path}: PLY has no vertex element")
     if fmt == "ascii":
+        try:
+            check_line_lengths(data[pos:], path)
+        except ValueError as exc:
+            raise MeshFormatError(str(exc)) from None
         return _ply_ascii(data[pos:], elements, path)
     end = "<" if fmt == "binary_little_endian" else ">"
     v = f = None
@@ -146,6 +188,8 @@ def read_ply_bytes(data: bytes, path: str = "<ply>"):
         lists = [p for p in props if isinstance(p[1], tuple)]
         if not lists:
             dt = np.dtype([(p, end + t) for p, t in props])
+            if pos + dt.itemsize * n > len(data):
+                raise MeshFormatError(f"{path}: element '{name}' declares {n} rows, more than the file holds")
             arr = np.frombuffer(data, dt, count=n, offset=pos)
             pos += dt.itemsize * n
             if name == "vertex":
@@ -161,6 +205,8 @@ def read_ply_bytes(data: bytes, path: str = "<ply>"):
         if n == 0:
             f = np.zeros((0, 3), np.int64)
             continue
+        if pos + np.dtype(count_t).itemsize > len(data):
+            raise MeshFormatError(f"{path}: the face element is cut short")
         k = int(np.frombuffer(data, end + count_t, count=1, offset=pos)[0])
         dt = np.dtype([("n", end + count_t), ("i", end + index_t, (k,))])
         if pos + dt.itemsize * n > len(data):

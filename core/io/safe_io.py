@@ -14,7 +14,16 @@ import zipfile
 
 import numpy as np
 
-__all__ = ["MAX_ARRAY_ELEMENTS", "MAX_JSON_DEPTH", "check_npz", "json_depth", "loads_json"]
+__all__ = [
+    "MAX_ARRAY_ELEMENTS",
+    "MAX_JSON_DEPTH",
+    "MAX_TEXT_LINE",
+    "check_line_lengths",
+    "check_npz",
+    "json_depth",
+    "loads_json",
+    "read_bounded",
+]
 
 # One array in any file the project reads holds at most 2^27 elements (1 GiB as float64);
 # the largest real arrays (FLAME shapedirs 5023x3x400, a 1M-Gaussian avatar's f_rest) are
@@ -23,6 +32,10 @@ MAX_ARRAY_ELEMENTS = 1 << 27
 MAX_NPZ_ELEMENTS = 4 * MAX_ARRAY_ELEMENTS
 # Deeper JSON than this is refused before parsing (Python's parser recurses per level).
 MAX_JSON_DEPTH = 64
+
+# A text file's line (OBJ, ASCII PLY) longer than this is refused before parsing: real lines are
+# tens of bytes, and one giant line would become one giant token in the parser.
+MAX_TEXT_LINE = 1 << 16
 
 # Object arrays need pickle (refused by np.load(allow_pickle=False) anyway) and structured
 # (void) ones are not data any reader here uses: both are refused from the header.
@@ -103,3 +116,28 @@ def loads_json(data, source: str = "<json>", max_depth: int = MAX_JSON_DEPTH):
         return json.loads(data)
     except RecursionError:  # belt and braces: a depth the scanner could not see
         raise ValueError(f"{source}: JSON nested too deeply") from None
+
+
+def read_bounded(path, max_bytes: int, what: str = "file") -> bytes:
+    """The bytes of ``path``, refusing (before reading) a file larger than ``max_bytes``:
+    a reader that parses a whole file in memory then needs a bounded multiple of it."""
+    import os
+
+    size = os.path.getsize(path)
+    if size > max_bytes:
+        raise ValueError(f"{path}: {what} of {size} bytes, over the bound of {max_bytes}; refused before reading")
+    with open(path, "rb") as fh:
+        return fh.read(max_bytes + 1)[:max_bytes]
+
+
+def check_line_lengths(data: bytes, source: str, max_line: int = MAX_TEXT_LINE) -> None:
+    """Refuse text whose longest line exceeds ``max_line`` bytes (vectorised: one scan of the
+    newline positions), naming ``source`` and the line."""
+    b = np.frombuffer(data, np.uint8)
+    ends = np.concatenate([[-1], np.flatnonzero(b == 10), [len(b)]])
+    lengths = np.diff(ends) - 1
+    if len(lengths) and lengths.max() > max_line:
+        k = int(np.argmax(lengths))
+        raise ValueError(
+            f"{source}: line {k + 1} is {int(lengths[k])} bytes long, over the bound of {max_line}; refused before parsing"
+        )

@@ -18,7 +18,8 @@ import time
 from dataclasses import dataclass, field
 from urllib.parse import urljoin, urlsplit
 
-from .format import FIXED_SIZE, FIXED_SIZE_V3, StreamError, StreamReader, _fixed_size, _parse_fixed
+from .format import FIXED_SIZE, FIXED_SIZE_MAX, StreamError, _fixed_size, _parse_fixed
+from .reader import StreamReader
 
 COMPLETE = "complete"  # the whole stream arrived and verified
 BUDGET = "budget"  # stopped at the requested budget (everything inside it verified)
@@ -195,7 +196,7 @@ def fetch_stream(
         header yet, the fixed header part (its fields give the stream's size)."""
         lim = limit()
         if percent is not None and reader.header is None and fixed_total[0] is None and fresh:
-            lim = FIXED_SIZE_V3 if lim is None else min(lim, FIXED_SIZE_V3)
+            lim = FIXED_SIZE_MAX if lim is None else min(lim, FIXED_SIZE_MAX)
         return lim
 
     def finished() -> str | None:
@@ -208,9 +209,9 @@ def fetch_stream(
 
     def feed(data) -> bool:
         """Feed, call back; False when the caller cancelled."""
-        if fresh and fixed_total[0] is None and len(head) < FIXED_SIZE_V3:
-            head.extend(bytes(data[: FIXED_SIZE_V3 - len(head)]))
-            # The fixed part is 56 bytes up to version 2 and 60 from version 3 (its version
+        if fresh and fixed_total[0] is None and len(head) < FIXED_SIZE_MAX:
+            head.extend(bytes(data[: FIXED_SIZE_MAX - len(head)]))
+            # The fixed part is 56 bytes up to version 2, 60 in version 3, 64 from version 4 (its version
             # field, inside the first 56, says which).
             if len(head) >= FIXED_SIZE and len(head) >= _fixed_size(head):
                 f = _parse_fixed(head, url)

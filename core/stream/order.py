@@ -1,0 +1,76 @@
+"""Stream order: the roots level by level in a chosen order, then each level by descending
+importance (numpy only: runs in Blender)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..avatar.forest import Forest
+
+
+ROOT_ORDERS = ("forest", "spatial", "importance", "both", "auto")
+
+
+def root_keys(forest: Forest, how: str = "forest", importance=None, vertices=None):
+    """Sort key (ascending) of each root inside its level, or None for the forest's order.
+
+    forest: as the forest holds them (trained avatars: spread-out, core/avatar/coarse.py; older ones:
+    template order). spatial: spread-out order of the roots' centroids on `vertices` (a rest
+    pose). importance: descending importance. both: the spatial order's dyadic blocks (the
+    first 1, 1, 2, 4, 8, ... roots: each block spread over the head) with every block sorted by
+    descending importance. auto: spatial in level 0 (nothing renders below it: a prefix must
+    not leave holes), importance in the later root levels (a whole head is already there:
+    the most visible faces first); measured in docs/BENCHMARKS.md (issue 16)."""
+    if how not in ROOT_ORDERS:
+        raise ValueError(f"root order must be one of {ROOT_ORDERS}, got {how!r}")
+    if how == "forest":
+        return None
+    R = forest.num_roots
+    lv = forest.level[:R]
+    if how in ("spatial", "both", "auto"):
+        rank = np.arange(R, dtype=np.float64)
+        if vertices is not None:
+            from ..avatar.coarse import centroids, spread_order
+
+            cen = centroids(vertices, forest.root_faces)
+            for level in np.unique(lv):  # per root level
+                ids = np.flatnonzero(lv == level)
+                rank[ids[spread_order(cen[ids])]] = np.arange(len(ids))
+        else:  # the forest's order within each level
+            for level in np.unique(lv):
+                ids = np.flatnonzero(lv == level)
+                rank[ids] = np.arange(len(ids))
+        if how == "spatial":
+            return rank
+        if how == "auto" and importance is None:
+            return rank
+    if importance is None:
+        raise ValueError(f"root order {how!r} needs the faces' importance")
+    imp = np.asarray(importance, np.float64)[:R]
+    top = max(float(imp.max()), 1e-300) if R else 1.0
+    if how == "importance":
+        return -imp
+    if how == "auto":  # level 0 by its spatial rank (all keys < 0), later levels by importance
+        return np.where(lv == 0, rank - R, -imp)
+    return np.floor(np.log2(rank + 1.0)) + 0.999 * (1.0 - np.clip(imp / top, 0.0, 1.0))
+
+
+def stream_order(forest: Forest, importance=None, root_key=None) -> np.ndarray:
+    """Permutation (new position -> old face): the roots level by level (coarse levels, then
+    the template level), each by ascending `root_key` (default: the forest's order), then each
+    further level by descending importance, ties by face index. Parents precede children
+    since levels do."""
+    N = forest.num_faces
+    if importance is None:
+        key = np.zeros(N)
+    else:
+        key = np.asarray(importance, np.float64).reshape(-1)
+        if len(key) != N:
+            raise ValueError(f"stream_order: importance has {len(key)} values for {N} faces")
+        if not np.all(np.isfinite(key)):
+            raise ValueError("stream_order: importance contains NaN or inf")
+    R = forest.num_roots
+    key = -key
+    key[:R] = 0.0 if root_key is None else np.asarray(root_key, np.float64)[:R]
+    idx = np.arange(N)
+    return np.lexsort((idx, key, forest.level)).astype(np.int64)

@@ -1,0 +1,315 @@
+"""The stream writer: records (quantised or lossless) in stream order, blocks and their
+checksums, written atomically (numpy only: runs in Blender)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import struct
+import zlib
+
+import numpy as np
+
+from ..avatar.avatar import Avatar, SH_C0
+from ..io.atomic import atomic_open
+from .format import (
+    DEFAULT_BLOCK,
+    FLAG_LOSSLESS,
+    FLAG_TEMPLATE,
+    LOG_SCALE_LIMIT,
+    LOSSLESS_DTYPE,
+    LOSSLESS_RECORD,
+    LOSSLESS_ROOT,
+    QUANT_DTYPE,
+    RANGE_LIMIT,
+    QUANT_RECORD,
+    QUANT_ROOT,
+    StreamInfo,
+    VERSION,
+    _encode_coarse,
+    _encode_header,
+    _f32_ceil,
+    _f32_floor,
+    crc8,
+    crc8_indexed,
+    max_exceptions,
+    quant_ranges,
+    template_hash,
+)
+from .order import root_keys, stream_order
+
+
+def _quantize_records(
+    av: Avatar, bary: np.ndarray, quant: np.ndarray, version: int = VERSION, root_ref=None
+) -> np.ndarray:
+    N = av.num_gaussians
+    rec = np.zeros(N, QUANT_DTYPE)
+    q = quant_ranges(quant)
+
+    def codes(x, lo, hi, levels):
+        span = hi - lo
+        safe = np.where(span > 0, span, 1.0)
+        c = np.rint((np.clip(x, lo, hi) - lo) / safe * (levels - 1))
+        return np.where(span > 0, c, 0).astype(np.uint64)
+
+    mu = codes(av.d_mu.astype(np.float64), *q["mu"], 4096)
+    b0 = np.rint(bary[:, 0] * 4095).astype(np.int64)
+    b1 = np.minimum(np.rint(bary[:, 1] * 4095).astype(np.int64), 4095 - b0)
+    slot = np.maximum(av.forest.slot.astype(np.int64), 0).astype(np.uint64)
+    rec["geo"] = (
+        mu[:, 0]
+        | (mu[:, 1] << np.uint64(12))
+        | (mu[:, 2] << np.uint64(24))
+        | (b0.astype(np.uint64) << np.uint64(36))
+        | (b1.astype(np.uint64) << np.uint64(48))
+        | (slot << np.uint64(60))
+    )
+
+    rc = codes(_unit_quaternions(av.d_rot), *q["rot"], 256).astype(np.uint32)
+    rec["rot"] = rc[:, 0] | (rc[:, 1] << np.uint32(8)) | (rc[:, 2] << np.uint32(16)) | (rc[:, 3] << np.uint32(24))
+
+    parent = np.where(av.forest.parent >= 0, av.forest.parent, QUANT_ROOT).astype(np.uint32)
+    if version >= 3:  # roots name their row of the coarse + template table
+        parent[: len(root_ref)] = root_ref
+    rec["parent"] = np.stack([parent & 0xFF, (parent >> 8) & 0xFF, (parent >> 16) & 0xFF], 1).astype(np.uint8)
+    rec["ls"] = codes(av.d_log_scale.astype(np.float64), *q["ls"], 256).astype(np.uint8)
+    alpha = 1.0 / (1.0 + np.exp(-av.opacity_logit.astype(np.float64)))
+    rec["opa"] = np.minimum(np.floor(alpha * 256.0), 255).astype(np.uint8)
+    c = 0.5 + SH_C0 * av.f_dc.astype(np.float64)
+    rec["col"] = codes(c, *q["c"], 256).astype(np.uint8)
+    raw = rec.view(np.uint8).reshape(N, QUANT_RECORD)
+    rec["crc"] = crc8_indexed(raw[:, : QUANT_RECORD - 1], 0) if version >= 3 else crc8(raw[:, : QUANT_RECORD - 1])
+    return rec
+
+
+def _lossless_records(av: Avatar, version: int = VERSION, root_ref=None) -> np.ndarray:
+    N = av.num_gaussians
+    rec = np.zeros(N, LOSSLESS_DTYPE)
+    parent = np.where(av.forest.parent >= 0, av.forest.parent, LOSSLESS_ROOT).astype(np.uint32)
+    if version >= 3:
+        parent[: len(root_ref)] = root_ref
+    rec["link"] = parent | (np.maximum(av.forest.slot, 0).astype(np.uint32) << np.uint32(30))
+    rec["split_logits"] = av.forest.split_logits
+    for name in ("d_mu", "d_log_scale", "d_rot", "opacity_logit", "f_dc"):
+        rec[name] = getattr(av, name)
+    if not np.all(np.isfinite(av.forest.split_logits)):
+        raise ValueError("write_stream: split logits contain NaN or inf")
+    raw = rec.view(np.uint8).reshape(N, LOSSLESS_RECORD)
+    rec["crc"] = crc8_indexed(raw[:, : LOSSLESS_RECORD - 1], 0) if version >= 3 else crc8(raw[:, : LOSSLESS_RECORD - 1])
+    return rec
+
+
+def _unit_quaternions(d_rot) -> np.ndarray:
+    """Rotations as coded (FORMAT.md 3.1): unit length, w >= 0 (q and -q are one rotation;
+    this halves w's range), a zero quaternion read as the identity."""
+    r = np.asarray(d_rot, np.float64)
+    n = np.linalg.norm(r, axis=1, keepdims=True)
+    r = np.where(n > 0, r / np.where(n > 0, n, 1.0), np.array([1.0, 0, 0, 0]))
+    return np.where(r[:, :1] < 0, -r, r)
+
+
+# Version 4 robust ranges (FORMAT.md 3.2): a component's fence spans its k-th smallest to k-th
+# largest value, k = max(max_exceptions(N), N / 100) (so neither end moves for up to that many
+# outliers), widened by that width on either side; values beyond it are escaped (carried exactly
+# in the header), the farthest first, at most max_exceptions(N) of them; the range is the hull
+# of the rest.
+FENCE_TRIM = 0.01
+FENCE_WIDEN = 1.0
+
+
+def _coded_values(av: Avatar) -> np.ndarray:
+    """[N,13] float64: each component as the quantised record codes it (EXCEPTION_COMPONENTS
+    order): d_mu within +-RANGE_LIMIT, log-scales within +-LOG_SCALE_LIMIT, the colour
+    0.5 + SH_C0 f_dc within [0, RANGE_LIMIT] (a renderer clamps negative colour to 0), the
+    unit quaternion with w >= 0."""
+    c = 0.5 + SH_C0 * av.f_dc.astype(np.float64)
+    return np.concatenate(
+        [
+            np.clip(av.d_mu.astype(np.float64), -RANGE_LIMIT, RANGE_LIMIT),
+            np.clip(av.d_log_scale.astype(np.float64), -LOG_SCALE_LIMIT, LOG_SCALE_LIMIT),
+            np.clip(c, 0.0, RANGE_LIMIT),
+            _unit_quaternions(av.d_rot),
+        ],
+        axis=1,
+    )
+
+
+def _escapes(x: np.ndarray) -> np.ndarray:
+    """[N,13] bool: the values a version 4 stream carries exactly (see FENCE_TRIM)."""
+    N = len(x)
+    cap = max_exceptions(N)
+    k = min(max(cap, math.ceil(FENCE_TRIM * N)), (N - 1) // 2)
+    part = np.partition(x, (k, N - 1 - k), axis=0)
+    p_lo, p_hi = part[k], part[N - 1 - k]
+    # width floor: a (near-)constant component does not escape rounding-level differences
+    w = np.maximum(p_hi - p_lo, 1e-6 * np.maximum(np.maximum(np.abs(p_lo), np.abs(p_hi)), 1.0))
+    excess = np.maximum((p_lo - FENCE_WIDEN * w) - x, x - (p_hi + FENCE_WIDEN * w))
+    score = np.where(excess > 0, excess / w, 0.0).ravel()
+    out = score > 0
+    if out.sum() > cap:  # keep the cap farthest (in fence widths); the others widen the range
+        keep = np.argpartition(-score, cap - 1)[:cap]
+        out[:] = False
+        out[keep] = True
+    return out.reshape(x.shape)
+
+
+def _quant_table(av: Avatar, version: int = VERSION):
+    """(26-float table, exceptions or None). Versions 2-3: each range the min..max of the coded
+    values; version 4: robust ranges plus the exceptions table (FORMAT.md 3.2). Either way every
+    table value and decoded value stays finite in float32 (limits above)."""
+    x = _coded_values(av)
+    esc = _escapes(x) if version >= 4 else np.zeros(x.shape, bool)
+    lo = np.where(esc, np.inf, x).min(0)
+    hi = np.where(esc, -np.inf, x).max(0)
+    parts = [lo[0:3], hi[0:3], lo[3:6], hi[3:6], lo[6:9], hi[6:9], lo[9:13], hi[9:13]]
+    table = np.concatenate([_f32_floor(p) if i % 2 == 0 else _f32_ceil(p) for i, p in enumerate(parts)])
+    table = table.astype(np.float32)
+    lim32 = _f32_floor(RANGE_LIMIT)  # (outward rounding must not pass the limits)
+    table[6:12] = np.clip(table[6:12], -LOG_SCALE_LIMIT, LOG_SCALE_LIMIT)
+    table = np.clip(table, -lim32, lim32)
+    if not esc.any():
+        return table, None
+    rows, comps = np.nonzero(esc)  # row-major: sorted by (record, component)
+    params = np.concatenate(
+        [
+            np.clip(av.d_mu.astype(np.float64), -RANGE_LIMIT, RANGE_LIMIT),
+            np.clip(av.d_log_scale.astype(np.float64), -LOG_SCALE_LIMIT, LOG_SCALE_LIMIT),
+            np.clip(av.f_dc.astype(np.float64), -RANGE_LIMIT, RANGE_LIMIT),
+            _unit_quaternions(av.d_rot),
+        ],
+        axis=1,
+    )
+    vals = np.clip(params[rows, comps].astype(np.float32), -lim32, lim32)
+    return table, (rows.astype(np.int64), comps.astype(np.uint8), vals)
+
+
+def write_stream(
+    path,
+    avatar: Avatar,
+    importance=None,
+    *,
+    quantize: bool = True,
+    metadata=None,
+    embed_template: bool = True,
+    records_per_block: int = DEFAULT_BLOCK,
+    drop_sh: bool = False,
+    root_order: str | None = None,
+    vertices=None,
+    version: int = VERSION,
+) -> StreamInfo:
+    """Write `avatar` as a stream (atomically). Returns its header; `.order` maps stream index
+    to the avatar's face index. Records carry the DC colour only: an avatar with higher SH
+    bands is refused unless ``drop_sh`` (then the metadata says which degree was dropped).
+
+    Roots (coarse levels, template level) go level by level in `root_order` (root_keys):
+    default "auto" when rest-pose `vertices` are given, else the forest's order. The avatar's
+    training settings (meta "config") stay out of the header (they are in the run folder):
+    time to the first whole head counts.
+    ``version=3`` writes the previous format (min..max quantisation ranges, no exceptions table),
+    ``version=2`` the one before (no coarse levels, roots in template order)."""
+    forest = avatar.forest
+    if avatar.sh_degree and not drop_sh:
+        raise ValueError(
+            f"write_stream: the avatar has SH degree {avatar.sh_degree}; stream records carry the "
+            "DC colour only (docs/FORMAT.md). Pass drop_sh=True (export.py --drop-sh) to stream "
+            "its view-independent colour, or export a PLY to keep every band"
+        )
+    N = forest.num_faces
+    if not 1 <= int(records_per_block) <= 0xFFFF:
+        raise ValueError(f"write_stream: records_per_block must be in [1, 65535], got {records_per_block}")
+    limit = QUANT_ROOT if quantize else LOSSLESS_ROOT
+    if N > limit:
+        raise ValueError(f"write_stream: {N} Gaussians exceed this record type's limit of {limit}")
+    if version not in (2, 3, VERSION):
+        raise ValueError(f"write_stream: can write versions 2, 3 and {VERSION}, not {version}")
+    C, K = forest.num_coarse, forest.num_coarse_levels
+    if forest.num_roots != C + len(forest.template_faces):
+        raise ValueError(
+            f"write_stream: the avatar holds {forest.num_roots} of its {C + len(forest.template_faces)} "
+            "roots (a prefix); streams start from every root"
+        )
+    if root_order is None:
+        root_order = "auto" if vertices is not None else "forest"
+    if version == 2:
+        if K or not np.array_equal(forest.root_ref, np.arange(forest.num_roots)) or root_order != "forest":
+            raise ValueError("write_stream: version 2 has no coarse levels and keeps roots in template order")
+    order = stream_order(forest, importance, root_keys(forest, root_order, importance, vertices))
+    f2 = forest.reorder(order)
+    # The coarse table as stored: each level's rows sorted by vertex (compresses well); roots
+    # name their row of [stored coarse table; template].
+    row_of = np.arange(C + len(forest.template_faces), dtype=np.int64)
+    coarse_rows = forest.coarse_faces
+    if C:
+        starts = np.concatenate([[0], np.cumsum(forest.coarse_counts)])
+        perm = np.concatenate(
+            [a + np.lexsort(forest.coarse_faces[a:b].T[::-1]) for a, b in zip(starts[:-1], starts[1:])]
+        )
+        coarse_rows = forest.coarse_faces[perm]
+        row_of[perm] = np.arange(C)
+    root_ref = row_of[f2.root_ref]
+    av = Avatar(f2, *(getattr(avatar, n)[order] for n in ("d_mu", "d_log_scale", "d_rot", "opacity_logit", "f_dc")))
+
+    meta = {k: v for k, v in dict(avatar.meta or {}).items() if k not in ("stream", "config")}
+    if avatar.sh_degree:
+        meta["sh_degree_dropped"] = avatar.sh_degree
+    meta.update(metadata or {})
+    try:
+        meta_blob = json.dumps(meta, sort_keys=True, allow_nan=False).encode("utf-8") if meta else b""
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"write_stream: metadata must be JSON-serialisable: {exc}") from None
+    tmpl = np.ascontiguousarray(forest.template_faces, "<i4")
+    template_blob = zlib.compress(tmpl.tobytes(), 9) if embed_template else b""
+    flags = (0 if quantize else FLAG_LOSSLESS) | (FLAG_TEMPLATE if embed_template else 0)
+    level_counts = tuple(int(c) for c in f2.level_counts())
+    if quantize:
+        quant, exceptions = _quant_table(av, version)
+        recs = _quantize_records(av, f2.barycentrics(), quant, version, root_ref)
+    else:
+        quant, exceptions = None, None
+        recs = _lossless_records(av, version, root_ref)
+    R = recs.dtype.itemsize
+    info = StreamInfo(
+        version,
+        flags,
+        0,
+        N,
+        len(tmpl),
+        R,
+        int(records_per_block),
+        level_counts,
+        template_hash(tmpl),
+        quant,
+        meta,
+        tmpl.astype(np.int32) if embed_template else None,
+        num_coarse_levels=K,
+        coarse_faces=coarse_rows.astype(np.int32) if K else None,
+        exceptions=exceptions,
+    )
+    header = _encode_header(info, template_blob, meta_blob, _encode_coarse(coarse_rows) if K else b"")
+    raw = recs.tobytes()
+    B = info.records_per_block
+    prefix = struct.pack("<I", info.header_crc)
+    parts = [header]
+    for bi in range(info.num_blocks):  # per block, not per record
+        block = raw[bi * B * R : min(N, (bi + 1) * B) * R]
+        crc = zlib.crc32(block, zlib.crc32(prefix + struct.pack("<I", bi)))
+        parts.append(block)
+        parts.append(struct.pack("<I", crc))
+    data = b"".join(parts)
+    assert len(data) == info.total_bytes
+    with atomic_open(path) as fh:
+        fh.write(data)
+    info.order = order
+    return info
+
+
+def encode_stream(avatar: Avatar, importance=None, **kwargs) -> bytes:
+    """The stream as bytes (writes through a temporary file so there is one writer)."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        p = os.path.join(d, "s.pavs")
+        write_stream(p, avatar, importance, **kwargs)
+        with open(p, "rb") as fh:
+            return fh.read()
