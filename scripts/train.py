@@ -111,10 +111,10 @@ def main(argv=None):
         print(f"error: {exc}", file=sys.stderr)
         return 2
     dist = Dist.from_env(threads=args.threads)  # world size 1 without torchrun
-    try:
-        return _train(args, cfg, dist, t0)
-    finally:
+    rc = _train(args, cfg, dist, t0)
+    if rc == 0:  # after a failure the group is left to the process exit (a dead peer cannot say goodbye)
         dist.close()
+    return rc
 
 
 def _train(args, cfg, dist, t0):
@@ -125,6 +125,11 @@ def _train(args, cfg, dist, t0):
     from progressive_avatars.core.train.trainer import Trainer
 
     who = f"rank {dist.rank}: " if dist.world_size > 1 else ""
+    if dist.world_size > 1:
+        import signal
+
+        signal.signal(signal.SIGTERM, _stopped_by_launcher)
+    trainer = None
     with contextlib.ExitStack() as stack:
         try:
             if dist.is_main:  # the writer of RUN holds its lock for the whole run
@@ -139,6 +144,9 @@ def _train(args, cfg, dist, t0):
         except RuntimeError as exc:  # the run folder is locked by another training; ranks disagree
             print(f"error: {who}{_lost_peer(exc, args.out) or exc}", file=sys.stderr)
             return 2
+        except _Stopped:
+            print(f"error: {who}stopped by the launcher before training began", file=sys.stderr)
+            return 143
         try:
             summary = trainer.run(progress=not args.no_progress)
         except FloatingPointError as exc:  # NaN/inf: the message says training stopped, checkpoint kept
@@ -152,8 +160,16 @@ def _train(args, cfg, dist, t0):
             )
             return 3
         except RuntimeError as exc:  # a rank died or hung (gloo), or the ranks' state diverged
-            print(f"error: {who}{_lost_peer(exc, args.out) or exc}", file=sys.stderr)
+            print(f"error: {who}{_lost_peer(exc, args.out, trainer.checkpoint_iteration) or exc}", file=sys.stderr)
             return 4
+        except _Stopped:
+            print(
+                f"error: {who}stopped by the launcher (torchrun stops every process of the job when one fails; its "
+                f"report names the root cause); training stopped at iteration {trainer.iteration}, the last "
+                f"checkpoint in {args.out} (iteration {trainer.checkpoint_iteration}) is kept; --resume continues from it, with any number of processes",
+                file=sys.stderr,
+            )
+            return 143
     summary["peak_rss_mb"] = _peak_rss_mb()
     if not dist.is_main:
         return 0
@@ -172,17 +188,27 @@ def _train(args, cfg, dist, t0):
     return 0
 
 
-def _lost_peer(exc: RuntimeError, out: str) -> str | None:
+class _Stopped(Exception):
+    """SIGTERM from torchrun: another process of the job failed."""
+
+
+def _stopped_by_launcher(signum, frame):
+    raise _Stopped()
+
+
+def _lost_peer(exc: RuntimeError, out: str, checkpoint: int | None = None) -> str | None:
     """A clear line for a collective that failed because another process of the job died or
     stopped answering (None for other errors)."""
     import torch.distributed as td
 
-    if not isinstance(exc, getattr(td, "DistError", ())):
+    text = str(exc).lower()
+    peer = ("gloo", "nccl", "connection reset", "connection closed", "timed out", "timeout", "socket")
+    if not (isinstance(exc, getattr(td, "DistError", ())) or any(w in text for w in peer)):
         return None
     first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
     return (
         f"another process of this torchrun job died or stopped answering ({first}); training stopped, the last "
-        f"checkpoint in {out} is kept; --resume continues from it, with any number of processes"
+        f"checkpoint in {out}{'' if checkpoint is None else f' (iteration {checkpoint})'} is kept; --resume continues from it, with any number of processes"
     )
 
 

@@ -313,6 +313,7 @@ class Trainer:
 
             self.refiner = FlameRefiner(self.train, config.lr)
         self.log_path = os.path.join(out_dir, "metrics.jsonl")
+        self.checkpoint_iteration = None  # the iteration of the last checkpoint written or loaded
         if resume and os.path.exists(self.ckpt_path):
             self._load_checkpoint()
         else:
@@ -583,6 +584,7 @@ class Trainer:
                 self.refiner.load_state(d, self.ckpt_path)
             state = json.loads(str(d["state_json"]))
         self.iteration, self.elapsed = state["iteration"], state["elapsed"]
+        self.checkpoint_iteration = self.iteration
         self.rng = np.random.default_rng()
         self.rng.bit_generator.state = state["rng"]
         # Drop log lines written after the checkpoint: they will be written again.
@@ -675,6 +677,7 @@ class Trainer:
                     self._check_ranks_agree("parameters and optimiser state", self._state_digest())
                 if main:
                     self._save_checkpoint()
+                self.checkpoint_iteration = it
         bar.close()
         path = self.save_avatar() if main else os.path.join(self.out_dir, "avatar.npz")
         return {
