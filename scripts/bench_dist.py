@@ -28,6 +28,7 @@ from bench_common import header, replace_section  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TRAIN = os.path.join(ROOT, "scripts", "train.py")
+DEFAULT_DATA = os.path.join(ROOT, "runs", "synthetic")
 
 
 def _run(cmd: list, out: str) -> dict:
@@ -88,7 +89,8 @@ def run(data: str, iterations: int, reps: int, work: str) -> str:
     lines = [
         header(
             "Data-parallel training: 1 process against 2 (torchrun)",
-            f"python scripts/bench_dist.py --iterations {iterations} --reps {reps}",
+            f"python scripts/bench_dist.py --iterations {iterations} --reps {reps}"
+            + ("" if data == DEFAULT_DATA else f" --data {os.path.relpath(data, ROOT)}"),
         ),
         f"- load average (1/5/15 min) {load0} at the start, {load1} at the end, on {os.cpu_count()} cores",
         f"- cpu preset on `{os.path.relpath(data, ROOT)}`, {iterations} iterations, effective batch 2 views "
@@ -126,7 +128,7 @@ def run(data: str, iterations: int, reps: int, work: str) -> str:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", default=os.path.join(ROOT, "runs", "synthetic"))
+    ap.add_argument("--data", default=DEFAULT_DATA)
     ap.add_argument("--iterations", type=int, default=500)
     ap.add_argument("--reps", type=int, default=2)
     ap.add_argument("--work", default=os.path.join(ROOT, "runs", "bench_dist"))
