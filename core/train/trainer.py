@@ -494,7 +494,7 @@ class Trainer:
             self.dist.all_reduce_sum_(flat).div_(n)
             o = 0
             for t in have:
-                t.grad = flat[o : o + t.grad.numel()].view_as(t.grad).clone()
+                t.grad = flat[o : o + t.grad.numel()].view_as(t.grad).to(t.grad.dtype, copy=True)
                 o += t.numel()
         s = self.dist.all_reduce_sum_(torch.from_numpy(stats))
         stats[:] = s.numpy() / n
