@@ -164,8 +164,8 @@ def _train(args, cfg, dist, t0):
             return 4
         except _Stopped:
             print(
-                f"error: {who}stopped by the launcher (torchrun stops every process of the job when one fails; its "
-                f"report names the root cause); training stopped at iteration {trainer.iteration}, the last "
+                f"error: {who}stopped by the launcher (SIGTERM: torchrun stops every process of the job when one "
+                f"fails, its report names the root cause, or when it is stopped itself); training stopped at iteration {trainer.iteration}, the last "
                 f"checkpoint in {args.out} (iteration {trainer.checkpoint_iteration}) is kept; --resume continues from it, with any number of processes",
                 file=sys.stderr,
             )

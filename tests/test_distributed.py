@@ -159,6 +159,11 @@ def test_run_folder_lock_and_rank_disagreement_errors(tmp_path):
         with pytest.raises(RuntimeError, match="being trained by another process"):
             with run_lock(out):
                 pass
+        # The entry point refuses before touching the folder (exit 2, the holder named).
+        cmd = [sys.executable, os.path.join(ROOT, "scripts", "train.py"), "--data", str(tmp_path / "no-data")]
+        done = subprocess.run(cmd + ["--out", out, "--preset", "tiny"], capture_output=True, text=True, timeout=300)
+        assert done.returncode == 2 and f"pid {os.getpid()}" in done.stderr, done.stderr
+        assert os.listdir(out) == [".train.lock"]
     with run_lock(out):  # released: the next training takes it
         pass
     check_same("forests after growth", [7, 7], 15)
