@@ -4,7 +4,9 @@ One iteration: pick a training view, evaluate every face's Gaussian on that time
 render the cumulative set of each supervised level, sum the photometric losses, add the
 regularisers, step Adam. Screen-space gradients of the finest render are accumulated on
 leaves; every `grow_every` iterations leaves whose mean gradient exceeds the threshold are
-split, under a depth cap that rises from 1 to `max_depth`.
+split, under a depth cap that rises from 1 to `max_depth`. With `views_per_step` > 1, or under
+torchrun (core/train/distributed.py), one iteration is a batch of views and the step takes
+the mean of their gradients.
 """
 
 from __future__ import annotations
