@@ -2,11 +2,15 @@
 
     python scripts/train.py --data DIR --out RUN [--preset tiny|cpu|paper-cpu|paper] [--resume] [...]
     blender --background --python scripts/train.py -- --data DIR --out RUN ...
+    torchrun --nproc-per-node N scripts/train.py --data DIR --out RUN ...   (data-parallel over views)
 
 Writes RUN/avatar.npz (the trained avatar, no pickle), RUN/metrics.jsonl (one JSON object
 per logged iteration), RUN/checkpoint.npz (atomic; --resume continues from it) and
 RUN/config.json; RUN/resources.jsonl gets one line per invocation (wall seconds, peak resident
-memory of the process).
+memory of the process). Under torchrun every process renders its own views of each iteration
+(effective batch: processes x --views-per-step), rank 0 alone writes RUN, and config.json and
+every metrics line record the world size; --resume takes any number of processes. A second
+training of the same RUN (another process, another job) is refused while one runs.
 """
 
 import argparse
@@ -65,13 +69,24 @@ def main(argv=None):
         help="view-dependent colour bands (default 0; the stream carries the DC colour only)",
     )
     ap.add_argument("--image-cache-mb", type=float, help="memory for decoded training images (LRU by bytes)")
+    ap.add_argument(
+        "--views-per-step",
+        type=int,
+        help="training views per iteration and process (default 1; under torchrun the batch is this x processes)",
+    )
+    ap.add_argument(
+        "--threads",
+        type=int,
+        help="torch and numba threads per process (default: all cores; under torchrun cores // processes per node)",
+    )
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(_bootstrap.script_args() if argv is None else argv)
     import time
 
     t0 = time.perf_counter()
 
-    from progressive_avatars.core.train.trainer import Trainer, config_for
+    from progressive_avatars.core.train.distributed import Dist
+    from progressive_avatars.core.train.trainer import config_for
 
     try:
         cfg = config_for(
@@ -90,27 +105,74 @@ def main(argv=None):
             refine_flame=args.refine_flame or None,
             image_cache_mb=args.image_cache_mb,
             flame_model=_os.path.abspath(args.flame_model) if args.flame_model else None,
+            views_per_step=args.views_per_step,
         )
-        trainer = Trainer(args.data, args.out, cfg, resume=args.resume, progress=not args.no_progress)
-    except (ValueError, FileNotFoundError) as exc:
+    except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    except OSError as exc:
-        print(f"error: {_os_error(exc)}", file=sys.stderr)
-        return 2
-    try:
-        summary = trainer.run(progress=not args.no_progress)
-    except FloatingPointError as exc:  # NaN/inf: the message says training stopped, checkpoint kept
-        print(f"error: {exc}", file=sys.stderr)
-        return 3
-    except OSError as exc:
-        print(
-            f"error: {_os_error(exc)}; training stopped, the last checkpoint in {args.out} is kept "
-            "(free space, then --resume)",
-            file=sys.stderr,
-        )
-        return 3
+    dist = Dist.from_env(threads=args.threads)  # world size 1 without torchrun
+    rc = _train(args, cfg, dist, t0)
+    if rc == 0:  # after a failure the group is left to the process exit (a dead peer cannot say goodbye)
+        dist.close()
+    return rc
+
+
+def _train(args, cfg, dist, t0):
+    import contextlib
+    import time
+
+    from progressive_avatars.core.train.distributed import run_lock
+    from progressive_avatars.core.train.trainer import Trainer
+
+    who = f"rank {dist.rank}: " if dist.world_size > 1 else ""
+    if dist.world_size > 1:
+        import signal
+
+        signal.signal(signal.SIGTERM, _stopped_by_launcher)
+    trainer = None
+    with contextlib.ExitStack() as stack:
+        try:
+            if dist.is_main:  # the writer of RUN holds its lock for the whole run
+                stack.enter_context(run_lock(args.out))
+            trainer = Trainer(args.data, args.out, cfg, resume=args.resume, progress=not args.no_progress, dist=dist)
+        except (ValueError, FileNotFoundError) as exc:
+            print(f"error: {who}{exc}", file=sys.stderr)
+            return 2
+        except OSError as exc:
+            print(f"error: {who}{_os_error(exc)}", file=sys.stderr)
+            return 2
+        except RuntimeError as exc:  # the run folder is locked by another training; ranks disagree
+            print(f"error: {who}{_lost_peer(exc, args.out) or exc}", file=sys.stderr)
+            return 2
+        except _Stopped:
+            print(f"error: {who}stopped by the launcher before training began", file=sys.stderr)
+            return 143
+        try:
+            summary = trainer.run(progress=not args.no_progress)
+        except FloatingPointError as exc:  # NaN/inf: the message says training stopped, checkpoint kept
+            print(f"error: {who}{exc}", file=sys.stderr)
+            return 3
+        except OSError as exc:
+            print(
+                f"error: {who}{_os_error(exc)}; training stopped, the last checkpoint in {args.out} is kept "
+                "(free space, then --resume)",
+                file=sys.stderr,
+            )
+            return 3
+        except RuntimeError as exc:  # a rank died or hung (gloo), or the ranks' state diverged
+            print(f"error: {who}{_lost_peer(exc, args.out, trainer.checkpoint_iteration) or exc}", file=sys.stderr)
+            return 4
+        except _Stopped:
+            print(
+                f"error: {who}stopped by the launcher (SIGTERM: torchrun stops every process of the job when one "
+                f"fails, its report names the root cause, or when it is stopped itself); training stopped at iteration {trainer.iteration}, the last "
+                f"checkpoint in {args.out} (iteration {trainer.checkpoint_iteration}) is kept; --resume continues from it, with any number of processes",
+                file=sys.stderr,
+            )
+            return 143
     summary["peak_rss_mb"] = _peak_rss_mb()
+    if not dist.is_main:
+        return 0
     with open(_os.path.join(args.out, "resources.jsonl"), "a") as fh:
         fh.write(
             json.dumps(
@@ -124,6 +186,30 @@ def main(argv=None):
         )
     print(json.dumps(summary))
     return 0
+
+
+class _Stopped(Exception):
+    """SIGTERM from torchrun: another process of the job failed."""
+
+
+def _stopped_by_launcher(signum, frame):
+    raise _Stopped()
+
+
+def _lost_peer(exc: RuntimeError, out: str, checkpoint: int | None = None) -> str | None:
+    """A clear line for a collective that failed because another process of the job died or
+    stopped answering (None for other errors)."""
+    import torch.distributed as td
+
+    text = str(exc).lower()
+    peer = ("gloo", "nccl", "connection reset", "connection closed", "timed out", "timeout", "socket")
+    if not (isinstance(exc, getattr(td, "DistError", ())) or any(w in text for w in peer)):
+        return None
+    first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return (
+        f"another process of this torchrun job died or stopped answering ({first}); training stopped, the last "
+        f"checkpoint in {out}{'' if checkpoint is None else f' (iteration {checkpoint})'} is kept; --resume continues from it, with any number of processes"
+    )
 
 
 def _os_error(exc: OSError) -> str:

@@ -18,19 +18,24 @@ import sys
 
 
 def _train(args) -> int:
+    import contextlib
+
+    from .distributed import run_lock
     from .trainer import Trainer, config_for
 
     flame = os.path.abspath(args.flame_model) if args.flame_model else None
     if flame and not os.path.isfile(flame):
         print(f"error: FLAME model file not found: {flame} (the add-on's FLAME model preference)", file=sys.stderr)
         return 2
-    try:
-        cfg = config_for(args.preset, iterations=args.iterations or None, flame_model=flame)
-        trainer = Trainer(args.data, args.out, cfg)
-    except (ValueError, FileNotFoundError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    trainer.run(progress=True)
+    with contextlib.ExitStack() as stack:
+        try:
+            cfg = config_for(args.preset, iterations=args.iterations or None, flame_model=flame)
+            stack.enter_context(run_lock(args.out))  # one training per run folder (as scripts/train.py)
+            trainer = Trainer(args.data, args.out, cfg)
+        except (ValueError, FileNotFoundError, RuntimeError) as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        trainer.run(progress=True)
     result = os.path.join(args.out, "avatar.npz")
     if not args.no_export:
         from ..io import run as runs

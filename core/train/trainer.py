@@ -4,7 +4,9 @@ One iteration: pick a training view, evaluate every face's Gaussian on that time
 render the cumulative set of each supervised level, sum the photometric losses, add the
 regularisers, step Adam. Screen-space gradients of the finest render are accumulated on
 leaves; every `grow_every` iterations leaves whose mean gradient exceeds the threshold are
-split, under a depth cap that rises from 1 to `max_depth`.
+split, under a depth cap that rises from 1 to `max_depth`. With `views_per_step` > 1, or under
+torchrun (core/train/distributed.py), one iteration is a batch of views and the step takes
+the mean of their gradients.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from ..avatar.avatar import PARAM_NAMES
 from ..io.dataset import Dataset
 from ..io.atomic import atomic_open, atomic_savez
 from ..avatar.forest import Forest
+from .distributed import Dist, check_same, digest
 from .model import TorchAvatar
 from .policies import Growth, Supervision
 from ..render.rasterize import render, render_levels
@@ -78,6 +81,9 @@ class TrainConfig:
     eval_views: int = 8
     checkpoint_every: int = 500
     image_cache_mb: float = 2048.0  # decoded training images kept in memory (LRU); the rest are re-read
+    # Training views per iteration and process: under torchrun the effective batch is this times
+    # the world size; the gradients are the mean over the batch (1: the single-view step).
+    views_per_step: int = 1
 
 
 PRESETS = {
@@ -152,6 +158,8 @@ def config_for(preset: str, **overrides) -> TrainConfig:
     cfg = replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
     if not (math.isfinite(cfg.coarse_weight) and cfg.coarse_weight >= 0):
         raise ValueError(f"coarse weight must be finite and >= 0, got {cfg.coarse_weight}")
+    if int(cfg.views_per_step) < 1:
+        raise ValueError(f"views per step must be >= 1, got {cfg.views_per_step}")
     Supervision(cfg.supervision)  # unknown modes and growth settings fail here, before any work
     Growth.from_config(cfg)
     w = tuple(float(x) for x in cfg.level_weights)
@@ -261,8 +269,12 @@ class Trainer:
         resume: bool = False,
         check_data: bool = True,
         progress: bool = False,
+        dist: Dist | None = None,
     ):
         self.data_dir, self.out_dir, self.cfg = data_dir, out_dir, config
+        # World size 1 unless a torchrun job is given: then only rank 0 writes the run folder.
+        self.dist = dist or Dist()
+        main = self.dist.is_main
         # Policies first: a wrong supervision mode or growth setting fails before any file is made.
         self.supervision = Supervision(config.supervision)
         self.growth = Growth.from_config(config)
@@ -285,7 +297,7 @@ class Trainer:
             )
         else:
             self.val = None
-        if check_data:
+        if check_data and main:  # once per job; the others wait at the first collective
             from ..io.validate import validate_dataset
 
             for ds in (self.train, self.val):
@@ -303,6 +315,7 @@ class Trainer:
 
             self.refiner = FlameRefiner(self.train, config.lr)
         self.log_path = os.path.join(out_dir, "metrics.jsonl")
+        self.checkpoint_iteration = None  # the iteration of the last checkpoint written or loaded
         if resume and os.path.exists(self.ckpt_path):
             self._load_checkpoint()
         else:
@@ -318,10 +331,23 @@ class Trainer:
             self.iteration = 0
             self.elapsed = 0.0
             self._reset_accumulators()
-            if os.path.exists(self.log_path):
+            if main and os.path.exists(self.log_path):
                 os.remove(self.log_path)
-        with atomic_open(os.path.join(out_dir, "config.json"), "w") as fh:
-            json.dump({"data": os.path.abspath(data_dir), **asdict(config)}, fh, indent=1)
+        if self.dist.world_size > 1:
+            # Same start on every rank (template init or checkpoint), or stop before any step.
+            self._check_ranks_agree("parameters and optimiser state", self._state_digest())
+        if main:
+            with atomic_open(os.path.join(out_dir, "config.json"), "w") as fh:
+                json.dump(
+                    {
+                        "data": os.path.abspath(data_dir),
+                        **asdict(config),
+                        "world_size": self.dist.world_size,
+                        "effective_batch": self.dist.world_size * config.views_per_step,
+                    },
+                    fh,
+                    indent=1,
+                )
 
     # -- growth ---------------------------------------------------------------------------
     def _reset_accumulators(self):
@@ -333,74 +359,147 @@ class Trainer:
         return Growth.from_config(self.cfg).depth_cap(it)
 
     def _grow(self, it: int) -> int:
-        pick = self.growth.pick(self.model.forest, self.grad_sum, self.grad_count, it)
+        d = self.dist
+        self._fold_accumulators()
+        # Decided once, on rank 0 (it holds the summed statistics), and broadcast.
+        pick = self.growth.pick(self.model.forest, self.grad_sum, self.grad_count, it) if d.is_main else None
+        pick = d.broadcast_ints(pick)
         if len(pick):
             self.model.split(pick)
             self.opt.grow(self.model.params)
         self._reset_accumulators()
+        if d.world_size > 1:
+            f = self.model.forest
+            self.forest_digests = self._check_ranks_agree("forests after growth", digest(f.parent, f.slot), it)
         return len(pick)
+
+    def _fold_accumulators(self):
+        """Sum the ranks' growth statistics into rank 0's (the others restart from zero), so the
+        sums are the job's at a growth step and in a checkpoint, whatever the world size."""
+        if self.dist.world_size > 1:
+            self.dist.sum_arrays_(self.grad_sum, self.grad_count)
+            if not self.dist.is_main:
+                self.grad_sum[:] = 0
+                self.grad_count[:] = 0
+
+    def _state_digest(self) -> int:
+        f, o = self.model.forest, self.opt
+        arrays = [f.parent, f.slot, o.steps.numpy()]
+        for name, t in sorted(self.model.params.items()):
+            arrays += [t.detach().numpy(), o.m[name].numpy(), o.v[name].numpy()]
+        return digest(*arrays)
+
+    def _check_ranks_agree(self, what: str, value: int, it: int | None = None) -> list:
+        values = self.dist.gather_digest(value)
+        check_same(what, values, self.iteration if it is None else it)
+        return values
 
     # -- one step -------------------------------------------------------------------------
     def _levels(self) -> list[int]:
         return self.supervision.levels(self.model.forest.max_level, self.rng)
 
+    def _views(self) -> list[int]:
+        """This rank's training views of the iteration: one draw of the whole batch (world size
+        x views per step) from the generator every rank shares, sliced by rank, so ranks see
+        different views and N ranks x b views are the views of 1 process x N*b."""
+        b, d = self.cfg.views_per_step, self.dist
+        if b * d.world_size == 1:
+            return [int(self.rng.integers(len(self.train)))]  # the single-view draw, as it always was
+        batch = self.rng.integers(len(self.train), size=b * d.world_size)
+        return [int(i) for i in batch[d.rank * b : (d.rank + 1) * b]]
+
     def step(self) -> dict:
         c, it = self.cfg, self.iteration
-        sample = self.train[int(self.rng.integers(len(self.train)))]
-        target = torch.from_numpy(sample.image)
+        views = self._views()
         self.model.active_sh_degree = min(c.sh_degree, it // max(1, c.sh_every))
-        g = self.model.gaussians(self._vertices(sample), sample.camera.center)
-        _check_gaussians(it, g)
         levels = self._levels()
         top = self.model.forest.max_level
-        loss = torch.zeros(())
-        finest = None
-        # One projection, sort and tile binning shared by every supervised level.
-        outs = render_levels(
-            g["means"],
-            g["quats"],
-            g["scales"],
-            g["opacities"],
-            g["colors"],
-            sample.camera,
-            self.background,
-            level=self.model.forest.level,
-            upto=levels,
-        )
-        for lvl, out in zip(levels, outs):
-            ids = self.model.level_ids[top]  # every level's output covers all faces (means2d, radii)
-            w = level_weight(c, lvl) * (c.coarse_weight if lvl < self.model.forest.num_coarse_levels else 1.0)
-            if w:
-                loss = loss + w * losses.photometric(out.image, target, c.lambda_ssim)
-            if lvl == top:
-                finest = (ids, out)
         p = self.model.params
-        loss = loss + c.position_reg * losses.position_reg(p["d_mu"]) + c.scale_reg * losses.scale_reg(p["d_log_scale"])
-        _check_finite(it, loss=loss)
-        loss.backward()
+        b = len(views)
+        loss_sum, psnr_sum = 0.0, 0.0
+        for view in views:
+            sample = self.train[view]
+            target = torch.from_numpy(sample.image)
+            g = self.model.gaussians(self._vertices(sample), sample.camera.center)
+            _check_gaussians(it, g)
+            loss = torch.zeros(())
+            finest = None
+            # One projection, sort and tile binning shared by every supervised level.
+            outs = render_levels(
+                g["means"],
+                g["quats"],
+                g["scales"],
+                g["opacities"],
+                g["colors"],
+                sample.camera,
+                self.background,
+                level=self.model.forest.level,
+                upto=levels,
+            )
+            for lvl, out in zip(levels, outs):
+                ids = self.model.level_ids[top]  # every level's output covers all faces (means2d, radii)
+                w = level_weight(c, lvl) * (c.coarse_weight if lvl < self.model.forest.num_coarse_levels else 1.0)
+                if w:
+                    loss = loss + w * losses.photometric(out.image, target, c.lambda_ssim)
+                if lvl == top:
+                    finest = (ids, out)
+            loss = (
+                loss
+                + c.position_reg * losses.position_reg(p["d_mu"])
+                + c.scale_reg * losses.scale_reg(p["d_log_scale"])
+            )
+            _check_finite(it, loss=loss)
+            if b > 1:
+                loss = loss / b  # the batch's mean; gradients accumulate over its views
+            loss.backward()
+            ids, out = finest
+            grad2d = out.means2d.grad
+            if grad2d is not None:
+                # Per-pixel units, independent of image size: normalise by the image extent; and of
+                # the level's loss weight, so the growth threshold means the same whatever w_l; and
+                # of the batch (one view's gradient, as a single-view step measures it).
+                scale = 0.5 * max(sample.camera.width, sample.camera.height) / max(level_weight(c, top), 1e-12)
+                norm = torch.linalg.vector_norm(grad2d, dim=-1).numpy() * (scale * b)
+                seen = out.radii.numpy() > 0
+                idx = ids.numpy()[seen]
+                np.add.at(self.grad_sum, idx, norm[seen])
+                np.add.at(self.grad_count, idx, 1)
+            loss_sum += float(loss.item())
+            mse = torch.mean((out.image.detach() - target) ** 2).item()
+            psnr_sum += 10 * math.log10(1 / max(mse, 1e-12))
+        stats = np.array([loss_sum, psnr_sum / b])
+        if self.dist.world_size > 1:
+            self._average_gradients(stats)
         for name, t in p.items():
             _check_finite(it, **{f"gradient of {name}": t.grad})
         if self.refiner is not None:
             _check_finite(it, **self.refiner.gradients())
             self.refiner.step()
             _check_finite(it, **self.refiner.corrections())
-        ids, out = finest
-        grad2d = out.means2d.grad
-        if grad2d is not None:
-            # Per-pixel units, independent of image size: normalise by the image extent; and of
-            # the level's loss weight, so the growth threshold means the same whatever w_l.
-            scale = 0.5 * max(sample.camera.width, sample.camera.height) / max(level_weight(c, top), 1e-12)
-            norm = torch.linalg.vector_norm(grad2d, dim=-1).numpy() * scale
-            seen = out.radii.numpy() > 0
-            idx = ids.numpy()[seen]
-            np.add.at(self.grad_sum, idx, norm[seen])
-            np.add.at(self.grad_count, idx, 1)
         decay = c.lr_final_ratio ** (it / max(1, c.iterations))
         self.opt.step(p, {"d_mu": decay})
         for name, t in p.items():
             _check_finite(it, **{name: t})
-        mse = torch.mean((out.image.detach() - target) ** 2).item()
-        return {"loss": float(loss.item()), "psnr": 10 * math.log10(1 / max(mse, 1e-12))}
+        return {"loss": float(stats[0]), "psnr": float(stats[1])}
+
+    def _average_gradients(self, stats: np.ndarray):
+        """Mean of the ranks' gradients (each already the mean over its own views), so every
+        rank takes the same optimiser step; `stats` (loss, PSNR) become the ranks' mean too."""
+        n = self.dist.world_size
+        tensors = [t for _, t in sorted(self.model.params.items())]
+        if self.refiner is not None:
+            tensors += [self.refiner.delta[k] for k in sorted(self.refiner.delta)]
+        # A parameter no view touched has no gradient on any rank (the same structure everywhere).
+        have = [t for t in tensors if t.grad is not None]
+        if have:
+            flat = torch.cat([t.grad.reshape(-1) for t in have])
+            self.dist.all_reduce_sum_(flat).div_(n)
+            o = 0
+            for t in have:
+                t.grad = flat[o : o + t.grad.numel()].view_as(t.grad).to(t.grad.dtype, copy=True)
+                o += t.numel()
+        s = self.dist.all_reduce_sum_(torch.from_numpy(stats))
+        stats[:] = s.numpy() / n
 
     def _vertices(self, sample) -> torch.Tensor:
         if self.refiner is not None and self.refiner.has(sample.timestep_index):
@@ -441,6 +540,7 @@ class Trainer:
                     "iteration": self.iteration,
                     "elapsed": self.elapsed,
                     "rng": self.rng.bit_generator.state,
+                    "world_size": self.dist.world_size,
                 }
             )
         )
@@ -479,20 +579,25 @@ class Trainer:
                 self.opt.v[name] = torch.from_numpy(d["adam_v_" + name].copy())
             self.opt.steps = torch.from_numpy(d["adam_steps"].copy())
             self.grad_sum, self.grad_count = d["grad_sum"].copy(), d["grad_count"].copy()
+            if not self.dist.is_main:  # the job's sums live on rank 0 (whatever world size wrote them)
+                self.grad_sum[:] = 0
+                self.grad_count[:] = 0
             if self.refiner is not None:
                 self.refiner.load_state(d, self.ckpt_path)
             state = json.loads(str(d["state_json"]))
         self.iteration, self.elapsed = state["iteration"], state["elapsed"]
+        self.checkpoint_iteration = self.iteration
         self.rng = np.random.default_rng()
         self.rng.bit_generator.state = state["rng"]
         # Drop log lines written after the checkpoint: they will be written again.
-        if os.path.exists(self.log_path):
+        if self.dist.is_main and os.path.exists(self.log_path):
             with open(self.log_path) as fh:
                 lines = [ln.rstrip("\n") + "\n" for ln in fh if _log_iteration(ln) <= self.iteration]
             with atomic_open(self.log_path, "w") as fh:
                 fh.writelines(lines)
 
     def _log(self, record: dict):
+        record["world_size"] = self.dist.world_size
         with open(self.log_path, "a") as fh:
             fh.write(json.dumps(record) + "\n")
 
@@ -514,18 +619,26 @@ class Trainer:
         """Train to the configured iteration count (or `stop_after` more iterations)."""
         from tqdm import tqdm
 
-        c = self.cfg
+        c, main = self.cfg, self.dist.is_main
         end = c.iterations if stop_after is None else min(c.iterations, self.iteration + stop_after)
-        bar = tqdm(total=c.iterations, initial=self.iteration, disable=not progress, dynamic_ncols=True, desc="train")
+        bar = tqdm(
+            total=c.iterations,
+            initial=self.iteration,
+            disable=not (progress and main),
+            dynamic_ncols=True,
+            desc="train",
+        )
         recent = []
         while self.iteration < end:
             t0 = time.perf_counter()
             stats = self.step()
             self.iteration += 1
             it = self.iteration
-            grown = 0
+            grown, growth = 0, None
             if self.growth.due(it):
                 grown = self._grow(it)
+                if self.dist.world_size > 1:  # the forest every rank holds after this growth step
+                    growth = {"split": grown, "forest_digest_by_rank": [f"{v:016x}" for v in self.forest_digests]}
             self.elapsed += time.perf_counter() - t0
             recent.append(stats["psnr"])
             record = None
@@ -540,10 +653,13 @@ class Trainer:
                     "level_counts": counts,
                 }
                 recent = []
-            if it % c.eval_every == 0 or it == c.iterations:
+            if main and (it % c.eval_every == 0 or it == c.iterations):
                 record = record or {"iteration": it, "seconds": round(self.elapsed, 3)}
                 record.update(self.evaluate(c.eval_views))
-            if record:
+            if growth:
+                record = record or {"iteration": it, "seconds": round(self.elapsed, 3)}
+                record["growth"] = growth
+            if record and main:
                 self._log(record)
                 bar.set_postfix(
                     loss=f"{stats['loss']:.4f}",
@@ -551,18 +667,24 @@ class Trainer:
                     levels="/".join(map(str, self.model.forest.level_counts())),
                     refresh=False,
                 )
-            if grown:
+            if grown and main:
                 bar.write(
                     f"iteration {it}: split {grown} faces, depth cap {self.depth_cap(it)}, "
                     f"{self.model.num_faces} Gaussians"
                 )
             bar.update(1)
             if it % c.checkpoint_every == 0 or it == end:
-                self._save_checkpoint()
+                if self.dist.world_size > 1:
+                    self._fold_accumulators()
+                    self._check_ranks_agree("parameters and optimiser state", self._state_digest())
+                if main:
+                    self._save_checkpoint()
+                self.checkpoint_iteration = it
         bar.close()
-        path = self.save_avatar()
+        path = self.save_avatar() if main else os.path.join(self.out_dir, "avatar.npz")
         return {
             "avatar": path,
+            "world_size": self.dist.world_size,
             "iterations": self.iteration,
             "seconds": self.elapsed,
             "level_counts": self.model.forest.level_counts().tolist(),
