@@ -45,7 +45,7 @@ def main(argv=None):
         "--coarse-levels",
         type=_weights,
         metavar="F1,F2,...",
-        help="coarse levels above the template, as fractions of its face count (default 1/32,1/8)",
+        help="coarse levels above the template, as fractions of its face count (default 1/32,1/16)",
     )
     ap.add_argument("--no-coarse", action="store_true", help="no coarse levels (the paper's levels; ablation)")
     ap.add_argument("--coarse-weight", type=float, help="factor on the coarse levels' loss weights (default 0.5)")

@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 # Coarse level sizes as fractions of the template's face count, coarsest first.
-DEFAULT_FRACTIONS = (1 / 32, 1 / 8)
+DEFAULT_FRACTIONS = (1 / 32, 1 / 16)
 
 
 def _edge_graph(vertices, faces):
