@@ -60,8 +60,8 @@ def _fetch(url, template_faces=None):
     with open(part, "wb") as fh:
         # A deadline: this runs on Blender's UI thread, which a slow server must not hold forever.
         res = http_stream.fetch_stream(url, reader=_Tee(template_faces, source=url), timeout=30.0, deadline=300.0)
-    n = res.num_gaussians
-    if n == 0:
+    n = res.keepable_gaussians
+    if n == 0:  # nothing verified, or the old file's bytes after the server replaced it
         os.remove(part)
         raise RuntimeError(f"no complete Gaussian from {url}: {res.status} {res.message}".strip())
     if not res.reader.complete:  # keep exactly the verified records

@@ -145,6 +145,7 @@ def test_file_replaced_mid_download_is_detected_not_stitched(two_streams, serve,
         assert "changed mid-download" in res.message and "discard" in res.message
         assert srv.httpd.log[1][1] == _etag(a)  # the second range request carried If-Range
         assert_prefix(res.avatar(), full_a, res.num_gaussians)  # only old-file records, never a mix
+        assert res.num_gaussians > 0 and res.keepable_gaussians == 0  # the add-on keeps none of them
         # Resuming with the same reader and the old validator is refused the same way.
         res2 = H.fetch_stream(srv.url, reader=res.reader, validator=res.validator, timeout=2)
         assert res2.status == H.CHANGED, str(res2)

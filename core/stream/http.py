@@ -64,6 +64,12 @@ class FetchResult:
     def bytes_received(self) -> int:
         return self.reader.bytes_received
 
+    @property
+    def keepable_gaussians(self) -> int:
+        """The verified Gaussians a caller may keep: none when the file changed on the server
+        mid-download (what arrived is a prefix of the old file, not of the one at the URL now)."""
+        return 0 if self.status == CHANGED else self.reader.num_gaussians
+
     def avatar(self):
         return self.reader.avatar()
 
