@@ -28,7 +28,7 @@ def report_section(report_dir: str) -> str:
     if not os.path.exists(path):
         return ""
     with open(path) as fh:
-        r = json.load(fh)
+        json.load(fh)  # a torn report.json fails here, before its report.md is quoted
     md_path = os.path.join(report_dir, "report.md")
     body = open(md_path).read().split("\n", 1)[1] if os.path.exists(md_path) else ""
     paper_md = os.path.join(report_dir, "paper_table.md")  # evaluate.py --paper-table

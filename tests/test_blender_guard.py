@@ -187,7 +187,6 @@ def test_cut_inside_header_fails_cleanly(cut_session):
     1/3/10 % holds no Gaussian. The load refuses, naming the file, and changes nothing."""
     rep = cut_session["rep"]
     _no_error(rep, "cuts")
-    h = cut_session["header"]
     for name in ("full_1", "full_3", "empty", "header_only"):
         r = rep["cuts"][name]
         assert isinstance(r["result"], str) and os.path.basename(cut_session["cuts"][name]) in r["result"], r

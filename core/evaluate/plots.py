@@ -404,7 +404,7 @@ def report_markdown(r: dict) -> str:
         else ""
     )
     lines = [
-        f"# Evaluation report",
+        "# Evaluation report",
         "",
         f"- run: `{r['run']}`",
         f"- data: `{r['data']}`{about}",

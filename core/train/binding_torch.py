@@ -86,7 +86,7 @@ class TorchForest:
 
     def weights(self, split_logits: torch.Tensor) -> torch.Tensor:
         """[N,3,3] geometry weights (numpy Forest.weights' layout), differentiable in the logits."""
-        N, F0 = self.forest.num_faces, self.forest.num_roots
+        N = self.forest.num_faces
         dtype = split_logits.dtype
         bary = torch.softmax(split_logits, dim=-1)
         base = torch.tensor([[1.0, 0.0, 0.0], [-1.0, 1.0, 0.0], [-1.0, 0.0, 1.0]], dtype=dtype, device=self.device)

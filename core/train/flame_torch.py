@@ -31,7 +31,7 @@ class FlameTorch(torch.nn.Module):
         model = load_flame_model(model) if not isinstance(model, FlameModel) else model
         self.n_shape, self.n_expr = model.n_shape, model.n_expr
         self.n_vertices, self.n_joints = model.n_vertices, model.n_joints
-        V, J = self.n_vertices, self.n_joints
+        V = self.n_vertices
 
         def buf(name, a, dt=dtype):
             self.register_buffer(name, torch.as_tensor(np.ascontiguousarray(a), dtype=dt, device=device))

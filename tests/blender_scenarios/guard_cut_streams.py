@@ -154,7 +154,6 @@ def _():
         R["levels"][str(k)] = [instances(pv), [m.name for m in pv.modifiers]]
     # The mesh deleted under the preview: an error report, no traceback
     bpy.context.view_layer.objects.active = pv
-    mesh_name = mesh.name
     bpy.data.objects.remove(mesh)
     R["deleted_mesh"] = run_op(bpy.ops.object.progressive_avatars_depth_colors)
 
