@@ -3,8 +3,8 @@
 Points are grouped by root face (the layout the per-frame evaluator writes fastest); their
 "rank" attribute is their stream position, and the modifier deletes those whose rank reaches
 the "Count" input, so moving the budget slider only sets one modifier input. Each remaining point instances
-an ico-sphere of radius 3 (3σ), rotated by the point's quaternion and scaled by its
-scale; the material (splat_look) reads colour and opacity from the instance and evaluates
+an ico-sphere rotated by the point's quaternion and scaled per axis to cover the Gaussian as
+the rasteriser draws it (dilated, out to its 1/255 cut-off); the material (splat_look) reads colour and opacity from the instance and evaluates
 the Gaussian on each view ray, so every splat shows as its oriented ellipse.
 """
 
@@ -13,8 +13,15 @@ import bpy
 GROUP_NAME = "PA Splats"
 MATERIAL_NAME = "PA Splat"
 MODIFIER_NAME = "PA Splats"
-GROUP_VERSION = 2
-EXTENT = 3.0  # sphere radius in standard deviations
+GROUP_VERSION = 3
+EPS2D = 0.3  # the rasteriser's screen-space dilation (px²), which training saw
+FOCAL_NODE = "pa_focal_px"  # focal length in pixels (set with the material's by splat_look.set_focal)
+EXTENT_NODE = "pa_extent"  # multiplier on the hull's cut-off radius (1: the rasteriser's own)
+MIN_CUT = 1.65  # 255·o floor: a hull of at least 1σ, even for splats the rasteriser skips
+E = 2.718281828459045
+# Inscribed-sphere radius of Blender's unit ico-sphere per subdivision level (0 unused, 1 the
+# icosahedron): the faces sit this far in, so the hull is scaled by its inverse.
+ICO_INRADIUS = (0.7946, 0.7946, 0.9341, 0.9822, 0.9954)
 
 # name -> (attribute type, foreach field, width)
 ATTRIBUTES = {
@@ -46,6 +53,35 @@ def _socket(ng, name, in_out="INPUT"):
 def input_identifier(ng, name) -> str:
     """Modifier keys are socket identifiers (e.g. "Socket_2"), not names: look them up."""
     return _socket(ng, name).identifier
+
+
+def _vec(tree, op, a, b):
+    node = tree.nodes.new("ShaderNodeVectorMath")
+    node.operation = op
+    _link(tree, a, node.inputs[0])
+    _link(tree, b, node.inputs["Scale"] if op == "SCALE" else node.inputs[1])
+    return node.outputs["Value"] if op in ("DISTANCE", "LENGTH", "DOT_PRODUCT") else node.outputs["Vector"]
+
+
+def _flt(tree, op, a, b=None):
+    node = tree.nodes.new("ShaderNodeMath")
+    node.operation = op
+    for i, v in enumerate((a, b)):
+        if isinstance(v, (int, float)):
+            node.inputs[i].default_value = float(v)
+        elif v is not None:
+            _link(tree, v, node.inputs[i])
+    return node.outputs[0]
+
+
+def _combine(tree, v):
+    node = tree.nodes.new("ShaderNodeCombineXYZ")
+    for axis in "XYZ":
+        if isinstance(v, (int, float)):
+            node.inputs[axis].default_value = float(v)
+        else:
+            _link(tree, v, node.inputs[axis])
+    return node.outputs[0]
 
 
 def splat_material():
@@ -91,9 +127,22 @@ def splat_group():
     _link(ng, gin.outputs["Geometry"], delete.inputs["Geometry"])
     _link(ng, cmp.outputs["Result"], delete.inputs["Selection"])
 
+    # The hull: a unit ico-sphere scaled per axis so that its *inscribed* sphere (the faces
+    # sit inside the vertices' radius) covers the splat as the rasteriser draws it: out to
+    # its cut-off radius k = sqrt(2 ln(255 o)) (where alpha falls below 1/255; 3.33 at the
+    # 0.99 clamp, less for fainter splats) of the *dilated* Gaussian, σ² + ε with
+    # ε = EPS2D·(d/f)² and d the distance to the active camera (≥ the view depth the
+    # material uses, so the hull never cuts the dilation short).
     ico = N("GeometryNodeMeshIcoSphere")
-    ico.inputs["Radius"].default_value = EXTENT
+    ico.inputs["Radius"].default_value = 1.0
     _link(ng, gin.outputs["Detail"], ico.inputs["Subdivisions"])
+    inr = N("GeometryNodeIndexSwitch")
+    inr.data_type = "FLOAT"
+    while len(inr.index_switch_items) < len(ICO_INRADIUS):
+        inr.index_switch_items.new()
+    for i, r in enumerate(ICO_INRADIUS):
+        inr.inputs[f"Item_{i}"].default_value = 1.0 / r
+    _link(ng, gin.outputs["Detail"], inr.inputs["Index"])
     # Smooth normals: the material's falloff is a function of the normal, and flat facets
     # would print the icosahedron onto every splat.
     smooth = N("GeometryNodeSetShadeSmooth")
@@ -101,15 +150,38 @@ def splat_group():
     setmat = N("GeometryNodeSetMaterial")
     setmat.inputs["Material"].default_value = splat_material()
     _link(ng, smooth.outputs["Geometry"], setmat.inputs["Geometry"])
-    scl = N("ShaderNodeVectorMath")
-    scl.operation = "SCALE"
-    _link(ng, attr("scale", "FLOAT_VECTOR"), scl.inputs[0])
-    _link(ng, gin.outputs["Size"], scl.inputs["Scale"])
+    sigma = _vec(ng, "SCALE", attr("scale", "FLOAT_VECTOR"), gin.outputs["Size"])
+    camera = N("GeometryNodeObjectInfo")
+    camera.transform_space = "RELATIVE"  # the camera in this object's space, like the points
+    _link(ng, N("GeometryNodeInputActiveCamera").outputs[0], camera.inputs["Object"])
+    dist = _vec(ng, "DISTANCE", N("GeometryNodeInputPosition").outputs[0], camera.outputs["Location"])
+    focal = N("ShaderNodeValue")
+    focal.name = focal.label = FOCAL_NODE
+    focal.outputs[0].default_value = 1e9  # no dilation until Splat Render Settings knows the camera
+    px = _flt(ng, "DIVIDE", dist, focal.outputs[0])
+    eps = _flt(ng, "MULTIPLY", _flt(ng, "MULTIPLY", px, px), EPS2D)
+    dilated = _vec(ng, "ADD", _vec(ng, "MULTIPLY", sigma, sigma), _combine(ng, eps))
+    cut = _flt(ng, "MULTIPLY", attr("opacity", "FLOAT"), 255.0)
+    cut = _flt(ng, "SQRT", _flt(ng, "MULTIPLY", _flt(ng, "LOGARITHM", _flt(ng, "MAXIMUM", cut, MIN_CUT), E), 2.0))
+    extent = N("ShaderNodeValue")
+    extent.name = extent.label = EXTENT_NODE
+    extent.outputs[0].default_value = 1.0
+    radius = _flt(ng, "MULTIPLY", _flt(ng, "MULTIPLY", cut, extent.outputs[0]), inr.outputs[0])
+    hull = _vec(ng, "SCALE", _vec(ng, "POWER", dilated, _combine(ng, 0.5)), radius)
+    # The material needs both: the hull is its object space, σ the Gaussian inside it.
+    points = delete.outputs["Geometry"]
+    for name, value in (("pa_sigma", sigma), ("pa_hull", hull)):
+        store = N("GeometryNodeStoreNamedAttribute")
+        store.data_type, store.domain = "FLOAT_VECTOR", "POINT"
+        store.inputs["Name"].default_value = name
+        _link(ng, points, store.inputs["Geometry"])
+        _link(ng, value, store.inputs["Value"])
+        points = store.outputs["Geometry"]
     inst = N("GeometryNodeInstanceOnPoints")
-    _link(ng, delete.outputs["Geometry"], inst.inputs["Points"])
+    _link(ng, points, inst.inputs["Points"])
     _link(ng, setmat.outputs["Geometry"], inst.inputs["Instance"])
     _link(ng, attr("rotation", "QUATERNION"), inst.inputs["Rotation"])
-    _link(ng, scl.outputs["Vector"], inst.inputs["Scale"])
+    _link(ng, hull, inst.inputs["Scale"])
     switch = N("GeometryNodeSwitch")
     switch.input_type = "GEOMETRY"
     _link(ng, gin.outputs["Points Only"], switch.inputs["Switch"])

@@ -25,11 +25,12 @@ so colours are the avatar's own sRGB values).
 import bpy
 
 MATERIAL_NAME = "PA Splat"
-VERSION = 3
-EXTENT = 3.0  # hull radius in standard deviations (the rasteriser cuts at ~3σ too)
+VERSION = 4
 ALPHA_MAX = 0.99  # the rasteriser's per-splat alpha clamp
 EPS2D = 0.3  # the rasteriser's screen-space dilation (px²), which training saw
+ALPHA_MIN = 1.0 / 255.0  # below this the rasteriser skips a splat
 FOCAL_NODE = "pa_focal_px"
+AS_TRAINED_NODE = "pa_as_trained"  # 1: emit sRGB-encoded colours (with the Raw view transform)
 
 
 def _math(nt, op, a, b=None, clamp=False):
@@ -46,13 +47,27 @@ def _math(nt, op, a, b=None, clamp=False):
     return node.outputs[0]
 
 
-def _vmath(nt, op, a, b=None):
+def _vmath(nt, op, *inputs):
+    """A Vector Math node; each input is a socket, a float (all three components) or None."""
     node = nt.nodes.new("ShaderNodeVectorMath")
     node.operation = op
-    nt.links.new(a, node.inputs[0])
-    if b is not None:
-        nt.links.new(b, node.inputs[1])
-    return node.outputs["Value"] if op in ("DOT_PRODUCT", "LENGTH") else node.outputs["Vector"]
+    slots = [node.inputs[0], node.inputs["Scale"]] if op == "SCALE" else list(node.inputs)[:3]
+    for slot, v in zip(slots, inputs):
+        if v is None:
+            continue
+        if isinstance(v, (int, float)):
+            slot.default_value = float(v) if op == "SCALE" and slot.name == "Scale" else (float(v),) * 3
+        else:
+            nt.links.new(v, slot)
+    return node.outputs["Value"] if op in ("DOT_PRODUCT", "LENGTH", "DISTANCE") else node.outputs["Vector"]
+
+
+def _srgb_encode(nt, lin):
+    """The sRGB transfer function per channel (linear below 0.0031308, power above)."""
+    hi = _vmath(nt, "MULTIPLY_ADD", _vmath(nt, "POWER", _vmath(nt, "MAXIMUM", lin, 0.0), 1 / 2.4), 1.055, -0.055)
+    lo = _vmath(nt, "SCALE", lin, 12.92)
+    step = _vmath(nt, "MULTIPLY_ADD", _vmath(nt, "SIGN", _vmath(nt, "SUBTRACT", lin, 0.0031308)), 0.5, 0.5)
+    return _vmath(nt, "MULTIPLY_ADD", step, _vmath(nt, "SUBTRACT", hi, lo), lo)
 
 
 def splat_material(name=MATERIAL_NAME):
@@ -84,21 +99,25 @@ def splat_material(name=MATERIAL_NAME):
     d_vec = to_obj.outputs["Vector"]
     p = tex.outputs["Object"]
     # The rasteriser dilates every projected Gaussian by EPS2D px² (and training saw that):
-    # in world units that is ε = EPS2D·(z/f)² added to each σ², so in the unit frame the
-    # ray metric is k_i = s_i²/(s_i² + ε) and d² = pᵀKp − (pᵀKD)²/(DᵀKD).
+    # in world units that is ε = EPS2D·(z/f)² added to each σ². The instance's object space
+    # is the hull's (scaled per axis by h, see preview.splat_group), so the ray metric there
+    # is w_i = h_i²/(σ_i² + ε) and d² = pᵀWp − (pᵀWD)²/(DᵀWD).
     cam = N("ShaderNodeCameraData")
     focal = N("ShaderNodeValue")
     focal.name = focal.label = FOCAL_NODE
     focal.outputs[0].default_value = 1e9  # no dilation until configure_scene knows the camera
     px = _math(nt, "DIVIDE", cam.outputs["View Z Depth"], focal.outputs[0])
     eps = _math(nt, "MULTIPLY", _math(nt, "MULTIPLY", px, px), EPS2D)
-    s_attr = N("ShaderNodeAttribute")
-    s_attr.attribute_type, s_attr.attribute_name = "INSTANCER", "scale"
-    s2 = _vmath(nt, "MULTIPLY", s_attr.outputs["Vector"], s_attr.outputs["Vector"])
+    sig = N("ShaderNodeAttribute")
+    sig.attribute_type, sig.attribute_name = "INSTANCER", "pa_sigma"
+    hull = N("ShaderNodeAttribute")
+    hull.attribute_type, hull.attribute_name = "INSTANCER", "pa_hull"
+    s2 = _vmath(nt, "MULTIPLY", sig.outputs["Vector"], sig.outputs["Vector"])
+    h2 = _vmath(nt, "MULTIPLY", hull.outputs["Vector"], hull.outputs["Vector"])
     eps_v = N("ShaderNodeCombineXYZ")
     for axis in "XYZ":
         nt.links.new(eps, eps_v.inputs[axis])
-    k = _vmath(nt, "DIVIDE", s2, _vmath(nt, "ADD", s2, eps_v.outputs["Vector"]))
+    k = _vmath(nt, "DIVIDE", h2, _vmath(nt, "ADD", s2, eps_v.outputs["Vector"]))
     kp = _vmath(nt, "MULTIPLY", p, k)
     kd = _vmath(nt, "MULTIPLY", d_vec, k)
     pkp = _vmath(nt, "DOT_PRODUCT", p, kp)
@@ -107,10 +126,21 @@ def splat_material(name=MATERIAL_NAME):
     d2 = _math(nt, "SUBTRACT", pkp, _math(nt, "DIVIDE", _math(nt, "MULTIPLY", pkd, pkd), dkd))
     fall = _math(nt, "EXPONENT", _math(nt, "MULTIPLY", _math(nt, "MAXIMUM", d2, 0.0), -0.5))
     alpha = _math(nt, "MINIMUM", _math(nt, "MULTIPLY", fall, opa.outputs["Fac"]), ALPHA_MAX)
+    # The rasteriser skips a splat where its alpha is below 1/255 (the hull's edge is there).
+    alpha = _math(nt, "MULTIPLY", alpha, _math(nt, "GREATER_THAN", alpha, ALPHA_MIN))
     front = _math(nt, "SUBTRACT", 1.0, geo.outputs["Backfacing"])
     alpha = _math(nt, "MULTIPLY", alpha, front)
+    # "As trained": emit the sRGB-encoded colour, composited as-is and shown by the Raw view
+    # transform, i.e. blending in sRGB like the rasteriser; 0 emits the scene-linear colour.
+    as_trained = N("ShaderNodeValue")
+    as_trained.name = as_trained.label = AS_TRAINED_NODE
+    as_trained.outputs[0].default_value = 0.0
+    lin = col.outputs["Vector"]
+    color = _vmath(
+        nt, "ADD", lin, _vmath(nt, "SCALE", _vmath(nt, "SUBTRACT", _srgb_encode(nt, lin), lin), as_trained.outputs[0])
+    )
     emit = N("ShaderNodeEmission")
-    nt.links.new(col.outputs["Color"], emit.inputs["Color"])
+    nt.links.new(color, emit.inputs["Color"])
     clear = N("ShaderNodeBsdfTransparent")
     mix = N("ShaderNodeMixShader")
     nt.links.new(alpha, mix.inputs[0])
@@ -123,23 +153,39 @@ def splat_material(name=MATERIAL_NAME):
     return mat
 
 
-def set_focal(scene, mat=None):
-    """The scene camera's focal length in pixels, for the material's dilation (it changes
-    with the camera and the resolution: Splat Render Settings sets it again)."""
+def _value_nodes(name, mat=None):
+    """The material's and the splat Geometry Nodes group's value nodes of this name."""
+    from .preview import GROUP_NAME
+
     mat = mat or bpy.data.materials.get(MATERIAL_NAME)
-    node = mat.node_tree.nodes.get(FOCAL_NODE) if mat is not None and mat.node_tree else None
+    trees = [mat.node_tree if mat is not None else None, bpy.data.node_groups.get(GROUP_NAME)]
+    return [t.nodes[name] for t in trees if t is not None and name in t.nodes]
+
+
+def set_focal(scene, mat=None):
+    """The scene camera's focal length in pixels, for the dilation in the material and in
+    the hull (it changes with the camera and the resolution: Splat Render Settings sets it
+    again)."""
+    nodes = _value_nodes(FOCAL_NODE, mat)
     cam = scene.camera
-    if node is None or cam is None or cam.type != "CAMERA" or cam.data.type != "PERSP":
+    if not nodes or cam is None or cam.type != "CAMERA" or cam.data.type != "PERSP":
         return None
     r = scene.render
     big = max(r.resolution_x, r.resolution_y) * r.resolution_percentage / 100.0
     f = cam.data.lens / cam.data.sensor_width * big
-    node.outputs[0].default_value = f
+    for node in nodes:
+        node.outputs[0].default_value = f
     return f
 
 
-def configure_scene(scene, transparent_bounces=512, min_transparent_bounces=None):
-    """Render settings the splat look needs; returns {setting: (old, new)} of what changed."""
+def configure_scene(scene, transparent_bounces=512, min_transparent_bounces=None, as_trained=False):
+    """Render settings the splat look needs; returns {setting: (old, new)} of what changed.
+
+    ``as_trained`` composites the avatar's sRGB-encoded colours as they are and shows them
+    with the Raw view transform: exactly how the avatar was trained (and how our rasteriser
+    draws it), but other objects in the scene are then shown unencoded (too dark) and light
+    does not mix with the splats correctly. Off (the default), splats emit scene-linear
+    colours under the Standard view transform, like any other object."""
     changed = {}
     f = set_focal(scene)
     if f is not None:
@@ -151,7 +197,9 @@ def configure_scene(scene, transparent_bounces=512, min_transparent_bounces=None
             setattr(owner, attr, value)
             changed[label] = (old, value)
 
-    put(scene.view_settings, "view_transform", "Standard", "view_transform")
+    for node in _value_nodes(AS_TRAINED_NODE):
+        put(node.outputs[0], "default_value", float(as_trained), "splat colours as trained")
+    put(scene.view_settings, "view_transform", "Raw" if as_trained else "Standard", "view_transform")
     put(scene.view_settings, "look", "None", "look")
     cy = getattr(scene, "cycles", None)
     if cy is not None:
@@ -173,8 +221,15 @@ class PA_OT_splat_render_settings(bpy.types.Operator):
     bl_label = "Splat Render Settings"
     bl_options = {"REGISTER", "UNDO"}
 
+    as_trained: bpy.props.BoolProperty(
+        name="As Trained",
+        description="Composite the avatar's sRGB colours as they are under the Raw view transform: "
+        "exactly as the avatar was trained, but other objects and lights no longer look right",
+        default=False,
+    )
+
     def execute(self, context):
-        changed = configure_scene(context.scene)
+        changed = configure_scene(context.scene, as_trained=self.as_trained)
         text = ", ".join(f"{k}: {a} → {b}" for k, (a, b) in changed.items()) or "already set"
         self.report({"INFO"}, f"Splat render settings: {text}")
         return {"FINISHED"}

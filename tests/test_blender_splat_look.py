@@ -91,5 +91,56 @@ def test_cycles_splat_look_matches_the_rasteriser(tmp_path):
     psnr = 10 * np.log10(1 / err[mask].mean())
     print(f"Cycles vs rasteriser: {psnr:.2f} dB over {mask.mean():.0%} of the image")
     assert psnr > 28, psnr
-    # Nothing drawn where the rasteriser has nothing (no hull edges, no back faces).
-    assert got[alpha < 1e-3].max() < 0.05
+    # Nothing drawn where the rasteriser has nothing within a pixel (no hull edges, no back
+    # faces; Cycles' pixel filter spreads a splat's faint tail about a pixel further).
+    near = np.zeros_like(alpha, bool)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            near |= np.roll(alpha, (dy, dx), axis=(0, 1)) > 1e-3
+    assert got[~near].max() < 0.05
+
+    # The hull covers the dilated Gaussian out to the rasteriser's cut-off, per axis.
+    _hull_covers_the_dilated_splat(g, rep)
+
+    # As Trained: sRGB-encoded colours composited as they are, shown raw, is how the avatar was
+    # trained: the plain rasteriser (sRGB colours, no encoding afterwards) is the reference.
+    assert rep["view_transform_trained"] == "Raw" and "splat colours as trained" in rep["changed_trained"]
+    srgb, _, _ = render_numpy(
+        g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], cam, np.zeros(3, np.float32)
+    )
+    trained = np.asarray(Image.open(tmp_path / "cycles_trained.png").convert("RGB"), np.float32) / 255
+    err = (trained - np.clip(srgb, 0, 1)) ** 2
+    psnr_trained = 10 * np.log10(1 / err[mask].mean())
+    print(f"As Trained vs the sRGB-blending rasteriser: {psnr_trained:.2f} dB")
+    assert psnr_trained > 28, psnr_trained
+    # ... and it really is a different image from the default (linear blending) one.
+    assert np.abs(trained - got)[mask].mean() > 0.01
+
+
+def _hull_covers_the_dilated_splat(g, rep):
+    from progressive_avatars.core.geometry.rotations import quat_to_rotmat
+
+    # The instanced hull mesh: its inscribed sphere's radius (the nearest face plane).
+    v = np.array(rep["hull_vertices"])
+    tri = v[np.array([f[:3] for f in rep["hull_faces"]])]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    inradius = np.abs(np.einsum("fi,fi->f", n / np.linalg.norm(n, axis=1, keepdims=True), tri[:, 0])).min()
+    assert len(rep["hull_faces"]) == 80  # Detail 2
+
+    m = np.array(rep["instances"])  # rotation times per-axis hull scale (column norms)
+    assert m.shape == (len(g["means"]), 3, 3)
+    order = np.argsort(np.linalg.norm(np.array(rep["instance_origins"])[:, None] - g["means"][None], axis=2), 1)[:, 0]
+    assert len(set(order)) == len(order)  # instances matched one to one with the splats
+    hull = np.linalg.norm(m, axis=1) * inradius  # semi-axes of the ellipsoid the scaled hull surely holds
+    sig, o = g["scales"][order], g["opacities"][order]
+    dist = np.linalg.norm(g["means"][order] - np.array(rep["camera_location"]), axis=1)
+    eps = 0.3 * (dist / rep["focal_px"]) ** 2
+    cut = np.sqrt(2 * np.log(255 * o))
+    need = cut[:, None] * np.sqrt(sig**2 + eps[:, None])
+    assert (hull >= need * 0.999).all(), (hull / need).min()
+    assert (hull <= need * 1.001).all(), (hull / need).max()  # and no bigger: Cycles' time grows with it
+    # The dilation matters for the thin axis: without it the hull would be too thin there.
+    assert (need.min(1) > 1.2 * cut * sig.min(1)).any()
+    # Columns are the splat's own axes.
+    rot = m / np.linalg.norm(m, axis=1, keepdims=True)
+    assert np.allclose(np.abs(np.einsum("nij,nij->nj", rot, quat_to_rotmat(g["quats"][order]))), 1, atol=1e-3)
