@@ -1,31 +1,34 @@
 """The splat look in Cycles and EEVEE: each Gaussian drawn as its own 3D Gaussian seen along
 the view ray, composited front to back with its opacity.
 
-Geometry Nodes instances a closed hull (an ico-sphere of radius 3σ in the Gaussian's own
-frame) on every point, rotated by its quaternion and scaled by its scales; the hull is only a
-proxy that bounds where the Gaussian is visible. The material evaluates the Gaussian
-exactly on the ray that hits the hull's front face: in the instance's object space (where the
-Gaussian is the unit normal distribution) a ray through P with direction D passes the centre
-at squared distance d² = |P|² − (P·D̂)², and the ray's peak response is exp(−d²/2). That is
-the projected ellipse with its Gaussian falloff, for any orientation and anisotropy and from
-any side (no camera-facing trick, no dependence on the hull's tessellation). Colour comes
-from the point's linear "color" attribute as emission (no lighting, like the rasteriser),
-alpha = opacity · exp(−d²/2), and the back faces of each hull are transparent so each
-Gaussian counts once. The rasteriser's 0.3 px² screen-space dilation (which training saw) is
-added as ε = 0.3·(z/f)² to each σ², within the hull; f (focal length in pixels) is a value
-node that ``configure_scene`` sets from the scene camera.
+Geometry Nodes (preview.splat_group) instances a closed hull (an ico-sphere) on every point,
+rotated by its quaternion and scaled per axis to h = k·sqrt(σ² + ε): the rasteriser's 0.3 px²
+dilation ε in world units and its cut-off radius k = sqrt(2 ln(255 o)), where alpha falls
+below 1/255. The hull is only a proxy that bounds where the Gaussian is visible. The
+material evaluates the Gaussian exactly on the ray that hits the hull's front face: in the
+instance's object space (the hull's frame) the dilated Gaussian has the diagonal metric
+w = h²/(σ² + ε), and a ray through P with direction D passes its centre at squared
+Mahalanobis distance d² = PᵀWP − (PᵀWD)²/(DᵀWD); the ray's peak response is exp(−d²/2).
+That is the projected ellipse with its Gaussian falloff, for any orientation and anisotropy
+and from any side (no camera-facing trick, no dependence on the hull's tessellation). Colour
+comes from the point's linear "color" attribute as emission (no lighting, like the
+rasteriser), alpha = opacity · exp(−d²/2) clamped to [1/255, 0.99] like the rasteriser's, and
+the back faces of each hull are transparent so each Gaussian counts once. ε = 0.3·(z/f)²
+needs f, the focal length in pixels: a value node in the material and in the group that
+``configure_scene`` sets from the scene camera and resolution.
 
 Cycles composites the hulls along each ray in hit order; EEVEE needs an order-independent
 method, so the material uses Dithered (stochastic) transparency, which converges to the same
 compositing with enough render samples. ``configure_scene`` sets what a correct render needs
 (enough transparent bounces for hundreds of overlapping splats, the Standard view transform
-so colours are the avatar's own sRGB values).
+so colours are the avatar's own sRGB values) and, opt-in, the "as trained" compositing:
+sRGB-encoded colours blended as they are under the Raw view transform, as in training.
 """
 
 import bpy
 
 MATERIAL_NAME = "PA Splat"
-VERSION = 4
+VERSION = 5
 ALPHA_MAX = 0.99  # the rasteriser's per-splat alpha clamp
 EPS2D = 0.3  # the rasteriser's screen-space dilation (px²), which training saw
 ALPHA_MIN = 1.0 / 255.0  # below this the rasteriser skips a splat
@@ -91,38 +94,41 @@ def splat_material(name=MATERIAL_NAME):
     col.attribute_type, col.attribute_name = "INSTANCER", "color"
     opa = N("ShaderNodeAttribute")
     opa.attribute_type, opa.attribute_name = "INSTANCER", "opacity"
-    tex = N("ShaderNodeTexCoord")  # "Object": the hit point in the instance's unit-Gaussian frame
     geo = N("ShaderNodeNewGeometry")
-    to_obj = N("ShaderNodeVectorTransform")
-    to_obj.vector_type, to_obj.convert_from, to_obj.convert_to = "VECTOR", "WORLD", "OBJECT"
-    nt.links.new(geo.outputs["Incoming"], to_obj.inputs["Vector"])
-    d_vec = to_obj.outputs["Vector"]
-    p = tex.outputs["Object"]
-    # The rasteriser dilates every projected Gaussian by EPS2D px² (and training saw that):
-    # in world units that is ε = EPS2D·(z/f)² added to each σ². The instance's object space
-    # is the hull's (scaled per axis by h, see preview.splat_group), so the ray metric there
-    # is w_i = h_i²/(σ_i² + ε) and d² = pᵀWp − (pᵀWD)²/(DᵀWD).
+    # In world space: x = hit point − centre, D = the view direction; the splat's axes come
+    # scaled by σ (A_i = σ_i r_i). The rasteriser dilates every projected Gaussian by EPS2D
+    # px² (and training saw that): in world units ε = EPS2D·(z/f)² added to each σ², so in
+    # the splat's frame x'_i = r_i·x, w_i = 1/(σ_i² + ε) and
+    # d² = Σ w x'² − (Σ w x' D')² / Σ w D'² (the ray's closest approach, Mahalanobis).
+    centre = N("ShaderNodeAttribute")
+    centre.attribute_type, centre.attribute_name = "INSTANCER", "pa_center"
+    x = _vmath(nt, "SUBTRACT", geo.outputs["Position"], centre.outputs["Vector"])
+    d_vec = geo.outputs["Incoming"]
     cam = N("ShaderNodeCameraData")
     focal = N("ShaderNodeValue")
     focal.name = focal.label = FOCAL_NODE
     focal.outputs[0].default_value = 1e9  # no dilation until configure_scene knows the camera
     px = _math(nt, "DIVIDE", cam.outputs["View Z Depth"], focal.outputs[0])
     eps = _math(nt, "MULTIPLY", _math(nt, "MULTIPLY", px, px), EPS2D)
-    sig = N("ShaderNodeAttribute")
-    sig.attribute_type, sig.attribute_name = "INSTANCER", "pa_sigma"
-    hull = N("ShaderNodeAttribute")
-    hull.attribute_type, hull.attribute_name = "INSTANCER", "pa_hull"
-    s2 = _vmath(nt, "MULTIPLY", sig.outputs["Vector"], sig.outputs["Vector"])
-    h2 = _vmath(nt, "MULTIPLY", hull.outputs["Vector"], hull.outputs["Vector"])
-    eps_v = N("ShaderNodeCombineXYZ")
-    for axis in "XYZ":
-        nt.links.new(eps, eps_v.inputs[axis])
-    k = _vmath(nt, "DIVIDE", h2, _vmath(nt, "ADD", s2, eps_v.outputs["Vector"]))
-    kp = _vmath(nt, "MULTIPLY", p, k)
-    kd = _vmath(nt, "MULTIPLY", d_vec, k)
-    pkp = _vmath(nt, "DOT_PRODUCT", p, kp)
-    pkd = _vmath(nt, "DOT_PRODUCT", p, kd)
-    dkd = _math(nt, "MAXIMUM", _vmath(nt, "DOT_PRODUCT", d_vec, kd), 1e-30)
+    pkp = pkd = dkd = None
+    for axis in "xyz":
+        a_attr = N("ShaderNodeAttribute")
+        a_attr.attribute_type, a_attr.attribute_name = "INSTANCER", f"pa_axis_{axis}"
+        a_vec = a_attr.outputs["Vector"]
+        r = _vmath(nt, "NORMALIZE", a_vec)
+        w = _math(nt, "DIVIDE", 1.0, _math(nt, "ADD", _vmath(nt, "DOT_PRODUCT", a_vec, a_vec), eps))
+        xi = _vmath(nt, "DOT_PRODUCT", r, x)
+        di = _vmath(nt, "DOT_PRODUCT", r, d_vec)
+        terms = (
+            _math(nt, "MULTIPLY", w, _math(nt, "MULTIPLY", xi, xi)),
+            _math(nt, "MULTIPLY", w, _math(nt, "MULTIPLY", xi, di)),
+            _math(nt, "MULTIPLY", w, _math(nt, "MULTIPLY", di, di)),
+        )
+        if pkp is None:
+            pkp, pkd, dkd = terms
+        else:
+            pkp, pkd, dkd = (_math(nt, "ADD", u, v) for u, v in zip((pkp, pkd, dkd), terms))
+    dkd = _math(nt, "MAXIMUM", dkd, 1e-30)
     d2 = _math(nt, "SUBTRACT", pkp, _math(nt, "DIVIDE", _math(nt, "MULTIPLY", pkd, pkd), dkd))
     fall = _math(nt, "EXPONENT", _math(nt, "MULTIPLY", _math(nt, "MAXIMUM", d2, 0.0), -0.5))
     alpha = _math(nt, "MINIMUM", _math(nt, "MULTIPLY", fall, opa.outputs["Fac"]), ALPHA_MAX)

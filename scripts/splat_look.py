@@ -129,31 +129,47 @@ DOC_TEXT = """\
 ## How the splat look works
 
 *Load Progressive Avatar* and *Import 3DGS PLY* make a point per Gaussian; the **PA Splats**
-Geometry Nodes modifier instances a closed hull (an ico-sphere of radius 3σ, *Detail* sets
-its subdivisions) on each point, rotated by the point's `rotation` quaternion and scaled by
-its `scale` (× *Size*); *Points Only* skips the instancing for speed in heavy scenes. The
-**PA Splat** material (`blender_addon/splat_look.py`) evaluates the Gaussian on the view
-ray itself: with the hit point P in the instance's object space (*Texture Coordinate >
-Object*, where the Gaussian is the unit normal distribution) and the view direction D
-brought into that space (*Vector Transform*, World → Object, Vector), the ray passes the
-centre at squared distance d² = |P|² − (P·D̂)², and the splat's alpha is
-opacity · exp(−d²/2), clamped at 0.99 like the rasteriser; back faces are transparent, so
-each Gaussian counts once. The rasteriser (and so training) dilates every projected Gaussian by
-0.3 px²; the material adds the same in world units, ε = 0.3·(z/f)² on each σ² (z the view
-depth from *Camera Data*, f the camera's focal length in pixels, written into the material's
-`pa_focal_px` value by *Splat Render Settings*: press it again after changing the camera or
-the resolution). The dilation only reaches as far as the hull (3σ of the undilated splat), so
-sub-pixel splats stay a little thinner than the rasteriser draws them. That is the oriented
-ellipse with its Gaussian falloff from any
-side, independent of the hull's tessellation. Colour is the point's `color` attribute
-(scene-linear, converted from the avatar's sRGB colours) as *Emission* strength 1, mixed with
-*Transparent* by alpha: splats are unlit, as in training. Blender composites the splats in
-scene-linear light (correct for a scene with other objects and lights); the avatar was
-trained compositing sRGB-encoded colours (as the rasteriser does), so where splats are
-semi-transparent over each other the two differ slightly: that is most of the remaining
-difference in the table above. With both compositing in the same space, Cycles matches the
-rasteriser to ~30 dB on anisotropic splats at all orientations
-(`tests/test_blender_splat_look.py`).
+Geometry Nodes modifier instances a closed hull (an ico-sphere, *Detail* sets its
+subdivisions) on each point, rotated by the point's `rotation` quaternion and scaled per
+axis to cover the splat exactly as far as the rasteriser draws it: k·sqrt(σ² + ε), with σ
+the point's `scale` (× *Size*), ε = 0.3·(d/f)² the rasteriser's 0.3 px² dilation in world
+units (d the distance to the active camera, f the camera's focal length in pixels, the
+group's `pa_focal_px` value), and k = sqrt(2 ln(255·opacity)) the radius where the splat's
+alpha falls below 1/255, the rasteriser's cut-off (3.33 at the 0.99 clamp, less for
+fainter splats, so faint splats cost Cycles less). The ico-sphere's faces sit inside its
+vertices' radius (0.79 of it at *Detail* 1, 0.93 at 2, 0.98 at 3), so the hull is scaled by
+the inverse: its inscribed ellipsoid is the one above (`tests/test_blender_splat_look.py`
+checks it per axis on the evaluated instances). *Points Only* skips the instancing for
+speed in heavy scenes. Both numbers the hull needs are written by *Splat Render Settings*:
+press it again after changing the camera or the resolution.
+
+The **PA Splat** material (`blender_addon/splat_look.py`) evaluates the Gaussian on the
+view ray itself: with the hit point P in the instance's object space (*Texture Coordinate >
+Object*: the hull's frame, scaled per axis by the hull's semi-axes h) and the view direction
+D brought into that space (*Vector Transform*, World → Object, Vector), the dilated Gaussian
+has the metric w = h²/(σ² + ε) per axis there (ε = 0.3·(z/f)², z the view depth from
+*Camera Data*, f the material's `pa_focal_px`), and the ray passes its centre at squared
+Mahalanobis distance d² = PᵀWP − (PᵀWD)²/(DᵀWD). The splat's alpha is
+opacity · exp(−d²/2), clamped at 0.99 and dropped below 1/255 like the rasteriser; back
+faces are transparent, so each Gaussian counts once. That is the oriented ellipse with its
+Gaussian falloff from any side, independent of the hull's tessellation. Colour is the
+point's `color` attribute (scene-linear, converted from the avatar's sRGB colours) as
+*Emission* strength 1, mixed with *Transparent* by alpha: splats are unlit, as in training.
+
+**Compositing space.** By default Blender composites the splats in scene-linear light
+(correct for a scene with other objects and lights) and the *Standard* view transform
+encodes the result to sRGB. The avatar was trained compositing sRGB-encoded colours (as the
+rasteriser does), so where splats are semi-transparent over each other the two differ: a
+faint splat edge is brighter when blended in linear light and encoded afterwards. That is
+most of what remains in the table's default row. **As Trained** (the button next to
+*Splat Render Settings*, or `configure_scene(scene, as_trained=True)`) sets the material's
+`pa_as_trained` value to 1, so it emits the sRGB-encoded colour (the sRGB transfer
+function in shader nodes), and the *Raw* view transform, which writes the composited values
+without encoding: the splats then blend exactly as in training. The price: everything else
+in the scene is shown raw too (linear values unencoded: dark), and light from lit objects
+does not mix with the splats correctly. Use it to judge the avatar itself or render it
+alone (a separate view layer or scene), not for a lit shot. Press *Splat Render Settings*
+to go back to the default.
 
 **Render settings** (*Splat Render Settings* button in the Avatar panel,
 `splat_look.configure_scene`): view transform *Standard* (AgX/Filmic would tone-map the
@@ -221,7 +237,7 @@ LABELS = {
 
 
 def _variant(text):
-    """NAME or NAME:JSON (keys: as_trained, inputs, nodes, filter), for experiments."""
+    """NAME or NAME:JSON (keys: as_trained, inputs, nodes, filter, label), for experiments."""
     name, _, spec = text.partition(":")
     return dict(json.loads(spec) if spec else {}, name=name)
 
@@ -316,7 +332,8 @@ def main(argv=None):
     g = new_g
     for name, img in imgs.items():
         v = child["variants"][name]
-        renders.append((LABELS.get(name, name), args.root, name, img, v["seconds"], v))
+        label = next((x.get("label") for x in args.variant if x["name"] == name), None)
+        renders.append((LABELS.get(name, label or name), args.root, name, img, v["seconds"], v))
     cam = Camera(g["R"], g["t"], *[float(x) for x in g["intr"]], int(g["size"][0]), int(g["size"][1]))
     t0 = time.perf_counter()
     image, alpha, _ = render_numpy(

@@ -118,29 +118,28 @@ def test_cycles_splat_look_matches_the_rasteriser(tmp_path):
 
 
 def _hull_covers_the_dilated_splat(g, rep):
+    """Camera cards: a quad per splat parallel to the image plane through its centre, with
+    half-extents along the camera's x and y of k·sqrt(cᵀΣc + ε) (k the rasteriser's 1/255
+    cut-off radius, ε its 0.3 px² dilation at the splat's distance): the footprint's extent."""
     from progressive_avatars.core.geometry.rotations import quat_to_rotmat
 
-    # The instanced hull mesh: its inscribed sphere's radius (the nearest face plane).
     v = np.array(rep["hull_vertices"])
-    tri = v[np.array([f[:3] for f in rep["hull_faces"]])]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    inradius = np.abs(np.einsum("fi,fi->f", n / np.linalg.norm(n, axis=1, keepdims=True), tri[:, 0])).min()
-    assert len(rep["hull_faces"]) == 80  # Detail 2
-
-    m = np.array(rep["instances"])  # rotation times per-axis hull scale (column norms)
+    assert len(rep["hull_faces"]) == 1 and np.allclose(np.abs(v[:, :2]), 1) and np.allclose(v[:, 2], 0)
+    m = np.array(rep["instances"])  # camera rotation times (ext_x, ext_y, 1)
     assert m.shape == (len(g["means"]), 3, 3)
-    order = np.argsort(np.linalg.norm(np.array(rep["instance_origins"])[:, None] - g["means"][None], axis=2), 1)[:, 0]
-    assert len(set(order)) == len(order)  # instances matched one to one with the splats
-    hull = np.linalg.norm(m, axis=1) * inradius  # semi-axes of the ellipsoid the scaled hull surely holds
-    sig, o = g["scales"][order], g["opacities"][order]
+    dists = np.linalg.norm(np.array(rep["instance_origins"])[:, None] - g["means"][None], axis=2)
+    order = np.argmin(dists, 1)
+    assert len(set(order)) == len(order) and dists.min(1).max() < 1e-6  # one card per splat, at its centre
+    cam = np.array(rep["camera_rotation"])
+    ext = np.linalg.norm(m, axis=1)[:, :2]
+    assert np.allclose(m[:, :, :2] / ext[:, None, :], cam[None, :, :2], atol=1e-4)  # parallel to the image
+    rot = quat_to_rotmat(g["quats"][order].astype(np.float64))
+    cov = np.einsum("nij,nj,nkj->nik", rot, g["scales"][order].astype(np.float64) ** 2, rot)
     dist = np.linalg.norm(g["means"][order] - np.array(rep["camera_location"]), axis=1)
     eps = 0.3 * (dist / rep["focal_px"]) ** 2
-    cut = np.sqrt(2 * np.log(255 * o))
-    need = cut[:, None] * np.sqrt(sig**2 + eps[:, None])
-    assert (hull >= need * 0.999).all(), (hull / need).min()
-    assert (hull <= need * 1.001).all(), (hull / need).max()  # and no bigger: Cycles' time grows with it
-    # The dilation matters for the thin axis: without it the hull would be too thin there.
-    assert (need.min(1) > 1.2 * cut * sig.min(1)).any()
-    # Columns are the splat's own axes.
-    rot = m / np.linalg.norm(m, axis=1, keepdims=True)
-    assert np.allclose(np.abs(np.einsum("nij,nij->nj", rot, quat_to_rotmat(g["quats"][order]))), 1, atol=1e-3)
+    cut = np.sqrt(2 * np.log(255 * g["opacities"][order]))
+    need = cut[:, None] * np.sqrt(np.einsum("ia,nij,ja->na", cam[:, :2], cov, cam[:, :2]) + eps[:, None])
+    assert np.allclose(ext, need, rtol=1e-3), np.abs(ext / need - 1).max()
+    # The dilation matters here: without it some cards would be much too small.
+    bare = cut[:, None] * np.sqrt(np.einsum("ia,nij,ja->na", cam[:, :2], cov, cam[:, :2]))
+    assert (need > 1.2 * bare).any()

@@ -67,6 +67,7 @@ try:
     R["instances"] = [m[:3, :3].tolist() for m in mats]
     R["instance_origins"] = [m[:3, 3].tolist() for m in mats]
     R["camera_location"] = list(co.location)
+    R["camera_rotation"] = np.array(co.matrix_world)[:3, :3].tolist()
     R["focal_px"] = 64 * cam.lens / cam.sensor_width
     # The opt-in As Trained compositing: sRGB colours blended as they are, Raw view transform.
     R["changed_trained"] = sorted(look.configure_scene(sc, as_trained=True))
