@@ -3,8 +3,9 @@
 Points are grouped by root face (the layout the per-frame evaluator writes fastest); their
 "rank" attribute is their stream position, and the modifier deletes those whose rank reaches
 the "Count" input, so moving the budget slider only sets one modifier input. Each remaining point instances
-an ico-sphere rotated by the point's quaternion and scaled per axis to cover the Gaussian as
-the rasteriser draws it (dilated, out to its 1/255 cut-off); the material (splat_look) reads colour and opacity from the instance and evaluates
+a hull that covers the Gaussian as the rasteriser draws it (dilated, out to its 1/255
+cut-off): a camera-facing card by default, or an ellipsoid in the splat's frame; the
+material (splat_look) reads colour, opacity, centre and axes from the instance and evaluates
 the Gaussian on each view ray, so every splat shows as its oriented ellipse.
 """
 

@@ -1,19 +1,20 @@
 """The splat look in Cycles and EEVEE: each Gaussian drawn as its own 3D Gaussian seen along
 the view ray, composited front to back with its opacity.
 
-Geometry Nodes (preview.splat_group) instances a closed hull (an ico-sphere) on every point,
-rotated by its quaternion and scaled per axis to h = k·sqrt(σ² + ε): the rasteriser's 0.3 px²
-dilation ε in world units and its cut-off radius k = sqrt(2 ln(255 o)), where alpha falls
-below 1/255. The hull is only a proxy that bounds where the Gaussian is visible. The
-material evaluates the Gaussian exactly on the ray that hits the hull's front face: in the
-instance's object space (the hull's frame) the dilated Gaussian has the diagonal metric
-w = h²/(σ² + ε), and a ray through P with direction D passes its centre at squared
-Mahalanobis distance d² = PᵀWP − (PᵀWD)²/(DᵀWD); the ray's peak response is exp(−d²/2).
-That is the projected ellipse with its Gaussian falloff, for any orientation and anisotropy
-and from any side (no camera-facing trick, no dependence on the hull's tessellation). Colour
-comes from the point's linear "color" attribute as emission (no lighting, like the
-rasteriser), alpha = opacity · exp(−d²/2) clamped to [1/255, 0.99] like the rasteriser's, and
-the back faces of each hull are transparent so each Gaussian counts once. ε = 0.3·(z/f)²
+Geometry Nodes (preview.splat_group) instances a hull on every point that covers the splat
+as the rasteriser draws it (its 0.3 px² dilation ε included, out to its 1/255 cut-off
+radius k = sqrt(2 ln(255 o))): by default a camera card (a quad through the centre,
+parallel to the image plane, so Cycles composites splats in view-depth order like the
+rasteriser), or a closed ellipsoid in the splat's frame. The hull is only a proxy that
+bounds where the Gaussian is visible. The material evaluates the Gaussian exactly on the
+ray, in world space, from the centre and σ-scaled axes the Geometry Nodes store on each
+instance (pa_center, pa_axis_x/y/z): with x = hit point − centre and D the view direction,
+in the splat's frame w_i = 1/(σ_i² + ε) and the ray passes the centre at squared Mahalanobis
+distance d² = Σ w x'² − (Σ w x'D')²/Σ w D'²; the ray's peak response is exp(−d²/2). That is
+the projected ellipse with its Gaussian falloff, for any orientation and anisotropy and any
+hull. Colour comes from the point's linear "color" attribute as emission (no lighting, like
+the rasteriser), alpha = opacity · exp(−d²/2) clamped to [1/255, 0.99] like the
+rasteriser's, and back faces are transparent so each Gaussian counts once. ε = 0.3·(z/f)²
 needs f, the focal length in pixels: a value node in the material and in the group that
 ``configure_scene`` sets from the scene camera and resolution.
 

@@ -26,6 +26,7 @@ import argparse  # noqa: E402
 import json  # noqa: E402
 import os  # noqa: E402
 import platform  # noqa: E402
+import shlex  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
@@ -129,32 +130,48 @@ DOC_TEXT = """\
 ## How the splat look works
 
 *Load Progressive Avatar* and *Import 3DGS PLY* make a point per Gaussian; the **PA Splats**
-Geometry Nodes modifier instances a closed hull (an ico-sphere, *Detail* sets its
-subdivisions) on each point, rotated by the point's `rotation` quaternion and scaled per
-axis to cover the splat exactly as far as the rasteriser draws it: k·sqrt(σ² + ε), with σ
-the point's `scale` (× *Size*), ε = 0.3·(d/f)² the rasteriser's 0.3 px² dilation in world
-units (d the distance to the active camera, f the camera's focal length in pixels, the
-group's `pa_focal_px` value), and k = sqrt(2 ln(255·opacity)) the radius where the splat's
-alpha falls below 1/255, the rasteriser's cut-off (3.33 at the 0.99 clamp, less for
-fainter splats, so faint splats cost Cycles less). The ico-sphere's faces sit inside its
-vertices' radius (0.79 of it at *Detail* 1, 0.93 at 2, 0.98 at 3), so the hull is scaled by
-the inverse: its inscribed ellipsoid is the one above (`tests/test_blender_splat_look.py`
-checks it per axis on the evaluated instances). *Points Only* skips the instancing for
-speed in heavy scenes. Both numbers the hull needs are written by *Splat Render Settings*:
-press it again after changing the camera or the resolution.
+Geometry Nodes modifier instances a hull on each point that covers the splat exactly as far
+as the rasteriser draws it: out to k = sqrt(2 ln(255·opacity)) standard deviations (where
+its alpha falls below 1/255, the rasteriser's cut-off: 3.33 at the 0.99 clamp, less for
+fainter splats, so faint splats cost Cycles less) of the *dilated* Gaussian, σ² + ε, with
+ε = 0.3·(d/f)² the rasteriser's 0.3 px² dilation in world units (d the distance to the
+active camera, f the camera's focal length in pixels, the group's `pa_focal_px` value).
+Both numbers are written by *Splat Render Settings*: press it again after changing the
+camera or the resolution. The hull decides only what is covered and, in Cycles, the order
+in which splats composite (Cycles composites surfaces in the order rays hit them); the
+material computes the splat itself.
+
+- **Camera Cards** (on by default): a flat quad through each splat's centre, parallel to
+  the camera's image plane, with half-extents k·sqrt(cᵀΣc + ε) along the camera's x and y
+  axes c (the footprint's extent). Every ray meets a card at its splat's view depth, so the
+  splats composite in order of view depth, exactly as the rasteriser sorts them, and each
+  ray crosses one surface per splat instead of two. Exact for the scene camera; orbiting
+  the viewport away from it shows the cards at an angle, which clips the splats: turn
+  *Camera Cards* off to inspect from other views.
+- **Ellipsoids** (*Camera Cards* off): a closed ico-sphere hull (*Detail* sets its
+  subdivisions) in the splat's own frame, scaled per axis by k·sqrt(σ² + ε) and by the
+  inverse of the ico-sphere's inscribed radius (its faces sit inside its vertices: 0.79 of
+  the radius at *Detail* 1, 0.93 at 2, 0.98 at 3). Right from every view, but Cycles then
+  composites in the order rays *enter* the hulls, which puts a large splat in front of the
+  smaller ones around it: the table's Camera Cards off row.
+
+*Points Only* skips the instancing for speed in heavy scenes. `tests/test_blender_splat_look.py`
+checks the cards' placement and extents on the evaluated instances.
 
 The **PA Splat** material (`blender_addon/splat_look.py`) evaluates the Gaussian on the
-view ray itself: with the hit point P in the instance's object space (*Texture Coordinate >
-Object*: the hull's frame, scaled per axis by the hull's semi-axes h) and the view direction
-D brought into that space (*Vector Transform*, World → Object, Vector), the dilated Gaussian
-has the metric w = h²/(σ² + ε) per axis there (ε = 0.3·(z/f)², z the view depth from
-*Camera Data*, f the material's `pa_focal_px`), and the ray passes its centre at squared
-Mahalanobis distance d² = PᵀWP − (PᵀWD)²/(DᵀWD). The splat's alpha is
-opacity · exp(−d²/2), clamped at 0.99 and dropped below 1/255 like the rasteriser; back
-faces are transparent, so each Gaussian counts once. That is the oriented ellipse with its
-Gaussian falloff from any side, independent of the hull's tessellation. Colour is the
-point's `color` attribute (scene-linear, converted from the avatar's sRGB colours) as
-*Emission* strength 1, mixed with *Transparent* by alpha: splats are unlit, as in training.
+view ray itself, in world space: with x = hit point − centre (*Geometry > Position* and the
+instance's `pa_center`), D the view direction (*Geometry > Incoming*), and the splat's axes
+A_i = σ_i r_i (`pa_axis_x/y/z`, written by the Geometry Nodes in world space, so moving,
+rotating or scaling the object is fine), the dilated Gaussian has weights
+w_i = 1/(σ_i² + ε) along r_i (ε = 0.3·(z/f)², z the view depth from *Camera Data*, f the
+material's `pa_focal_px`), and the ray passes its centre at squared Mahalanobis distance
+d² = Σ w x'² − (Σ w x'D')²/Σ w D'² (x'_i = r_i·x, D'_i = r_i·D). The splat's alpha is
+opacity · exp(−d²/2), clamped at 0.99 and dropped below 1/255 like the rasteriser's; back
+faces are transparent, so each Gaussian counts once with either hull. That is the oriented
+ellipse with its Gaussian falloff, independent of the hull's shape. Colour is the point's
+`color` attribute (scene-linear, converted from the avatar's sRGB colours, clipped to
+[0, 1]) as *Emission* strength 1, mixed with *Transparent* by alpha: splats are unlit, as
+in training.
 
 **Compositing space.** By default Blender composites the splats in scene-linear light
 (correct for a scene with other objects and lights) and the *Standard* view transform
@@ -231,7 +248,8 @@ def _blender_render(root, payload, out):
 
 
 LABELS = {
-    "default": "this add-on (ray-exact splat material, dilated hull to the 1/255 cut-off, splat render settings)",
+    "default": "this add-on (world-space splat material, Camera Cards to the 1/255 cut-off, splat render settings)",
+    "ellipsoids": "this add-on with *Camera Cards* off (closed ellipsoid hulls, right from any view)",
     "as_trained": "this add-on, *As Trained* (sRGB colours composited as-is, Raw view transform; opt-in)",
 }
 
@@ -377,7 +395,7 @@ def main(argv=None):
     }
     result["machine"] = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores (shared with other jobs)"
     result["date"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
-    result["command"] = "python scripts/splat_look.py " + " ".join(_own_args() if argv is None else argv)
+    result["command"] = "python scripts/splat_look.py " + shlex.join(_own_args() if argv is None else argv)
     with open(os.path.join(out, "look.json"), "w") as fh:
         json.dump(result, fh, indent=1)
     print(json.dumps(result, indent=1))
@@ -389,18 +407,27 @@ def main(argv=None):
 def _write_doc(path, r):
     rel = os.path.relpath(r["side_by_side"], os.path.dirname(os.path.abspath(path)))
     w, h = r["size"]
+
+    def label(x):
+        return x["look"] if x["look"].startswith("before") else LABELS.get(x["variant"], x["look"])
+
     table = "\n".join(
-        f"| {x['look']} | {x['psnr_head_mask_db']:.2f} | {x['psnr_full_db']:.2f} | {x['cycles_seconds']:.0f} |"
+        f"| {label(x)} | {x['psnr_head_mask_db']:.2f} | {x['psnr_full_db']:.2f} | {x['cycles_seconds']:.0f} |"
         for x in r["rows"]
     )
-    panels = " | ".join(r["panels"])
+    short = {"default": "default (Camera Cards)", "as_trained": "As Trained"}
+    shown = [
+        x["look"] if x["look"].startswith("before") else short[x["variant"]] for x in r["rows"] if x["variant"] in short
+    ]
+    panels = " | ".join(shown + ["our rasteriser", "4 × abs(default − rasteriser)"])
     body = f"""## Cycles against our rasteriser
 
 A Cycles render (CPU, {r["samples"]} samples, no denoising, pixel filter {r["filter_width"]}) of the preview at
 100 % ({r["gaussians"]:,} Gaussians, stream `{r["stream"]}`, test camera {r["camera"]}, frame {r["frame"]}) against
 `core.render.render_numpy` of the same Gaussians from the same camera at {w}×{h} px, black background. PSNR
 over the head mask (rasteriser alpha > 0.5, {100 * r["mask_fraction"]:.0f} % of the image) and over the whole
-image; all rows rendered in the same run, one after the other; Cycles seconds on {r["machine"]}: the
+image; all rows rendered in the same run, one after the other ("before": the add-on source tree of an
+earlier commit, `git archive COMMIT | tar -x -C DIR`); Cycles seconds on {r["machine"]}: the
 machine was shared with 3 other agents' jobs, so the seconds are noisy: compare rows, not runs.
 
 | look | PSNR head mask (dB) | PSNR image (dB) | Cycles s |

@@ -2,14 +2,15 @@
 
 A few dozen Gaussians of trained proportions (flat ellipsoids at all orientations, a range
 of opacities, some overlapping) are imported as static splats (blender_addon/ply_import)
-and rendered by Cycles on the CPU with the splat material and render settings
-(blender_addon/splat_look); core.render.render_numpy renders the same Gaussians from the
-same camera. The material evaluates each Gaussian exactly on the view ray, so the two agree
-up to the rasteriser's affine (EWA) projection, its 0.3 px² dilation and Cycles' sampling,
-once both composite in the same space: Cycles blends scene-linear colours (then the Standard
-view transform encodes sRGB), while the avatar was trained blending sRGB-encoded colours. The
-reference here is therefore the rasteriser run on linear colours and encoded afterwards; the
-gap that blending space makes on a real avatar is measured by scripts/splat_look.py.
+and rendered by Cycles on the CPU with the splat material, camera cards and render settings
+(blender_addon/splat_look, preview); core.render.render_numpy renders the same Gaussians
+from the same camera. The material evaluates each Gaussian exactly on the view ray and the
+cards composite in view-depth order, so the two agree up to the rasteriser's affine (EWA)
+projection and Cycles' pixel filter and sampling, once both composite in the same space:
+by default Cycles blends scene-linear colours (then the Standard view transform encodes
+sRGB), so the reference is the rasteriser run on linear colours and encoded afterwards; the
+opt-in As Trained mode blends the sRGB colours as they are (Raw view transform), against
+the plain rasteriser. The avatar-scale figures come from scripts/splat_look.py.
 """
 
 import json
@@ -99,8 +100,9 @@ def test_cycles_splat_look_matches_the_rasteriser(tmp_path):
             near |= np.roll(alpha, (dy, dx), axis=(0, 1)) > 1e-3
     assert got[~near].max() < 0.05
 
-    # The hull covers the dilated Gaussian out to the rasteriser's cut-off, per axis.
-    _hull_covers_the_dilated_splat(g, rep)
+    # Either hull covers the dilated Gaussian out to the rasteriser's cut-off.
+    _cards_cover_the_dilated_footprint(g, rep)
+    _ellipsoids_cover_the_dilated_splat(g, rep)
 
     # As Trained: sRGB-encoded colours composited as they are, shown raw, is how the avatar was
     # trained: the plain rasteriser (sRGB colours, no encoding afterwards) is the reference.
@@ -117,17 +119,17 @@ def test_cycles_splat_look_matches_the_rasteriser(tmp_path):
     assert np.abs(trained - got)[mask].mean() > 0.01
 
 
-def _hull_covers_the_dilated_splat(g, rep):
+def _cards_cover_the_dilated_footprint(g, rep):
     """Camera cards: a quad per splat parallel to the image plane through its centre, with
     half-extents along the camera's x and y of k·sqrt(cᵀΣc + ε) (k the rasteriser's 1/255
     cut-off radius, ε its 0.3 px² dilation at the splat's distance): the footprint's extent."""
     from progressive_avatars.core.geometry.rotations import quat_to_rotmat
 
-    v = np.array(rep["hull_vertices"])
-    assert len(rep["hull_faces"]) == 1 and np.allclose(np.abs(v[:, :2]), 1) and np.allclose(v[:, 2], 0)
-    m = np.array(rep["instances"])  # camera rotation times (ext_x, ext_y, 1)
+    v = np.array(rep["cards_vertices"])
+    assert len(rep["cards_faces"]) == 1 and np.allclose(np.abs(v[:, :2]), 1) and np.allclose(v[:, 2], 0)
+    m = np.array(rep["cards_matrices"])  # camera rotation times (ext_x, ext_y, 1)
     assert m.shape == (len(g["means"]), 3, 3)
-    dists = np.linalg.norm(np.array(rep["instance_origins"])[:, None] - g["means"][None], axis=2)
+    dists = np.linalg.norm(np.array(rep["cards_origins"])[:, None] - g["means"][None], axis=2)
     order = np.argmin(dists, 1)
     assert len(set(order)) == len(order) and dists.min(1).max() < 1e-6  # one card per splat, at its centre
     cam = np.array(rep["camera_rotation"])
@@ -143,3 +145,31 @@ def _hull_covers_the_dilated_splat(g, rep):
     # The dilation matters here: without it some cards would be much too small.
     bare = cut[:, None] * np.sqrt(np.einsum("ia,nij,ja->na", cam[:, :2], cov, cam[:, :2]))
     assert (need > 1.2 * bare).any()
+
+
+def _ellipsoids_cover_the_dilated_splat(g, rep):
+    """Camera Cards off: an ico-sphere per splat in its own frame whose inscribed ellipsoid has
+    semi-axes k·sqrt(σ_i² + ε), no smaller (it would cut the splat) and no bigger (Cycles' time)."""
+    from progressive_avatars.core.geometry.rotations import quat_to_rotmat
+
+    # The instanced hull mesh: its inscribed sphere's radius (the nearest face plane).
+    v = np.array(rep["ellipsoids_vertices"])
+    tri = v[np.array([f[:3] for f in rep["ellipsoids_faces"]])]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    inradius = np.abs(np.einsum("fi,fi->f", n / np.linalg.norm(n, axis=1, keepdims=True), tri[:, 0])).min()
+    assert len(rep["ellipsoids_faces"]) == 80  # Detail 2
+    m = np.array(rep["ellipsoids_matrices"])  # rotation times per-axis hull scale (column norms)
+    assert m.shape == (len(g["means"]), 3, 3)
+    order = np.argmin(np.linalg.norm(np.array(rep["ellipsoids_origins"])[:, None] - g["means"][None], axis=2), 1)
+    assert len(set(order)) == len(order)  # instances matched one to one with the splats
+    hull = np.linalg.norm(m, axis=1) * inradius  # semi-axes of the ellipsoid the scaled hull surely holds
+    sig, o = g["scales"][order], g["opacities"][order]
+    dist = np.linalg.norm(g["means"][order] - np.array(rep["camera_location"]), axis=1)
+    eps = 0.3 * (dist / rep["focal_px"]) ** 2
+    cut = np.sqrt(2 * np.log(255 * o))
+    need = cut[:, None] * np.sqrt(sig**2 + eps[:, None])
+    assert (hull >= need * 0.999).all(), (hull / need).min()
+    assert (hull <= need * 1.001).all(), (hull / need).max()
+    assert (need.min(1) > 1.2 * cut * sig.min(1)).any()  # the dilation matters on the thin axis
+    rot = m / np.linalg.norm(m, axis=1, keepdims=True)  # columns: the splat's own axes
+    assert np.allclose(np.abs(np.einsum("nij,nij->nj", rot, quat_to_rotmat(g["quats"][order]))), 1, atol=1e-3)
