@@ -20,9 +20,7 @@ FOCAL_NODE = "pa_focal_px"  # focal length in pixels (set with the material's by
 EXTENT_NODE = "pa_extent"  # multiplier on the hull's cut-off radius (1: the rasteriser's own)
 MIN_CUT = 1.65  # 255·o floor: a hull of at least 1σ, even for splats the rasteriser skips
 E = 2.718281828459045
-# Inscribed-sphere radius of Blender's unit ico-sphere per subdivision level (0 unused, 1 the
-# icosahedron): the faces sit this far in, so the hull is scaled by its inverse.
-ICO_INRADIUS = (0.7946, 0.7946, 0.9341, 0.9822, 0.9954)
+ELLIPSOID_EXTENT = 3.0  # the ellipsoid hull's radius in σ (Camera Cards off)
 
 # name -> (attribute type, foreach field, width)
 ATTRIBUTES = {
@@ -201,20 +199,14 @@ def splat_group():
     quad.inputs["Size X"].default_value = quad.inputs["Size Y"].default_value = 2.0
     quad.inputs["Vertices X"].default_value = quad.inputs["Vertices Y"].default_value = 2
 
-    # Ellipsoids: a unit ico-sphere scaled per axis by k·sqrt(σ² + ε), divided by its
-    # inscribed radius (the faces sit inside the vertices' radius).
+    # Ellipsoids: an ico-sphere of radius ELLIPSOID_EXTENT in the splat's frame, scaled by σ
+    # (undilated). Deliberately tighter than the cut-off of the dilated splat: Cycles
+    # composites in the order rays enter these hulls, and larger hulls put more splats in
+    # front of their neighbours (measured worse: docs/BLENDER_SPLATS.md).
     ico = N("GeometryNodeMeshIcoSphere")
-    ico.inputs["Radius"].default_value = 1.0
+    ico.inputs["Radius"].default_value = ELLIPSOID_EXTENT
     _link(ng, gin.outputs["Detail"], ico.inputs["Subdivisions"])
-    inr = N("GeometryNodeIndexSwitch")
-    inr.data_type = "FLOAT"
-    while len(inr.index_switch_items) < len(ICO_INRADIUS):
-        inr.index_switch_items.new()
-    for i, r in enumerate(ICO_INRADIUS):
-        inr.inputs[f"Item_{i}"].default_value = 1.0 / r
-    _link(ng, gin.outputs["Detail"], inr.inputs["Index"])
-    dilated = _vec(ng, "ADD", _vec(ng, "MULTIPLY", sigma, sigma), _combine(ng, eps))
-    hull = _vec(ng, "SCALE", _vec(ng, "POWER", dilated, _combine(ng, 0.5)), _flt(ng, "MULTIPLY", cut, inr.outputs[0]))
+    hull = sigma
 
     cards = gin.outputs["Camera Cards"]
     shape = N("GeometryNodeSwitch")

@@ -149,14 +149,15 @@ material computes the splat itself.
   the viewport away from it shows the cards at an angle, which clips the splats: turn
   *Camera Cards* off to inspect from other views.
 - **Ellipsoids** (*Camera Cards* off): a closed ico-sphere hull (*Detail* sets its
-  subdivisions) in the splat's own frame, scaled per axis by k·sqrt(σ² + ε) and by the
-  inverse of the ico-sphere's inscribed radius (its faces sit inside its vertices: 0.79 of
-  the radius at *Detail* 1, 0.93 at 2, 0.98 at 3). Right from every view, but Cycles then
-  composites in the order rays *enter* the hulls, which puts a large splat in front of the
-  smaller ones around it: the table's Camera Cards off row.
+  subdivisions) of radius 3σ of the undilated Gaussian, in the splat's own frame. Right
+  from every view, but Cycles then composites in the order rays *enter* the hulls, which
+  puts a large splat in front of the smaller ones around it, and the hull cuts sub-pixel
+  splats' dilation short: the table's Camera Cards off row. Hulls that cover the dilated
+  splat out to the cut-off (k·sqrt(σ² + ε), as the cards do) measured worse still, and
+  slower (this section at commit 74a28ff, row "Camera Cards off"): they reorder more.
 
 *Points Only* skips the instancing for speed in heavy scenes. `tests/test_blender_splat_look.py`
-checks the cards' placement and extents on the evaluated instances.
+checks the cards' placement and extents and the ellipsoids' on the evaluated instances.
 
 The **PA Splat** material (`blender_addon/splat_look.py`) evaluates the Gaussian on the
 view ray itself, in world space: with x = hit point − centre (*Geometry > Position* and the
