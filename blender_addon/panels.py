@@ -51,7 +51,7 @@ class PA_PT_avatar(_Base, bpy.types.Panel):
         if mod is not None and mod.node_group is not None:
             from .preview import input_identifier
 
-            for name in ("Size", "Detail", "Points Only"):
+            for name in ("Size", "Camera Cards", "Detail", "Points Only"):
                 try:
                     lay.prop(mod, f'["{input_identifier(mod.node_group, name)}"]', text=name)
                 except KeyError:
@@ -66,7 +66,9 @@ class PA_PT_avatar(_Base, bpy.types.Panel):
         row = lay.row(align=True)
         row.operator("export_scene.progressive_avatars_ply", icon="EXPORT")
         row.operator("render.progressive_avatars_splats", icon="RENDER_STILL")
-        lay.operator("render.progressive_avatars_splat_settings", icon="SHADING_RENDERED")
+        row = lay.row(align=True)
+        row.operator("render.progressive_avatars_splat_settings", icon="SHADING_RENDERED")
+        row.operator("render.progressive_avatars_splat_settings", text="As Trained").as_trained = True
 
 
 class PA_PT_depth(_Base, bpy.types.Panel):

@@ -3,8 +3,9 @@
 Points are grouped by root face (the layout the per-frame evaluator writes fastest); their
 "rank" attribute is their stream position, and the modifier deletes those whose rank reaches
 the "Count" input, so moving the budget slider only sets one modifier input. Each remaining point instances
-an ico-sphere of radius 3 (3σ), rotated by the point's quaternion and scaled by its
-scale; the material (splat_look) reads colour and opacity from the instance and evaluates
+a hull that covers the Gaussian as the rasteriser draws it (dilated, out to its 1/255
+cut-off): a camera-facing card by default, or an ellipsoid in the splat's frame; the
+material (splat_look) reads colour, opacity, centre and axes from the instance and evaluates
 the Gaussian on each view ray, so every splat shows as its oriented ellipse.
 """
 
@@ -13,8 +14,13 @@ import bpy
 GROUP_NAME = "PA Splats"
 MATERIAL_NAME = "PA Splat"
 MODIFIER_NAME = "PA Splats"
-GROUP_VERSION = 2
-EXTENT = 3.0  # sphere radius in standard deviations
+GROUP_VERSION = 4
+EPS2D = 0.3  # the rasteriser's screen-space dilation (px²), which training saw
+FOCAL_NODE = "pa_focal_px"  # focal length in pixels (set with the material's by splat_look.set_focal)
+EXTENT_NODE = "pa_extent"  # multiplier on the hull's cut-off radius (1: the rasteriser's own)
+MIN_CUT = 1.65  # 255·o floor: a hull of at least 1σ, even for splats the rasteriser skips
+E = 2.718281828459045
+ELLIPSOID_EXTENT = 3.0  # the ellipsoid hull's radius in σ (Camera Cards off)
 
 # name -> (attribute type, foreach field, width)
 ATTRIBUTES = {
@@ -48,6 +54,37 @@ def input_identifier(ng, name) -> str:
     return _socket(ng, name).identifier
 
 
+def _vec(tree, op, a, b):
+    node = tree.nodes.new("ShaderNodeVectorMath")
+    node.operation = op
+    _link(tree, a, node.inputs[0])
+    _link(tree, b, node.inputs["Scale"] if op == "SCALE" else node.inputs[1])
+    return node.outputs["Value"] if op in ("DISTANCE", "LENGTH", "DOT_PRODUCT") else node.outputs["Vector"]
+
+
+def _flt(tree, op, a, b=None):
+    node = tree.nodes.new("ShaderNodeMath")
+    node.operation = op
+    for i, v in enumerate((a, b)):
+        if isinstance(v, (int, float)):
+            node.inputs[i].default_value = float(v)
+        elif v is not None:
+            _link(tree, v, node.inputs[i])
+    return node.outputs[0]
+
+
+def _combine(tree, v, values=None):
+    node = tree.nodes.new("ShaderNodeCombineXYZ")
+    for axis in "XYZ":
+        if values is not None:
+            node.inputs[axis].default_value = values.get(axis, 0.0)
+        elif isinstance(v, (int, float)):
+            node.inputs[axis].default_value = float(v)
+        else:
+            _link(tree, v, node.inputs[axis])
+    return node.outputs[0]
+
+
 def splat_material():
     # The look itself (ray-exact Gaussian falloff for Cycles and EEVEE) lives in splat_look.
     from . import splat_look
@@ -73,6 +110,8 @@ def splat_group():
     pts.default_value = False
     detail = ng.interface.new_socket("Detail", in_out="INPUT", socket_type="NodeSocketInt")
     detail.min_value, detail.max_value, detail.default_value = 1, 4, 2
+    cards = ng.interface.new_socket("Camera Cards", in_out="INPUT", socket_type="NodeSocketBool")
+    cards.default_value = True
     N = ng.nodes.new
     gin, gout = N("NodeGroupInput"), N("NodeGroupOutput")
 
@@ -91,25 +130,123 @@ def splat_group():
     _link(ng, gin.outputs["Geometry"], delete.inputs["Geometry"])
     _link(ng, cmp.outputs["Result"], delete.inputs["Selection"])
 
+    # Two hulls, either of which covers each splat as the rasteriser draws it: out to its
+    # cut-off radius k = sqrt(2 ln(255 o)) (alpha below 1/255 there; 3.33 at the 0.99 clamp)
+    # of the dilated Gaussian, σ² + ε with ε = EPS2D·(d/f)², d the distance to the active
+    # camera (≥ the view depth the material uses). The material evaluates the Gaussian on the
+    # ray in world space, whatever the hull, so the hull decides only what is covered and in
+    # which order Cycles composites the splats: it composites in hit order.
+    # - Camera Cards (default): a flat quad through the centre, parallel to the camera's
+    #   image plane, sized to the footprint's extent along the camera's x and y. Every ray
+    #   hits it at the centre's view depth, so splats composite in order of view depth, as
+    #   the rasteriser sorts them. Exact for the scene camera; from other views (orbiting
+    #   the viewport) the cards are seen at an angle and clip their splats.
+    # - Ellipsoids: a closed ico-sphere hull in the splat's own frame, right from every
+    #   view, but composited in order of where rays enter the hulls, which puts a large
+    #   splat in front of smaller ones around it (measured in docs/BLENDER_SPLATS.md).
+    rot = attr("rotation", "QUATERNION")
+    sigma = _vec(ng, "SCALE", attr("scale", "FLOAT_VECTOR"), gin.outputs["Size"])
+    camera = N("GeometryNodeObjectInfo")
+    camera.transform_space = "RELATIVE"  # the camera in this object's space, like the points
+    _link(ng, N("GeometryNodeInputActiveCamera").outputs[0], camera.inputs["Object"])
+    position = N("GeometryNodeInputPosition").outputs[0]
+    dist = _vec(ng, "DISTANCE", position, camera.outputs["Location"])
+    focal = N("ShaderNodeValue")
+    focal.name = focal.label = FOCAL_NODE
+    focal.outputs[0].default_value = 1e9  # no dilation until Splat Render Settings knows the camera
+    px = _flt(ng, "DIVIDE", dist, focal.outputs[0])
+    eps = _flt(ng, "MULTIPLY", _flt(ng, "MULTIPLY", px, px), EPS2D)
+    cut = _flt(ng, "MULTIPLY", attr("opacity", "FLOAT"), 255.0)
+    cut = _flt(ng, "SQRT", _flt(ng, "MULTIPLY", _flt(ng, "LOGARITHM", _flt(ng, "MAXIMUM", cut, MIN_CUT), E), 2.0))
+    extent = N("ShaderNodeValue")
+    extent.name = extent.label = EXTENT_NODE
+    extent.outputs[0].default_value = 1.0
+    cut = _flt(ng, "MULTIPLY", cut, extent.outputs[0])
+
+    def rotate(vector, rotation):
+        node = N("FunctionNodeRotateVector")
+        _link(ng, vector, node.inputs["Vector"])
+        _link(ng, rotation, node.inputs["Rotation"])
+        return node.outputs[0]
+
+    def unit(axis):
+        return _combine(ng, None, {axis: 1.0})
+
+    # The splat's axes scaled by σ, in this object's space (local) and in world space (for
+    # the material, which works in world space: the object may be moved, rotated, scaled).
+    me = N("GeometryNodeObjectInfo")
+    me.transform_space = "ORIGINAL"
+    _link(ng, N("GeometryNodeSelfObject").outputs[0], me.inputs["Object"])
+    axes = []
+    for i, axis in enumerate("XYZ"):
+        sep = N("ShaderNodeSeparateXYZ")
+        _link(ng, sigma, sep.inputs[0])
+        axes.append(_vec(ng, "SCALE", rotate(unit(axis), rot), sep.outputs[i]))
+    # Card extents along the camera's x and y: k·sqrt(Σ_i σ_i² (c·r_i)² + ε).
+    card = []
+    for axis in "XY":
+        c = rotate(unit(axis), camera.outputs["Rotation"])
+        var = eps
+        for a in axes:
+            dot = _vec(ng, "DOT_PRODUCT", a, c)
+            var = _flt(ng, "ADD", var, _flt(ng, "MULTIPLY", dot, dot))
+        card.append(_flt(ng, "MULTIPLY", _flt(ng, "SQRT", var), cut))
+    card_scale = N("ShaderNodeCombineXYZ")
+    _link(ng, card[0], card_scale.inputs["X"])
+    _link(ng, card[1], card_scale.inputs["Y"])
+    card_scale.inputs["Z"].default_value = 1.0
+    quad = N("GeometryNodeMeshGrid")  # [-1, 1]², normal +Z: towards the camera once rotated
+    quad.inputs["Size X"].default_value = quad.inputs["Size Y"].default_value = 2.0
+    quad.inputs["Vertices X"].default_value = quad.inputs["Vertices Y"].default_value = 2
+
+    # Ellipsoids: an ico-sphere of radius ELLIPSOID_EXTENT in the splat's frame, scaled by σ
+    # (undilated). Deliberately tighter than the cut-off of the dilated splat: Cycles
+    # composites in the order rays enter these hulls, and larger hulls put more splats in
+    # front of their neighbours (measured worse: docs/BLENDER_SPLATS.md).
     ico = N("GeometryNodeMeshIcoSphere")
-    ico.inputs["Radius"].default_value = EXTENT
+    ico.inputs["Radius"].default_value = ELLIPSOID_EXTENT
     _link(ng, gin.outputs["Detail"], ico.inputs["Subdivisions"])
-    # Smooth normals: the material's falloff is a function of the normal, and flat facets
-    # would print the icosahedron onto every splat.
-    smooth = N("GeometryNodeSetShadeSmooth")
-    _link(ng, ico.outputs["Mesh"], smooth.inputs["Geometry"])
+    hull = sigma
+
+    cards = gin.outputs["Camera Cards"]
+    shape = N("GeometryNodeSwitch")
+    shape.input_type = "GEOMETRY"
+    _link(ng, cards, shape.inputs["Switch"])
+    _link(ng, ico.outputs["Mesh"], shape.inputs["False"])
+    _link(ng, quad.outputs["Mesh"], shape.inputs["True"])
     setmat = N("GeometryNodeSetMaterial")
     setmat.inputs["Material"].default_value = splat_material()
-    _link(ng, smooth.outputs["Geometry"], setmat.inputs["Geometry"])
-    scl = N("ShaderNodeVectorMath")
-    scl.operation = "SCALE"
-    _link(ng, attr("scale", "FLOAT_VECTOR"), scl.inputs[0])
-    _link(ng, gin.outputs["Size"], scl.inputs["Scale"])
+    _link(ng, shape.outputs[0], setmat.inputs["Geometry"])
+    rot_sw = N("GeometryNodeSwitch")
+    rot_sw.input_type = "ROTATION"
+    _link(ng, cards, rot_sw.inputs["Switch"])
+    _link(ng, rot, rot_sw.inputs["False"])
+    _link(ng, camera.outputs["Rotation"], rot_sw.inputs["True"])
+    scale_sw = N("GeometryNodeSwitch")
+    scale_sw.input_type = "VECTOR"
+    _link(ng, cards, scale_sw.inputs["Switch"])
+    _link(ng, hull, scale_sw.inputs["False"])
+    _link(ng, card_scale.outputs[0], scale_sw.inputs["True"])
+
+    # What the material reads (world space): the centre and the three σ-scaled axes.
+    points = delete.outputs["Geometry"]
+    world = [("pa_center", "FunctionNodeTransformPoint", "Vector", position)]
+    world += [(f"pa_axis_{a.lower()}", "FunctionNodeTransformDirection", "Direction", v) for a, v in zip("XYZ", axes)]
+    for name, kind, socket, value in world:
+        tf = N(kind)
+        _link(ng, value, tf.inputs[socket])
+        _link(ng, me.outputs["Transform"], tf.inputs["Transform"])
+        store = N("GeometryNodeStoreNamedAttribute")
+        store.data_type, store.domain = "FLOAT_VECTOR", "POINT"
+        store.inputs["Name"].default_value = name
+        _link(ng, points, store.inputs["Geometry"])
+        _link(ng, tf.outputs[0], store.inputs["Value"])
+        points = store.outputs["Geometry"]
     inst = N("GeometryNodeInstanceOnPoints")
-    _link(ng, delete.outputs["Geometry"], inst.inputs["Points"])
+    _link(ng, points, inst.inputs["Points"])
     _link(ng, setmat.outputs["Geometry"], inst.inputs["Instance"])
-    _link(ng, attr("rotation", "QUATERNION"), inst.inputs["Rotation"])
-    _link(ng, scl.outputs["Vector"], inst.inputs["Scale"])
+    _link(ng, rot_sw.outputs[0], inst.inputs["Rotation"])
+    _link(ng, scale_sw.outputs[0], inst.inputs["Scale"])
     switch = N("GeometryNodeSwitch")
     switch.input_type = "GEOMETRY"
     _link(ng, gin.outputs["Points Only"], switch.inputs["Switch"])

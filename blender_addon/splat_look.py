@@ -1,35 +1,40 @@
 """The splat look in Cycles and EEVEE: each Gaussian drawn as its own 3D Gaussian seen along
 the view ray, composited front to back with its opacity.
 
-Geometry Nodes instances a closed hull (an ico-sphere of radius 3σ in the Gaussian's own
-frame) on every point, rotated by its quaternion and scaled by its scales; the hull is only a
-proxy that bounds where the Gaussian is visible. The material evaluates the Gaussian
-exactly on the ray that hits the hull's front face: in the instance's object space (where the
-Gaussian is the unit normal distribution) a ray through P with direction D passes the centre
-at squared distance d² = |P|² − (P·D̂)², and the ray's peak response is exp(−d²/2). That is
-the projected ellipse with its Gaussian falloff, for any orientation and anisotropy and from
-any side (no camera-facing trick, no dependence on the hull's tessellation). Colour comes
-from the point's linear "color" attribute as emission (no lighting, like the rasteriser),
-alpha = opacity · exp(−d²/2), and the back faces of each hull are transparent so each
-Gaussian counts once. The rasteriser's 0.3 px² screen-space dilation (which training saw) is
-added as ε = 0.3·(z/f)² to each σ², within the hull; f (focal length in pixels) is a value
-node that ``configure_scene`` sets from the scene camera.
+Geometry Nodes (preview.splat_group) instances a hull on every point that covers the splat
+as the rasteriser draws it (its 0.3 px² dilation ε included, out to its 1/255 cut-off
+radius k = sqrt(2 ln(255 o))): by default a camera card (a quad through the centre,
+parallel to the image plane, so Cycles composites splats in view-depth order like the
+rasteriser), or a closed ellipsoid in the splat's frame. The hull is only a proxy that
+bounds where the Gaussian is visible. The material evaluates the Gaussian exactly on the
+ray, in world space, from the centre and σ-scaled axes the Geometry Nodes store on each
+instance (pa_center, pa_axis_x/y/z): with x = hit point − centre and D the view direction,
+in the splat's frame w_i = 1/(σ_i² + ε) and the ray passes the centre at squared Mahalanobis
+distance d² = Σ w x'² − (Σ w x'D')²/Σ w D'²; the ray's peak response is exp(−d²/2). That is
+the projected ellipse with its Gaussian falloff, for any orientation and anisotropy and any
+hull. Colour comes from the point's linear "color" attribute as emission (no lighting, like
+the rasteriser), alpha = opacity · exp(−d²/2) clamped to [1/255, 0.99] like the
+rasteriser's, and back faces are transparent so each Gaussian counts once. ε = 0.3·(z/f)²
+needs f, the focal length in pixels: a value node in the material and in the group that
+``configure_scene`` sets from the scene camera and resolution.
 
 Cycles composites the hulls along each ray in hit order; EEVEE needs an order-independent
 method, so the material uses Dithered (stochastic) transparency, which converges to the same
 compositing with enough render samples. ``configure_scene`` sets what a correct render needs
 (enough transparent bounces for hundreds of overlapping splats, the Standard view transform
-so colours are the avatar's own sRGB values).
+so colours are the avatar's own sRGB values) and, opt-in, the "as trained" compositing:
+sRGB-encoded colours blended as they are under the Raw view transform, as in training.
 """
 
 import bpy
 
 MATERIAL_NAME = "PA Splat"
-VERSION = 3
-EXTENT = 3.0  # hull radius in standard deviations (the rasteriser cuts at ~3σ too)
+VERSION = 5
 ALPHA_MAX = 0.99  # the rasteriser's per-splat alpha clamp
 EPS2D = 0.3  # the rasteriser's screen-space dilation (px²), which training saw
+ALPHA_MIN = 1.0 / 255.0  # below this the rasteriser skips a splat
 FOCAL_NODE = "pa_focal_px"
+AS_TRAINED_NODE = "pa_as_trained"  # 1: emit sRGB-encoded colours (with the Raw view transform)
 
 
 def _math(nt, op, a, b=None, clamp=False):
@@ -46,13 +51,27 @@ def _math(nt, op, a, b=None, clamp=False):
     return node.outputs[0]
 
 
-def _vmath(nt, op, a, b=None):
+def _vmath(nt, op, *inputs):
+    """A Vector Math node; each input is a socket, a float (all three components) or None."""
     node = nt.nodes.new("ShaderNodeVectorMath")
     node.operation = op
-    nt.links.new(a, node.inputs[0])
-    if b is not None:
-        nt.links.new(b, node.inputs[1])
-    return node.outputs["Value"] if op in ("DOT_PRODUCT", "LENGTH") else node.outputs["Vector"]
+    slots = [node.inputs[0], node.inputs["Scale"]] if op == "SCALE" else list(node.inputs)[:3]
+    for slot, v in zip(slots, inputs):
+        if v is None:
+            continue
+        if isinstance(v, (int, float)):
+            slot.default_value = float(v) if op == "SCALE" and slot.name == "Scale" else (float(v),) * 3
+        else:
+            nt.links.new(v, slot)
+    return node.outputs["Value"] if op in ("DOT_PRODUCT", "LENGTH", "DISTANCE") else node.outputs["Vector"]
+
+
+def _srgb_encode(nt, lin):
+    """The sRGB transfer function per channel (linear below 0.0031308, power above)."""
+    hi = _vmath(nt, "MULTIPLY_ADD", _vmath(nt, "POWER", _vmath(nt, "MAXIMUM", lin, 0.0), 1 / 2.4), 1.055, -0.055)
+    lo = _vmath(nt, "SCALE", lin, 12.92)
+    step = _vmath(nt, "MULTIPLY_ADD", _vmath(nt, "SIGN", _vmath(nt, "SUBTRACT", lin, 0.0031308)), 0.5, 0.5)
+    return _vmath(nt, "MULTIPLY_ADD", step, _vmath(nt, "SUBTRACT", hi, lo), lo)
 
 
 def splat_material(name=MATERIAL_NAME):
@@ -76,41 +95,59 @@ def splat_material(name=MATERIAL_NAME):
     col.attribute_type, col.attribute_name = "INSTANCER", "color"
     opa = N("ShaderNodeAttribute")
     opa.attribute_type, opa.attribute_name = "INSTANCER", "opacity"
-    tex = N("ShaderNodeTexCoord")  # "Object": the hit point in the instance's unit-Gaussian frame
     geo = N("ShaderNodeNewGeometry")
-    to_obj = N("ShaderNodeVectorTransform")
-    to_obj.vector_type, to_obj.convert_from, to_obj.convert_to = "VECTOR", "WORLD", "OBJECT"
-    nt.links.new(geo.outputs["Incoming"], to_obj.inputs["Vector"])
-    d_vec = to_obj.outputs["Vector"]
-    p = tex.outputs["Object"]
-    # The rasteriser dilates every projected Gaussian by EPS2D px² (and training saw that):
-    # in world units that is ε = EPS2D·(z/f)² added to each σ², so in the unit frame the
-    # ray metric is k_i = s_i²/(s_i² + ε) and d² = pᵀKp − (pᵀKD)²/(DᵀKD).
+    # In world space: x = hit point − centre, D = the view direction; the splat's axes come
+    # scaled by σ (A_i = σ_i r_i). The rasteriser dilates every projected Gaussian by EPS2D
+    # px² (and training saw that): in world units ε = EPS2D·(z/f)² added to each σ², so in
+    # the splat's frame x'_i = r_i·x, w_i = 1/(σ_i² + ε) and
+    # d² = Σ w x'² − (Σ w x' D')² / Σ w D'² (the ray's closest approach, Mahalanobis).
+    centre = N("ShaderNodeAttribute")
+    centre.attribute_type, centre.attribute_name = "INSTANCER", "pa_center"
+    x = _vmath(nt, "SUBTRACT", geo.outputs["Position"], centre.outputs["Vector"])
+    d_vec = geo.outputs["Incoming"]
     cam = N("ShaderNodeCameraData")
     focal = N("ShaderNodeValue")
     focal.name = focal.label = FOCAL_NODE
     focal.outputs[0].default_value = 1e9  # no dilation until configure_scene knows the camera
     px = _math(nt, "DIVIDE", cam.outputs["View Z Depth"], focal.outputs[0])
     eps = _math(nt, "MULTIPLY", _math(nt, "MULTIPLY", px, px), EPS2D)
-    s_attr = N("ShaderNodeAttribute")
-    s_attr.attribute_type, s_attr.attribute_name = "INSTANCER", "scale"
-    s2 = _vmath(nt, "MULTIPLY", s_attr.outputs["Vector"], s_attr.outputs["Vector"])
-    eps_v = N("ShaderNodeCombineXYZ")
-    for axis in "XYZ":
-        nt.links.new(eps, eps_v.inputs[axis])
-    k = _vmath(nt, "DIVIDE", s2, _vmath(nt, "ADD", s2, eps_v.outputs["Vector"]))
-    kp = _vmath(nt, "MULTIPLY", p, k)
-    kd = _vmath(nt, "MULTIPLY", d_vec, k)
-    pkp = _vmath(nt, "DOT_PRODUCT", p, kp)
-    pkd = _vmath(nt, "DOT_PRODUCT", p, kd)
-    dkd = _math(nt, "MAXIMUM", _vmath(nt, "DOT_PRODUCT", d_vec, kd), 1e-30)
+    pkp = pkd = dkd = None
+    for axis in "xyz":
+        a_attr = N("ShaderNodeAttribute")
+        a_attr.attribute_type, a_attr.attribute_name = "INSTANCER", f"pa_axis_{axis}"
+        a_vec = a_attr.outputs["Vector"]
+        r = _vmath(nt, "NORMALIZE", a_vec)
+        w = _math(nt, "DIVIDE", 1.0, _math(nt, "ADD", _vmath(nt, "DOT_PRODUCT", a_vec, a_vec), eps))
+        xi = _vmath(nt, "DOT_PRODUCT", r, x)
+        di = _vmath(nt, "DOT_PRODUCT", r, d_vec)
+        terms = (
+            _math(nt, "MULTIPLY", w, _math(nt, "MULTIPLY", xi, xi)),
+            _math(nt, "MULTIPLY", w, _math(nt, "MULTIPLY", xi, di)),
+            _math(nt, "MULTIPLY", w, _math(nt, "MULTIPLY", di, di)),
+        )
+        if pkp is None:
+            pkp, pkd, dkd = terms
+        else:
+            pkp, pkd, dkd = (_math(nt, "ADD", u, v) for u, v in zip((pkp, pkd, dkd), terms))
+    dkd = _math(nt, "MAXIMUM", dkd, 1e-30)
     d2 = _math(nt, "SUBTRACT", pkp, _math(nt, "DIVIDE", _math(nt, "MULTIPLY", pkd, pkd), dkd))
     fall = _math(nt, "EXPONENT", _math(nt, "MULTIPLY", _math(nt, "MAXIMUM", d2, 0.0), -0.5))
     alpha = _math(nt, "MINIMUM", _math(nt, "MULTIPLY", fall, opa.outputs["Fac"]), ALPHA_MAX)
+    # The rasteriser skips a splat where its alpha is below 1/255 (the hull's edge is there).
+    alpha = _math(nt, "MULTIPLY", alpha, _math(nt, "GREATER_THAN", alpha, ALPHA_MIN))
     front = _math(nt, "SUBTRACT", 1.0, geo.outputs["Backfacing"])
     alpha = _math(nt, "MULTIPLY", alpha, front)
+    # "As trained": emit the sRGB-encoded colour, composited as-is and shown by the Raw view
+    # transform, i.e. blending in sRGB like the rasteriser; 0 emits the scene-linear colour.
+    as_trained = N("ShaderNodeValue")
+    as_trained.name = as_trained.label = AS_TRAINED_NODE
+    as_trained.outputs[0].default_value = 0.0
+    lin = col.outputs["Vector"]
+    color = _vmath(
+        nt, "ADD", lin, _vmath(nt, "SCALE", _vmath(nt, "SUBTRACT", _srgb_encode(nt, lin), lin), as_trained.outputs[0])
+    )
     emit = N("ShaderNodeEmission")
-    nt.links.new(col.outputs["Color"], emit.inputs["Color"])
+    nt.links.new(color, emit.inputs["Color"])
     clear = N("ShaderNodeBsdfTransparent")
     mix = N("ShaderNodeMixShader")
     nt.links.new(alpha, mix.inputs[0])
@@ -123,23 +160,39 @@ def splat_material(name=MATERIAL_NAME):
     return mat
 
 
-def set_focal(scene, mat=None):
-    """The scene camera's focal length in pixels, for the material's dilation (it changes
-    with the camera and the resolution: Splat Render Settings sets it again)."""
+def _value_nodes(name, mat=None):
+    """The material's and the splat Geometry Nodes group's value nodes of this name."""
+    from .preview import GROUP_NAME
+
     mat = mat or bpy.data.materials.get(MATERIAL_NAME)
-    node = mat.node_tree.nodes.get(FOCAL_NODE) if mat is not None and mat.node_tree else None
+    trees = [mat.node_tree if mat is not None else None, bpy.data.node_groups.get(GROUP_NAME)]
+    return [t.nodes[name] for t in trees if t is not None and name in t.nodes]
+
+
+def set_focal(scene, mat=None):
+    """The scene camera's focal length in pixels, for the dilation in the material and in
+    the hull (it changes with the camera and the resolution: Splat Render Settings sets it
+    again)."""
+    nodes = _value_nodes(FOCAL_NODE, mat)
     cam = scene.camera
-    if node is None or cam is None or cam.type != "CAMERA" or cam.data.type != "PERSP":
+    if not nodes or cam is None or cam.type != "CAMERA" or cam.data.type != "PERSP":
         return None
     r = scene.render
     big = max(r.resolution_x, r.resolution_y) * r.resolution_percentage / 100.0
     f = cam.data.lens / cam.data.sensor_width * big
-    node.outputs[0].default_value = f
+    for node in nodes:
+        node.outputs[0].default_value = f
     return f
 
 
-def configure_scene(scene, transparent_bounces=512, min_transparent_bounces=None):
-    """Render settings the splat look needs; returns {setting: (old, new)} of what changed."""
+def configure_scene(scene, transparent_bounces=512, min_transparent_bounces=None, as_trained=False):
+    """Render settings the splat look needs; returns {setting: (old, new)} of what changed.
+
+    ``as_trained`` composites the avatar's sRGB-encoded colours as they are and shows them
+    with the Raw view transform: exactly how the avatar was trained (and how our rasteriser
+    draws it), but other objects in the scene are then shown unencoded (too dark) and light
+    does not mix with the splats correctly. Off (the default), splats emit scene-linear
+    colours under the Standard view transform, like any other object."""
     changed = {}
     f = set_focal(scene)
     if f is not None:
@@ -151,7 +204,9 @@ def configure_scene(scene, transparent_bounces=512, min_transparent_bounces=None
             setattr(owner, attr, value)
             changed[label] = (old, value)
 
-    put(scene.view_settings, "view_transform", "Standard", "view_transform")
+    for node in _value_nodes(AS_TRAINED_NODE):
+        put(node.outputs[0], "default_value", float(as_trained), "splat colours as trained")
+    put(scene.view_settings, "view_transform", "Raw" if as_trained else "Standard", "view_transform")
     put(scene.view_settings, "look", "None", "look")
     cy = getattr(scene, "cycles", None)
     if cy is not None:
@@ -173,8 +228,15 @@ class PA_OT_splat_render_settings(bpy.types.Operator):
     bl_label = "Splat Render Settings"
     bl_options = {"REGISTER", "UNDO"}
 
+    as_trained: bpy.props.BoolProperty(
+        name="As Trained",
+        description="Composite the avatar's sRGB colours as they are under the Raw view transform: "
+        "exactly as the avatar was trained, but other objects and lights no longer look right",
+        default=False,
+    )
+
     def execute(self, context):
-        changed = configure_scene(context.scene)
+        changed = configure_scene(context.scene, as_trained=self.as_trained)
         text = ", ".join(f"{k}: {a} → {b}" for k, (a, b) in changed.items()) or "already set"
         self.report({"INFO"}, f"Splat render settings: {text}")
         return {"FINISHED"}

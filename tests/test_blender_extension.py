@@ -296,11 +296,14 @@ def test_frames_match_core_evaluation(session):
         np.testing.assert_allclose(a[f"scl_{t}"][:n], ref["scales"][:n], atol=1e-6, rtol=1e-5)
         dots = np.abs(np.sum(a[f"rot_{t}"][:n] * ref["quats"][:n], axis=1))
         np.testing.assert_allclose(dots, 1.0, atol=1e-5)
-        # What Geometry Nodes instances: rotation·diag(scale), translation = mean.
+        # What Geometry Nodes instances: a hull at the mean (a camera card by default), and
+        # the splat the material draws: its axes rotation·diag(scale) and its centre.
         xf = a[f"xf_{t}"]
-        want = quat_to_rotmat(ref["quats"][:n]) * ref["scales"][:n, None, :]
-        np.testing.assert_allclose(xf[:, :3, :3], want, atol=1e-5)
         np.testing.assert_allclose(xf[:, :3, 3], ref["means"][:n], atol=1e-5)
+        splat = a[f"splat_{t}"]
+        want = quat_to_rotmat(ref["quats"][:n]) * ref["scales"][:n, None, :]
+        np.testing.assert_allclose(splat[:, :3, :3], want, atol=1e-5)
+        np.testing.assert_allclose(splat[:, :3, 3], ref["means"][:n], atol=1e-5)
     ref = av.gaussians(verts[6])
     np.testing.assert_allclose(session["arrays"]["pos_100_6"], ref["means"], atol=1e-5, rtol=0)
 

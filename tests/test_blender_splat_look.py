@@ -2,14 +2,15 @@
 
 A few dozen Gaussians of trained proportions (flat ellipsoids at all orientations, a range
 of opacities, some overlapping) are imported as static splats (blender_addon/ply_import)
-and rendered by Cycles on the CPU with the splat material and render settings
-(blender_addon/splat_look); core.render.render_numpy renders the same Gaussians from the
-same camera. The material evaluates each Gaussian exactly on the view ray, so the two agree
-up to the rasteriser's affine (EWA) projection, its 0.3 px² dilation and Cycles' sampling,
-once both composite in the same space: Cycles blends scene-linear colours (then the Standard
-view transform encodes sRGB), while the avatar was trained blending sRGB-encoded colours. The
-reference here is therefore the rasteriser run on linear colours and encoded afterwards; the
-gap that blending space makes on a real avatar is measured by scripts/splat_look.py.
+and rendered by Cycles on the CPU with the splat material, camera cards and render settings
+(blender_addon/splat_look, preview); core.render.render_numpy renders the same Gaussians
+from the same camera. The material evaluates each Gaussian exactly on the view ray and the
+cards composite in view-depth order, so the two agree up to the rasteriser's affine (EWA)
+projection and Cycles' pixel filter and sampling, once both composite in the same space:
+by default Cycles blends scene-linear colours (then the Standard view transform encodes
+sRGB), so the reference is the rasteriser run on linear colours and encoded afterwards; the
+opt-in As Trained mode blends the sRGB colours as they are (Raw view transform), against
+the plain rasteriser. The avatar-scale figures come from scripts/splat_look.py.
 """
 
 import json
@@ -91,5 +92,74 @@ def test_cycles_splat_look_matches_the_rasteriser(tmp_path):
     psnr = 10 * np.log10(1 / err[mask].mean())
     print(f"Cycles vs rasteriser: {psnr:.2f} dB over {mask.mean():.0%} of the image")
     assert psnr > 28, psnr
-    # Nothing drawn where the rasteriser has nothing (no hull edges, no back faces).
-    assert got[alpha < 1e-3].max() < 0.05
+    # Nothing drawn where the rasteriser has nothing within a pixel (no hull edges, no back
+    # faces; Cycles' pixel filter spreads a splat's faint tail about a pixel further).
+    near = np.zeros_like(alpha, bool)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            near |= np.roll(alpha, (dy, dx), axis=(0, 1)) > 1e-3
+    assert got[~near].max() < 0.05
+
+    # The cards cover the dilated footprint out to the rasteriser's cut-off; the ellipsoids
+    # (Camera Cards off) are the splat's 3σ hulls.
+    _cards_cover_the_dilated_footprint(g, rep)
+    _ellipsoids_are_3_sigma_hulls(g, rep)
+
+    # As Trained: sRGB-encoded colours composited as they are, shown raw, is how the avatar was
+    # trained: the plain rasteriser (sRGB colours, no encoding afterwards) is the reference.
+    assert rep["view_transform_trained"] == "Raw" and "splat colours as trained" in rep["changed_trained"]
+    srgb, _, _ = render_numpy(
+        g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], cam, np.zeros(3, np.float32)
+    )
+    trained = np.asarray(Image.open(tmp_path / "cycles_trained.png").convert("RGB"), np.float32) / 255
+    err = (trained - np.clip(srgb, 0, 1)) ** 2
+    psnr_trained = 10 * np.log10(1 / err[mask].mean())
+    print(f"As Trained vs the sRGB-blending rasteriser: {psnr_trained:.2f} dB")
+    assert psnr_trained > 28, psnr_trained
+    # ... and it really is a different image from the default (linear blending) one.
+    assert np.abs(trained - got)[mask].mean() > 0.01
+
+
+def _cards_cover_the_dilated_footprint(g, rep):
+    """Camera cards: a quad per splat parallel to the image plane through its centre, with
+    half-extents along the camera's x and y of k·sqrt(cᵀΣc + ε) (k the rasteriser's 1/255
+    cut-off radius, ε its 0.3 px² dilation at the splat's distance): the footprint's extent."""
+    from progressive_avatars.core.geometry.rotations import quat_to_rotmat
+
+    v = np.array(rep["cards_vertices"])
+    assert len(rep["cards_faces"]) == 1 and np.allclose(np.abs(v[:, :2]), 1) and np.allclose(v[:, 2], 0)
+    m = np.array(rep["cards_matrices"])  # camera rotation times (ext_x, ext_y, 1)
+    assert m.shape == (len(g["means"]), 3, 3)
+    dists = np.linalg.norm(np.array(rep["cards_origins"])[:, None] - g["means"][None], axis=2)
+    order = np.argmin(dists, 1)
+    assert len(set(order)) == len(order) and dists.min(1).max() < 1e-6  # one card per splat, at its centre
+    cam = np.array(rep["camera_rotation"])
+    ext = np.linalg.norm(m, axis=1)[:, :2]
+    assert np.allclose(m[:, :, :2] / ext[:, None, :], cam[None, :, :2], atol=1e-4)  # parallel to the image
+    rot = quat_to_rotmat(g["quats"][order].astype(np.float64))
+    cov = np.einsum("nij,nj,nkj->nik", rot, g["scales"][order].astype(np.float64) ** 2, rot)
+    dist = np.linalg.norm(g["means"][order] - np.array(rep["camera_location"]), axis=1)
+    eps = 0.3 * (dist / rep["focal_px"]) ** 2
+    cut = np.sqrt(2 * np.log(255 * g["opacities"][order]))
+    need = cut[:, None] * np.sqrt(np.einsum("ia,nij,ja->na", cam[:, :2], cov, cam[:, :2]) + eps[:, None])
+    assert np.allclose(ext, need, rtol=1e-3), np.abs(ext / need - 1).max()
+    # The dilation matters here: without it some cards would be much too small.
+    bare = cut[:, None] * np.sqrt(np.einsum("ia,nij,ja->na", cam[:, :2], cov, cam[:, :2]))
+    assert (need > 1.2 * bare).any()
+
+
+def _ellipsoids_are_3_sigma_hulls(g, rep):
+    """Camera Cards off: an ico-sphere of radius 3 per splat in its own frame, scaled by σ (the
+    undilated Gaussian: larger hulls composite worse in Cycles, docs/BLENDER_SPLATS.md)."""
+    from progressive_avatars.core.geometry.rotations import quat_to_rotmat
+
+    v = np.array(rep["ellipsoids_vertices"])
+    assert len(rep["ellipsoids_faces"]) == 80  # Detail 2
+    assert np.allclose(np.linalg.norm(v, axis=1), 3.0, rtol=1e-4)
+    m = np.array(rep["ellipsoids_matrices"])  # rotation times σ per axis (column norms)
+    assert m.shape == (len(g["means"]), 3, 3)
+    order = np.argmin(np.linalg.norm(np.array(rep["ellipsoids_origins"])[:, None] - g["means"][None], axis=2), 1)
+    assert len(set(order)) == len(order)  # instances matched one to one with the splats
+    np.testing.assert_allclose(np.linalg.norm(m, axis=1), g["scales"][order], rtol=1e-3)
+    rot = m / np.linalg.norm(m, axis=1, keepdims=True)  # columns: the splat's own axes
+    assert np.allclose(np.abs(np.einsum("nij,nij->nj", rot, quat_to_rotmat(g["quats"][order]))), 1, atol=1e-3)

@@ -57,6 +57,9 @@ def verts_of(obj):
     return a.reshape(-1, 3)
 
 
+LAST = {}  # preview_state's splat arrays (centre and axes) of its last call
+
+
 def preview_state(pv):
     dg = bpy.context.evaluated_depsgraph_get()
     geo = pv.evaluated_get(dg).evaluated_geometry()  # must outlive the point cloud taken from it
@@ -69,8 +72,17 @@ def preview_state(pv):
     scl = np.empty(len(pv.data.vertices) * 3, np.float32)
     pv.data.attributes["scale"].data.foreach_get("vector", scl)
     xf = np.zeros(n * 16, np.float32)
+    # The splat itself as the material reads it (world space): centre and σ-scaled axes,
+    # brought back into the preview object's space, as a 4x4 [A_x A_y A_z centre].
+    splat = np.zeros((n, 4, 4), np.float32)
     if n:
         ip.attributes["instance_transform"].data.foreach_get("value", xf)
+        to_local = np.linalg.inv(np.array(pv.matrix_world))
+        for col, name in enumerate(("pa_axis_x", "pa_axis_y", "pa_axis_z", "pa_center")):
+            v = np.empty(n * 3, np.float32)
+            ip.attributes[name].data.foreach_get("vector", v)
+            v = v.reshape(n, 3)
+            splat[:, :3, col] = v @ to_local[:3, :3].T + (to_local[:3, 3] if col == 3 else 0)
     # Points are laid out by root face; the rank attribute is their stream position. Return
     # everything in stream order (instances: the points with rank < n, in point order).
     rank = np.empty(len(pv.data.vertices), np.int32)
@@ -78,6 +90,7 @@ def preview_state(pv):
     by_rank = np.argsort(rank)
     inst = np.argsort(rank[rank < n])
     xf = xf.reshape(n, 4, 4).transpose(0, 2, 1)[inst]
+    LAST["splat"] = splat[inst]
     return n, pos.reshape(-1, 3)[by_rank], rot.reshape(-1, 4)[by_rank], scl.reshape(-1, 3)[by_rank], xf
 
 
@@ -129,6 +142,7 @@ def _():
         bpy.context.scene.frame_set(bpy.context.scene.frame_start + t)
         n, pos, rot, scl, xf = preview_state(pv)
         arrays[f"pos_{t}"], arrays[f"rot_{t}"], arrays[f"scl_{t}"], arrays[f"xf_{t}"] = pos, rot, scl, xf
+        arrays[f"splat_{t}"] = LAST["splat"]
         R[f"instances_{t}"] = n
     st.budget = 100.0
     n, pos, rot, scl, xf = preview_state(pv)

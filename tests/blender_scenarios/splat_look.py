@@ -40,9 +40,9 @@ try:
     sc.cycles.device = "CPU"
     sc.cycles.samples = 32
     sc.cycles.use_denoising = False
-    R["changed"] = sorted(look.configure_scene(sc))
     sc.render.resolution_x = sc.render.resolution_y = 64
     sc.render.resolution_percentage = 100
+    R["changed"] = sorted(look.configure_scene(sc))  # after the resolution: the focal length in pixels
     sc.render.threads_mode = "FIXED"
     sc.render.threads = 2
     sc.render.filepath = os.path.join(out, "cycles.png")
@@ -52,6 +52,38 @@ try:
     )
     R["camera"] = {"R": c.R.tolist(), "t": c.t.tolist(), "intr": [c.fx, c.fy, c.cx, c.cy]}
     R["material_method"] = bpy.data.materials["PA Splat"].surface_render_method
+
+    # The hull Geometry Nodes made: each instance's world matrix (rotation x per-axis hull
+    # scale) and the camera's distance to each splat, to check the hull covers the splat as
+    # the rasteriser draws it (dilated, out to its 1/255 cut-off).
+    def instances(key):
+        dg = bpy.context.evaluated_depsgraph_get()
+        mats = []
+        for inst in dg.object_instances:  # (each item is only valid during the iteration)
+            if inst.is_instance and inst.parent.original == obj:
+                mats.append(np.array(inst.matrix_world))
+                if key + "_vertices" not in R:
+                    me = inst.object.data
+                    R[key + "_vertices"] = [list(v.co) for v in me.vertices]
+                    R[key + "_faces"] = [list(p.vertices) for p in me.polygons]
+        R[key + "_matrices"] = [m[:3, :3].tolist() for m in mats]
+        R[key + "_origins"] = [m[:3, 3].tolist() for m in mats]
+
+    instances("cards")
+    R["camera_location"] = list(co.location)
+    R["camera_rotation"] = np.array(co.matrix_world)[:3, :3].tolist()
+    R["focal_px"] = 64 * cam.lens / cam.sensor_width
+    # The opt-in As Trained compositing: sRGB colours blended as they are, Raw view transform.
+    R["changed_trained"] = sorted(look.configure_scene(sc, as_trained=True))
+    R["view_transform_trained"] = sc.view_settings.view_transform
+    sc.render.filepath = os.path.join(out, "cycles_trained.png")
+    bpy.ops.render.render(write_still=True)
+    # The ellipsoid hulls (Camera Cards off): evaluated, not rendered.
+    mod = obj.modifiers["PA Splats"]
+    key = next(i.identifier for i in mod.node_group.interface.items_tree if getattr(i, "name", "") == "Camera Cards")
+    mod[key] = False
+    obj.update_tag()
+    instances("ellipsoids")
 except Exception:
     R["error"] = traceback.format_exc()
 print("PA_LOOK " + json.dumps(R))
