@@ -51,7 +51,7 @@ class PA_PT_avatar(_Base, bpy.types.Panel):
         if mod is not None and mod.node_group is not None:
             from .preview import input_identifier
 
-            for name in ("Size", "Camera Cards", "Detail", "Points Only"):
+            for name in ("Size", "Camera Cards", "Cards in Viewport", "Detail", "Points Only"):
                 try:
                     lay.prop(mod, f'["{input_identifier(mod.node_group, name)}"]', text=name)
                 except KeyError:

@@ -14,7 +14,7 @@ import bpy
 GROUP_NAME = "PA Splats"
 MATERIAL_NAME = "PA Splat"
 MODIFIER_NAME = "PA Splats"
-GROUP_VERSION = 4
+GROUP_VERSION = 5
 EPS2D = 0.3  # the rasteriser's screen-space dilation (px²), which training saw
 FOCAL_NODE = "pa_focal_px"  # focal length in pixels (set with the material's by splat_look.set_focal)
 EXTENT_NODE = "pa_extent"  # multiplier on the hull's cut-off radius (1: the rasteriser's own)
@@ -112,6 +112,10 @@ def splat_group():
     detail.min_value, detail.max_value, detail.default_value = 1, 4, 2
     cards = ng.interface.new_socket("Camera Cards", in_out="INPUT", socket_type="NodeSocketBool")
     cards.default_value = True
+    # Cards face the scene camera, so an orbiting viewport would see them edge-on: by default
+    # they are used for renders only and the viewport shows the ellipsoids (right from any view).
+    in_view = ng.interface.new_socket("Cards in Viewport", in_out="INPUT", socket_type="NodeSocketBool")
+    in_view.default_value = False
     N = ng.nodes.new
     gin, gout = N("NodeGroupInput"), N("NodeGroupOutput")
 
@@ -208,7 +212,18 @@ def splat_group():
     _link(ng, gin.outputs["Detail"], ico.inputs["Subdivisions"])
     hull = sigma
 
-    cards = gin.outputs["Camera Cards"]
+    not_viewport = N("FunctionNodeBooleanMath")
+    not_viewport.operation = "NOT"
+    _link(ng, N("GeometryNodeIsViewport").outputs[0], not_viewport.inputs[0])
+    here = N("FunctionNodeBooleanMath")
+    here.operation = "OR"
+    _link(ng, gin.outputs["Cards in Viewport"], here.inputs[0])
+    _link(ng, not_viewport.outputs[0], here.inputs[1])
+    use_cards = N("FunctionNodeBooleanMath")
+    use_cards.operation = "AND"
+    _link(ng, gin.outputs["Camera Cards"], use_cards.inputs[0])
+    _link(ng, here.outputs[0], use_cards.inputs[1])
+    cards = use_cards.outputs[0]
     shape = N("GeometryNodeSwitch")
     shape.input_type = "GEOMETRY"
     _link(ng, cards, shape.inputs["Switch"])

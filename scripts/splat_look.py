@@ -145,9 +145,10 @@ material computes the splat itself.
   the camera's image plane, with half-extents k·sqrt(cᵀΣc + ε) along the camera's x and y
   axes c (the footprint's extent). Every ray meets a card at its splat's view depth, so the
   splats composite in order of view depth, exactly as the rasteriser sorts them, and each
-  ray crosses one surface per splat instead of two. Exact for the scene camera; orbiting
-  the viewport away from it shows the cards at an angle, which clips the splats: turn
-  *Camera Cards* off to inspect from other views.
+  ray crosses one surface per splat instead of two. Exact for the scene camera; seen from
+  elsewhere the cards stand at an angle and clip their splats, so by default they are used
+  for renders only (Geometry Nodes' *Is Viewport*): the viewport, orbiting freely, shows the
+  ellipsoids. *Cards in Viewport* shows the cards there too (look through the camera).
 - **Ellipsoids** (*Camera Cards* off): a closed ico-sphere hull (*Detail* sets its
   subdivisions) of radius 3σ of the undilated Gaussian, in the splat's own frame. Right
   from every view, but Cycles then composites in the order rays *enter* the hulls, which

@@ -69,7 +69,18 @@ try:
         R[key + "_matrices"] = [m[:3, :3].tolist() for m in mats]
         R[key + "_origins"] = [m[:3, 3].tolist() for m in mats]
 
+    # The viewport shows the ellipsoids by default (cards face the scene camera, renders use them).
+    mod = obj.modifiers["PA Splats"]
+
+    def set_input(name, value):
+        key = next(i.identifier for i in mod.node_group.interface.items_tree if getattr(i, "name", "") == name)
+        mod[key] = value
+        obj.update_tag()
+
+    instances("viewport_default")
+    set_input("Cards in Viewport", True)
     instances("cards")
+    set_input("Cards in Viewport", False)
     R["camera_location"] = list(co.location)
     R["camera_rotation"] = np.array(co.matrix_world)[:3, :3].tolist()
     R["focal_px"] = 64 * cam.lens / cam.sensor_width
@@ -79,10 +90,7 @@ try:
     sc.render.filepath = os.path.join(out, "cycles_trained.png")
     bpy.ops.render.render(write_still=True)
     # The ellipsoid hulls (Camera Cards off): evaluated, not rendered.
-    mod = obj.modifiers["PA Splats"]
-    key = next(i.identifier for i in mod.node_group.interface.items_tree if getattr(i, "name", "") == "Camera Cards")
-    mod[key] = False
-    obj.update_tag()
+    set_input("Camera Cards", False)
     instances("ellipsoids")
 except Exception:
     R["error"] = traceback.format_exc()
