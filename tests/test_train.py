@@ -436,7 +436,11 @@ def test_coarse_levels_on_by_default_and_switchable(tiny_dataset, tmp_path):
     f = tr.model.forest
     F0 = len(tr.train.faces)
     assert f.num_coarse_levels == 2 and f.level_counts().tolist() == [*f.coarse_counts, F0]
-    assert 0.015 * F0 < f.coarse_counts[0] < 0.06 * F0 and 0.08 * F0 < f.coarse_counts[1] < 0.2 * F0
+    from progressive_avatars.core.avatar.coarse import DEFAULT_FRACTIONS
+
+    assert cfg.coarse_levels == DEFAULT_FRACTIONS == (1 / 32, 1 / 16)
+    for count, frac in zip(f.coarse_counts, DEFAULT_FRACTIONS):  # about the asked fraction of the template
+        assert 0.5 * frac * F0 < count < 1.5 * frac * F0, (count, frac * F0)
     assert set(np.unique(f.coarse_faces)) <= set(np.unique(tr.train.faces))
     assert len(tr.model.level_ids) == 3 and len(tr.model.level_ids[0]) == f.coarse_counts[0]
     loss = tr.step()["loss"]
