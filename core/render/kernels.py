@@ -61,6 +61,9 @@ _BOX_SLACK = 1.0 + 1e-6
 # Gradient record per Gaussian written by raster_backward: d/du, d/dv, d/dconic (a, b, c),
 # d/dopacity, then d/dcolor[0..C).
 G_U, G_V, G_CA, G_CB, G_CC, G_OPAC, G_COLOR = 0, 1, 2, 3, 4, 5, 6
+# raster_backward's per-pair geometry buffer: G_U..G_OPAC, then d/du, d/dv of the last image.
+_GEO_U_LAST = G_COLOR
+_GEO_WIDTH = G_COLOR + 2
 
 
 def fov_limits(width, height, fx, fy, cx, cy):
@@ -428,7 +431,7 @@ def _forward_tile(
             a, b = _row_span(dy, u, ca, cb, cc, c_g, i0, i1)
             if a > b:
                 continue
-            if active[r] & (((1 << (b + 1 - x0)) - 1) ^ ((1 << (a - x0)) - 1)) == 0:
+            if (active[r] & (((1 << (b + 1 - x0)) - 1) ^ ((1 << (a - x0)) - 1))) == 0:
                 continue
             row = r * tw - x0
             power, step, gauss, e_step = _row_start(dy, u, ca, cb, cc, a)
@@ -562,17 +565,27 @@ def _backward_tile(
     tfin,
     lst,
     row_last,
+    row_lst,
+    row_col,
+    row_ptr,
+    need,
     gcol,
-    grads_isect,
+    geo_isect,
+    col_isect,
+    slot,
     gbg,
     glevel,
     upto,
     finest,
 ):
     """Back-to-front recomputation of one tile for the image of Gaussians with glevel <= upto
-    (see raster_backward), adding into grads_isect (and, when ``finest``, the screen-space
-    gradient into its last two columns too); rows whose pixels all stopped before Gaussian k
-    are skipped via ``row_last``."""
+    (see raster_backward), adding pair k's gradients into row slot + k of geo_isect and col_isect
+    (and, when ``finest``, the screen-space gradient into geo_isect's last two columns too).
+
+    Pixel p needs Gaussian k only if k <= lst[p]. Per row, ``need`` holds those pixels as a bit
+    mask, grown as k falls by walking the row's columns in descending lst order (``row_lst``,
+    ``row_col``, ``row_ptr``); a row whose chord misses the mask is skipped before its exps. The
+    skip only drops pixels that would be passed over anyway, so the sums do not change."""
     n_ch = colors.shape[1]
     x0, y0, x1, y1 = _tile_bounds(t, tiles_x, width, height)
     tw = x1 - x0
@@ -592,6 +605,18 @@ def _backward_tile(
                 behind[p, ch] = tn * background[ch]
                 gimg[p, ch] = grad_image[j, i, ch]
                 gbg[ch] += grad_image[j, i, ch] * tn
+    for r in range(y1 - y0):  # insertion sort of the row's columns by lst, descending
+        for c in range(tw):
+            val = lst[r * tw + c]
+            m = c
+            while m > 0 and row_lst[r, m - 1] < val:
+                row_lst[r, m] = row_lst[r, m - 1]
+                row_col[r, m] = row_col[r, m - 1]
+                m -= 1
+            row_lst[r, m] = val
+            row_col[r, m] = c
+        row_ptr[r] = 0
+        need[r] = 0
     for k in range(k_max, tile_start[t] - 1, -1):
         g = ids[k]
         if glevel[g] > upto:
@@ -607,7 +632,7 @@ def _backward_tile(
         cc = conic[g, 2]
         o = opacities[g]
         c_g = cut[g]
-        e_ca = math.exp(-ca)
+        e_ca = -1.0  # exp(-ca), computed on the first row walked
         gu = 0.0
         gv = 0.0
         gca = 0.0
@@ -618,11 +643,19 @@ def _backward_tile(
             gcol[ch] = 0.0
         touched = False
         for j in range(j0, j1 + 1):
-            if k > row_last[j - y0]:
+            r = j - y0
+            if k > row_last[r]:
                 continue
+            while row_ptr[r] < tw and row_lst[r, row_ptr[r]] >= k:
+                need[r] |= 1 << row_col[r, row_ptr[r]]
+                row_ptr[r] += 1
             dy = j + 0.5 - v
             a, b = _row_span(dy, u, ca, cb, cc, c_g, i0, i1)
-            row = (j - y0) * tw - x0
+            if a > b or (need[r] & (((1 << (b + 1 - x0)) - 1) ^ ((1 << (a - x0)) - 1))) == 0:
+                continue
+            if e_ca < 0.0:
+                e_ca = math.exp(-ca)
+            row = r * tw - x0
             power, step, gss, e_step = _row_start(dy, u, ca, cb, cc, a)
             for i in range(a, b + 1):
                 p = row + i
@@ -658,17 +691,18 @@ def _backward_tile(
                 gcb -= g_pow * dx * dy
                 gcc -= 0.5 * g_pow * dy * dy
         if touched:
-            grads_isect[k, G_U] += gu
-            grads_isect[k, G_V] += gv
-            grads_isect[k, G_CA] += gca
-            grads_isect[k, G_CB] += gcb
-            grads_isect[k, G_CC] += gcc
-            grads_isect[k, G_OPAC] += go
+            s = slot + k
+            geo_isect[s, G_U] += gu
+            geo_isect[s, G_V] += gv
+            geo_isect[s, G_CA] += gca
+            geo_isect[s, G_CB] += gcb
+            geo_isect[s, G_CC] += gcc
+            geo_isect[s, G_OPAC] += go
             for ch in range(n_ch):
-                grads_isect[k, G_COLOR + ch] += gcol[ch]
+                col_isect[s, ch] += gcol[ch]
             if finest:
-                grads_isect[k, G_COLOR + n_ch] += gu
-                grads_isect[k, G_COLOR + n_ch + 1] += gv
+                geo_isect[s, _GEO_U_LAST] += gu
+                geo_isect[s, _GEO_U_LAST + 1] += gv
 
 
 @njit(parallel=_PARALLEL, cache=True)
@@ -711,7 +745,24 @@ def raster_backward(
     n_tiles = tile_start.shape[0] - 1
     n_img = upto.shape[0]
     width_g = G_COLOR + n_ch + 2
-    grads_isect = np.zeros((ids.shape[0], width_g))
+    # Only pairs up to the last index a tile's pixels composited (in any image) get gradients:
+    # give the per-pair buffers a row for those alone (less than half of all pairs on a head),
+    # split in two so that each stays under glibc's 32 MB mmap ceiling and is reused from the
+    # heap instead of being page-faulted in afresh on every call (that cost ~100 ms at 802x550).
+    k_end = tile_start[:-1].copy()
+    for im in range(n_img):
+        for j in range(height):
+            for i in range(width):
+                t = (j // TILE) * tiles_x + i // TILE
+                k_end[t] = max(k_end[t], last[im, j, i] + 1)
+    slot_start = np.empty(n_tiles + 1, np.int64)
+    n_slots = 0
+    for t in range(n_tiles):
+        slot_start[t] = n_slots
+        n_slots += k_end[t] - tile_start[t]
+    slot_start[n_tiles] = n_slots
+    geo_isect = np.zeros((n_slots, _GEO_WIDTH))
+    col_isect = np.zeros((n_slots, n_ch))
     gbg_tile = np.zeros((n_tiles, n_ch))
     for t in prange(n_tiles):
         T = np.empty(TILE * TILE)
@@ -721,6 +772,10 @@ def raster_backward(
         tfin = np.empty(TILE * TILE)
         lst = np.empty(TILE * TILE, np.int64)
         row_last = np.empty(TILE, np.int64)
+        row_lst = np.empty((TILE, TILE), np.int64)
+        row_col = np.empty((TILE, TILE), np.int64)
+        row_ptr = np.empty(TILE, np.int64)
+        need = np.empty(TILE, np.int64)
         gcol = np.empty(n_ch)
         for l in range(n_img):
             _backward_tile(
@@ -748,18 +803,30 @@ def raster_backward(
                 tfin,
                 lst,
                 row_last,
+                row_lst,
+                row_col,
+                row_ptr,
+                need,
                 gcol,
-                grads_isect,
+                geo_isect,
+                col_isect,
+                slot_start[t] - tile_start[t],
                 gbg_tile[t],
                 glevel,
                 upto[l],
                 l == n_img - 1,
             )
     grads = np.zeros((n, width_g))
-    for k in range(ids.shape[0]):
-        g = ids[k]
-        for q in range(width_g):
-            grads[g, q] += grads_isect[k, q]
+    for t in range(n_tiles):  # pair order, as before: a Gaussian's tiles add up in tile order
+        s0 = slot_start[t] - tile_start[t]
+        for k in range(tile_start[t], k_end[t]):
+            g = ids[k]
+            for q in range(G_COLOR):
+                grads[g, q] += geo_isect[s0 + k, q]
+            for ch in range(n_ch):
+                grads[g, G_COLOR + ch] += col_isect[s0 + k, ch]
+            grads[g, G_COLOR + n_ch] += geo_isect[s0 + k, _GEO_U_LAST]
+            grads[g, G_COLOR + n_ch + 1] += geo_isect[s0 + k, _GEO_U_LAST + 1]
     gbg = np.zeros(n_ch)
     for t in range(n_tiles):
         for ch in range(n_ch):
