@@ -641,6 +641,12 @@ def _backward_tile(
         go = 0.0
         for ch in range(n_ch):
             gcol[ch] = 0.0
+        gc0 = 0.0
+        gc1 = 0.0
+        gc2 = 0.0
+        c0 = colors[g, 0]
+        c1 = colors[g, 1 % n_ch]
+        c2 = colors[g, 2 % n_ch]
         touched = False
         for j in range(j0, j1 + 1):
             r = j - y0
@@ -656,6 +662,9 @@ def _backward_tile(
             if e_ca < 0.0:
                 e_ca = math.exp(-ca)
             row = r * tw - x0
+            s0 = 0.0
+            s1 = 0.0
+            s2 = 0.0
             power, step, gss, e_step = _row_start(dy, u, ca, cb, cc, a)
             for i in range(a, b + 1):
                 p = row + i
@@ -676,21 +685,45 @@ def _backward_tile(
                 T_before = T[p] * inv
                 w = alpha * T_before
                 g_a = galpha[p] * tfin[p] * inv
-                for ch in range(n_ch):
-                    gcol[ch] += w * gimg[p, ch]
-                    g_a += gimg[p, ch] * (colors[g, ch] * T_before - behind[p, ch] * inv)
-                    behind[p, ch] += colors[g, ch] * w
+                if n_ch == 3:  # the common case, in registers (same operations, same order)
+                    gi0 = gimg[p, 0]
+                    gi1 = gimg[p, 1]
+                    gi2 = gimg[p, 2]
+                    gc0 += w * gi0
+                    gc1 += w * gi1
+                    gc2 += w * gi2
+                    g_a += gi0 * (c0 * T_before - behind[p, 0] * inv)
+                    g_a += gi1 * (c1 * T_before - behind[p, 1] * inv)
+                    g_a += gi2 * (c2 * T_before - behind[p, 2] * inv)
+                    behind[p, 0] += c0 * w
+                    behind[p, 1] += c1 * w
+                    behind[p, 2] += c2 * w
+                else:
+                    for ch in range(n_ch):
+                        gcol[ch] += w * gimg[p, ch]
+                        g_a += gimg[p, ch] * (colors[g, ch] * T_before - behind[p, ch] * inv)
+                        behind[p, ch] += colors[g, ch] * w
                 T[p] = T_before
                 if clamped:
                     continue
                 go += gauss * g_a
                 g_pow = alpha * g_a
-                gu += g_pow * (ca * dx + cb * dy)
-                gv += g_pow * (cb * dx + cc * dy)
-                gca -= 0.5 * g_pow * dx * dx
-                gcb -= g_pow * dx * dy
-                gcc -= 0.5 * g_pow * dy * dy
+                s0 += g_pow
+                g_dx = g_pow * dx
+                s1 += g_dx
+                s2 += g_dx * dx
+            # d power/du = ca dx + cb dy, d/dv = cb dx + cc dy, d/dconic = -(dx^2/2, dx dy, dy^2/2):
+            # dy is constant along the row, so the row needs only sum g, sum g dx, sum g dx^2.
+            gu += ca * s1 + cb * dy * s0
+            gv += cb * s1 + cc * dy * s0
+            gca -= 0.5 * s2
+            gcb -= dy * s1
+            gcc -= 0.5 * dy * dy * s0
         if touched:
+            if n_ch == 3:
+                gcol[0] = gc0
+                gcol[1] = gc1
+                gcol[2] = gc2
             s = slot + k
             geo_isect[s, G_U] += gu
             geo_isect[s, G_V] += gv
