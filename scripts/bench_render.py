@@ -285,8 +285,11 @@ def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.
         means, quats, scales, opac, Rc, tc, fx, fy, cx, cy, lim, W, H, near, eps2d
     )
     mark("project_forward")
-    visible = np.flatnonzero(radii != 0)
-    order = visible[np.argsort(depth[visible], kind="stable")].astype(np.int64)
+    if hasattr(rk, "depth_order"):
+        order = rk.depth_order(depth, radii != 0)
+    else:  # kernels before the radix sort: rasterize.py sorted with numpy
+        visible = np.flatnonzero(radii != 0)
+        order = visible[np.argsort(depth[visible], kind="stable")].astype(np.int64)
     mark("sort")
     tiles_x = -(-W // rk.TILE)
     tile_start, ids = rk.bin_tiles(rect, order, tiles_x, -(-H // rk.TILE))

@@ -374,3 +374,18 @@ def test_render_levels_equal_separate_renders_and_reference():
         assert rel_err(a.grad, c.grad) <= 1e-3, name
     assert torch.equal(outs[-1].contrib, one.contrib)
     assert rel_err(outs[-1].means2d.grad, one.means2d.grad) <= 1e-12
+
+
+def test_depth_order_is_numpys_stable_argsort():
+    # The radix sort of the kernels against numpy's stable argsort: ties (trained avatars have
+    # Gaussians at equal depth), a wide range of depths, kept/culled mixes, empty and single.
+    from progressive_avatars.core.render import kernels as rk
+
+    rng = np.random.default_rng(5)
+    for n in (0, 1, 2, 37, 20_000):
+        depth = np.exp(rng.uniform(np.log(0.01), np.log(1e4), n))
+        depth[::5] = depth[0] if n else 0.0
+        keep = rng.random(n) < 0.8
+        expected = np.flatnonzero(keep)[np.argsort(depth[keep], kind="stable")]
+        got = rk.depth_order(depth, keep)
+        assert got.dtype == np.int64 and np.array_equal(got, expected), n

@@ -244,6 +244,48 @@ def project_forward(means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, lim
     return xy, conic, depth, rect, radii, cut
 
 
+@njit(cache=True)
+def depth_order(depth, keep):
+    """Indices g with keep[g], ascending in depth[g], ties in index order: the same as
+    ``np.flatnonzero(keep)[np.argsort(depth[keep], kind="stable")]``, for depths > 0 (a kept
+    Gaussian lies beyond the near plane). LSD radix sort on the float64 bits, which order
+    positive floats as their values, 11 bits a pass; passes where every key has the same
+    digit are skipped (depths share their sign and most exponent bits)."""
+    m = 0
+    for g in range(keep.shape[0]):
+        if keep[g]:
+            m += 1
+    order = np.empty(m, np.int64)
+    m = 0
+    for g in range(keep.shape[0]):
+        if keep[g]:
+            order[m] = g
+            m += 1
+    if m < 2:
+        return order
+    bits = depth.view(np.uint64)
+    spare = np.empty(m, np.int64)
+    count = np.empty(2048, np.int64)
+    for shift in range(0, 64, 11):
+        count[:] = 0
+        for q in range(m):
+            count[(bits[order[q]] >> np.uint64(shift)) & np.uint64(2047)] += 1
+        if count.max() == m:
+            continue
+        total = 0
+        for d in range(2048):
+            c = count[d]
+            count[d] = total
+            total += c
+        for q in range(m):
+            g = order[q]
+            d = (bits[g] >> np.uint64(shift)) & np.uint64(2047)
+            spare[count[d]] = g
+            count[d] += 1
+        order, spare = spare, order
+    return order
+
+
 @njit(parallel=_PARALLEL, cache=True)
 def bin_tiles(rect, order, tiles_x, tiles_y):
     """Counting sort of (tile, Gaussian) pairs into per-tile lists.
