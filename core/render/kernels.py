@@ -23,7 +23,8 @@ Parallel loops never share an accumulator: projection runs over blocks of Gaussi
 rasteriser over tiles, and each (tile, Gaussian) pair writes its own slot of a per-intersection
 buffer that a serial pass sums afterwards. No atomics, deterministic sums, and no thread ids
 (get_thread_id would stop numba from caching the kernels). Tiles are split statically between
-threads: numba's dynamic chunking (parallel_chunksize) measured several times slower here.
+threads: numba's dynamic chunking (parallel_chunksize) measured several times slower here; the
+tiles are interleaved first (_spread_tiles) so that each static share sees all of the image.
 
 Work per tile is trimmed twice: each Gaussian visits only the chord of its ellipse on each
 row (not its bounding box), and rows whose pixels have all stopped (forward) or all finished
@@ -40,6 +41,7 @@ from numba import njit, prange
 TILE = 16
 BLOCK = 1024  # Gaussians per parallel work item in the projection kernels
 BIN_CHUNKS = 16  # slices of the depth order binned in parallel
+SPREAD = 8  # tiles interleaved between the threads' static shares (see _spread_tiles)
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
 T_MIN = 1e-4
@@ -521,6 +523,21 @@ def _forward_tile(
             last[j, i] = lst[p]
 
 
+@njit(cache=True)
+def _spread_tiles(n_tiles):
+    """Tile order for the static split of prange: every SPREAD-th tile, SPREAD times over, so
+    that each thread's contiguous share covers the whole image in stripes instead of one band
+    (the head's dense rows would otherwise fall to one thread). Which thread runs a tile does
+    not change any result."""
+    order = np.empty(n_tiles, np.int64)
+    i = 0
+    for r in range(SPREAD):
+        for t in range(r, n_tiles, SPREAD):
+            order[i] = t
+            i += 1
+    return order
+
+
 @njit(parallel=_PARALLEL, cache=True)
 def raster_forward(
     tile_start, ids, xy, conic, opacities, cut, colors, rect, background, width, height, tiles_x, glevel, upto
@@ -542,7 +559,9 @@ def raster_forward(
     last = np.empty((n_img, height, width), np.int64)
     contrib_isect = np.zeros(ids.shape[0])  # pairs after a tile's early exit stay 0
     no_contrib = np.zeros(0)
-    for t in prange(n_tiles):
+    spread = _spread_tiles(n_tiles)
+    for it in prange(n_tiles):
+        t = spread[it]
         T = np.empty(TILE * TILE)
         acc = np.empty((TILE * TILE, n_ch))
         lst = np.empty(TILE * TILE, np.int64)
@@ -604,7 +623,6 @@ def _backward_tile(
     behind,
     gimg,
     galpha,
-    tfin,
     lst,
     row_last,
     row_lst,
@@ -638,11 +656,10 @@ def _backward_tile(
             p = (j - y0) * tw + i - x0
             tn = t_final[j, i]
             T[p] = tn
-            tfin[p] = tn
             lst[p] = last[j, i]
             row_last[j - y0] = max(row_last[j - y0], last[j, i])
             k_max = max(k_max, last[j, i])
-            galpha[p] = grad_alpha[j, i]
+            galpha[p] = grad_alpha[j, i] * tn
             for ch in range(n_ch):
                 behind[p, ch] = tn * background[ch]
                 gimg[p, ch] = grad_image[j, i, ch]
@@ -726,7 +743,7 @@ def _backward_tile(
                 inv = 1.0 / (1.0 - alpha)
                 T_before = T[p] * inv
                 w = alpha * T_before
-                g_a = galpha[p] * tfin[p] * inv
+                g_a = galpha[p] * inv  # galpha holds dL/dalpha * T_final
                 if n_ch == 3:  # the common case, in registers (same operations, same order)
                     gi0 = gimg[p, 0]
                     gi1 = gimg[p, 1]
@@ -839,12 +856,13 @@ def raster_backward(
     geo_isect = np.zeros((n_slots, _GEO_WIDTH))
     col_isect = np.zeros((n_slots, n_ch))
     gbg_tile = np.zeros((n_tiles, n_ch))
-    for t in prange(n_tiles):
+    spread = _spread_tiles(n_tiles)
+    for it in prange(n_tiles):
+        t = spread[it]
         T = np.empty(TILE * TILE)
         behind = np.empty((TILE * TILE, n_ch))
         gimg = np.empty((TILE * TILE, n_ch))
         galpha = np.empty(TILE * TILE)
-        tfin = np.empty(TILE * TILE)
         lst = np.empty(TILE * TILE, np.int64)
         row_last = np.empty(TILE, np.int64)
         row_lst = np.empty((TILE, TILE), np.int64)
@@ -875,7 +893,6 @@ def raster_backward(
                 behind,
                 gimg,
                 galpha,
-                tfin,
                 lst,
                 row_last,
                 row_lst,
