@@ -41,6 +41,7 @@ from numba import njit, prange
 TILE = 16
 BLOCK = 1024  # Gaussians per parallel work item in the projection kernels
 BIN_CHUNKS = 16  # slices of the depth order binned in parallel
+GATHER_PARTS = 8  # Gaussian ranges summed in parallel from the per-pair buffers
 SPREAD = 8  # tiles interleaved between the threads' static shares (see _spread_tiles)
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
@@ -462,7 +463,7 @@ def _forward_tile(
         cc = conic[g, 2]
         o = opacities[g]
         c_g = cut[g]
-        e_ca = math.exp(-ca)
+        e_ca = -1.0  # exp(-ca), computed on the first row walked
         wsum = 0.0
         c0 = colors[g, 0]
         c1 = colors[g, 1 % n_ch]
@@ -477,6 +478,8 @@ def _forward_tile(
                 continue
             if (active[r] & (((1 << (b + 1 - x0)) - 1) ^ ((1 << (a - x0)) - 1))) == 0:
                 continue
+            if e_ca < 0.0:
+                e_ca = math.exp(-ca)
             row = r * tw - x0
             power, step, gauss, e_step = _row_start(dy, u, ca, cb, cc, a)
             for i in range(a, b + 1):
@@ -595,8 +598,13 @@ def raster_forward(
                 upto[l],
             )
     contrib = np.zeros(n)
-    for k in range(ids.shape[0]):
-        contrib[ids[k]] += contrib_isect[k]
+    for part in prange(GATHER_PARTS):  # as raster_backward's gather: pair order per Gaussian
+        g_lo = n * part // GATHER_PARTS
+        g_hi = n * (part + 1) // GATHER_PARTS
+        for k in range(ids.shape[0]):
+            g = ids[k]
+            if g >= g_lo and g < g_hi:
+                contrib[g] += contrib_isect[k]
     return image, t_final, last, contrib
 
 
@@ -909,16 +917,23 @@ def raster_backward(
                 l == n_img - 1,
             )
     grads = np.zeros((n, width_g))
-    for t in range(n_tiles):  # pair order, as before: a Gaussian's tiles add up in tile order
-        s0 = slot_start[t] - tile_start[t]
-        for k in range(tile_start[t], k_end[t]):
-            g = ids[k]
-            for q in range(G_COLOR):
-                grads[g, q] += geo_isect[s0 + k, q]
-            for ch in range(n_ch):
-                grads[g, G_COLOR + ch] += col_isect[s0 + k, ch]
-            grads[g, G_COLOR + n_ch] += geo_isect[s0 + k, _GEO_U_LAST]
-            grads[g, G_COLOR + n_ch + 1] += geo_isect[s0 + k, _GEO_U_LAST + 1]
+    # Each part owns a range of Gaussians and scans every pair, adding its own: a Gaussian's
+    # tiles still add up in tile order, whatever the thread count.
+    for part in prange(GATHER_PARTS):
+        g_lo = n * part // GATHER_PARTS
+        g_hi = n * (part + 1) // GATHER_PARTS
+        for t in range(n_tiles):
+            s0 = slot_start[t] - tile_start[t]
+            for k in range(tile_start[t], k_end[t]):
+                g = ids[k]
+                if g < g_lo or g >= g_hi:
+                    continue
+                for q in range(G_COLOR):
+                    grads[g, q] += geo_isect[s0 + k, q]
+                for ch in range(n_ch):
+                    grads[g, G_COLOR + ch] += col_isect[s0 + k, ch]
+                grads[g, G_COLOR + n_ch] += geo_isect[s0 + k, _GEO_U_LAST]
+                grads[g, G_COLOR + n_ch + 1] += geo_isect[s0 + k, _GEO_U_LAST + 1]
     gbg = np.zeros(n_ch)
     for t in range(n_tiles):
         for ch in range(n_ch):
