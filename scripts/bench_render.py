@@ -390,6 +390,9 @@ def kernels_section(r, command) -> str:
         ]
         return vals
 
+    def ratio(name):
+        return sum(col(name, "total", False)) / sum(col(name, "total"))
+
     lines = [
         f"## Rasteriser kernels: {r['rev']} (old) against this tree (new), same run",
         "",
@@ -404,6 +407,8 @@ def kernels_section(r, command) -> str:
         f"random; {r['reps']} reps after a warm-up; tile-Gaussian pairs old {r['pairs']['old']:,}, new "
         f"{r['pairs']['new']:,}",
         "- old = core/render/kernels.py at that commit (`git show`), imported as its own module in the same process",
+        f"- cores this process got: process CPU time over wall time, all reps, old {ratio('old'):.2f}, new "
+        f"{ratio('new'):.2f} (2 = both cores; 1 = one core's worth, the other taken by other jobs)",
         "",
         "| stage | old wall ms (min / median) | new wall ms (min / median) | speed-up (median) | old / new CPU ms (min) |",
         "|---|---|---|---|---|",

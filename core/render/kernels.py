@@ -41,8 +41,7 @@ from numba import njit, prange
 TILE = 16
 BLOCK = 1024  # Gaussians per parallel work item in the projection kernels
 BIN_CHUNKS = 16  # slices of the depth order binned in parallel
-GATHER_PARTS = 8  # Gaussian ranges summed in parallel from the per-pair buffers
-SPREAD = 8  # tiles interleaved between the threads' static shares (see _spread_tiles)
+SPREAD = 4  # tile rows interleaved between the threads' static shares (see _spread_tiles)
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
 T_MIN = 1e-4
@@ -527,17 +526,20 @@ def _forward_tile(
 
 
 @njit(cache=True)
-def _spread_tiles(n_tiles):
-    """Tile order for the static split of prange: every SPREAD-th tile, SPREAD times over, so
-    that each thread's contiguous share covers the whole image in stripes instead of one band
-    (the head's dense rows would otherwise fall to one thread). Which thread runs a tile does
-    not change any result."""
+def _spread_tiles(n_tiles, tiles_x):
+    """Tile order for the static split of prange: tile rows r, r + SPREAD, r + 2 SPREAD, ... for
+    r = 0 .. SPREAD - 1, each row left to right, so that each thread's contiguous share takes
+    rows from all of the image instead of one band (the head's busiest rows would otherwise
+    fall to one thread), while neighbouring tiles of a row still follow each other (they share
+    Gaussians, which then stay in cache). Which thread runs a tile changes no result."""
     order = np.empty(n_tiles, np.int64)
+    n_rows = (n_tiles + tiles_x - 1) // tiles_x
     i = 0
-    for r in range(SPREAD):
-        for t in range(r, n_tiles, SPREAD):
-            order[i] = t
-            i += 1
+    for r0 in range(SPREAD):
+        for row in range(r0, n_rows, SPREAD):
+            for t in range(row * tiles_x, min(n_tiles, (row + 1) * tiles_x)):
+                order[i] = t
+                i += 1
     return order
 
 
@@ -562,7 +564,7 @@ def raster_forward(
     last = np.empty((n_img, height, width), np.int64)
     contrib_isect = np.zeros(ids.shape[0])  # pairs after a tile's early exit stay 0
     no_contrib = np.zeros(0)
-    spread = _spread_tiles(n_tiles)
+    spread = _spread_tiles(n_tiles, tiles_x)
     for it in prange(n_tiles):
         t = spread[it]
         T = np.empty(TILE * TILE)
@@ -598,13 +600,8 @@ def raster_forward(
                 upto[l],
             )
     contrib = np.zeros(n)
-    for part in prange(GATHER_PARTS):  # as raster_backward's gather: pair order per Gaussian
-        g_lo = n * part // GATHER_PARTS
-        g_hi = n * (part + 1) // GATHER_PARTS
-        for k in range(ids.shape[0]):
-            g = ids[k]
-            if g >= g_lo and g < g_hi:
-                contrib[g] += contrib_isect[k]
+    for k in range(ids.shape[0]):
+        contrib[ids[k]] += contrib_isect[k]
     return image, t_final, last, contrib
 
 
@@ -864,7 +861,7 @@ def raster_backward(
     geo_isect = np.zeros((n_slots, _GEO_WIDTH))
     col_isect = np.zeros((n_slots, n_ch))
     gbg_tile = np.zeros((n_tiles, n_ch))
-    spread = _spread_tiles(n_tiles)
+    spread = _spread_tiles(n_tiles, tiles_x)
     for it in prange(n_tiles):
         t = spread[it]
         T = np.empty(TILE * TILE)
@@ -917,23 +914,16 @@ def raster_backward(
                 l == n_img - 1,
             )
     grads = np.zeros((n, width_g))
-    # Each part owns a range of Gaussians and scans every pair, adding its own: a Gaussian's
-    # tiles still add up in tile order, whatever the thread count.
-    for part in prange(GATHER_PARTS):
-        g_lo = n * part // GATHER_PARTS
-        g_hi = n * (part + 1) // GATHER_PARTS
-        for t in range(n_tiles):
-            s0 = slot_start[t] - tile_start[t]
-            for k in range(tile_start[t], k_end[t]):
-                g = ids[k]
-                if g < g_lo or g >= g_hi:
-                    continue
-                for q in range(G_COLOR):
-                    grads[g, q] += geo_isect[s0 + k, q]
-                for ch in range(n_ch):
-                    grads[g, G_COLOR + ch] += col_isect[s0 + k, ch]
-                grads[g, G_COLOR + n_ch] += geo_isect[s0 + k, _GEO_U_LAST]
-                grads[g, G_COLOR + n_ch + 1] += geo_isect[s0 + k, _GEO_U_LAST + 1]
+    for t in range(n_tiles):  # pair order, as before: a Gaussian's tiles add up in tile order
+        s0 = slot_start[t] - tile_start[t]
+        for k in range(tile_start[t], k_end[t]):
+            g = ids[k]
+            for q in range(G_COLOR):
+                grads[g, q] += geo_isect[s0 + k, q]
+            for ch in range(n_ch):
+                grads[g, G_COLOR + ch] += col_isect[s0 + k, ch]
+            grads[g, G_COLOR + n_ch] += geo_isect[s0 + k, _GEO_U_LAST]
+            grads[g, G_COLOR + n_ch + 1] += geo_isect[s0 + k, _GEO_U_LAST + 1]
     gbg = np.zeros(n_ch)
     for t in range(n_tiles):
         for ch in range(n_ch):
