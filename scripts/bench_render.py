@@ -2,11 +2,12 @@
 and time/error against the dense float64 reference of the tests.
 
     python scripts/bench_render.py [--quick]
-    python scripts/bench_render.py --against COMMIT [--reps N] [--out FILE]
+    python scripts/bench_render.py --against COMMIT [--reps N] [--threads 1,2] [--out FILE]
 
 ``run(quick=False)`` returns the Markdown section the script prints. ``--against`` instead
 times each kernel of core/render/kernels.py at COMMIT (extracted with `git show` and imported
-as its own module) against this tree's, interleaved rep by rep in one process, and checks
+as its own module) against this tree's, interleaved rep by rep in one process, at each numba
+thread count of --threads, and checks
 both against the dense float64 reference (section "Rasteriser kernels"; put it into
 docs/BENCHMARKS.md with `scripts/bench.py --only none --section raster_kernels=FILE`).
 """
@@ -347,7 +348,7 @@ def _reference_errors(rk, seed=1, width=96, height=80, n=1500):
     return img_err, grad_err
 
 
-def compare_kernels(commit, width=802, height=550, n=170_000, reps=5):
+def compare_kernels(commit, width=802, height=550, n=170_000, reps=5, threads=None):
     """Old (``commit``) and new kernels on the same scene, interleaved rep by rep; per stage the
     min / median wall ms and min CPU ms, plus both against each other and the reference."""
     import numba
@@ -355,6 +356,7 @@ def compare_kernels(commit, width=802, height=550, n=170_000, reps=5):
     from progressive_avatars.core.render import kernels as new_rk
 
     rev, old_rk = old_kernels(commit)
+    numba.set_num_threads(threads or numba.config.NUMBA_NUM_THREADS)
     cam = head_camera(width, height)
     arrays = [np.ascontiguousarray(x, np.float64) for x in head_scene(n)] + [np.zeros(3)]
     rng = np.random.default_rng(0)
@@ -372,34 +374,27 @@ def compare_kernels(commit, width=802, height=550, n=170_000, reps=5):
         for a, b in zip(outs["old"]["grads"], outs["new"]["grads"])
     )
     ref = {name: _reference_errors(rk) for name, rk in (("old", old_rk), ("new", new_rk))}
+    threads = numba.get_num_threads()
+    numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
     return dict(
-        rev=rev, width=width, height=height, n=n, reps=reps, threads=numba.get_num_threads(), runs=runs,
+        rev=rev, width=width, height=height, n=n, reps=reps, threads=threads, runs=runs,
         pairs={k: v["pairs"] for k, v in outs.items()}, diff_img=diff_img, diff_grad=diff_grad, ref=ref,
     )  # fmt: skip
 
 
-def kernels_section(r, command) -> str:
+def kernels_section(results, command) -> str:
+    """The Markdown section of compare_kernels' results, one table per thread count."""
     import numba
 
     load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
-
-    def col(name, stage, wall=True):
-        vals = [
-            t[stage][0 if wall else 1] if stage != "total" else sum(v[0 if wall else 1] for v in t.values())
-            for t in r["runs"][name]
-        ]
-        return vals
-
-    def ratio(name):
-        return sum(col(name, "total", False)) / sum(col(name, "total"))
-
+    r = results[0]
     lines = [
         f"## Rasteriser kernels: {r['rev']} (old) against this tree (new), same run",
         "",
         f"- date: {datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%d %H:%M UTC')}",
         f"- command: `{command}`",
-        f"- machine: {platform.platform()}, {os.cpu_count()} logical CPUs, numba {numba.__version__} with "
-        f"{r['threads']} threads ({numba.threading_layer()}), Python {platform.python_version()}",
+        f"- machine: {platform.platform()}, {os.cpu_count()} logical CPUs, numba {numba.__version__} "
+        f"({numba.threading_layer()}), Python {platform.python_version()}",
         f"- load average when written: {load} (2 cores shared with other jobs: above 2, others competed for "
         "the cores; compare old with new, which ran interleaved rep by rep, rather than absolute times)",
         f"- scene: scripts/bench_render.py's head, {r['width']}x{r['height']}, {r['n']:,} Gaussians; the kernels "
@@ -407,27 +402,43 @@ def kernels_section(r, command) -> str:
         f"random; {r['reps']} reps after a warm-up; tile-Gaussian pairs old {r['pairs']['old']:,}, new "
         f"{r['pairs']['new']:,}",
         "- old = core/render/kernels.py at that commit (`git show`), imported as its own module in the same process",
-        f"- cores this process got: process CPU time over wall time, all reps, old {ratio('old'):.2f}, new "
-        f"{ratio('new'):.2f} (2 = both cores; 1 = one core's worth, the other taken by other jobs)",
-        "",
-        "| stage | old wall ms (min / median) | new wall ms (min / median) | speed-up (median) | old / new CPU ms (min) |",
-        "|---|---|---|---|---|",
     ]
-    for stage in STAGES + ["total"]:
-        o, n = col("old", stage), col("new", stage)
-        co, cn = col("old", stage, False), col("new", stage, False)
-        lines.append(
-            f"| {stage} | {min(o):.1f} / {np.median(o):.1f} | {min(n):.1f} / {np.median(n):.1f} "
-            f"| x{np.median(o) / max(np.median(n), 1e-9):.2f} | {min(co):.1f} / {min(cn):.1f} |"
-        )
+    for r in results:
+
+        def col(name, stage, wall=True):
+            at = 0 if wall else 1
+            return [t[stage][at] if stage != "total" else sum(v[at] for v in t.values()) for t in r["runs"][name]]
+
+        def ratio(name):
+            return sum(col(name, "total", False)) / sum(col(name, "total"))
+
+        lines += [
+            "",
+            f"### numba threads: {r['threads']}",
+            "",
+            f"Cores this process got (process CPU time over wall time, all reps): old {ratio('old'):.2f}, new "
+            f"{ratio('new'):.2f} (1 = one core's worth).",
+            "",
+            "| stage | old wall ms (min / median) | new wall ms (min / median) | speed-up (median) "
+            "| old / new CPU ms (min) |",
+            "|---|---|---|---|---|",
+        ]
+        for stage in STAGES + ["total"]:
+            o, n = col("old", stage), col("new", stage)
+            co, cn = col("old", stage, False), col("new", stage, False)
+            lines.append(
+                f"| {stage} | {min(o):.1f} / {np.median(o):.1f} | {min(n):.1f} / {np.median(n):.1f} "
+                f"| x{np.median(o) / max(np.median(n), 1e-9):.2f} | {min(co):.1f} / {min(cn):.1f} |"
+            )
     (oi, og), (ni, ng) = r["ref"]["old"], r["ref"]["new"]
     lines += [
         "",
-        f"Old against new on this scene: max abs image difference {r['diff_img']:.1e}, worst relative gradient "
-        f"difference {r['diff_grad']:.1e}. Against the dense float64 reference (core/render/reference.py; "
-        "96x80, 1,500 Gaussians, scales x4, background (0.2, 0.5, 0.1)): max abs image/alpha error old "
-        f"{oi:.1e}, new {ni:.1e}; worst relative gradient error (means, quats, scales, opacities, colours) "
-        f"old {og:.1e}, new {ng:.1e} (bounds of issue 18: 1e-5 and 1e-3).",
+        f"Old against new on this scene: max abs image difference {max(x['diff_img'] for x in results):.1e}, "
+        f"worst relative gradient difference {max(x['diff_grad'] for x in results):.1e}. Against the dense "
+        "float64 reference (core/render/reference.py; 96x80, 1,500 Gaussians, scales x4, background "
+        f"(0.2, 0.5, 0.1)): max abs image/alpha error old {oi:.1e}, new {ni:.1e}; worst relative gradient "
+        f"error (means, quats, scales, opacities, colours) old {og:.1e}, new {ng:.1e} (bounds of issue 18: "
+        "1e-5 and 1e-3).",
         "",
     ]
     return "\n".join(lines)
@@ -439,7 +450,9 @@ if __name__ == "__main__":
         commit = args[args.index("--against") + 1]
         reps = int(args[args.index("--reps") + 1]) if "--reps" in args else 5
         cmd = "python scripts/bench_render.py " + " ".join(args)
-        text = kernels_section(compare_kernels(commit, reps=reps), cmd)
+        threads = args[args.index("--threads") + 1] if "--threads" in args else "1,2"
+        results = [compare_kernels(commit, reps=reps, threads=int(t)) for t in threads.split(",")]
+        text = kernels_section(results, cmd)
         if "--out" in args:
             with open(args[args.index("--out") + 1], "w") as fh:
                 fh.write(text + "\n")
