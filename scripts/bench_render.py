@@ -2,8 +2,14 @@
 and time/error against the dense float64 reference of the tests.
 
     python scripts/bench_render.py [--quick]
+    python scripts/bench_render.py --against COMMIT [--reps N] [--threads 1,2] [--out FILE]
 
-``run(quick=False)`` returns the Markdown section the script prints.
+``run(quick=False)`` returns the Markdown section the script prints. ``--against`` instead
+times each kernel of core/render/kernels.py at COMMIT (extracted with `git show` and imported
+as its own module) against this tree's, interleaved rep by rep in one process, at each numba
+thread count of --threads, and checks
+both against the dense float64 reference (section "Rasteriser kernels"; put it into
+docs/BENCHMARKS.md with `scripts/bench.py --only none --section raster_kernels=FILE`).
 """
 
 from __future__ import annotations
@@ -231,5 +237,225 @@ def run(quick: bool = False) -> str:
     return "\n".join(lines)
 
 
+# ----------------------------------------------------------------------------- old against new kernels
+
+STAGES = ["project_forward", "sort", "bin_tiles", "raster_forward", "raster_backward", "project_backward"]
+
+
+def old_kernels(commit):
+    """core/render/kernels.py at ``commit`` as a module of its own (numba caches it beside the file)."""
+    import importlib
+    import subprocess
+    import sys
+
+    rev = subprocess.run(["git", "-C", ROOT, "rev-parse", "--short", commit], check=True, capture_output=True)
+    rev = rev.stdout.decode().strip()
+    folder = os.path.join(ROOT, "runs", "bench_old_raster")
+    os.makedirs(folder, exist_ok=True)
+    path = os.path.join(folder, f"kernels_{rev}.py")
+    if not os.path.exists(path):
+        src = subprocess.run(
+            ["git", "-C", ROOT, "show", f"{rev}:core/render/kernels.py"], check=True, capture_output=True
+        )
+        with open(path, "wb") as fh:
+            fh.write(src.stdout)
+    if folder not in sys.path:  # imported by name, so that numba's cache can find the module again
+        sys.path.insert(0, folder)
+    return rev, importlib.import_module(f"kernels_{rev}")
+
+
+def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.3):
+    """The CPU render of core/render/rasterize.py, forward and backward, kernel by kernel with
+    module ``rk``'s kernels; returns per-stage (wall ms, process CPU ms), the image, alpha and
+    the gradients (means, quats, scales, opacities, colors)."""
+    means, quats, scales, opac, colors, bg = arrays
+    W, H = cam.width, cam.height
+    times = {}
+    clock = [time.perf_counter(), time.process_time()]
+
+    def mark(name):
+        t, c = time.perf_counter(), time.process_time()
+        times[name] = ((t - clock[0]) * 1e3, (c - clock[1]) * 1e3)
+        clock[:] = [t, c]
+
+    Rc, tc = np.ascontiguousarray(cam.R, np.float64), np.ascontiguousarray(cam.t, np.float64)
+    fx, fy, cx, cy = float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy)
+    lim = rk.fov_limits(W, H, fx, fy, cx, cy)
+    clock[:] = [time.perf_counter(), time.process_time()]
+    xy, conic, depth, rect, radii, cut = rk.project_forward(
+        means, quats, scales, opac, Rc, tc, fx, fy, cx, cy, lim, W, H, near, eps2d
+    )
+    mark("project_forward")
+    if hasattr(rk, "depth_order"):
+        order = rk.depth_order(depth, radii != 0)
+    else:  # kernels before the radix sort: rasterize.py sorted with numpy
+        visible = np.flatnonzero(radii != 0)
+        order = visible[np.argsort(depth[visible], kind="stable")].astype(np.int64)
+    mark("sort")
+    tiles_x = -(-W // rk.TILE)
+    tile_start, ids = rk.bin_tiles(rect, order, tiles_x, -(-H // rk.TILE))
+    mark("bin_tiles")
+    glevel, upto = np.zeros(len(means), np.int64), np.zeros(1, np.int64)
+    image, t_final, last, _ = rk.raster_forward(
+        tile_start, ids, xy, conic, opac, cut, colors, rect, bg, W, H, tiles_x, glevel, upto
+    )
+    mark("raster_forward")
+    grads, _ = rk.raster_backward(
+        tile_start, ids, xy, conic, opac, cut, colors, rect, bg, t_final, last,
+        grad_image[None], grad_alpha[None], W, H, tiles_x, glevel, upto,
+    )  # fmt: skip
+    mark("raster_backward")
+    g_means, g_quats, g_scales = rk.project_backward(
+        means, quats, scales, Rc, tc, fx, fy, lim, eps2d, radii,
+        np.ascontiguousarray(grads[:, rk.G_U : rk.G_V + 1]), np.ascontiguousarray(grads[:, rk.G_CA : rk.G_CC + 1]),
+        np.zeros(len(means)),
+    )  # fmt: skip
+    mark("project_backward")
+    g_colors = grads[:, rk.G_COLOR : rk.G_COLOR + colors.shape[1]]
+    out = dict(image=image[0], alpha=1.0 - t_final[0], pairs=len(ids))
+    out["grads"] = [g_means, g_quats, g_scales, grads[:, rk.G_OPAC], g_colors]
+    return times, out
+
+
+def _reference_errors(rk, seed=1, width=96, height=80, n=1500):
+    """Max abs image/alpha error and the worst relative gradient error (norm of the difference
+    over the norm, per parameter) of module ``rk``'s pipeline against the dense float64 reference
+    on a small head-like scene, loss = sum(image * w) + sum(alpha * w')."""
+    import torch
+
+    from progressive_avatars.core.render.reference import render_reference
+
+    cam = head_camera(width, height)
+    params = [np.ascontiguousarray(x, np.float64) for x in head_scene(n, seed=seed)]
+    params[2] = params[2] * 4.0  # a small image still covered by overlapping Gaussians
+    bg = np.array([0.2, 0.5, 0.1])
+    rng = np.random.default_rng(seed)
+    wi, wa = rng.normal(size=(height, width, 3)), rng.normal(size=(height, width))
+    _, out = kernel_pipeline(rk, params + [bg], cam, wi, wa)
+    ref = [torch.tensor(x, requires_grad=True) for x in params]
+    img, alpha, _ = render_reference(*ref, cam, torch.tensor(bg))
+    ((img * torch.tensor(wi)).sum() + (alpha * torch.tensor(wa)).sum()).backward()
+    img_err = max(
+        float(np.abs(out["image"] - img.detach().numpy()).max()),
+        float(np.abs(out["alpha"] - alpha.detach().numpy()).max()),
+    )
+    grad_err = max(
+        float(
+            np.linalg.norm(np.asarray(a).ravel() - r.grad.numpy().ravel()) / max(np.linalg.norm(r.grad.numpy()), 1e-30)
+        )
+        for a, r in zip(out["grads"], ref)
+    )
+    return img_err, grad_err
+
+
+def compare_kernels(commit, width=802, height=550, n=170_000, reps=5, threads=None):
+    """Old (``commit``) and new kernels on the same scene, interleaved rep by rep; per stage the
+    min / median wall ms and min CPU ms, plus both against each other and the reference."""
+    import numba
+
+    from progressive_avatars.core.render import kernels as new_rk
+
+    rev, old_rk = old_kernels(commit)
+    numba.set_num_threads(threads or numba.config.NUMBA_NUM_THREADS)
+    cam = head_camera(width, height)
+    arrays = [np.ascontiguousarray(x, np.float64) for x in head_scene(n)] + [np.zeros(3)]
+    rng = np.random.default_rng(0)
+    wi, wa = rng.uniform(0.0, 1.0, size=(height, width, 3)), rng.uniform(-1.0, 1.0, size=(height, width))
+    runs = {"old": [], "new": []}
+    outs = {}
+    for rep in range(reps + 1):  # rep 0 is the warm-up (numba cache load, page faults)
+        for name, rk in (("old", old_rk), ("new", new_rk)):
+            times, outs[name] = kernel_pipeline(rk, arrays, cam, wi, wa)
+            if rep:
+                runs[name].append(times)
+    diff_img = float(np.abs(outs["old"]["image"] - outs["new"]["image"]).max())
+    diff_grad = max(
+        float(np.linalg.norm(np.asarray(a) - np.asarray(b)) / max(np.linalg.norm(np.asarray(a)), 1e-30))
+        for a, b in zip(outs["old"]["grads"], outs["new"]["grads"])
+    )
+    ref = {name: _reference_errors(rk) for name, rk in (("old", old_rk), ("new", new_rk))}
+    threads = numba.get_num_threads()
+    numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+    return dict(
+        rev=rev, width=width, height=height, n=n, reps=reps, threads=threads, runs=runs,
+        pairs={k: v["pairs"] for k, v in outs.items()}, diff_img=diff_img, diff_grad=diff_grad, ref=ref,
+    )  # fmt: skip
+
+
+def kernels_section(results, command) -> str:
+    """The Markdown section of compare_kernels' results, one table per thread count."""
+    import numba
+
+    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+    r = results[0]
+    lines = [
+        f"## Rasteriser kernels: {r['rev']} (old) against this tree (new), same run",
+        "",
+        f"- date: {datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%d %H:%M UTC')}",
+        f"- command: `{command}`",
+        f"- machine: {platform.platform()}, {os.cpu_count()} logical CPUs, numba {numba.__version__} "
+        f"({numba.threading_layer()}), Python {platform.python_version()}",
+        f"- load average when written: {load} (2 cores shared with other jobs: above 2, others competed for "
+        "the cores; compare old with new, which ran interleaved rep by rep, rather than absolute times)",
+        f"- scene: scripts/bench_render.py's head, {r['width']}x{r['height']}, {r['n']:,} Gaussians; the kernels "
+        "called directly in float64 as core/render/rasterize.py calls them (no torch); one image; loss weights "
+        f"random; {r['reps']} reps after a warm-up; tile-Gaussian pairs old {r['pairs']['old']:,}, new "
+        f"{r['pairs']['new']:,}",
+        "- old = core/render/kernels.py at that commit (`git show`), imported as its own module in the same process",
+    ]
+    for r in results:
+
+        def col(name, stage, wall=True):
+            at = 0 if wall else 1
+            return [t[stage][at] if stage != "total" else sum(v[at] for v in t.values()) for t in r["runs"][name]]
+
+        def ratio(name):
+            return sum(col(name, "total", False)) / sum(col(name, "total"))
+
+        lines += [
+            "",
+            f"### numba threads: {r['threads']}",
+            "",
+            f"Cores this process got (process CPU time over wall time, all reps): old {ratio('old'):.2f}, new "
+            f"{ratio('new'):.2f} (1 = one core's worth).",
+            "",
+            "| stage | old wall ms (min / median) | new wall ms (min / median) | speed-up (median) "
+            "| old / new CPU ms (min) |",
+            "|---|---|---|---|---|",
+        ]
+        for stage in STAGES + ["total"]:
+            o, n = col("old", stage), col("new", stage)
+            co, cn = col("old", stage, False), col("new", stage, False)
+            lines.append(
+                f"| {stage} | {min(o):.1f} / {np.median(o):.1f} | {min(n):.1f} / {np.median(n):.1f} "
+                f"| x{np.median(o) / max(np.median(n), 1e-9):.2f} | {min(co):.1f} / {min(cn):.1f} |"
+            )
+    (oi, og), (ni, ng) = r["ref"]["old"], r["ref"]["new"]
+    lines += [
+        "",
+        f"Old against new on this scene: max abs image difference {max(x['diff_img'] for x in results):.1e}, "
+        f"worst relative gradient difference {max(x['diff_grad'] for x in results):.1e}. Against the dense "
+        "float64 reference (core/render/reference.py; 96x80, 1,500 Gaussians, scales x4, background "
+        f"(0.2, 0.5, 0.1)): max abs image/alpha error old {oi:.1e}, new {ni:.1e}; worst relative gradient "
+        f"error (means, quats, scales, opacities, colours) old {og:.1e}, new {ng:.1e} (bounds of issue 18: "
+        "1e-5 and 1e-3).",
+        "",
+    ]
+    return "\n".join(lines)
+
+
 if __name__ == "__main__":
-    print(run(quick="--quick" in _bootstrap.script_args()))
+    args = _bootstrap.script_args()
+    if "--against" in args:
+        commit = args[args.index("--against") + 1]
+        reps = int(args[args.index("--reps") + 1]) if "--reps" in args else 5
+        cmd = "python scripts/bench_render.py " + " ".join(args)
+        threads = args[args.index("--threads") + 1] if "--threads" in args else "1,2"
+        results = [compare_kernels(commit, reps=reps, threads=int(t)) for t in threads.split(",")]
+        text = kernels_section(results, cmd)
+        if "--out" in args:
+            with open(args[args.index("--out") + 1], "w") as fh:
+                fh.write(text + "\n")
+        print(text)
+    else:
+        print(run(quick="--quick" in args))

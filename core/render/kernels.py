@@ -23,7 +23,8 @@ Parallel loops never share an accumulator: projection runs over blocks of Gaussi
 rasteriser over tiles, and each (tile, Gaussian) pair writes its own slot of a per-intersection
 buffer that a serial pass sums afterwards. No atomics, deterministic sums, and no thread ids
 (get_thread_id would stop numba from caching the kernels). Tiles are split statically between
-threads: numba's dynamic chunking (parallel_chunksize) measured several times slower here.
+threads: numba's dynamic chunking (parallel_chunksize) measured several times slower here; the
+tiles are interleaved first (_spread_tiles) so that each static share sees all of the image.
 
 Work per tile is trimmed twice: each Gaussian visits only the chord of its ellipse on each
 row (not its bounding box), and rows whose pixels have all stopped (forward) or all finished
@@ -40,6 +41,7 @@ from numba import njit, prange
 TILE = 16
 BLOCK = 1024  # Gaussians per parallel work item in the projection kernels
 BIN_CHUNKS = 16  # slices of the depth order binned in parallel
+SPREAD = 4  # tile rows interleaved between the threads' static shares (see _spread_tiles)
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
 T_MIN = 1e-4
@@ -61,6 +63,9 @@ _BOX_SLACK = 1.0 + 1e-6
 # Gradient record per Gaussian written by raster_backward: d/du, d/dv, d/dconic (a, b, c),
 # d/dopacity, then d/dcolor[0..C).
 G_U, G_V, G_CA, G_CB, G_CC, G_OPAC, G_COLOR = 0, 1, 2, 3, 4, 5, 6
+# raster_backward's per-pair geometry buffer: G_U..G_OPAC, then d/du, d/dv of the last image.
+_GEO_U_LAST = G_COLOR
+_GEO_WIDTH = G_COLOR + 2
 
 
 def fov_limits(width, height, fx, fy, cx, cy):
@@ -241,6 +246,48 @@ def project_forward(means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, lim
     return xy, conic, depth, rect, radii, cut
 
 
+@njit(cache=True)
+def depth_order(depth, keep):
+    """Indices g with keep[g], ascending in depth[g], ties in index order: the same as
+    ``np.flatnonzero(keep)[np.argsort(depth[keep], kind="stable")]``, for depths > 0 (a kept
+    Gaussian lies beyond the near plane). LSD radix sort on the float64 bits, which order
+    positive floats as their values, 11 bits a pass; passes where every key has the same
+    digit are skipped (depths share their sign and most exponent bits)."""
+    m = 0
+    for g in range(keep.shape[0]):
+        if keep[g]:
+            m += 1
+    order = np.empty(m, np.int64)
+    m = 0
+    for g in range(keep.shape[0]):
+        if keep[g]:
+            order[m] = g
+            m += 1
+    if m < 2:
+        return order
+    bits = depth.view(np.uint64)
+    spare = np.empty(m, np.int64)
+    count = np.empty(2048, np.int64)
+    for shift in range(0, 64, 11):
+        count[:] = 0
+        for q in range(m):
+            count[(bits[order[q]] >> np.uint64(shift)) & np.uint64(2047)] += 1
+        if count.max() == m:
+            continue
+        total = 0
+        for d in range(2048):
+            c = count[d]
+            count[d] = total
+            total += c
+        for q in range(m):
+            g = order[q]
+            d = (bits[g] >> np.uint64(shift)) & np.uint64(2047)
+            spare[count[d]] = g
+            count[d] += 1
+        order, spare = spare, order
+    return order
+
+
 @njit(parallel=_PARALLEL, cache=True)
 def bin_tiles(rect, order, tiles_x, tiles_y):
     """Counting sort of (tile, Gaussian) pairs into per-tile lists.
@@ -415,7 +462,7 @@ def _forward_tile(
         cc = conic[g, 2]
         o = opacities[g]
         c_g = cut[g]
-        e_ca = math.exp(-ca)
+        e_ca = -1.0  # exp(-ca), computed on the first row walked
         wsum = 0.0
         c0 = colors[g, 0]
         c1 = colors[g, 1 % n_ch]
@@ -428,8 +475,10 @@ def _forward_tile(
             a, b = _row_span(dy, u, ca, cb, cc, c_g, i0, i1)
             if a > b:
                 continue
-            if active[r] & (((1 << (b + 1 - x0)) - 1) ^ ((1 << (a - x0)) - 1)) == 0:
+            if (active[r] & (((1 << (b + 1 - x0)) - 1) ^ ((1 << (a - x0)) - 1))) == 0:
                 continue
+            if e_ca < 0.0:
+                e_ca = math.exp(-ca)
             row = r * tw - x0
             power, step, gauss, e_step = _row_start(dy, u, ca, cb, cc, a)
             for i in range(a, b + 1):
@@ -476,6 +525,24 @@ def _forward_tile(
             last[j, i] = lst[p]
 
 
+@njit(cache=True)
+def _spread_tiles(n_tiles, tiles_x):
+    """Tile order for the static split of prange: tile rows r, r + SPREAD, r + 2 SPREAD, ... for
+    r = 0 .. SPREAD - 1, each row left to right, so that each thread's contiguous share takes
+    rows from all of the image instead of one band (the head's busiest rows would otherwise
+    fall to one thread), while neighbouring tiles of a row still follow each other (they share
+    Gaussians, which then stay in cache). Which thread runs a tile changes no result."""
+    order = np.empty(n_tiles, np.int64)
+    n_rows = (n_tiles + tiles_x - 1) // tiles_x
+    i = 0
+    for r0 in range(SPREAD):
+        for row in range(r0, n_rows, SPREAD):
+            for t in range(row * tiles_x, min(n_tiles, (row + 1) * tiles_x)):
+                order[i] = t
+                i += 1
+    return order
+
+
 @njit(parallel=_PARALLEL, cache=True)
 def raster_forward(
     tile_start, ids, xy, conic, opacities, cut, colors, rect, background, width, height, tiles_x, glevel, upto
@@ -497,7 +564,9 @@ def raster_forward(
     last = np.empty((n_img, height, width), np.int64)
     contrib_isect = np.zeros(ids.shape[0])  # pairs after a tile's early exit stay 0
     no_contrib = np.zeros(0)
-    for t in prange(n_tiles):
+    spread = _spread_tiles(n_tiles, tiles_x)
+    for it in prange(n_tiles):
+        t = spread[it]
         T = np.empty(TILE * TILE)
         acc = np.empty((TILE * TILE, n_ch))
         lst = np.empty(TILE * TILE, np.int64)
@@ -559,20 +628,29 @@ def _backward_tile(
     behind,
     gimg,
     galpha,
-    tfin,
     lst,
     row_last,
+    row_lst,
+    row_col,
+    row_ptr,
+    need,
     gcol,
-    grads_isect,
+    geo_isect,
+    col_isect,
+    slot,
     gbg,
     glevel,
     upto,
     finest,
 ):
     """Back-to-front recomputation of one tile for the image of Gaussians with glevel <= upto
-    (see raster_backward), adding into grads_isect (and, when ``finest``, the screen-space
-    gradient into its last two columns too); rows whose pixels all stopped before Gaussian k
-    are skipped via ``row_last``."""
+    (see raster_backward), adding pair k's gradients into row slot + k of geo_isect and col_isect
+    (and, when ``finest``, the screen-space gradient into geo_isect's last two columns too).
+
+    Pixel p needs Gaussian k only if k <= lst[p]. Per row, ``need`` holds those pixels as a bit
+    mask, grown as k falls by walking the row's columns in descending lst order (``row_lst``,
+    ``row_col``, ``row_ptr``); a row whose chord misses the mask is skipped before its exps. The
+    skip only drops pixels that would be passed over anyway, so the sums do not change."""
     n_ch = colors.shape[1]
     x0, y0, x1, y1 = _tile_bounds(t, tiles_x, width, height)
     tw = x1 - x0
@@ -583,15 +661,26 @@ def _backward_tile(
             p = (j - y0) * tw + i - x0
             tn = t_final[j, i]
             T[p] = tn
-            tfin[p] = tn
             lst[p] = last[j, i]
             row_last[j - y0] = max(row_last[j - y0], last[j, i])
             k_max = max(k_max, last[j, i])
-            galpha[p] = grad_alpha[j, i]
+            galpha[p] = grad_alpha[j, i] * tn
             for ch in range(n_ch):
                 behind[p, ch] = tn * background[ch]
                 gimg[p, ch] = grad_image[j, i, ch]
                 gbg[ch] += grad_image[j, i, ch] * tn
+    for r in range(y1 - y0):  # insertion sort of the row's columns by lst, descending
+        for c in range(tw):
+            val = lst[r * tw + c]
+            m = c
+            while m > 0 and row_lst[r, m - 1] < val:
+                row_lst[r, m] = row_lst[r, m - 1]
+                row_col[r, m] = row_col[r, m - 1]
+                m -= 1
+            row_lst[r, m] = val
+            row_col[r, m] = c
+        row_ptr[r] = 0
+        need[r] = 0
     for k in range(k_max, tile_start[t] - 1, -1):
         g = ids[k]
         if glevel[g] > upto:
@@ -607,7 +696,7 @@ def _backward_tile(
         cc = conic[g, 2]
         o = opacities[g]
         c_g = cut[g]
-        e_ca = math.exp(-ca)
+        e_ca = -1.0  # exp(-ca), computed on the first row walked
         gu = 0.0
         gv = 0.0
         gca = 0.0
@@ -616,13 +705,30 @@ def _backward_tile(
         go = 0.0
         for ch in range(n_ch):
             gcol[ch] = 0.0
+        gc0 = 0.0
+        gc1 = 0.0
+        gc2 = 0.0
+        c0 = colors[g, 0]
+        c1 = colors[g, 1 % n_ch]
+        c2 = colors[g, 2 % n_ch]
         touched = False
         for j in range(j0, j1 + 1):
-            if k > row_last[j - y0]:
+            r = j - y0
+            if k > row_last[r]:
                 continue
+            while row_ptr[r] < tw and row_lst[r, row_ptr[r]] >= k:
+                need[r] |= 1 << row_col[r, row_ptr[r]]
+                row_ptr[r] += 1
             dy = j + 0.5 - v
             a, b = _row_span(dy, u, ca, cb, cc, c_g, i0, i1)
-            row = (j - y0) * tw - x0
+            if a > b or (need[r] & (((1 << (b + 1 - x0)) - 1) ^ ((1 << (a - x0)) - 1))) == 0:
+                continue
+            if e_ca < 0.0:
+                e_ca = math.exp(-ca)
+            row = r * tw - x0
+            s0 = 0.0
+            s1 = 0.0
+            s2 = 0.0
             power, step, gss, e_step = _row_start(dy, u, ca, cb, cc, a)
             for i in range(a, b + 1):
                 p = row + i
@@ -642,33 +748,58 @@ def _backward_tile(
                 inv = 1.0 / (1.0 - alpha)
                 T_before = T[p] * inv
                 w = alpha * T_before
-                g_a = galpha[p] * tfin[p] * inv
-                for ch in range(n_ch):
-                    gcol[ch] += w * gimg[p, ch]
-                    g_a += gimg[p, ch] * (colors[g, ch] * T_before - behind[p, ch] * inv)
-                    behind[p, ch] += colors[g, ch] * w
+                g_a = galpha[p] * inv  # galpha holds dL/dalpha * T_final
+                if n_ch == 3:  # the common case, in registers (same operations, same order)
+                    gi0 = gimg[p, 0]
+                    gi1 = gimg[p, 1]
+                    gi2 = gimg[p, 2]
+                    gc0 += w * gi0
+                    gc1 += w * gi1
+                    gc2 += w * gi2
+                    g_a += gi0 * (c0 * T_before - behind[p, 0] * inv)
+                    g_a += gi1 * (c1 * T_before - behind[p, 1] * inv)
+                    g_a += gi2 * (c2 * T_before - behind[p, 2] * inv)
+                    behind[p, 0] += c0 * w
+                    behind[p, 1] += c1 * w
+                    behind[p, 2] += c2 * w
+                else:
+                    for ch in range(n_ch):
+                        gcol[ch] += w * gimg[p, ch]
+                        g_a += gimg[p, ch] * (colors[g, ch] * T_before - behind[p, ch] * inv)
+                        behind[p, ch] += colors[g, ch] * w
                 T[p] = T_before
                 if clamped:
                     continue
                 go += gauss * g_a
                 g_pow = alpha * g_a
-                gu += g_pow * (ca * dx + cb * dy)
-                gv += g_pow * (cb * dx + cc * dy)
-                gca -= 0.5 * g_pow * dx * dx
-                gcb -= g_pow * dx * dy
-                gcc -= 0.5 * g_pow * dy * dy
+                s0 += g_pow
+                g_dx = g_pow * dx
+                s1 += g_dx
+                s2 += g_dx * dx
+            # d power/du = ca dx + cb dy, d/dv = cb dx + cc dy, d/dconic = -(dx^2/2, dx dy, dy^2/2):
+            # dy is constant along the row, so the row needs only sum g, sum g dx, sum g dx^2.
+            gu += ca * s1 + cb * dy * s0
+            gv += cb * s1 + cc * dy * s0
+            gca -= 0.5 * s2
+            gcb -= dy * s1
+            gcc -= 0.5 * dy * dy * s0
         if touched:
-            grads_isect[k, G_U] += gu
-            grads_isect[k, G_V] += gv
-            grads_isect[k, G_CA] += gca
-            grads_isect[k, G_CB] += gcb
-            grads_isect[k, G_CC] += gcc
-            grads_isect[k, G_OPAC] += go
+            if n_ch == 3:
+                gcol[0] = gc0
+                gcol[1] = gc1
+                gcol[2] = gc2
+            s = slot + k
+            geo_isect[s, G_U] += gu
+            geo_isect[s, G_V] += gv
+            geo_isect[s, G_CA] += gca
+            geo_isect[s, G_CB] += gcb
+            geo_isect[s, G_CC] += gcc
+            geo_isect[s, G_OPAC] += go
             for ch in range(n_ch):
-                grads_isect[k, G_COLOR + ch] += gcol[ch]
+                col_isect[s, ch] += gcol[ch]
             if finest:
-                grads_isect[k, G_COLOR + n_ch] += gu
-                grads_isect[k, G_COLOR + n_ch + 1] += gv
+                geo_isect[s, _GEO_U_LAST] += gu
+                geo_isect[s, _GEO_U_LAST + 1] += gv
 
 
 @njit(parallel=_PARALLEL, cache=True)
@@ -711,16 +842,38 @@ def raster_backward(
     n_tiles = tile_start.shape[0] - 1
     n_img = upto.shape[0]
     width_g = G_COLOR + n_ch + 2
-    grads_isect = np.zeros((ids.shape[0], width_g))
+    # Only pairs up to the last index a tile's pixels composited (in any image) get gradients:
+    # give the per-pair buffers a row for those alone (less than half of all pairs on a head),
+    # split in two so that each stays under glibc's 32 MB mmap ceiling and is reused from the
+    # heap instead of being page-faulted in afresh on every call (that cost ~100 ms at 802x550).
+    k_end = tile_start[:-1].copy()
+    for im in range(n_img):
+        for j in range(height):
+            for i in range(width):
+                t = (j // TILE) * tiles_x + i // TILE
+                k_end[t] = max(k_end[t], last[im, j, i] + 1)
+    slot_start = np.empty(n_tiles + 1, np.int64)
+    n_slots = 0
+    for t in range(n_tiles):
+        slot_start[t] = n_slots
+        n_slots += k_end[t] - tile_start[t]
+    slot_start[n_tiles] = n_slots
+    geo_isect = np.zeros((n_slots, _GEO_WIDTH))
+    col_isect = np.zeros((n_slots, n_ch))
     gbg_tile = np.zeros((n_tiles, n_ch))
-    for t in prange(n_tiles):
+    spread = _spread_tiles(n_tiles, tiles_x)
+    for it in prange(n_tiles):
+        t = spread[it]
         T = np.empty(TILE * TILE)
         behind = np.empty((TILE * TILE, n_ch))
         gimg = np.empty((TILE * TILE, n_ch))
         galpha = np.empty(TILE * TILE)
-        tfin = np.empty(TILE * TILE)
         lst = np.empty(TILE * TILE, np.int64)
         row_last = np.empty(TILE, np.int64)
+        row_lst = np.empty((TILE, TILE), np.int64)
+        row_col = np.empty((TILE, TILE), np.int64)
+        row_ptr = np.empty(TILE, np.int64)
+        need = np.empty(TILE, np.int64)
         gcol = np.empty(n_ch)
         for l in range(n_img):
             _backward_tile(
@@ -745,21 +898,32 @@ def raster_backward(
                 behind,
                 gimg,
                 galpha,
-                tfin,
                 lst,
                 row_last,
+                row_lst,
+                row_col,
+                row_ptr,
+                need,
                 gcol,
-                grads_isect,
+                geo_isect,
+                col_isect,
+                slot_start[t] - tile_start[t],
                 gbg_tile[t],
                 glevel,
                 upto[l],
                 l == n_img - 1,
             )
     grads = np.zeros((n, width_g))
-    for k in range(ids.shape[0]):
-        g = ids[k]
-        for q in range(width_g):
-            grads[g, q] += grads_isect[k, q]
+    for t in range(n_tiles):  # pair order, as before: a Gaussian's tiles add up in tile order
+        s0 = slot_start[t] - tile_start[t]
+        for k in range(tile_start[t], k_end[t]):
+            g = ids[k]
+            for q in range(G_COLOR):
+                grads[g, q] += geo_isect[s0 + k, q]
+            for ch in range(n_ch):
+                grads[g, G_COLOR + ch] += col_isect[s0 + k, ch]
+            grads[g, G_COLOR + n_ch] += geo_isect[s0 + k, _GEO_U_LAST]
+            grads[g, G_COLOR + n_ch + 1] += geo_isect[s0 + k, _GEO_U_LAST + 1]
     gbg = np.zeros(n_ch)
     for t in range(n_tiles):
         for ch in range(n_ch):

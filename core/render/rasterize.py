@@ -148,8 +148,7 @@ def _cpu_forward(
     )
     if means2d_offset is not None:
         xy += means2d_offset
-    visible = np.flatnonzero((radii != 0) & (glevel <= upto.max()))
-    order = visible[np.argsort(depth[visible], kind="stable")].astype(np.int64)
+    order = rk.depth_order(depth, (radii != 0) & (glevel <= upto.max()))
     tiles_x, tiles_y = _tiles(camera)
     tile_start, ids = rk.bin_tiles(rect, order, tiles_x, tiles_y)
     if with_depth:
