@@ -1,6 +1,8 @@
 """The differentiable rasteriser (core/render/rasterize.py) against the dense float64 reference
 (core/render/reference.py), finite differences, and itself (contrib, means2d, depth)."""
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -425,3 +427,18 @@ def test_render_bitwise_deterministic_across_runs_and_thread_counts():
     for threads in (1, numba.config.NUMBA_NUM_THREADS, numba.config.NUMBA_NUM_THREADS):
         for a, b in zip(first, run(threads)):
             assert torch.equal(a, b)
+
+
+def test_all_finite_exact_where_the_fast_sum_overflows():
+    # The fast path sums; a sum that overflows from huge finite values must not read as NaN/inf.
+    from progressive_avatars.core.render.rasterize import all_finite
+
+    huge = torch.full((1000,), 3e38)
+    assert math.isinf(float(huge.sum())) and all_finite(huge) and all_finite(huge.numpy())
+    for bad in (float("nan"), float("inf"), -float("inf")):
+        x = torch.zeros(5000, 3)
+        x[4321, 2] = bad
+        assert not all_finite(x) and not all_finite(x.numpy()) and not all_finite(x.double())
+    pair = torch.tensor([float("inf"), -float("inf")])  # sums to NaN
+    assert not all_finite(pair)
+    assert all_finite(torch.arange(10)) and all_finite(np.arange(10)) and all_finite(torch.zeros(0))

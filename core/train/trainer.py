@@ -28,7 +28,7 @@ from ..avatar.forest import Forest
 from .distributed import Dist, check_same, digest
 from .model import TorchAvatar
 from .policies import Growth, Supervision
-from ..render.rasterize import render, render_levels
+from ..render.rasterize import all_finite, render, render_levels
 
 
 @dataclass
@@ -221,7 +221,7 @@ class Adam:
 
 def _check_finite(it: int, **tensors):
     for name, t in tensors.items():
-        if t is not None and not torch.isfinite(t).all():
+        if t is not None and not all_finite(t):
             raise FloatingPointError(f"iteration {it}: {name} became NaN/inf; training stopped, last checkpoint kept")
 
 
@@ -465,8 +465,11 @@ class Trainer:
                 norm = torch.linalg.vector_norm(grad2d, dim=-1).numpy() * (scale * b)
                 seen = out.radii.numpy() > 0
                 idx = ids.numpy()[seen]
-                np.add.at(self.grad_sum, idx, norm[seen])
-                np.add.at(self.grad_count, idx, 1)
+                # bincount, not np.add.at: ufunc.at with float32 values into float64 takes its
+                # slow path (~13 ms per view at 150k faces); the sums are the same either way.
+                n = len(self.grad_sum)
+                self.grad_sum += np.bincount(idx, norm[seen], minlength=n)
+                self.grad_count += np.bincount(idx, minlength=n)
             loss_sum += float(loss.item())
             mse = torch.mean((out.image.detach() - target) ** 2).item()
             psnr_sum += 10 * math.log10(1 / max(mse, 1e-12))
