@@ -572,7 +572,7 @@ def raster_forward(
         lst = np.empty(TILE * TILE, np.int64)
         done = np.empty(TILE * TILE, np.bool_)
         active = np.empty(TILE, np.int64)
-        for l in range(n_img):
+        for im in range(n_img):
             _forward_tile(
                 t,
                 tile_start,
@@ -592,12 +592,12 @@ def raster_forward(
                 lst,
                 done,
                 active,
-                contrib_isect if l == n_img - 1 else no_contrib,
-                image[l],
-                t_final[l],
-                last[l],
+                contrib_isect if im == n_img - 1 else no_contrib,
+                image[im],
+                t_final[im],
+                last[im],
                 glevel,
-                upto[l],
+                upto[im],
             )
     contrib = np.zeros(n)
     for k in range(ids.shape[0]):
@@ -875,7 +875,7 @@ def raster_backward(
         row_ptr = np.empty(TILE, np.int64)
         need = np.empty(TILE, np.int64)
         gcol = np.empty(n_ch)
-        for l in range(n_img):
+        for im in range(n_img):
             _backward_tile(
                 t,
                 tile_start,
@@ -887,10 +887,10 @@ def raster_backward(
                 colors,
                 rect,
                 background,
-                t_final[l],
-                last[l],
-                grad_image[l],
-                grad_alpha[l],
+                t_final[im],
+                last[im],
+                grad_image[im],
+                grad_alpha[im],
                 width,
                 height,
                 tiles_x,
@@ -910,8 +910,8 @@ def raster_backward(
                 slot_start[t] - tile_start[t],
                 gbg_tile[t],
                 glevel,
-                upto[l],
-                l == n_img - 1,
+                upto[im],
+                im == n_img - 1,
             )
     grads = np.zeros((n, width_g))
     for t in range(n_tiles):  # pair order, as before: a Gaussian's tiles add up in tile order
