@@ -791,6 +791,17 @@ def test_write_is_atomic(tmp_path, monkeypatch):
     assert p.read_bytes() == before
 
 
+def test_written_stream_names_folders_not_their_local_paths(tmp_path):
+    # A stream is made to be shared: the training data and run folders travel as names only.
+    _, av, imp = make_avatar(3)
+    av.meta = dict(av.meta or {}, data="/home/someone/clients/secret/data_dir", iterations=7)
+    p = tmp_path / "s.pavs"
+    write_stream(p, av, imp, metadata={"run": str(tmp_path / "runs" / "my_run") + "/"})
+    meta = read_header(p.read_bytes()).metadata
+    assert (meta["data"], meta["iterations"], meta["run"]) == ("data_dir", 7, "my_run")
+    assert b"/home/someone" not in p.read_bytes() and str(tmp_path).encode() not in p.read_bytes()
+
+
 # -- property test ------------------------------------------------------------------------
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(

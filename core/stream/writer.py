@@ -184,6 +184,8 @@ def _quant_table(av: Avatar, version: int = VERSION):
     return table, (rows.astype(np.int64), comps.astype(np.uint8), vals)
 
 
+_PATH_KEYS = ("data", "run")  # metadata entries that hold local folders
+
 def write_stream(
     path,
     avatar: Avatar,
@@ -205,7 +207,8 @@ def write_stream(
     Roots (coarse levels, template level) go level by level in `root_order` (root_keys):
     default "auto" when rest-pose `vertices` are given, else the forest's order. The avatar's
     training settings (meta "config") stay out of the header (they are in the run folder):
-    time to the first whole head counts.
+    time to the first whole head counts. The run and data folders are named by their last
+    component only: local paths do not travel with a shared file.
     ``version=3`` writes the previous format (min..max quantisation ranges, no exceptions table),
     ``version=2`` the one before (no coarse levels, roots in template order)."""
     forest = avatar.forest
@@ -254,6 +257,9 @@ def write_stream(
     if avatar.sh_degree:
         meta["sh_degree_dropped"] = avatar.sh_degree
     meta.update(metadata or {})
+    for key in _PATH_KEYS:  # a stream is made to be shared: name the folders, not where they lie
+        if isinstance(meta.get(key), str):
+            meta[key] = os.path.basename(os.path.normpath(meta[key]))
     try:
         meta_blob = json.dumps(meta, sort_keys=True, allow_nan=False).encode("utf-8") if meta else b""
     except (TypeError, ValueError) as exc:
