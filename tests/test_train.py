@@ -401,6 +401,24 @@ def test_fused_ssim_matches_dense_window_and_metrics(size):
         assert float((g - grads[2]).norm() / grads[2].norm()) < 1e-5
 
 
+def test_fused_ssim_gradient_finite_where_a_window_is_anticorrelated():
+    """A window whose x and y are anticorrelated so that 2 cov + C2 rounds to 0 in float32: cut
+    from the paper-scale head's training at iteration 59, where the fused SSIM's gradient was
+    0/0 = NaN and stopped the run. The gradient must be finite and match the float64 dense
+    window's."""
+    from progressive_avatars.core.train import losses
+
+    z = np.load(os.path.join(os.path.dirname(__file__), "data", "ssim_anticorrelated_window.npz"))
+    b = torch.from_numpy(z["y"].transpose(1, 2, 0).copy())
+    a0 = torch.from_numpy(z["x"].transpose(1, 2, 0).copy())
+    ours = a0.clone().requires_grad_(True)
+    losses.ssim(ours, b).backward()
+    ref = a0.double().clone().requires_grad_(True)
+    _ssim_dense_reference(ref, b.double()).backward()
+    assert torch.isfinite(ours.grad).all()
+    assert float((ours.grad.double() - ref.grad).norm() / ref.grad.norm()) < 1e-3
+
+
 def test_steps_are_deterministic_for_seed_and_any_numba_thread_count(tiny_dataset, tmp_path):
     """Same seed: bit-identical parameters after a few steps, whatever the number of numba
     threads (binding, rasteriser and SSIM kernels sum in fixed orders)."""

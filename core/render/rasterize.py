@@ -52,7 +52,7 @@ def all_finite(x) -> bool:
     isfinite().all() and is non-finite whenever an element is; only then (an overflow of huge
     finite values can cause it too) does the exact test decide."""
     if isinstance(x, torch.Tensor):
-        if not x.is_floating_point() or math.isfinite(float(x.sum())):
+        if not x.is_floating_point() or math.isfinite(float(x.detach().sum())):
             return True
         return bool(torch.isfinite(x).all())
     x = np.asarray(x)

@@ -129,11 +129,14 @@ def _ssim_forward(x, y, g):
                 a2 = 2 * (M[4, j] - mx * my) + c2
                 b1 = mx * mx + my * my + c1
                 b2 = (M[2, j] - mx * mx) + (M[3, j] - my * my) + c2
-                s = (a1 * a2) / (b1 * b2)
+                den = b1 * b2
+                s = (a1 * a2) / den
                 row += s
-                d[0, c, i, j] = s * (2 * my / a1 - 2 * my / a2 - 2 * mx / b1 + 2 * mx / b2)
+                # Quotient rule on s = a1 a2 / (b1 b2), never dividing by a2 = 2 cov + C2, which
+                # crosses 0 where a window's x and y are anticorrelated (s/a2 was 0/0 there).
+                d[0, c, i, j] = (2 * my * (a2 - a1) - 2 * mx * s * (b2 - b1)) / den
                 d[1, c, i, j] = -s / b2
-                d[2, c, i, j] = 2 * s / a2
+                d[2, c, i, j] = 2 * a1 / den
             tot += row
         partial[job] = tot
     total = 0.0
