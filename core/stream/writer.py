@@ -186,6 +186,7 @@ def _quant_table(av: Avatar, version: int = VERSION):
 
 _PATH_KEYS = ("data", "run")  # metadata entries that hold local folders
 
+
 def write_stream(
     path,
     avatar: Avatar,
