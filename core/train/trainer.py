@@ -124,6 +124,10 @@ PRESETS = {
     # base is <= 6 % of the record bytes only from 16.7x), sized for <= 2 h ASSUMING ~0.4 s per
     # iteration at that scale (15k x 0.4 s = 100 min, plus evaluations and checkpoints); the image cache is held
     # to 1 GiB (~150 of the 540 frames; decoding a frame again costs far less than an iteration).
+    # Measured (2026-11-23, run_paper_table.sh with ITERS=6000, 2 shared cores): 6,000 iterations
+    # took 6,008 s (1.0 s per iteration on average at 9k-38k faces), peak RSS 2.3 GB, and grew
+    # only 4.3x (8,950 -> 38,158 faces; the depth cap opens one level per ~900 iterations and
+    # few faces pass grad_threshold): neither the 2 h nor the 17x holds yet (issues 17, 18).
     "paper-cpu": dict(
         iterations=15000,
         max_depth=4,
