@@ -51,6 +51,12 @@ def main(argv=None):
     ap.add_argument("--coarse-weight", type=float, help="factor on the coarse levels' loss weights (default 0.5)")
     ap.add_argument("--grad-threshold", type=float)
     ap.add_argument("--max-faces", type=int)
+    ap.add_argument(
+        "--grow-to",
+        type=float,
+        metavar="X",
+        help="grow by a budget to X times the base faces (largest gradients above the threshold); 0: threshold only",
+    )
     ap.add_argument("--seed", type=int)
     ap.add_argument(
         "--flame-model",
@@ -98,6 +104,7 @@ def main(argv=None):
             uniform=args.uniform or None,
             grad_threshold=args.grad_threshold,
             max_faces=args.max_faces,
+            grow_to=args.grow_to,
             seed=args.seed,
             sh_degree=args.sh_degree,
             coarse_levels=() if args.no_coarse else args.coarse_levels,

@@ -498,3 +498,32 @@ def test_growth_and_supervision_policies_are_validated(tmp_path):
     g = Growth.from_config(config_for("cpu"))
     assert not g.due(149) and g.due(150) and not g.due(2850)  # growth stops at 70 % of 4000
     assert g.depth_cap(150) == 1 and g.depth_cap(2800) == 3
+
+
+def test_growth_by_budget_follows_its_schedule():
+    """grow_to splits the largest mean gradients above the threshold, as many as the geometric
+    schedule allows at each step, reaching grow_to x the base at the last growth step; without
+    it the threshold alone decides (the first paper-scale run grew 4.3x where ~17x was asked)."""
+    from progressive_avatars.core.avatar.forest import Forest
+    from progressive_avatars.core.train.policies import Growth
+
+    rng = np.random.default_rng(3)
+    forest = Forest(rng.integers(0, 50, size=(100, 3)))
+    kw = dict(iterations=1000, max_depth=3, grow_every=100, grow_start=100, grow_stop=0.5, grad_threshold=1e-3)
+    budget = Growth(**kw, max_faces=10_000, grow_to=4.0)
+    # five growth steps (100..500): 100 * 4 ** (i / 5) faces after step i; max_faces caps it
+    assert [budget.face_budget(100, it) for it in (100, 300, 500)] == [131, 229, 400]
+    assert Growth(**kw, max_faces=300, grow_to=4.0).face_budget(100, 500) == 300
+    grad = rng.random(100) * 2e-3  # about half above the threshold
+    count = np.ones(100)
+    pick = budget.pick(forest, grad, count, 100)
+    assert len(pick) == (131 - 100) // 3
+    # the largest gradients, all above the threshold
+    assert grad[pick].min() >= np.sort(grad)[-len(pick)] and grad[pick].min() > 1e-3
+    # the threshold stays a floor: the budget never splits a face below it
+    late = budget.pick(forest, grad, count, 500)
+    assert len(late) == np.count_nonzero(grad > 1e-3) < (400 - 100) // 3
+    assert len(Growth(**kw, max_faces=10_000).pick(forest, grad, count, 100)) == len(late)
+    for bad in (0.5, float("nan"), -1.0):
+        with pytest.raises(ValueError, match="grow_to"):
+            Growth(**kw, max_faces=100, grow_to=bad)

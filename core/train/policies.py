@@ -33,7 +33,14 @@ class Supervision:
 class Growth:
     """Adaptive (split leaves whose mean screen-space gradient exceeds the threshold, largest
     first within the face budget) or uniform (every leaf under the depth cap: the ablation).
-    The depth cap rises from 1 to max_depth between grow_start and grow_stop."""
+    The depth cap rises from 1 to max_depth between grow_start and grow_stop.
+
+    With ``grow_to`` > 0 the adaptive split count follows a budget instead of the threshold
+    alone: after growth step i of n the forest holds up to base * grow_to ** (i / n) faces (base:
+    the roots; capped by max_faces), taking the largest mean gradients that still exceed the
+    threshold. A threshold tuned on one image size and loss scale grows another scene by an
+    unpredictable factor (4.3x instead of ~17x on the paper-scale head, issue 17); the stream's
+    shape (how small the base is against the whole) should be set by the user, not found by it."""
 
     def __init__(
         self,
@@ -46,6 +53,7 @@ class Growth:
         grad_threshold: float,
         max_faces: int,
         uniform: bool = False,
+        grow_to: float = 0.0,
     ):
         if grow_every < 1 or max_depth < 0 or max_faces < 0 or not 0 <= grow_stop <= 1:
             raise ValueError(
@@ -54,6 +62,9 @@ class Growth:
             )
         if not np.isfinite(grad_threshold) or grad_threshold < 0:
             raise ValueError(f"growth: grad_threshold must be finite and >= 0, got {grad_threshold}")
+        if not np.isfinite(grow_to) or not (grow_to == 0 or grow_to >= 1):
+            raise ValueError(f"growth: grow_to must be 0 (off) or a factor >= 1, got {grow_to}")
+        self.grow_to = float(grow_to)
         self.iterations, self.max_depth, self.grow_every = int(iterations), int(max_depth), int(grow_every)
         self.grow_start, self.grow_stop = int(grow_start), float(grow_stop)
         self.grad_threshold, self.max_faces, self.uniform = float(grad_threshold), int(max_faces), bool(uniform)
@@ -69,6 +80,7 @@ class Growth:
             grad_threshold=cfg.grad_threshold,
             max_faces=cfg.max_faces,
             uniform=cfg.uniform,
+            grow_to=cfg.grow_to,
         )
 
     def due(self, it: int) -> bool:
@@ -94,5 +106,15 @@ class Growth:
             over = mean > self.grad_threshold
             # Largest gradients first when the face budget would be exceeded.
             pick = leaves[over][np.argsort(-mean[over], kind="stable")]
-        room = max(0, (self.max_faces - forest.num_faces) // 3)
+        room = max(0, (self.face_budget(forest.num_roots, it) - forest.num_faces) // 3)  # a split adds 3
         return np.sort(pick[:room])
+
+    def face_budget(self, base: int, it: int) -> int:
+        """The most faces the forest may hold after the growth step at iteration ``it``."""
+        if self.uniform or self.grow_to == 0:
+            return self.max_faces
+        first = -(-self.grow_start // self.grow_every) * self.grow_every  # the first due() iteration
+        last = int(self.grow_stop * self.iterations)
+        steps = max(1, (last - first) // self.grow_every + 1)
+        step = min(steps, max(1, (it - first) // self.grow_every + 1))
+        return min(self.max_faces, int(base * self.grow_to ** (step / steps)))
