@@ -27,10 +27,12 @@ _sys.path.insert(0, _os.path.dirname(_os.path.abspath(__file__)))
 import _bootstrap  # noqa: E402,F401  (makes progressive_avatars importable, strips Blender's "--")
 
 import datetime  # noqa: E402
+import inspect  # noqa: E402
 import platform  # noqa: E402
 import resource  # noqa: E402
 import time  # noqa: E402
 
+import numba  # noqa: E402
 import numpy as np  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -264,6 +266,9 @@ def old_kernels(commit):
     return rev, importlib.import_module(f"kernels_{rev}")
 
 
+_RECORD: dict = {}  # record buffers of replaying kernels, by (width, height, threads)
+
+
 def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.3):
     """The CPU render of core/render/rasterize.py, forward and backward, kernel by kernel with
     module ``rk``'s kernels; returns per-stage (wall ms, process CPU ms), the image, alpha and
@@ -296,14 +301,34 @@ def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.
     tile_start, ids = rk.bin_tiles(rect, order, tiles_x, -(-H // rk.TILE))
     mark("bin_tiles")
     glevel, upto = np.zeros(len(means), np.int64), np.zeros(1, np.int64)
-    image, t_final, last, _ = rk.raster_forward(
-        tile_start, ids, xy, conic, opac, cut, colors, rect, bg, W, H, tiles_x, glevel, upto
-    )
-    mark("raster_forward")
-    grads, _ = rk.raster_backward(
-        tile_start, ids, xy, conic, opac, cut, colors, rect, bg, t_final, last,
-        grad_image[None], grad_alpha[None], W, H, tiles_x, glevel, upto,
-    )  # fmt: skip
+    if "rec_gauss" in inspect.signature(rk.raster_forward.py_func).parameters:
+        # Kernels whose backward replays the forward's record: buffers reused between calls as
+        # rasterize.py's pool does (steady state: no page faults, no re-run).
+        chunks = numba.get_num_threads()
+        while True:
+            bufs = _RECORD.get((W, H, chunks))
+            if bufs is None:
+                bufs = _RECORD[(W, H, chunks)] = (np.empty(32 * W * H), np.empty(32 * W * H, np.uint8))
+            image, t_final, last, _, (rec_start, rec_n, used) = rk.raster_forward(
+                tile_start, ids, xy, conic, opac, cut, colors, rect, bg, W, H, tiles_x, glevel, upto, chunks, *bufs
+            )
+            if used.max() <= len(bufs[0]) // chunks:
+                break
+            _RECORD[(W, H, chunks)] = (np.empty(2 * len(bufs[0])), np.empty(2 * len(bufs[0]), np.uint8))
+        mark("raster_forward")
+        grads, _ = rk.raster_backward(
+            tile_start, ids, xy, conic, opac, colors, bg, t_final, last,
+            grad_image[None], grad_alpha[None], W, H, tiles_x, *bufs, rec_start, rec_n,
+        )  # fmt: skip
+    else:
+        image, t_final, last, _ = rk.raster_forward(
+            tile_start, ids, xy, conic, opac, cut, colors, rect, bg, W, H, tiles_x, glevel, upto
+        )
+        mark("raster_forward")
+        grads, _ = rk.raster_backward(
+            tile_start, ids, xy, conic, opac, cut, colors, rect, bg, t_final, last,
+            grad_image[None], grad_alpha[None], W, H, tiles_x, glevel, upto,
+        )  # fmt: skip
     mark("raster_backward")
     g_means, g_quats, g_scales = rk.project_backward(
         means, quats, scales, Rc, tc, fx, fy, lim, eps2d, radii,

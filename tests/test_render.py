@@ -442,3 +442,44 @@ def test_all_finite_exact_where_the_fast_sum_overflows():
     pair = torch.tensor([float("inf"), -float("inf")])  # sums to NaN
     assert not all_finite(pair)
     assert all_finite(torch.arange(10)) and all_finite(np.arange(10)) and all_finite(torch.zeros(0))
+
+
+def test_backward_replays_the_forwards_record_whatever_its_buffers(monkeypatch):
+    """The backward replays the pairs the forward recorded. A record that runs out of room is
+    made again with more (same gradients, and the next size learnt); forwards that wait for
+    their backward together keep their own records; a second backward through one render says
+    why it cannot instead of reading a buffer another forward may have reused."""
+    from progressive_avatars.core.render import rasterize as rz
+
+    cam, params = make_scene(7, n=120)
+    wi, wa = loss_weights(7)
+
+    def grads():
+        ours = leaves(params)
+        out = render(*ours[:5], cam, ours[5])
+        ((out.image * wi).sum() + (out.alpha * wa).sum()).backward()
+        return [p.grad.clone() for p in ours]
+
+    ref = leaves(params)
+    img, alpha, _ = render_reference(*ref[:5], cam, ref[5])
+    ((img * wi).sum() + (alpha * wa).sum()).backward()
+    roomy = grads()
+    small = rz._RecordBuffers(per_pixel=0.001)  # a few entries per thread: the first forward overflows
+    monkeypatch.setattr(rz, "_record_buffers", small)
+    tight = grads()
+    assert small.per_pixel > 0.5
+    for name, a, b, c in zip(NAMES, tight, roomy, ref):
+        assert torch.equal(a, b), name
+        assert rel_err(a, c.grad) <= 1e-3, name
+    # Two renders alive at once (views per step > 1), the second of other Gaussians.
+    a, b = leaves(params), leaves(params)
+    with torch.no_grad():
+        b[0] += 0.01
+    out_a = render(*a[:5], cam, a[5])
+    out_b = render(*b[:5], cam, b[5])
+    ((out_b.image * wi).sum() + (out_b.alpha * wa).sum()).backward()
+    ((out_a.image * wi).sum() + (out_a.alpha * wa).sum()).backward(retain_graph=True)
+    for name, g, r in zip(NAMES, a, roomy):
+        assert torch.equal(g.grad, r), name
+    with pytest.raises(RuntimeError, match="no record"):
+        ((out_a.image * wi).sum()).backward()

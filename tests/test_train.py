@@ -333,14 +333,19 @@ def test_flame_refinement_learns_resumes_and_is_saved(tiny_dataset, tmp_path):
 
 
 def test_paper_cpu_preset_schedule_and_bounded_cache():
-    """paper-cpu: depth 4 reached while growth still runs, growth capped near 17x the paper-scale
-    template's 8192 faces, 15k iterations (<= 2 h at the assumed ~0.4 s each), a bounded image
-    cache; the cache bound reaches the training Dataset."""
+    """paper-cpu: depth 4 reached while growth still runs, a growth budget that ends at 16.7-18x
+    the paper-scale head's base (8192 template + 758 coarse faces) within max_faces, a bounded
+    image cache; the cache bound reaches the training Dataset."""
     from types import SimpleNamespace
 
+    from progressive_avatars.core.train.policies import Growth
+
     cfg = config_for("paper-cpu")
-    assert cfg.max_depth == 4 and cfg.iterations * 0.4 <= 2 * 3600
-    assert 16.7 <= cfg.max_faces / 8192 <= 18  # base <= 6 % of the records, as the paper's
+    growth = Growth.from_config(cfg)
+    base = 8192 + 758
+    last = max(it for it in range(cfg.iterations + 1) if growth.due(it))
+    assert 16.7 <= growth.face_budget(base, last) / base <= 18  # base <= 6 % of the records, as the paper's
+    assert growth.face_budget(base, last) <= cfg.max_faces and cfg.max_depth == 4
     caps = [
         Trainer.depth_cap(SimpleNamespace(cfg=cfg), it)
         for it in range(cfg.grow_start, cfg.iterations + 1, cfg.grow_every)

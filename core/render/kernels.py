@@ -27,8 +27,10 @@ threads: numba's dynamic chunking (parallel_chunksize) measured several times sl
 tiles are interleaved first (_spread_tiles) so that each static share sees all of the image.
 
 Work per tile is trimmed twice: each Gaussian visits only the chord of its ellipse on each
-row (not its bounding box), and rows whose pixels have all stopped (forward) or all finished
-before this Gaussian (backward) are skipped through per-row masks.
+row (not its bounding box), cut to the pixels still compositing (per-row bit masks; rows
+whose pixels have all stopped are skipped). The backward walks nothing: the forward records
+every composited (Gaussian, pixel) pair with its exp(power), and the backward replays those
+pairs back to front (raster_forward's record, raster_backward).
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ import math
 
 import numpy as np
 from numba import njit, prange
+from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 
 TILE = 16
 BLOCK = 1024  # Gaussians per parallel work item in the projection kernels
@@ -328,28 +331,10 @@ def bin_tiles(rect, order, tiles_x, tiles_y):
 
 
 @njit(cache=True)
-def _alpha(o, power, cut):
-    """Alpha of one Gaussian at one pixel and whether it was clamped; 0 when skipped.
-
-    ``power`` = -(ca dx^2 + cc dy^2)/2 - cb dx dy, evaluated per row as
-    p_base + dx (p_lin - ca dx / 2); forward and backward must evaluate it identically so
-    that they skip the same pixels. ``cut`` = -ln(255 o): below it alpha < 1/255, so exp is
-    not even evaluated.
-    """
-    if power < cut or power > 0.0:
-        return 0.0, 0.0, False
-    gauss = math.exp(power)
-    alpha = o * gauss
-    if alpha < ALPHA_MIN:
-        return 0.0, gauss, False
-    if alpha > ALPHA_MAX:
-        return ALPHA_MAX, gauss, True
-    return alpha, gauss, False
-
-
-@njit(cache=True)
 def _alpha_g(o, power, gauss, cut):
-    """_alpha with exp(power) supplied (rows step it by a recurrence, see _row_start)."""
+    """Alpha of one Gaussian at one pixel, exp(power) and whether alpha was clamped; 0 when
+    skipped. ``power`` = -(ca dx^2 + cc dy^2)/2 - cb dx dy and ``gauss`` its exp, stepped
+    along the row (see _row_start). ``cut`` = -ln(255 o): below it alpha < 1/255."""
     if power < cut or power > 0.0:
         return 0.0, 0.0, False
     alpha = o * gauss
@@ -368,8 +353,8 @@ def _row_start(dy, u, ca, cb, cc, a):
     falling by ca per column, and exp(power) follows as gauss *= exp(step), exp(step) *=
     exp(-ca): three exps per row instead of one per pixel. With eps2d > 0 the conic is
     bounded (ca <= 1/eps2d) and a chord stays inside one tile, so nothing overflows; the
-    product drifts by a few ulps over a tile row. Forward and backward walk the same chord
-    from the same column, so they see the same values (and skip the same pixels).
+    product drifts by a few ulps over a tile row. Only the forward walks rows: the backward
+    replays the values it recorded.
     """
     p_base = -0.5 * cc * dy * dy
     p_lin = -cb * dy
@@ -430,10 +415,19 @@ def _forward_tile(
     last,
     glevel,
     upto,
+    rec_gauss,
+    rec_pix,
+    rec_start,
+    rec_n,
+    pos,
+    cap_end,
 ):
     """Composite one tile front to back, Gaussians with glevel <= upto only. Each Gaussian
     visits only the chords of its ellipse inside the tile, and skips rows whose pixels have
-    all stopped (bit masks in ``active``)."""
+    all stopped (bit masks in ``active``).
+
+    With ``pos`` >= 0 every composited pair is recorded for the backward (see raster_forward)
+    from entry ``pos`` on; returns the next free entry, or -1 once ``cap_end`` is reached."""
     n_ch = colors.shape[1]
     x0, y0, x1, y1 = _tile_bounds(t, tiles_x, width, height)
     tw = x1 - x0
@@ -464,6 +458,7 @@ def _forward_tile(
         c_g = cut[g]
         e_ca = -1.0  # exp(-ca), computed on the first row walked
         wsum = 0.0
+        first = pos
         c0 = colors[g, 0]
         c1 = colors[g, 1 % n_ch]
         c2 = colors[g, 2 % n_ch]
@@ -475,8 +470,13 @@ def _forward_tile(
             a, b = _row_span(dy, u, ca, cb, cc, c_g, i0, i1)
             if a > b:
                 continue
-            if (active[r] & (((1 << (b + 1 - x0)) - 1) ^ ((1 << (a - x0)) - 1))) == 0:
+            live = active[r] & (((1 << (b + 1 - x0)) - 1) ^ ((1 << (a - x0)) - 1))
+            if live == 0:
                 continue
+            # Only from the first to the last pixel still compositing (the backward replays the
+            # record, so the walk need not match anything).
+            a = x0 + trailing_zeros(live)
+            b = x0 + 63 - leading_zeros(live)
             if e_ca < 0.0:
                 e_ca = math.exp(-ca)
             row = r * tw - x0
@@ -491,7 +491,7 @@ def _forward_tile(
                 e_step *= e_ca
                 if done[p]:
                     continue
-                alpha, _, _ = _alpha_g(o, pw, gs, c_g)
+                alpha, _, clamped = _alpha_g(o, pw, gs, c_g)
                 if alpha == 0.0:
                     continue
                 Tp = T[p]
@@ -501,6 +501,13 @@ def _forward_tile(
                     active[r] &= ~(1 << (i - x0))
                     n_done += 1
                     continue
+                if pos >= 0:
+                    if pos < cap_end:
+                        rec_gauss[pos] = -1.0 if clamped else gs
+                        rec_pix[pos] = r * TILE + i - x0
+                        pos += 1
+                    else:
+                        pos = -1
                 w = alpha * Tp
                 if n_ch == 3:  # the common case, unrolled
                     acc[p, 0] += w * c0
@@ -514,6 +521,9 @@ def _forward_tile(
                 lst[p] = k
         if contrib_isect.shape[0] > 0:
             contrib_isect[k] = wsum
+        if pos > first:
+            rec_start[k] = first
+            rec_n[k] = pos - first
         if n_done == n_pix:
             break
     for j in range(y0, y1):
@@ -523,6 +533,7 @@ def _forward_tile(
                 image[j, i, ch] = acc[p, ch] + T[p] * background[ch]
             t_final[j, i] = T[p]
             last[j, i] = lst[p]
+    return pos
 
 
 @njit(cache=True)
@@ -545,7 +556,23 @@ def _spread_tiles(n_tiles, tiles_x):
 
 @njit(parallel=_PARALLEL, cache=True)
 def raster_forward(
-    tile_start, ids, xy, conic, opacities, cut, colors, rect, background, width, height, tiles_x, glevel, upto
+    tile_start,
+    ids,
+    xy,
+    conic,
+    opacities,
+    cut,
+    colors,
+    rect,
+    background,
+    width,
+    height,
+    tiles_x,
+    glevel,
+    upto,
+    n_chunks,
+    rec_gauss,
+    rec_pix,
 ):
     """Front-to-back compositing, parallel over tiles, of one image per entry of ``upto``:
     image l composites the Gaussians g with glevel[g] <= upto[l] (levels of a forest share
@@ -553,8 +580,17 @@ def raster_forward(
 
     Returns images [L,H,W,C] (background included), final transmittance [L,H,W], the flat
     index (into ``ids``) of the last Gaussian composited at each pixel (-1: none) [L,H,W],
-    and the per-Gaussian contribution sum_pixels alpha*T of the last image.
-    """
+    the per-Gaussian contribution sum_pixels alpha*T of the last image, and the record.
+
+    The record (when rec_gauss and rec_pix, the caller's buffers, are not empty) lists every
+    composited (pair, pixel), for raster_backward:
+    exp(power) (-1 where alpha was clamped) and the pixel (row * TILE + column in the tile),
+    pair k of image l at entries rec_start[l, k] .. + rec_n[l, k]. The backward replays the
+    pairs instead of walking the ellipses again (no chords, exps or skipped pixels), so the
+    forward is free to trim its walk. The tiles are cut into ``n_chunks`` static shares, one
+    per thread, each filling its own slice of the buffers; ``used`` gives the entries each
+    share took, or its capacity + 1 where it ran out (the record is then incomplete: the
+    caller calls again with larger buffers)."""
     n = xy.shape[0]
     n_ch = colors.shape[1]
     n_tiles = tile_start.shape[0] - 1
@@ -564,58 +600,74 @@ def raster_forward(
     last = np.empty((n_img, height, width), np.int64)
     contrib_isect = np.zeros(ids.shape[0])  # pairs after a tile's early exit stay 0
     no_contrib = np.zeros(0)
+    chunk_cap = min(rec_gauss.shape[0], rec_pix.shape[0]) // n_chunks
+    rec = chunk_cap > 0
+    rec_start = np.zeros((n_img, ids.shape[0] if rec else 0), np.int64)
+    rec_n = np.zeros((n_img, ids.shape[0] if rec else 0), np.int32)
+    used = np.zeros(n_chunks, np.int64)
     spread = _spread_tiles(n_tiles, tiles_x)
-    for it in prange(n_tiles):
-        t = spread[it]
+    per = -(-n_tiles // n_chunks)
+    for c in prange(n_chunks):
         T = np.empty(TILE * TILE)
         acc = np.empty((TILE * TILE, n_ch))
         lst = np.empty(TILE * TILE, np.int64)
         done = np.empty(TILE * TILE, np.bool_)
         active = np.empty(TILE, np.int64)
-        for im in range(n_img):
-            _forward_tile(
-                t,
-                tile_start,
-                ids,
-                xy,
-                conic,
-                opacities,
-                cut,
-                colors,
-                rect,
-                background,
-                width,
-                height,
-                tiles_x,
-                T,
-                acc,
-                lst,
-                done,
-                active,
-                contrib_isect if im == n_img - 1 else no_contrib,
-                image[im],
-                t_final[im],
-                last[im],
-                glevel,
-                upto[im],
-            )
+        pos = c * chunk_cap if rec else -1
+        cap_end = (c + 1) * chunk_cap
+        for it in range(c * per, min(n_tiles, (c + 1) * per)):
+            t = spread[it]
+            for im in range(n_img):
+                nxt = _forward_tile(
+                    t,
+                    tile_start,
+                    ids,
+                    xy,
+                    conic,
+                    opacities,
+                    cut,
+                    colors,
+                    rect,
+                    background,
+                    width,
+                    height,
+                    tiles_x,
+                    T,
+                    acc,
+                    lst,
+                    done,
+                    active,
+                    contrib_isect if im == n_img - 1 else no_contrib,
+                    image[im],
+                    t_final[im],
+                    last[im],
+                    glevel,
+                    upto[im],
+                    rec_gauss,
+                    rec_pix,
+                    rec_start[im],
+                    rec_n[im],
+                    pos,
+                    cap_end,
+                )
+                if pos >= 0:
+                    used[c] = nxt - c * chunk_cap if nxt >= 0 else chunk_cap + 1
+                pos = nxt
     contrib = np.zeros(n)
     for k in range(ids.shape[0]):
         contrib[ids[k]] += contrib_isect[k]
-    return image, t_final, last, contrib
+    return image, t_final, last, contrib, (rec_start, rec_n, used)
 
 
 @njit(cache=True)
-def _backward_tile(
+def _replay_tile(
     t,
     tile_start,
     ids,
     xy,
     conic,
     opacities,
-    cut,
     colors,
-    rect,
     background,
     t_final,
     last,
@@ -628,75 +680,46 @@ def _backward_tile(
     behind,
     gimg,
     galpha,
-    lst,
-    row_last,
-    row_lst,
-    row_col,
-    row_ptr,
-    need,
     gcol,
     geo_isect,
     col_isect,
     slot,
     gbg,
-    glevel,
-    upto,
+    rec_gauss,
+    rec_pix,
+    rec_start,
+    rec_n,
     finest,
 ):
-    """Back-to-front recomputation of one tile for the image of Gaussians with glevel <= upto
-    (see raster_backward), adding pair k's gradients into row slot + k of geo_isect and col_isect
-    (and, when ``finest``, the screen-space gradient into geo_isect's last two columns too).
-
-    Pixel p needs Gaussian k only if k <= lst[p]. Per row, ``need`` holds those pixels as a bit
-    mask, grown as k falls by walking the row's columns in descending lst order (``row_lst``,
-    ``row_col``, ``row_ptr``); a row whose chord misses the mask is skipped before its exps. The
-    skip only drops pixels that would be passed over anyway, so the sums do not change."""
+    """_backward_tile from the forward's record of the tile: the same pairs, pixels and
+    operations in the same order (a Gaussian's pixels row by row, each row summed before it is
+    added), so the sums are bitwise those of the recomputation."""
     n_ch = colors.shape[1]
     x0, y0, x1, y1 = _tile_bounds(t, tiles_x, width, height)
     tw = x1 - x0
     k_max = -1
     for j in range(y0, y1):
-        row_last[j - y0] = -1
         for i in range(x0, x1):
             p = (j - y0) * tw + i - x0
             tn = t_final[j, i]
             T[p] = tn
-            lst[p] = last[j, i]
-            row_last[j - y0] = max(row_last[j - y0], last[j, i])
             k_max = max(k_max, last[j, i])
             galpha[p] = grad_alpha[j, i] * tn
             for ch in range(n_ch):
                 behind[p, ch] = tn * background[ch]
                 gimg[p, ch] = grad_image[j, i, ch]
                 gbg[ch] += grad_image[j, i, ch] * tn
-    for r in range(y1 - y0):  # insertion sort of the row's columns by lst, descending
-        for c in range(tw):
-            val = lst[r * tw + c]
-            m = c
-            while m > 0 and row_lst[r, m - 1] < val:
-                row_lst[r, m] = row_lst[r, m - 1]
-                row_col[r, m] = row_col[r, m - 1]
-                m -= 1
-            row_lst[r, m] = val
-            row_col[r, m] = c
-        row_ptr[r] = 0
-        need[r] = 0
     for k in range(k_max, tile_start[t] - 1, -1):
-        g = ids[k]
-        if glevel[g] > upto:
+        m = rec_n[k]
+        if m == 0:
             continue
-        i0 = max(rect[g, 0], x0)
-        i1 = min(rect[g, 2], x1 - 1)
-        j0 = max(rect[g, 1], y0)
-        j1 = min(rect[g, 3], y1 - 1)
+        g = ids[k]
         u = xy[g, 0]
         v = xy[g, 1]
         ca = conic[g, 0]
         cb = conic[g, 1]
         cc = conic[g, 2]
         o = opacities[g]
-        c_g = cut[g]
-        e_ca = -1.0  # exp(-ca), computed on the first row walked
         gu = 0.0
         gv = 0.0
         gca = 0.0
@@ -711,95 +734,84 @@ def _backward_tile(
         c0 = colors[g, 0]
         c1 = colors[g, 1 % n_ch]
         c2 = colors[g, 2 % n_ch]
-        touched = False
-        for j in range(j0, j1 + 1):
-            r = j - y0
-            if k > row_last[r]:
-                continue
-            while row_ptr[r] < tw and row_lst[r, row_ptr[r]] >= k:
-                need[r] |= 1 << row_col[r, row_ptr[r]]
-                row_ptr[r] += 1
-            dy = j + 0.5 - v
-            a, b = _row_span(dy, u, ca, cb, cc, c_g, i0, i1)
-            if a > b or (need[r] & (((1 << (b + 1 - x0)) - 1) ^ ((1 << (a - x0)) - 1))) == 0:
-                continue
-            if e_ca < 0.0:
-                e_ca = math.exp(-ca)
-            row = r * tw - x0
-            s0 = 0.0
-            s1 = 0.0
-            s2 = 0.0
-            power, step, gss, e_step = _row_start(dy, u, ca, cb, cc, a)
-            for i in range(a, b + 1):
-                p = row + i
-                pw = power
-                gs = gss
-                power += step
-                step -= ca
-                gss *= e_step
-                e_step *= e_ca
-                if k > lst[p]:
-                    continue
-                dx = i + 0.5 - u
-                alpha, gauss, clamped = _alpha_g(o, pw, gs, c_g)
-                if alpha == 0.0:
-                    continue
-                touched = True
-                inv = 1.0 / (1.0 - alpha)
-                T_before = T[p] * inv
-                w = alpha * T_before
-                g_a = galpha[p] * inv  # galpha holds dL/dalpha * T_final
-                if n_ch == 3:  # the common case, in registers (same operations, same order)
-                    gi0 = gimg[p, 0]
-                    gi1 = gimg[p, 1]
-                    gi2 = gimg[p, 2]
-                    gc0 += w * gi0
-                    gc1 += w * gi1
-                    gc2 += w * gi2
-                    g_a += gi0 * (c0 * T_before - behind[p, 0] * inv)
-                    g_a += gi1 * (c1 * T_before - behind[p, 1] * inv)
-                    g_a += gi2 * (c2 * T_before - behind[p, 2] * inv)
-                    behind[p, 0] += c0 * w
-                    behind[p, 1] += c1 * w
-                    behind[p, 2] += c2 * w
-                else:
-                    for ch in range(n_ch):
-                        gcol[ch] += w * gimg[p, ch]
-                        g_a += gimg[p, ch] * (colors[g, ch] * T_before - behind[p, ch] * inv)
-                        behind[p, ch] += colors[g, ch] * w
-                T[p] = T_before
-                if clamped:
-                    continue
-                go += gauss * g_a
-                g_pow = alpha * g_a
-                s0 += g_pow
-                g_dx = g_pow * dx
-                s1 += g_dx
-                s2 += g_dx * dx
-            # d power/du = ca dx + cb dy, d/dv = cb dx + cc dy, d/dconic = -(dx^2/2, dx dy, dy^2/2):
-            # dy is constant along the row, so the row needs only sum g, sum g dx, sum g dx^2.
-            gu += ca * s1 + cb * dy * s0
-            gv += cb * s1 + cc * dy * s0
-            gca -= 0.5 * s2
-            gcb -= dy * s1
-            gcc -= 0.5 * dy * dy * s0
-        if touched:
+        r_cur = -1
+        dy = 0.0
+        s0 = 0.0
+        s1 = 0.0
+        s2 = 0.0
+        for e in range(rec_start[k], rec_start[k] + m):
+            q = np.int64(rec_pix[e])
+            r = q // TILE
+            col = q - r * TILE
+            if r != r_cur:
+                if r_cur >= 0:
+                    gu += ca * s1 + cb * dy * s0
+                    gv += cb * s1 + cc * dy * s0
+                    gca -= 0.5 * s2
+                    gcb -= dy * s1
+                    gcc -= 0.5 * dy * dy * s0
+                r_cur = r
+                dy = (y0 + r) + 0.5 - v
+                s0 = 0.0
+                s1 = 0.0
+                s2 = 0.0
+            p = r * tw + col
+            gauss = rec_gauss[e]
+            clamped = gauss < 0.0
+            alpha = ALPHA_MAX if clamped else o * gauss
+            dx = (x0 + col) + 0.5 - u
+            inv = 1.0 / (1.0 - alpha)
+            T_before = T[p] * inv
+            w = alpha * T_before
+            g_a = galpha[p] * inv
             if n_ch == 3:
-                gcol[0] = gc0
-                gcol[1] = gc1
-                gcol[2] = gc2
-            s = slot + k
-            geo_isect[s, G_U] += gu
-            geo_isect[s, G_V] += gv
-            geo_isect[s, G_CA] += gca
-            geo_isect[s, G_CB] += gcb
-            geo_isect[s, G_CC] += gcc
-            geo_isect[s, G_OPAC] += go
-            for ch in range(n_ch):
-                col_isect[s, ch] += gcol[ch]
-            if finest:
-                geo_isect[s, _GEO_U_LAST] += gu
-                geo_isect[s, _GEO_U_LAST + 1] += gv
+                gi0 = gimg[p, 0]
+                gi1 = gimg[p, 1]
+                gi2 = gimg[p, 2]
+                gc0 += w * gi0
+                gc1 += w * gi1
+                gc2 += w * gi2
+                g_a += gi0 * (c0 * T_before - behind[p, 0] * inv)
+                g_a += gi1 * (c1 * T_before - behind[p, 1] * inv)
+                g_a += gi2 * (c2 * T_before - behind[p, 2] * inv)
+                behind[p, 0] += c0 * w
+                behind[p, 1] += c1 * w
+                behind[p, 2] += c2 * w
+            else:
+                for ch in range(n_ch):
+                    gcol[ch] += w * gimg[p, ch]
+                    g_a += gimg[p, ch] * (colors[g, ch] * T_before - behind[p, ch] * inv)
+                    behind[p, ch] += colors[g, ch] * w
+            T[p] = T_before
+            if clamped:
+                continue
+            go += gauss * g_a
+            g_pow = alpha * g_a
+            s0 += g_pow
+            g_dx = g_pow * dx
+            s1 += g_dx
+            s2 += g_dx * dx
+        gu += ca * s1 + cb * dy * s0
+        gv += cb * s1 + cc * dy * s0
+        gca -= 0.5 * s2
+        gcb -= dy * s1
+        gcc -= 0.5 * dy * dy * s0
+        if n_ch == 3:
+            gcol[0] = gc0
+            gcol[1] = gc1
+            gcol[2] = gc2
+        s = slot + k
+        geo_isect[s, G_U] += gu
+        geo_isect[s, G_V] += gv
+        geo_isect[s, G_CA] += gca
+        geo_isect[s, G_CB] += gcb
+        geo_isect[s, G_CC] += gcc
+        geo_isect[s, G_OPAC] += go
+        for ch in range(n_ch):
+            col_isect[s, ch] += gcol[ch]
+        if finest:
+            geo_isect[s, _GEO_U_LAST] += gu
+            geo_isect[s, _GEO_U_LAST + 1] += gv
 
 
 @njit(parallel=_PARALLEL, cache=True)
@@ -809,9 +821,7 @@ def raster_backward(
     xy,
     conic,
     opacities,
-    cut,
     colors,
-    rect,
     background,
     t_final,
     last,
@@ -820,12 +830,15 @@ def raster_backward(
     width,
     height,
     tiles_x,
-    glevel,
-    upto,
+    rec_gauss,
+    rec_pix,
+    rec_start,
+    rec_n,
 ):
-    """Back-to-front recomputation per pixel (3DGS): from the saved final T and last index,
-    T before Gaussian i is T_after / (1 - alpha_i), and the colour behind it is accumulated
-    as we go. Per pixel and Gaussian i (C = sum_i c_i a_i T_i + T_N bg, A = 1 - T_N):
+    """Back-to-front pass per pixel (3DGS) over the pairs the forward recorded (raster_forward's
+    record, complete): from the saved final T, T before Gaussian i is T_after / (1 - alpha_i),
+    and the colour behind it is accumulated as we go. Per pixel and Gaussian i
+    (C = sum_i c_i a_i T_i + T_N bg, A = 1 - T_N):
 
       dC/dc_i = a_i T_i
       dC/da_i = c_i T_i - (colour behind i, background included) / (1 - a_i)
@@ -833,14 +846,14 @@ def raster_backward(
 
     then a = o * exp(power) (no gradient where clamped to 0.99) and
     power = -(ca dx^2 + cc dy^2)/2 - cb dx dy, dx = px - u, dy = py - v.
-    Images are those of raster_forward (t_final, last, grad_image, grad_alpha carry a leading
-    level axis); their gradients add up. Returns per-Gaussian gradients [N, 6 + C + 2]
-    (layout G_*, then d/du, d/dv of the last image alone) and d/dbackground [C].
+    Images are those of raster_forward (t_final, last, grad_image, grad_alpha, rec_start and
+    rec_n carry a leading level axis); their gradients add up. Returns per-Gaussian gradients
+    [N, 6 + C + 2] (layout G_*, then d/du, d/dv of the last image alone) and d/dbackground [C].
     """
     n = xy.shape[0]
     n_ch = colors.shape[1]
     n_tiles = tile_start.shape[0] - 1
-    n_img = upto.shape[0]
+    n_img = t_final.shape[0]
     width_g = G_COLOR + n_ch + 2
     # Only pairs up to the last index a tile's pixels composited (in any image) get gradients:
     # give the per-pair buffers a row for those alone (less than half of all pairs on a head),
@@ -868,24 +881,16 @@ def raster_backward(
         behind = np.empty((TILE * TILE, n_ch))
         gimg = np.empty((TILE * TILE, n_ch))
         galpha = np.empty(TILE * TILE)
-        lst = np.empty(TILE * TILE, np.int64)
-        row_last = np.empty(TILE, np.int64)
-        row_lst = np.empty((TILE, TILE), np.int64)
-        row_col = np.empty((TILE, TILE), np.int64)
-        row_ptr = np.empty(TILE, np.int64)
-        need = np.empty(TILE, np.int64)
         gcol = np.empty(n_ch)
         for im in range(n_img):
-            _backward_tile(
+            _replay_tile(
                 t,
                 tile_start,
                 ids,
                 xy,
                 conic,
                 opacities,
-                cut,
                 colors,
-                rect,
                 background,
                 t_final[im],
                 last[im],
@@ -898,19 +903,15 @@ def raster_backward(
                 behind,
                 gimg,
                 galpha,
-                lst,
-                row_last,
-                row_lst,
-                row_col,
-                row_ptr,
-                need,
                 gcol,
                 geo_isect,
                 col_isect,
                 slot_start[t] - tile_start[t],
                 gbg_tile[t],
-                glevel,
-                upto[im],
+                rec_gauss,
+                rec_pix,
+                rec_start[im],
+                rec_n[im],
                 im == n_img - 1,
             )
     grads = np.zeros((n, width_g))

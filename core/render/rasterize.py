@@ -21,6 +21,7 @@ from typing import Optional
 # only helps if this module is imported first; entry points should set it themselves.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+import numba  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
@@ -132,6 +133,42 @@ def _tiles(camera: Camera):
     return -(-camera.width // rk.TILE), -(-camera.height // rk.TILE)
 
 
+class _RecordBuffers:
+    """Buffers for the forward's record of composited pairs (rk.raster_forward), which the
+    backward replays. Sized from the calls so far in entries per image pixel, and reused: a
+    fresh 100+ MB array costs its page faults on every call, more than the replay saves. A
+    forward takes a pair of buffers and its backward gives them back (a forward whose backward
+    never runs leaves them to the garbage collector). A forward that runs out of room is run
+    again with twice the room. Starts at 24 entries per pixel and image (the paper-scale bench
+    head takes ~30 at 802x550, the default head ~10 at 88x128)."""
+
+    def __init__(self, per_pixel: float = 24.0):
+        self.per_pixel = per_pixel
+        self.free: list = []
+
+    def take(self, pixels: int, n_img: int, n_chunks: int):
+        size = n_chunks * (int(self.per_pixel * pixels * n_img / n_chunks) + 4096)
+        for i, (g, p) in enumerate(self.free):
+            if len(g) >= size:
+                del self.free[i]
+                return g, p
+        return np.empty(size), np.empty(size, np.uint8)
+
+    def learn(self, used: np.ndarray, size: int, pixels: int, n_img: int) -> bool:
+        """Whether the record was complete; sizes the next call either way."""
+        if used.max() > size // len(used):
+            self.per_pixel *= 2.0
+            return False
+        self.per_pixel = max(1.0, 1.25 * float(used.max()) * len(used) / (pixels * n_img))
+        return True
+
+    def give(self, bufs):
+        self.free = ([bufs] + self.free)[:2]  # more than two forwards rarely wait for their backward
+
+
+_record_buffers = _RecordBuffers()
+
+
 def _cpu_forward(
     means,
     quats,
@@ -146,10 +183,12 @@ def _cpu_forward(
     with_depth=False,
     glevel=None,
     upto=None,
+    record=False,
 ):
     """Numpy float64 forward of one image per entry of ``upto`` (image l: Gaussians with
     glevel <= upto[l]; default one image of all); returns images [L,H,W,C], final
-    transmittances [L,H,W], the last image's contrib, radii and the state the backward needs."""
+    transmittances [L,H,W], the last image's contrib, radii and the state the backward needs
+    (``record``: with the composited pairs, so that the backward replays them)."""
     if glevel is None:
         glevel, upto = np.zeros(len(means), np.int64), np.zeros(1, np.int64)
     Rc, tc, fx, fy, cx, cy = _camera_args(camera)
@@ -166,9 +205,29 @@ def _cpu_forward(
     if with_depth:
         colors = np.concatenate([colors, depth[:, None]], axis=1)
         background = np.concatenate([background, [0.0]])
-    image, t_final, last, contrib = rk.raster_forward(
-        tile_start, ids, xy, conic, opacities, cut, colors, rect, background, W, H, tiles_x, glevel, upto
-    )
+    n_chunks = numba.get_num_threads()
+    while True:
+        bufs = _record_buffers.take(W * H, len(upto), n_chunks) if record else (np.empty(0), np.empty(0, np.uint8))
+        image, t_final, last, contrib, (rec_start, rec_n, used) = rk.raster_forward(
+            tile_start,
+            ids,
+            xy,
+            conic,
+            opacities,
+            cut,
+            colors,
+            rect,
+            background,
+            W,
+            H,
+            tiles_x,
+            glevel,
+            upto,
+            n_chunks,
+            *bufs,
+        )
+        if not record or _record_buffers.learn(used, len(bufs[0]), W * H, len(upto)):
+            break
     state = dict(
         xy=xy,
         conic=conic,
@@ -184,6 +243,7 @@ def _cpu_forward(
         lim=lim,
         glevel=glevel,
         upto=upto,
+        rec=(*bufs, rec_start, rec_n) if record else None,
     )
     return image, t_final, contrib, radii, state
 
@@ -191,15 +251,15 @@ def _cpu_forward(
 def _cpu_backward(state, means, quats, scales, opacities, camera, eps2d, grad_image, grad_alpha, with_depth):
     Rc, tc, fx, fy, _, _ = _camera_args(camera)
     tiles_x, _ = _tiles(camera)
+    if state["rec"] is None:
+        raise RuntimeError("rasteriser backward: the forward kept no record (a second backward through one render?)")
     grads, g_bg = rk.raster_backward(
         state["tile_start"],
         state["ids"],
         state["xy"],
         state["conic"],
         opacities,
-        state["cut"],
         state["colors"],
-        state["rect"],
         state["background"],
         state["t_final"],
         state["last"],
@@ -208,9 +268,10 @@ def _cpu_backward(state, means, quats, scales, opacities, camera, eps2d, grad_im
         camera.width,
         camera.height,
         tiles_x,
-        state["glevel"],
-        state["upto"],
+        *state["rec"],
     )
+    _record_buffers.give(state["rec"][:2])  # back to the pool for the next forward
+    state["rec"] = None
     g_uv = np.ascontiguousarray(grads[:, rk.G_U : rk.G_V + 1])
     g_uv_last = grads[:, -2:]  # the last image's own screen-space gradient
     g_conic = np.ascontiguousarray(grads[:, rk.G_CA : rk.G_CC + 1])
@@ -233,7 +294,15 @@ class _RasterizeCPU(torch.autograd.Function):
     ):
         arrays = [_f64(x) for x in (means, quats, scales, opacities, colors, background)]
         image, t_final, contrib, radii, state = _cpu_forward(
-            *arrays, camera, near, eps2d, means2d_offset=_f64(means2d), with_depth=with_depth, glevel=glevel, upto=upto
+            *arrays,
+            camera,
+            near,
+            eps2d,
+            means2d_offset=_f64(means2d),
+            with_depth=with_depth,
+            glevel=glevel,
+            upto=upto,
+            record=any(ctx.needs_input_grad),
         )
         ctx.camera, ctx.eps2d, ctx.with_depth = camera, eps2d, with_depth
         ctx.arrays, ctx.state = arrays, state
