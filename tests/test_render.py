@@ -447,8 +447,9 @@ def test_all_finite_exact_where_the_fast_sum_overflows():
 def test_backward_replays_the_forwards_record_whatever_its_buffers(monkeypatch):
     """The backward replays the pairs the forward recorded. A record that runs out of room is
     made again with more (same gradients, and the next size learnt); forwards that wait for
-    their backward together keep their own records; a second backward through one render says
-    why it cannot instead of reading a buffer another forward may have reused."""
+    their backward together keep their own records; a render under no_grad records nothing; a
+    second backward through one render says why it cannot instead of reading a buffer another
+    forward may have reused."""
     from progressive_avatars.core.render import rasterize as rz
 
     cam, params = make_scene(7, n=120)
@@ -468,6 +469,10 @@ def test_backward_replays_the_forwards_record_whatever_its_buffers(monkeypatch):
     monkeypatch.setattr(rz, "_record_buffers", small)
     tight = grads()
     assert small.per_pixel > 0.5
+    learnt = small.per_pixel
+    with torch.no_grad():  # evaluation: nothing recorded, nothing learnt
+        render(*leaves(params)[:5], cam, params[5])
+    assert small.per_pixel == learnt
     for name, a, b, c in zip(NAMES, tight, roomy, ref):
         assert torch.equal(a, b), name
         assert rel_err(a, c.grad) <= 1e-3, name

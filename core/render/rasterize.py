@@ -287,10 +287,30 @@ def _cpu_backward(state, means, quats, scales, opacities, camera, eps2d, grad_im
     return g_means, g_quats, g_scales, grads[:, rk.G_OPAC], g_colors, g_bg, g_uv_last
 
 
+def _will_backward(*tensors) -> bool:
+    """Whether autograd will record the render (then the forward keeps its record for the
+    backward; under no_grad, evaluation and previews skip that memory)."""
+    return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+
+
 class _RasterizeCPU(torch.autograd.Function):
     @staticmethod
     def forward(
-        ctx, means, quats, scales, opacities, colors, background, means2d, camera, near, eps2d, with_depth, glevel, upto
+        ctx,
+        means,
+        quats,
+        scales,
+        opacities,
+        colors,
+        background,
+        means2d,
+        camera,
+        near,
+        eps2d,
+        with_depth,
+        glevel,
+        upto,
+        record,
     ):
         arrays = [_f64(x) for x in (means, quats, scales, opacities, colors, background)]
         image, t_final, contrib, radii, state = _cpu_forward(
@@ -302,7 +322,7 @@ class _RasterizeCPU(torch.autograd.Function):
             with_depth=with_depth,
             glevel=glevel,
             upto=upto,
-            record=any(ctx.needs_input_grad),
+            record=record,
         )
         ctx.camera, ctx.eps2d, ctx.with_depth = camera, eps2d, with_depth
         ctx.arrays, ctx.state = arrays, state
@@ -341,6 +361,7 @@ class _RasterizeCPU(torch.autograd.Function):
             out(g_colors, 4),
             out(g_bg, 5),
             out(g_uv, 6),
+            None,
             None,
             None,
             None,
@@ -495,6 +516,7 @@ def render(
         bool(return_depth),
         None,
         None,
+        _will_backward(means, quats, scales, opacities, colors, background, means2d),
     )
     image, alpha = image[0], alpha[0]
     depth = None
@@ -578,6 +600,7 @@ def render_levels(
         False,
         np.ascontiguousarray(lv, np.int64),
         np.asarray(upto, np.int64),
+        _will_backward(means, quats, scales, opacities, colors, background, means2d),
     )
     last = len(upto) - 1
     return [
