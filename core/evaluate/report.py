@@ -56,6 +56,14 @@ class ReportOptions:
     command: str = ""
 
 
+def _shown(path: str) -> str:
+    """A run or data folder as the report shows it: relative to the working directory when it
+    lies inside it (reports are committed; a local absolute path says nothing to a reader)."""
+    full = os.path.abspath(path)
+    rel = os.path.relpath(full)
+    return full if rel.startswith("..") else rel
+
+
 def _levels_prefixes(avatar):
     """Cumulative level sets as stream prefixes: level l shows faces of level <= l."""
     level = avatar.forest.level
@@ -127,7 +135,7 @@ def coarse_ablation(run0, data, rest, nvs_renderer, info, nvs_split, views, scra
     )
     r0 = SplitRenderer(read_stream(p0, template_faces=nvs_split.faces), nvs_split, views)
     out = {
-        "run": os.path.abspath(run0),
+        "run": _shown(run0),
         "bytes_with": info.total_bytes,
         "bytes_without": info0.total_bytes,
         "first_head_with": first_head(info),
@@ -191,7 +199,7 @@ def _paper_extras(args, report, streamed, info, rend, splits, data, progress):
         other, oinfo = _run_stream(args.finest_only, data, progress)
         n_ours, n_other = int(info.count_for_percent(35)), int(oinfo.count_for_percent(35))
         report["ablations"]["finest_only_35"] = {
-            "run": os.path.abspath(args.finest_only),
+            "run": _shown(args.finest_only),
             "multi_level": {**nvs.score(np.arange(n_ours)), "gaussians": n_ours},
             "finest_only": {
                 **SplitRenderer(other, splits["nvs"], args.views).score(np.arange(n_other)),
@@ -305,8 +313,8 @@ def build_report(args: ReportOptions) -> dict:
 
     rend = {k: SplitRenderer(streamed, ds, args.views) for k, ds in splits.items()}
     report = {
-        "run": os.path.abspath(args.run),
-        "data": os.path.abspath(data),
+        "run": _shown(args.run),
+        "data": _shown(data),
         "data_summary": _data_summary(data),
         "about": args.about,
         "name": args.name,
@@ -407,7 +415,7 @@ def build_report(args: ReportOptions) -> dict:
         other_av = runs.load_run_avatar(other)
         other_rend = SplitRenderer(other_av, splits["nvs"], args.views)
         entry = {
-            "run": os.path.abspath(other),
+            "run": _shown(other),
             "gaussians": other_av.num_gaussians,
             "level_counts": other_av.forest.level_counts().tolist(),
             "nvs": other_rend.score(np.arange(other_av.num_gaussians)),
