@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
 # The paper's tables at the paper's scale on the synthetic head (issue 17):
 #   data      make_synthetic.py --preset paper (16 cameras at 550x802, 10 sequences; ~15-20 min)
-#   adaptive  the method, preset paper-cpu (depth 4, growth to ~17x the base; <= 2 h if an
-#             iteration takes ~0.4 s)
-#   uniform   uniform subdivision to depth 2 (106,496 Gaussians on the 8192-face template, the
-#             uniform count nearest the adaptive run's, which max_faces caps at 140k; the report
-#             cuts both streams to the smaller count), all levels supervised
+#   adaptive  the method, preset paper-cpu (depth 4, growth by a budget to 18x the base,
+#             6,000 iterations, sampled multi-level supervision)
+#   uniform   uniform subdivision to depth 2 (107,254 Gaussians with the coarse levels, the
+#             uniform count nearest the adaptive run's ~161k; the report cuts both streams to the
+#             smaller count), supervised as the adaptive run
 #   finest    finest-level-only supervision (Table 3: 35 %)
 #   adaptive_seed1, uniform_seed1   the same two with seed 1 (adaptive vs uniform over seeds)
 #   report    scripts/evaluate.py --paper-table (Table 1, Table 3, adaptive vs uniform at matched
@@ -23,11 +23,10 @@
 #   options, e.g. "--resolution-scale 0.25 --sequences 3"), EVAL_ARGS (extra evaluate.py
 #   options; default "--views 16 --curve-points 12"), UNIFORM_DEPTH (2), BENCH=0 to skip writing
 #   docs/BENCHMARKS.md.
-# Time on 2 idle cores: data ~15-18 min (scripts/bench_data_gen_paper.py); each full training
-# ~2 h at ~0.4 s per iteration (an assumption until the renderer is that fast: check the
-# "seconds" column of the first run's metrics.jsonl after ~500 iterations); the report, with
-# importance for five runs at 550x802, tens of minutes. Five full runs do not fit in one 3-hour
-# session: run with --resume across sessions, or set ABL_ITERS lower.
+# Time on 2 cores: data ~15-21 min (scripts/bench_data_gen_paper.py); the adaptive run ~1 h
+# (0.4 s per iteration at 9k faces, ~0.8 s at 161k: docs/BENCHMARKS.md gives the measured run);
+# the report ~10 min. Five full runs do not fit in one 3-hour session: run with --resume across
+# sessions, or set ABL_ITERS lower.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 RESUME=0; REPORT_ONLY=0
@@ -74,8 +73,8 @@ train() {  # name, iterations (may be empty), extra args...
 UNIFORM="--uniform --max-depth ${UNIFORM_DEPTH:-2} --max-faces 1000000"
 if [ "$REPORT_ONLY" = 0 ]; then
   train adaptive "$ITERS"
+  train finest "$ABL_ITERS" --supervision finest  # one run answers its criterion: before uniform
   train uniform "$ITERS" $UNIFORM
-  train finest "$ABL_ITERS" --supervision finest
   train adaptive_seed1 "$ABL_ITERS" --seed 1
   train uniform_seed1 "$ABL_ITERS" --seed 1 $UNIFORM
 fi
