@@ -407,7 +407,6 @@ def _forward_tile(
     T,
     acc,
     lst,
-    done,
     active,
     contrib_isect,
     image,
@@ -435,7 +434,6 @@ def _forward_tile(
     for p in range(n_pix):
         T[p] = 1.0
         lst[p] = -1
-        done[p] = False
         for ch in range(n_ch):
             acc[p, ch] = 0.0
     for r in range(y1 - y0):
@@ -480,6 +478,9 @@ def _forward_tile(
             if e_ca < 0.0:
                 e_ca = math.exp(-ca)
             row = r * tw - x0
+            pix = r * TILE - x0
+            if pos >= 0 and pos + (b + 1 - a) > cap_end:
+                pos = -1  # the record cannot hold this row: the caller runs the forward again
             power, step, gauss, e_step = _row_start(dy, u, ca, cb, cc, a)
             for i in range(a, b + 1):
                 p = row + i
@@ -489,7 +490,7 @@ def _forward_tile(
                 step -= ca
                 gauss *= e_step
                 e_step *= e_ca
-                if done[p]:
+                if not (live >> (i - x0)) & 1:  # stopped before this Gaussian
                     continue
                 alpha, _, clamped = _alpha_g(o, pw, gs, c_g)
                 if alpha == 0.0:
@@ -497,17 +498,13 @@ def _forward_tile(
                 Tp = T[p]
                 t_next = Tp * (1.0 - alpha)
                 if t_next < T_MIN:
-                    done[p] = True
                     active[r] &= ~(1 << (i - x0))
                     n_done += 1
                     continue
                 if pos >= 0:
-                    if pos < cap_end:
-                        rec_gauss[pos] = -1.0 if clamped else gs
-                        rec_pix[pos] = r * TILE + i - x0
-                        pos += 1
-                    else:
-                        pos = -1
+                    rec_gauss[pos] = -1.0 if clamped else gs
+                    rec_pix[pos] = pix + i
+                    pos += 1
                 w = alpha * Tp
                 if n_ch == 3:  # the common case, unrolled
                     acc[p, 0] += w * c0
@@ -611,7 +608,6 @@ def raster_forward(
         T = np.empty(TILE * TILE)
         acc = np.empty((TILE * TILE, n_ch))
         lst = np.empty(TILE * TILE, np.int64)
-        done = np.empty(TILE * TILE, np.bool_)
         active = np.empty(TILE, np.int64)
         pos = c * chunk_cap if rec else -1
         cap_end = (c + 1) * chunk_cap
@@ -635,7 +631,6 @@ def raster_forward(
                     T,
                     acc,
                     lst,
-                    done,
                     active,
                     contrib_isect if im == n_img - 1 else no_contrib,
                     image[im],
