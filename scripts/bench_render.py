@@ -266,9 +266,6 @@ def old_kernels(commit):
     return rev, importlib.import_module(f"kernels_{rev}")
 
 
-_RECORD: dict = {}  # record buffers of replaying kernels, by (width, height, threads)
-
-
 def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.3):
     """The CPU render of core/render/rasterize.py, forward and backward, kernel by kernel with
     module ``rk``'s kernels; returns per-stage (wall ms, process CPU ms), the image, alpha and
@@ -302,24 +299,24 @@ def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.
     mark("bin_tiles")
     glevel, upto = np.zeros(len(means), np.int64), np.zeros(1, np.int64)
     if "rec_gauss" in inspect.signature(rk.raster_forward.py_func).parameters:
-        # Kernels whose backward replays the forward's record: buffers reused between calls as
-        # rasterize.py's pool does (steady state: no page faults, no re-run).
+        # Kernels whose backward replays the forward's record: rasterize.py's buffer pool, as in
+        # training (steady state: reused buffers, no re-run).
+        from progressive_avatars.core.render.rasterize import _record_buffers as pool
+
         chunks = numba.get_num_threads()
         while True:
-            bufs = _RECORD.get((W, H, chunks))
-            if bufs is None:
-                bufs = _RECORD[(W, H, chunks)] = (np.empty(32 * W * H), np.empty(32 * W * H, np.uint8))
+            bufs = pool.take(W * H, 1, chunks)
             image, t_final, last, _, (rec_start, rec_n, used) = rk.raster_forward(
                 tile_start, ids, xy, conic, opac, cut, colors, rect, bg, W, H, tiles_x, glevel, upto, chunks, *bufs
             )
-            if used.max() <= len(bufs[0]) // chunks:
+            if pool.learn(used, len(bufs[0]), W * H, 1):
                 break
-            _RECORD[(W, H, chunks)] = (np.empty(2 * len(bufs[0])), np.empty(2 * len(bufs[0]), np.uint8))
         mark("raster_forward")
         grads, _ = rk.raster_backward(
             tile_start, ids, xy, conic, opac, colors, bg, t_final, last,
             grad_image[None], grad_alpha[None], W, H, tiles_x, *bufs, rec_start, rec_n,
         )  # fmt: skip
+        pool.give(bufs)
     else:
         image, t_final, last, _ = rk.raster_forward(
             tile_start, ids, xy, conic, opac, cut, colors, rect, bg, W, H, tiles_x, glevel, upto
