@@ -7,7 +7,8 @@
 Writes RUN/avatar.npz (the trained avatar, no pickle), RUN/metrics.jsonl (one JSON object
 per logged iteration), RUN/checkpoint.npz (atomic; --resume continues from it) and
 RUN/config.json; RUN/resources.jsonl gets one line per invocation (wall seconds, peak resident
-memory of the process). Under torchrun every process renders its own views of each iteration
+memory of the process), rewritten at every checkpoint, so a killed invocation still counts up to
+its last checkpoint. Under torchrun every process renders its own views of each iteration
 (effective batch: processes x --views-per-step), rank 0 alone writes RUN, and config.json and
 every metrics line record the world size; --resume takes any number of processes. A second
 training of the same RUN (another process, another job) is refused while one runs.
@@ -49,6 +50,11 @@ def main(argv=None):
     )
     ap.add_argument("--no-coarse", action="store_true", help="no coarse levels (the paper's levels; ablation)")
     ap.add_argument("--coarse-weight", type=float, help="factor on the coarse levels' loss weights (default 0.5)")
+    ap.add_argument(
+        "--mask-weight",
+        type=float,
+        help="L1 between rendered alpha and the foreground mask, per supervised level (default: the preset's)",
+    )
     ap.add_argument("--grad-threshold", type=float)
     ap.add_argument("--max-faces", type=int)
     ap.add_argument(
@@ -109,6 +115,7 @@ def main(argv=None):
             sh_degree=args.sh_degree,
             coarse_levels=() if args.no_coarse else args.coarse_levels,
             coarse_weight=args.coarse_weight,
+            lambda_mask=args.mask_weight,
             refine_flame=args.refine_flame or None,
             image_cache_mb=args.image_cache_mb,
             flame_model=_os.path.abspath(args.flame_model) if args.flame_model else None,
@@ -126,7 +133,6 @@ def main(argv=None):
 
 def _train(args, cfg, dist, t0):
     import contextlib
-    import time
 
     from progressive_avatars.core.train.distributed import run_lock
     from progressive_avatars.core.train.trainer import Trainer
@@ -137,11 +143,14 @@ def _train(args, cfg, dist, t0):
 
         signal.signal(signal.SIGTERM, _stopped_by_launcher)
     trainer = None
+    resources = _Resources(args.out, t0)
     with contextlib.ExitStack() as stack:
         try:
             if dist.is_main:  # the writer of RUN holds its lock for the whole run
                 stack.enter_context(run_lock(args.out))
             trainer = Trainer(args.data, args.out, cfg, resume=args.resume, progress=not args.no_progress, dist=dist)
+            if dist.is_main:
+                trainer.on_checkpoint = resources.write
         except (ValueError, FileNotFoundError) as exc:
             print(f"error: {who}{exc}", file=sys.stderr)
             return 2
@@ -180,17 +189,7 @@ def _train(args, cfg, dist, t0):
     summary["peak_rss_mb"] = _peak_rss_mb()
     if not dist.is_main:
         return 0
-    with open(_os.path.join(args.out, "resources.jsonl"), "a") as fh:
-        fh.write(
-            json.dumps(
-                {
-                    "wall_seconds": round(time.perf_counter() - t0, 1),
-                    "peak_rss_mb": summary["peak_rss_mb"],
-                    "iterations": summary["iterations"],
-                }
-            )
-            + "\n"
-        )
+    resources.write(summary["iterations"])
     print(json.dumps(summary))
     return 0
 
@@ -224,6 +223,36 @@ def _os_error(exc: OSError) -> str:
 
     what = {errno.ENOSPC: "disk full", errno.EDQUOT: "disk quota exceeded"}.get(exc.errno, type(exc).__name__)
     return f"{what}: {exc.strerror or exc} ({exc.filename or 'writing the run folder'})"
+
+
+class _Resources:
+    """This invocation's row of RUN/resources.jsonl (wall seconds, peak RSS, iterations),
+    replaced in place at every checkpoint and at the end (written whole to a temporary file,
+    then renamed: a crash mid-write keeps the old file)."""
+
+    def __init__(self, out: str, t0: float):
+        import time
+
+        self.path, self.t0 = _os.path.join(out, "resources.jsonl"), t0
+        self.row_id = f"{time.time():.6f}-{_os.getpid()}"
+
+    def write(self, iterations: int) -> None:
+        import time
+
+        rows = []
+        if _os.path.exists(self.path):
+            with open(self.path) as fh:
+                rows = [ln for ln in fh.read().splitlines() if ln.strip() and f'"{self.row_id}"' not in ln]
+        row = {
+            "wall_seconds": round(time.perf_counter() - self.t0, 1),
+            "peak_rss_mb": _peak_rss_mb(),
+            "iterations": iterations,
+            "invocation": self.row_id,
+        }
+        tmp = self.path + ".tmp"
+        with open(tmp, "w") as fh:
+            fh.write("\n".join([*rows, json.dumps(row)]) + "\n")
+        _os.replace(tmp, self.path)
 
 
 def _peak_rss_mb():

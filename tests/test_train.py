@@ -65,11 +65,11 @@ def test_killed_process_resumes(tiny_dataset, tmp_path):
         "--no-progress",
     ]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    ck = run / "checkpoint.npz"
+    ck, res = run / "checkpoint.npz", run / "resources.jsonl"
     import time
 
     deadline = time.time() + 120
-    while not ck.exists() and time.time() < deadline and proc.poll() is None:
+    while not res.exists() and time.time() < deadline and proc.poll() is None:  # written after a checkpoint
         time.sleep(0.2)
     proc.kill()
     proc.wait()
@@ -77,6 +77,10 @@ def test_killed_process_resumes(tiny_dataset, tmp_path):
     out = subprocess.run(cmd + ["--resume"], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert json.loads(out.stdout.strip().splitlines()[-1])["iterations"] == 40
+    # The killed invocation's time and memory still count: its row was kept from its checkpoint.
+    rows = [json.loads(ln) for ln in res.read_text().splitlines()]
+    assert len(rows) == 2 and rows[0]["iterations"] in (20, 40) and rows[1]["iterations"] == 40
+    assert rows[0]["invocation"] != rows[1]["invocation"] and all(r["wall_seconds"] > 0 for r in rows)
 
 
 def test_adam_grows_with_new_rows():
@@ -486,6 +490,30 @@ def test_coarse_weight_scales_the_coarse_levels_loss(tiny_dataset, tmp_path):
     assert off.step()["loss"] < full.step()["loss"]
     with pytest.raises(ValueError, match="coarse weight"):
         config_for("tiny", coarse_weight=-1.0)
+
+
+def test_mask_weight_adds_the_alpha_mask_term_per_level(tiny_dataset, tmp_path):
+    """lambda_mask adds w_l * lambda_mask * mean|alpha - mask| for every supervised level: the
+    first step's loss grows linearly in it, and a frame without a mask adds nothing."""
+    from progressive_avatars.core.train.trainer import _foreground
+
+    cfg = dict(eval_every=10**6, checkpoint_every=10**6)
+    loss = {
+        lam: Trainer(tiny_dataset, str(tmp_path / f"m{lam}"), config_for("tiny", lambda_mask=lam, **cfg)).step()["loss"]
+        for lam in (0.0, 0.5, 1.0)
+    }
+    term = loss[1.0] - loss[0.0]
+    # Coarse levels start as large shrunken Gaussians: their alpha misses part of the mask.
+    assert term > 1e-3
+    assert loss[0.5] - loss[0.0] == pytest.approx(0.5 * term, rel=1e-4)
+    tr = Trainer(tiny_dataset, str(tmp_path / "f"), config_for("tiny", **cfg))
+    s = tr.train[0]
+    assert _foreground(s) is not None and float(_foreground(s).min()) < 1
+    s.mask = np.ones_like(s.mask)  # what a dataset without masks reads as
+    assert _foreground(s) is None
+    for bad in (-0.1, float("nan")):
+        with pytest.raises(ValueError, match="mask weight"):
+            config_for("tiny", lambda_mask=bad)
 
 
 def test_growth_and_supervision_policies_are_validated(tmp_path):
