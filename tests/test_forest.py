@@ -127,59 +127,6 @@ def test_invalid_structures_are_refused():
         Forest(np.zeros((0, 3)))
 
 
-def _capped_cylinder(n_around=32, n_up=16, n_cap=6):
-    """A closed cylinder (radius 1, height 2) with flat caps: sharp rims, like a neck's cut."""
-    radii = np.concatenate([np.linspace(0, 1, n_cap + 1)[1:], np.ones(n_up - 1), np.linspace(1, 0, n_cap + 1)[:-1]])
-    heights = np.concatenate([np.zeros(n_cap), np.linspace(0, 2, n_up + 1)[1:-1], np.full(n_cap, 2.0)])
-    th = np.linspace(0, 2 * np.pi, n_around, endpoint=False)
-    ring = np.stack(
-        [np.outer(radii, np.cos(th)), np.repeat(heights[:, None], n_around, 1), np.outer(radii, np.sin(th))], -1
-    )
-    v = np.concatenate([[[0.0, 0.0, 0.0]], ring.reshape(-1, 3), [[0.0, 2.0, 0.0]]])
-    R, k = len(radii), np.arange(n_around)
-    k1 = (k + 1) % n_around
-    a = 1 + np.arange(R - 1)[:, None] * n_around
-    side = np.concatenate(
-        [np.stack([a + k, a + k1, a + n_around + k1], -1), np.stack([a + k, a + n_around + k1, a + n_around + k], -1)]
-    )
-    top = len(v) - 1
-    last = 1 + (R - 1) * n_around
-    faces = np.concatenate(
-        [
-            np.stack([np.zeros_like(k), 1 + k1, 1 + k], -1),
-            side.reshape(-1, 3),
-            np.stack([np.full_like(k, top), last + k, last + k1], -1),
-        ]
-    )
-    return v, np.ascontiguousarray(faces[:, ::-1])  # outward winding
-
-
-def test_coarse_levels_keep_the_surface_they_stand_for():
-    """A coarse triangle is a chord of the surface; with each Voronoi cell represented by its
-    outermost vertex (not its seed) the chords keep sharp rims, so a coarse level keeps most of
-    the template's area (seed corners: 0.81 / 0.86 of it at 1/32 / 1/16 here), and no triangle
-    faces against the surface."""
-    from progressive_avatars.core.avatar import coarse
-
-    v, f = _capped_cylinder()
-
-    def area(t):
-        return 0.5 * np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1).sum()
-
-    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    assert (np.einsum("ij,ij->i", fn, v[f].mean(1) - [0, 1, 0]) > 0).all()  # outward winding
-    vn = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(vn, f[:, k], fn)
-    for frac in (1 / 32, 1 / 16):
-        cf, counts = coarse.build_coarse(v, f, (frac,))
-        t = cf.astype(np.int64)
-        assert 0.5 * frac * len(f) < counts[0] < 1.5 * frac * len(f)
-        assert area(t) > 0.88 * area(f), (frac, area(t) / area(f))
-        tn = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
-        assert (np.einsum("ij,ij->i", tn, vn[t].sum(1)) > 0).all()
-
-
 def test_coarse_roots_bind_like_template_faces_and_survive_reorder_prefix_and_save(tmp_path):
     """Coarse faces (three template vertices each) are roots of the root table: they bind
     exactly like a template face over the same vertices, never split, and the forest keeps

@@ -10,9 +10,8 @@ Decimation here is a Voronoi-dual remesh on the template's own vertices: pick se
 spread evenly in space (one per occupied voxel, the voxel size found by bisection for the
 wanted count), grow geodesic Voronoi cells over the mesh's edge graph from the seeds
 (scipy's Dijkstra, compiled), and keep every template triangle whose three corners fall in
-three different cells, mapped to those cells (the dual triangulation of the cells: one
-triangle where three cells meet, with the original triangle's winding). A cell's corner is
-its vertex furthest out along the cell's mean normal, not its seed. Cells grow along
+three different cells, mapped to those cells' seeds (the dual triangulation of the cells:
+one triangle where three cells meet, with the original triangle's winding). Cells grow along
 the surface, so lips or eyelids that touch in space are not merged as a voxel clustering
 would; the result covers the surface like the template but with about 2 faces per seed.
 
@@ -78,38 +77,8 @@ def _seeds_for(vertices, used, count):
     return best
 
 
-def _outermost_per_cell(vertices, faces, used, owner):
-    """For each Voronoi cell (owner: the seed of each vertex, -1 unreachable), the cell's
-    vertex furthest out along the cell's mean normal, as an array over vertices indexed by seed
-    (-1 where a vertex is no seed); and the area-weighted vertex normals."""
-    fn = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
-    vn = np.zeros_like(vertices)
-    for k in range(3):  # area-weighted vertex normals
-        np.add.at(vn, faces[:, k], fn)
-    u = used[owner[used] >= 0]
-    seeds, cell = np.unique(owner[u], return_inverse=True)
-    cell = cell.ravel()
-    n = np.zeros((len(seeds), 3))
-    np.add.at(n, cell, vn[u])
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
-    c = np.zeros((len(seeds), 3))
-    np.add.at(c, cell, vertices[u])
-    c /= np.bincount(cell, minlength=len(seeds))[:, None]
-    height = np.einsum("ij,ij->i", vertices[u] - c[cell], n[cell])
-    order = np.lexsort((u, -height, cell))  # per cell: highest first, ties by vertex index
-    first = order[np.r_[True, cell[order][1:] != cell[order][:-1]]]
-    rep = np.full(len(vertices), -1, np.int64)
-    rep[seeds[cell[first]]] = u[first]
-    return rep, vn
-
-
 def decimate(vertices, faces, target_faces: int) -> np.ndarray:
-    """Triangles [C,3] over a subset of the template's vertices, C about `target_faces`.
-
-    Each cell is represented by its vertex furthest out along the cell's mean normal, not by
-    its seed: a coarse triangle is a chord of the surface, and chords between seeds (near the
-    cells' middles) cut inside it and flatten rims, so a coarse level's silhouette shrank
-    (scripts/bench_coarse.py measures both against the template)."""
+    """Triangles [C,3] over a subset of the template's vertices, C about `target_faces`."""
     from scipy.sparse.csgraph import dijkstra
 
     vertices = np.asarray(vertices, np.float64)
@@ -122,22 +91,7 @@ def decimate(vertices, faces, target_faces: int) -> np.ndarray:
     ok = (lab >= 0).all(1) & (lab[:, 0] != lab[:, 1]) & (lab[:, 1] != lab[:, 2]) & (lab[:, 0] != lab[:, 2])
     tri = lab[ok]
     _, first = np.unique(np.sort(tri, axis=1), axis=0, return_index=True)  # one per vertex set (folds too)
-    tri = tri[np.sort(first)]
-    rep, vn = _outermost_per_cell(vertices, faces, used, np.where(src >= 0, src, -1))
-    out = rep[tri]
-    # Where the outermost corners fold a triangle against the surface (a thin cell), keep the
-    # seeds' triangle when it agrees better.
-    worse = _facing(vertices, vn, out) < np.minimum(0.5, _facing(vertices, vn, tri))
-    out[worse] = tri[worse]
-    return np.ascontiguousarray(out, np.int32)
-
-
-def _facing(vertices, vn, tris):
-    """Cosine between each triangle's normal and the sum of its corners' vertex normals."""
-    v = vertices[tris]
-    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
-    ref = vn[tris].sum(axis=1)
-    return np.einsum("ij,ij->i", n, ref) / np.maximum(np.linalg.norm(n, axis=1) * np.linalg.norm(ref, axis=1), 1e-30)
+    return np.ascontiguousarray(tri[np.sort(first)], np.int32)
 
 
 def spread_order(points) -> np.ndarray:
