@@ -50,11 +50,6 @@ def main(argv=None):
     )
     ap.add_argument("--no-coarse", action="store_true", help="no coarse levels (the paper's levels; ablation)")
     ap.add_argument("--coarse-weight", type=float, help="factor on the coarse levels' loss weights (default 0.5)")
-    ap.add_argument(
-        "--mask-weight",
-        type=float,
-        help="L1 between rendered alpha and the foreground mask, per supervised level (default: the preset's)",
-    )
     ap.add_argument("--grad-threshold", type=float)
     ap.add_argument("--max-faces", type=int)
     ap.add_argument(
@@ -115,7 +110,6 @@ def main(argv=None):
             sh_degree=args.sh_degree,
             coarse_levels=() if args.no_coarse else args.coarse_levels,
             coarse_weight=args.coarse_weight,
-            lambda_mask=args.mask_weight,
             refine_flame=args.refine_flame or None,
             image_cache_mb=args.image_cache_mb,
             flame_model=_os.path.abspath(args.flame_model) if args.flame_model else None,

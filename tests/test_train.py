@@ -492,30 +492,6 @@ def test_coarse_weight_scales_the_coarse_levels_loss(tiny_dataset, tmp_path):
         config_for("tiny", coarse_weight=-1.0)
 
 
-def test_mask_weight_adds_the_alpha_mask_term_per_level(tiny_dataset, tmp_path):
-    """lambda_mask adds w_l * lambda_mask * mean|alpha - mask| for every supervised level: the
-    first step's loss grows linearly in it, and a frame without a mask adds nothing."""
-    from progressive_avatars.core.train.trainer import _foreground
-
-    cfg = dict(eval_every=10**6, checkpoint_every=10**6)
-    loss = {
-        lam: Trainer(tiny_dataset, str(tmp_path / f"m{lam}"), config_for("tiny", lambda_mask=lam, **cfg)).step()["loss"]
-        for lam in (0.0, 0.5, 1.0)
-    }
-    term = loss[1.0] - loss[0.0]
-    # Coarse levels start as large shrunken Gaussians: their alpha misses part of the mask.
-    assert term > 1e-3
-    assert loss[0.5] - loss[0.0] == pytest.approx(0.5 * term, rel=1e-4)
-    tr = Trainer(tiny_dataset, str(tmp_path / "f"), config_for("tiny", **cfg))
-    s = tr.train[0]
-    assert _foreground(s) is not None and float(_foreground(s).min()) < 1
-    s.mask = np.ones_like(s.mask)  # what a dataset without masks reads as
-    assert _foreground(s) is None
-    for bad in (-0.1, float("nan")):
-        with pytest.raises(ValueError, match="mask weight"):
-            config_for("tiny", lambda_mask=bad)
-
-
 def test_growth_and_supervision_policies_are_validated(tmp_path):
     """An unknown supervision mode or an impossible growth setting is an error when the config is
     made (it used to train "all" silently), and the policies do what the trainer asks of them."""

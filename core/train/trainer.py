@@ -63,10 +63,6 @@ class TrainConfig:
     # (empty: every level 1).
     level_weights: tuple = ()
     lambda_ssim: float = 0.2
-    # L1 between the rendered alpha and the foreground mask, per supervised level (with its
-    # level weight); only on frames that have a mask. It keeps the silhouettes of the coarse
-    # prefixes, whose triangles are chords inside the surface, from shrinking (issue 16).
-    lambda_mask: float = 0.0
     position_reg: float = 0.01
     scale_reg: float = 1.0
     lr: dict = field(
@@ -174,8 +170,6 @@ def config_for(preset: str, **overrides) -> TrainConfig:
         raise ValueError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
     cfg = replace(TrainConfig(), **PRESETS[preset])
     cfg = replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
-    if not (math.isfinite(cfg.lambda_mask) and cfg.lambda_mask >= 0):
-        raise ValueError(f"mask weight must be finite and >= 0, got {cfg.lambda_mask}")
     if not (math.isfinite(cfg.coarse_weight) and cfg.coarse_weight >= 0):
         raise ValueError(f"coarse weight must be finite and >= 0, got {cfg.coarse_weight}")
     if int(cfg.views_per_step) < 1:
@@ -278,13 +272,6 @@ def _check_gaussians(it: int, g: dict):
             raise FloatingPointError(
                 f"iteration {it}: Gaussian scales underflowed to 0; training stopped, last checkpoint kept"
             )
-
-
-def _foreground(sample) -> torch.Tensor | None:
-    """The frame's foreground mask as a tensor, or None when it has none (a frame without a
-    mask reads as all ones, which would push alpha to 1 over the background)."""
-    m = sample.mask
-    return torch.from_numpy(m) if m.size and float(m.min()) < 1.0 else None
 
 
 class Trainer:
@@ -448,7 +435,6 @@ class Trainer:
         for view in views:
             sample = self.train[view]
             target = torch.from_numpy(sample.image)
-            mask = _foreground(sample) if c.lambda_mask else None
             g = self.model.gaussians(self._vertices(sample), sample.camera.center)
             _check_gaussians(it, g)
             loss = torch.zeros(())
@@ -470,8 +456,6 @@ class Trainer:
                 w = level_weight(c, lvl) * (c.coarse_weight if lvl < self.model.forest.num_coarse_levels else 1.0)
                 if w:
                     loss = loss + w * losses.photometric(out.image, target, c.lambda_ssim)
-                    if mask is not None:
-                        loss = loss + (w * c.lambda_mask) * (out.alpha - mask).abs().mean()
                 if lvl == top:
                     finest = (ids, out)
             loss = (
