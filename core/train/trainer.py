@@ -126,13 +126,13 @@ PRESETS = {
     # of 6,000, by a budget to 18x the base (the paper grows 16.7x; records are fixed-size, so
     # the base is <= 6 % of the record bytes only from ~17x). The budget, not grad_threshold
     # (here only a floor), sets the growth: the first run (threshold 2e-4 alone, all levels
-    # supervised, 2026-11-23) grew 4.3x in 6,000 iterations at ~1.0 s each. Sampled supervision
-    # (the finest and one coarser level per step) halves a step at ~150k faces against all levels
-    # (docs/BENCHMARKS.md, training iteration). The image cache is held to 1 GiB (~150 of the
-    # 540 frames; decoding a frame again costs far less than an iteration).
-    # Measured (2026-11-23, run_paper_table.sh, 2 cores, partly shared): 3,661 s of training,
-    # peak RSS 2.3 GB, growth 16.5x (8,950 -> 147,625 faces: the last growth step found fewer
-    # leaves above the 2e-5 floor than its budget allowed), validation PSNR 27.49 dB.
+    # supervised, 2026-11-23) grew 4.3x in 6,000 iterations at ~1.0 s each; with a 2e-5 floor
+    # the last growth step found fewer leaves above it than its budget allowed (16.5x). Sampled
+    # supervision (the finest and one coarser level per step) halves a step at ~150k faces
+    # against all levels (docs/BENCHMARKS.md, training iteration). The image cache is held to
+    # 1 GiB (~150 of the 540 frames; decoding a frame again costs far less than an iteration).
+    # Measured (2026-11-23, runs/paper3, 2 cores, partly shared): 3,908 s of training, peak RSS
+    # 2.1 GB, growth 18.0x (8,950 -> 161,098 faces), validation PSNR 27.52 dB.
     "paper-cpu": dict(
         iterations=6000,
         max_depth=4,
@@ -141,7 +141,7 @@ PRESETS = {
         grow_stop=0.7,
         max_faces=170000,
         grow_to=18.0,
-        grad_threshold=2e-5,
+        grad_threshold=1e-5,
         supervision="sampled",
         log_every=50,
         eval_every=1000,
