@@ -1,0 +1,156 @@
+"""Whole cpu-preset training runs: f6907ae (before issue 18) against this tree, side by side.
+
+    python scripts/bench_train_run.py [--data runs/synthetic] [--iterations N] [--work DIR] [--write]
+
+scripts/bench_train.py times single iterations from a fixed state; this trains the cpu preset
+from scratch to the end with each code, so growth, evaluation and the validation PSNR it
+reaches come in too (issue 18: "the cpu preset reaches the same validation PSNR (± 0.1 dB) as
+before"). The runs start together, one thread each (torch and numba). The speed-up is taken
+from process CPU time per iteration: the runs do not end together (the faster ones leave the
+slower more of the machine), and CPU time, unlike wall time, does not count waiting for a core.
+
+Runs: `f6907ae` (the old core/ from git, its own Trainer and cpu preset), `this tree`
+(scripts/train.py --preset cpu, coarse levels on as shipped) and `this tree, no coarse
+levels` (--no-coarse: the same level structure as f6907ae's). Reported per run: process CPU
+time per iteration (the whole command: imports, evaluation and checkpoints included), the
+trainer's own clock per iteration (render, backward, Adam, growth; wall time, so it counts
+waiting for a core), wall time of the whole command, peak memory, Gaussians, and the
+validation PSNR (the trainer's evaluation: the same 8 validation views in both codes) after
+the last iteration and the mean of the last three evaluations. --write puts the section into
+docs/BENCHMARKS.md between its markers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _bootstrap  # noqa: E402,F401
+from bench_common import header, replace_section  # noqa: E402
+from bench_train import OLD_COMMIT, OLD_DIR, old_package  # noqa: E402
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+TRAIN = os.path.join(ROOT, "scripts", "train.py")
+SECTION = "train-run"
+_OLD_MAIN = (
+    "import sys; sys.path.insert(0, sys.argv[1]); import torch; torch.set_num_threads(1); "
+    "from pa_old.core.train import Trainer, config_for; "
+    "cfg = config_for('cpu', iterations=int(sys.argv[4]) or None, seed=0); "
+    "Trainer(sys.argv[2], sys.argv[3], cfg).run(progress=False)"
+)
+
+
+def _commands(data: str, work: str, iterations: int) -> dict:
+    new = [sys.executable, TRAIN, "--data", data, "--preset", "cpu", "--threads", "1", "--no-progress", "--seed", "0"]
+    if iterations:
+        new += ["--iterations", str(iterations)]
+    return {
+        OLD_COMMIT: [sys.executable, "-c", _OLD_MAIN, OLD_DIR, data, os.path.join(work, "old"), str(iterations)],
+        "this tree": new + ["--out", os.path.join(work, "new")],
+        "this tree, no coarse levels": new + ["--out", os.path.join(work, "new_nocoarse"), "--no-coarse"],
+    }
+
+
+def _summary(out: str) -> dict:
+    rows = [json.loads(line) for line in open(os.path.join(out, "metrics.jsonl"))]
+    last = max((r for r in rows if "seconds" in r), key=lambda r: r["iteration"])
+    evals = [r for r in rows if "val_psnr" in r]
+    tail = [r["val_psnr"] for r in evals[-3:]]
+    return {
+        "iterations": last["iteration"],
+        "s_per_it": last["seconds"] / last["iteration"],
+        "val_psnr": evals[-1]["val_psnr"],
+        "val_tail": sum(tail) / len(tail),
+        "faces": next(r["faces"] for r in reversed(rows) if "faces" in r),
+    }
+
+
+def _load() -> str:
+    try:
+        return " / ".join(f"{x:.1f}" for x in os.getloadavg())
+    except OSError:
+        return "n/a"
+
+
+def run(data: str, iterations: int, work: str) -> str:
+    if not os.path.isfile(os.path.join(data, "transforms_train.json")):
+        raise SystemExit(f"{data}: no dataset there (make one with scripts/make_synthetic.py --out {data})")
+    old_package()  # the f6907ae tree, extracted once
+    for sub in ("old", "new", "new_nocoarse"):  # fresh runs: a trainer would resume or refuse
+        shutil.rmtree(os.path.join(work, sub), ignore_errors=True)
+    os.makedirs(work, exist_ok=True)
+    env = dict(os.environ, OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    load0 = _load()
+    procs = {}
+    for name, cmd in _commands(data, work, iterations).items():
+        log = open(os.path.join(work, name.replace(" ", "_").replace(",", "") + ".log"), "w")
+        procs[name] = (subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env, cwd=ROOT), time.time(), log)
+    results = {}
+    while procs:
+        pid, status, usage = os.wait4(-1, 0)
+        name = next((k for k, v in procs.items() if v[0].pid == pid), None)
+        if name is None:
+            continue
+        proc, t0, log = procs.pop(name)
+        log.close()
+        if os.waitstatus_to_exitcode(status) != 0:
+            raise RuntimeError(f"{name} failed ({os.waitstatus_to_exitcode(status)}): see {log.name}")
+        out = os.path.join(work, "old") if name == OLD_COMMIT else proc.args[proc.args.index("--out") + 1]
+        results[name] = dict(
+            _summary(out), wall=time.time() - t0, cpu=usage.ru_utime + usage.ru_stime, rss_mb=usage.ru_maxrss / 1024
+        )
+    load1 = _load()
+    order = list(_commands(data, work, iterations))
+    cmd = "python scripts/bench_train_run.py" + (f" --iterations {iterations}" if iterations else "")
+    if os.path.abspath(data) != os.path.join(ROOT, "runs", "synthetic"):
+        cmd += f" --data {os.path.relpath(data, ROOT)}"
+    lines = [
+        header("Whole cpu-preset runs: f6907ae against this tree (issue 18)", cmd),
+        f"- load average (1/5/15 min) {load0} at the start, {load1} at the end, on {os.cpu_count()} cores; "
+        "the three runs start together, one thread each",
+        f"- data: `{os.path.relpath(data, ROOT)}`; seed 0; f6907ae = `git archive {OLD_COMMIT} core` run by its "
+        "own Trainer with its own cpu preset",
+        "- CPU ms/it: process CPU time of the whole command (imports, evaluation, checkpoints included) per "
+        "iteration; the speed-up is the ratio of these (the runs end at different times, so their wall "
+        "times saw different loads). Trainer ms/it: the trainer's wall clock (render, backward, Adam, "
+        "growth; not evaluation or checkpoints)",
+        "- val PSNR: the trainer's evaluation (the same 8 validation views in both codes) after the last "
+        "iteration, and the mean of the last three evaluations",
+        "",
+        "| run | iterations | Gaussians | CPU ms/it | speed-up (CPU) | trainer ms/it | wall s | peak MB | "
+        "val PSNR | val PSNR, last 3 | Δ last 3 vs f6907ae |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    base = results[OLD_COMMIT]
+    for name in order:
+        r = results[name]
+        cpu_it = r["cpu"] / r["iterations"]
+        lines.append(
+            f"| {name} | {r['iterations']} | {r['faces']:,} | {cpu_it * 1e3:.1f} | "
+            f"x{base['cpu'] / base['iterations'] / cpu_it:.2f} | {r['s_per_it'] * 1e3:.1f} | {r['wall']:.0f} | "
+            f"{r['rss_mb']:.0f} | {r['val_psnr']:.2f} | {r['val_tail']:.2f} | {r['val_tail'] - base['val_tail']:+.2f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", default=os.path.join(ROOT, "runs", "synthetic"))
+    ap.add_argument("--iterations", type=int, default=0, help="default: the cpu preset's")
+    ap.add_argument("--work", default=os.path.join(ROOT, "runs", "bench_train_run"))
+    ap.add_argument("--write", action="store_true", help="put the section into docs/BENCHMARKS.md")
+    a = ap.parse_args()
+    text = run(a.data, a.iterations, a.work)
+    print(text)
+    if a.write:
+        replace_section(os.path.join(ROOT, "docs", "BENCHMARKS.md"), SECTION, text)
+
+
+if __name__ == "__main__":
+    main()
