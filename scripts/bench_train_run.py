@@ -47,13 +47,15 @@ _OLD_MAIN = (
 
 
 def _commands(data: str, work: str, iterations: int) -> dict:
+    """name -> (command, run folder)."""
     new = [sys.executable, TRAIN, "--data", data, "--preset", "cpu", "--threads", "1", "--no-progress", "--seed", "0"]
     if iterations:
         new += ["--iterations", str(iterations)]
+    outs = {k: os.path.join(work, k) for k in ("old", "new", "new_nocoarse")}
     return {
-        OLD_COMMIT: [sys.executable, "-c", _OLD_MAIN, OLD_DIR, data, os.path.join(work, "old"), str(iterations)],
-        "this tree": new + ["--out", os.path.join(work, "new")],
-        "this tree, no coarse levels": new + ["--out", os.path.join(work, "new_nocoarse"), "--no-coarse"],
+        OLD_COMMIT: ([sys.executable, "-c", _OLD_MAIN, OLD_DIR, data, outs["old"], str(iterations)], outs["old"]),
+        "this tree": (new + ["--out", outs["new"]], outs["new"]),
+        "this tree, no coarse levels": (new + ["--out", outs["new_nocoarse"], "--no-coarse"], outs["new_nocoarse"]),
     }
 
 
@@ -87,26 +89,40 @@ def run(data: str, iterations: int, work: str) -> str:
     os.makedirs(work, exist_ok=True)
     env = dict(os.environ, OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="1", MKL_NUM_THREADS="1")
     load0 = _load()
+    runs = _commands(data, work, iterations)
     procs = {}
-    for name, cmd in _commands(data, work, iterations).items():
-        log = open(os.path.join(work, name.replace(" ", "_").replace(",", "") + ".log"), "w")
-        procs[name] = (subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env, cwd=ROOT), time.time(), log)
     results = {}
-    while procs:
-        pid, status, usage = os.wait4(-1, 0)
-        name = next((k for k, v in procs.items() if v[0].pid == pid), None)
-        if name is None:
-            continue
-        proc, t0, log = procs.pop(name)
-        log.close()
-        if os.waitstatus_to_exitcode(status) != 0:
-            raise RuntimeError(f"{name} failed ({os.waitstatus_to_exitcode(status)}): see {log.name}")
-        out = os.path.join(work, "old") if name == OLD_COMMIT else proc.args[proc.args.index("--out") + 1]
-        results[name] = dict(
-            _summary(out), wall=time.time() - t0, cpu=usage.ru_utime + usage.ru_stime, rss_mb=usage.ru_maxrss / 1024
-        )
+    try:
+        for name, (cmd, out) in runs.items():
+            log = open(os.path.join(work, os.path.basename(out) + ".log"), "w")
+            procs[name] = (
+                subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env, cwd=ROOT),
+                time.time(),
+                log,
+            )
+        while procs:
+            pid, status, usage = os.wait4(-1, 0)
+            name = next((k for k, v in procs.items() if v[0].pid == pid), None)
+            if name is None:
+                continue
+            proc, t0, log = procs.pop(name)
+            proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here, not by Popen
+            log.close()
+            if proc.returncode != 0:
+                raise RuntimeError(f"{name} failed ({proc.returncode}): see {log.name}")
+            results[name] = dict(
+                _summary(runs[name][1]),
+                wall=time.time() - t0,
+                cpu=usage.ru_utime + usage.ru_stime,
+                rss_mb=usage.ru_maxrss / 1024,
+            )
+    finally:  # a failed or interrupted benchmark leaves no training behind
+        for proc, _, log in procs.values():
+            proc.kill()
+            proc.wait()
+            log.close()
     load1 = _load()
-    order = list(_commands(data, work, iterations))
+    order = list(runs)
     cmd = "python scripts/bench_train_run.py" + (f" --iterations {iterations}" if iterations else "")
     if os.path.abspath(data) != os.path.join(ROOT, "runs", "synthetic"):
         cmd += f" --data {os.path.relpath(data, ROOT)}"
