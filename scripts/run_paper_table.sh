@@ -21,8 +21,9 @@
 #   (iterations of finest and the seed-1 runs; preset's if empty: shorter runs are allowed, the
 #   report's Training table gives every run's iterations), DATA_ARGS (extra make_synthetic.py
 #   options, e.g. "--resolution-scale 0.25 --sequences 3"), EVAL_ARGS (extra evaluate.py
-#   options; default "--views 16 --curve-points 12"), UNIFORM_DEPTH (2), BENCH=0 to skip writing
-#   docs/BENCHMARKS.md.
+#   options; default "--views 16 --curve-points 12"), UNIFORM_DEPTH (2), ABOUT (text added to the
+#   report's description: how the runs were made, when that differs from this script's defaults),
+#   BENCH=0 to skip writing docs/BENCHMARKS.md.
 # Time on 2 cores: data ~15-21 min (scripts/bench_data_gen_paper.py); the adaptive run ~1 h
 # (0.4 s per iteration at 9k faces, ~0.8 s at 161k: docs/BENCHMARKS.md gives the measured run);
 # the report ~10 min. Five full runs do not fit in one 3-hour session: run with --resume across
@@ -87,7 +88,7 @@ args=()
 [ -f "$OUT/uniform_seed1/avatar.npz" ] && args+=(--uniform "uniform_seed1=$OUT/uniform_seed1")
 log "report: $REPORT"
 $PY scripts/evaluate.py --run "$OUT/adaptive" --out "$REPORT" --no-progress --paper-table "${args[@]}" $EVAL_ARGS \
-  --about "The paper-scale synthetic head (scripts/run_paper_table.sh): adaptive multi-level training (preset $PRESET) against uniform subdivision to depth 2 and finest-level-only supervision." \
+  --about "The paper-scale synthetic head (scripts/run_paper_table.sh): adaptive multi-level training (preset $PRESET) against uniform subdivision to depth ${UNIFORM_DEPTH:-2} and finest-level-only supervision.${ABOUT:+ $ABOUT}" \
   > "$OUT/report.log" 2>&1 || { tail -n 30 "$OUT/report.log" >&2; exit 1; }
 if [ "${BENCH:-1}" = 1 ]; then
   # bench.py keeps the page's other sections as they are and adds or replaces this report's.
