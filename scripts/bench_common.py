@@ -31,6 +31,14 @@ def header(title: str, command: str) -> str:
     )
 
 
+def load_average() -> str:
+    """The 1, 5 and 15 minute load averages as "a / b / c" ("n/a" where the system has none)."""
+    try:
+        return " / ".join(f"{x:.1f}" for x in os.getloadavg())
+    except OSError:
+        return "n/a"
+
+
 def best_of(fn, repeat=5, warmup=1):
     """Minimum and median wall time (seconds) of fn() over `repeat` runs."""
     for _ in range(warmup):

@@ -24,7 +24,7 @@ import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import _bootstrap  # noqa: E402,F401
-from bench_common import header, replace_section  # noqa: E402
+from bench_common import header, load_average, replace_section  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TRAIN = os.path.join(ROOT, "scripts", "train.py")
@@ -50,13 +50,6 @@ def _run(cmd: list, out: str) -> dict:
     }
 
 
-def _load() -> str:
-    try:
-        return " / ".join(f"{x:.1f}" for x in os.getloadavg())
-    except OSError:
-        return "n/a"
-
-
 def run(data: str, iterations: int, reps: int, work: str) -> str:
     if not os.path.isfile(os.path.join(data, "transforms_train.json")):
         subprocess.run([sys.executable, os.path.join(ROOT, "scripts", "make_synthetic.py"), "--out", data], check=True)
@@ -79,13 +72,13 @@ def run(data: str, iterations: int, reps: int, work: str) -> str:
     # Warm-up: numba's compiled kernels cached on disk before anything is timed.
     warm = os.path.join(work, "warmup")
     _run([sys.executable, TRAIN, "--out", warm, *common[:-3], "--iterations", "2", "--no-progress"], warm)
-    load0 = _load()
+    load0 = load_average()
     results = {name: [] for name in configs}
     for rep in range(reps):  # alternated, so load changes hit both
         for k, (name, make) in enumerate(configs.items()):
             out = os.path.join(work, f"c{k}_r{rep}")
             results[name].append(_run(make(out), out))
-    load1 = _load()
+    load1 = load_average()
     lines = [
         header(
             "Data-parallel training: 1 process against 2 (torchrun)",

@@ -32,7 +32,7 @@ import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import _bootstrap  # noqa: E402,F401
-from bench_common import header, replace_section  # noqa: E402
+from bench_common import header, load_average, replace_section  # noqa: E402
 from bench_train import OLD_COMMIT, OLD_DIR, old_package  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -73,13 +73,6 @@ def _summary(out: str) -> dict:
     }
 
 
-def _load() -> str:
-    try:
-        return " / ".join(f"{x:.1f}" for x in os.getloadavg())
-    except OSError:
-        return "n/a"
-
-
 def run(data: str, iterations: int, work: str) -> str:
     if not os.path.isfile(os.path.join(data, "transforms_train.json")):
         raise SystemExit(f"{data}: no dataset there (make one with scripts/make_synthetic.py --out {data})")
@@ -88,7 +81,7 @@ def run(data: str, iterations: int, work: str) -> str:
         shutil.rmtree(os.path.join(work, sub), ignore_errors=True)
     os.makedirs(work, exist_ok=True)
     env = dict(os.environ, OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    load0 = _load()
+    load0 = load_average()
     runs = _commands(data, work, iterations)
     procs = {}
     results = {}
@@ -121,7 +114,7 @@ def run(data: str, iterations: int, work: str) -> str:
             proc.kill()
             proc.wait()
             log.close()
-    load1 = _load()
+    load1 = load_average()
     order = list(runs)
     cmd = "python scripts/bench_train_run.py" + (f" --iterations {iterations}" if iterations else "")
     if os.path.abspath(data) != os.path.join(ROOT, "runs", "synthetic"):
