@@ -224,7 +224,7 @@ def test_importance_cache_keyed_on_max_views(tiny_run, tiny_dataset, tmp_path, m
 
     run = tmp_path / "run"
     shutil.copytree(tiny_run, run)
-    for n in ("importance.npy", "importance.json"):
+    for n in ("importance.npy", "importance.json", "importance_whole.npy", "importance_whole.json"):
         if (run / n).exists():
             os.remove(run / n)
     av = runs.load_run_avatar(str(run))
@@ -234,9 +234,13 @@ def test_importance_cache_keyed_on_max_views(tiny_run, tiny_dataset, tmp_path, m
     w2 = runs.run_importance(str(run), av, tiny_dataset, max_views=2, progress=False)
     w2b = runs.run_importance(str(run), av, tiny_dataset, max_views=2, progress=False)
     w_all = runs.run_importance(str(run), av, tiny_dataset, max_views=None, progress=False)
-    assert calls == [2, None]  # cached for the same views, recomputed for others
+    w2_whole = runs.run_importance(str(run), av, tiny_dataset, max_views=2, progress=False, per_level=False)
+    w_all_again = runs.run_importance(str(run), av, tiny_dataset, max_views=None, progress=False)
+    assert calls == [2, None, 2]  # cached for the same views and kind, recomputed for others
     np.testing.assert_array_equal(w2, w2b)
     assert not np.array_equal(w2, w_all)
+    assert not np.array_equal(w2, w2_whole) and (run / "importance_whole.npy").exists()
+    np.testing.assert_array_equal(w_all_again, w_all)  # the whole-avatar kind has its own cache file
 
 
 # -- numerical --------------------------------------------------------------------------

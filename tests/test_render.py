@@ -488,3 +488,45 @@ def test_backward_replays_the_forwards_record_whatever_its_buffers(monkeypatch):
         assert torch.equal(g.grad, r), name
     with pytest.raises(RuntimeError, match="no record"):
         ((out_a.image * wi).sum()).backward()
+
+
+def test_importance_per_level_is_measured_where_prefixes_show_it(tiny_run, tiny_dataset):
+    """Inside a level the stream ranks faces by importance, which matters only for prefixes that
+    end in that level: they render the coarser levels and none of the finer ones. Per-level
+    importance is each face's alpha*T in exactly that render."""
+    from progressive_avatars.core.io import run as runs
+    from progressive_avatars.core.io.dataset import Dataset
+    from progressive_avatars.core.render.importance import face_importance, view_subset
+    from progressive_avatars.core.avatar.avatar import sh_to_rgb, sigmoid
+
+    av = runs.load_run_avatar(tiny_run)
+    ds = Dataset(tiny_dataset, "train")
+    level = av.forest.level
+    assert len(np.unique(level)) >= 4  # coarse levels, template, grown levels
+    per_level = face_importance(av, ds, max_views=3, progress=False)
+    whole = face_importance(av, ds, max_views=3, progress=False, per_level=False)
+    finest = level == level.max()
+    np.testing.assert_array_equal(per_level[finest], whole[finest])  # its render is the whole avatar
+    # Leaving the finer levels out only raises the transmittance in front of a face.
+    assert np.all(per_level >= whole - 1e-9 * whole.max())
+    assert per_level[~finest].sum() > 1.05 * whole[~finest].sum()
+    # One level by hand: the template level's faces in the render of levels <= its own.
+    tl = av.forest.num_coarse_levels
+    ev = av.evaluator()
+    by_hand = np.zeros(av.num_gaussians)
+    for i in view_subset(len(ds), 3):
+        info = ds.frame_info(int(i))
+        m, q, s = ev(ds.vertices_at(info.timestep_index))
+        sel = np.flatnonzero(level <= tl)
+        _, _, c = render_numpy(
+            m[sel],
+            q[sel],
+            s[sel],
+            sigmoid(av.opacity_logit)[sel],
+            sh_to_rgb(av.f_dc)[sel],
+            info.camera,
+            np.asarray(ds.background, np.float32),
+        )
+        by_hand[sel] += c
+    own = level == tl
+    np.testing.assert_allclose(per_level[own], by_hand[own], rtol=1e-12)

@@ -490,6 +490,17 @@ def report_markdown(r: dict) -> str:
     lines.append(
         f"- 50 %: levels then importance {io['levels_then_importance']['psnr']:.2f} dB vs importance only {io['importance_only']['psnr']:.2f} dB"
     )
+    ik = a.get("importance_kind")
+    if ik:
+        pts = ", ".join(
+            f"{b} %: {d['per_level']['psnr']:.2f} / {d['whole']['psnr']:.2f} dB "
+            f"(coverage {d['per_level']['coverage']:.3f} / {d['whole']['coverage']:.3f})"
+            for b, d in ik.items()
+        )
+        lines.append(
+            "- ranking inside levels by importance measured on the levels up to each face's own (this stream) / "
+            f"on the whole avatar (the paper's): {pts}"
+        )
     q = a["quantisation_100"]
     lines.append(
         f"- 100 %: quantised {q['quantised']['psnr']:.3f} dB ({q['bytes_quantised']:,} B) vs float32 "

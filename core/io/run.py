@@ -1,7 +1,8 @@
 """A training run folder and what is derived from it (importance, stream order, stream file).
 
 RUN/avatar.npz      the trained avatar (creation order)
-RUN/importance.npy  face importance over the training views (cached, same order)
+RUN/importance.npy  face importance over the training views (cached, same order; per level)
+RUN/importance_whole.npy  the same measured on the whole avatar (the importance-only ablation)
 RUN/avatar.pavs     the progressive stream (docs/FORMAT.md)
 """
 
@@ -43,13 +44,18 @@ def run_flame_model(run: str, flame_model: str | None = None) -> str | None:
     return None
 
 
-def run_importance(run: str, avatar: Avatar, data: str, max_views: int | None = 120, progress=True) -> np.ndarray:
-    """Importance per face, computed once per trained avatar and view count and cached in the
-    run folder (importance.npy, with importance.json saying which avatar and max_views)."""
-    path = os.path.join(run, "importance.npy")
-    key_path = os.path.join(run, "importance.json")
+def run_importance(
+    run: str, avatar: Avatar, data: str, max_views: int | None = 120, progress=True, per_level: bool = True
+) -> np.ndarray:
+    """Importance per face (core/render/importance.py; ``per_level`` False: measured on the whole
+    avatar, the paper's), computed once per trained avatar, kind and view count and cached in
+    the run folder (importance.npy, or importance_whole.npy, with a .json saying which avatar
+    and max_views)."""
+    name = "importance" if per_level else "importance_whole"
+    path = os.path.join(run, name + ".npy")
+    key_path = os.path.join(run, name + ".json")
     stamp = os.path.getmtime(os.path.join(run, "avatar.npz"))
-    key = {"max_views": max_views, "data": os.path.abspath(data)}
+    key = {"max_views": max_views, "data": os.path.abspath(data), "per_level": per_level}
     if os.path.exists(path) and os.path.getmtime(path) >= stamp:
         try:
             with open(key_path, encoding="utf-8") as fh:
@@ -64,7 +70,11 @@ def run_importance(run: str, avatar: Avatar, data: str, max_views: int | None = 
     from ..render.importance import face_importance
 
     W = face_importance(
-        avatar, Dataset(data, "train", flame_model=run_flame_model(run)), max_views=max_views, progress=progress
+        avatar,
+        Dataset(data, "train", flame_model=run_flame_model(run)),
+        max_views=max_views,
+        progress=progress,
+        per_level=per_level,
     )
     from .atomic import atomic_open
 
