@@ -821,7 +821,9 @@ def test_property_random_forests(seed, depth, frac, quantize, block, cut, chunk)
     assert full.num_gaussians == av.num_gaussians
     if not quantize:
         for n in PARAMS:
-            np.testing.assert_array_equal(getattr(full, n), getattr(av, n)[stream_order(av.forest, imp)])
+            # The writer's default with importance and no rest pose: roots by importance too.
+            order = stream_order(av.forest, imp, root_keys(av.forest, "auto", imp))
+            np.testing.assert_array_equal(getattr(full, n), getattr(av, n)[order])
     k = int(cut * len(data))
     n = info.count_for_bytes(k)
     assert_prefix(read_stream(data[:k]), full, n)
@@ -856,7 +858,7 @@ def test_coarse_stream_roundtrip_and_every_record_boundary_renders(quantize):
     data = encode_stream(av, imp, quantize=quantize, records_per_block=8)
     info = read_header(data)
     full = read_stream(data)
-    o = stream_order(av.forest, imp)
+    o = stream_order(av.forest, imp, root_keys(av.forest, "auto", imp))  # the writer's default
     ref = av.forest.reorder(o)
     np.testing.assert_array_equal(full.forest.root_faces, ref.root_faces)
     np.testing.assert_array_equal(full.forest.level, ref.level)
@@ -986,8 +988,9 @@ def test_cut_inside_every_level_with_trained_level_sizes():
 
 def test_root_orders():
     """Inside the root levels: spatial = core/coarse.spread_order of the roots' centroids per
-    level; importance = descending; auto = spatial in level 0, importance after (what the
-    measurements in docs/BENCHMARKS.md chose); the forest's order when nothing is asked."""
+    level; importance = descending; auto = importance where it is known (what the
+    measurements in docs/BENCHMARKS.md chose), else spatial; the forest's order when nothing
+    is asked."""
     from progressive_avatars.core.avatar import coarse
 
     verts, av, imp = make_avatar(26, coarse=True)
@@ -1000,10 +1003,12 @@ def test_root_orders():
         for level in range(f.num_coarse_levels + 1):
             got = o[:R][lv[o[:R]] == level]
             ids = np.flatnonzero(lv == level)
-            if how == "spatial" or (how == "auto" and level == 0):
+            if how == "spatial":
                 assert np.array_equal(got, ids[coarse.spread_order(cen[ids])])
             elif how in ("importance", "auto"):
                 assert np.all(np.diff(imp[got]) <= 0)
+        if how == "spatial":  # auto without importance
+            assert np.array_equal(stream_order(f, imp, root_keys(f, "auto", None, verts))[:R], o[:R])
     assert np.array_equal(stream_order(f, imp)[:R], np.arange(R))
     with pytest.raises(ValueError, match="importance"):
         root_keys(f, "importance")

@@ -513,8 +513,8 @@ def report_markdown(r: dict) -> str:
             "",
             "Order of the roots inside their levels, at cuts inside a root level (NVS PSNR / coverage; "
             "forest: as trained, the template level in template order; spatial: spread over the head, "
-            "core/avatar/coarse.py; importance: descending; both: spatial dyadic blocks, each by importance; auto: spatial in level 0, "
-            "importance in the later root levels):",
+            "core/avatar/coarse.py; importance: descending (measured per level); both: spatial dyadic blocks, each by importance; "
+            "auto, the writer's default: importance where it is known, else spatial):",
             "",
             "| order | " + " | ".join(f"{c} ({ro['cuts'][c]:,} G)" for c in cuts) + " |",
             "|---|" + "---|" * len(cuts),

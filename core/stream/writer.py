@@ -206,7 +206,8 @@ def write_stream(
     bands is refused unless ``drop_sh`` (then the metadata says which degree was dropped).
 
     Roots (coarse levels, template level) go level by level in `root_order` (root_keys):
-    default "auto" when rest-pose `vertices` are given, else the forest's order. The avatar's
+    default "auto" (importance, else spatial on the rest-pose `vertices`) when either is given,
+    else the forest's order. The avatar's
     training settings (meta "config") stay out of the header (they are in the run folder):
     time to the first whole head counts. The run and data folders are named by their last
     component only: local paths do not travel with a shared file.
@@ -234,7 +235,8 @@ def write_stream(
             "roots (a prefix); streams start from every root"
         )
     if root_order is None:
-        root_order = "auto" if vertices is not None else "forest"
+        known = vertices is not None or importance is not None
+        root_order = "auto" if known and version != 2 else "forest"
     if version == 2:
         if K or not np.array_equal(forest.root_ref, np.arange(forest.num_roots)) or root_order != "forest":
             raise ValueError("write_stream: version 2 has no coarse levels and keeps roots in template order")
