@@ -629,7 +629,8 @@ def report_markdown(r: dict) -> str:
             f"faces {d['mean_depth_detailed_quartile']:.2f} vs smoothest quarter {d['mean_depth_smooth_quartile']:.2f}.",
         ]
     lines += ["", "## Figures", ""] + [f"![{k}]({v})" for k, v in r.get("figures", {}).items()]
-    return "\n".join(lines) + "\n"
+    # Blocks open and close with a blank line; one between two blocks is enough.
+    return re.sub(r"\n{3,}", "\n\n", "\n".join(lines)) + "\n"
 
 
 # --------------------------------------------------------------------------------------
