@@ -7,7 +7,8 @@
 #             uniform count nearest the adaptive run's ~161k; the report cuts both streams to the
 #             smaller count), supervised as the adaptive run
 #   finest    finest-level-only supervision (Table 3: 35 %)
-#   adaptive_seed1, uniform_seed1   the same two with seed 1 (adaptive vs uniform over seeds)
+#   adaptive_seed<k>, uniform_seed<k>   the same two with each seed k of SEEDS (default 1;
+#             adaptive vs uniform over seeds, seed 0 being the two runs above)
 #   report    scripts/evaluate.py --paper-table (Table 1, Table 3, adaptive vs uniform at matched
 #             Gaussian counts, strips, depth colours, time and memory), then docs/BENCHMARKS.md
 # Random-order and importance-only (Table 3) are orders of the adaptive run's stream: no training.
@@ -18,11 +19,12 @@
 # Stop it any time (Ctrl-C, session end): checkpoints are atomic and every 500 iterations.
 # Environment: DATA (runs/synthetic_paper), OUT (runs/paper), REPORT (runs/report_paper),
 #   PRESET (paper-cpu), ITERS (the main runs' iterations; preset's if empty), ABL_ITERS
-#   (iterations of finest and the seed-1 runs; preset's if empty: shorter runs are allowed, the
+#   (iterations of finest and the seed runs; preset's if empty: shorter runs are allowed, the
 #   report's Training table gives every run's iterations), DATA_ARGS (extra make_synthetic.py
 #   options, e.g. "--resolution-scale 0.25 --sequences 3"), EVAL_ARGS (extra evaluate.py
 #   options; default "--views 16 --curve-points 12"), UNIFORM_DEPTH (2), ABOUT (text added to the
 #   report's description: how the runs were made, when that differs from this script's defaults),
+#   SEEDS (the further seeds of adaptive and uniform, default "1"; e.g. "1 2"),
 #   BENCH=0 to skip writing docs/BENCHMARKS.md.
 # Time on 2 cores: data ~15-21 min (scripts/bench_data_gen_paper.py); the adaptive run ~1 h
 # (0.4 s per iteration at 9k faces, ~0.8 s at 161k: docs/BENCHMARKS.md gives the measured run);
@@ -76,16 +78,20 @@ if [ "$REPORT_ONLY" = 0 ]; then
   train adaptive "$ITERS"
   train finest "$ABL_ITERS" --supervision finest  # one run answers its criterion: before uniform
   train uniform "$ITERS" $UNIFORM
-  train adaptive_seed1 "$ABL_ITERS" --seed 1
-  train uniform_seed1 "$ABL_ITERS" --seed 1 $UNIFORM
+  for s in ${SEEDS:-1}; do
+    train "adaptive_seed$s" "$ABL_ITERS" --seed "$s"
+    train "uniform_seed$s" "$ABL_ITERS" --seed "$s" $UNIFORM
+  done
 fi
 
 [ -f "$OUT/adaptive/avatar.npz" ] || { echo "no finished adaptive run in $OUT: nothing to report" >&2; exit 1; }
 args=()
 [ -f "$OUT/finest/avatar.npz" ] && args+=(--finest-only "$OUT/finest")
-[ -f "$OUT/adaptive_seed1/avatar.npz" ] && args+=(--adaptive "adaptive_seed1=$OUT/adaptive_seed1")
 [ -f "$OUT/uniform/avatar.npz" ] && args+=(--uniform "uniform=$OUT/uniform" --compare "uniform=$OUT/uniform")
-[ -f "$OUT/uniform_seed1/avatar.npz" ] && args+=(--uniform "uniform_seed1=$OUT/uniform_seed1")
+for s in ${SEEDS:-1}; do
+  [ -f "$OUT/adaptive_seed$s/avatar.npz" ] && args+=(--adaptive "adaptive_seed$s=$OUT/adaptive_seed$s")
+  [ -f "$OUT/uniform_seed$s/avatar.npz" ] && args+=(--uniform "uniform_seed$s=$OUT/uniform_seed$s")
+done
 log "report: $REPORT"
 $PY scripts/evaluate.py --run "$OUT/adaptive" --out "$REPORT" --no-progress --paper-table "${args[@]}" $EVAL_ARGS \
   --about "The paper-scale synthetic head (scripts/run_paper_table.sh): adaptive multi-level training (preset $PRESET) against uniform subdivision to depth ${UNIFORM_DEPTH:-2} and finest-level-only supervision.${ABOUT:+ $ABOUT}" \
