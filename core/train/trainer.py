@@ -49,7 +49,8 @@ class TrainConfig:
     # built once from the canonical mesh; () turns them off (the paper's levels, older runs).
     # 1/16 rather than 1/8 for the second: measured on the default head (docs/BENCHMARKS.md, issue
     # 16), the first template-level Gaussians add more at 5 % of the stream than the coarse ones they
-    # replace, and the smaller coarse table shortens the header (5 %: 2.86 dB below 100 % against 3.65).
+    # replace, and the smaller coarse table shortens the header (5 %: 2.86 dB below 100 % against 3.65,
+    # both ranked by whole-avatar importance, as then).
     coarse_levels: tuple = (1 / 32, 1 / 16)
     # Multiplies w_l of the coarse levels in the multi-level loss. 0.5 measured on the default head
     # (docs/BENCHMARKS.md, issue 16): 1.0 gains 0.3-0.5 dB at 5 % but costs 0.1-0.2 dB at 100 %
