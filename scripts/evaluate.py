@@ -54,6 +54,13 @@ def main(argv=None):
     ap.add_argument("--no-coarse-run", help="the same model trained without coarse levels (scored at 2/5/100 %%)")
     ap.add_argument("--compare", action="append", default=[], help="NAME=RUN: another run scored at 100 %%")
     ap.add_argument(
+        "--budget-compare",
+        action="append",
+        default=[],
+        metavar="NAME=RUN",
+        help="another run written as this one's stream and scored at 1, 2, 5, 10, 25 and 100 %% of its own bytes",
+    )
+    ap.add_argument(
         "--name",
         default="",
         help="this run's name for grouping with compared runs of other seeds "
@@ -113,6 +120,7 @@ def main(argv=None):
             embed_template=args.embed_template,
             no_coarse_run=args.no_coarse_run,
             compare=tuple(args.compare),
+            budget_compare=tuple(args.budget_compare),
             name=args.name,
             about=args.about,
             paper_table=args.paper_table,

@@ -50,6 +50,13 @@ def main(argv=None):
     )
     ap.add_argument("--no-coarse", action="store_true", help="no coarse levels (the paper's levels; ablation)")
     ap.add_argument("--coarse-weight", type=float, help="factor on the coarse levels' loss weights (default 0.5)")
+    ap.add_argument(
+        "--prefix-cuts",
+        type=int,
+        metavar="N",
+        help="N more images per step whose prefix ends inside a random level, in stream order (default 0)",
+    )
+    ap.add_argument("--prefix-cut-weight", type=float, help="factor on the in-level prefixes' loss weights (default 1)")
     ap.add_argument("--grad-threshold", type=float)
     ap.add_argument("--max-faces", type=int)
     ap.add_argument(
@@ -110,6 +117,8 @@ def main(argv=None):
             sh_degree=args.sh_degree,
             coarse_levels=() if args.no_coarse else args.coarse_levels,
             coarse_weight=args.coarse_weight,
+            prefix_cuts=args.prefix_cuts,
+            prefix_cut_weight=args.prefix_cut_weight,
             refine_flame=args.refine_flame or None,
             image_cache_mb=args.image_cache_mb,
             flame_model=_os.path.abspath(args.flame_model) if args.flame_model else None,

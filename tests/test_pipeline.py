@@ -98,6 +98,8 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
         f"again={tiny_run}",
         "--compare",
         f"tiny_seed1={tiny_run}",
+        "--budget-compare",
+        f"itself={tiny_run}",
         "--name",
         "tiny",
         "--about",
@@ -139,6 +141,12 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
     again = rep["ablations"]["compare"]["again"]
     assert again["gaussians"] == trained.num_gaussians
     assert abs(again["nvs"]["psnr"] - full["nvs"]["psnr"]) < 0.5
+    # The same run written again as the stream is scores the same at every short budget.
+    bc = rep["ablations"]["budget_compare"]
+    assert set(bc["this"]) == set(bc["itself"]["budgets"]) == {"1", "2", "5", "10", "25", "100"}
+    for b, mine in bc["this"].items():
+        assert bc["itself"]["budgets"][b]["psnr"] == pytest.approx(mine["psnr"], abs=1e-9), b
+    assert bc["itself"]["bytes"] == rep["stream_bytes"] and "| 5 % |" in md and "| this run | itself |" in md
     own = rep["training"]["this run"]
     assert own["iterations"] == 60 and own["seconds"] > 0
     assert rep["training"]["again"] == own

@@ -26,8 +26,19 @@ def test_tiny_preset_trains_end_to_end(tiny_run):
         assert np.all(np.isfinite(getattr(avatar, name)))
 
 
-def test_kill_and_resume_matches_uninterrupted_run(tiny_dataset, tmp_path):
-    cfg = config_for("tiny", iterations=24, grow_every=8, grow_start=8, checkpoint_every=10, eval_every=1000)
+@pytest.mark.parametrize("prefix_cuts", [0, 1])
+def test_kill_and_resume_matches_uninterrupted_run(tiny_dataset, tmp_path, prefix_cuts):
+    cfg = config_for(
+        "tiny",
+        iterations=24,
+        grow_every=8,
+        grow_start=8,
+        checkpoint_every=10,
+        eval_every=1000,
+        prefix_cuts=prefix_cuts,
+        rank_every=6,
+        rank_views=2,
+    )
     full = Trainer(tiny_dataset, str(tmp_path / "full"), cfg)
     full.run(progress=False)
     # Stopped after 15 iterations (a real kill is tested below); a fresh Trainer resumes.
@@ -490,6 +501,64 @@ def test_coarse_weight_scales_the_coarse_levels_loss(tiny_dataset, tmp_path):
     assert off.step()["loss"] < full.step()["loss"]
     with pytest.raises(ValueError, match="coarse weight"):
         config_for("tiny", coarse_weight=-1.0)
+
+
+def test_prefix_cuts_supervise_the_streams_prefixes_inside_levels(tiny_dataset, tmp_path, monkeypatch):
+    """With prefix_cuts the step also supervises prefixes that end inside a level, in exactly
+    the order the stream writer sends the faces (importance measured per level)."""
+    from progressive_avatars.core.stream.writer import write_stream
+    from progressive_avatars.core.train import trainer as trainer_mod
+
+    cfg = config_for("tiny", prefix_cuts=3, rank_views=3, eval_every=10**6, checkpoint_every=10**6)
+    tr = Trainer(tiny_dataset, str(tmp_path / "cuts"), cfg)
+    tr.grad_sum[:] = 1.0  # split every template face: four levels, the finest not yet ranked
+    tr.grad_count[:] = 1.0
+    tr._grow(cfg.grow_start)
+    counts = tr.model.forest.level_counts()
+    assert len(counts) == 4
+    calls = []
+    real = trainer_mod.render_levels
+
+    def spy(*args, level, upto, **kw):
+        calls.append((np.array(level), list(upto)))
+        return real(*args, level=level, upto=upto, **kw)
+
+    monkeypatch.setattr(trainer_mod, "render_levels", spy)
+    assert np.isfinite(tr.step()["loss"])
+    key, upto = calls[-1]
+    N = tr.model.num_faces
+    assert len(tr.rank_importance) == N  # measured again after the growth
+    np.testing.assert_array_equal(np.sort(key), np.arange(N))
+    # The writer, given the same importance, sends face info.order[i] i-th: the training's order.
+    info = write_stream(tmp_path / "s.pavs", tr.model.to_avatar(), tr.rank_importance, quantize=False)
+    np.testing.assert_array_equal(key[info.order], np.arange(N))
+    ends = np.cumsum(counts)
+    assert set(ends - 1) <= set(upto) and upto[-1] == N - 1  # every level (supervision "all"), finest last
+    inside = [u for u in upto if u + 1 not in ends]
+    assert inside, "at least one prefix ends inside a level"
+    level = tr.model.forest.level
+    for u in inside:
+        lv = int(np.searchsorted(ends, u + 1))
+        shown = key <= u
+        assert np.all(shown[level < lv]) and not np.any(shown[level > lv])
+        assert 0 < shown[level == lv].sum() < counts[lv]
+        # The level's faces shown are its most important ones.
+        imp = tr.rank_importance[level == lv]
+        assert imp[shown[level == lv]].min() >= imp[~shown[level == lv]].max()
+    with pytest.raises(ValueError, match="prefix cuts"):
+        config_for("tiny", prefix_cuts=-1)
+    with pytest.raises(ValueError, match="prefix cut weight"):
+        config_for("tiny", prefix_cut_weight=float("nan"))
+
+    # The first step sees the same view with or without cuts: weighted 0 the cut images add
+    # nothing to the loss; weighted 1 they add their photometric terms.
+    def first_loss(name, **kw):
+        t = Trainer(tiny_dataset, str(tmp_path / name), config_for("tiny", eval_every=10**6, **kw))
+        return t.step()["loss"]
+
+    base = first_loss("none")
+    assert first_loss("w0", prefix_cuts=2, prefix_cut_weight=0.0) == pytest.approx(base, rel=1e-6)
+    assert first_loss("w1", prefix_cuts=2) > base + 1e-3
 
 
 def test_growth_and_supervision_policies_are_validated(tmp_path):

@@ -541,6 +541,24 @@ def report_markdown(r: dict) -> str:
                 f"{o['gaussians']:,}, {o['psnr']:.2f} / {o['ssim']:.3f}, {o['coverage']:.3f} | "
                 f"{w['psnr'] - o['psnr']:+.2f} |"
             )
+    bc = a.get("budget_compare")
+    if bc:
+        others = [k for k in bc if k != "this"]
+        lines += [
+            "",
+            "Short budgets against other runs, each written and scored as this stream (its own "
+            "importance, its own bytes), NVS PSNR / coverage: "
+            + ", ".join(f"{k}: `{bc[k]['run']}` ({bc[k]['bytes']:,} B)" for k in others),
+            "",
+            "| budget | this run | " + " | ".join(others) + " |",
+            "|---|---|" + "---|" * len(others),
+        ]
+        for b, mine in bc["this"].items():
+            cells = [f"{mine['psnr']:.2f} / {mine['coverage']:.3f}"]
+            cells += [f"{bc[k]['budgets'][b]['psnr']:.2f} / {bc[k]['budgets'][b]['coverage']:.3f}" for k in others]
+            lines.append(f"| {b} % | " + " | ".join(cells) + " |")
+    if cv or bc:
+        lines.append("")  # a table ends before the list that follows
     lp = a["level_prefixes"]
     lines.append(
         "- level prefixes: "

@@ -46,6 +46,7 @@ class ReportOptions:
     embed_template: bool = False
     no_coarse_run: str | None = None
     compare: tuple = ()
+    budget_compare: tuple = ()  # NAME=RUN: scored at the short budgets of its own stream
     name: str = ""
     about: str = ""
     paper_table: bool = False
@@ -114,26 +115,41 @@ def root_order_ablation(avatar, W, rest, info, renderer) -> dict:
     return out
 
 
-def coarse_ablation(run0, data, rest, nvs_renderer, info, nvs_split, views, scratch, progress, root_order) -> dict:
-    """This run against `run0` (trained without coarse levels) at 2, 5 and 100 % of each one's
-    own stream (same writer settings)."""
+def _own_stream_scores(run0, data, rest, info, nvs_split, views, scratch, progress, root_order, budgets):
+    """Another run written as this run's stream is (same writer settings, its own importance),
+    scored on the NVS views at ``budgets`` percent of its own bytes: (its StreamInfo,
+    {budget: {gaussians, psnr, ssim, coverage}})."""
     from ..io import run as runs
     from .sweep import SplitRenderer
 
     av0 = runs.load_run_avatar(run0)
     W0 = runs.run_importance(run0, av0, data, progress=progress)
-    p0 = os.path.join(scratch, "no_coarse.pavs")
+    p0 = os.path.join(scratch, "other.pavs")
     info0 = write_stream(
         p0,
         av0,
         W0,
         quantize=True,
+        metadata={"run": os.path.abspath(run0)},
         drop_sh=True,
         vertices=rest,
         root_order=root_order,
         embed_template=info.template_embedded,
     )
     r0 = SplitRenderer(read_stream(p0, template_faces=nvs_split.faces), nvs_split, views)
+    scores = {}
+    for b in budgets:
+        n0 = int(info0.count_for_percent(b))
+        scores[f"{b:g}"] = {"gaussians": n0, **r0.score(np.arange(n0))}
+    return info0, scores
+
+
+def coarse_ablation(run0, data, rest, nvs_renderer, info, nvs_split, views, scratch, progress, root_order) -> dict:
+    """This run against `run0` (trained without coarse levels) at 2, 5 and 100 % of each one's
+    own stream (same writer settings)."""
+    info0, scores = _own_stream_scores(
+        run0, data, rest, info, nvs_split, views, scratch, progress, root_order, (2, 5, 100)
+    )
     out = {
         "run": _shown(run0),
         "bytes_with": info.total_bytes,
@@ -143,10 +159,10 @@ def coarse_ablation(run0, data, rest, nvs_renderer, info, nvs_split, views, scra
         "budgets": {},
     }
     for b in (2, 5, 100):
-        n1, n0 = int(info.count_for_percent(b)), int(info0.count_for_percent(b))
+        n1 = int(info.count_for_percent(b))
         out["budgets"][str(b)] = {
             "with": {"gaussians": n1, **nvs_renderer.score(np.arange(n1))},
-            "without": {"gaussians": n0, **r0.score(np.arange(n0))},
+            "without": scores[str(b)],
         }
     return out
 
@@ -441,6 +457,21 @@ def build_report(args: ReportOptions) -> dict:
         "discrete_sum_bytes": int(sum(sizes.values())),
         "discrete_budgets": sizes,
     }
+    short = (1, 2, 5, 10, 25, 100)
+    for spec in args.budget_compare:
+        name, _, other = spec.partition("=")
+        info0, scores = _own_stream_scores(
+            other, data, rest, info, splits["nvs"], args.views, scratch, progress, args.root_order, short
+        )
+        mine = {}
+        for b in short:
+            n1 = int(info.count_for_percent(b))
+            mine[f"{b:g}"] = report["budgets"].get(f"{b:g}", {}).get("nvs") or nvs.score(np.arange(n1))
+        abl.setdefault("budget_compare", {"this": mine})[name] = {
+            "run": _shown(other),
+            "bytes": info0.total_bytes,
+            "budgets": scores,
+        }
     for spec in args.compare:
         name, _, other = spec.partition("=")
         other_av = runs.load_run_avatar(other)

@@ -56,6 +56,18 @@ class TrainConfig:
     # (docs/BENCHMARKS.md, issue 16): 1.0 gains 0.3-0.5 dB at 5 % but costs 0.1-0.2 dB at 100 %
     # against the run without coarse levels; 0.5 stays within 0.05 dB.
     coarse_weight: float = 0.5
+    # Extra images per step whose prefix ends *inside* a level: the levels below it plus the
+    # first k faces of a random level (k uniform), in the order the stream will send them (each
+    # level by importance measured on the levels up to its own, as core/render/importance.py).
+    # The level-by-level loss supervises only prefixes that end at a level's end; a stream cut
+    # anywhere else renders a set no loss has seen (issue 16). 0: off (older runs; the paper-cpu
+    # preset, where a cut inside the finest level would add a third full-size image per step).
+    prefix_cuts: int = 0
+    prefix_cut_weight: float = 1.0  # multiplies an in-level prefix's loss weight (its level's w_l)
+    # How often the training re-measures that order (and after every growth step), on
+    # rank_views spread training views.
+    rank_every: int = 250
+    rank_views: int = 8
     sh_degree: int = 0  # view-dependent colour bands (0..3); the stream carries degree 0
     sh_every: int = 1000  # one more active SH band every this many iterations (as 3DGS)
     flame_model: str | None = None  # the user's FLAME model, for FLAME-mode datasets (flame_param_path)
@@ -108,7 +120,11 @@ PRESETS = {
         checkpoint_every=20,
         sh_every=20,
     ),
-    # The synthetic default on a 2-core CPU (<= 30 min).
+    # The synthetic default on a 2-core CPU (<= 30 min). Two in-level prefixes per step at half
+    # weight: measured on the default and the coarse-template head (docs/BENCHMARKS.md, issue 16)
+    # they lift the prefixes that end inside a level (most without coarse levels); at weight 1 the
+    # coarse-template head lost 0.24 dB at 100 % against its run without coarse levels (mean of two
+    # seeds), at 0.5 0.03.
     "cpu": dict(
         iterations=4000,
         max_depth=3,
@@ -117,6 +133,8 @@ PRESETS = {
         grow_stop=0.7,
         max_faces=40000,
         grad_threshold=2e-4,
+        prefix_cuts=2,
+        prefix_cut_weight=0.5,
         log_every=25,
         eval_every=250,
         eval_views=8,
@@ -175,6 +193,13 @@ def config_for(preset: str, **overrides) -> TrainConfig:
         raise ValueError(f"coarse weight must be finite and >= 0, got {cfg.coarse_weight}")
     if int(cfg.views_per_step) < 1:
         raise ValueError(f"views per step must be >= 1, got {cfg.views_per_step}")
+    if not (math.isfinite(cfg.prefix_cut_weight) and cfg.prefix_cut_weight >= 0):
+        raise ValueError(f"prefix cut weight must be finite and >= 0, got {cfg.prefix_cut_weight}")
+    if int(cfg.prefix_cuts) < 0 or int(cfg.rank_every) < 1 or int(cfg.rank_views) < 1:
+        raise ValueError(
+            f"prefix cuts must be >= 0, rank_every and rank_views >= 1, got "
+            f"{cfg.prefix_cuts}, {cfg.rank_every}, {cfg.rank_views}"
+        )
     Supervision(cfg.supervision)  # unknown modes and growth settings fail here, before any work
     Growth.from_config(cfg)
     w = tuple(float(x) for x in cfg.level_weights)
@@ -330,6 +355,8 @@ class Trainer:
 
             self.refiner = FlameRefiner(self.train, config.lr)
         self.log_path = os.path.join(out_dir, "metrics.jsonl")
+        self.rank_importance = None  # the order of the in-level prefixes (prefix_cuts)
+        self.stream_key = None
         self.checkpoint_iteration = None  # the iteration of the last checkpoint written or loaded
         self.on_checkpoint = None  # called with the iteration after each checkpoint (rank 0)
         if resume and os.path.exists(self.ckpt_path):
@@ -414,6 +441,35 @@ class Trainer:
     def _levels(self) -> list[int]:
         return self.supervision.levels(self.model.forest.max_level, self.rng)
 
+    def _cuts(self) -> list[tuple[int, int]]:
+        """(level, number of that level's faces) of the step's in-level prefixes."""
+        if not self.cfg.prefix_cuts:
+            return []
+        counts = self.model.forest.level_counts()
+        out = []
+        for _ in range(self.cfg.prefix_cuts):
+            lv = int(self.rng.integers(0, len(counts)))
+            if counts[lv] >= 2:
+                out.append((lv, int(self.rng.integers(1, counts[lv]))))
+        return out
+
+    def _rank(self, measure: bool):
+        """Position of each face in the stream order the writer would give it (each level by
+        importance measured on the levels up to its own), measuring the importance again on
+        spread training views when ``measure``."""
+        from ..render.importance import face_importance
+        from ..stream.order import root_keys, stream_order
+
+        forest = self.model.forest
+        if measure:
+            av = self.model.to_avatar()
+            self.rank_importance = face_importance(av, self.train, self.cfg.rank_views, progress=False)
+        imp = self.rank_importance
+        perm = stream_order(forest, imp, root_keys(forest, "auto", imp))
+        key = np.empty(len(perm), np.int64)
+        key[perm] = np.arange(len(perm))
+        self.stream_key = key
+
     def _views(self) -> list[int]:
         """This rank's training views of the iteration: one draw of the whole batch (world size
         x views per step) from the generator every rank shares, sliced by rank, so ranks see
@@ -430,6 +486,25 @@ class Trainer:
         self.model.active_sh_degree = min(c.sh_degree, it // max(1, c.sh_every))
         levels = self._levels()
         top = self.model.forest.max_level
+        cuts = self._cuts()
+        if cuts:
+            imp = self.rank_importance
+            if imp is None or len(imp) != self.model.num_faces or it % c.rank_every == 0:
+                self._rank(measure=True)  # also right after a growth step
+            elif self.stream_key is None:
+                self._rank(measure=False)  # resumed: the checkpoint's importance
+            # Every image as a prefix of the stream order: levels end at their cumulative counts.
+            ends = np.cumsum(self.model.forest.level_counts())
+            images = {int(ends[lv]) - 1: lv for lv in levels}
+            for lv, k in cuts:
+                images.setdefault(int(ends[lv] - self.model.forest.level_counts()[lv]) + k - 1, lv)
+            upto = sorted(images)
+            image_levels = [images[u] for u in upto]
+            is_cut = [u + 1 not in set(ends.tolist()) for u in upto]
+            order_key = self.stream_key
+        else:
+            upto, image_levels, order_key = levels, levels, self.model.forest.level
+            is_cut = [False] * len(levels)
         p = self.model.params
         b = len(views)
         loss_sum, psnr_sum = 0.0, 0.0
@@ -449,16 +524,16 @@ class Trainer:
                 g["colors"],
                 sample.camera,
                 self.background,
-                level=self.model.forest.level,
-                upto=levels,
+                level=order_key,
+                upto=upto,
             )
-            for lvl, out in zip(levels, outs):
+            for lvl, out, cut in zip(image_levels, outs, is_cut):
                 ids = self.model.level_ids[top]  # every level's output covers all faces (means2d, radii)
                 w = level_weight(c, lvl) * (c.coarse_weight if lvl < self.model.forest.num_coarse_levels else 1.0)
+                w *= c.prefix_cut_weight if cut else 1.0
                 if w:
                     loss = loss + w * losses.photometric(out.image, target, c.lambda_ssim)
-                if lvl == top:
-                    finest = (ids, out)
+                finest = (ids, out)  # the last image is the finest level
             loss = (
                 loss
                 + c.position_reg * losses.position_reg(p["d_mu"])
@@ -553,6 +628,8 @@ class Trainer:
             arrays.update(self.refiner.state())
         arrays["grad_sum"] = self.grad_sum
         arrays["grad_count"] = self.grad_count
+        if self.rank_importance is not None:
+            arrays["rank_importance"] = self.rank_importance
         arrays["state_json"] = np.array(
             json.dumps(
                 {
@@ -598,6 +675,8 @@ class Trainer:
                 self.opt.v[name] = torch.from_numpy(d["adam_v_" + name].copy())
             self.opt.steps = torch.from_numpy(d["adam_steps"].copy())
             self.grad_sum, self.grad_count = d["grad_sum"].copy(), d["grad_count"].copy()
+            if "rank_importance" in d:
+                self.rank_importance = d["rank_importance"].copy()
             if not self.dist.is_main:  # the job's sums live on rank 0 (whatever world size wrote them)
                 self.grad_sum[:] = 0
                 self.grad_count[:] = 0
