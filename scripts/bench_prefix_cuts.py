@@ -3,11 +3,13 @@
     python scripts/bench_prefix_cuts.py [--run runs/p16_pcw5] [--data runs/synthetic] [--reps 20] [--write]
 
 Two trainers resume the same checkpoint (copied to temporary folders; the run is not touched):
-the cpu preset as it is (two in-level prefixes per step) and the same with --prefix-cuts 0. Their
+the cpu preset as it is (no in-level prefixes) and the same with --prefix-cuts 2 --prefix-cut-weight
+0.5 (the setting of runs/p16_pcw5). Their
 steps alternate, so the machine's load hits both alike; the iteration counter is held off the
 ranking iterations, whose cost (the per-level importance on rank_views training views, every
 rank_every iterations and after each growth step) is timed on its own. The run is made with
-`python scripts/train.py --data runs/synthetic --out runs/p16_pcw5 --preset cpu`. --write puts
+`python scripts/train.py --data runs/synthetic --out runs/p16_pcw5 --preset cpu --prefix-cuts 2
+--prefix-cut-weight 0.5`. --write puts
 the section into docs/BENCHMARKS.md.
 """
 
@@ -37,11 +39,13 @@ def run(run_dir: str, data: str, reps: int) -> str:
         raise FileNotFoundError(f"{ckpt}: no checkpoint (train the run first, see this script's docstring)")
     preset = config_for("cpu")
     trainers, scratch = {}, []
-    for name, cuts in (("without (--prefix-cuts 0)", 0), (f"with ({preset.prefix_cuts} per step)", None)):
+    for name, cuts in (("without (the preset)", 0), ("with (--prefix-cuts 2 --prefix-cut-weight 0.5)", 2)):
         d = tempfile.mkdtemp(prefix="bench_cuts_")
         scratch.append(d)
         shutil.copy(ckpt, d)
-        cfg = config_for("cpu", iterations=10**9, eval_every=10**9, checkpoint_every=10**9, prefix_cuts=cuts)
+        cfg = config_for(
+            "cpu", iterations=10**9, eval_every=10**9, checkpoint_every=10**9, prefix_cuts=cuts, prefix_cut_weight=0.5
+        )
         tr = Trainer(data, d, cfg, resume=True, check_data=False)
         tr.step()  # warm-up (the cut trainer also ranks here)
         trainers[name] = tr

@@ -4,8 +4,8 @@
     python scripts/export.py --run RUN --ply OUT.ply --budget 25 --frame 0 [--data DIR]
 
 The stream is ordered level by level, each level (the root levels too) by importance,
-computed over the training views on the levels up to each face's own and cached in
-RUN/importance.npy. --budget is a percentage of the stream's bytes (header included; any value
+computed over the training views on the levels up to each face's own (pixels weighted by the
+error of the levels below) and cached in RUN/importance.npy. --budget is a percentage of the stream's bytes (header included; any value
 in [0, 100]: a budget inside the coarse or template level exports what it holds, a budget with
 no whole record an empty but valid PLY, with a note); --frame a timestep index of the dataset
 (its mesh drives the Gaussians).

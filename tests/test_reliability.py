@@ -224,7 +224,7 @@ def test_importance_cache_keyed_on_max_views(tiny_run, tiny_dataset, tmp_path, m
 
     run = tmp_path / "run"
     shutil.copytree(tiny_run, run)
-    for n in ("importance.npy", "importance.json", "importance_whole.npy", "importance_whole.json"):
+    for n in [f"importance{k}.{e}" for k in ("", "_alpha", "_whole") for e in ("npy", "json")]:
         if (run / n).exists():
             os.remove(run / n)
     av = runs.load_run_avatar(str(run))
@@ -235,8 +235,10 @@ def test_importance_cache_keyed_on_max_views(tiny_run, tiny_dataset, tmp_path, m
     w2b = runs.run_importance(str(run), av, tiny_dataset, max_views=2, progress=False)
     w_all = runs.run_importance(str(run), av, tiny_dataset, max_views=None, progress=False)
     w2_whole = runs.run_importance(str(run), av, tiny_dataset, max_views=2, progress=False, per_level=False)
+    w2_alpha = runs.run_importance(str(run), av, tiny_dataset, max_views=2, progress=False, weighting="alpha")
     w_all_again = runs.run_importance(str(run), av, tiny_dataset, max_views=None, progress=False)
-    assert calls == [2, None, 2]  # cached for the same views and kind, recomputed for others
+    assert calls == [2, None, 2, 2]  # cached for the same views and kind, recomputed for others
+    assert (run / "importance_alpha.npy").exists() and not np.array_equal(w2, w2_alpha)
     np.testing.assert_array_equal(w2, w2b)
     assert not np.array_equal(w2, w_all)
     assert not np.array_equal(w2, w2_whole) and (run / "importance_whole.npy").exists()

@@ -503,30 +503,62 @@ def test_importance_per_level_is_measured_where_prefixes_show_it(tiny_run, tiny_
     ds = Dataset(tiny_dataset, "train")
     level = av.forest.level
     assert len(np.unique(level)) >= 4  # coarse levels, template, grown levels
-    per_level = face_importance(av, ds, max_views=3, progress=False)
+    per_level = face_importance(av, ds, max_views=3, progress=False, weighting="alpha")
     whole = face_importance(av, ds, max_views=3, progress=False, per_level=False)
     finest = level == level.max()
     np.testing.assert_array_equal(per_level[finest], whole[finest])  # its render is the whole avatar
     # Leaving the finer levels out only raises the transmittance in front of a face.
     assert np.all(per_level >= whole - 1e-9 * whole.max())
     assert per_level[~finest].sum() > 1.05 * whole[~finest].sum()
-    # One level by hand: the template level's faces in the render of levels <= its own.
+    # One level by hand: the template level's faces in the render of levels <= its own; the
+    # default weighs each pixel by the error of the render of the levels below against the image.
+    residual = face_importance(av, ds, max_views=3, progress=False)
     tl = av.forest.num_coarse_levels
     ev = av.evaluator()
-    by_hand = np.zeros(av.num_gaussians)
+    bg = np.asarray(ds.background, np.float32)
+    by_hand, by_hand_res = np.zeros(av.num_gaussians), np.zeros(av.num_gaussians)
     for i in view_subset(len(ds), 3):
         info = ds.frame_info(int(i))
         m, q, s = ev(ds.vertices_at(info.timestep_index))
+        args = lambda sel: (m[sel], q[sel], s[sel], sigmoid(av.opacity_logit)[sel], sh_to_rgb(av.f_dc)[sel])  # noqa: E731
         sel = np.flatnonzero(level <= tl)
-        _, _, c = render_numpy(
-            m[sel],
-            q[sel],
-            s[sel],
-            sigmoid(av.opacity_logit)[sel],
-            sh_to_rgb(av.f_dc)[sel],
-            info.camera,
-            np.asarray(ds.background, np.float32),
-        )
+        _, _, c = render_numpy(*args(sel), info.camera, bg)
         by_hand[sel] += c
+        below, _, _ = render_numpy(*args(np.flatnonzero(level < tl)), info.camera, bg)
+        err = np.abs(ds[int(i)].image.astype(np.float64) - below.astype(np.float64)).mean(-1)
+        _, _, c = render_numpy(*args(sel), info.camera, bg, pixel_weight=err)
+        by_hand_res[sel] += c
     own = level == tl
     np.testing.assert_allclose(per_level[own], by_hand[own], rtol=1e-12)
+    np.testing.assert_allclose(residual[own], by_hand_res[own], rtol=1e-9)
+    # Errors are below 1 per pixel, so the weighted sums are smaller, and they rank differently.
+    assert np.all(residual <= per_level + 1e-12) and residual[own].sum() > 0
+    assert not np.array_equal(np.argsort(residual[own]), np.argsort(per_level[own]))
+    with pytest.raises(ValueError, match="weighting"):
+        face_importance(av, ds, max_views=1, progress=False, weighting="bogus")
+
+
+def test_pixel_weighted_contribution_is_the_colour_gradient():
+    """contrib with pixel weights w is sum_p w_p alpha T per Gaussian: the gradient of
+    sum_p w_p image_p with respect to a Gaussian's colour (the backward, an independent path)."""
+    rng = np.random.default_rng(3)
+    cam = Camera.look_at([0.0, 0.0, 1.0], [0, 0, 0], [0, 1, 0], 90.0, 90.0, 24.0, 20.0, 48, 40)
+    n = 60
+    means = np.concatenate([rng.uniform(-0.12, 0.12, (n, 2)), rng.uniform(-0.05, 0.05, (n, 1))], 1)
+    quats = rng.normal(size=(n, 4))
+    scales = rng.uniform(0.01, 0.04, (n, 3))
+    opac = rng.uniform(0.2, 0.95, n)
+    colors = rng.uniform(0, 1, (n, 3))
+    weight = rng.uniform(0, 2, (cam.height, cam.width))
+    _, _, plain = render_numpy(means, quats, scales, opac, colors, cam)
+    _, _, ones = render_numpy(means, quats, scales, opac, colors, cam, pixel_weight=np.ones_like(weight))
+    np.testing.assert_allclose(ones, plain, rtol=1e-12)
+    _, _, weighted = render_numpy(means, quats, scales, opac, colors, cam, pixel_weight=weight)
+    col = torch.tensor(colors, requires_grad=True)
+    t = [torch.tensor(x) for x in (means, quats, scales, opac)]
+    out = render(*t, col, cam)
+    (out.image[..., 0] * torch.tensor(weight)).sum().backward()
+    assert weighted.max() > 0
+    np.testing.assert_allclose(weighted, col.grad[:, 0].numpy(), rtol=1e-6, atol=1e-9 * weighted.max())
+    with pytest.raises(ValueError, match="pixel_weight"):
+        render_numpy(means, quats, scales, opac, colors, cam, pixel_weight=np.ones((3, 3)))

@@ -167,29 +167,32 @@ def coarse_ablation(run0, data, rest, nvs_renderer, info, nvs_split, views, scra
     return out
 
 
-def importance_kind_ablation(avatar, W_whole, rest, budgets, info, nvs_split, nvs_renderer, args, scratch) -> dict:
-    """The stream (inside each level by importance measured on the levels up to it) against the
-    same writer ranking by importance measured on the whole avatar (the paper's), NVS at 1, 2,
-    5, 10 and 25 %: the budgets whose prefixes end inside a level, where the ranking decides."""
+def importance_kind_ablation(avatar, others, rest, budgets, info, nvs_split, nvs_renderer, args, scratch) -> dict:
+    """The stream (inside each level by importance per level, pixels weighted by the error of the
+    levels below) against the same writer ranking by each importance in ``others`` ({name: [N]},
+    e.g. plain alpha*T per level, and on the whole avatar: the paper's), NVS at 1, 2, 3, 5, 10 and
+    25 %: the budgets whose prefixes end inside a level, where the ranking decides."""
     from .sweep import SplitRenderer
 
-    path = os.path.join(scratch, "whole_importance.pavs")
-    write_stream(
-        path,
-        avatar,
-        W_whole,
-        quantize=True,
-        drop_sh=True,
-        vertices=rest,
-        root_order=args.root_order,
-        embed_template=args.embed_template,
-    )
-    whole = SplitRenderer(read_stream(path, template_faces=nvs_split.faces), nvs_split, args.views)
+    renderers = {}
+    for name, W in others.items():
+        path = os.path.join(scratch, f"{name}_importance.pavs")
+        write_stream(
+            path,
+            avatar,
+            W,
+            quantize=True,
+            drop_sh=True,
+            vertices=rest,
+            root_order=args.root_order,
+            embed_template=args.embed_template,
+        )
+        renderers[name] = SplitRenderer(read_stream(path, template_faces=nvs_split.faces), nvs_split, args.views)
     out = {}
-    for b in (1, 2, 5, 10, 25):
-        n = int(info.count_for_percent(b))  # the same records, so the same count in both streams
+    for b in (1, 2, 3, 5, 10, 25):
+        n = int(info.count_for_percent(b))  # the same records, so the same count in every stream
         ours = budgets.get(f"{b:g}", {}).get("nvs") or nvs_renderer.score(np.arange(n))
-        out[str(b)] = {"gaussians": n, "per_level": ours, "whole": whole.score(np.arange(n))}
+        out[str(b)] = {"gaussians": n, "this": ours, **{k: r.score(np.arange(n)) for k, r in renderers.items()}}
     return out
 
 
@@ -429,8 +432,9 @@ def build_report(args: ReportOptions) -> dict:
     # level, the stream's own ranking, coarse faces would simply come first).
     W_whole = runs.run_importance(args.run, avatar, data, progress=progress, per_level=False)
     imp = importance_only(W_whole[order])[:n50]
+    W_alpha = runs.run_importance(args.run, avatar, data, progress=progress, weighting="alpha")
     abl["importance_kind"] = importance_kind_ablation(
-        avatar, W_whole, rest, report["budgets"], info, splits["nvs"], nvs, args, scratch
+        avatar, {"alpha": W_alpha, "whole": W_whole}, rest, report["budgets"], info, splits["nvs"], nvs, args, scratch
     )
     abl["importance_only_50"] = {
         "levels_then_importance": nvs.score(np.arange(n50)),

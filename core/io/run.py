@@ -45,17 +45,25 @@ def run_flame_model(run: str, flame_model: str | None = None) -> str | None:
 
 
 def run_importance(
-    run: str, avatar: Avatar, data: str, max_views: int | None = 120, progress=True, per_level: bool = True
+    run: str,
+    avatar: Avatar,
+    data: str,
+    max_views: int | None = 120,
+    progress=True,
+    per_level: bool = True,
+    weighting: str = "residual",
 ) -> np.ndarray:
     """Importance per face (core/render/importance.py; ``per_level`` False: measured on the whole
-    avatar, the paper's), computed once per trained avatar, kind and view count and cached in
-    the run folder (importance.npy, or importance_whole.npy, with a .json saying which avatar
-    and max_views)."""
-    name = "importance" if per_level else "importance_whole"
+    avatar, the paper's, plain alpha*T), computed once per trained avatar, kind and view count and
+    cached in the run folder (importance.npy; importance_alpha.npy for per-level plain alpha*T;
+    importance_whole.npy; each with a .json saying which avatar, data and max_views)."""
+    if not per_level:
+        weighting = "alpha"
+    name = "importance_whole" if not per_level else "importance" if weighting == "residual" else "importance_alpha"
     path = os.path.join(run, name + ".npy")
     key_path = os.path.join(run, name + ".json")
     stamp = os.path.getmtime(os.path.join(run, "avatar.npz"))
-    key = {"max_views": max_views, "data": os.path.abspath(data), "per_level": per_level}
+    key = {"max_views": max_views, "data": os.path.abspath(data), "per_level": per_level, "weighting": weighting}
     if os.path.exists(path) and os.path.getmtime(path) >= stamp:
         try:
             with open(key_path, encoding="utf-8") as fh:
@@ -75,6 +83,7 @@ def run_importance(
         max_views=max_views,
         progress=progress,
         per_level=per_level,
+        weighting=weighting,
     )
     from .atomic import atomic_open
 

@@ -420,14 +420,17 @@ def _forward_tile(
     rec_n,
     pos,
     cap_end,
+    pix_weight,
 ):
     """Composite one tile front to back, Gaussians with glevel <= upto only. Each Gaussian
     visits only the chords of its ellipse inside the tile, and skips rows whose pixels have
-    all stopped (bit masks in ``active``).
+    all stopped (bit masks in ``active``). ``contrib_isect`` (when not empty) gets each pair's
+    sum of alpha*T, each pixel weighted by ``pix_weight`` [H, W] (when not empty).
 
     With ``pos`` >= 0 every composited pair is recorded for the backward (see raster_forward)
     from entry ``pos`` on; returns the next free entry, or -1 once ``cap_end`` is reached."""
     n_ch = colors.shape[1]
+    weighted = pix_weight.shape[0] > 0
     x0, y0, x1, y1 = _tile_bounds(t, tiles_x, width, height)
     tw = x1 - x0
     n_pix = tw * (y1 - y0)
@@ -513,7 +516,7 @@ def _forward_tile(
                 else:
                     for ch in range(n_ch):
                         acc[p, ch] += w * colors[g, ch]
-                wsum += w
+                wsum += w * pix_weight[j, i] if weighted else w
                 T[p] = t_next
                 lst[p] = k
         if contrib_isect.shape[0] > 0:
@@ -570,6 +573,7 @@ def raster_forward(
     n_chunks,
     rec_gauss,
     rec_pix,
+    pix_weight=None,
 ):
     """Front-to-back compositing, parallel over tiles, of one image per entry of ``upto``:
     image l composites the Gaussians g with glevel[g] <= upto[l] (levels of a forest share
@@ -577,7 +581,8 @@ def raster_forward(
 
     Returns images [L,H,W,C] (background included), final transmittance [L,H,W], the flat
     index (into ``ids``) of the last Gaussian composited at each pixel (-1: none) [L,H,W],
-    the per-Gaussian contribution sum_pixels alpha*T of the last image, and the record.
+    the per-Gaussian contribution sum_pixels alpha*T of the last image (each pixel weighted by
+    ``pix_weight`` [H, W] when given), and the record.
 
     The record (when rec_gauss and rec_pix, the caller's buffers, are not empty) lists every
     composited (pair, pixel), for raster_backward:
@@ -597,6 +602,7 @@ def raster_forward(
     last = np.empty((n_img, height, width), np.int64)
     contrib_isect = np.zeros(ids.shape[0])  # pairs after a tile's early exit stay 0
     no_contrib = np.zeros(0)
+    pw = np.zeros((0, 0)) if pix_weight is None else pix_weight
     chunk_cap = min(rec_gauss.shape[0], rec_pix.shape[0]) // n_chunks
     rec = chunk_cap > 0
     rec_start = np.zeros((n_img, ids.shape[0] if rec else 0), np.int64)
@@ -644,6 +650,7 @@ def raster_forward(
                     rec_n[im],
                     pos,
                     cap_end,
+                    pw,
                 )
                 if pos >= 0:
                     used[c] = nxt - c * chunk_cap if nxt >= 0 else chunk_cap + 1

@@ -184,11 +184,13 @@ def _cpu_forward(
     glevel=None,
     upto=None,
     record=False,
+    pixel_weight=None,
 ):
     """Numpy float64 forward of one image per entry of ``upto`` (image l: Gaussians with
     glevel <= upto[l]; default one image of all); returns images [L,H,W,C], final
     transmittances [L,H,W], the last image's contrib, radii and the state the backward needs
-    (``record``: with the composited pairs, so that the backward replays them)."""
+    (``record``: with the composited pairs, so that the backward replays them). The contrib
+    weighs each pixel by ``pixel_weight`` [H, W] when given."""
     if glevel is None:
         glevel, upto = np.zeros(len(means), np.int64), np.zeros(1, np.int64)
     Rc, tc, fx, fy, cx, cy = _camera_args(camera)
@@ -225,6 +227,7 @@ def _cpu_forward(
             upto,
             n_chunks,
             *bufs,
+            *(() if pixel_weight is None else (pixel_weight,)),
         )
         if not record or _record_buffers.learn(used, len(bufs[0]), W * H, len(upto)):
             break
@@ -371,14 +374,25 @@ class _RasterizeCPU(torch.autograd.Function):
         )
 
 
-def render_numpy(means, quats, scales, opacities, colors, camera, background=None, *, near=0.01, eps2d=0.3):
-    """Forward only, numpy in and out: (image [H,W,C] float32, alpha [H,W] float32, contrib [N])."""
+def render_numpy(
+    means, quats, scales, opacities, colors, camera, background=None, *, near=0.01, eps2d=0.3, pixel_weight=None
+):
+    """Forward only, numpy in and out: (image [H,W,C] float32, alpha [H,W] float32, contrib [N]).
+    contrib[g] = sum over pixels of alpha*T of Gaussian g, times ``pixel_weight`` [H, W] per
+    pixel when given."""
     means, quats, scales, opacities, colors = (np.asarray(x) for x in (means, quats, scales, opacities, colors))
     background = None if background is None else np.asarray(background)
     _validate(means, quats, scales, opacities, colors, background, camera, near, eps2d)
     arrays = [_f64(x) for x in (means, quats, scales, opacities, colors)]
     bg = _f64(background) if background is not None else np.zeros(arrays[4].shape[1])
-    image, t_final, contrib, _, _ = _cpu_forward(*arrays, bg, camera, near, eps2d)
+    if pixel_weight is not None:
+        pixel_weight = np.ascontiguousarray(pixel_weight, np.float64)
+        if pixel_weight.shape != (camera.height, camera.width) or not np.all(np.isfinite(pixel_weight)):
+            raise ValueError(
+                f"render_numpy: pixel_weight must be finite [{camera.height}, {camera.width}], "
+                f"got {list(pixel_weight.shape)}"
+            )
+    image, t_final, contrib, _, _ = _cpu_forward(*arrays, bg, camera, near, eps2d, pixel_weight=pixel_weight)
     return image[0].astype(np.float32), (1.0 - t_final[0]).astype(np.float32), contrib
 
 

@@ -60,8 +60,11 @@ class TrainConfig:
     # first k faces of a random level (k uniform), in the order the stream will send them (each
     # level by importance measured on the levels up to its own, as core/render/importance.py).
     # The level-by-level loss supervises only prefixes that end at a level's end; a stream cut
-    # anywhere else renders a set no loss has seen (issue 16). 0: off (older runs; the paper-cpu
-    # preset, where a cut inside the finest level would add a third full-size image per step).
+    # anywhere else renders a set no loss has seen (issue 16). Off by default: measured on the
+    # default and the coarse-template head (docs/BENCHMARKS.md, issue 16 sections), with coarse
+    # levels and the residual-weighted ranking they move the short budgets by -0.2..+0.8 dB and
+    # cost 0.1 dB at 100 % on the default head and 13-20 % per step; without coarse levels they
+    # lift 5 % of the stream by about 5 dB.
     prefix_cuts: int = 0
     prefix_cut_weight: float = 1.0  # multiplies an in-level prefix's loss weight (its level's w_l)
     # How often the training re-measures that order (and after every growth step), on
@@ -120,11 +123,7 @@ PRESETS = {
         checkpoint_every=20,
         sh_every=20,
     ),
-    # The synthetic default on a 2-core CPU (<= 30 min). Two in-level prefixes per step at half
-    # weight: measured on the default and the coarse-template head (docs/BENCHMARKS.md, issue 16)
-    # they lift the prefixes that end inside a level (most without coarse levels); at weight 1 the
-    # coarse-template head lost 0.24 dB at 100 % against its run without coarse levels (mean of two
-    # seeds), at 0.5 0.03.
+    # The synthetic default on a 2-core CPU (<= 30 min).
     "cpu": dict(
         iterations=4000,
         max_depth=3,
@@ -133,8 +132,6 @@ PRESETS = {
         grow_stop=0.7,
         max_faces=40000,
         grad_threshold=2e-4,
-        prefix_cuts=2,
-        prefix_cut_weight=0.5,
         log_every=25,
         eval_every=250,
         eval_views=8,
