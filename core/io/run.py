@@ -79,7 +79,7 @@ def run_importance(
 
     W = face_importance(
         avatar,
-        Dataset(data, "train", flame_model=run_flame_model(run)),
+        Dataset(data, "train", flame_model=run_flame_model(run), cache_images=0),  # each image is read once
         max_views=max_views,
         progress=progress,
         per_level=per_level,
