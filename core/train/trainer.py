@@ -439,7 +439,7 @@ class Trainer:
         return self.supervision.levels(self.model.forest.max_level, self.rng)
 
     def _cuts(self) -> list[tuple[int, int]]:
-        """(level, number of that level's faces) of the step's in-level prefixes."""
+        """The step's in-level prefixes: (level, how many of its faces they show, 1 .. count - 1)."""
         if not self.cfg.prefix_cuts:
             return []
         counts = self.model.forest.level_counts()
@@ -491,13 +491,13 @@ class Trainer:
             elif self.stream_key is None:
                 self._rank(measure=False)  # resumed: the checkpoint's importance
             # Every image as a prefix of the stream order: levels end at their cumulative counts.
-            ends = np.cumsum(self.model.forest.level_counts())
-            images = {int(ends[lv]) - 1: lv for lv in levels}
+            counts = self.model.forest.level_counts()
+            ends = np.cumsum(counts)
+            images = {int(ends[lv]) - 1: (lv, False) for lv in levels}  # last position shown: (level, cut)
             for lv, k in cuts:
-                images.setdefault(int(ends[lv] - self.model.forest.level_counts()[lv]) + k - 1, lv)
+                images.setdefault(int(ends[lv] - counts[lv]) + k - 1, (lv, True))
             upto = sorted(images)
-            image_levels = [images[u] for u in upto]
-            is_cut = [u + 1 not in set(ends.tolist()) for u in upto]
+            image_levels, is_cut = [images[u][0] for u in upto], [images[u][1] for u in upto]
             order_key = self.stream_key
         else:
             upto, image_levels, order_key = levels, levels, self.model.forest.level
