@@ -491,33 +491,21 @@ def report_markdown(r: dict) -> str:
         f"- 50 %: levels then importance {io['levels_then_importance']['psnr']:.2f} dB vs importance only {io['importance_only']['psnr']:.2f} dB"
     )
     ik = a.get("importance_kind")
-    if ik:
-        first = next(iter(ik.values()))
-        if "this" in first:  # residual-weighted per level (this stream), plain alpha*T per level, whole avatar
-            kinds = [k for k in ("this", "alpha", "whole") if k in first]
-            pts = ", ".join(
-                f"{b} %: "
-                + " / ".join(f"{d[k]['psnr']:.2f}" for k in kinds)
-                + " dB (coverage "
-                + " / ".join(f"{d[k]['coverage']:.3f}" for k in kinds)
-                + ")"
-                for b, d in ik.items()
-            )
-            lines.append(
-                "- ranking inside levels by importance measured on the levels up to each face's own, pixels "
-                "weighted by the error of the levels below (this stream) / the same, plain alpha*T / alpha*T on "
-                f"the whole avatar (the paper's): {pts}"
-            )
-        else:  # reports written before the residual weighting
-            pts = ", ".join(
-                f"{b} %: {d['per_level']['psnr']:.2f} / {d['whole']['psnr']:.2f} dB "
-                f"(coverage {d['per_level']['coverage']:.3f} / {d['whole']['coverage']:.3f})"
-                for b, d in ik.items()
-            )
-            lines.append(
-                "- ranking inside levels by importance measured on the levels up to each face's own (this stream) / "
-                f"on the whole avatar (the paper's): {pts}"
-            )
+    if ik and "this" in next(iter(ik.values())):  # (reports before 2026-11-24 keyed it otherwise: not shown)
+        kinds = [k for k in ("this", "alpha", "whole") if k in next(iter(ik.values()))]
+        pts = ", ".join(
+            f"{b} %: "
+            + " / ".join(f"{d[k]['psnr']:.2f}" for k in kinds)
+            + " dB (coverage "
+            + " / ".join(f"{d[k]['coverage']:.3f}" for k in kinds)
+            + ")"
+            for b, d in ik.items()
+        )
+        lines.append(
+            "- ranking inside levels by importance measured on the levels up to each face's own, pixels "
+            "weighted by the error of the levels below (this stream) / the same, plain alpha*T / alpha*T on "
+            f"the whole avatar (the paper's): {pts}"
+        )
     q = a["quantisation_100"]
     lines.append(
         f"- 100 %: quantised {q['quantised']['psnr']:.3f} dB ({q['bytes_quantised']:,} B) vs float32 "
