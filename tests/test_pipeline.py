@@ -121,6 +121,17 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
     assert fh["header_bytes"] < fh["head_bytes"] < fh["base_bytes"] < rep["stream_bytes"]
     assert set(rep["ablations"]["root_order"]["orders"]) == {"forest", "spatial", "importance", "both", "auto"}
     assert "psnr_non_decreasing" in rep["done_when"]
+    # The interleaved order, scored at the same counts: inside the coarse levels it is the stream's
+    # own prefix (both send them first, in the same order).
+    il = rep["ablations"]["interleaved_order"]
+    assert set(il) == {"1", "2", "3", "5", "10", "25", "50"}
+    n_coarse = int(np.sum(trained.forest.level < 2))
+    inside = [d for d in il.values() if d["gaussians"] <= n_coarse]
+    assert inside and all(
+        d["interleaved"]["psnr"] == pytest.approx(d["levels_first"]["psnr"], abs=1e-9) for d in inside
+    )
+    assert il["25"]["levels_first"]["psnr"] == rep["budgets"]["25"]["nvs"]["psnr"]
+    assert all(np.isfinite(d["interleaved"]["psnr"]) and 0 <= d["interleaved"]["coverage"] <= 1 for d in il.values())
     for png in (
         "psnr_vs_bytes.png",
         "strip_nvs.png",
@@ -131,7 +142,7 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
     ):
         assert (report_dir / png).stat().st_size > 1000, png
     md = (report_dir / "report.md").read_text()
-    assert "| 100 % |" in md and "First whole head" in md
+    assert "| 100 % |" in md and "First whole head" in md and "interleaved_order; not yet a stream" in md
     # The tiny dataset's own summary (make_synthetic) is named in the report.
     ds = rep["data_summary"]
     assert "\nThe tiny run against itself.\n" in md

@@ -28,7 +28,7 @@ from progressive_avatars.core.stream.format import (
     read_header,
     template_hash,
 )
-from progressive_avatars.core.stream.order import root_keys, stream_order
+from progressive_avatars.core.stream.order import interleaved_order, root_keys, stream_order
 from progressive_avatars.core.stream import reader as stream_reader
 from progressive_avatars.core.stream.reader import StreamReader, read_stream
 from progressive_avatars.core.stream.writer import encode_stream, write_stream
@@ -184,6 +184,54 @@ def test_stream_order_levels_then_importance():
         stream_order(f, np.full(f.num_faces, np.nan))
     with pytest.raises(ValueError, match="values"):
         stream_order(f, imp[:-1])
+
+
+def _greedy_reference(forest, imp):
+    """The definition, by a heap: coarse faces first (stream_order's), then always the most
+    important face whose parent has been sent, comparing the capped keys (ties: level, index)."""
+    import heapq
+
+    K = forest.num_coarse_levels
+    coarse = [int(i) for i in stream_order(forest, imp)[: int(np.sum(forest.level < K))]]
+    cap = {}
+    heap = []
+    for i in np.flatnonzero(forest.level == K):
+        cap[int(i)] = imp[i]
+        heap.append((-imp[i], K, int(i)))
+    heapq.heapify(heap)
+    out = []
+    while heap:
+        _, _, i = heapq.heappop(heap)
+        out.append(i)
+        for c in forest.children[i]:
+            if c >= 0:
+                cap[int(c)] = min(imp[c], cap[i])
+                heapq.heappush(heap, (-cap[int(c)], int(forest.level[c]), int(c)))
+    return np.array(coarse + out)
+
+
+@pytest.mark.parametrize("coarse", [False, True])
+def test_interleaved_order_is_the_greedy_order_under_parent_before_child(coarse):
+    _, av, imp = make_avatar(5, n_lat=6, n_lon=8, depth=3, frac=0.6, coarse=coarse)
+    f = av.forest
+    order = interleaved_order(f, imp)
+    N, K = f.num_faces, f.num_coarse_levels
+    assert np.array_equal(np.sort(order), np.arange(N))
+    pos = np.empty(N, np.int64)
+    pos[order] = np.arange(N)
+    kids = np.flatnonzero(f.parent >= 0)
+    assert np.all(pos[f.parent[kids]] < pos[kids])  # every prefix is a forest
+    n_coarse = int(np.sum(f.level < K))
+    assert np.all(f.level[order[:n_coarse]] < K) and np.all(np.diff(f.level[order[:n_coarse]]) >= 0)
+    np.testing.assert_array_equal(order, _greedy_reference(f, imp))
+    # Not the level order: some child outranks a root of the template level, and goes before it.
+    assert np.any(np.diff(f.level[order[n_coarse:]]) < 0)
+    # A child more important than its parent follows it at once (after such siblings only).
+    c = next(i for i in order if f.parent[i] >= 0 and f.level[f.parent[i]] == K and imp[i] > imp[f.parent[i]])
+    between = order[pos[f.parent[c]] + 1 : pos[c]]
+    assert np.all(f.parent[between] == f.parent[c]) and np.all(imp[between] > imp[f.parent[c]])
+    with pytest.raises(ValueError, match="NaN"):
+        interleaved_order(f, np.full(N, np.nan))
 
 
 # -- round trips --------------------------------------------------------------------------

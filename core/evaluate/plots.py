@@ -506,6 +506,18 @@ def report_markdown(r: dict) -> str:
             "weighted by the error of the levels below (this stream) / the same, plain alpha*T / alpha*T on "
             f"the whole avatar (the paper's): {pts}"
         )
+    il = a.get("interleaved_order")
+    if il:
+        pts = ", ".join(
+            f"{b} %: {d['levels_first']['psnr']:.2f} / {d['interleaved']['psnr']:.2f} dB (coverage "
+            f"{d['levels_first']['coverage']:.3f} / {d['interleaved']['coverage']:.3f})"
+            for b, d in il.items()
+        )
+        lines.append(
+            "- every root first, as the format sends them (this stream) / the coarse levels first, then any face "
+            "whose parent has arrived by descending importance, template faces included (core/stream/order.py "
+            f"interleaved_order; not yet a stream the format can carry): {pts}"
+        )
     q = a["quantisation_100"]
     lines.append(
         f"- 100 %: quantised {q['quantised']['psnr']:.3f} dB ({q['bytes_quantised']:,} B) vs float32 "

@@ -74,3 +74,31 @@ def stream_order(forest: Forest, importance=None, root_key=None) -> np.ndarray:
     key[:R] = 0.0 if root_key is None else np.asarray(root_key, np.float64)[:R]
     idx = np.arange(N)
     return np.lexsort((idx, key, forest.level)).astype(np.int64)
+
+
+def interleaved_order(forest: Forest, importance, root_key=None) -> np.ndarray:
+    """Permutation (new position -> face) that sends the coarse levels first (level by level, by
+    ascending `root_key`, as stream_order) and then every other face, template faces included,
+    by descending importance as soon as its parent has been sent: the greedy order under
+    "parent before child", i.e. descending ``min(importance, the parent's key)`` (ties: lower
+    level, then face index). The coarse levels keep every prefix a whole head, so unimportant
+    template faces can wait behind the important faces of the levels below them.
+
+    Not a stream order that the format can carry (docs/FORMAT.md: the roots come first); the
+    evaluation scores it to measure what such a format would gain (issue 16)."""
+    N = forest.num_faces
+    key = np.asarray(importance, np.float64).reshape(-1)
+    if len(key) != N:
+        raise ValueError(f"interleaved_order: importance has {len(key)} values for {N} faces")
+    if not np.all(np.isfinite(key)):
+        raise ValueError("interleaved_order: importance contains NaN or inf")
+    K = forest.num_coarse_levels
+    level = forest.level.astype(np.int64)
+    coarse = stream_order(forest, key, root_key)[: int(np.count_nonzero(level < K))]  # they lead it too
+    eff = key.copy()
+    for lv in range(K + 1, int(level.max(initial=K)) + 1):  # parents' keys are final before their children's
+        ids = np.flatnonzero(level == lv)
+        eff[ids] = np.minimum(key[ids], eff[forest.parent[ids]])
+    rest = np.flatnonzero(level >= K)
+    rest = rest[np.lexsort((rest, level[rest], -eff[rest]))]
+    return np.concatenate([coarse, rest]).astype(np.int64)
