@@ -55,20 +55,22 @@ def root_keys(forest: Forest, how: str = "forest", importance=None, vertices=Non
     return np.floor(np.log2(rank + 1.0)) + 0.999 * (1.0 - np.clip(imp / top, 0.0, 1.0))
 
 
+def _importance(importance, n: int, who: str) -> np.ndarray:
+    key = np.asarray(importance, np.float64).reshape(-1)
+    if len(key) != n:
+        raise ValueError(f"{who}: importance has {len(key)} values for {n} faces")
+    if not np.all(np.isfinite(key)):
+        raise ValueError(f"{who}: importance contains NaN or inf")
+    return key
+
+
 def stream_order(forest: Forest, importance=None, root_key=None) -> np.ndarray:
     """Permutation (new position -> old face): the roots level by level (coarse levels, then
     the template level), each by ascending `root_key` (default: the forest's order), then each
     further level by descending importance, ties by face index. Parents precede children
     since levels do."""
     N = forest.num_faces
-    if importance is None:
-        key = np.zeros(N)
-    else:
-        key = np.asarray(importance, np.float64).reshape(-1)
-        if len(key) != N:
-            raise ValueError(f"stream_order: importance has {len(key)} values for {N} faces")
-        if not np.all(np.isfinite(key)):
-            raise ValueError("stream_order: importance contains NaN or inf")
+    key = np.zeros(N) if importance is None else _importance(importance, N, "stream_order")
     R = forest.num_roots
     key = -key
     key[:R] = 0.0 if root_key is None else np.asarray(root_key, np.float64)[:R]
@@ -86,12 +88,7 @@ def interleaved_order(forest: Forest, importance, root_key=None) -> np.ndarray:
 
     Not a stream order that the format can carry (docs/FORMAT.md: the roots come first); the
     evaluation scores it to measure what such a format would gain (issue 16)."""
-    N = forest.num_faces
-    key = np.asarray(importance, np.float64).reshape(-1)
-    if len(key) != N:
-        raise ValueError(f"interleaved_order: importance has {len(key)} values for {N} faces")
-    if not np.all(np.isfinite(key)):
-        raise ValueError("interleaved_order: importance contains NaN or inf")
+    key = _importance(importance, forest.num_faces, "interleaved_order")
     K = forest.num_coarse_levels
     level = forest.level.astype(np.int64)
     coarse = stream_order(forest, key, root_key)[: int(np.count_nonzero(level < K))]  # they lead it too
