@@ -136,6 +136,7 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
         "psnr_vs_bytes.png",
         "strip_nvs.png",
         "strip_nes.png",
+        "strip_interleaved.png",
         "depth.png",
         "psnr_vs_time.png",
         "quality_vs_gaussians.png",

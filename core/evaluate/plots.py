@@ -76,6 +76,29 @@ def budget_strip(path, renderer, info, budgets, view_index=0):
     return _save(fig, path)
 
 
+def order_strip(path, renderer, info, budgets, orders: dict, view_index=0):
+    """One view at each budget, one row per stream order ({name: permutation, or None for the
+    stream's own}), the ground truth at the end of each row: where two orders differ, look."""
+    plt = _plt()
+    view = int(renderer.views[min(view_index, len(renderer.views) - 1)])
+    sample = renderer.dataset[view]
+    cols = len(budgets) + 1
+    h = sample.image.shape[0] / sample.image.shape[1]
+    fig, axes = plt.subplots(len(orders), cols, figsize=(2.0 * cols, (2.0 * h + 0.4) * len(orders)), squeeze=False)
+    for row, (name, order) in enumerate(orders.items()):
+        for col, b in enumerate(budgets):
+            n = int(info.count_for_percent(b))
+            ids = np.arange(n) if order is None else np.sort(order[:n])
+            image, _ = renderer.render(view, ids)
+            axes[row, col].imshow(np.clip(image, 0, 1), interpolation="nearest")
+            axes[row, col].set_title(f"{name}: {b:g}% ({n:,} G)", fontsize=7)
+        axes[row, -1].imshow(np.clip(sample.image, 0, 1), interpolation="nearest")
+        axes[row, -1].set_title("ground truth", fontsize=7)
+    for ax in axes.ravel():
+        ax.axis("off")
+    return _save(fig, path)
+
+
 def depth_colors(depth: np.ndarray, max_depth: int | None = None) -> np.ndarray:
     """RGB per depth, the same ramp as the Blender depth display (core.bridge.depth)."""
     from ..bridge.depth import depth_colors as rgba

@@ -527,6 +527,13 @@ def build_report(args: ReportOptions) -> dict:
     figs["psnr_vs_bytes"] = plots.psnr_vs_bytes(os.path.join(args.out, "psnr_vs_bytes.png"), curve, report["budgets"])
     for k, r in rend.items():
         figs[f"strip_{k}"] = plots.budget_strip(os.path.join(args.out, f"strip_{k}.png"), r, info, strips)
+    figs["strip_interleaved"] = plots.order_strip(
+        os.path.join(args.out, "strip_interleaved.png"),
+        rend["nvs"],
+        info,
+        (2, 5, 10),
+        {"every root first": None, "interleaved": inter},
+    )
     figs["depth"] = plots.depth_picture(os.path.join(args.out, "depth.png"), streamed, splits["nes"])
     logs = {"this run": os.path.join(args.run, "metrics.jsonl")}
     logs.update(
