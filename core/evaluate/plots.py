@@ -91,9 +91,12 @@ def order_strip(path, renderer, info, budgets, orders: dict, view_index=0):
             ids = np.arange(n) if order is None else np.sort(order[:n])
             image, _ = renderer.render(view, ids)
             axes[row, col].imshow(np.clip(image, 0, 1), interpolation="nearest")
-            axes[row, col].set_title(f"{name}: {b:g}% ({n:,} G)", fontsize=7)
+            axes[row, col].set_title(f"{b:g}% ({n:,} G)", fontsize=8)
         axes[row, -1].imshow(np.clip(sample.image, 0, 1), interpolation="nearest")
-        axes[row, -1].set_title("ground truth", fontsize=7)
+        axes[row, -1].set_title("ground truth", fontsize=8)
+        axes[row, 0].text(
+            -0.04, 0.5, name, rotation=90, fontsize=9, ha="right", va="center", transform=axes[row, 0].transAxes
+        )
     for ax in axes.ravel():
         ax.axis("off")
     return _save(fig, path)
