@@ -131,6 +131,17 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
         d["interleaved"]["psnr"] == pytest.approx(d["levels_first"]["psnr"], abs=1e-9) for d in inside
     )
     assert il["25"]["levels_first"]["psnr"] == rep["budgets"]["25"]["nvs"]["psnr"]
+    # On the trained forest (its base is most of this small stream): a permutation, coarse levels
+    # first, every parent before its children.
+    from progressive_avatars.core.stream.order import interleaved_order
+
+    f = trained.forest
+    inter = interleaved_order(f, np.random.default_rng(0).random(f.num_faces))
+    pos = np.empty(f.num_faces, np.int64)
+    pos[inter] = np.arange(f.num_faces)
+    kids = np.flatnonzero(f.parent >= 0)
+    assert np.array_equal(np.sort(inter), np.arange(f.num_faces)) and np.all(pos[f.parent[kids]] < pos[kids])
+    assert np.all(f.level[inter[:n_coarse]] < 2) and len(kids) > 0
     assert all(np.isfinite(d["interleaved"]["psnr"]) and 0 <= d["interleaved"]["coverage"] <= 1 for d in il.values())
     for png in (
         "psnr_vs_bytes.png",
