@@ -261,7 +261,8 @@ def current_gaussians(context, obj, world=True):
     if not runtime.refresh(obj, context.evaluated_depsgraph_get(), count):
         raise RuntimeError(obj.pa_avatar.status)
     ev = e.evaluator
-    points = e.point_of_rank[:count]  # the preview rows of ranks 0..count-1
+    faces = e.face_at[:count]  # the faces of stream positions 0..count-1
+    points = e.point_of_face[faces]
     means, quats, scales = ev.means[points], ev.quats[points], ev.scales[points]
     if world:
         means, quats, scales = transform_gaussians(np.array(obj.matrix_world), means, quats, scales)
@@ -272,8 +273,8 @@ def current_gaussians(context, obj, world=True):
         "means": np.array(means),
         "quats": np.array(quats),
         "scales": np.array(scales),
-        "opacities": sigmoid(av.opacity_logit[:count]).astype(np.float32),
-        "colors": sh_to_rgb(av.f_dc[:count]).astype(np.float32),
+        "opacities": sigmoid(av.opacity_logit[faces]).astype(np.float32),
+        "colors": sh_to_rgb(av.f_dc[faces]).astype(np.float32),
     }
 
 

@@ -30,8 +30,9 @@ class _Entry:
         self.path = path
         self.avatar, self.budget = loaded or load_avatar(path, template_faces)
         self.weights = self.avatar.forest.weights()
-        self.order = preview_order(self.avatar)  # stream rank of each preview point
-        self.point_of_rank = np.argsort(self.order)
+        self.order = preview_order(self.avatar)  # face of each preview point
+        self.point_of_face = np.argsort(self.order)
+        self.face_at = self.avatar.forest.stream_order()  # face of each stream position
         self.evaluator = None
         self.n_vertices = int(self.avatar.forest.template_faces.max()) + 1
         self.valid = 0  # preview points whose positions match the last evaluated frame

@@ -108,8 +108,13 @@ def main(argv=None):
         else:
             g = part.gaussians(ds.vertices_at(args.frame))
         if avatar.sh_degree:  # every band, from the trained avatar's faces of this prefix
-            g["sh_rest"] = avatar.f_rest[info.order[:n]]
-            g["colors"] = sh_to_rgb(avatar.f_dc[info.order[:n]])
+            # the prefix holds r roots, then the other faces: in the whole stream's decoded
+            # avatar (info.order's faces) those are faces 0..r-1 and R..R+(n-r)-1
+            k = np.arange(n)
+            r = 0 if part is None else part.forest.num_roots
+            mine = info.order[np.where(k < r, k, k - r + info.num_roots)]
+            g["sh_rest"] = avatar.f_rest[mine]
+            g["colors"] = sh_to_rgb(avatar.f_dc[mine])
         write_ply(args.ply, g)
         result.update(
             ply=args.ply,

@@ -123,3 +123,39 @@ def test_depth_per_face_of_a_prefix_marks_faces_not_arrived():
     ]
     with pytest.raises(ValueError, match="template faces"):
         depth_per_face(forest, F0 - 1)
+
+
+def test_preview_of_an_interleaved_stream_selects_by_stream_rank():
+    """A version 5 stream sends template faces after deeper ones: the preview's budget (points'
+    rank, the evaluator's rows, level reached, depth colours) follows the stream positions,
+    and agrees with the avatar a reader decodes from the same prefix."""
+    from progressive_avatars.core.bridge.splats import static_attributes
+    from progressive_avatars.core.stream.reader import read_stream
+    from progressive_avatars.core.stream.writer import encode_stream
+
+    rng = np.random.default_rng(5)
+    v, f = sphere_mesh(10, 14)
+    forest = random_forest(f, rng, depth=3, frac=0.5, coarse_from=v)
+    av = Avatar.initial(forest)
+    av.d_mu[:] = rng.normal(0, 0.3, (forest.num_faces, 3))
+    data = encode_stream(av, rng.random(forest.num_faces), quantize=False)
+    full = read_stream(data)
+    fo = full.forest
+    assert fo.root_rank[-1] > fo.num_roots  # interleaved: some deeper face precedes a template face
+    order = preview_order(full)
+    static = static_attributes(full, order)
+    np.testing.assert_array_equal(static["rank"], fo.stream_rank()[order])
+    budget = Budget.for_avatar(full, len(data))
+    F0 = len(fo.template_faces)
+    verts = v.astype(np.float32)
+    for n in (3, fo.roots_in_prefix(fo.num_roots) // 2, int(fo.root_rank[-1]), int(fo.root_rank[-1]) + 1, fo.num_faces):
+        part = read_stream(data, max_gaussians=n)
+        ids = fo.stream_ids(n)
+        ev = splat_evaluator(full, n, fo.weights(), order)
+        means = ev(verts)[0]
+        rows = np.flatnonzero(static["rank"] < n)
+        assert len(rows) == n
+        np.testing.assert_allclose(means[rows], full.gaussians(verts, ids=order[rows])["means"], atol=1e-6)
+        np.testing.assert_allclose(np.sort(means[rows], 0), np.sort(part.gaussians(verts)["means"], 0), atol=1e-6)
+        assert budget.level_reached(n) == part.forest.max_level == fo.level[ids].max()
+        np.testing.assert_array_equal(depth_per_face(fo, F0, n), part.forest.depth_per_root())

@@ -175,3 +175,34 @@ def test_coarse_roots_bind_like_template_faces_and_survive_reorder_prefix_and_sa
         np.testing.assert_array_equal(getattr(f3, k), getattr(f2, k))
     assert f3.coarse_counts == counts
     np.testing.assert_array_equal(f3.depth_per_root(), f.depth_per_root())
+
+
+def test_root_rank_interleaved_stream_positions(tmp_path):
+    """A forest read from a stream that sends template roots after deeper faces keeps every
+    root first and records where each root arrived: stream_rank/stream_order/stream_ids/prefix
+    follow it, an avatar file keeps it, and a root placed after its own child is refused."""
+    f = Forest(np.array([[0, 1, 2], [0, 2, 3], [0, 3, 4]]))
+    f.split([0])  # faces 3, 4, 5 under root 0
+    f.split([4])  # faces 6, 7, 8 under face 4
+    # stream: root 0, face 3, face 4, root 1, face 5, root 2, faces 6, 7, 8
+    g = Forest(f.template_faces, f.parent, f.slot, f.split_logits, root_rank=[0, 3, 5])
+    np.testing.assert_array_equal(g.stream_rank(), [0, 3, 5, 1, 2, 4, 6, 7, 8])
+    np.testing.assert_array_equal(g.stream_order(), [0, 3, 4, 1, 5, 2, 6, 7, 8])
+    assert [g.roots_in_prefix(n) for n in range(10)] == [0, 1, 1, 1, 2, 2, 3, 3, 3, 3]
+    np.testing.assert_array_equal(g.stream_ids(4), [0, 1, 3, 4])
+    p = g.prefix(4)  # roots 0, 1 and faces 3, 4 (root 0's children)
+    np.testing.assert_array_equal(p.parent, [-1, -1, 0, 0])
+    np.testing.assert_array_equal(p.root_rank, [0, 3])
+    np.testing.assert_array_equal(p.stream_rank(), [0, 3, 1, 2])
+    np.testing.assert_array_equal(g.prefix(9).parent, g.parent)
+    path = tmp_path / "f.npz"
+    g.save(path)
+    back = Forest.load(path)
+    np.testing.assert_array_equal(back.root_rank, [0, 3, 5])
+    assert int(np.load(path)["forest_version"]) == 3
+    f.save(tmp_path / "plain.npz")  # roots first: the file stays readable by older readers
+    assert int(np.load(tmp_path / "plain.npz")["forest_version"]) == 1
+    with pytest.raises(ValueError, match="root after one of its children"):
+        Forest(f.template_faces, f.parent, f.slot, f.split_logits, root_rank=[2, 3, 5])  # faces 3, 4 before root 0
+    with pytest.raises(ValueError, match="increasing"):
+        Forest(f.template_faces, f.parent, f.slot, f.split_logits, root_rank=[0, 5, 3])

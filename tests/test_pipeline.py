@@ -52,9 +52,17 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
     ply = PlyData.read(str(tmp_path / "f.ply"))
     assert ply["vertex"].count == trained.num_gaussians
     decoded = read_stream(str(tmp_path / "a.pavs"))
-    # Stream order: level by level, parents first; the same multiset of levels as trained.
-    assert np.all(np.diff(decoded.forest.level) >= 0)
-    assert np.array_equal(np.bincount(decoded.forest.level), trained.forest.level_counts())
+    # Stream order (version 5): the coarse levels, level by level, then any face after its parent
+    # (deeper faces before some template faces); the same multiset of levels as trained.
+    f5 = decoded.forest
+    in_stream = f5.level[f5.stream_order()]
+    n_coarse = int(np.sum(trained.forest.level < 2))
+    assert np.all(np.diff(in_stream[:n_coarse]) >= 0) and np.all(in_stream[n_coarse:] >= 2)
+    assert np.any(np.diff(in_stream[n_coarse:]) < 0) and f5.root_rank[-1] >= f5.num_roots
+    rank = f5.stream_rank()
+    kids = np.flatnonzero(f5.parent >= 0)
+    assert np.all(rank[f5.parent[kids]] < rank[kids])
+    assert np.array_equal(np.bincount(f5.level), trained.forest.level_counts())
     # Any budget exports: 0 % holds no whole Gaussian, so the PLY is empty but valid, with a note.
     out = subprocess.run(
         [
@@ -121,16 +129,15 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
     assert fh["header_bytes"] < fh["head_bytes"] < fh["base_bytes"] < rep["stream_bytes"]
     assert set(rep["ablations"]["root_order"]["orders"]) == {"forest", "spatial", "importance", "both", "auto"}
     assert "psnr_non_decreasing" in rep["done_when"]
-    # The interleaved order, scored at the same counts: inside the coarse levels it is the stream's
-    # own prefix (both send them first, in the same order).
+    # The stream's interleaved order against every root first (version 4's), at the same counts:
+    # inside the coarse levels they are the same prefix (both send them first, in the same order).
     il = rep["ablations"]["interleaved_order"]
-    assert set(il) == {"1", "2", "3", "5", "10", "25", "50"}
-    n_coarse = int(np.sum(trained.forest.level < 2))
+    assert set(il) == {"1", "2", "3", "5", "10", "25", "50"} and rep["stream_version"] == 5
     inside = [d for d in il.values() if d["gaussians"] <= n_coarse]
     assert inside and all(
         d["interleaved"]["psnr"] == pytest.approx(d["levels_first"]["psnr"], abs=1e-9) for d in inside
     )
-    assert il["25"]["levels_first"]["psnr"] == rep["budgets"]["25"]["nvs"]["psnr"]
+    assert il["25"]["interleaved"]["psnr"] == rep["budgets"]["25"]["nvs"]["psnr"]
     # On the trained forest (its base is most of this small stream): a permutation, coarse levels
     # first, every parent before its children.
     from progressive_avatars.core.stream.order import interleaved_order
@@ -154,7 +161,7 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
     ):
         assert (report_dir / png).stat().st_size > 1000, png
     md = (report_dir / "report.md").read_text()
-    assert "| 100 % |" in md and "First whole head" in md and "interleaved_order; not yet a stream" in md
+    assert "| 100 % |" in md and "First whole head" in md and "interleaved_order: version 5, this stream" in md
     # The tiny dataset's own summary (make_synthetic) is named in the report.
     ds = rep["data_summary"]
     assert "\nThe tiny run against itself.\n" in md

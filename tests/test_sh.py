@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from progressive_avatars.core.geometry import sh
-from progressive_avatars.core.avatar.avatar import Avatar
+from progressive_avatars.core.avatar.avatar import Avatar, sh_to_rgb
 from progressive_avatars.core.io.ply import read_ply, write_ply
 from progressive_avatars.core.stream.reader import read_stream
 from progressive_avatars.core.stream.writer import write_stream
@@ -155,3 +155,11 @@ def test_training_with_sh_bands(tiny_dataset, tmp_path):
 
     np.testing.assert_array_equal(rows(rest), rows(av.f_rest))
     np.testing.assert_array_equal(read_ply(tmp_path / "f.ply")["sh_rest"], rest)
+    # A prefix (version 5 interleaves the template faces with deeper ones): each PLY row's bands
+    # and colour are those of the face the stream's prefix holds there.
+    part_args = [*args[:4], "--ply", str(tmp_path / "p.ply"), *args[6:], "--budget", "40", "--drop-sh"]
+    res = run_script("export.py", *part_args)
+    part = read_stream(tmp_path / "s.pavs", percent=40)
+    assert res["ply_gaussians"] == part.num_gaussians < av.num_gaussians
+    got = read_ply(tmp_path / "p.ply")
+    np.testing.assert_allclose(got["colors"], sh_to_rgb(part.f_dc), atol=0.01)  # the stream quantises colour

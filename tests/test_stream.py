@@ -71,14 +71,20 @@ def fields(avatar):
 
 
 def assert_prefix(avatar, full, n):
-    """`avatar` holds exactly the first n records of `full` (None when n == 0)."""
+    """`avatar` holds exactly the first n records of `full` (None when n == 0): the faces of
+    its first n stream records, roots first, each where it arrived."""
     if n == 0:
         assert avatar is None
         return
     assert avatar is not None and avatar.num_gaussians == n
+    ids = full.forest.stream_ids(n)
     a, b = fields(avatar), fields(full)
+    b["parent"] = full.forest.prefix(n).parent
     for k in a:
-        np.testing.assert_array_equal(a[k], b[k][:n], err_msg=k)
+        want = b[k] if k == "parent" else b[k][ids]
+        np.testing.assert_array_equal(a[k], want, err_msg=k)
+    np.testing.assert_array_equal(avatar.forest.root_rank, full.forest.root_rank[: avatar.forest.num_roots])
+    np.testing.assert_array_equal(avatar.forest.stream_rank(), full.forest.stream_rank()[ids])
     p = avatar.forest.parent
     assert np.all(p[p >= 0] < np.flatnonzero(p >= 0))  # parents precede children
 
@@ -121,7 +127,7 @@ def test_header_layout_is_the_documented_one(small):
     assert E == read_header(data).num_exceptions == 0  # no outliers in this avatar
     assert (magic, version, flags, R, B, N, F0) == (
         MAGIC,
-        4,
+        5,
         FLAG_TEMPLATE,
         23,
         8,
@@ -149,9 +155,12 @@ def test_header_layout_is_the_documented_one(small):
     # the root records name their rows of [coarse table; template], each level its own rows
     roots = info.num_roots
     assert roots == f.num_roots == len(f.coarse_faces) + F0
-    refs = [
-        int.from_bytes(data[info.record_offset(i) + 12 : info.record_offset(i) + 15], "little") for i in range(roots)
-    ]
+    # (version 5: flagged by geo bit 62; the coarse levels lead, level by level, the template's
+    # roots come wherever the order puts them)
+    word = [int.from_bytes(data[info.record_offset(i) : info.record_offset(i) + 15], "little") for i in range(N)]
+    at = [i for i in range(N) if (word[i] >> 62) & 1]
+    assert len(at) == roots and at[: info.lead_records] == list(range(info.lead_records)) and at[-1] >= roots
+    refs = [word[i] >> 96 for i in at]
     assert sorted(refs) == list(range(roots))
     starts = np.concatenate([[0], np.cumsum(info.level_counts)])
     for lv in range(K + 1):
@@ -187,17 +196,19 @@ def test_stream_order_levels_then_importance():
 
 
 def _greedy_reference(forest, imp):
-    """The definition, by a heap: coarse faces first (stream_order's), then always the most
-    important face whose parent has been sent, comparing the capped keys (ties: level, index)."""
+    """The definition, by a heap: coarse faces first (stream_order's; without coarse levels the
+    template level), then always the most important face whose parent has been sent,
+    comparing the capped keys (ties: level, index)."""
     import heapq
 
-    K = forest.num_coarse_levels
-    coarse = [int(i) for i in stream_order(forest, imp)[: int(np.sum(forest.level < K))]]
+    lead = max(forest.num_coarse_levels, 1)
+    coarse = [int(i) for i in stream_order(forest, imp)[: int(np.sum(forest.level < lead))]]
     cap = {}
     heap = []
-    for i in np.flatnonzero(forest.level == K):
+    p = forest.parent
+    for i in np.flatnonzero((forest.level >= lead) & ((p < 0) | (forest.level[np.maximum(p, 0)] < lead))):
         cap[int(i)] = imp[i]
-        heap.append((-imp[i], K, int(i)))
+        heap.append((-imp[i], int(forest.level[i]), int(i)))
     heapq.heapify(heap)
     out = []
     while heap:
@@ -221,13 +232,14 @@ def test_interleaved_order_is_the_greedy_order_under_parent_before_child(coarse)
     pos[order] = np.arange(N)
     kids = np.flatnonzero(f.parent >= 0)
     assert np.all(pos[f.parent[kids]] < pos[kids])  # every prefix is a forest
-    n_coarse = int(np.sum(f.level < K))
-    assert np.all(f.level[order[:n_coarse]] < K) and np.all(np.diff(f.level[order[:n_coarse]]) >= 0)
+    lead = max(K, 1)  # the coarse levels, or the template level without them
+    n_coarse = int(np.sum(f.level < lead))
+    assert np.all(f.level[order[:n_coarse]] < lead) and np.all(np.diff(f.level[order[:n_coarse]]) >= 0)
     np.testing.assert_array_equal(order, _greedy_reference(f, imp))
-    # Not the level order: some child outranks a root of the template level, and goes before it.
+    # Not the level order: some face outranks one of a shallower level, and goes before it.
     assert np.any(np.diff(f.level[order[n_coarse:]]) < 0)
     # A child more important than its parent follows it at once (after such siblings only).
-    c = next(i for i in order if f.parent[i] >= 0 and f.level[f.parent[i]] == K and imp[i] > imp[f.parent[i]])
+    c = next(i for i in order if f.parent[i] >= 0 and f.level[f.parent[i]] == lead and imp[i] > imp[f.parent[i]])
     between = order[pos[f.parent[c]] + 1 : pos[c]]
     assert np.all(f.parent[between] == f.parent[c]) and np.all(imp[between] > imp[f.parent[c]])
     with pytest.raises(ValueError, match="NaN"):
@@ -334,7 +346,7 @@ def _slow_decode(rec: bytes, quant, version=2, root=None) -> dict:
     geo, rot = int.from_bytes(rec[0:8], "little"), int.from_bytes(rec[8:12], "little")
     parent = int.from_bytes(rec[12:15], "little")
     quant = np.asarray(quant, np.float64)
-    assert len(quant) == {1: 18, 2: 26, 3: 26, 4: 26}[version]
+    assert len(quant) == {1: 18, 2: 26, 3: 26, 4: 26, 5: 26}[version]
     q = quant[:18].reshape(3, 2, 3)
 
     def affine(code, lo32, step32):
@@ -359,6 +371,9 @@ def _slow_decode(rec: bytes, quant, version=2, root=None) -> dict:
     ]
     if version < 3:
         root = parent == 0xFFFFFF
+    if version >= 5:  # the root flag, geo bit 62
+        assert not root or (geo >> 62) & 1  # the lead's records are roots
+        root = bool((geo >> 62) & 1)
     return {
         "d_mu": mu,
         "split_logits": split,
@@ -372,7 +387,7 @@ def _slow_decode(rec: bytes, quant, version=2, root=None) -> dict:
 
 
 def test_decoded_records_match_an_independent_slow_decode():
-    _, av, imp = make_avatar(11, n_lat=5, n_lon=7)
+    _, av, imp = make_avatar(11, n_lat=5, n_lon=7, coarse=True)
     av.d_mu[3, 1] = 40.0  # outliers: the version 4 exceptions table is decoded as documented too
     av.f_dc[8] = (-30.0, 50.0, 2e3)
     data = encode_stream(av, imp, records_per_block=16)
@@ -382,26 +397,38 @@ def test_decoded_records_match_an_independent_slow_decode():
     for i in range(0, len(data), 97):
         r.feed(data[i : i + 97])
     chunked = r.avatar()
-    got = {**fields(out), **{n: getattr(out, n) for n in PARAMS}}
-    got_c = {**fields(chunked), **{n: getattr(chunked, n) for n in PARAMS}}
-    assert info.version == 4 and info.num_exceptions >= 3
-    _assert_slow_decode(data, info, (got, got_c))
+    assert info.version == 5 and info.num_exceptions >= 3
+    assert not np.array_equal(out.forest.root_rank, np.arange(out.forest.num_roots))  # roots interleaved
+    _assert_slow_decode(data, info, (out, chunked))
     # the previous versions, written by this writer, decode as the document says too
+    data4 = encode_stream(av, imp, records_per_block=16, version=4)
+    info4 = read_header(data4)
+    assert info4.version == 4 and info4.header_size == info.header_size
+    _assert_slow_decode(data4, info4, (read_stream(data4),))
     data3 = encode_stream(av, imp, records_per_block=16, version=3)
     info3 = read_header(data3)
     assert info3.version == 3 and info3.header_size == info.header_size - 4 - 9 * info.num_exceptions
-    out3 = read_stream(data3)
-    _assert_slow_decode(data3, info3, ({**fields(out3), **{n: getattr(out3, n) for n in PARAMS}},))
-    data2 = encode_stream(av, imp, records_per_block=16, version=2)
+    _assert_slow_decode(data3, info3, (read_stream(data3),))
+    _, av2, imp2 = make_avatar(11, n_lat=5, n_lon=7)  # version 2 has no coarse levels
+    data2 = encode_stream(av2, imp2, records_per_block=16, version=2)
     info2 = read_header(data2)
-    assert info2.version == 2 and info2.header_size == info3.header_size - 4
-    out2 = read_stream(data2)
-    _assert_slow_decode(data2, info2, ({**fields(out2), **{n: getattr(out2, n) for n in PARAMS}},))
+    assert info2.version == 2 and info2.header_size < info3.header_size
+    _assert_slow_decode(data2, info2, (read_stream(data2),))
 
 
-def _assert_slow_decode(data, info, decoded):
-    """Every record of `data` decodes in each of `decoded` bit for bit as _slow_decode says."""
-    nroots = info.num_roots if info.version >= 3 else info.num_template_faces
+def _in_stream_order(avatar) -> dict:
+    """The decoded avatar's fields record by record: face at each stream position, its parent
+    named by stream position (what a record stores)."""
+    order, rank = avatar.forest.stream_order(), avatar.forest.stream_rank()
+    d = {k: v[order] for k, v in {**fields(avatar), **{n: getattr(avatar, n) for n in PARAMS}}.items()}
+    d["parent"] = np.where(d["parent"] >= 0, rank[np.maximum(d["parent"], 0)], -1)
+    return d
+
+
+def _assert_slow_decode(data, info, avatars):
+    """Every record of `data` decodes in each of `avatars` bit for bit as _slow_decode says."""
+    decoded = [_in_stream_order(a) for a in avatars]
+    nroots = info.lead_records
     for i in range(info.num_records):
         o = info.record_offset(i)
         rec = data[o : o + 23]
@@ -437,8 +464,7 @@ def test_version_1_streams_still_read():
     r = StreamReader()
     for i in range(0, len(data), 101):
         r.feed(data[i : i + 101])
-    decoded = [{**fields(a), **{n: getattr(a, n) for n in PARAMS}} for a in (out, r.avatar())]
-    _assert_slow_decode(data, info, decoded)
+    _assert_slow_decode(data, info, (out, r.avatar()))
     bigs = {
         int.from_bytes(data[info.record_offset(i) + 8 : info.record_offset(i) + 12], "little") >> 30
         for i in range(info.num_records)
@@ -515,6 +541,7 @@ def test_trusted_forest_and_avatar_equal_the_validated_constructors():
             coarse_faces=f.coarse_faces,
             coarse_counts=f.coarse_counts,
             root_ref=f.root_ref,
+            root_rank=f.root_rank,
         )
         assert set(vars(a.forest)) == set(vars(ref_f))
         for k, v in vars(ref_f).items():
@@ -529,7 +556,10 @@ def test_trusted_forest_and_avatar_equal_the_validated_constructors():
             got, want = getattr(a, name), getattr(ref, name)
             assert got.dtype == want.dtype == np.float32 and got.shape == want.shape
             np.testing.assert_array_equal(got, want)
-    assert r.avatar(F0 - 1).forest.num_roots == F0 - 1
+    # version 5: the first F0 - 1 records hold the coarse levels and the template faces the
+    # order put among them, not every root
+    held = r.avatar().forest.roots_in_prefix(F0 - 1)
+    assert info.lead_records <= r.avatar(F0 - 1).forest.num_roots == held < F0 - 1
 
 
 def test_avatars_own_their_arrays():
@@ -688,7 +718,7 @@ def test_header_errors(small, tmp_path):
     bad[H - 10] ^= 1  # inside the metadata
     with pytest.raises(ValueError, match="header checksum"):
         read_stream(bytes(bad))
-    for v in (0, 5):
+    for v in (0, 6):
         bad = bytearray(data)
         bad[8:10] = struct.pack("<H", v)
         with pytest.raises(ValueError, match=f"version {v} is not supported"):
@@ -850,6 +880,14 @@ def test_written_stream_names_folders_not_their_local_paths(tmp_path):
     assert b"/home/someone" not in p.read_bytes() and str(tmp_path).encode() not in p.read_bytes()
 
 
+def _decoded_order(forest, imp):
+    """The writer's default order with importance and no rest pose (version 5: interleaved,
+    roots by importance), as a reader's faces: the roots in stream order, then the others."""
+    s = interleaved_order(forest, imp, root_keys(forest, "auto", imp))
+    root = forest.parent[s] < 0
+    return np.concatenate([s[root], s[~root]])
+
+
 # -- property test ------------------------------------------------------------------------
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
@@ -868,9 +906,8 @@ def test_property_random_forests(seed, depth, frac, quantize, block, cut, chunk)
     full = read_stream(data)
     assert full.num_gaussians == av.num_gaussians
     if not quantize:
+        order = _decoded_order(av.forest, imp)
         for n in PARAMS:
-            # The writer's default with importance and no rest pose: roots by importance too.
-            order = stream_order(av.forest, imp, root_keys(av.forest, "auto", imp))
             np.testing.assert_array_equal(getattr(full, n), getattr(av, n)[order])
     k = int(cut * len(data))
     n = info.count_for_bytes(k)
@@ -906,7 +943,7 @@ def test_coarse_stream_roundtrip_and_every_record_boundary_renders(quantize):
     data = encode_stream(av, imp, quantize=quantize, records_per_block=8)
     info = read_header(data)
     full = read_stream(data)
-    o = stream_order(av.forest, imp, root_keys(av.forest, "auto", imp))  # the writer's default
+    o = _decoded_order(av.forest, imp)  # the writer's default
     ref = av.forest.reorder(o)
     np.testing.assert_array_equal(full.forest.root_faces, ref.root_faces)
     np.testing.assert_array_equal(full.forest.level, ref.level)
@@ -955,6 +992,57 @@ def test_root_references_are_checked():
         read_stream(bytes(bad[: info.record_offset(t + 1)]))
 
 
+def test_version5_structure_is_checked(tmp_path):
+    """Version 5 rules (FORMAT.md 3): the lead (coarse levels) holds flagged roots only; later
+    roots are template rows, slot 0; a non-root's parent is no coarse face, its level exists
+    and its level's count is not exceeded; geo bit 63 stays 0. Each break is named."""
+    _, av, imp = make_avatar(24, n_lat=6, n_lon=8, depth=3, frac=0.6, coarse=True)
+    data = encode_stream(av, imp, records_per_block=4096)  # one block: CRC-8s only, so structure speaks
+    info = read_header(data)
+    full = read_stream(data)
+    f = full.forest
+    rank, at = f.stream_rank(), f.stream_order()
+    K, lead, R = info.num_coarse_levels, info.lead_records, info.record_size
+    late_root = int(next(rank[i] for i in range(f.num_roots) if rank[i] >= lead))
+    kid = int(next(p for p in range(lead, f.num_faces) if f.parent[at[p]] >= 0 and f.level[at[p]] == K + 1))
+    deepest = int(rank[np.flatnonzero(f.level == f.max_level)[0]])
+    after = int(next(p for p in range(deepest + 1, f.num_faces) if f.parent[at[p]] >= 0))
+    leaf_root = int(rank[next(i for i in range(f.num_roots) if f.level[i] == K and f.is_leaf()[i])])
+    last = int(next(p for p in range(f.num_faces - 1, 0, -1) if f.level[at[p]] != K + 1))
+
+    def refused(i, edit, match="is structurally invalid"):
+        bad = bytearray(data)
+        _set_record(bad, info, i, edit)
+        with pytest.raises(ValueError, match=f"record {i} {match}"):
+            read_stream(bytes(bad[: info.record_offset(i) + R]))
+        return bad
+
+    def set_bits(mask, value):
+        def edit(rec):
+            rec[7] = (rec[7] & ~mask) | value
+
+        return edit
+
+    def parent(p, slot=0):
+        def edit(rec):
+            rec[12:15] = int(p).to_bytes(3, "little")
+            rec[7] = (rec[7] & 0x0F) | (slot << 4)
+
+        return edit
+
+    refused(3, set_bits(0x40, 0))  # a lead record without the root flag
+    refused(late_root, set_bits(0x30, 0x10))  # a root with slot 1
+    refused(late_root, lambda rec: rec.__setitem__(slice(12, 15), (0).to_bytes(3, "little")))  # a coarse row late
+    refused(kid, set_bits(0x80, 0x80))  # reserved bit 63
+    refused(kid, parent(lead - 1))  # a coarse face's child (it would count as a template face)
+    refused(after, parent(deepest))  # below the deepest level
+    assert f.level[at[last]] != K + 1 and last > leaf_root
+    refused(last, parent(leaf_root))  # one record more of level K + 1 than the header counts
+    # the untouched stream reads, every cut of it too (spot checks), into the same forest
+    for n in (lead - 1, lead, late_root, late_root + 1, kid + 1, f.num_faces):
+        assert_prefix(read_stream(data[: info.record_offset(n - 1) + R]), full, n)
+
+
 def test_swapped_records_are_caught_by_the_indexed_crc8():
     """Version 3 seeds each record's CRC-8 with its index: two whole records swapped inside an
     incomplete block (where no block CRC-32 can tell yet) fail."""
@@ -986,11 +1074,14 @@ def test_log_scale_ranges_are_clamped_and_refused():
         read_stream(bytes(data))
 
 
-def test_cut_inside_every_level_with_trained_level_sizes():
+@pytest.mark.parametrize("version", [4, 5])
+def test_cut_inside_every_level_with_trained_level_sizes(version):
     """A forest with the level proportions of the trained default avatar (runs/default_coarse,
     docs/report_prefix: coarse levels 156 / 636, template 5,120, then 7,653 / 3,387 / 3,021
-    deeper faces; here on a 1,216-face sphere): a cut inside every level, and at every level
-    end, reads, binds and keeps whole levels whole."""
+    deeper faces; here on a 1,216-face sphere): version 4, a cut inside every level, and at
+    every level end, reads, binds and keeps whole levels whole; version 5 (levels interleaved
+    after the coarse ones), cuts at the coarse level ends and every 5 % of the records read,
+    bind, and hold exactly the faces of their records."""
     rng = np.random.default_rng(25)
     verts, faces = sphere_mesh(20, 32)  # 1,216 faces ~ the template scaled down
     from progressive_avatars.core.avatar import coarse
@@ -1016,10 +1107,28 @@ def test_cut_inside_every_level_with_trained_level_sizes():
         rng.normal(0, 1, N),
         rng.normal(0, 1, (N, 3)),
     )
-    data = encode_stream(av, rng.random(N), vertices=verts)
+    data = encode_stream(av, rng.random(N), vertices=verts, version=version)
     info = read_header(data)
     ends = info.level_ends()
     starts = np.concatenate([[0], ends[:-1]])
+    if version == 5:
+        full = read_stream(data)
+        C = int(ends[1])
+        cuts = sorted({1, int(ends[0]) - 1, int(ends[0]), C - 1, C, C + 1, *np.linspace(C + 2, N, 20).astype(int)})
+        for n in cuts:
+            out = read_stream(data, max_bytes=info.bytes_for_count(n))
+            assert out.num_gaussians == n
+            g = out.gaussians(verts)
+            assert all(np.all(np.isfinite(v)) for v in g.values())
+            ids = full.forest.stream_ids(n)
+            np.testing.assert_array_equal(out.forest.level, full.forest.level[ids])
+            np.testing.assert_array_equal(out.forest.root_faces, full.forest.root_faces[: out.forest.num_roots])
+            np.testing.assert_allclose(g["means"], full.gaussians(verts, ids=ids)["means"], atol=1e-6)
+            d = out.forest.depth_per_root()
+            assert np.count_nonzero(d >= 0) == out.forest.num_roots - min(n, C)
+        # interleaved: deeper faces arrive before the last template faces
+        assert full.forest.root_rank[-1] > full.forest.num_roots + 100
+        return
     cuts = sorted({int(x) for a, b in zip(starts, ends) for x in (a + 1, (a + b) // 2, b - 1, b)})
     for n in cuts:
         out = read_stream(data, max_bytes=info.bytes_for_count(n))

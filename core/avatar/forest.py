@@ -17,7 +17,7 @@ import numpy as np
 
 from ..io.atomic import atomic_savez
 
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3  # 3: root_rank (a stream that interleaves roots with other faces)
 
 
 def softmax(logits: np.ndarray) -> np.ndarray:
@@ -65,6 +65,7 @@ class Forest:
         coarse_faces=None,
         coarse_counts=(),
         root_ref=None,
+        root_rank=None,
     ):
         faces = np.ascontiguousarray(template_faces, dtype=np.int32)
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
@@ -96,6 +97,7 @@ class Forest:
             split_logits = np.zeros((N, 3), np.float32)
         self.split_logits = np.asarray(split_logits, np.float32).reshape(N, 3).copy()
         self._derive()
+        self.root_rank = self._check_root_rank(root_rank)
 
     # -- structure ------------------------------------------------------------------------
     @property
@@ -171,6 +173,55 @@ class Forest:
     def num_roots(self) -> int:
         """Parentless faces (coarse and template roots): faces 0..num_roots-1."""
         return len(self.root_ref)
+
+    def _check_root_rank(self, root_rank) -> np.ndarray:
+        R, N = self.num_roots, self.num_faces
+        if root_rank is None:
+            return np.arange(R, dtype=np.int64)
+        rank = np.asarray(root_rank, np.int64).copy()
+        if rank.shape != (R,) or (R and (rank[0] < 0 or rank[-1] >= N or np.any(np.diff(rank) <= 0))):
+            raise ValueError(f"Forest: root_rank must be {R} increasing stream positions in [0, {N})")
+        if R < N and not np.array_equal(rank, np.arange(R)):
+            p = self.parent[R:]
+            own = self._ranks(rank)
+            if np.any(own[p] >= own[R:]):
+                raise ValueError("Forest: root_rank puts a root after one of its children")
+        return rank
+
+    def stream_rank(self) -> np.ndarray:
+        """[N] stream position of each face: roots at ``root_rank``, the other faces at the
+        remaining positions in face order."""
+        return self._ranks(self.root_rank)
+
+    def _ranks(self, rr) -> np.ndarray:
+        R, N = self.num_roots, self.num_faces
+        rank = np.empty(N, np.int64)
+        if len(rr) == 0 or rr[-1] == R - 1:  # roots first
+            rank[:] = np.arange(N)
+            return rank
+        rank[:R] = rr
+        free = np.ones(N, bool)
+        free[rr] = False
+        rank[R:] = np.flatnonzero(free)
+        return rank
+
+    def stream_order(self) -> np.ndarray:
+        """[N] face at each stream position (the inverse of ``stream_rank``)."""
+        out = np.empty(self.num_faces, np.int64)
+        out[self.stream_rank()] = np.arange(self.num_faces)
+        return out
+
+    def roots_in_prefix(self, n: int) -> int:
+        """Roots among the first n stream records."""
+        return int(np.searchsorted(self.root_rank, int(n)))
+
+    def stream_ids(self, n: int) -> np.ndarray:
+        """Faces of the first n stream records, ascending (0..n-1 when the roots come first)."""
+        n = int(min(max(int(n), 0), self.num_faces))
+        r = self.roots_in_prefix(n)
+        if r == min(n, self.num_roots):
+            return np.arange(n, dtype=np.int64)
+        return np.concatenate([np.arange(r), self.num_roots + np.arange(n - r)]).astype(np.int64)
 
     @property
     def depth(self) -> np.ndarray:
@@ -259,7 +310,8 @@ class Forest:
         return np.flatnonzero((self.level == level) | ((self.level < level) & self.is_leaf()))
 
     def reorder(self, order) -> "Forest":
-        """A copy with faces permuted by `order` (new face i = old face order[i]).
+        """A copy with faces permuted by `order` (new face i = old face order[i]), in its own
+        stream order (roots first).
 
         The order must keep the roots first (in any order among themselves) and parents
         before children.
@@ -276,7 +328,7 @@ class Forest:
         parent = np.where(parent >= 0, inverse[np.maximum(parent, 0)], -1)
         return self._like(parent, self.slot[order], self.split_logits[order], self.root_ref[order[:R]])
 
-    def _like(self, parent, slot, split_logits, root_ref) -> "Forest":
+    def _like(self, parent, slot, split_logits, root_ref, root_rank=None) -> "Forest":
         return Forest(
             self.template_faces,
             parent,
@@ -285,17 +337,21 @@ class Forest:
             coarse_faces=self.coarse_faces,
             coarse_counts=self.coarse_counts,
             root_ref=root_ref,
+            root_rank=root_rank,
         )
 
     def prefix(self, n: int) -> "Forest":
-        """The first n faces (any n >= 1: parents precede children; a prefix shorter than the
-        roots holds some roots only)."""
+        """The faces of the first n stream records (any n >= 1: parents precede children; a
+        prefix may hold some roots only), roots first."""
         n = int(n)
         if not 1 <= n <= self.num_faces:
             raise ValueError(f"Forest.prefix: n must be in [1, {self.num_faces}], got {n}")
-        return self._like(
-            self.parent[:n], self.slot[:n], self.split_logits[:n], self.root_ref[: min(n, self.num_roots)]
-        )
+        ids = self.stream_ids(n)
+        R, r = self.num_roots, self.roots_in_prefix(n)
+        parent = self.parent[ids]
+        if r < R:  # the other faces move up behind the r roots received
+            parent = np.where(parent >= R, parent - (R - r), parent)
+        return self._like(parent, self.slot[ids], self.split_logits[ids], self.root_ref[:r], self.root_rank[:r])
 
     # -- geometry -------------------------------------------------------------------------
     def barycentrics(self, logits=None) -> np.ndarray:
@@ -322,11 +378,18 @@ class Forest:
 
     # -- persistence ----------------------------------------------------------------------
     def state(self, prefix: str = "forest_") -> dict:
-        return {
-            # version 2 adds the coarse table and root_ref; plain forests stay readable by version 1 readers
-            prefix + "version": np.array(
-                2 if self.num_coarse or not np.array_equal(self.root_ref, np.arange(len(self.root_ref))) else 1
-            ),
+        # version 2 adds the coarse table and root_ref, version 3 root_rank; each file says the
+        # lowest version that reads it, so plain forests stay readable by version 1 readers
+        interleaved = not np.array_equal(self.root_rank, np.arange(self.num_roots))
+        version = (
+            3
+            if interleaved
+            else 2
+            if self.num_coarse or not np.array_equal(self.root_ref, np.arange(len(self.root_ref)))
+            else 1
+        )
+        out = {
+            prefix + "version": np.array(version),
             prefix + "template_faces": self.template_faces,
             prefix + "parent": self.parent,
             prefix + "slot": self.slot,
@@ -335,6 +398,9 @@ class Forest:
             prefix + "coarse_counts": np.asarray(self.coarse_counts, np.int64),
             prefix + "root_ref": self.root_ref,
         }
+        if interleaved:
+            out[prefix + "root_rank"] = self.root_rank
+        return out
 
     @classmethod
     def from_verified(
@@ -350,6 +416,7 @@ class Forest:
         coarse_faces=None,
         coarse_counts=(),
         root_ref=None,
+        root_rank=None,
     ) -> "Forest":
         """A Forest from arrays already checked against every rule ``_derive`` enforces (roots
         first, parents precede children in the previous level, slots 0..2 and unique), with
@@ -366,6 +433,7 @@ class Forest:
         f.root_ref = np.arange(n_roots, dtype=np.int64) if root_ref is None else root_ref
         f.parent, f.slot, f.split_logits = parent, slot, split_logits
         f.children, f.level, f.root = children, level, root
+        f.root_rank = np.arange(n_roots, dtype=np.int64) if root_rank is None else root_rank
         return f
 
     @classmethod
@@ -384,6 +452,8 @@ class Forest:
                     coarse_counts=tuple(data[prefix + "coarse_counts"].tolist()),
                     root_ref=data[prefix + "root_ref"],
                 )
+                if prefix + "root_rank" in data:
+                    extra["root_rank"] = data[prefix + "root_rank"]
             return cls(
                 data[prefix + "template_faces"],
                 data[prefix + "parent"],

@@ -32,9 +32,18 @@ class Budget:
     """
 
     total: int
-    levels: np.ndarray  # int8 [N], stream order
+    levels: np.ndarray  # int8 [N], stream order (Budget.for_avatar)
     file_bytes: int
     info: object | None = None
+
+    def __post_init__(self):
+        # deepest level among the first k records (a version 5 stream interleaves the levels)
+        self._reached = np.maximum.accumulate(np.asarray(self.levels)) if len(self.levels) else self.levels
+
+    @classmethod
+    def for_avatar(cls, avatar: Avatar, file_bytes: int, info=None) -> "Budget":
+        f = avatar.forest
+        return cls(avatar.num_gaussians, f.level[f.stream_order()], file_bytes, info)
 
     def count_for_percent(self, percent: float) -> int:
         p = float(min(max(percent, 0.0), 100.0))
@@ -50,7 +59,7 @@ class Budget:
         return int(round(self.file_bytes * count / max(self.total, 1)))
 
     def level_reached(self, count: int) -> int:
-        return int(self.levels[count - 1]) if count > 0 else -1
+        return int(self._reached[min(count, self.total) - 1]) if count > 0 else -1
 
     def max_level(self) -> int:
         """Deepest level of the whole avatar: a stream's header knows it even when the
@@ -70,9 +79,9 @@ class Budget:
 
 
 def load_avatar(path, template_faces=None) -> tuple[Avatar, Budget]:
-    """An avatar in stream order from a stream file (.pavs, recognised by its magic) or an
-    avatar .npz, and its budget. Avatar .npz files are taken to be in stream order already
-    (a face's rank is its index). A stream cut anywhere (even inside the template level)
+    """An avatar from a stream file (.pavs, recognised by its magic) or an avatar .npz, and its
+    budget. A face's stream position is ``avatar.forest.stream_rank()`` (its index unless the
+    stream interleaved roots with deeper faces); .npz files keep what the forest recorded. A stream cut anywhere (even inside the template level)
     gives the Gaussians it holds whole; ``template_faces`` (the mesh's) stand in for a
     template the stream does not embed."""
     path = os.fspath(path)
@@ -113,7 +122,7 @@ def load_avatar(path, template_faces=None) -> tuple[Avatar, Budget]:
             f"{path}: not a ProgressiveAvatars stream or avatar .npz (the file starts with "
             f"{bytes(head[:8])!r}; streams start with {stream.MAGIC if stream else 'their magic'!r})"
         )
-    budget = Budget(avatar.num_gaussians, avatar.forest.level.copy(), os.path.getsize(path), info)
+    budget = Budget.for_avatar(avatar, os.path.getsize(path), info)
     return avatar, budget
 
 

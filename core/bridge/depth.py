@@ -60,19 +60,20 @@ def depth_legend(depth_per_face: np.ndarray, max_depth: int | None = None) -> li
 
 
 def depth_per_face(forest, num_template_faces: int, count: int | None = None) -> np.ndarray:
-    """Deepest level among the first ``count`` Gaussians (all if None) under each of the
+    """Deepest level among the Gaussians of the first ``count`` stream records (all if None) under each of the
     mesh's ``num_template_faces`` faces, int32; NOT_ARRIVED where none of them lies under
     the face (a stream cut inside the template level, or a budget below it)."""
     n = forest.num_faces if count is None else int(min(max(count, 0), forest.num_faces))
+    ids = forest.stream_ids(n) if hasattr(forest, "stream_ids") else np.arange(n)
     depth = np.full(int(num_template_faces), NOT_ARRIVED, np.int32)
     # A face's root is a row of the root table: coarse triangles first (they sit above the
     # template and cover no single template face), then template faces in any order.
     coarse = int(getattr(forest, "num_coarse", 0))
     ref = getattr(forest, "root_ref", None)
-    root = forest.root[:n] if ref is None else np.asarray(ref)[forest.root[:n]] - coarse
+    root = forest.root[ids] if ref is None else np.asarray(ref)[forest.root[ids]] - coarse
     keep = root >= 0
     if keep.any() and int(root[keep].max()) >= len(depth):
         raise ValueError(f"the avatar has {len(forest.template_faces)} template faces, the mesh {len(depth)}")
-    below = forest.level[:n].astype(np.int32) - int(getattr(forest, "num_coarse_levels", 0))
+    below = forest.level[ids].astype(np.int32) - int(getattr(forest, "num_coarse_levels", 0))
     np.maximum.at(depth, root[keep], below[keep])
     return depth

@@ -18,9 +18,10 @@ def srgb_to_linear(c: np.ndarray) -> np.ndarray:
 
 
 def preview_order(avatar: Avatar) -> np.ndarray:
-    """The stream rank of each preview point, point by point: Gaussians grouped by root face,
-    the layout the per-frame evaluator fills without scattering (2.6x faster per frame than
-    stream order at 170k Gaussians). The budget still selects by rank, so order is free."""
+    """The face of each preview point, point by point: Gaussians grouped by root face, the
+    layout the per-frame evaluator fills without scattering (2.6x faster per frame than
+    stream order at 170k Gaussians). The budget still selects by stream rank (the points'
+    "rank" attribute), so the layout is free."""
     return binding.root_grouped(avatar.forest)
 
 
@@ -29,26 +30,27 @@ def static_attributes(avatar: Avatar, order=None) -> dict:
     colour (linear, as Blender's colour attributes are), level and rank (stream position),
     for the Gaussians ``order`` (default: all, in stream order)."""
     sel = np.arange(avatar.num_gaussians) if order is None else np.asarray(order, np.int64)
+    rank = avatar.forest.stream_rank()
     rgba = np.ones((len(sel), 4), np.float32)
     rgba[:, :3] = srgb_to_linear(sh_to_rgb(avatar.f_dc[sel]))
     return {
         "opacity": np.ascontiguousarray(sigmoid(avatar.opacity_logit[sel]), np.float32),
         "color": rgba.ravel(),
         "level": avatar.forest.level[sel].astype(np.int32),
-        "rank": sel.astype(np.int32),
+        "rank": rank[sel].astype(np.int32),
     }
 
 
 def splat_evaluator(avatar: Avatar, count: int | None = None, weights=None, order=None) -> binding.GaussianEvaluator:
-    """Per-frame world Gaussians of the first ``count`` faces (stream order), written at their
-    points' rows of the layout ``order`` (default: stream order). Outputs are sized for the
+    """Per-frame world Gaussians of the faces of the first ``count`` stream records, written at
+    their points' rows of the layout ``order`` (faces; default: face order). Outputs are sized for the
     whole avatar so the frame handler can foreach_set full attributes without copies."""
     total = avatar.num_gaussians
     n = total if count is None else int(min(max(count, 0), total))
     order = np.arange(total) if order is None else np.asarray(order, np.int64)
     rows = None
     if n < total:
-        rows = np.flatnonzero(order < n)
+        rows = np.flatnonzero(avatar.forest.stream_rank()[order] < n)
         order = order[rows]
     # weights: forest.weights() computed once by the caller; evaluators are rebuilt when the
     # budget changes and the forest walk is the costly part of building one.

@@ -61,7 +61,7 @@ def budget_strip(path, renderer, info, budgets, view_index=0):
     panels, titles = [], []
     for b in budgets:
         n = int(info.count_for_percent(b))
-        image, _ = renderer.render(view, np.arange(n))
+        image, _ = renderer.render(view, renderer.first(n))
         panels.append(image)
         titles.append(f"{b:g}% ({n:,} G)")
     panels.append(sample.image)
@@ -88,7 +88,7 @@ def order_strip(path, renderer, info, budgets, orders: dict, view_index=0):
     for row, (name, order) in enumerate(orders.items()):
         for col, b in enumerate(budgets):
             n = int(info.count_for_percent(b))
-            ids = np.arange(n) if order is None else np.sort(order[:n])
+            ids = renderer.first(n) if order is None else np.sort(order[:n])
             image, _ = renderer.render(view, ids)
             axes[row, col].imshow(np.clip(image, 0, 1), interpolation="nearest")
             axes[row, col].set_title(f"{b:g}% ({n:,} G)", fontsize=8)
@@ -540,9 +540,9 @@ def report_markdown(r: dict) -> str:
             for b, d in il.items()
         )
         lines.append(
-            "- every root first, as the format sends them (this stream) / the coarse levels first, then any face "
+            "- every root first, level by level (stream version 4's order) / the coarse levels first, then any face "
             "whose parent has arrived by descending importance, template faces included (core/stream/order.py "
-            f"interleaved_order; not yet a stream the format can carry): {pts}"
+            f"interleaved_order: version 5, {'this stream' if r.get('stream_version', 4) >= 5 else 'not this stream'}): {pts}"
         )
     q = a["quantisation_100"]
     lines.append(
@@ -709,7 +709,7 @@ def full_resolution_strip(path, renderer, info, budgets, view_index=0):
     panels, labels = [], []
     for b in budgets:
         n = int(info.count_for_percent(b))
-        image, _ = renderer.render(view, np.arange(n))
+        image, _ = renderer.render(view, renderer.first(n))
         panels.append(image)
         labels.append(f"{b:g}%" + (f" ({n:,} Gaussians)" if renderer.dataset[view].image.shape[1] >= 160 else ""))
     panels.append(sample.image)

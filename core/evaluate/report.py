@@ -22,7 +22,7 @@ import numpy as np
 
 from ..io import run as runs
 from ..io.dataset import Dataset
-from ..stream.order import ROOT_ORDERS, interleaved_order, root_keys, stream_order
+from ..stream.order import ROOT_ORDERS, root_keys, stream_order
 from ..stream.reader import read_stream
 from ..stream.writer import write_stream
 from . import plots
@@ -66,13 +66,16 @@ def _shown(path: str) -> str:
 
 
 def _levels_prefixes(avatar):
-    """Cumulative level sets as stream prefixes: level l shows faces of level <= l."""
+    """Cumulative level sets: level l shows the faces of level <= l (how many)."""
     level = avatar.forest.level
     return {int(lvl): int(np.count_nonzero(level <= lvl)) for lvl in range(int(level.max()) + 1)}
 
 
-def _score_prefixes(renderer, counts):
-    return {k: renderer.score(np.arange(n)) for k, n in counts.items()}
+def _score_levels(renderer):
+    """Scores of each cumulative level set of the renderer's avatar (a stream prefix when the
+    stream goes level by level; a set of faces spread over a version 5 stream)."""
+    level = renderer.avatar.forest.level
+    return {int(lvl): renderer.score(np.flatnonzero(level <= lvl)) for lvl in range(int(level.max()) + 1)}
 
 
 RATES_MBIT = (1, 10, 100)
@@ -140,7 +143,7 @@ def _own_stream_scores(run0, data, rest, info, nvs_split, views, scratch, progre
     scores = {}
     for b in budgets:
         n0 = int(info0.count_for_percent(b))
-        scores[f"{b:g}"] = {"gaussians": n0, **r0.score(np.arange(n0))}
+        scores[f"{b:g}"] = {"gaussians": n0, **r0.score(r0.first(n0))}
     return info0, scores
 
 
@@ -161,7 +164,7 @@ def coarse_ablation(run0, data, rest, nvs_renderer, info, nvs_split, views, scra
     for b in (2, 5, 100):
         n1 = int(info.count_for_percent(b))
         out["budgets"][str(b)] = {
-            "with": {"gaussians": n1, **nvs_renderer.score(np.arange(n1))},
+            "with": {"gaussians": n1, **nvs_renderer.score(nvs_renderer.first(n1))},
             "without": scores[str(b)],
         }
     return out
@@ -191,8 +194,8 @@ def importance_kind_ablation(avatar, others, rest, budgets, info, nvs_split, nvs
     out = {}
     for b in (1, 2, 3, 5, 10, 25):
         n = int(info.count_for_percent(b))  # the same records, so the same count in every stream
-        ours = budgets.get(f"{b:g}", {}).get("nvs") or nvs_renderer.score(np.arange(n))
-        out[str(b)] = {"gaussians": n, "this": ours, **{k: r.score(np.arange(n)) for k, r in renderers.items()}}
+        ours = budgets.get(f"{b:g}", {}).get("nvs") or nvs_renderer.score(nvs_renderer.first(n))
+        out[str(b)] = {"gaussians": n, "this": ours, **{k: r.score(r.first(n)) for k, r in renderers.items()}}
     return out
 
 
@@ -245,9 +248,9 @@ def _paper_extras(args, report, streamed, info, rend, splits, data, progress):
         n_ours, n_other = int(info.count_for_percent(35)), int(oinfo.count_for_percent(35))
         report["ablations"]["finest_only_35"] = {
             "run": _shown(args.finest_only),
-            "multi_level": {**nvs.score(np.arange(n_ours)), "gaussians": n_ours},
+            "multi_level": {**nvs.score(nvs.first(n_ours)), "gaussians": n_ours},
             "finest_only": {
-                **SplitRenderer(other, splits["nvs"], args.views).score(np.arange(n_other)),
+                **(lambda r: r.score(r.first(n_other)))(SplitRenderer(other, splits["nvs"], args.views)),
                 "gaussians": n_other,
             },
         }
@@ -265,13 +268,13 @@ def _paper_extras(args, report, streamed, info, rend, splits, data, progress):
             r = SplitRenderer(av, splits["nvs"], curve_views)
             counts = np.unique(np.geomspace(int(av.forest.level_counts()[0]), av.num_gaussians, 6).astype(int))
             curves.setdefault(group, {})[seed] = [
-                {"gaussians": int(n), "psnr": r.score(np.arange(n))["psnr"]} for n in counts
+                {"gaussians": int(n), "psnr": r.score(r.first(n))["psnr"]} for n in counts
             ]
     for seed in sorted(set(adaptive) & set(uniform)):
         (a_av, _), (u_av, _) = streams[("adaptive", seed)], streams[("uniform", seed)]
         n = min(a_av.num_gaussians, u_av.num_gaussians)
-        a = SplitRenderer(a_av, splits["nvs"], args.views).score(np.arange(n))
-        u = SplitRenderer(u_av, splits["nvs"], args.views).score(np.arange(n))
+        a_r, u_r = SplitRenderer(a_av, splits["nvs"], args.views), SplitRenderer(u_av, splits["nvs"], args.views)
+        a, u = a_r.score(a_r.first(n)), u_r.score(u_r.first(n))
         pairs.append(
             {
                 "seed": seed,
@@ -366,12 +369,13 @@ def build_report(args: ReportOptions) -> dict:
         "bytes_per_gaussian": total_bytes / streamed.num_gaussians,
         "gaussians": streamed.num_gaussians,
         "level_counts": streamed.forest.level_counts().tolist(),
+        "stream_version": info.version,
         "budgets": {},
         "ablations": {},
     }
     for b in budgets:
         n = int(info.count_for_percent(b))
-        ids = np.arange(n)
+        ids = rend["nvs"].first(n)
         entry = {"gaussians": n, "bytes": int(info.bytes_for_count(n))}
         for k, r in rend.items():
             entry[k] = r.score(ids)
@@ -388,7 +392,7 @@ def build_report(args: ReportOptions) -> dict:
     curve = []
     for b in np.linspace(100 / args.curve_points, 100, args.curve_points):
         n = int(info.count_for_percent(b))
-        sc = curve_r.score(np.arange(n), ssim=False)
+        sc = curve_r.score(curve_r.first(n), ssim=False)
         curve.append(
             {
                 "percent": float(b),
@@ -424,7 +428,7 @@ def build_report(args: ReportOptions) -> dict:
     n25, n50 = int(info.count_for_percent(25)), int(info.count_for_percent(50))
     rand = random_within_levels(streamed.forest.level, seed=0)[:n25]
     abl["random_order_25"] = {
-        "ranked": report["budgets"].get("25", {}).get("nvs") or nvs.score(np.arange(n25)),
+        "ranked": report["budgets"].get("25", {}).get("nvs") or nvs.score(nvs.first(n25)),
         "random": nvs.score(np.sort(rand)),
         "gaussians": n25,
     }
@@ -436,18 +440,20 @@ def build_report(args: ReportOptions) -> dict:
     abl["importance_kind"] = importance_kind_ablation(
         avatar, {"alpha": W_alpha, "whole": W_whole}, rest, report["budgets"], info, splits["nvs"], nvs, args, scratch
     )
-    # What a stream that need not send every root first would gain (the format cannot carry it).
-    inter = interleaved_order(streamed.forest, W[order], np.arange(streamed.num_gaussians))
+    # This stream (version 5: any face as soon as its parent has arrived) against the order
+    # that sends every root first, level by level (version 4's), over the same faces.
+    W_dec = W[order]
+    levels_first = stream_order(streamed.forest, W_dec, streamed.forest.root_rank)
     abl["interleaved_order"] = {}
     for b in (1, 2, 3, 5, 10, 25, 50):
         n = int(info.count_for_percent(b))
         abl["interleaved_order"][f"{b:g}"] = {
             "gaussians": n,
-            "levels_first": report["budgets"].get(f"{b:g}", {}).get("nvs") or nvs.score(np.arange(n)),
-            "interleaved": nvs.score(np.sort(inter[:n])),
+            "levels_first": nvs.score(np.sort(levels_first[:n])),
+            "interleaved": report["budgets"].get(f"{b:g}", {}).get("nvs") or nvs.score(nvs.first(n)),
         }
     abl["importance_only_50"] = {
-        "levels_then_importance": nvs.score(np.arange(n50)),
+        "levels_then_importance": nvs.score(nvs.first(n50)),
         "importance_only": nvs.score(np.sort(imp)),
         "gaussians": n50,
     }
@@ -463,7 +469,7 @@ def build_report(args: ReportOptions) -> dict:
     )
     abl["level_prefixes"] = {
         "counts": _levels_prefixes(streamed),
-        "nvs": _score_prefixes(nvs, _levels_prefixes(streamed)),
+        "nvs": _score_levels(nvs),
     }
     sizes = {f"{b:g}": int(info.bytes_for_count(int(info.count_for_percent(b)))) for b in budgets}
     abl["single_asset_vs_discrete"] = {
@@ -480,7 +486,7 @@ def build_report(args: ReportOptions) -> dict:
         mine = {}
         for b in short:
             n1 = int(info.count_for_percent(b))
-            mine[f"{b:g}"] = report["budgets"].get(f"{b:g}", {}).get("nvs") or nvs.score(np.arange(n1))
+            mine[f"{b:g}"] = report["budgets"].get(f"{b:g}", {}).get("nvs") or nvs.score(nvs.first(n1))
         abl.setdefault("budget_compare", {"this": mine})[name] = {
             "run": _shown(other),
             "bytes": info0.total_bytes,
@@ -507,7 +513,7 @@ def build_report(args: ReportOptions) -> dict:
             args.name: {
                 "gaussians": avatar.num_gaussians,
                 "nvs": abl["quantisation_100"]["float32"],
-                "level_prefixes_nvs": _score_prefixes(exact_nvs, _levels_prefixes(exact)),
+                "level_prefixes_nvs": _score_levels(exact_nvs),
             },
             **grouped,
         }
@@ -532,7 +538,7 @@ def build_report(args: ReportOptions) -> dict:
         rend["nvs"],
         info,
         (2, 5, 10),
-        {"every root first": None, "interleaved": inter},
+        {"every root first": levels_first, "interleaved": None},
     )
     figs["depth"] = plots.depth_picture(os.path.join(args.out, "depth.png"), streamed, splits["nes"])
     logs = {"this run": os.path.join(args.run, "metrics.jsonl")}

@@ -30,6 +30,11 @@ class SplitRenderer:
         self.rgb = sh_to_rgb(avatar.f_dc)
         self.bg = np.asarray(dataset.background, np.float32)
 
+    def first(self, n: int) -> np.ndarray:
+        """The faces of the avatar's first n stream records (0..n-1 unless its stream
+        interleaved roots with deeper faces, docs/FORMAT.md version 5)."""
+        return self.avatar.forest.stream_ids(n)
+
     def render(self, view: int, ids: np.ndarray, with_alpha: bool = False):
         """(image, seconds) of faces `ids` on a view, plus the alpha [H,W] with `with_alpha`.
         No faces (a budget inside the header): the background, alpha 0."""

@@ -35,9 +35,10 @@ class TemplateMismatch(ValueError):
 
 
 MAGIC = b"PAVS\r\n\x1a\n"
-VERSION = 4  # what the writer writes
-# what the reader reads (1: smallest-three rotations, 2: no coarse levels, 3: no exceptions table; FORMAT.md 7)
-READ_VERSIONS = (1, 2, 3, 4)
+VERSION = 5  # what the writer writes
+# what the reader reads (1: smallest-three rotations, 2: no coarse levels, 3: no exceptions table,
+# 4: every root before any other record; FORMAT.md 7)
+READ_VERSIONS = (1, 2, 3, 4, 5)
 FLAG_LOSSLESS = 1
 FLAG_TEMPLATE = 2
 KNOWN_FLAGS = FLAG_LOSSLESS | FLAG_TEMPLATE
@@ -46,7 +47,7 @@ FIXED_SIZE = FIXED_HEADER.size  # 56: versions 1 and 2; version 3 adds u32 coars
 FIXED_SIZE_V3 = FIXED_SIZE + 4
 FIXED_SIZE_V4 = FIXED_SIZE_V3 + 4  # version 4 adds u32 num_exceptions
 FIXED_SIZE_MAX = FIXED_SIZE_V4
-QUANT_TABLE_SIZE = {1: 18 * 4, 2: 26 * 4, 3: 26 * 4, 4: 26 * 4}  # by version
+QUANT_TABLE_SIZE = {1: 18 * 4, 2: 26 * 4, 3: 26 * 4, 4: 26 * 4, 5: 26 * 4}  # by version
 # |log-scale| bound of header ranges: exp() of more overflows float32 (88.7) in a renderer; the
 # writer clamps to it, readers refuse a header beyond it (FORMAT.md 3.1).
 LOG_SCALE_LIMIT = 80.0
@@ -73,6 +74,10 @@ QUANT_RECORD = 23
 LOSSLESS_RECORD = 73
 QUANT_ROOT = 0xFFFFFF
 LOSSLESS_ROOT = 0x3FFFFFFF
+# Version 5 root marker (FORMAT.md 3): quantised records set geo bit 62; lossless records
+# carry slot value 3.
+QUANT_ROOT_BIT = 62
+LOSSLESS_ROOT_SLOT = 3
 
 QUANT_DTYPE = np.dtype(
     {
@@ -270,8 +275,20 @@ class StreamInfo:
 
     @property
     def num_roots(self) -> int:
-        """Root records: every coarse level and the template level (records 0..num_roots-1)."""
+        """Root records: every coarse level and the template level (records 0..num_roots-1
+        before version 5)."""
         return int(sum(self.level_counts[: self.num_coarse_levels + 1]))
+
+    @property
+    def lead_records(self) -> int:
+        """Records that open the stream level by level, every one a root: version 5 the
+        coarse levels (the template level when there are none), after which roots and other
+        records may mix; versions 3-4 every root; versions 1-2 the template level."""
+        if self.version >= 5:
+            return int(sum(self.level_counts[: max(self.num_coarse_levels, 1)]))
+        if self.version >= 3:
+            return self.num_roots
+        return int(self.num_template_faces)
 
     @property
     def head_records(self) -> int:
@@ -310,7 +327,9 @@ class StreamInfo:
 
     @property
     def base_bytes(self) -> int:
-        """Bytes needed for the whole base level (every template face, and the coarse levels)."""
+        """Bytes of the base level's records (every template face, and the coarse levels); from
+        version 5 the template faces may be spread over the stream, so this is their size,
+        not the prefix that holds them."""
         return self.bytes_for_count(self.num_roots)
 
     @property
@@ -362,12 +381,14 @@ class StreamInfo:
         return float(min(p, 100.0))
 
     def level_of(self, index) -> np.ndarray:
-        """Level of each stream index."""
+        """Level of each stream index of a level-by-level stream (version 5: of the lead's
+        records only; the others' levels come from their parents)."""
         cum = np.cumsum(self.level_counts)
         return np.searchsorted(cum, np.asarray(index), side="right").astype(np.int8)
 
     def level_ends(self) -> np.ndarray:
-        """Record count at the end of each level (cumulative level counts)."""
+        """Cumulative level counts: where each level ends in a level-by-level stream (version 5:
+        in the lead; each level's root-table rows in every version)."""
         return np.cumsum(np.asarray(self.level_counts, np.int64))
 
     def block_end_for_count(self, n: int) -> int:

@@ -1,5 +1,6 @@
 """Stream order: the roots level by level in a chosen order, then each level by descending
-importance (numpy only: runs in Blender)."""
+importance (versions 2-4), or the coarse levels and then every face by importance once its
+parent is sent (version 5). Numpy only: runs in Blender."""
 
 from __future__ import annotations
 
@@ -79,23 +80,21 @@ def stream_order(forest: Forest, importance=None, root_key=None) -> np.ndarray:
 
 
 def interleaved_order(forest: Forest, importance, root_key=None) -> np.ndarray:
-    """Permutation (new position -> face) that sends the coarse levels first (level by level, by
-    ascending `root_key`, as stream_order) and then every other face, template faces included,
-    by descending importance as soon as its parent has been sent: the greedy order under
-    "parent before child", i.e. descending ``min(importance, the parent's key)`` (ties: lower
-    level, then face index). The coarse levels keep every prefix a whole head, so unimportant
-    template faces can wait behind the important faces of the levels below them.
-
-    Not a stream order that the format can carry (docs/FORMAT.md: the roots come first); the
-    evaluation scores it to measure what such a format would gain (issue 16)."""
+    """Permutation (new position -> face) that opens with the coarse levels (the template
+    level when there are none), level by level by ascending `root_key` as stream_order, and
+    then sends every other face, template faces included, by descending importance as soon as
+    its parent has been sent: the greedy order under "parent before child", i.e. descending
+    ``min(importance, the parent's key)`` (ties: lower level, then face index). The coarse
+    levels keep every prefix a whole head, so unimportant template faces can wait behind the
+    important faces of the levels below them. The stream order of version 5 (docs/FORMAT.md)."""
     key = _importance(importance, forest.num_faces, "interleaved_order")
-    K = forest.num_coarse_levels
+    lead = max(forest.num_coarse_levels, 1)
     level = forest.level.astype(np.int64)
-    coarse = stream_order(forest, key, root_key)[: int(np.count_nonzero(level < K))]  # they lead it too
+    head = stream_order(forest, key, root_key)[: int(np.count_nonzero(level < lead))]  # they lead it too
     eff = key.copy()
-    for lv in range(K + 1, int(level.max(initial=K)) + 1):  # parents' keys are final before their children's
+    for lv in range(lead + 1, int(level.max(initial=lead)) + 1):  # parents' keys are final before their children's
         ids = np.flatnonzero(level == lv)
         eff[ids] = np.minimum(key[ids], eff[forest.parent[ids]])
-    rest = np.flatnonzero(level >= K)
+    rest = np.flatnonzero(level >= lead)
     rest = rest[np.lexsort((rest, level[rest], -eff[rest]))]
-    return np.concatenate([coarse, rest]).astype(np.int64)
+    return np.concatenate([head, rest]).astype(np.int64)

@@ -22,6 +22,7 @@ from .format import (
     FIXED_SIZE,
     LOSSLESS_DTYPE,
     LOSSLESS_ROOT,
+    LOSSLESS_ROOT_SLOT,
     QUANT_ROOT,
     StreamError,
     StreamInfo,
@@ -365,11 +366,18 @@ class StreamReader:
         self._level_starts = np.concatenate([[0], header.level_ends()]).astype(np.int64)
         self._starts_list = [int(x) for x in self._level_starts]
         self._cols = _Columns(N)
-        # Root records: versions 1-2 the template faces in template order; version 3 every
-        # coarse level and the template level, each root naming its row of the root table.
-        self._nroots = header.num_roots if header.version >= 3 else header.num_template_faces
-        self._root_ref = _Grow((), np.int64, self._nroots)
-        self._root_claim = _Grow((), np.int32, self._nroots, fill=0)
+        # Records that must be roots, by position: versions 1-2 the template faces in template
+        # order; versions 3-4 every coarse level and the template level, version 5 the coarse
+        # levels (the template level without them); from version 3 each root names its row of
+        # the root table. Version 5 roots after those carry a root flag.
+        self._nroots = header.lead_records
+        self._v5 = header.version >= 5
+        self._root_ref = _Grow((), np.int64, N if self._v5 else self._nroots)  # by stream position
+        self._root_claim = _Grow((), np.int32, header.num_roots, fill=0)
+        if self._v5:
+            self._isroot = _Grow((), np.bool_, N, fill=0)
+            self._lev = _Grow((), np.int16, N)
+            self._level_received = np.zeros(header.num_levels, np.int64)
 
     def _check(self, i0: int, i1: int):
         """_check_range over cache-sized runs of records (temporaries stay small and reused)."""
@@ -387,6 +395,8 @@ class StreamReader:
         (in self._raw), vectorised over the batch; stores their parent and slot and claims
         their (parent, slot). Returns (how many records from i0 pass, problem or None)."""
         h = self.header
+        if self._v5:
+            return self._check_range_v5(i0, i1)
         n = i1 - i0
         rows, rec, par, slt = self._structure(i0, i1, self._cols.cols)
         if h.lossless:
@@ -458,6 +468,115 @@ class StreamReader:
         if nr:
             par[:nr] = -1
             slt[:nr] = -1
+        self._cols.valid["parent"] = self._cols.valid["slot"] = i0 + k
+        return k, problem
+
+    def _check_range_v5(self, i0: int, i1: int):
+        """Version 5 structure (FORMAT.md 3): the lead records (coarse levels) by position as in
+        version 4; after them each record is a root (its flag set, a template row) or names
+        its parent's stream index p < i, a parent below the coarse levels, its level within
+        the header's levels and their counts. Stores parent (stream index), slot, root flag
+        and level per record; claims (parent, slot) and root rows as version 4 does."""
+        h = self.header
+        n = i1 - i0
+        rows, rec, par, slt = self._structure(i0, i1, self._cols.cols)
+        K, L = h.num_coarse_levels, h.num_levels
+        starts = self._starts_list
+        idx = np.arange(i0, i1, dtype=np.int64)
+        if h.lossless:
+            bad = ~np.all(np.isfinite(rows[:, 4:72].copy().view("<f4")), axis=1)
+            root = slt == LOSSLESS_ROOT_SLOT
+        else:
+            root = (slt & 4) != 0
+            bad = slt >= 8  # geo bit 63 is reserved
+            bad |= root & ((slt & 3) != 0)  # a root's slot is 0
+            bad |= slt == 3  # slot 3 does not exist
+            b = np.right_shift(rec["b0"], np.uint16(4))
+            b += rec["b1"] & np.uint16(0xFFF)
+            bad |= b > np.uint16(4095)
+        np.bitwise_and(slt, 3, out=slt)
+        slt[root] = 0
+        lev = self._lev.reserve(i1)
+        nr = max(0, min(n, self._nroots - i0))  # lead records in this batch: roots by position
+        bad[:nr] |= ~root[:nr]
+        lead_levels = range(bisect.bisect_right(starts, i0) - 1, bisect.bisect_right(starts, i0 + nr - 1)) if nr else ()
+        for lv in lead_levels:
+            x, y = max(starts[lv], i0) - i0, min(starts[lv + 1], i0 + nr) - i0
+            off = np.subtract(par[x:y], starts[lv])
+            bad[x:y] |= off.view(np.uint64) >= np.uint64(starts[lv + 1] - starts[lv])
+            lev[i0 + x : i0 + y] = lv
+        late = root.copy()
+        late[:nr] = False  # roots after the lead: template faces (rows of level K)
+        if K:
+            off = np.subtract(par, starts[K])
+            bad |= late & (off.view(np.uint64) >= np.uint64(starts[K + 1] - starts[K]))
+            lev[i0:i1][late] = K
+        else:
+            bad |= late  # without coarse levels the lead holds every root
+        bad |= ~root & (par >= idx)  # a parent precedes its child
+        k = int(np.argmax(bad)) if bad.any() else n
+        # Levels of the non-roots before the first bad record: a parent's level plus one
+        # (parents inside this batch settle in one pass per level they span).
+        nz = np.flatnonzero(~root[:k])
+        if len(nz):
+            p = par[nz]
+            own = lev[i0:i1]
+            for _ in range(L + 1):
+                new = np.minimum(lev[p] + 1, L)
+                if np.array_equal(new, own[nz]):
+                    break
+                own[nz] = new
+            wrong = (lev[p] < K) | (own[nz] >= L)  # coarse faces have no children; levels < L
+            if wrong.any():
+                k = int(nz[np.argmax(wrong)])
+        # Each level holds at most the header's count of records.
+        got = lev[i0 : i0 + k]
+        for lv in np.unique(got):
+            seen = self._level_received[lv] + np.cumsum(got == lv)
+            over = (got == lv) & (seen > h.level_counts[lv])
+            if over.any():
+                k = min(k, int(np.argmax(over)))
+        problem = None
+        if k < n:
+            problem = f"record {i0 + k} is structurally invalid (parent/slot/level/root marker/reserved bits/values)"
+        # (parent, slot) unique among non-roots; root rows unique among roots.
+        nz = np.flatnonzero(~root[:k])
+        if len(nz):
+            keys = par[nz] * 3
+            keys += slt[nz]
+            ids = (idx[nz] + 1).astype(np.int32)
+            child = self._child.reserve(3 * (i0 + k))
+            old = child.take(keys)
+            child[keys] = ids
+            if old.max() > 0 or (child.take(keys) != ids).any():
+                first = np.zeros(len(keys), bool)
+                first[np.unique(keys, return_index=True)[1]] = True
+                j = int(np.argmax((old > 0) | ~first))
+                k = int(nz[j])
+                problem = f"record {i0 + k} reuses the child slot of an earlier record"
+                child[keys] = old
+                child[keys[:j]] = ids[:j]
+        rz = np.flatnonzero(root[:k])
+        if len(rz):
+            refs = par[rz].copy()
+            ids = (idx[rz] + 1).astype(np.int32)
+            claim = self._root_claim.reserve(h.num_roots)
+            old = claim.take(refs)
+            claim[refs] = ids
+            if old.max() > 0 or (claim.take(refs) != ids).any():
+                first = np.zeros(len(refs), bool)
+                first[np.unique(refs, return_index=True)[1]] = True
+                j = int(np.argmax((old > 0) | ~first))
+                k = int(rz[j])
+                problem = f"record {i0 + k} names a root triangle an earlier record already holds"
+                claim[refs] = old
+                claim[refs[:j]] = ids[:j]
+                rz = rz[:j]
+            self._root_ref.reserve(i1)[i0 + rz] = refs[: len(rz)]
+        self._isroot.reserve(i1)[i0 : i0 + k] = root[:k]
+        self._level_received += np.bincount(lev[i0 : i0 + k], minlength=L)[:L]
+        par[root] = -1
+        slt[root] = -1
         self._cols.valid["parent"] = self._cols.valid["slot"] = i0 + k
         return k, problem
 
@@ -540,7 +659,8 @@ class StreamReader:
         return {name: cols[name][:n] for name in ("split_logits",) + PARAM_NAMES + ("parent", "slot")}
 
     def avatar(self, n=None) -> Avatar | None:
-        """An Avatar of the first n available Gaussians (all if None), faces in stream order;
+        """An Avatar of the first n available Gaussians (all if None), its faces the roots in
+        stream order, then the others in stream order (just stream order before version 5);
         None when no record is available yet. The avatar owns its arrays: the reader hands its
         decoded columns over and copies them only if it has to write to them again."""
         if self.header is None or self._n == 0:
@@ -557,12 +677,16 @@ class StreamReader:
         self._decode()
         h = self.header
         c = self._cols
-        forest = self._forest(tmpl, n)
+        if self._v5:
+            forest, params = self._forest_v5(tmpl, n)
+        else:
+            forest = self._forest(tmpl, n)
+            params = None
         meta = dict(h.metadata)
         meta["stream"] = {
             "records": n,
             "total_records": h.num_records,
-            "base_complete": n >= self._nroots,
+            "base_complete": forest.num_roots == h.num_roots,
             "head_complete": n >= h.head_records,
             "coarse_levels": h.num_coarse_levels,
             "lossless": h.lossless,
@@ -570,11 +694,53 @@ class StreamReader:
             "bytes": h.bytes_for_count(n),
             "total_bytes": h.total_bytes,
         }
-        params = [c.hand_out(name, n) for name in PARAM_NAMES]
+        if params is None:
+            params = [c.hand_out(name, n) for name in PARAM_NAMES]
         if self._finite:
             # Verified record by record: no second validation pass (the format carries SH degree 0).
             return Avatar.from_verified(forest, dict(zip(PARAM_NAMES, params)), meta)
         return Avatar(forest, *params, meta=meta)
+
+    def _forest_v5(self, tmpl, n):
+        """(forest, parameter arrays) of the first n records of a version 5 stream: the roots in
+        stream order, then the other records in stream order (parents still precede children);
+        the forest's root_rank keeps where each root arrived."""
+        h = self.header
+        cols = self._cols.cols
+        is_root = self._isroot.data[:n]
+        rpos = np.flatnonzero(is_root)
+        opos = np.flatnonzero(~is_root)
+        r = len(rpos)
+        dec = np.concatenate([rpos, opos])  # face -> stream position
+        pos = np.empty(n, np.int64)
+        pos[dec] = np.arange(n)  # stream position -> face
+        parent = np.full(n, -1, np.int64)
+        parent[r:] = pos[cols["parent"][opos]]
+        slot = np.full(n, -1, np.int8)
+        slot[r:] = cols["slot"][opos]
+        level = self._lev.data[dec].astype(np.int8)
+        root = np.empty(n, np.int64)
+        root[:r] = np.arange(r)
+        for lv in range(h.num_coarse_levels + 1, h.num_levels):  # parents' levels first
+            ids = r + np.flatnonzero(level[r:] == lv)
+            root[ids] = root[parent[ids]]
+        ch = self._child.reserve(3 * n)[: 3 * n].reshape(n, 3)[dec].astype(np.int64) - 1  # stream positions
+        children = np.where((ch >= 0) & (ch < n), pos[np.clip(ch, 0, n - 1)], -1)
+        K = h.num_coarse_levels
+        forest = Forest.from_verified(
+            np.asarray(tmpl, np.int32),
+            parent,
+            slot,
+            cols["split_logits"][dec],
+            children,
+            level,
+            root,
+            coarse_faces=h.coarse_faces if K else np.zeros((0, 3), np.int32),
+            coarse_counts=tuple(h.level_counts[:K]),
+            root_ref=self._root_ref.data[rpos].copy(),
+            root_rank=rpos,
+        )
+        return forest, [cols[name][dec] for name in PARAM_NAMES]
 
     def _forest(self, tmpl, n) -> Forest:
         """The forest of the first n records, from the structure _check verified."""
@@ -630,7 +796,8 @@ def _apply_exceptions(cols, exceptions, a: int, b: int) -> None:
 
 
 def read_stream(source, *, percent=None, max_bytes=None, max_gaussians=None, template_faces=None) -> Avatar | None:
-    """Decode a stream (path or bytes) to an Avatar whose faces are in stream order.
+    """Decode a stream (path or bytes) to an Avatar (faces: the roots in stream order, then the
+    others in stream order; ``avatar.forest.stream_ids(n)`` are the first n records' faces).
 
     A budget (percent of the stream's bytes, bytes, or Gaussians; the smallest wins) picks a
     prefix. A truncated source yields its whole verified records; None if there are none.

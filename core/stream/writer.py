@@ -8,6 +8,7 @@ import math
 import os
 import struct
 import zlib
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -25,6 +26,8 @@ from .format import (
     RANGE_LIMIT,
     QUANT_RECORD,
     QUANT_ROOT,
+    QUANT_ROOT_BIT,
+    LOSSLESS_ROOT_SLOT,
     StreamInfo,
     VERSION,
     _encode_coarse,
@@ -37,13 +40,14 @@ from .format import (
     quant_ranges,
     template_hash,
 )
-from .order import root_keys, stream_order
+from .order import interleaved_order, root_keys, stream_order
 
 
-def _quantize_records(
-    av: Avatar, bary: np.ndarray, quant: np.ndarray, version: int = VERSION, root_ref=None
-) -> np.ndarray:
-    N = av.num_gaussians
+def _quantize_records(av, bary: np.ndarray, quant: np.ndarray, links: tuple, version: int = VERSION) -> np.ndarray:
+    """Quantised records of `av` (per-record parameter arrays in stream order); `links` is
+    (parent field, slot field, root flag) per record (_links)."""
+    parent, slot, is_root = links
+    N = len(parent)
     rec = np.zeros(N, QUANT_DTYPE)
     q = quant_ranges(quant)
 
@@ -56,22 +60,20 @@ def _quantize_records(
     mu = codes(av.d_mu.astype(np.float64), *q["mu"], 4096)
     b0 = np.rint(bary[:, 0] * 4095).astype(np.int64)
     b1 = np.minimum(np.rint(bary[:, 1] * 4095).astype(np.int64), 4095 - b0)
-    slot = np.maximum(av.forest.slot.astype(np.int64), 0).astype(np.uint64)
     rec["geo"] = (
         mu[:, 0]
         | (mu[:, 1] << np.uint64(12))
         | (mu[:, 2] << np.uint64(24))
         | (b0.astype(np.uint64) << np.uint64(36))
         | (b1.astype(np.uint64) << np.uint64(48))
-        | (slot << np.uint64(60))
+        | (slot.astype(np.uint64) << np.uint64(60))
     )
+    if version >= 5:
+        rec["geo"] |= is_root.astype(np.uint64) << np.uint64(QUANT_ROOT_BIT)
 
     rc = codes(_unit_quaternions(av.d_rot), *q["rot"], 256).astype(np.uint32)
     rec["rot"] = rc[:, 0] | (rc[:, 1] << np.uint32(8)) | (rc[:, 2] << np.uint32(16)) | (rc[:, 3] << np.uint32(24))
-
-    parent = np.where(av.forest.parent >= 0, av.forest.parent, QUANT_ROOT).astype(np.uint32)
-    if version >= 3:  # roots name their row of the coarse + template table
-        parent[: len(root_ref)] = root_ref
+    parent = parent.astype(np.uint32)
     rec["parent"] = np.stack([parent & 0xFF, (parent >> 8) & 0xFF, (parent >> 16) & 0xFF], 1).astype(np.uint8)
     rec["ls"] = codes(av.d_log_scale.astype(np.float64), *q["ls"], 256).astype(np.uint8)
     alpha = 1.0 / (1.0 + np.exp(-av.opacity_logit.astype(np.float64)))
@@ -83,21 +85,37 @@ def _quantize_records(
     return rec
 
 
-def _lossless_records(av: Avatar, version: int = VERSION, root_ref=None) -> np.ndarray:
-    N = av.num_gaussians
+def _lossless_records(av, split_logits, links: tuple, version: int = VERSION) -> np.ndarray:
+    parent, slot, is_root = links
+    N = len(parent)
     rec = np.zeros(N, LOSSLESS_DTYPE)
-    parent = np.where(av.forest.parent >= 0, av.forest.parent, LOSSLESS_ROOT).astype(np.uint32)
-    if version >= 3:
-        parent[: len(root_ref)] = root_ref
-    rec["link"] = parent | (np.maximum(av.forest.slot, 0).astype(np.uint32) << np.uint32(30))
-    rec["split_logits"] = av.forest.split_logits
+    if version >= 5:
+        slot = np.where(is_root, LOSSLESS_ROOT_SLOT, slot)
+    rec["link"] = parent.astype(np.uint32) | (slot.astype(np.uint32) << np.uint32(30))
+    rec["split_logits"] = split_logits
     for name in ("d_mu", "d_log_scale", "d_rot", "opacity_logit", "f_dc"):
         rec[name] = getattr(av, name)
-    if not np.all(np.isfinite(av.forest.split_logits)):
+    if not np.all(np.isfinite(split_logits)):
         raise ValueError("write_stream: split logits contain NaN or inf")
     raw = rec.view(np.uint8).reshape(N, LOSSLESS_RECORD)
     rec["crc"] = crc8_indexed(raw[:, : LOSSLESS_RECORD - 1], 0) if version >= 3 else crc8(raw[:, : LOSSLESS_RECORD - 1])
     return rec
+
+
+def _links(forest, s: np.ndarray, row_of: np.ndarray, root_value: int, version: int) -> tuple:
+    """(parent field, slot field, root flag) of the records, stream position i holding face
+    s[i]: a non-root names its parent's stream position and its slot; a root names its row of
+    the stored root table (version 3 on; before, the root marker value) with slot 0."""
+    N = len(s)
+    pos = np.empty(N, np.int64)
+    pos[s] = np.arange(N)
+    par = forest.parent[s]
+    is_root = par < 0
+    parent = np.where(is_root, root_value, pos[np.maximum(par, 0)])
+    if version >= 3:
+        parent[is_root] = row_of[forest.root_ref[s[is_root]]]
+    slot = np.where(is_root, 0, forest.slot[s]).astype(np.int64)
+    return parent.astype(np.int64), slot, is_root
 
 
 def _unit_quaternions(d_rot) -> np.ndarray:
@@ -201,18 +219,23 @@ def write_stream(
     vertices=None,
     version: int = VERSION,
 ) -> StreamInfo:
-    """Write `avatar` as a stream (atomically). Returns its header; `.order` maps stream index
-    to the avatar's face index. Records carry the DC colour only: an avatar with higher SH
-    bands is refused unless ``drop_sh`` (then the metadata says which degree was dropped).
+    """Write `avatar` as a stream (atomically). Returns its header; `.order` maps each face of
+    the avatar a reader decodes (roots first) to this avatar's face, `.stream_order` each
+    stream position to this avatar's face. Records carry the DC colour only: an avatar with
+    higher SH bands is refused unless ``drop_sh`` (then the metadata says which degree was
+    dropped).
 
-    Roots (coarse levels, template level) go level by level in `root_order` (root_keys):
-    default "auto" (importance, else spatial on the rest-pose `vertices`) when either is given,
-    else the forest's order. The avatar's
+    Version 5 (default), given the faces' importance: the coarse levels open the stream, level
+    by level in `root_order`, then every other face, the template's included, by descending
+    importance as soon as its parent has been sent (order.interleaved_order). Without
+    importance, and in versions 2-4: level by level, roots in `root_order` (root_keys:
+    default "auto", importance, else spatial on the rest-pose `vertices`, when either is given,
+    else the forest's order), the other levels by descending importance. The avatar's
     training settings (meta "config") stay out of the header (they are in the run folder):
     time to the first whole head counts. The run and data folders are named by their last
     component only: local paths do not travel with a shared file.
-    ``version=3`` writes the previous format (min..max quantisation ranges, no exceptions table),
-    ``version=2`` the one before (no coarse levels, roots in template order)."""
+    ``version=4`` writes the previous format (every root first), ``version=3`` the one before (min..max quantisation ranges, no exceptions table),
+    ``version=2`` the one before that (no coarse levels, roots in template order)."""
     forest = avatar.forest
     if avatar.sh_degree and not drop_sh:
         raise ValueError(
@@ -226,8 +249,8 @@ def write_stream(
     limit = QUANT_ROOT if quantize else LOSSLESS_ROOT
     if N > limit:
         raise ValueError(f"write_stream: {N} Gaussians exceed this record type's limit of {limit}")
-    if version not in (2, 3, VERSION):
-        raise ValueError(f"write_stream: can write versions 2, 3 and {VERSION}, not {version}")
+    if version not in (2, 3, 4, VERSION):
+        raise ValueError(f"write_stream: can write versions 2, 3, 4 and {VERSION}, not {version}")
     C, K = forest.num_coarse, forest.num_coarse_levels
     if forest.num_roots != C + len(forest.template_faces):
         raise ValueError(
@@ -240,8 +263,16 @@ def write_stream(
     if version == 2:
         if K or not np.array_equal(forest.root_ref, np.arange(forest.num_roots)) or root_order != "forest":
             raise ValueError("write_stream: version 2 has no coarse levels and keeps roots in template order")
-    order = stream_order(forest, importance, root_keys(forest, root_order, importance, vertices))
-    f2 = forest.reorder(order)
+    keys = root_keys(forest, root_order, importance, vertices)
+    if version >= 5 and importance is not None:  # each face as soon as its parent is sent
+        s = interleaved_order(forest, importance, keys)
+    elif version >= 5 and keys is None and forest.root_rank[-1] != forest.num_roots - 1:
+        s = forest.stream_order()  # an avatar read from a version 5 stream keeps its order
+    else:
+        s = stream_order(forest, importance, keys)
+    # The reader's faces: the roots in stream order, then the others in stream order.
+    is_root_s = forest.parent[s] < 0
+    order = np.concatenate([s[is_root_s], s[~is_root_s]])
     # The coarse table as stored: each level's rows sorted by vertex (compresses well); roots
     # name their row of [stored coarse table; template].
     row_of = np.arange(C + len(forest.template_faces), dtype=np.int64)
@@ -253,8 +284,10 @@ def write_stream(
         )
         coarse_rows = forest.coarse_faces[perm]
         row_of[perm] = np.arange(C)
-    root_ref = row_of[f2.root_ref]
-    av = Avatar(f2, *(getattr(avatar, n)[order] for n in ("d_mu", "d_log_scale", "d_rot", "opacity_logit", "f_dc")))
+    links = _links(forest, s, row_of, QUANT_ROOT if quantize else LOSSLESS_ROOT, version)
+    recs_in = SimpleNamespace(
+        **{n: getattr(avatar, n)[s] for n in ("d_mu", "d_log_scale", "d_rot", "opacity_logit", "f_dc")}
+    )
 
     meta = {k: v for k, v in dict(avatar.meta or {}).items() if k not in ("stream", "config")}
     if avatar.sh_degree:
@@ -270,13 +303,13 @@ def write_stream(
     tmpl = np.ascontiguousarray(forest.template_faces, "<i4")
     template_blob = zlib.compress(tmpl.tobytes(), 9) if embed_template else b""
     flags = (0 if quantize else FLAG_LOSSLESS) | (FLAG_TEMPLATE if embed_template else 0)
-    level_counts = tuple(int(c) for c in f2.level_counts())
+    level_counts = tuple(int(c) for c in forest.level_counts())
     if quantize:
-        quant, exceptions = _quant_table(av, version)
-        recs = _quantize_records(av, f2.barycentrics(), quant, version, root_ref)
+        quant, exceptions = _quant_table(recs_in, version)
+        recs = _quantize_records(recs_in, forest.barycentrics()[s], quant, links, version)
     else:
         quant, exceptions = None, None
-        recs = _lossless_records(av, version, root_ref)
+        recs = _lossless_records(recs_in, forest.split_logits[s], links, version)
     R = recs.dtype.itemsize
     info = StreamInfo(
         version,
@@ -310,6 +343,7 @@ def write_stream(
     with atomic_open(path) as fh:
         fh.write(data)
     info.order = order
+    info.stream_order = s
     return info
 
 

@@ -451,9 +451,10 @@ class Trainer:
         return out
 
     def _rank(self, measure: bool):
-        """Position of each face in the stream order the writer would give it (each level by
+        """Position of each face in the level-by-level stream order (version 4's: each level by
         importance measured on the levels up to its own), measuring the importance again on
-        spread training views when ``measure``."""
+        spread training views when ``measure``. Version 5 streams interleave the levels when
+        written; supervising interleaved prefixes instead measured worse (docs/BENCHMARKS.md)."""
         from ..render.importance import face_importance
         from ..stream.order import root_keys, stream_order
 
