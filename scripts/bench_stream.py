@@ -31,9 +31,12 @@ def build_avatar(quick: bool):
     from progressive_avatars.core.avatar.forest import Forest
     from progressive_avatars.core.synthetic.shapes import sphere_mesh
 
+    from progressive_avatars.core.avatar.coarse import build_coarse
+
     rng = np.random.default_rng(0)
     verts, faces = sphere_mesh(80, 64) if not quick else sphere_mesh(30, 32)  # 10,112 / 1,856 faces
-    forest = Forest(faces)
+    coarse, counts = build_coarse(verts, faces)  # the default coarse levels, as trained avatars have
+    forest = Forest(faces, coarse_faces=coarse, coarse_counts=counts)
     for frac in (1.0, 0.6, 0.45):  # 10k -> ~170k faces, like the paper's 10,144 -> 169,438
         leaves = forest.leaves()
         leaves = leaves[forest.level[leaves] == forest.max_level]
@@ -89,10 +92,22 @@ def _readers(S, data: bytes, faces) -> dict:
     return {"v": verify, "vd": verify_decode, "c": chunked, "f": full}
 
 
+def _without_coarse(av):
+    """The same avatar without its coarse levels (build_avatar's coarse roots are faces 0..C-1,
+    the template's follow in template order; coarse faces have no children)."""
+    from progressive_avatars.core.avatar.avatar import Avatar
+    from progressive_avatars.core.avatar.forest import Forest
+
+    f, C = av.forest, av.forest.num_coarse
+    ff = Forest(f.template_faces, np.where(f.parent[C:] >= 0, f.parent[C:] - C, -1), f.slot[C:], f.split_logits[C:])
+    return Avatar(ff, *(getattr(av, n)[C:] for n in ("d_mu", "d_log_scale", "d_rot", "opacity_logit", "f_dc")))
+
+
 def old_against_new(av, imp, reps) -> str:
-    """f6907ae's read_stream against this tree's on the same version-2 stream, and this tree's
-    on versions 3 and 4, round-robin in one process: the machine's speed, not the format's, moves the
-    absolute figures between runs on different days."""
+    """f6907ae's read_stream against this tree's on the same version-2 stream (the avatar
+    without its coarse levels: version 2 has none), and this tree's on versions 3, 4 and 5,
+    round-robin in one process: the machine's speed, not the format's, moves the absolute
+    figures between runs on different days."""
     import importlib
 
     from bench_train import OLD_COMMIT, old_package
@@ -103,17 +118,20 @@ def old_against_new(av, imp, reps) -> str:
     old_package()
     old = importlib.import_module("pa_old.core.stream")
     faces = av.forest.template_faces
-    v2 = W.encode_stream(av, imp, embed_template=False, version=2)
+    plain = _without_coarse(av)
+    v2 = W.encode_stream(plain, imp[-plain.num_gaussians :], embed_template=False, version=2)
     v3 = W.encode_stream(av, imp, embed_template=False, version=3)
-    v4 = W.encode_stream(av, imp, embed_template=False)
+    v4 = W.encode_stream(av, imp, embed_template=False, version=4)
+    v5 = W.encode_stream(av, imp, embed_template=False)
     fns = {
         f"{OLD_COMMIT} reader, version 2": lambda: old.read_stream(v2, template_faces=faces),
         "this reader, version 2": lambda: S.read_stream(v2, template_faces=faces),
         "this reader, version 3": lambda: S.read_stream(v3, template_faces=faces),
         "this reader, version 4": lambda: S.read_stream(v4, template_faces=faces),
+        "this reader, version 5": lambda: S.read_stream(v5, template_faces=faces),
     }
     times = _times(fns, reps)
-    sizes = {k: len({"2": v2, "3": v3, "4": v4}[k[-1]]) for k in fns}
+    sizes = {k: len({"2": v2, "3": v3, "4": v4, "5": v5}[k[-1]]) for k in fns}
     return (
         "Same run, read_stream of the quantised stream without template (MB/s, best / median): "
         + ", ".join(f"{k} {sizes[k] / 1e6 / t[0]:.0f} / {sizes[k] / 1e6 / t[1]:.0f}" for k, t in times.items())

@@ -514,7 +514,8 @@ def report_markdown(r: dict) -> str:
     )
     io = a["importance_only_50"]
     lines.append(
-        f"- 50 %: levels then importance {io['levels_then_importance']['psnr']:.2f} dB vs importance only {io['importance_only']['psnr']:.2f} dB"
+        f"- 50 %: the stream's order (parents first, by importance) {io['levels_then_importance']['psnr']:.2f} dB vs "
+        f"importance only (ignoring parents) {io['importance_only']['psnr']:.2f} dB"
     )
     ik = a.get("importance_kind")
     if ik and "this" in next(iter(ik.values())):  # (reports before 2026-11-24 keyed it otherwise: not shown)

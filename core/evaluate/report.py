@@ -538,7 +538,7 @@ def build_report(args: ReportOptions) -> dict:
         rend["nvs"],
         info,
         (2, 5, 10),
-        {"every root first": levels_first, "interleaved": None},
+        {"every root first (v4)": levels_first, "this stream (v5)": None},
     )
     figs["depth"] = plots.depth_picture(os.path.join(args.out, "depth.png"), streamed, splits["nes"])
     logs = {"this run": os.path.join(args.run, "metrics.jsonl")}

@@ -516,26 +516,27 @@ class StreamReader:
         bad |= ~root & (par >= idx)  # a parent precedes its child
         k = int(np.argmax(bad)) if bad.any() else n
         # Levels of the non-roots before the first bad record: a parent's level plus one
-        # (parents inside this batch settle in one pass per level they span).
+        # (those whose parent is in this batch settle in one more pass per level they span).
         nz = np.flatnonzero(~root[:k])
         if len(nz):
             p = par[nz]
             own = lev[i0:i1]
-            for _ in range(L + 1):
-                new = np.minimum(lev[p] + 1, L)
-                if np.array_equal(new, own[nz]):
+            own[nz] = np.minimum(lev[p] + 1, L)  # final where the parent came in an earlier batch
+            inner = np.flatnonzero(p >= i0)
+            q, at = p[inner], nz[inner]
+            for _ in range(L):
+                new = np.minimum(lev[q] + 1, L)
+                if np.array_equal(new, own[at]):
                     break
-                own[nz] = new
+                own[at] = new
             wrong = (lev[p] < K) | (own[nz] >= L)  # coarse faces have no children; levels < L
             if wrong.any():
                 k = int(nz[np.argmax(wrong)])
         # Each level holds at most the header's count of records.
         got = lev[i0 : i0 + k]
-        for lv in np.unique(got):
-            seen = self._level_received[lv] + np.cumsum(got == lv)
-            over = (got == lv) & (seen > h.level_counts[lv])
-            if over.any():
-                k = min(k, int(np.argmax(over)))
+        full = np.asarray(h.level_counts) - self._level_received  # records each level can still take
+        for lv in np.flatnonzero(np.bincount(got, minlength=L)[:L] > full):  # (rarely any)
+            k = min(k, int(np.flatnonzero(got == lv)[full[lv]]))
         problem = None
         if k < n:
             problem = f"record {i0 + k} is structurally invalid (parent/slot/level/root marker/reserved bits/values)"
@@ -674,7 +675,8 @@ class StreamReader:
                 f"{self.source}: the stream does not embed its template; pass template_faces "
                 f"(a mesh with topology hash {self.header.template_hash_hex})"
             )
-        self._decode()
+        if not self._v5:
+            self._decode()
         h = self.header
         c = self._cols
         if self._v5:
@@ -704,34 +706,55 @@ class StreamReader:
     def _forest_v5(self, tmpl, n):
         """(forest, parameter arrays) of the first n records of a version 5 stream: the roots in
         stream order, then the other records in stream order (parents still precede children);
-        the forest's root_rank keeps where each root arrived."""
+        the forest's root_rank keeps where each root arrived. The verified record bytes are
+        gathered into that order once (one row copy each) and decoded there, so the parameters
+        need no second permutation."""
         h = self.header
         cols = self._cols.cols
         is_root = self._isroot.data[:n]
         rpos = np.flatnonzero(is_root)
-        opos = np.flatnonzero(~is_root)
         r = len(rpos)
-        dec = np.concatenate([rpos, opos])  # face -> stream position
+        dec = np.empty(n, np.int64)  # face -> stream position
+        dec[:r] = rpos
+        dec[r:] = np.flatnonzero(~is_root)
         pos = np.empty(n, np.int64)
         pos[dec] = np.arange(n)  # stream position -> face
         parent = np.full(n, -1, np.int64)
-        parent[r:] = pos[cols["parent"][opos]]
+        np.take(pos, cols["parent"][dec[r:]], out=parent[r:])
         slot = np.full(n, -1, np.int8)
-        slot[r:] = cols["slot"][opos]
+        slot[r:] = cols["slot"][dec[r:]]
         level = self._lev.data[dec].astype(np.int8)
-        root = np.empty(n, np.int64)
-        root[:r] = np.arange(r)
-        for lv in range(h.num_coarse_levels + 1, h.num_levels):  # parents' levels first
-            ids = r + np.flatnonzero(level[r:] == lv)
-            root[ids] = root[parent[ids]]
-        ch = self._child.reserve(3 * n)[: 3 * n].reshape(n, 3)[dec].astype(np.int64) - 1  # stream positions
-        children = np.where((ch >= 0) & (ch < n), pos[np.clip(ch, 0, n - 1)], -1)
+        root = np.arange(n, dtype=np.int64)
+        root[r:] = parent[r:]
+        for _ in range(max(int(h.num_levels - h.num_coarse_levels - 1), 0).bit_length()):  # pointer jumping
+            np.take(root, root, out=root)
+        children = np.full((n, 3), -1, np.int64)
+        keys = parent[r:] * 3
+        keys += slot[r:]
+        children.reshape(-1)[keys] = np.arange(r, n)  # (parent, slot) pairs verified unique
+        R = h.record_size
+        raw = np.take(self._raw.data[:n].view(np.dtype((np.void, R))).ravel(), dec).view(np.uint8).reshape(n, R)
+        out = _carve(tuple((name, tail, dt) for name, tail, dt in _COLUMNS if name not in ("parent", "slot")), n)
+        if h.lossless:
+            rec = raw.view(LOSSLESS_DTYPE)[:, 0]
+            for name, dst in out.items():
+                dst[...] = rec[name]
+        else:
+            scratch = _decode_scratch(min(_RUN, n))
+            for c0 in range(0, n, _RUN):
+                _decode_quantised(
+                    raw[c0 : c0 + _RUN], {k: v[c0 : c0 + _RUN] for k, v in out.items()}, self._steps, scratch
+                )
+            if h.exceptions is not None:
+                idx, comp, val = h.exceptions
+                held = idx < n
+                _apply_exceptions(out, (pos[idx[held]], comp[held], val[held]), 0, n, sorted_idx=False)
         K = h.num_coarse_levels
         forest = Forest.from_verified(
             np.asarray(tmpl, np.int32),
             parent,
             slot,
-            cols["split_logits"][dec],
+            out["split_logits"],
             children,
             level,
             root,
@@ -740,7 +763,7 @@ class StreamReader:
             root_ref=self._root_ref.data[rpos].copy(),
             root_rank=rpos,
         )
-        return forest, [cols[name][dec] for name in PARAM_NAMES]
+        return forest, [out[name] for name in PARAM_NAMES]
 
     def _forest(self, tmpl, n) -> Forest:
         """The forest of the first n records, from the structure _check verified."""
@@ -781,14 +804,16 @@ class StreamReader:
         )
 
 
-def _apply_exceptions(cols, exceptions, a: int, b: int) -> None:
+def _apply_exceptions(cols, exceptions, a: int, b: int, sorted_idx: bool = True) -> None:
     """Version 4 (FORMAT.md 3.2): the exceptions of records a..b-1 replace their decoded
-    components with the exact values (vectorised per parameter, never per record)."""
+    components with the exact values (vectorised per parameter, never per record). With
+    ``sorted_idx`` False the indices are rows of `cols` already (any order, all kept)."""
     idx, comp, val = exceptions
-    i, j = np.searchsorted(idx, [a, b])
-    if i == j:
-        return
-    idx, comp, val = idx[i:j], comp[i:j], val[i:j]
+    if sorted_idx:
+        i, j = np.searchsorted(idx, [a, b])
+        if i == j:
+            return
+        idx, comp, val = idx[i:j], comp[i:j], val[i:j]
     for name, first, width in (("d_mu", 0, 3), ("d_log_scale", 3, 3), ("f_dc", 6, 3), ("d_rot", 9, 4)):
         sel = (comp >= first) & (comp < first + width)
         if sel.any():
