@@ -234,8 +234,9 @@ def write_stream(
     training settings (meta "config") stay out of the header (they are in the run folder):
     time to the first whole head counts. The run and data folders are named by their last
     component only: local paths do not travel with a shared file.
-    ``version=4`` writes the previous format (every root first), ``version=3`` the one before (min..max quantisation ranges, no exceptions table),
-    ``version=2`` the one before that (no coarse levels, roots in template order)."""
+    ``version=4`` writes the previous format (every root first, level by level), ``version=3``
+    the one before (min..max quantisation ranges, no exceptions table), ``version=2`` the one
+    before that (no coarse levels, roots in template order)."""
     forest = avatar.forest
     if avatar.sh_degree and not drop_sh:
         raise ValueError(
