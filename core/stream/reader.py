@@ -131,6 +131,24 @@ class _Columns:
         return self.cols[name][:n]
 
 
+def _claim(table: np.ndarray, keys: np.ndarray, ids: np.ndarray):
+    """Claim each key (a parent's child slot, a root row) for a record, stored as its index + 1
+    (0: free): scatter, read back. Returns None when every key was free and distinct, else the
+    position in `keys` of the first record whose key an earlier one (this batch or any before)
+    holds; then only the records before it keep their claims, so the kept prefix's forest keeps
+    every link (a duplicate would have overwritten its earlier twin's)."""
+    old = table.take(keys)
+    table[keys] = ids
+    if old.max() == 0 and (table.take(keys) == ids).all():
+        return None
+    first = np.zeros(len(keys), bool)
+    first[np.unique(keys, return_index=True)[1]] = True
+    j = int(np.argmax((old > 0) | ~first))
+    table[keys] = old
+    table[keys[:j]] = ids[:j]
+    return j
+
+
 def _block_seeds(header_crc: int, n: int) -> np.ndarray:
     """zlib.crc32(u32(header_crc) ‖ u32(i)) for every block index i < n, vectorised: over
     messages of a fixed length the CRC is affine over GF(2), so the CRC of index i is the
@@ -437,32 +455,16 @@ class StreamReader:
             keys = par[nr:k] * 3
             keys += slt[nr:k]
             ids = np.arange(i0 + nr + 1, i0 + k + 1, dtype=np.int32)  # stored as index + 1 (0: free)
-            child = self._child.reserve(3 * (i0 + k))
-            old = child.take(keys)
-            child[keys] = ids
-            if old.max() > 0 or (child.take(keys) != ids).any():
-                # The offender is a record whose key an earlier one (any batch) already holds.
-                first = np.zeros(len(keys), bool)
-                first[np.unique(keys, return_index=True)[1]] = True
-                k = nr + int(np.argmax((old > 0) | ~first))
+            j = _claim(self._child.reserve(3 * (i0 + k)), keys, ids)
+            if j is not None:
+                k = nr + j
                 problem = f"record {i0 + k} reuses the child slot of an earlier record"
-                # The scatter above also wrote the refused record and those after it: put the
-                # table back and claim only the kept records' slots, so the kept prefix's
-                # forest keeps every child link (the duplicate overwrote its earlier twin's).
-                child[keys] = old
-                child[keys[: k - nr]] = ids[: k - nr]
         if h.version >= 3 and min(k, nr):
-            # Each root row at most once: scatter, read back (as the child slots above).
-            m = min(k, nr)
+            m = min(k, nr)  # each root row at most once
             refs = par[:m].copy()
-            ids = np.arange(i0 + 1, i0 + m + 1, dtype=np.int32)
-            claim = self._root_claim.reserve(self._nroots)
-            old = claim.take(refs)
-            claim[refs] = ids
-            if old.max() > 0 or (claim.take(refs) != ids).any():
-                first = np.zeros(m, bool)
-                first[np.unique(refs, return_index=True)[1]] = True
-                k = int(np.argmax((old > 0) | ~first))
+            j = _claim(self._root_claim.reserve(self._nroots), refs, np.arange(i0 + 1, i0 + m + 1, dtype=np.int32))
+            if j is not None:
+                k = j
                 problem = f"record {i0 + k} names a root triangle an earlier record already holds"
             self._root_ref.reserve(i0 + m)[i0 : i0 + min(k, m)] = refs[: min(k, m)]
         if nr:
@@ -545,33 +547,17 @@ class StreamReader:
         if len(nz):
             keys = par[nz] * 3
             keys += slt[nz]
-            ids = (idx[nz] + 1).astype(np.int32)
-            child = self._child.reserve(3 * (i0 + k))
-            old = child.take(keys)
-            child[keys] = ids
-            if old.max() > 0 or (child.take(keys) != ids).any():
-                first = np.zeros(len(keys), bool)
-                first[np.unique(keys, return_index=True)[1]] = True
-                j = int(np.argmax((old > 0) | ~first))
+            j = _claim(self._child.reserve(3 * (i0 + k)), keys, (idx[nz] + 1).astype(np.int32))
+            if j is not None:
                 k = int(nz[j])
                 problem = f"record {i0 + k} reuses the child slot of an earlier record"
-                child[keys] = old
-                child[keys[:j]] = ids[:j]
         rz = np.flatnonzero(root[:k])
         if len(rz):
             refs = par[rz].copy()
-            ids = (idx[rz] + 1).astype(np.int32)
-            claim = self._root_claim.reserve(h.num_roots)
-            old = claim.take(refs)
-            claim[refs] = ids
-            if old.max() > 0 or (claim.take(refs) != ids).any():
-                first = np.zeros(len(refs), bool)
-                first[np.unique(refs, return_index=True)[1]] = True
-                j = int(np.argmax((old > 0) | ~first))
+            j = _claim(self._root_claim.reserve(h.num_roots), refs, (idx[rz] + 1).astype(np.int32))
+            if j is not None:
                 k = int(rz[j])
                 problem = f"record {i0 + k} names a root triangle an earlier record already holds"
-                claim[refs] = old
-                claim[refs[:j]] = ids[:j]
                 rz = rz[:j]
             self._root_ref.reserve(i1)[i0 + rz] = refs[: len(rz)]
         self._isroot.reserve(i1)[i0 : i0 + k] = root[:k]
