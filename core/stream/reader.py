@@ -435,10 +435,7 @@ class StreamReader:
             # A root names a row of the root table in its own level's row range (the table's
             # rows are grouped like the root records: coarse levels, then the template).
             bad[:nr] |= slt[:nr] != 0
-            for lv in range(bisect.bisect_right(starts, i0) - 1, bisect.bisect_right(starts, i0 + nr - 1)):
-                x, y = max(starts[lv], i0) - i0, min(starts[lv + 1], i0 + nr) - i0
-                off = np.subtract(par[x:y], starts[lv])
-                bad[x:y] |= off.view(np.uint64) >= np.uint64(starts[lv + 1] - starts[lv])
+            self._check_lead_rows(i0, nr, par, bad)
         # A non-root's parent lies in the previous level's index range (so before the child).
         l_first = bisect.bisect_right(starts, i0 + nr) - 1
         l_last = bisect.bisect_right(starts, i1 - 1) - 1
@@ -473,6 +470,18 @@ class StreamReader:
         self._cols.valid["parent"] = self._cols.valid["slot"] = i0 + k
         return k, problem
 
+    def _check_lead_rows(self, i0, nr, par, bad, lev=None) -> None:
+        """The batch's first nr records (from i0) lie in the lead, roots by position: each names a
+        row of its own level's range of the root table (rows are grouped like the lead's records).
+        Marks those that do not in `bad`; stores each record's level in `lev` when given."""
+        starts = self._starts_list
+        for lv in range(bisect.bisect_right(starts, i0) - 1, bisect.bisect_right(starts, i0 + nr - 1)):
+            x, y = max(starts[lv], i0) - i0, min(starts[lv + 1], i0 + nr) - i0
+            off = np.subtract(par[x:y], starts[lv])
+            bad[x:y] |= off.view(np.uint64) >= np.uint64(starts[lv + 1] - starts[lv])
+            if lev is not None:
+                lev[i0 + x : i0 + y] = lv
+
     def _check_range_v5(self, i0: int, i1: int):
         """Version 5 structure (FORMAT.md 3): the lead records (coarse levels) by position as in
         version 4; after them each record is a root (its flag set, a template row) or names
@@ -501,12 +510,8 @@ class StreamReader:
         lev = self._lev.reserve(i1)
         nr = max(0, min(n, self._nroots - i0))  # lead records in this batch: roots by position
         bad[:nr] |= ~root[:nr]
-        lead_levels = range(bisect.bisect_right(starts, i0) - 1, bisect.bisect_right(starts, i0 + nr - 1)) if nr else ()
-        for lv in lead_levels:
-            x, y = max(starts[lv], i0) - i0, min(starts[lv + 1], i0 + nr) - i0
-            off = np.subtract(par[x:y], starts[lv])
-            bad[x:y] |= off.view(np.uint64) >= np.uint64(starts[lv + 1] - starts[lv])
-            lev[i0 + x : i0 + y] = lv
+        if nr:
+            self._check_lead_rows(i0, nr, par, bad, lev)
         late = root.copy()
         late[:nr] = False  # roots after the lead: template faces (rows of level K)
         if K:
@@ -614,23 +619,24 @@ class StreamReader:
         cols = self._reserve_cols(b)  # (may reset _decoded after a hand-out)
         a = self._decoded
         if b > a:
-            raw = self._raw.data[a:b]
-            out = {name: cols[name][a:b] for name in PARAM_NAMES + ("split_logits",)}
-            if self.header.lossless:
-                rec = raw.view(LOSSLESS_DTYPE)[:, 0]
-                for name, dst in out.items():
-                    dst[...] = rec[name]
-            else:
-                scratch = _decode_scratch(min(_RUN, b - a))
-                for c0 in range(0, b - a, _RUN):  # cache-sized runs: small, reused temporaries
-                    _decode_quantised(
-                        raw[c0 : c0 + _RUN], {k: v[c0 : c0 + _RUN] for k, v in out.items()}, self._steps, scratch
-                    )
-                if self.header.exceptions is not None:
-                    _apply_exceptions(cols, self.header.exceptions, a, b)
+            self._decode_rows(self._raw.data[a:b], {name: cols[name][a:b] for name in PARAM_NAMES + ("split_logits",)})
+            if self.header.exceptions is not None:
+                _apply_exceptions(cols, self.header.exceptions, a, b)
         for name in PARAM_NAMES + ("split_logits",):
             self._cols.valid[name] = b
         self._decoded = b
+
+    def _decode_rows(self, raw, out: dict) -> None:
+        """Record bytes raw [n,R] into the float32 columns of `out` (exceptions not applied)."""
+        if self.header.lossless:
+            rec = raw.view(LOSSLESS_DTYPE)[:, 0]
+            for name, dst in out.items():
+                dst[...] = rec[name]
+            return
+        n = len(raw)
+        scratch = _decode_scratch(min(_RUN, n))
+        for c0 in range(0, n, _RUN):  # cache-sized runs: small, reused temporaries
+            _decode_quantised(raw[c0 : c0 + _RUN], {k: v[c0 : c0 + _RUN] for k, v in out.items()}, self._steps, scratch)
 
     @property
     def _steps(self):
@@ -721,20 +727,11 @@ class StreamReader:
         R = h.record_size
         raw = np.take(self._raw.data[:n].view(np.dtype((np.void, R))).ravel(), dec).view(np.uint8).reshape(n, R)
         out = _carve(tuple((name, tail, dt) for name, tail, dt in _COLUMNS if name not in ("parent", "slot")), n)
-        if h.lossless:
-            rec = raw.view(LOSSLESS_DTYPE)[:, 0]
-            for name, dst in out.items():
-                dst[...] = rec[name]
-        else:
-            scratch = _decode_scratch(min(_RUN, n))
-            for c0 in range(0, n, _RUN):
-                _decode_quantised(
-                    raw[c0 : c0 + _RUN], {k: v[c0 : c0 + _RUN] for k, v in out.items()}, self._steps, scratch
-                )
-            if h.exceptions is not None:
-                idx, comp, val = h.exceptions
-                held = idx < n
-                _apply_exceptions(out, (pos[idx[held]], comp[held], val[held]), 0, n, sorted_idx=False)
+        self._decode_rows(raw, out)
+        if h.exceptions is not None:
+            idx, comp, val = h.exceptions
+            held = idx < n
+            _apply_exceptions(out, (pos[idx[held]], comp[held], val[held]), 0, n, sorted_idx=False)
         K = h.num_coarse_levels
         forest = Forest.from_verified(
             np.asarray(tmpl, np.int32),
