@@ -312,9 +312,15 @@ def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.
             if pool.learn(used, len(bufs[0]), W * H, 1):
                 break
         mark("raster_forward")
+        slots = ()
+        if hasattr(rk, "backward_slots"):  # kernels that take the per-pair scratch from the caller
+            from progressive_avatars.core.render.rasterize import _scratch
+
+            slot_start = rk.backward_slots(tile_start, last, W, H, tiles_x)
+            slots = (slot_start, _scratch.take(rk.scratch_entries(slot_start, colors.shape[1])))
         grads, _ = rk.raster_backward(
             tile_start, ids, xy, conic, opac, colors, bg, t_final, last,
-            grad_image[None], grad_alpha[None], W, H, tiles_x, *bufs, rec_start, rec_n,
+            grad_image[None], grad_alpha[None], W, H, tiles_x, *bufs, rec_start, rec_n, *slots,
         )  # fmt: skip
         pool.give(bufs)
     else:

@@ -476,6 +476,17 @@ def test_backward_replays_the_forwards_record_whatever_its_buffers(monkeypatch):
     for name, a, b, c in zip(NAMES, tight, roomy, ref):
         assert torch.equal(a, b), name
         assert rel_err(a, c.grad) <= 1e-3, name
+    # The backward's per-pair scratch is kept between calls: one too small grows, one left dirty
+    # by an earlier backward (here NaN everywhere) is cleared where it is used.
+    kept = rz._Scratch()
+    kept.array = np.full(5, np.nan)
+    monkeypatch.setattr(rz, "_scratch", kept)
+    for name, a, b in zip(NAMES, grads(), roomy):
+        assert torch.equal(a, b), name
+    assert len(kept.array) > 5
+    kept.array[:] = np.nan
+    for name, a, b in zip(NAMES, grads(), roomy):
+        assert torch.equal(a, b), name
     # Two renders alive at once (views per step > 1), the second of other Gaussians.
     a, b = leaves(params), leaves(params)
     with torch.no_grad():

@@ -331,54 +331,43 @@ def bin_tiles(rect, order, tiles_x, tiles_y):
 
 
 @njit(cache=True)
-def _alpha_g(o, power, gauss, cut):
-    """Alpha of one Gaussian at one pixel, exp(power) and whether alpha was clamped; 0 when
-    skipped. ``power`` = -(ca dx^2 + cc dy^2)/2 - cb dx dy and ``gauss`` its exp, stepped
-    along the row (see _row_start). ``cut`` = -ln(255 o): below it alpha < 1/255."""
-    if power < cut or power > 0.0:
-        return 0.0, 0.0, False
-    alpha = o * gauss
-    if alpha < ALPHA_MIN:
-        return 0.0, gauss, False
-    if alpha > ALPHA_MAX:
-        return ALPHA_MAX, gauss, True
-    return alpha, gauss, False
-
-
-@njit(cache=True)
 def _row_start(dy, u, ca, cb, cc, a):
-    """power, its step to the next column, exp of both at column a of a row.
+    """exp(power) at column a of a row and exp(step), step = power(a + 1) - power(a).
 
-    Along a row power is quadratic in dx, so power(dx + 1) = power(dx) + step with step
-    falling by ca per column, and exp(power) follows as gauss *= exp(step), exp(step) *=
-    exp(-ca): three exps per row instead of one per pixel. With eps2d > 0 the conic is
-    bounded (ca <= 1/eps2d) and a chord stays inside one tile, so nothing overflows; the
-    product drifts by a few ulps over a tile row. Only the forward walks rows: the backward
-    replays the values it recorded.
+    Along a row power = -(ca dx^2 + cc dy^2)/2 - cb dx dy is quadratic in dx, so the step falls
+    by ca per column and exp(power) follows as gauss *= exp(step), exp(step) *= exp(-ca): two
+    exps per row (and exp(-ca) per Gaussian) instead of one per pixel. With eps2d > 0 the conic
+    is bounded (ca <= 1/eps2d) and a chord stays inside one tile, so nothing overflows; the
+    product drifts by a few ulps over a tile row. power <= 0 for a positive definite conic, so
+    alpha = o * exp(power) < 1/255 is the whole cut-off test. Only the forward walks rows: the
+    backward replays the values it recorded.
     """
     p_base = -0.5 * cc * dy * dy
     p_lin = -cb * dy
     dx = a + 0.5 - u
     power = p_base + dx * (p_lin - 0.5 * ca * dx)
     step = p_lin - ca * dx - 0.5 * ca
-    return power, step, math.exp(power), math.exp(step)
+    return math.exp(power), math.exp(step)
 
 
 @njit(cache=True)
-def _row_span(dy, u, ca, cb, cc, cut, i0, i1):
+def _row_span(dy, half_u, cb, inv_ca, d_conic, e_cut, i0, i1):
     """Columns of one pixel row whose centres lie on the ellipse's chord power >= cut, within
     [i0, i1]; empty when first > last. Bounding boxes of thin, tilted splats are mostly empty,
-    so this trims the work per row; the per-pixel alpha test stays authoritative."""
-    # power >= cut  <=>  ca dx^2 + 2 cb dy dx + cc dy^2 + 2 cut <= 0, dx = i + 0.5 - u.
-    half_b = cb * dy
-    disc = half_b * half_b - ca * (cc * dy * dy + 2.0 * cut)
+    so this trims the work per row; the per-pixel alpha test stays authoritative.
+
+    power >= cut  <=>  ca dx^2 + 2 cb dy dx + cc dy^2 + 2 cut <= 0, dx = i + 0.5 - u, whose
+    roots are dx = (-cb dy -+ sqrt(dy^2 (cb^2 - ca cc) - 2 ca cut)) / ca. The caller passes the
+    per-Gaussian constants half_u = u - 0.5, inv_ca = 1/ca, d_conic = cb^2 - ca cc and
+    e_cut = -2 ca cut, which leaves one sqrt and no division per row."""
+    disc = dy * dy * d_conic + e_cut
     if not disc >= 0.0:  # also NaN
         return i0, i0 - 1
     root = math.sqrt(disc)
-    lo = (-half_b - root) / ca + u - 0.5 - 1e-6
-    hi = (-half_b + root) / ca + u - 0.5 + 1e-6
-    lo = max(lo, i0 - 1.0)
-    hi = min(hi, i1 + 1.0)
+    mid = half_u - cb * dy * inv_ca
+    half = root * inv_ca + 1e-6
+    lo = max(mid - half, i0 - 1.0)
+    hi = min(mid + half, i1 + 1.0)
     return max(i0, int(math.ceil(lo))), min(i1, int(math.floor(hi)))
 
 
@@ -458,6 +447,10 @@ def _forward_tile(
         o = opacities[g]
         c_g = cut[g]
         e_ca = -1.0  # exp(-ca), computed on the first row walked
+        inv_ca = 1.0 / ca
+        d_conic = cb * cb - ca * cc
+        e_cut = -2.0 * ca * c_g
+        half_u = u - 0.5
         wsum = 0.0
         first = pos
         c0 = colors[g, 0]
@@ -468,7 +461,7 @@ def _forward_tile(
             if active[r] == 0:
                 continue
             dy = j + 0.5 - v
-            a, b = _row_span(dy, u, ca, cb, cc, c_g, i0, i1)
+            a, b = _row_span(dy, half_u, cb, inv_ca, d_conic, e_cut, i0, i1)
             if a > b:
                 continue
             live = active[r] & (((1 << (b + 1 - x0)) - 1) ^ ((1 << (a - x0)) - 1))
@@ -484,20 +477,20 @@ def _forward_tile(
             pix = r * TILE - x0
             if pos >= 0 and pos + (b + 1 - a) > cap_end:
                 pos = -1  # the record cannot hold this row: the caller runs the forward again
-            power, step, gauss, e_step = _row_start(dy, u, ca, cb, cc, a)
+            gauss, e_step = _row_start(dy, u, ca, cb, cc, a)
             for i in range(a, b + 1):
                 p = row + i
-                pw = power
                 gs = gauss
-                power += step
-                step -= ca
                 gauss *= e_step
                 e_step *= e_ca
                 if not (live >> (i - x0)) & 1:  # stopped before this Gaussian
                     continue
-                alpha, _, clamped = _alpha_g(o, pw, gs, c_g)
-                if alpha == 0.0:
+                alpha = o * gs
+                if not alpha >= ALPHA_MIN:
                     continue
+                clamped = alpha > ALPHA_MAX
+                if clamped:
+                    alpha = ALPHA_MAX
                 Tp = T[p]
                 t_next = Tp * (1.0 - alpha)
                 if t_next < T_MIN:
@@ -816,6 +809,33 @@ def _replay_tile(
             geo_isect[s, _GEO_U_LAST + 1] += gv
 
 
+def scratch_entries(slot_start, n_ch: int) -> int:
+    """Size of raster_backward's scratch for the slots of backward_slots() and n_ch colours."""
+    return int(slot_start[-1]) * (_GEO_WIDTH + n_ch)
+
+
+@njit(cache=True)
+def backward_slots(tile_start, last, width, height, tiles_x):
+    """Where each tile's pairs keep their gradient sums in raster_backward's scratch: slot
+    slot_start[t] + (k - tile_start[t]) for pair k of tile t. Only pairs up to the last index a
+    tile's pixels composited (in any image of ``last`` [L, H, W]) get a slot (less than half of
+    all pairs on a head). Returns slot_start [T + 1] (its last entry: the number of slots)."""
+    n_tiles = tile_start.shape[0] - 1
+    slot_start = np.empty(n_tiles + 1, np.int64)
+    n_slots = 0
+    for t in range(n_tiles):
+        x0, y0, x1, y1 = _tile_bounds(t, tiles_x, width, height)
+        k_last = tile_start[t] - 1
+        for im in range(last.shape[0]):
+            for j in range(y0, y1):
+                for i in range(x0, x1):
+                    k_last = max(k_last, last[im, j, i])
+        slot_start[t] = n_slots
+        n_slots += k_last + 1 - tile_start[t]
+    slot_start[n_tiles] = n_slots
+    return slot_start
+
+
 @njit(parallel=_PARALLEL, cache=True)
 def raster_backward(
     tile_start,
@@ -836,6 +856,8 @@ def raster_backward(
     rec_pix,
     rec_start,
     rec_n,
+    slot_start,
+    scratch,
 ):
     """Back-to-front pass per pixel (3DGS) over the pairs the forward recorded (raster_forward's
     record, complete): from the saved final T, T before Gaussian i is T_after / (1 - alpha_i),
@@ -851,34 +873,29 @@ def raster_backward(
     Images are those of raster_forward (t_final, last, grad_image, grad_alpha, rec_start and
     rec_n carry a leading level axis); their gradients add up. Returns per-Gaussian gradients
     [N, 6 + C + 2] (layout G_*, then d/du, d/dv of the last image alone) and d/dbackground [C].
+
+    ``slot_start`` is backward_slots(); ``scratch`` (float64, at least slot_start[-1] *
+    (_GEO_WIDTH + C) entries, else one is allocated) holds the per-pair sums: the caller keeps
+    it between calls because a fresh array of that size (tens of MB at 802x550) is page-faulted
+    in on every call.
     """
     n = xy.shape[0]
     n_ch = colors.shape[1]
     n_tiles = tile_start.shape[0] - 1
     n_img = t_final.shape[0]
     width_g = G_COLOR + n_ch + 2
-    # Only pairs up to the last index a tile's pixels composited (in any image) get gradients:
-    # give the per-pair buffers a row for those alone (less than half of all pairs on a head),
-    # split in two so that each stays under glibc's 32 MB mmap ceiling and is reused from the
-    # heap instead of being page-faulted in afresh on every call (that cost ~100 ms at 802x550).
-    k_end = tile_start[:-1].copy()
-    for im in range(n_img):
-        for j in range(height):
-            for i in range(width):
-                t = (j // TILE) * tiles_x + i // TILE
-                k_end[t] = max(k_end[t], last[im, j, i] + 1)
-    slot_start = np.empty(n_tiles + 1, np.int64)
-    n_slots = 0
-    for t in range(n_tiles):
-        slot_start[t] = n_slots
-        n_slots += k_end[t] - tile_start[t]
-    slot_start[n_tiles] = n_slots
-    geo_isect = np.zeros((n_slots, _GEO_WIDTH))
-    col_isect = np.zeros((n_slots, n_ch))
+    n_slots = slot_start[n_tiles]
+    per_slot = _GEO_WIDTH + n_ch
+    if scratch.shape[0] < n_slots * per_slot:
+        scratch = np.empty(n_slots * per_slot)
+    geo_isect = scratch[: n_slots * _GEO_WIDTH].reshape((n_slots, _GEO_WIDTH))
+    col_isect = scratch[n_slots * _GEO_WIDTH : n_slots * per_slot].reshape((n_slots, n_ch))
     gbg_tile = np.zeros((n_tiles, n_ch))
     spread = _spread_tiles(n_tiles, tiles_x)
     for it in prange(n_tiles):
         t = spread[it]
+        geo_isect[slot_start[t] : slot_start[t + 1]] = 0.0
+        col_isect[slot_start[t] : slot_start[t + 1]] = 0.0
         T = np.empty(TILE * TILE)
         behind = np.empty((TILE * TILE, n_ch))
         gimg = np.empty((TILE * TILE, n_ch))
@@ -919,7 +936,7 @@ def raster_backward(
     grads = np.zeros((n, width_g))
     for t in range(n_tiles):  # pair order, as before: a Gaussian's tiles add up in tile order
         s0 = slot_start[t] - tile_start[t]
-        for k in range(tile_start[t], k_end[t]):
+        for k in range(tile_start[t], tile_start[t] + slot_start[t + 1] - slot_start[t]):
             g = ids[k]
             for q in range(G_COLOR):
                 grads[g, q] += geo_isect[s0 + k, q]

@@ -169,6 +169,22 @@ class _RecordBuffers:
 _record_buffers = _RecordBuffers()
 
 
+class _Scratch:
+    """One float64 array kept for raster_backward's per-pair sums (see its docstring), grown by a
+    quarter more than asked when too small. Not thread-safe; neither are the record buffers."""
+
+    def __init__(self):
+        self.array = np.empty(0)
+
+    def take(self, size: int) -> np.ndarray:
+        if len(self.array) < size:
+            self.array = np.empty(int(size * 1.25))
+        return self.array
+
+
+_scratch = _Scratch()
+
+
 def _cpu_forward(
     means,
     quats,
@@ -256,6 +272,8 @@ def _cpu_backward(state, means, quats, scales, opacities, camera, eps2d, grad_im
     tiles_x, _ = _tiles(camera)
     if state["rec"] is None:
         raise RuntimeError("rasteriser backward: the forward kept no record (a second backward through one render?)")
+    slot_start = rk.backward_slots(state["tile_start"], state["last"], camera.width, camera.height, tiles_x)
+    scratch = _scratch.take(rk.scratch_entries(slot_start, state["colors"].shape[1]))
     grads, g_bg = rk.raster_backward(
         state["tile_start"],
         state["ids"],
@@ -272,6 +290,8 @@ def _cpu_backward(state, means, quats, scales, opacities, camera, eps2d, grad_im
         camera.height,
         tiles_x,
         *state["rec"],
+        slot_start,
+        scratch,
     )
     _record_buffers.give(state["rec"][:2])  # back to the pool for the next forward
     state["rec"] = None
