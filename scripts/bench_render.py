@@ -38,6 +38,11 @@ import numpy as np  # noqa: E402
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
+# The float64 record of kernels before 2026-11-24 (rasterize.py's pool holds float32 ones), kept
+# between calls as the pool keeps its own.
+_OLD_RECORD = np.empty(0)
+
+
 def head_scene(n, seed=0):
     """Gaussians on an ellipsoid (semi-axes ~0.1 m) facing +z, scales 1-3 mm, like a real avatar."""
     rng = np.random.default_rng(seed)
@@ -298,7 +303,8 @@ def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.
     tile_start, ids = rk.bin_tiles(rect, order, tiles_x, -(-H // rk.TILE))
     mark("bin_tiles")
     glevel, upto = np.zeros(len(means), np.int64), np.zeros(1, np.int64)
-    if "rec_gauss" in inspect.signature(rk.raster_forward.py_func).parameters:
+    record_args = inspect.signature(rk.raster_forward.py_func).parameters
+    if "rec_keep" in record_args or "rec_gauss" in record_args:
         # Kernels whose backward replays the forward's record: rasterize.py's buffer pool, as in
         # training (steady state: reused buffers, no re-run).
         from progressive_avatars.core.render.rasterize import _record_buffers as pool
@@ -306,8 +312,14 @@ def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.
         chunks = numba.get_num_threads()
         while True:
             bufs = pool.take(W * H, 1, chunks)
+            if "rec_gauss" in record_args:  # kernels before 2026-11-24 recorded exp(power) in float64
+                if len(_OLD_RECORD) != len(bufs[0]):
+                    _OLD_RECORD.resize(len(bufs[0]), refcheck=False)
+                run_bufs = (_OLD_RECORD, bufs[1])
+            else:
+                run_bufs = bufs
             image, t_final, last, _, (rec_start, rec_n, used) = rk.raster_forward(
-                tile_start, ids, xy, conic, opac, cut, colors, rect, bg, W, H, tiles_x, glevel, upto, chunks, *bufs
+                tile_start, ids, xy, conic, opac, cut, colors, rect, bg, W, H, tiles_x, glevel, upto, chunks, *run_bufs
             )
             if pool.learn(used, len(bufs[0]), W * H, 1):
                 break
@@ -320,7 +332,7 @@ def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.
             slots = (slot_start, _scratch.take(rk.scratch_entries(slot_start, colors.shape[1])))
         grads, _ = rk.raster_backward(
             tile_start, ids, xy, conic, opac, colors, bg, t_final, last,
-            grad_image[None], grad_alpha[None], W, H, tiles_x, *bufs, rec_start, rec_n, *slots,
+            grad_image[None], grad_alpha[None], W, H, tiles_x, *run_bufs, rec_start, rec_n, *slots,
         )  # fmt: skip
         pool.give(bufs)
     else:

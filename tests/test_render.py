@@ -206,7 +206,8 @@ def test_contrib_is_gradient_of_image_wrt_constant_colour():
     probe = torch.zeros(len(params[0]), 1, dtype=torch.float64, requires_grad=True)
     out = render(*params[:4], probe, cam)
     out.image.sum().backward()
-    assert torch.allclose(out.contrib, probe.grad[:, 0], rtol=1e-9, atol=1e-12)
+    # The forward sums alpha*T in float64; the backward replays 1 - alpha rounded to float32.
+    assert torch.allclose(out.contrib, probe.grad[:, 0], rtol=1e-6, atol=1e-9)
     assert not out.contrib.requires_grad
     assert float(out.contrib.sum()) > 0
     culled = out.radii == 0

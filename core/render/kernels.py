@@ -1,6 +1,7 @@
 """Numba CPU kernels of the tile rasteriser: projection, tile binning, compositing, backward.
 
-Every kernel works on float64 numpy arrays (the caller converts once): the per-pixel work is
+Every kernel computes in float64 (the caller converts once; only the forward's record of
+composited pairs is float32, see raster_forward): the per-pixel work is
 scalar code that does not vectorise, so float64 costs little and keeps the hand-written
 backward close to a float64 reference. Rules shared with gsplat and the dense test
 reference (core/render/reference.py), which must stay in step with this file:
@@ -29,7 +30,7 @@ tiles are interleaved first (_spread_tiles) so that each static share sees all o
 Work per tile is trimmed twice: each Gaussian visits only the chord of its ellipse on each
 row (not its bounding box), cut to the pixels still compositing (per-row bit masks; rows
 whose pixels have all stopped are skipped). The backward walks nothing: the forward records
-every composited (Gaussian, pixel) pair with its exp(power), and the backward replays those
+every composited (Gaussian, pixel) pair with its 1 - alpha, and the backward replays those
 pairs back to front (raster_forward's record, raster_backward).
 """
 
@@ -403,7 +404,7 @@ def _forward_tile(
     last,
     glevel,
     upto,
-    rec_gauss,
+    rec_keep,
     rec_pix,
     rec_start,
     rec_n,
@@ -498,7 +499,7 @@ def _forward_tile(
                     n_done += 1
                     continue
                 if pos >= 0:
-                    rec_gauss[pos] = -1.0 if clamped else gs
+                    rec_keep[pos] = -1.0 if clamped else 1.0 - alpha
                     rec_pix[pos] = pix + i
                     pos += 1
                 w = alpha * Tp
@@ -564,7 +565,7 @@ def raster_forward(
     glevel,
     upto,
     n_chunks,
-    rec_gauss,
+    rec_keep,
     rec_pix,
     pix_weight=None,
 ):
@@ -577,10 +578,13 @@ def raster_forward(
     the per-Gaussian contribution sum_pixels alpha*T of the last image (each pixel weighted by
     ``pix_weight`` [H, W] when given), and the record.
 
-    The record (when rec_gauss and rec_pix, the caller's buffers, are not empty) lists every
-    composited (pair, pixel), for raster_backward:
-    exp(power) (-1 where alpha was clamped) and the pixel (row * TILE + column in the tile),
-    pair k of image l at entries rec_start[l, k] .. + rec_n[l, k]. The backward replays the
+    The record (when rec_keep and rec_pix, the caller's buffers, are not empty) lists every
+    composited (pair, pixel), for raster_backward: 1 - alpha, the share of light the pair lets
+    through (-1 where alpha was clamped to 0.99), and the pixel (row * TILE + column in the
+    tile), pair k of image l at entries rec_start[l, k] .. + rec_n[l, k]. rec_keep may be
+    float32 (rasterize.py's buffers are): rounding 1 - alpha rather than alpha keeps the
+    backward's T_before = T_after / (1 - alpha) within one float32 rounding per layer however
+    opaque the layer. The backward replays the
     pairs instead of walking the ellipses again (no chords, exps or skipped pixels), so the
     forward is free to trim its walk. The tiles are cut into ``n_chunks`` static shares, one
     per thread, each filling its own slice of the buffers; ``used`` gives the entries each
@@ -596,7 +600,7 @@ def raster_forward(
     contrib_isect = np.zeros(ids.shape[0])  # pairs after a tile's early exit stay 0
     no_contrib = np.zeros(0)
     pw = np.zeros((0, 0)) if pix_weight is None else pix_weight
-    chunk_cap = min(rec_gauss.shape[0], rec_pix.shape[0]) // n_chunks
+    chunk_cap = min(rec_keep.shape[0], rec_pix.shape[0]) // n_chunks
     rec = chunk_cap > 0
     rec_start = np.zeros((n_img, ids.shape[0] if rec else 0), np.int64)
     rec_n = np.zeros((n_img, ids.shape[0] if rec else 0), np.int32)
@@ -637,7 +641,7 @@ def raster_forward(
                     last[im],
                     glevel,
                     upto[im],
-                    rec_gauss,
+                    rec_keep,
                     rec_pix,
                     rec_start[im],
                     rec_n[im],
@@ -680,15 +684,14 @@ def _replay_tile(
     col_isect,
     slot,
     gbg,
-    rec_gauss,
+    rec_keep,
     rec_pix,
     rec_start,
     rec_n,
     finest,
 ):
-    """_backward_tile from the forward's record of the tile: the same pairs, pixels and
-    operations in the same order (a Gaussian's pixels row by row, each row summed before it is
-    added), so the sums are bitwise those of the recomputation."""
+    """The backward of one tile from the forward's record: the pairs the forward composited, back
+    to front per pixel, a Gaussian's pixels row by row (each row summed before it is added)."""
     n_ch = colors.shape[1]
     x0, y0, x1, y1 = _tile_bounds(t, tiles_x, width, height)
     tw = x1 - x0
@@ -751,11 +754,15 @@ def _replay_tile(
                 s1 = 0.0
                 s2 = 0.0
             p = r * tw + col
-            gauss = rec_gauss[e]
-            clamped = gauss < 0.0
-            alpha = ALPHA_MAX if clamped else o * gauss
+            keep = np.float64(rec_keep[e])
+            clamped = keep < 0.0
+            if clamped:
+                alpha = ALPHA_MAX
+                keep = 1.0 - ALPHA_MAX
+            else:
+                alpha = 1.0 - keep
             dx = (x0 + col) + 0.5 - u
-            inv = 1.0 / (1.0 - alpha)
+            inv = 1.0 / keep
             T_before = T[p] * inv
             w = alpha * T_before
             g_a = galpha[p] * inv
@@ -780,8 +787,8 @@ def _replay_tile(
             T[p] = T_before
             if clamped:
                 continue
-            go += gauss * g_a
-            g_pow = alpha * g_a
+            g_pow = alpha * g_a  # d/dpower; d/dopacity is g_pow / o
+            go += g_pow
             s0 += g_pow
             g_dx = g_pow * dx
             s1 += g_dx
@@ -791,6 +798,7 @@ def _replay_tile(
         gca -= 0.5 * s2
         gcb -= dy * s1
         gcc -= 0.5 * dy * dy * s0
+        go /= o
         if n_ch == 3:
             gcol[0] = gc0
             gcol[1] = gc1
@@ -852,7 +860,7 @@ def raster_backward(
     width,
     height,
     tiles_x,
-    rec_gauss,
+    rec_keep,
     rec_pix,
     rec_start,
     rec_n,
@@ -927,7 +935,7 @@ def raster_backward(
                 col_isect,
                 slot_start[t] - tile_start[t],
                 gbg_tile[t],
-                rec_gauss,
+                rec_keep,
                 rec_pix,
                 rec_start[im],
                 rec_n[im],

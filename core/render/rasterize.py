@@ -152,7 +152,7 @@ class _RecordBuffers:
             if len(g) >= size:
                 del self.free[i]
                 return g, p
-        return np.empty(size), np.empty(size, np.uint8)
+        return np.empty(size, np.float32), np.empty(size, np.uint8)  # see rk.raster_forward's record
 
     def learn(self, used: np.ndarray, size: int, pixels: int, n_img: int) -> bool:
         """Whether the record was complete; sizes the next call either way."""
@@ -225,7 +225,11 @@ def _cpu_forward(
         background = np.concatenate([background, [0.0]])
     n_chunks = numba.get_num_threads()
     while True:
-        bufs = _record_buffers.take(W * H, len(upto), n_chunks) if record else (np.empty(0), np.empty(0, np.uint8))
+        bufs = (
+            _record_buffers.take(W * H, len(upto), n_chunks)
+            if record
+            else (np.empty(0, np.float32), np.empty(0, np.uint8))
+        )
         image, t_final, last, contrib, (rec_start, rec_n, used) = rk.raster_forward(
             tile_start,
             ids,
