@@ -61,6 +61,12 @@ def test_run_paper_table_small(tmp_path):
     # Table 3: the finest-only run scored at 35 % of its own stream
     f = r["ablations"]["finest_only_35"]
     assert f["finest_only"]["gaussians"] > 0 and np.isfinite(f["finest_only"]["psnr"])
+    short = r["ablations"]["finest_only_short"]
+    assert list(short) == ["5", "10", "25"]
+    for run in ("multi_level", "finest_only"):  # each cut at its own share of its own stream
+        counts = [short[b][run]["gaussians"] for b in short] + [f[run]["gaussians"]]
+        assert counts == sorted(counts) and counts[-1] > 0, (run, counts)
+        assert all(np.isfinite(short[b][run]["psnr"]) for b in short), run
     # adaptive vs uniform: both seeds, the same Gaussian count on both sides
     vs = r["adaptive_vs_uniform"]
     assert vs["n"] == 2 and [p["seed"] for p in vs["pairs"]] == [0, 1]

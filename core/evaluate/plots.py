@@ -860,6 +860,11 @@ def paper_table_markdown(r: dict) -> str:
         )
     else:
         lines.append("| 35 %: finest level only | not run (no --finest-only) | 29.87 / 20.06 |")
+    for b, f in t3.get("finest_only_short", {}).items():  # not in the paper's table
+        lines.append(
+            f"| {b} %: multi-level supervision / finest level only | {f['multi_level']:.2f} / "
+            f"{f['finest_only']:.2f} | no number |"
+        )
     ro = t3["random_order_25"]
     lines.append(
         f"| 25 %: importance-ranked / random within levels | {ro['ranked']:.2f} / {ro['random']:.2f} | "

@@ -185,6 +185,11 @@ def paper_table(report: dict) -> dict:
             "finest_only": f["finest_only"]["psnr"],
             "paper": (PAPER_TABLE3["mls_35"], PAPER_TABLE3["finest_only_35"]),
         }
+    if "finest_only_short" in a:
+        t3["finest_only_short"] = {
+            b: {"multi_level": f["multi_level"]["psnr"], "finest_only": f["finest_only"]["psnr"]}
+            for b, f in a["finest_only_short"].items()
+        }
     T = PAPER_TARGETS
     checks = {}
 
