@@ -236,6 +236,66 @@ def test_seed_groups():
     assert pairs[0]["diffs"] == pytest.approx([0.5, 1.0]) and pairs[0]["mean"] == pytest.approx(0.75)
     assert pairs[0]["sd"] == pytest.approx(np.std([0.5, 1.0], ddof=1))
 
+    # Legend entries: one per seed group, counting this run (drawn in black) among its seeds.
+    from progressive_avatars.core.evaluate.plots import _group_styles
+
+    st = _group_styles(["a_seed1", "a_seed2", "b", "b_seed1", "c"], also=["a"])
+    assert st["a_seed1"][1] == "a (3 seeds, this run in black)" and st["a_seed2"] == (st["a_seed1"][0], None)
+    assert st["b"][1] == "b (2 seeds)" and st["c"][1] == "c" and st["b"][0] != st["a_seed1"][0]
+
+
+def test_done_when_over_seeds():
+    """The 5 % gap and the coverage from 2 % on every seed's own stream, and the coarse levels'
+    cost as the mean of the per-seed differences (one seed at the line does not settle it)."""
+    from progressive_avatars.core.evaluate.plots import done_when, seed_pairs
+
+    def short(p5, p100, cov2):
+        return {
+            "2": {"psnr": 18.0, "coverage": cov2},
+            "5": {"psnr": p5, "coverage": 0.98},
+            "100": {"psnr": p100, "coverage": 0.99},
+        }
+
+    def run(psnr, path="x"):
+        return {"run": path, "nvs": {"psnr": psnr}, "gaussians": 1, "level_prefixes_nvs": {}}
+
+    compare = {
+        "d_seed1": run(24.9),
+        "d_seed2": run(25.0),
+        "none": run(24.92, "runs/none"),
+        "none_seed1": run(24.95),
+        "none_seed2": run(25.1),
+    }
+    r = {
+        "name": "d",
+        "budgets": {},
+        "ablations": {
+            "coarse_vs_none": {
+                "run": "runs/none",
+                "budgets": {"100": {"with": {"psnr": 24.9}, "without": {"psnr": 24.92}}},
+            },
+            "budget_compare": {
+                "this": short(22.5, 24.9, 0.97),
+                "d_seed1": {"budgets": short(21.8, 24.9, 0.96)},
+                "other": {"budgets": short(10.0, 24.9, 0.10)},  # not a seed of this run: not counted
+            },
+            "compare": compare,
+        },
+    }
+    r["seed_pairs"] = seed_pairs({"d": run(24.8), **compare})
+    dw = done_when(r)
+    gap = dw["psnr_5_within_3db_every_seed"]
+    assert gap["gap_db"] == pytest.approx({"d": 2.4, "d_seed1": 3.1}) and not gap["met"]
+    cov = dw["coverage_from_2pct_every_seed"]
+    assert cov["min"] == pytest.approx({"d": 0.97, "d_seed1": 0.96}) and cov["met"]
+    assert dw["coarse_cost_100"]["met"]  # seed 0 alone: 0.02 dB
+    cost = dw["coarse_cost_100_seed_mean"]  # per seed 0.12, 0.05, 0.10: mean 0.09
+    assert cost["per_seed_db"] == pytest.approx([0.12, 0.05, 0.10]) and cost["cost_db"] == pytest.approx(0.09)
+    assert cost["met"] and cost["seeds"] == [0, 1, 2]
+    compare["none_seed2"] = run(25.2)  # seed 2 now costs 0.2: mean 0.123
+    r["seed_pairs"] = seed_pairs({"d": run(24.8), **compare})
+    assert not done_when(r)["coarse_cost_100_seed_mean"]["met"]
+
 
 def test_scripts_report_bad_input(tmp_path):
     out = subprocess.run(

@@ -578,6 +578,12 @@ def test_growth_and_supervision_policies_are_validated(tmp_path):
     g = Growth.from_config(config_for("cpu"))
     assert not g.due(149) and g.due(150) and not g.due(2850)  # growth stops at 70 % of 4000
     assert g.depth_cap(150) == 1 and g.depth_cap(2800) == 3
+    # A budget capped by max_faces below grow_to x the base ends there at the last growth step,
+    # not before (depth 3 opens late), from any base, with or without coarse levels.
+    capped = Growth.from_config(config_for("cpu", grow_to=20.0, max_faces=25600))
+    last = max(it for it in range(g.iterations + 1) if g.due(it))
+    for base in (5120, 5120 + 156 + 316, 1280, 1280 + 36 + 76):
+        assert capped.face_budget(base, last) == 25600 > capped.face_budget(base, last - g.grow_every)
 
 
 def test_growth_by_budget_follows_its_schedule():
@@ -593,7 +599,10 @@ def test_growth_by_budget_follows_its_schedule():
     budget = Growth(**kw, max_faces=10_000, grow_to=4.0)
     # five growth steps (100..500): 100 * 4 ** (i / 5) faces after step i; max_faces caps it
     assert [budget.face_budget(100, it) for it in (100, 300, 500)] == [131, 229, 400]
-    assert Growth(**kw, max_faces=300, grow_to=4.0).face_budget(100, 500) == 300
+    # a cap below grow_to x the base is the schedule's end, reached at the last step, not early
+    capped = Growth(**kw, max_faces=300, grow_to=4.0)
+    assert [capped.face_budget(100, it) for it in (100, 300, 500)] == [124, 193, 300]
+    assert Growth(**kw, max_faces=90, grow_to=4.0).face_budget(100, 500) == 90  # cap under the base
     grad = rng.random(100) * 2e-3  # about half above the threshold
     count = np.ones(100)
     pick = budget.pick(forest, grad, count, 100)

@@ -535,7 +535,9 @@ def build_report(args: ReportOptions) -> dict:
 
     # Pictures.
     figs = {}
-    figs["psnr_vs_bytes"] = plots.psnr_vs_bytes(os.path.join(args.out, "psnr_vs_bytes.png"), curve, report["budgets"])
+    figs["psnr_vs_bytes"] = plots.psnr_vs_bytes(
+        os.path.join(args.out, "psnr_vs_bytes.png"), curve, report["budgets"], report.get("curve_views")
+    )
     for k, r in rend.items():
         figs[f"strip_{k}"] = plots.budget_strip(os.path.join(args.out, f"strip_{k}.png"), r, info, strips)
     figs["strip_interleaved"] = plots.order_strip(

@@ -151,39 +151,63 @@ def _ssim_backward(x, y, g, d, scale):
     through mu_x = <x>, E[x²] = <x²>, E[xy] = <xy>."""
     C, H, W = x.shape
     h, w = H - 10, W - 10
-    U = np.empty((3, C, h, W), np.float32)  # horizontal transpose of d
+    U = np.empty((3, C, h, W), np.float32)  # the window's transpose along the rows
     for job in prange(C * h):
         c = job // h
         i = job % h
         for k in range(3):
             ur = U[k, c, i]
             dr = d[k, c, i]
-            for j in range(W):
-                ur[j] = 0.0
-            for t in range(11):
-                gt = g[t]
-                for j in range(w):
-                    ur[j + t] += gt * dr[j]
+            # Gathered: U[J] = sum_t g[t] d[J - t] over 0 <= J - t < w; every tap inside from
+            # column 10 to w - 1, fewer at the edges.
+            for J in range(min(10, W)):
+                s = np.float32(0.0)
+                for t in range(max(0, J - w + 1), J + 1):
+                    s += g[t] * dr[J - t]
+                ur[J] = s
+            for J0 in range(w - 10):  # J = J0 + 10: taps t = 10 - t2 on d[J0 + t2]
+                s = np.float32(0.0)
+                for t2 in range(11):
+                    s += g[10 - t2] * dr[J0 + t2]
+                ur[J0 + 10] = s
+            for J in range(max(w, 10), W):
+                s = np.float32(0.0)
+                for t in range(J - w + 1, 11):
+                    s += g[t] * dr[J - t]
+                ur[J] = s
     out = np.empty((C, H, W), np.float32)
     for job in prange(C * H):
         c = job // H
         i = job % H
-        P = np.zeros((3, W), np.float32)
-        for t in range(11):
-            src = i - t
-            if src < 0 or src >= h:
-                continue
-            gt = g[t]
-            for k in range(3):
-                ur = U[k, c, src]
-                pr = P[k]
-                for j in range(W):
-                    pr[j] += gt * ur[j]
         xr = x[c, i]
         yr = y[c, i]
         orow = out[c, i]
-        for j in range(W):
-            orow[j] = scale * (P[0, j] + 2 * xr[j] * P[1, j] + yr[j] * P[2, j])
+        if i >= 10 and i < h:  # every tap inside: registers, one pass
+            ub = U[:, c, i - 10 : i + 1]  # rows i - 10 .. i: tap t = 10 - t2 on row t2
+            for j in range(W):
+                p0 = np.float32(0.0)
+                p1 = np.float32(0.0)
+                p2 = np.float32(0.0)
+                for t2 in range(11):
+                    gt = g[10 - t2]
+                    p0 += gt * ub[0, t2, j]
+                    p1 += gt * ub[1, t2, j]
+                    p2 += gt * ub[2, t2, j]
+                orow[j] = scale * (p0 + 2 * xr[j] * p1 + yr[j] * p2)
+        else:
+            P = np.zeros((3, W), np.float32)
+            for t in range(11):
+                src = i - t
+                if src < 0 or src >= h:
+                    continue
+                gt = g[t]
+                for k in range(3):
+                    ur = U[k, c, src]
+                    pr = P[k]
+                    for j in range(W):
+                        pr[j] += gt * ur[j]
+            for j in range(W):
+                orow[j] = scale * (P[0, j] + 2 * xr[j] * P[1, j] + yr[j] * P[2, j])
     return out
 
 

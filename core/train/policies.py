@@ -36,11 +36,12 @@ class Growth:
     The depth cap rises from 1 to max_depth between grow_start and grow_stop.
 
     With ``grow_to`` > 0 the adaptive split count follows a budget instead of the threshold
-    alone: after growth step i of n the forest holds up to base * grow_to ** (i / n) faces (base:
-    the roots; capped by max_faces), taking the largest mean gradients that still exceed the
-    threshold. A threshold tuned on one image size and loss scale grows another scene by an
-    unpredictable factor (4.3x instead of ~17x on the paper-scale head, issue 17); the stream's
-    shape (how small the base is against the whole) should be set by the user, not found by it."""
+    alone: after growth step i of n the forest holds up to base * (total / base) ** (i / n) faces
+    (base: the roots, coarse ones included; total: min(max_faces, grow_to * base)), taking the
+    largest mean gradients that still exceed the threshold. A threshold tuned on one image size
+    and loss scale grows another scene by an unpredictable factor (4.3x instead of ~17x on the
+    paper-scale head, issue 17); the stream's shape (how small the base is against the whole)
+    should be set by the user, not found by it."""
 
     def __init__(
         self,
@@ -117,4 +118,10 @@ class Growth:
         last = int(self.grow_stop * self.iterations)
         steps = max(1, (last - first) // self.grow_every + 1)
         step = min(steps, max(1, (it - first) // self.grow_every + 1))
-        return min(self.max_faces, int(base * self.grow_to ** (step / steps)))
+        # The schedule aims at the capped total, so a cap below base * grow_to is reached at the
+        # last growth step, not early: reached early, the depth cap (which rises over the same
+        # steps) would leave the deepest levels empty.
+        target = min(float(self.max_faces), base * self.grow_to)
+        if target <= base or step >= steps:  # exactly the target at the end (no rounding below it)
+            return int(min(self.max_faces, max(target, base)))
+        return min(self.max_faces, int(base * (target / base) ** (step / steps)))

@@ -54,7 +54,8 @@ class TrainConfig:
     coarse_levels: tuple = (1 / 32, 1 / 16)
     # Multiplies w_l of the coarse levels in the multi-level loss. 0.5 measured on the default head
     # (docs/BENCHMARKS.md, issue 16): 1.0 gains 0.3-0.5 dB at 5 % but costs 0.1-0.2 dB at 100 %
-    # against the run without coarse levels; 0.5 stays within 0.05 dB.
+    # against the run without coarse levels; 0.5 stays within 0.05 dB on seed 0 (0.10 dB mean over
+    # three seeds, about the seeds' own spread); 0.25 cost no less (coarse-template head, 3 seeds).
     coarse_weight: float = 0.5
     # Extra images per step whose prefix ends *inside* a level: the levels below it plus the
     # first k faces of a random level (k uniform), in the order the stream will send them (each
@@ -123,7 +124,10 @@ PRESETS = {
         checkpoint_every=20,
         sh_every=20,
     ),
-    # The synthetic default on a 2-core CPU (<= 30 min).
+    # The synthetic default on a 2-core CPU (<= 30 min). Growth by the gradient threshold, not
+    # by a budget: a budget to 25,600 faces on every head (tried 2026-11-24, docs/BENCHMARKS.md,
+    # issue 16) met the 5 % criterion on the 1,280-face head only by making the stream longer,
+    # with no more quality at equal bytes and 0.07 dB less at 100 %.
     "cpu": dict(
         iterations=4000,
         max_depth=3,
