@@ -103,7 +103,7 @@ def main(argv=None):
         t0 = time.perf_counter()
         try:
             mod = importlib.import_module(f"bench_{name}")
-            parts[name] = mod.run(quick=args.quick)
+            parts[name] = mod.run(quick=args.quick).rstrip("\n")
         except Exception:  # a broken section must not hide the others; its failure is reported
             parts[name] = f"## {name}\n\nbenchmark failed:\n\n```\n{traceback.format_exc()}```\n"
         print(f"{name}: {time.perf_counter() - t0:.1f} s", file=sys.stderr)
