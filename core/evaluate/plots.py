@@ -445,10 +445,16 @@ def _done_when_seeds(r: dict) -> dict:
         gaps = {n: e["budgets"]["100"]["psnr"] - e["budgets"]["5"]["psnr"] for n, e in seeds.items()}
         out["psnr_5_within_3db_every_seed"] = {"gap_db": gaps, "threshold": 3.0, "met": max(gaps.values()) <= 3.0}
         cov = {
-            n: min(v["coverage"] for k, v in e["budgets"].items() if float(k) >= 2 and "coverage" in v)
+            n: min(
+                (v["coverage"] for k, v in e["budgets"].items() if float(k) >= 2 and "coverage" in v), default=np.nan
+            )
             for n, e in seeds.items()
         }
-        out["coverage_from_2pct_every_seed"] = {"min": cov, "threshold": 0.95, "met": min(cov.values()) >= 0.95}
+        out["coverage_from_2pct_every_seed"] = {
+            "min": cov,
+            "threshold": 0.95,
+            "met": bool(all(c >= 0.95 for c in cov.values())),  # nan (no coverage scored): not met
+        }
     cv = r.get("ablations", {}).get("coarse_vs_none")
     without = [n for n, c in r.get("ablations", {}).get("compare", {}).items() if cv and c.get("run") == cv.get("run")]
     for p in r.get("seed_pairs", []):
