@@ -311,14 +311,17 @@ def _group_styles(names, also=()) -> dict:
     return out
 
 
-def psnr_vs_time(path, logs: dict):
+def psnr_vs_time(path, logs: dict, this_name=None):
     """NVS PSNR against training time for one or more runs ({name: metrics.jsonl}), and a
     second panel against iterations zoomed on the plateau (time depends on the machine's
-    load; iterations do not)."""
+    load; iterations do not). ``this_name``: the name of the run logged as "this run", so it
+    joins its seed group (one colour and one legend entry with its other seeds)."""
     plt = _plt()
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11.5, 3.6))
     tops = []
-    style = _group_styles(logs)
+    alias = {k: this_name if k == "this run" and this_name and this_name not in logs else k for k in logs}
+    grouped = _group_styles([alias[k] for k in logs])
+    style = {k: grouped[alias[k]] for k in logs}
     for name, log in logs.items():
         ev = [r for r in read_log(log) if "val_psnr" in r]
         y = [r["val_psnr"] for r in ev]

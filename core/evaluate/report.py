@@ -554,7 +554,7 @@ def build_report(args: ReportOptions) -> dict:
     )
     logs = {k: v for k, v in logs.items() if os.path.exists(v)}
     if logs:
-        figs["psnr_vs_time"] = plots.psnr_vs_time(os.path.join(args.out, "psnr_vs_time.png"), logs)
+        figs["psnr_vs_time"] = plots.psnr_vs_time(os.path.join(args.out, "psnr_vs_time.png"), logs, args.name)
         rows = {k: plots.read_log(v) for k, v in logs.items()}
         finals = [max(r.get("val_psnr", -np.inf) for r in rs) for rs in rows.values()]
         target = min(finals) - 0.5  # a level every run reaches, so the times compare
