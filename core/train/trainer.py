@@ -54,8 +54,8 @@ class TrainConfig:
     coarse_levels: tuple = (1 / 32, 1 / 16)
     # Multiplies w_l of the coarse levels in the multi-level loss. 0.5 measured on the default head
     # (docs/BENCHMARKS.md, issue 16): 1.0 gains 0.3-0.5 dB at 5 % but costs 0.1-0.2 dB at 100 %
-    # against the run without coarse levels; 0.5 stays within 0.05 dB on seed 0 (0.10 dB mean over
-    # three seeds, about the seeds' own spread); 0.25 cost no less (coarse-template head, 3 seeds).
+    # against the run without coarse levels; 0.5 costs 0.08 ± 0.07 dB over six seeds (as much as the
+    # seeds' own spread); 0.25 cost no less (coarse-template head grown by a budget, 3 seeds).
     coarse_weight: float = 0.5
     # Extra images per step whose prefix ends *inside* a level: the levels below it plus the
     # first k faces of a random level (k uniform), in the order the stream will send them (each
