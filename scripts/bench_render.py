@@ -316,8 +316,8 @@ def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.
                 if len(_OLD_RECORD) != len(bufs[0]):
                     _OLD_RECORD.resize(len(bufs[0]), refcheck=False)
                 run_bufs = (_OLD_RECORD, bufs[1])
-            else:
-                run_bufs = bufs
+            else:  # kernels before the shared record of nested images took no image bits
+                run_bufs = bufs if "rec_img" in record_args else bufs[:2]
             image, t_final, last, _, (rec_start, rec_n, used) = rk.raster_forward(
                 tile_start, ids, xy, conic, opac, cut, colors, rect, bg, W, H, tiles_x, glevel, upto, chunks, *run_bufs
             )

@@ -32,6 +32,13 @@ row (not its bounding box), cut to the pixels still compositing (per-row bit mas
 whose pixels have all stopped are skipped). The backward walks nothing: the forward records
 every composited (Gaussian, pixel) pair with its 1 - alpha, and the backward replays those
 pairs back to front (raster_forward's record, raster_backward).
+
+The nested images of one pass (the levels of a forest: image l shows the Gaussians with
+glevel <= upto[l]) are composited together, not one after another: a Gaussian walks its
+chords and computes its alphas once per tile, then composites them into every image it
+belongs to where the pixel still runs, and the record lists each pair once with the images
+that took it. With every level supervised this halves the forward and the backward against
+walking and replaying each image on its own (docs/BENCHMARKS.md).
 """
 
 from __future__ import annotations
@@ -49,6 +56,7 @@ SPREAD = 4  # tile rows interleaved between the threads' static shares (see _spr
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
 T_MIN = 1e-4
+MAX_IMAGES = 16  # images of one raster_forward: the record keeps each pair's images as uint16 bits
 # Only explicit prange loops run in parallel: numba would otherwise turn every np.zeros and
 # array expression into its own parallel region, and each launch is costly on a busy machine.
 _PARALLEL = dict(
@@ -398,6 +406,8 @@ def _forward_tile(
     acc,
     lst,
     active,
+    n_done,
+    pmask,
     contrib_isect,
     image,
     t_final,
@@ -406,36 +416,55 @@ def _forward_tile(
     upto,
     rec_keep,
     rec_pix,
+    rec_img,
     rec_start,
     rec_n,
     pos,
     cap_end,
     pix_weight,
 ):
-    """Composite one tile front to back, Gaussians with glevel <= upto only. Each Gaussian
-    visits only the chords of its ellipse inside the tile, and skips rows whose pixels have
-    all stopped (bit masks in ``active``). ``contrib_isect`` (when not empty) gets each pair's
-    sum of alpha*T, each pixel weighted by ``pix_weight`` [H, W] (when not empty).
+    """Composite one tile front to back for every image at once: image l takes the Gaussians
+    with glevel <= upto[l] (upto strictly increasing, so a Gaussian's images are a suffix of
+    them). Each Gaussian walks the chords of its ellipse once, skipping rows whose pixels have
+    stopped in all of its images (bit masks per image in ``active`` [L, TILE], per pixel in
+    ``pmask``); its alpha at a pixel is computed once and composited into each of its images
+    where that pixel still runs. The exp recurrence of a row starts at the first pixel still
+    running in any of those images, so an image can differ from a render of its subset alone
+    by a few ulps (never more: the recurrence drifts by ulps over a tile row).
+    ``contrib_isect`` (when not empty) gets each pair's sum of alpha*T in the last image, each
+    pixel weighted by ``pix_weight`` [H, W] (when not empty).
 
     With ``pos`` >= 0 every composited pair is recorded for the backward (see raster_forward)
     from entry ``pos`` on; returns the next free entry, or -1 once ``cap_end`` is reached."""
     n_ch = colors.shape[1]
+    n_img = upto.shape[0]
     weighted = pix_weight.shape[0] > 0
+    want_contrib = contrib_isect.shape[0] > 0
     x0, y0, x1, y1 = _tile_bounds(t, tiles_x, width, height)
     tw = x1 - x0
     n_pix = tw * (y1 - y0)
+    all_img = (np.int64(1) << n_img) - 1
     for p in range(n_pix):
-        T[p] = 1.0
-        lst[p] = -1
-        for ch in range(n_ch):
-            acc[p, ch] = 0.0
-    for r in range(y1 - y0):
-        active[r] = (1 << tw) - 1
-    n_done = 0
+        pmask[p] = all_img
+        for im in range(n_img):
+            T[p, im] = 1.0
+            lst[p, im] = -1
+            for ch in range(n_ch):
+                acc[p, im, ch] = 0.0
+    for im in range(n_img):
+        for r in range(TILE):
+            active[im, r] = (1 << tw) - 1 if r < y1 - y0 else 0
+        n_done[im] = 0
+    n_live = n_img  # images with a pixel still compositing
     for k in range(tile_start[t], tile_start[t + 1]):
         g = ids[k]
-        if glevel[g] > upto:
+        gl = glevel[g]
+        im0 = 0
+        while im0 < n_img and upto[im0] < gl:
+            im0 += 1
+        if im0 == n_img:
             continue
+        img_mask = all_img ^ ((np.int64(1) << im0) - 1)
         i0 = max(rect[g, 0], x0)
         i1 = min(rect[g, 2], x1 - 1)
         j0 = max(rect[g, 1], y0)
@@ -459,17 +488,21 @@ def _forward_tile(
         c2 = colors[g, 2 % n_ch]
         for j in range(j0, j1 + 1):
             r = j - y0
-            if active[r] == 0:
+            union = 0
+            for im in range(im0, n_img):
+                union |= active[im, r]
+            if union == 0:
                 continue
             dy = j + 0.5 - v
             a, b = _row_span(dy, half_u, cb, inv_ca, d_conic, e_cut, i0, i1)
             if a > b:
                 continue
-            live = active[r] & (((1 << (b + 1 - x0)) - 1) ^ ((1 << (a - x0)) - 1))
+            span = ((1 << (b + 1 - x0)) - 1) ^ ((1 << (a - x0)) - 1)
+            live = union & span
             if live == 0:
                 continue
-            # Only from the first to the last pixel still compositing (the backward replays the
-            # record, so the walk need not match anything).
+            # From the first to the last pixel still compositing in any of the Gaussian's images
+            # (the backward replays the record, so the walk need not match anything).
             a = x0 + trailing_zeros(live)
             b = x0 + 63 - leading_zeros(live)
             if e_ca < 0.0:
@@ -480,11 +513,12 @@ def _forward_tile(
                 pos = -1  # the record cannot hold this row: the caller runs the forward again
             gauss, e_step = _row_start(dy, u, ca, cb, cc, a)
             for i in range(a, b + 1):
-                p = row + i
                 gs = gauss
                 gauss *= e_step
                 e_step *= e_ca
-                if not (live >> (i - x0)) & 1:  # stopped before this Gaussian
+                p = row + i
+                m = pmask[p] & img_mask
+                if m == 0:
                     continue
                 alpha = o * gs
                 if not alpha >= ALPHA_MIN:
@@ -492,41 +526,53 @@ def _forward_tile(
                 clamped = alpha > ALPHA_MAX
                 if clamped:
                     alpha = ALPHA_MAX
-                Tp = T[p]
-                t_next = Tp * (1.0 - alpha)
-                if t_next < T_MIN:
-                    active[r] &= ~(1 << (i - x0))
-                    n_done += 1
-                    continue
-                if pos >= 0:
-                    rec_keep[pos] = -1.0 if clamped else 1.0 - alpha
+                keep = 1.0 - alpha
+                took = 0
+                while m:
+                    im = trailing_zeros(m)
+                    m &= m - 1
+                    Tp = T[p, im]
+                    t_next = Tp * keep
+                    if t_next < T_MIN:  # stops before this Gaussian
+                        active[im, r] &= ~(np.int64(1) << (i - x0))
+                        pmask[p] &= ~(np.int64(1) << im)
+                        n_done[im] += 1
+                        if n_done[im] == n_pix:
+                            n_live -= 1
+                        continue
+                    took |= np.int64(1) << im
+                    w = alpha * Tp
+                    if n_ch == 3:  # the common case, unrolled
+                        acc[p, im, 0] += w * c0
+                        acc[p, im, 1] += w * c1
+                        acc[p, im, 2] += w * c2
+                    else:
+                        for ch in range(n_ch):
+                            acc[p, im, ch] += w * colors[g, ch]
+                    if want_contrib and im == n_img - 1:
+                        wsum += w * pix_weight[j, i] if weighted else w
+                    T[p, im] = t_next
+                    lst[p, im] = k
+                if took and pos >= 0:
+                    rec_keep[pos] = -1.0 if clamped else keep
                     rec_pix[pos] = pix + i
+                    rec_img[pos] = took
                     pos += 1
-                w = alpha * Tp
-                if n_ch == 3:  # the common case, unrolled
-                    acc[p, 0] += w * c0
-                    acc[p, 1] += w * c1
-                    acc[p, 2] += w * c2
-                else:
-                    for ch in range(n_ch):
-                        acc[p, ch] += w * colors[g, ch]
-                wsum += w * pix_weight[j, i] if weighted else w
-                T[p] = t_next
-                lst[p] = k
-        if contrib_isect.shape[0] > 0:
+        if want_contrib:
             contrib_isect[k] = wsum
         if pos > first:
             rec_start[k] = first
             rec_n[k] = pos - first
-        if n_done == n_pix:
+        if n_live == 0:
             break
-    for j in range(y0, y1):
-        for i in range(x0, x1):
-            p = (j - y0) * tw + i - x0
-            for ch in range(n_ch):
-                image[j, i, ch] = acc[p, ch] + T[p] * background[ch]
-            t_final[j, i] = T[p]
-            last[j, i] = lst[p]
+    for im in range(n_img):
+        for j in range(y0, y1):
+            for i in range(x0, x1):
+                p = (j - y0) * tw + i - x0
+                for ch in range(n_ch):
+                    image[im, j, i, ch] = acc[p, im, ch] + T[p, im] * background[ch]
+                t_final[im, j, i] = T[p, im]
+                last[im, j, i] = lst[p, im]
     return pos
 
 
@@ -567,6 +613,7 @@ def raster_forward(
     n_chunks,
     rec_keep,
     rec_pix,
+    rec_img,
     pix_weight=None,
 ):
     """Front-to-back compositing, parallel over tiles, of one image per entry of ``upto``:
@@ -578,80 +625,85 @@ def raster_forward(
     the per-Gaussian contribution sum_pixels alpha*T of the last image (each pixel weighted by
     ``pix_weight`` [H, W] when given), and the record.
 
-    The record (when rec_keep and rec_pix, the caller's buffers, are not empty) lists every
-    composited (pair, pixel), for raster_backward: 1 - alpha, the share of light the pair lets
-    through (-1 where alpha was clamped to 0.99), and the pixel (row * TILE + column in the
-    tile), pair k of image l at entries rec_start[l, k] .. + rec_n[l, k]. rec_keep may be
-    float32 (rasterize.py's buffers are): rounding 1 - alpha rather than alpha keeps the
-    backward's T_before = T_after / (1 - alpha) within one float32 rounding per layer however
-    opaque the layer. The backward replays the
-    pairs instead of walking the ellipses again (no chords, exps or skipped pixels), so the
-    forward is free to trim its walk. The tiles are cut into ``n_chunks`` static shares, one
-    per thread, each filling its own slice of the buffers; ``used`` gives the entries each
-    share took, or its capacity + 1 where it ran out (the record is then incomplete: the
-    caller calls again with larger buffers)."""
+    The record (when rec_keep, rec_pix and rec_img, the caller's buffers, are not empty) lists
+    every composited (pair, pixel) once for all images, for raster_backward: 1 - alpha, the
+    share of light the pair lets through (-1 where alpha was clamped to 0.99), the pixel (row *
+    TILE + column in the tile) and the images that composited it (bit l: image l; a pixel may
+    have stopped in some of the pair's images and not in others); pair k at entries
+    rec_start[k] .. + rec_n[k], row by row. rec_keep may be float32 (rasterize.py's buffers
+    are): rounding 1 - alpha rather than alpha keeps the backward's T_before = T_after /
+    (1 - alpha) within one float32 rounding per layer however opaque the layer. The backward
+    replays the pairs instead of walking the ellipses again (no chords, exps or skipped
+    pixels), so the forward is free to trim its walk. The tiles are cut into ``n_chunks``
+    static shares, one per thread, each filling its own slice of the buffers; ``used`` gives
+    the entries each share took, or its capacity + 1 where it ran out (the record is then
+    incomplete: the caller calls again with larger buffers). At most MAX_IMAGES images."""
     n = xy.shape[0]
     n_ch = colors.shape[1]
     n_tiles = tile_start.shape[0] - 1
     n_img = upto.shape[0]
+    if n_img > MAX_IMAGES:
+        raise ValueError("raster_forward: more than MAX_IMAGES images in one pass")
     image = np.empty((n_img, height, width, n_ch))
     t_final = np.empty((n_img, height, width))
     last = np.empty((n_img, height, width), np.int64)
     contrib_isect = np.zeros(ids.shape[0])  # pairs after a tile's early exit stay 0
-    no_contrib = np.zeros(0)
     pw = np.zeros((0, 0)) if pix_weight is None else pix_weight
-    chunk_cap = min(rec_keep.shape[0], rec_pix.shape[0]) // n_chunks
+    chunk_cap = min(rec_keep.shape[0], rec_pix.shape[0], rec_img.shape[0]) // n_chunks
     rec = chunk_cap > 0
-    rec_start = np.zeros((n_img, ids.shape[0] if rec else 0), np.int64)
-    rec_n = np.zeros((n_img, ids.shape[0] if rec else 0), np.int32)
+    rec_start = np.zeros(ids.shape[0] if rec else 0, np.int64)
+    rec_n = np.zeros(ids.shape[0] if rec else 0, np.int32)
     used = np.zeros(n_chunks, np.int64)
     spread = _spread_tiles(n_tiles, tiles_x)
     per = -(-n_tiles // n_chunks)
     for c in prange(n_chunks):
-        T = np.empty(TILE * TILE)
-        acc = np.empty((TILE * TILE, n_ch))
-        lst = np.empty(TILE * TILE, np.int64)
-        active = np.empty(TILE, np.int64)
+        T = np.empty((TILE * TILE, n_img))
+        acc = np.empty((TILE * TILE, n_img, n_ch))
+        lst = np.empty((TILE * TILE, n_img), np.int64)
+        pmask = np.empty(TILE * TILE, np.int64)
+        active = np.empty((n_img, TILE), np.int64)
+        n_done = np.empty(n_img, np.int64)
         pos = c * chunk_cap if rec else -1
         cap_end = (c + 1) * chunk_cap
         for it in range(c * per, min(n_tiles, (c + 1) * per)):
-            t = spread[it]
-            for im in range(n_img):
-                nxt = _forward_tile(
-                    t,
-                    tile_start,
-                    ids,
-                    xy,
-                    conic,
-                    opacities,
-                    cut,
-                    colors,
-                    rect,
-                    background,
-                    width,
-                    height,
-                    tiles_x,
-                    T,
-                    acc,
-                    lst,
-                    active,
-                    contrib_isect if im == n_img - 1 else no_contrib,
-                    image[im],
-                    t_final[im],
-                    last[im],
-                    glevel,
-                    upto[im],
-                    rec_keep,
-                    rec_pix,
-                    rec_start[im],
-                    rec_n[im],
-                    pos,
-                    cap_end,
-                    pw,
-                )
-                if pos >= 0:
-                    used[c] = nxt - c * chunk_cap if nxt >= 0 else chunk_cap + 1
-                pos = nxt
+            nxt = _forward_tile(
+                spread[it],
+                tile_start,
+                ids,
+                xy,
+                conic,
+                opacities,
+                cut,
+                colors,
+                rect,
+                background,
+                width,
+                height,
+                tiles_x,
+                T,
+                acc,
+                lst,
+                active,
+                n_done,
+                pmask,
+                contrib_isect,
+                image,
+                t_final,
+                last,
+                glevel,
+                upto,
+                rec_keep,
+                rec_pix,
+                rec_img,
+                rec_start,
+                rec_n,
+                pos,
+                cap_end,
+                pw,
+            )
+            if pos >= 0:
+                used[c] = nxt - c * chunk_cap if nxt >= 0 else chunk_cap + 1
+            pos = nxt
     contrib = np.zeros(n)
     for k in range(ids.shape[0]):
         contrib[ids[k]] += contrib_isect[k]
@@ -686,27 +738,32 @@ def _replay_tile(
     gbg,
     rec_keep,
     rec_pix,
+    rec_img,
     rec_start,
     rec_n,
-    finest,
 ):
     """The backward of one tile from the forward's record: the pairs the forward composited, back
-    to front per pixel, a Gaussian's pixels row by row (each row summed before it is added)."""
+    to front per pixel, a Gaussian's pixels row by row (each row summed before it is added), every
+    image at once. A pair's alpha (hence its 1/(1 - alpha) and its pixel offset) is shared by its
+    images; transmittance, the colour behind and the incoming gradients are each image's own."""
     n_ch = colors.shape[1]
+    n_img = t_final.shape[0]
+    top = n_img - 1
     x0, y0, x1, y1 = _tile_bounds(t, tiles_x, width, height)
     tw = x1 - x0
     k_max = -1
-    for j in range(y0, y1):
-        for i in range(x0, x1):
-            p = (j - y0) * tw + i - x0
-            tn = t_final[j, i]
-            T[p] = tn
-            k_max = max(k_max, last[j, i])
-            galpha[p] = grad_alpha[j, i] * tn
-            for ch in range(n_ch):
-                behind[p, ch] = tn * background[ch]
-                gimg[p, ch] = grad_image[j, i, ch]
-                gbg[ch] += grad_image[j, i, ch] * tn
+    for im in range(n_img):
+        for j in range(y0, y1):
+            for i in range(x0, x1):
+                p = (j - y0) * tw + i - x0
+                tn = t_final[im, j, i]
+                T[p, im] = tn
+                k_max = max(k_max, last[im, j, i])
+                galpha[p, im] = grad_alpha[im, j, i] * tn
+                for ch in range(n_ch):
+                    behind[p, im, ch] = tn * background[ch]
+                    gimg[p, im, ch] = grad_image[im, j, i, ch]
+                    gbg[ch] += grad_image[im, j, i, ch] * tn
     for k in range(k_max, tile_start[t] - 1, -1):
         m = rec_n[k]
         if m == 0:
@@ -724,6 +781,8 @@ def _replay_tile(
         gcb = 0.0
         gcc = 0.0
         go = 0.0
+        gu_top = 0.0
+        gv_top = 0.0
         for ch in range(n_ch):
             gcol[ch] = 0.0
         gc0 = 0.0
@@ -737,6 +796,8 @@ def _replay_tile(
         s0 = 0.0
         s1 = 0.0
         s2 = 0.0
+        t0 = 0.0  # the same sums for the last image alone (its screen-space gradient)
+        t1 = 0.0
         for e in range(rec_start[k], rec_start[k] + m):
             q = np.int64(rec_pix[e])
             r = q // TILE
@@ -748,11 +809,15 @@ def _replay_tile(
                     gca -= 0.5 * s2
                     gcb -= dy * s1
                     gcc -= 0.5 * dy * dy * s0
+                    gu_top += ca * t1 + cb * dy * t0
+                    gv_top += cb * t1 + cc * dy * t0
                 r_cur = r
                 dy = (y0 + r) + 0.5 - v
                 s0 = 0.0
                 s1 = 0.0
                 s2 = 0.0
+                t0 = 0.0
+                t1 = 0.0
             p = r * tw + col
             keep = np.float64(rec_keep[e])
             clamped = keep < 0.0
@@ -761,60 +826,73 @@ def _replay_tile(
                 keep = 1.0 - ALPHA_MAX
             else:
                 alpha = 1.0 - keep
-            dx = (x0 + col) + 0.5 - u
             inv = 1.0 / keep
-            T_before = T[p] * inv
-            w = alpha * T_before
-            g_a = galpha[p] * inv
-            if n_ch == 3:
-                gi0 = gimg[p, 0]
-                gi1 = gimg[p, 1]
-                gi2 = gimg[p, 2]
-                gc0 += w * gi0
-                gc1 += w * gi1
-                gc2 += w * gi2
-                g_a += gi0 * (c0 * T_before - behind[p, 0] * inv)
-                g_a += gi1 * (c1 * T_before - behind[p, 1] * inv)
-                g_a += gi2 * (c2 * T_before - behind[p, 2] * inv)
-                behind[p, 0] += c0 * w
-                behind[p, 1] += c1 * w
-                behind[p, 2] += c2 * w
-            else:
-                for ch in range(n_ch):
-                    gcol[ch] += w * gimg[p, ch]
-                    g_a += gimg[p, ch] * (colors[g, ch] * T_before - behind[p, ch] * inv)
-                    behind[p, ch] += colors[g, ch] * w
-            T[p] = T_before
+            g_all = 0.0  # d/dalpha summed over the pair's images
+            g_top = 0.0
+            imgs = np.int64(rec_img[e])
+            while imgs:
+                im = trailing_zeros(imgs)
+                imgs &= imgs - 1
+                T_before = T[p, im] * inv
+                w = alpha * T_before
+                g_a = galpha[p, im] * inv
+                if n_ch == 3:
+                    gi0 = gimg[p, im, 0]
+                    gi1 = gimg[p, im, 1]
+                    gi2 = gimg[p, im, 2]
+                    gc0 += w * gi0
+                    gc1 += w * gi1
+                    gc2 += w * gi2
+                    g_a += gi0 * (c0 * T_before - behind[p, im, 0] * inv)
+                    g_a += gi1 * (c1 * T_before - behind[p, im, 1] * inv)
+                    g_a += gi2 * (c2 * T_before - behind[p, im, 2] * inv)
+                    behind[p, im, 0] += c0 * w
+                    behind[p, im, 1] += c1 * w
+                    behind[p, im, 2] += c2 * w
+                else:
+                    for ch in range(n_ch):
+                        gcol[ch] += w * gimg[p, im, ch]
+                        g_a += gimg[p, im, ch] * (colors[g, ch] * T_before - behind[p, im, ch] * inv)
+                        behind[p, im, ch] += colors[g, ch] * w
+                T[p, im] = T_before
+                g_all += g_a
+                if im == top:
+                    g_top = g_a
             if clamped:
                 continue
-            g_pow = alpha * g_a  # d/dpower; d/dopacity is g_pow / o
+            dx = (x0 + col) + 0.5 - u
+            g_pow = alpha * g_all  # d/dpower; d/dopacity is g_pow / o
             go += g_pow
             s0 += g_pow
             g_dx = g_pow * dx
             s1 += g_dx
             s2 += g_dx * dx
+            g_pow = alpha * g_top
+            t0 += g_pow
+            t1 += g_pow * dx
         gu += ca * s1 + cb * dy * s0
         gv += cb * s1 + cc * dy * s0
         gca -= 0.5 * s2
         gcb -= dy * s1
         gcc -= 0.5 * dy * dy * s0
+        gu_top += ca * t1 + cb * dy * t0
+        gv_top += cb * t1 + cc * dy * t0
         go /= o
         if n_ch == 3:
             gcol[0] = gc0
             gcol[1] = gc1
             gcol[2] = gc2
         s = slot + k
-        geo_isect[s, G_U] += gu
-        geo_isect[s, G_V] += gv
-        geo_isect[s, G_CA] += gca
-        geo_isect[s, G_CB] += gcb
-        geo_isect[s, G_CC] += gcc
-        geo_isect[s, G_OPAC] += go
+        geo_isect[s, G_U] = gu
+        geo_isect[s, G_V] = gv
+        geo_isect[s, G_CA] = gca
+        geo_isect[s, G_CB] = gcb
+        geo_isect[s, G_CC] = gcc
+        geo_isect[s, G_OPAC] = go
         for ch in range(n_ch):
-            col_isect[s, ch] += gcol[ch]
-        if finest:
-            geo_isect[s, _GEO_U_LAST] += gu
-            geo_isect[s, _GEO_U_LAST + 1] += gv
+            col_isect[s, ch] = gcol[ch]
+        geo_isect[s, _GEO_U_LAST] = gu_top
+        geo_isect[s, _GEO_U_LAST + 1] = gv_top
 
 
 def scratch_entries(slot_start, n_ch: int) -> int:
@@ -862,6 +940,7 @@ def raster_backward(
     tiles_x,
     rec_keep,
     rec_pix,
+    rec_img,
     rec_start,
     rec_n,
     slot_start,
@@ -878,8 +957,9 @@ def raster_backward(
 
     then a = o * exp(power) (no gradient where clamped to 0.99) and
     power = -(ca dx^2 + cc dy^2)/2 - cb dx dy, dx = px - u, dy = py - v.
-    Images are those of raster_forward (t_final, last, grad_image, grad_alpha, rec_start and
-    rec_n carry a leading level axis); their gradients add up. Returns per-Gaussian gradients
+    Images are those of raster_forward (t_final, last, grad_image and grad_alpha carry a
+    leading image axis; the record lists each pair once with its images); their gradients
+    add up. Returns per-Gaussian gradients
     [N, 6 + C + 2] (layout G_*, then d/du, d/dv of the last image alone) and d/dbackground [C].
 
     ``slot_start`` is backward_slots(); ``scratch`` (float64, at least slot_start[-1] *
@@ -904,43 +984,37 @@ def raster_backward(
         t = spread[it]
         geo_isect[slot_start[t] : slot_start[t + 1]] = 0.0
         col_isect[slot_start[t] : slot_start[t + 1]] = 0.0
-        T = np.empty(TILE * TILE)
-        behind = np.empty((TILE * TILE, n_ch))
-        gimg = np.empty((TILE * TILE, n_ch))
-        galpha = np.empty(TILE * TILE)
-        gcol = np.empty(n_ch)
-        for im in range(n_img):
-            _replay_tile(
-                t,
-                tile_start,
-                ids,
-                xy,
-                conic,
-                opacities,
-                colors,
-                background,
-                t_final[im],
-                last[im],
-                grad_image[im],
-                grad_alpha[im],
-                width,
-                height,
-                tiles_x,
-                T,
-                behind,
-                gimg,
-                galpha,
-                gcol,
-                geo_isect,
-                col_isect,
-                slot_start[t] - tile_start[t],
-                gbg_tile[t],
-                rec_keep,
-                rec_pix,
-                rec_start[im],
-                rec_n[im],
-                im == n_img - 1,
-            )
+        _replay_tile(
+            t,
+            tile_start,
+            ids,
+            xy,
+            conic,
+            opacities,
+            colors,
+            background,
+            t_final,
+            last,
+            grad_image,
+            grad_alpha,
+            width,
+            height,
+            tiles_x,
+            np.empty((TILE * TILE, n_img)),
+            np.empty((TILE * TILE, n_img, n_ch)),
+            np.empty((TILE * TILE, n_img, n_ch)),
+            np.empty((TILE * TILE, n_img)),
+            np.empty(n_ch),
+            geo_isect,
+            col_isect,
+            slot_start[t] - tile_start[t],
+            gbg_tile[t],
+            rec_keep,
+            rec_pix,
+            rec_img,
+            rec_start,
+            rec_n,
+        )
     grads = np.zeros((n, width_g))
     for t in range(n_tiles):  # pair order, as before: a Gaussian's tiles add up in tile order
         s0 = slot_start[t] - tile_start[t]

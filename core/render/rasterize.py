@@ -148,11 +148,12 @@ class _RecordBuffers:
 
     def take(self, pixels: int, n_img: int, n_chunks: int):
         size = n_chunks * (int(self.per_pixel * pixels * n_img / n_chunks) + 4096)
-        for i, (g, p) in enumerate(self.free):
-            if len(g) >= size:
+        for i, bufs in enumerate(self.free):
+            if len(bufs[0]) >= size:
                 del self.free[i]
-                return g, p
-        return np.empty(size, np.float32), np.empty(size, np.uint8)  # see rk.raster_forward's record
+                return bufs
+        # see rk.raster_forward's record: 1 - alpha, pixel in the tile, images composited
+        return np.empty(size, np.float32), np.empty(size, np.uint8), np.empty(size, np.uint16)
 
     def learn(self, used: np.ndarray, size: int, pixels: int, n_img: int) -> bool:
         """Whether the record was complete; sizes the next call either way."""
@@ -228,7 +229,7 @@ def _cpu_forward(
         bufs = (
             _record_buffers.take(W * H, len(upto), n_chunks)
             if record
-            else (np.empty(0, np.float32), np.empty(0, np.uint8))
+            else (np.empty(0, np.float32), np.empty(0, np.uint8), np.empty(0, np.uint16))
         )
         image, t_final, last, contrib, (rec_start, rec_n, used) = rk.raster_forward(
             tile_start,
@@ -297,7 +298,7 @@ def _cpu_backward(state, means, quats, scales, opacities, camera, eps2d, grad_im
         slot_start,
         scratch,
     )
-    _record_buffers.give(state["rec"][:2])  # back to the pool for the next forward
+    _record_buffers.give(state["rec"][:3])  # back to the pool for the next forward
     state["rec"] = None
     g_uv = np.ascontiguousarray(grads[:, rk.G_U : rk.G_V + 1])
     g_uv_last = grads[:, -2:]  # the last image's own screen-space gradient
@@ -583,9 +584,11 @@ def render_levels(
     backend="auto",
 ) -> list:
     """Several images of nested subsets in one pass: image k shows the Gaussians whose
-    ``level`` [N] (ints, e.g. the forest level of each face) is <= ``upto[k]``, exactly as
-    ``render`` of that subset would (same order, same pixels). On the CPU the subsets share
-    projection, depth sort and tile lists; only compositing runs per image.
+    ``level`` [N] (ints, e.g. the forest level of each face) is <= ``upto[k]``, as ``render``
+    of that subset would (same order, same pixels; values equal up to float64 rounding: a row's
+    exp recurrence starts where any of the images still composites). On the CPU the subsets
+    share projection, depth sort, tile lists and each pair's alpha; only compositing runs per
+    image, in one pass (at most rk.MAX_IMAGES images).
 
     Returns one RenderOutput per entry of ``upto``. They share ``means2d`` (all N Gaussians),
     whose .grad after backward is the screen-space gradient of the image with the largest
@@ -597,6 +600,8 @@ def render_levels(
         raise ValueError("render_levels: upto must name at least one level")
     if sorted(upto) != upto or len(set(upto)) != len(upto):
         raise ValueError(f"render_levels: upto must be strictly increasing, got {upto}")
+    if len(upto) > rk.MAX_IMAGES:
+        raise ValueError(f"render_levels: at most {rk.MAX_IMAGES} images in one pass, got {len(upto)}")
     lv = np.asarray(level.detach().cpu().numpy() if isinstance(level, torch.Tensor) else level)
     if lv.shape != (means.shape[0],) or not np.issubdtype(lv.dtype, np.integer):
         raise ValueError(f"render_levels: level must be [N={means.shape[0]}] integers, got {lv.dtype} {list(lv.shape)}")
