@@ -61,6 +61,10 @@ def test_run_paper_table_small(tmp_path):
     # Table 3: the finest-only run scored at 35 % of its own stream
     f = r["ablations"]["finest_only_35"]
     assert f["finest_only"]["gaussians"] > 0 and np.isfinite(f["finest_only"]["psnr"])
+    lo = r["ablations"]["finest_only_35_level_order"]  # the same in the paper's stream order
+    for run in ("multi_level", "finest_only"):
+        assert lo[run]["gaussians"] > 0 and np.isfinite(lo[run]["psnr"]), run
+    assert "paper's level-by-level order" in " ".join(pt["checks"])
     short = r["ablations"]["finest_only_short"]
     assert list(short) == ["5", "10", "25"]
     for run in ("multi_level", "finest_only"):  # each cut at its own share of its own stream
@@ -92,6 +96,7 @@ def test_run_paper_table_small(tmp_path):
         "27.89 / 0.851",
         "## Table 3",
         "29.87 / 20.06",
+        "both streams in the paper's order",
         "mean ± sd",
         "peak RSS",
         "## Acceptance",

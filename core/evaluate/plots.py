@@ -921,6 +921,13 @@ def paper_table_markdown(r: dict) -> str:
         )
     else:
         lines.append("| 35 %: finest level only | not run (no --finest-only) | 29.87 / 20.06 |")
+    if "finest_only_35_level_order" in t3:
+        f = t3["finest_only_35_level_order"]
+        lines.append(
+            f"| 35 %, both streams in the paper's order (every level whole before the next, stream version 4): "
+            f"multi-level supervision / finest level only | {f['multi_level']:.2f} / {f['finest_only']:.2f} | "
+            f"{f['paper'][0]:.2f} / {f['paper'][1]:.2f} |"
+        )
     for b, f in t3.get("finest_only_short", {}).items():  # not in the paper's table
         lines.append(
             f"| {b} %: multi-level supervision / finest level only | {f['multi_level']:.2f} / "
