@@ -577,6 +577,161 @@ def _forward_tile(
 
 
 @njit(cache=True)
+def _forward_tile_one(
+    t,
+    tile_start,
+    ids,
+    xy,
+    conic,
+    opacities,
+    cut,
+    colors,
+    rect,
+    background,
+    width,
+    height,
+    tiles_x,
+    T,
+    acc,
+    lst,
+    active,
+    contrib_isect,
+    image,
+    t_final,
+    last,
+    glevel,
+    upto,
+    rec_keep,
+    rec_pix,
+    rec_img,
+    rec_start,
+    rec_n,
+    pos,
+    cap_end,
+    pix_weight,
+):
+    """_forward_tile for a single image (the common case: evaluation, previews, one level
+    supervised), kept apart because the per-image loops and masks of the general tile cost it
+    about a quarter more. Composite one tile front to back, Gaussians with glevel <= upto only. Each Gaussian
+    visits only the chords of its ellipse inside the tile, and skips rows whose pixels have
+    all stopped (bit masks in ``active``). ``contrib_isect`` (when not empty) gets each pair's
+    sum of alpha*T, each pixel weighted by ``pix_weight`` [H, W] (when not empty).
+
+    With ``pos`` >= 0 every composited pair is recorded for the backward (see raster_forward)
+    from entry ``pos`` on; returns the next free entry, or -1 once ``cap_end`` is reached."""
+    n_ch = colors.shape[1]
+    weighted = pix_weight.shape[0] > 0
+    x0, y0, x1, y1 = _tile_bounds(t, tiles_x, width, height)
+    tw = x1 - x0
+    n_pix = tw * (y1 - y0)
+    for p in range(n_pix):
+        T[p] = 1.0
+        lst[p] = -1
+        for ch in range(n_ch):
+            acc[p, ch] = 0.0
+    for r in range(y1 - y0):
+        active[r] = (1 << tw) - 1
+    n_done = 0
+    for k in range(tile_start[t], tile_start[t + 1]):
+        g = ids[k]
+        if glevel[g] > upto:
+            continue
+        i0 = max(rect[g, 0], x0)
+        i1 = min(rect[g, 2], x1 - 1)
+        j0 = max(rect[g, 1], y0)
+        j1 = min(rect[g, 3], y1 - 1)
+        u = xy[g, 0]
+        v = xy[g, 1]
+        ca = conic[g, 0]
+        cb = conic[g, 1]
+        cc = conic[g, 2]
+        o = opacities[g]
+        c_g = cut[g]
+        e_ca = -1.0  # exp(-ca), computed on the first row walked
+        inv_ca = 1.0 / ca
+        d_conic = cb * cb - ca * cc
+        e_cut = -2.0 * ca * c_g
+        half_u = u - 0.5
+        wsum = 0.0
+        first = pos
+        c0 = colors[g, 0]
+        c1 = colors[g, 1 % n_ch]
+        c2 = colors[g, 2 % n_ch]
+        for j in range(j0, j1 + 1):
+            r = j - y0
+            if active[r] == 0:
+                continue
+            dy = j + 0.5 - v
+            a, b = _row_span(dy, half_u, cb, inv_ca, d_conic, e_cut, i0, i1)
+            if a > b:
+                continue
+            live = active[r] & (((1 << (b + 1 - x0)) - 1) ^ ((1 << (a - x0)) - 1))
+            if live == 0:
+                continue
+            # Only from the first to the last pixel still compositing (the backward replays the
+            # record, so the walk need not match anything).
+            a = x0 + trailing_zeros(live)
+            b = x0 + 63 - leading_zeros(live)
+            if e_ca < 0.0:
+                e_ca = math.exp(-ca)
+            row = r * tw - x0
+            pix = r * TILE - x0
+            if pos >= 0 and pos + (b + 1 - a) > cap_end:
+                pos = -1  # the record cannot hold this row: the caller runs the forward again
+            gauss, e_step = _row_start(dy, u, ca, cb, cc, a)
+            for i in range(a, b + 1):
+                p = row + i
+                gs = gauss
+                gauss *= e_step
+                e_step *= e_ca
+                if not (live >> (i - x0)) & 1:  # stopped before this Gaussian
+                    continue
+                alpha = o * gs
+                if not alpha >= ALPHA_MIN:
+                    continue
+                clamped = alpha > ALPHA_MAX
+                if clamped:
+                    alpha = ALPHA_MAX
+                Tp = T[p]
+                t_next = Tp * (1.0 - alpha)
+                if t_next < T_MIN:
+                    active[r] &= ~(1 << (i - x0))
+                    n_done += 1
+                    continue
+                if pos >= 0:
+                    rec_keep[pos] = -1.0 if clamped else 1.0 - alpha
+                    rec_pix[pos] = pix + i
+                    rec_img[pos] = 1
+                    pos += 1
+                w = alpha * Tp
+                if n_ch == 3:  # the common case, unrolled
+                    acc[p, 0] += w * c0
+                    acc[p, 1] += w * c1
+                    acc[p, 2] += w * c2
+                else:
+                    for ch in range(n_ch):
+                        acc[p, ch] += w * colors[g, ch]
+                wsum += w * pix_weight[j, i] if weighted else w
+                T[p] = t_next
+                lst[p] = k
+        if contrib_isect.shape[0] > 0:
+            contrib_isect[k] = wsum
+        if pos > first:
+            rec_start[k] = first
+            rec_n[k] = pos - first
+        if n_done == n_pix:
+            break
+    for j in range(y0, y1):
+        for i in range(x0, x1):
+            p = (j - y0) * tw + i - x0
+            for ch in range(n_ch):
+                image[j, i, ch] = acc[p, ch] + T[p] * background[ch]
+            t_final[j, i] = T[p]
+            last[j, i] = lst[p]
+    return pos
+
+
+@njit(cache=True)
 def _spread_tiles(n_tiles, tiles_x):
     """Tile order for the static split of prange: tile rows r, r + SPREAD, r + 2 SPREAD, ... for
     r = 0 .. SPREAD - 1, each row left to right, so that each thread's contiguous share takes
@@ -663,44 +818,83 @@ def raster_forward(
         pmask = np.empty(TILE * TILE, np.int64)
         active = np.empty((n_img, TILE), np.int64)
         n_done = np.empty(n_img, np.int64)
+        T1 = np.empty(TILE * TILE)  # the single-image tile's own (contiguous 1-D) state
+        acc1 = np.empty((TILE * TILE, n_ch))
+        lst1 = np.empty(TILE * TILE, np.int64)
+        active1 = np.empty(TILE, np.int64)
         pos = c * chunk_cap if rec else -1
         cap_end = (c + 1) * chunk_cap
         for it in range(c * per, min(n_tiles, (c + 1) * per)):
-            nxt = _forward_tile(
-                spread[it],
-                tile_start,
-                ids,
-                xy,
-                conic,
-                opacities,
-                cut,
-                colors,
-                rect,
-                background,
-                width,
-                height,
-                tiles_x,
-                T,
-                acc,
-                lst,
-                active,
-                n_done,
-                pmask,
-                contrib_isect,
-                image,
-                t_final,
-                last,
-                glevel,
-                upto,
-                rec_keep,
-                rec_pix,
-                rec_img,
-                rec_start,
-                rec_n,
-                pos,
-                cap_end,
-                pw,
-            )
+            if n_img == 1:
+                nxt = _forward_tile_one(
+                    spread[it],
+                    tile_start,
+                    ids,
+                    xy,
+                    conic,
+                    opacities,
+                    cut,
+                    colors,
+                    rect,
+                    background,
+                    width,
+                    height,
+                    tiles_x,
+                    T1,
+                    acc1,
+                    lst1,
+                    active1,
+                    contrib_isect,
+                    image[0],
+                    t_final[0],
+                    last[0],
+                    glevel,
+                    upto[0],
+                    rec_keep,
+                    rec_pix,
+                    rec_img,
+                    rec_start,
+                    rec_n,
+                    pos,
+                    cap_end,
+                    pw,
+                )
+            else:
+                nxt = _forward_tile(
+                    spread[it],
+                    tile_start,
+                    ids,
+                    xy,
+                    conic,
+                    opacities,
+                    cut,
+                    colors,
+                    rect,
+                    background,
+                    width,
+                    height,
+                    tiles_x,
+                    T,
+                    acc,
+                    lst,
+                    active,
+                    n_done,
+                    pmask,
+                    contrib_isect,
+                    image,
+                    t_final,
+                    last,
+                    glevel,
+                    upto,
+                    rec_keep,
+                    rec_pix,
+                    rec_img,
+                    rec_start,
+                    rec_n,
+                    pos,
+                    cap_end,
+                    pw,
+                )
             if pos >= 0:
                 used[c] = nxt - c * chunk_cap if nxt >= 0 else chunk_cap + 1
             pos = nxt
@@ -895,6 +1089,163 @@ def _replay_tile(
         geo_isect[s, _GEO_U_LAST + 1] = gv_top
 
 
+@njit(cache=True)
+def _replay_tile_one(
+    t,
+    tile_start,
+    ids,
+    xy,
+    conic,
+    opacities,
+    colors,
+    background,
+    t_final,
+    last,
+    grad_image,
+    grad_alpha,
+    width,
+    height,
+    tiles_x,
+    T,
+    behind,
+    gimg,
+    galpha,
+    gcol,
+    geo_isect,
+    col_isect,
+    slot,
+    gbg,
+    rec_keep,
+    rec_pix,
+    rec_start,
+    rec_n,
+):
+    """_replay_tile for a single image (see _forward_tile_one). The backward of one tile from the forward's record: the pairs the forward composited, back
+    to front per pixel, a Gaussian's pixels row by row (each row summed before it is added)."""
+    n_ch = colors.shape[1]
+    x0, y0, x1, y1 = _tile_bounds(t, tiles_x, width, height)
+    tw = x1 - x0
+    k_max = -1
+    for j in range(y0, y1):
+        for i in range(x0, x1):
+            p = (j - y0) * tw + i - x0
+            tn = t_final[j, i]
+            T[p] = tn
+            k_max = max(k_max, last[j, i])
+            galpha[p] = grad_alpha[j, i] * tn
+            for ch in range(n_ch):
+                behind[p, ch] = tn * background[ch]
+                gimg[p, ch] = grad_image[j, i, ch]
+                gbg[ch] += grad_image[j, i, ch] * tn
+    for k in range(k_max, tile_start[t] - 1, -1):
+        m = rec_n[k]
+        if m == 0:
+            continue
+        g = ids[k]
+        u = xy[g, 0]
+        v = xy[g, 1]
+        ca = conic[g, 0]
+        cb = conic[g, 1]
+        cc = conic[g, 2]
+        o = opacities[g]
+        gu = 0.0
+        gv = 0.0
+        gca = 0.0
+        gcb = 0.0
+        gcc = 0.0
+        go = 0.0
+        for ch in range(n_ch):
+            gcol[ch] = 0.0
+        gc0 = 0.0
+        gc1 = 0.0
+        gc2 = 0.0
+        c0 = colors[g, 0]
+        c1 = colors[g, 1 % n_ch]
+        c2 = colors[g, 2 % n_ch]
+        r_cur = -1
+        dy = 0.0
+        s0 = 0.0
+        s1 = 0.0
+        s2 = 0.0
+        for e in range(rec_start[k], rec_start[k] + m):
+            q = np.int64(rec_pix[e])
+            r = q // TILE
+            col = q - r * TILE
+            if r != r_cur:
+                if r_cur >= 0:
+                    gu += ca * s1 + cb * dy * s0
+                    gv += cb * s1 + cc * dy * s0
+                    gca -= 0.5 * s2
+                    gcb -= dy * s1
+                    gcc -= 0.5 * dy * dy * s0
+                r_cur = r
+                dy = (y0 + r) + 0.5 - v
+                s0 = 0.0
+                s1 = 0.0
+                s2 = 0.0
+            p = r * tw + col
+            keep = np.float64(rec_keep[e])
+            clamped = keep < 0.0
+            if clamped:
+                alpha = ALPHA_MAX
+                keep = 1.0 - ALPHA_MAX
+            else:
+                alpha = 1.0 - keep
+            dx = (x0 + col) + 0.5 - u
+            inv = 1.0 / keep
+            T_before = T[p] * inv
+            w = alpha * T_before
+            g_a = galpha[p] * inv
+            if n_ch == 3:
+                gi0 = gimg[p, 0]
+                gi1 = gimg[p, 1]
+                gi2 = gimg[p, 2]
+                gc0 += w * gi0
+                gc1 += w * gi1
+                gc2 += w * gi2
+                g_a += gi0 * (c0 * T_before - behind[p, 0] * inv)
+                g_a += gi1 * (c1 * T_before - behind[p, 1] * inv)
+                g_a += gi2 * (c2 * T_before - behind[p, 2] * inv)
+                behind[p, 0] += c0 * w
+                behind[p, 1] += c1 * w
+                behind[p, 2] += c2 * w
+            else:
+                for ch in range(n_ch):
+                    gcol[ch] += w * gimg[p, ch]
+                    g_a += gimg[p, ch] * (colors[g, ch] * T_before - behind[p, ch] * inv)
+                    behind[p, ch] += colors[g, ch] * w
+            T[p] = T_before
+            if clamped:
+                continue
+            g_pow = alpha * g_a  # d/dpower; d/dopacity is g_pow / o
+            go += g_pow
+            s0 += g_pow
+            g_dx = g_pow * dx
+            s1 += g_dx
+            s2 += g_dx * dx
+        gu += ca * s1 + cb * dy * s0
+        gv += cb * s1 + cc * dy * s0
+        gca -= 0.5 * s2
+        gcb -= dy * s1
+        gcc -= 0.5 * dy * dy * s0
+        go /= o
+        if n_ch == 3:
+            gcol[0] = gc0
+            gcol[1] = gc1
+            gcol[2] = gc2
+        s = slot + k
+        geo_isect[s, G_U] += gu
+        geo_isect[s, G_V] += gv
+        geo_isect[s, G_CA] += gca
+        geo_isect[s, G_CB] += gcb
+        geo_isect[s, G_CC] += gcc
+        geo_isect[s, G_OPAC] += go
+        for ch in range(n_ch):
+            col_isect[s, ch] += gcol[ch]
+        geo_isect[s, _GEO_U_LAST] += gu
+        geo_isect[s, _GEO_U_LAST + 1] += gv
+
+
 def scratch_entries(slot_start, n_ch: int) -> int:
     """Size of raster_backward's scratch for the slots of backward_slots() and n_ch colours."""
     return int(slot_start[-1]) * (_GEO_WIDTH + n_ch)
@@ -984,6 +1335,38 @@ def raster_backward(
         t = spread[it]
         geo_isect[slot_start[t] : slot_start[t + 1]] = 0.0
         col_isect[slot_start[t] : slot_start[t + 1]] = 0.0
+        if n_img == 1:
+            _replay_tile_one(
+                t,
+                tile_start,
+                ids,
+                xy,
+                conic,
+                opacities,
+                colors,
+                background,
+                t_final[0],
+                last[0],
+                grad_image[0],
+                grad_alpha[0],
+                width,
+                height,
+                tiles_x,
+                np.empty(TILE * TILE),
+                np.empty((TILE * TILE, n_ch)),
+                np.empty((TILE * TILE, n_ch)),
+                np.empty(TILE * TILE),
+                np.empty(n_ch),
+                geo_isect,
+                col_isect,
+                slot_start[t] - tile_start[t],
+                gbg_tile[t],
+                rec_keep,
+                rec_pix,
+                rec_start,
+                rec_n,
+            )
+            continue
         _replay_tile(
             t,
             tile_start,
