@@ -51,6 +51,8 @@ HEADINGS = {  # how each section's heading starts, to read the current page back
     "gpu": "## GPU:",
     "train": "## Training iteration:",
     "quant": "## Robust quantisation",  # scripts/bench_quant.py, included with --section quant=FILE
+    # bench_render.py --against COMMIT --run RUN, with --section raster_levels=FILE (before the next: same prefix)
+    "raster_levels": "## Rasteriser kernels, every level",
     "raster_kernels": "## Rasteriser kernels",  # bench_render.py --against COMMIT, with --section raster_kernels=FILE
 }
 

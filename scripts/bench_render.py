@@ -2,14 +2,16 @@
 and time/error against the dense float64 reference of the tests.
 
     python scripts/bench_render.py [--quick]
-    python scripts/bench_render.py --against COMMIT [--reps N] [--threads 1,2] [--out FILE]
+    python scripts/bench_render.py --against COMMIT [--reps N] [--threads 1,2] [--run RUN] [--out FILE]
 
 ``run(quick=False)`` returns the Markdown section the script prints. ``--against`` instead
 times each kernel of core/render/kernels.py at COMMIT (extracted with `git show` and imported
 as its own module) against this tree's, interleaved rep by rep in one process, at each numba
-thread count of --threads, and checks
-both against the dense float64 reference (section "Rasteriser kernels"; put it into
-docs/BENCHMARKS.md with `scripts/bench.py --only none --section raster_kernels=FILE`).
+thread count of --threads, and checks both against the dense float64 reference (section
+"Rasteriser kernels"; put it into docs/BENCHMARKS.md with `scripts/bench.py --only none
+--section raster_kernels=FILE`). With --run RUN the scene is that trained run's avatar, every
+level rendered in one pass (section "Rasteriser kernels, every level": --section
+raster_levels=FILE).
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # The float64 record of kernels before 2026-11-24 (rasterize.py's pool holds float32 ones), kept
 # between calls as the pool keeps its own.
 _OLD_RECORD = np.empty(0)
+_POOLS = {}  # kernel module name -> record buffer pool (kernel_pipeline)
 
 
 def head_scene(n, seed=0):
@@ -271,10 +274,12 @@ def old_kernels(commit):
     return rev, importlib.import_module(f"kernels_{rev}")
 
 
-def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.3):
+def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.3, glevel=None):
     """The CPU render of core/render/rasterize.py, forward and backward, kernel by kernel with
     module ``rk``'s kernels; returns per-stage (wall ms, process CPU ms), the image, alpha and
-    the gradients (means, quats, scales, opacities, colors)."""
+    the gradients (means, quats, scales, opacities, colors). With ``glevel`` [N] (levels 0..L-1)
+    one pass renders the L nested images of render_levels (grad_image [L, H, W, C], grad_alpha
+    [L, H, W]); image and alpha are then [L, H, W, ...]."""
     means, quats, scales, opac, colors, bg = arrays
     W, H = cam.width, cam.height
     times = {}
@@ -302,16 +307,24 @@ def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.
     tiles_x = -(-W // rk.TILE)
     tile_start, ids = rk.bin_tiles(rect, order, tiles_x, -(-H // rk.TILE))
     mark("bin_tiles")
-    glevel, upto = np.zeros(len(means), np.int64), np.zeros(1, np.int64)
+    if glevel is None:
+        glevel, upto = np.zeros(len(means), np.int64), np.zeros(1, np.int64)
+        grad_image, grad_alpha = grad_image[None], grad_alpha[None]
+    else:
+        upto = np.arange(int(glevel.max()) + 1, dtype=np.int64)
     record_args = inspect.signature(rk.raster_forward.py_func).parameters
     if "rec_keep" in record_args or "rec_gauss" in record_args:
         # Kernels whose backward replays the forward's record: rasterize.py's buffer pool, as in
         # training (steady state: reused buffers, no re-run).
-        from progressive_avatars.core.render.rasterize import _record_buffers as pool
+        from progressive_avatars.core.render.rasterize import _RecordBuffers
+
+        # Each module its own pool: old and new records differ in size, and a pool sized by the
+        # other's last call would make a forward run twice.
+        pool = _POOLS.setdefault(rk.__name__, _RecordBuffers())
 
         chunks = numba.get_num_threads()
         while True:
-            bufs = pool.take(W * H, 1, chunks)
+            bufs = pool.take(W * H, len(upto), chunks)
             if "rec_gauss" in record_args:  # kernels before 2026-11-24 recorded exp(power) in float64
                 if len(_OLD_RECORD) != len(bufs[0]):
                     _OLD_RECORD.resize(len(bufs[0]), refcheck=False)
@@ -321,7 +334,7 @@ def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.
             image, t_final, last, _, (rec_start, rec_n, used) = rk.raster_forward(
                 tile_start, ids, xy, conic, opac, cut, colors, rect, bg, W, H, tiles_x, glevel, upto, chunks, *run_bufs
             )
-            if pool.learn(used, len(bufs[0]), W * H, 1):
+            if pool.learn(used, len(bufs[0]), W * H, len(upto)):
                 break
         mark("raster_forward")
         slots = ()
@@ -332,7 +345,7 @@ def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.
             slots = (slot_start, _scratch.take(rk.scratch_entries(slot_start, colors.shape[1])))
         grads, _ = rk.raster_backward(
             tile_start, ids, xy, conic, opac, colors, bg, t_final, last,
-            grad_image[None], grad_alpha[None], W, H, tiles_x, *run_bufs, rec_start, rec_n, *slots,
+            grad_image, grad_alpha, W, H, tiles_x, *run_bufs, rec_start, rec_n, *slots,
         )  # fmt: skip
         pool.give(bufs)
     else:
@@ -342,7 +355,7 @@ def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.
         mark("raster_forward")
         grads, _ = rk.raster_backward(
             tile_start, ids, xy, conic, opac, cut, colors, rect, bg, t_final, last,
-            grad_image[None], grad_alpha[None], W, H, tiles_x, glevel, upto,
+            grad_image, grad_alpha, W, H, tiles_x, glevel, upto,
         )  # fmt: skip
     mark("raster_backward")
     g_means, g_quats, g_scales = rk.project_backward(
@@ -352,7 +365,8 @@ def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.
     )  # fmt: skip
     mark("project_backward")
     g_colors = grads[:, rk.G_COLOR : rk.G_COLOR + colors.shape[1]]
-    out = dict(image=image[0], alpha=1.0 - t_final[0], pairs=len(ids))
+    one = len(upto) == 1 and glevel.max() == 0
+    out = dict(image=image[0] if one else image, alpha=1.0 - (t_final[0] if one else t_final), pairs=len(ids))
     out["grads"] = [g_means, g_quats, g_scales, grads[:, rk.G_OPAC], g_colors]
     return times, out
 
@@ -388,24 +402,63 @@ def _reference_errors(rk, seed=1, width=96, height=80, n=1500):
     return img_err, grad_err
 
 
-def compare_kernels(commit, width=802, height=550, n=170_000, reps=5, threads=None):
+def trained_scene(run):
+    """(arrays, camera, levels) of a trained run: its Gaussians (float64, background last) as
+    training binds them for its first training view, at the dataset's full size, and each
+    Gaussian's forest level."""
+    import dataclasses
+    import json
+    import shutil
+    import tempfile
+
+    import torch
+
+    from progressive_avatars.core.train import trainer as train_mod
+
+    cfg = json.load(open(os.path.join(run, "config.json")))
+    fields = {f.name for f in dataclasses.fields(train_mod.TrainConfig)}
+    config = train_mod.TrainConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in cfg.items() if k in fields})
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in ("checkpoint.npz", "config.json"):
+            shutil.copy(os.path.join(run, name), tmp)
+        tr = train_mod.Trainer(cfg["data"], tmp, config, resume=True)
+        sample = tr.train[0]
+        with torch.no_grad():
+            g = tr.model.gaussians(tr._vertices(sample), sample.camera.center)
+        arrays = [np.ascontiguousarray(g[k].numpy(), np.float64) for k in ("means", "quats", "scales", "opacities")]
+        arrays += [np.ascontiguousarray(g["colors"].numpy(), np.float64), np.asarray(tr.background, np.float64)]
+        return arrays, sample.camera, np.asarray(tr.model.forest.level, np.int64)
+
+
+def compare_kernels(commit, width=802, height=550, n=170_000, reps=5, threads=None, run=None):
     """Old (``commit``) and new kernels on the same scene, interleaved rep by rep; per stage the
-    min / median wall ms and min CPU ms, plus both against each other and the reference."""
+    min / median wall ms and min CPU ms, plus both against each other and the reference. With
+    ``run`` (a trained run folder) the scene is that avatar, every level rendered in one pass (as
+    training with every level supervised does), instead of the synthetic head."""
     import numba
 
     from progressive_avatars.core.render import kernels as new_rk
 
     rev, old_rk = old_kernels(commit)
     numba.set_num_threads(threads or numba.config.NUMBA_NUM_THREADS)
-    cam = head_camera(width, height)
-    arrays = [np.ascontiguousarray(x, np.float64) for x in head_scene(n)] + [np.zeros(3)]
+    glevel = None
+    if run:
+        arrays, cam, glevel = trained_scene(run)
+        width, height, n = cam.width, cam.height, len(glevel)
+    else:
+        cam = head_camera(width, height)
+        arrays = [np.ascontiguousarray(x, np.float64) for x in head_scene(n)] + [np.zeros(3)]
+    n_img = 1 if glevel is None else int(glevel.max()) + 1
     rng = np.random.default_rng(0)
-    wi, wa = rng.uniform(0.0, 1.0, size=(height, width, 3)), rng.uniform(-1.0, 1.0, size=(height, width))
+    wi = rng.uniform(0.0, 1.0, size=(n_img, height, width, 3))
+    wa = rng.uniform(-1.0, 1.0, size=(n_img, height, width))
+    if glevel is None:
+        wi, wa = wi[0], wa[0]
     runs = {"old": [], "new": []}
     outs = {}
     for rep in range(reps + 1):  # rep 0 is the warm-up (numba cache load, page faults)
         for name, rk in (("old", old_rk), ("new", new_rk)):
-            times, outs[name] = kernel_pipeline(rk, arrays, cam, wi, wa)
+            times, outs[name] = kernel_pipeline(rk, arrays, cam, wi, wa, glevel=glevel)
             if rep:
                 runs[name].append(times)
     diff_img = float(np.abs(outs["old"]["image"] - outs["new"]["image"]).max())
@@ -419,6 +472,7 @@ def compare_kernels(commit, width=802, height=550, n=170_000, reps=5, threads=No
     return dict(
         rev=rev, width=width, height=height, n=n, reps=reps, threads=threads, runs=runs,
         pairs={k: v["pairs"] for k, v in outs.items()}, diff_img=diff_img, diff_grad=diff_grad, ref=ref,
+        run=run, images=n_img,
     )  # fmt: skip
 
 
@@ -428,8 +482,14 @@ def kernels_section(results, command) -> str:
 
     load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
     r = results[0]
+    scene = "scripts/bench_render.py's head"
+    images = "one image"
+    if r.get("run"):
+        scene = f"the trained avatar of `{os.path.relpath(r['run'], ROOT)}` bound for its first training view"
+        images = f"every level at once ({r['images']} nested images, one pass, as with every level supervised)"
     lines = [
-        f"## Rasteriser kernels: {r['rev']} (old) against this tree (new), same run",
+        f"## Rasteriser kernels{', every level' if r.get('run') else ''}: {r['rev']} (old) against this tree "
+        "(new), same run",
         "",
         f"- date: {datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%d %H:%M UTC')}",
         f"- command: `{command}`",
@@ -437,8 +497,8 @@ def kernels_section(results, command) -> str:
         f"({numba.threading_layer()}), Python {platform.python_version()}",
         f"- load average when written: {load} (2 cores shared with other jobs: above 2, others competed for "
         "the cores; compare old with new, which ran interleaved rep by rep, rather than absolute times)",
-        f"- scene: scripts/bench_render.py's head, {r['width']}x{r['height']}, {r['n']:,} Gaussians; the kernels "
-        "called directly in float64 as core/render/rasterize.py calls them (no torch); one image; loss weights "
+        f"- scene: {scene}, {r['width']}x{r['height']}, {r['n']:,} Gaussians; the kernels "
+        f"called directly in float64 as core/render/rasterize.py calls them (no torch); {images}; loss weights "
         f"random; {r['reps']} reps after a warm-up; tile-Gaussian pairs old {r['pairs']['old']:,}, new "
         f"{r['pairs']['new']:,}",
         "- old = core/render/kernels.py at that commit (`git show`), imported as its own module in the same process",
@@ -491,7 +551,8 @@ if __name__ == "__main__":
         reps = int(args[args.index("--reps") + 1]) if "--reps" in args else 5
         cmd = "python scripts/bench_render.py " + " ".join(args)
         threads = args[args.index("--threads") + 1] if "--threads" in args else "1,2"
-        results = [compare_kernels(commit, reps=reps, threads=int(t)) for t in threads.split(",")]
+        run = args[args.index("--run") + 1] if "--run" in args else None
+        results = [compare_kernels(commit, reps=reps, threads=int(t), run=run) for t in threads.split(",")]
         text = kernels_section(results, cmd)
         if "--out" in args:
             with open(args[args.index("--out") + 1], "w") as fh:
