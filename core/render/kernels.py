@@ -388,6 +388,62 @@ def _tile_bounds(t, tiles_x, width, height):
 
 
 @njit(cache=True)
+def _splat(g, rect, xy, conic, cut, x0, x1, y0, y1):
+    """What a tile's walk needs of Gaussian g: its pixel box cut to the tile (i0, i1, j0, j1),
+    centre and conic, and _row_span's per-Gaussian constants (half_u, inv_ca, d_conic, e_cut)."""
+    ca = conic[g, 0]
+    cb = conic[g, 1]
+    cc = conic[g, 2]
+    return (
+        max(rect[g, 0], x0),
+        min(rect[g, 2], x1 - 1),
+        max(rect[g, 1], y0),
+        min(rect[g, 3], y1 - 1),
+        xy[g, 0],
+        xy[g, 1],
+        ca,
+        cb,
+        cc,
+        xy[g, 0] - 0.5,
+        1.0 / ca,
+        cb * cb - ca * cc,
+        -2.0 * ca * cut[g],
+    )
+
+
+@njit(cache=True)
+def _record_alpha(entry):
+    """(alpha, 1 - alpha, clamped) of a record entry (raster_forward keeps 1 - alpha, or -1
+    where alpha was clamped to ALPHA_MAX)."""
+    keep = np.float64(entry)
+    if keep < 0.0:
+        return ALPHA_MAX, 1.0 - ALPHA_MAX, True
+    return 1.0 - keep, keep, False
+
+
+@njit(cache=True)
+def _row_grads(ca, cb, cc, dy, s0, s1, s2):
+    """One row's share of d/du, d/dv and d/dconic (a, b, c) from its sums over the row's pixels of
+    g, g dx and g dx^2, g = d/dpower: power = -(ca dx^2 + cc dy^2)/2 - cb dx dy, dx = px - u."""
+    return ca * s1 + cb * dy * s0, cb * s1 + cc * dy * s0, -0.5 * s2, -dy * s1, -0.5 * dy * dy * s0
+
+
+@njit(cache=True)
+def _write_slot(geo_isect, col_isect, s, gu, gv, gca, gcb, gcc, go, gcol, gu_top, gv_top):
+    """A pair's gradient sums into its slot s of raster_backward's scratch."""
+    geo_isect[s, G_U] = gu
+    geo_isect[s, G_V] = gv
+    geo_isect[s, G_CA] = gca
+    geo_isect[s, G_CB] = gcb
+    geo_isect[s, G_CC] = gcc
+    geo_isect[s, G_OPAC] = go
+    for ch in range(gcol.shape[0]):
+        col_isect[s, ch] = gcol[ch]
+    geo_isect[s, _GEO_U_LAST] = gu_top
+    geo_isect[s, _GEO_U_LAST + 1] = gv_top
+
+
+@njit(cache=True)
 def _forward_tile(
     t,
     tile_start,
@@ -465,22 +521,11 @@ def _forward_tile(
         if im0 == n_img:
             continue
         img_mask = all_img ^ ((np.int64(1) << im0) - 1)
-        i0 = max(rect[g, 0], x0)
-        i1 = min(rect[g, 2], x1 - 1)
-        j0 = max(rect[g, 1], y0)
-        j1 = min(rect[g, 3], y1 - 1)
-        u = xy[g, 0]
-        v = xy[g, 1]
-        ca = conic[g, 0]
-        cb = conic[g, 1]
-        cc = conic[g, 2]
+        i0, i1, j0, j1, u, v, ca, cb, cc, half_u, inv_ca, d_conic, e_cut = _splat(
+            g, rect, xy, conic, cut, x0, x1, y0, y1
+        )
         o = opacities[g]
-        c_g = cut[g]
         e_ca = -1.0  # exp(-ca), computed on the first row walked
-        inv_ca = 1.0 / ca
-        d_conic = cb * cb - ca * cc
-        e_cut = -2.0 * ca * c_g
-        half_u = u - 0.5
         wsum = 0.0
         first = pos
         c0 = colors[g, 0]
@@ -636,22 +681,11 @@ def _forward_tile_one(
         g = ids[k]
         if glevel[g] > upto:
             continue
-        i0 = max(rect[g, 0], x0)
-        i1 = min(rect[g, 2], x1 - 1)
-        j0 = max(rect[g, 1], y0)
-        j1 = min(rect[g, 3], y1 - 1)
-        u = xy[g, 0]
-        v = xy[g, 1]
-        ca = conic[g, 0]
-        cb = conic[g, 1]
-        cc = conic[g, 2]
+        i0, i1, j0, j1, u, v, ca, cb, cc, half_u, inv_ca, d_conic, e_cut = _splat(
+            g, rect, xy, conic, cut, x0, x1, y0, y1
+        )
         o = opacities[g]
-        c_g = cut[g]
         e_ca = -1.0  # exp(-ca), computed on the first row walked
-        inv_ca = 1.0 / ca
-        d_conic = cb * cb - ca * cc
-        e_cut = -2.0 * ca * c_g
-        half_u = u - 0.5
         wsum = 0.0
         first = pos
         c0 = colors[g, 0]
@@ -998,13 +1032,10 @@ def _replay_tile(
             col = q - r * TILE
             if r != r_cur:
                 if r_cur >= 0:
-                    gu += ca * s1 + cb * dy * s0
-                    gv += cb * s1 + cc * dy * s0
-                    gca -= 0.5 * s2
-                    gcb -= dy * s1
-                    gcc -= 0.5 * dy * dy * s0
-                    gu_top += ca * t1 + cb * dy * t0
-                    gv_top += cb * t1 + cc * dy * t0
+                    du, dv, dca, dcb, dcc = _row_grads(ca, cb, cc, dy, s0, s1, s2)
+                    gu, gv, gca, gcb, gcc = gu + du, gv + dv, gca + dca, gcb + dcb, gcc + dcc
+                    du, dv, _, _, _ = _row_grads(ca, cb, cc, dy, t0, t1, 0.0)
+                    gu_top, gv_top = gu_top + du, gv_top + dv
                 r_cur = r
                 dy = (y0 + r) + 0.5 - v
                 s0 = 0.0
@@ -1013,13 +1044,7 @@ def _replay_tile(
                 t0 = 0.0
                 t1 = 0.0
             p = r * tw + col
-            keep = np.float64(rec_keep[e])
-            clamped = keep < 0.0
-            if clamped:
-                alpha = ALPHA_MAX
-                keep = 1.0 - ALPHA_MAX
-            else:
-                alpha = 1.0 - keep
+            alpha, keep, clamped = _record_alpha(rec_keep[e])
             inv = 1.0 / keep
             g_all = 0.0  # d/dalpha summed over the pair's images
             g_top = 0.0
@@ -1064,29 +1089,16 @@ def _replay_tile(
             g_pow = alpha * g_top
             t0 += g_pow
             t1 += g_pow * dx
-        gu += ca * s1 + cb * dy * s0
-        gv += cb * s1 + cc * dy * s0
-        gca -= 0.5 * s2
-        gcb -= dy * s1
-        gcc -= 0.5 * dy * dy * s0
-        gu_top += ca * t1 + cb * dy * t0
-        gv_top += cb * t1 + cc * dy * t0
+        du, dv, dca, dcb, dcc = _row_grads(ca, cb, cc, dy, s0, s1, s2)
+        gu, gv, gca, gcb, gcc = gu + du, gv + dv, gca + dca, gcb + dcb, gcc + dcc
+        du, dv, _, _, _ = _row_grads(ca, cb, cc, dy, t0, t1, 0.0)
+        gu_top, gv_top = gu_top + du, gv_top + dv
         go /= o
         if n_ch == 3:
             gcol[0] = gc0
             gcol[1] = gc1
             gcol[2] = gc2
-        s = slot + k
-        geo_isect[s, G_U] = gu
-        geo_isect[s, G_V] = gv
-        geo_isect[s, G_CA] = gca
-        geo_isect[s, G_CB] = gcb
-        geo_isect[s, G_CC] = gcc
-        geo_isect[s, G_OPAC] = go
-        for ch in range(n_ch):
-            col_isect[s, ch] = gcol[ch]
-        geo_isect[s, _GEO_U_LAST] = gu_top
-        geo_isect[s, _GEO_U_LAST + 1] = gv_top
+        _write_slot(geo_isect, col_isect, slot + k, gu, gv, gca, gcb, gcc, go, gcol, gu_top, gv_top)
 
 
 @njit(cache=True)
@@ -1173,24 +1185,15 @@ def _replay_tile_one(
             col = q - r * TILE
             if r != r_cur:
                 if r_cur >= 0:
-                    gu += ca * s1 + cb * dy * s0
-                    gv += cb * s1 + cc * dy * s0
-                    gca -= 0.5 * s2
-                    gcb -= dy * s1
-                    gcc -= 0.5 * dy * dy * s0
+                    du, dv, dca, dcb, dcc = _row_grads(ca, cb, cc, dy, s0, s1, s2)
+                    gu, gv, gca, gcb, gcc = gu + du, gv + dv, gca + dca, gcb + dcb, gcc + dcc
                 r_cur = r
                 dy = (y0 + r) + 0.5 - v
                 s0 = 0.0
                 s1 = 0.0
                 s2 = 0.0
             p = r * tw + col
-            keep = np.float64(rec_keep[e])
-            clamped = keep < 0.0
-            if clamped:
-                alpha = ALPHA_MAX
-                keep = 1.0 - ALPHA_MAX
-            else:
-                alpha = 1.0 - keep
+            alpha, keep, clamped = _record_alpha(rec_keep[e])
             dx = (x0 + col) + 0.5 - u
             inv = 1.0 / keep
             T_before = T[p] * inv
@@ -1223,27 +1226,14 @@ def _replay_tile_one(
             g_dx = g_pow * dx
             s1 += g_dx
             s2 += g_dx * dx
-        gu += ca * s1 + cb * dy * s0
-        gv += cb * s1 + cc * dy * s0
-        gca -= 0.5 * s2
-        gcb -= dy * s1
-        gcc -= 0.5 * dy * dy * s0
+        du, dv, dca, dcb, dcc = _row_grads(ca, cb, cc, dy, s0, s1, s2)
+        gu, gv, gca, gcb, gcc = gu + du, gv + dv, gca + dca, gcb + dcb, gcc + dcc
         go /= o
         if n_ch == 3:
             gcol[0] = gc0
             gcol[1] = gc1
             gcol[2] = gc2
-        s = slot + k
-        geo_isect[s, G_U] += gu
-        geo_isect[s, G_V] += gv
-        geo_isect[s, G_CA] += gca
-        geo_isect[s, G_CB] += gcb
-        geo_isect[s, G_CC] += gcc
-        geo_isect[s, G_OPAC] += go
-        for ch in range(n_ch):
-            col_isect[s, ch] += gcol[ch]
-        geo_isect[s, _GEO_U_LAST] += gu
-        geo_isect[s, _GEO_U_LAST + 1] += gv
+        _write_slot(geo_isect, col_isect, slot + k, gu, gv, gca, gcb, gcc, go, gcol, gu, gv)
 
 
 def scratch_entries(slot_start, n_ch: int) -> int:
