@@ -37,8 +37,10 @@ The nested images of one pass (the levels of a forest: image l shows the Gaussia
 glevel <= upto[l]) are composited together, not one after another: a Gaussian walks its
 chords and computes its alphas once per tile, then composites them into every image it
 belongs to where the pixel still runs, and the record lists each pair once with the images
-that took it. With every level supervised this halves the forward and the backward against
-walking and replaying each image on its own (docs/BENCHMARKS.md).
+that took it. With every level supervised this about halves the forward and cuts a third off
+the backward against walking and replaying each image on its own (docs/BENCHMARKS.md,
+"Rasteriser kernels, every level"). A single image keeps tile kernels of its own
+(_forward_tile_one, _replay_tile_one): the per-image bits and loops cost it a quarter more.
 """
 
 from __future__ import annotations
