@@ -657,6 +657,9 @@ def render_levels(
         _will_backward(means, quats, scales, opacities, colors, background, means2d),
     )
     last = len(upto) - 1
+    # unbind, not images[k]: the backward of k selects is k zero-filled copies of the whole stack
+    # (7 levels at 550x802: ~37 MB each) summed; unbind's backward stacks the k gradients once.
+    images, alphas = images.unbind(0), alphas.unbind(0)
     return [
         RenderOutput(
             image=images[k], alpha=alphas[k], means2d=means2d, contrib=contrib if k == last else None, radii=radii
