@@ -190,6 +190,9 @@ def test_level_weights_scale_each_level_loss(tiny_dataset, tmp_path):
     for bad in ((-1.0,), (0.0, 0.0), (float("nan"),)):
         with pytest.raises(ValueError, match="level weights"):
             config_for("tiny", level_weights=bad)
+    config_for("tiny", max_depth=13, coarse_levels=(0.1, 0.2))  # 16 images a step: the most one pass holds
+    with pytest.raises(ValueError, match="at most 16"):
+        config_for("tiny", max_depth=12, coarse_levels=(0.1, 0.2), prefix_cuts=2)
     out = subprocess.run(
         [
             sys.executable,

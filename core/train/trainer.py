@@ -28,6 +28,7 @@ from ..avatar.forest import Forest
 from .distributed import Dist, check_same, digest
 from .model import TorchAvatar
 from .policies import Growth, Supervision
+from ..render.kernels import MAX_IMAGES
 from ..render.rasterize import all_finite, render, render_levels
 
 
@@ -200,6 +201,12 @@ def config_for(preset: str, **overrides) -> TrainConfig:
         raise ValueError(
             f"prefix cuts must be >= 0, rank_every and rank_views >= 1, got "
             f"{cfg.prefix_cuts}, {cfg.rank_every}, {cfg.rank_views}"
+        )
+    images = len(cfg.coarse_levels) + 1 + int(cfg.max_depth) + int(cfg.prefix_cuts)
+    if images > MAX_IMAGES:  # render_levels composites at most MAX_IMAGES nested images a pass
+        raise ValueError(
+            f"a step may render {images} images (coarse levels {len(cfg.coarse_levels)} + template + depth "
+            f"{cfg.max_depth} + prefix cuts {cfg.prefix_cuts}); at most {MAX_IMAGES}: lower the depth or the cuts"
         )
     Supervision(cfg.supervision)  # unknown modes and growth settings fail here, before any work
     Growth.from_config(cfg)
