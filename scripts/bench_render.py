@@ -406,22 +406,11 @@ def trained_scene(run):
     """(arrays, camera, levels) of a trained run: its Gaussians (float64, background last) as
     training binds them for its first training view, at the dataset's full size, and each
     Gaussian's forest level."""
-    import dataclasses
-    import json
-    import shutil
-    import tempfile
-
     import torch
 
-    from progressive_avatars.core.train import trainer as train_mod
+    from bench_train import resumed_trainer
 
-    cfg = json.load(open(os.path.join(run, "config.json")))
-    fields = {f.name for f in dataclasses.fields(train_mod.TrainConfig)}
-    config = train_mod.TrainConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in cfg.items() if k in fields})
-    with tempfile.TemporaryDirectory() as tmp:
-        for name in ("checkpoint.npz", "config.json"):
-            shutil.copy(os.path.join(run, name), tmp)
-        tr = train_mod.Trainer(cfg["data"], tmp, config, resume=True)
+    with resumed_trainer(run) as tr:
         sample = tr.train[0]
         with torch.no_grad():
             g = tr.model.gaussians(tr._vertices(sample), sample.camera.center)

@@ -36,6 +36,7 @@ import sys as _sys
 _sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import _bootstrap  # noqa: E402,F401
 
+import contextlib  # noqa: E402
 import dataclasses  # noqa: E402
 import importlib  # noqa: E402
 import subprocess  # noqa: E402
@@ -200,10 +201,11 @@ def trained_run() -> str | None:
     return os.path.dirname(found[-1]) if found else None
 
 
-def bench_trained(run, supervision, reps):
-    """`Trainer.step()` of the working tree on a trained paper-scale avatar: the run's checkpoint
-    (its last iteration: growth over, every Gaussian trained), its dataset's views preloaded as
-    for the other rows. The old code cannot read the checkpoint: new only."""
+@contextlib.contextmanager
+def resumed_trainer(run, **overrides):
+    """The working tree's Trainer resumed from a trained run's checkpoint and config (with
+    ``overrides`` of its TrainConfig), in a scratch folder so that the run itself is never
+    written to."""
     import json
     import shutil
 
@@ -212,12 +214,20 @@ def bench_trained(run, supervision, reps):
     cfg = json.load(open(os.path.join(run, "config.json")))
     fields = {f.name for f in dataclasses.fields(new_train.TrainConfig)}
     config = new_train.TrainConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in cfg.items() if k in fields})
-    config = dataclasses.replace(config, supervision=supervision)
     with tempfile.TemporaryDirectory() as tmp:
         for name in ("checkpoint.npz", "config.json"):
             shutil.copy(os.path.join(run, name), tmp)
-        tr = new_train.Trainer(cfg["data"], tmp, config, resume=True)
-        tr.train = _Views(cfg["data"], new_train, tr.train[0].camera.height)
+        yield new_train.Trainer(cfg["data"], tmp, dataclasses.replace(config, **overrides), resume=True)
+
+
+def bench_trained(run, supervision, reps):
+    """`Trainer.step()` of the working tree on a trained paper-scale avatar: the run's checkpoint
+    (its last iteration: growth over, every Gaussian trained), its dataset's views preloaded as
+    for the other rows. The old code cannot read the checkpoint: new only."""
+    from progressive_avatars.core.train import trainer as new_train
+
+    with resumed_trainer(run, supervision=supervision) as tr:
+        tr.train = _Views(tr.data_dir, new_train, tr.train[0].camera.height)
         start = tr.iteration
         tr.step()  # warm-up
         t_new, c_new = [], []
