@@ -113,11 +113,17 @@ def hide_colors(context, obj):
 
 
 # -- "show level k only" -------------------------------------------------------------------
+LEVEL_GROUP_VERSION = 2  # 2: a level shown alone keeps its coarse stand-ins (retire cleared)
+
+
 def _level_group():
     ng = bpy.data.node_groups.get(LEVEL_GROUP)
-    if ng is not None:
+    if ng is not None and ng.get("pa_version") == LEVEL_GROUP_VERSION:
         return ng
-    ng = bpy.data.node_groups.new(LEVEL_GROUP, "GeometryNodeTree")
+    ng = ng or bpy.data.node_groups.new(LEVEL_GROUP, "GeometryNodeTree")
+    ng["pa_version"] = LEVEL_GROUP_VERSION
+    ng.nodes.clear()
+    ng.interface.clear()
     ng.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
     ng.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
     lv = ng.interface.new_socket("Level", in_out="INPUT", socket_type="NodeSocketInt")
@@ -137,7 +143,14 @@ def _level_group():
     delete.domain = "POINT"
     ng.links.new(gin.outputs["Geometry"], delete.inputs["Geometry"])
     ng.links.new(cmp.outputs["Result"], delete.inputs["Selection"])
-    ng.links.new(delete.outputs["Geometry"], gout.inputs["Geometry"])
+    # A coarse level inspected alone shows its stand-ins whatever the budget: clear their
+    # "retire" attribute (preview.py), which would otherwise hide them once the template arrived.
+    keep = N("GeometryNodeStoreNamedAttribute")
+    keep.data_type, keep.domain = "INT", "POINT"
+    keep.inputs["Name"].default_value = "retire"
+    next(s for s in keep.inputs if s.name == "Value" and s.enabled).default_value = 0
+    ng.links.new(delete.outputs["Geometry"], keep.inputs["Geometry"])
+    ng.links.new(keep.outputs["Geometry"], gout.inputs["Geometry"])
     for i, node in enumerate(ng.nodes):
         node.location = (200 * i, 0)
     return ng

@@ -2,7 +2,9 @@
 
 Points are grouped by root face (the layout the per-frame evaluator writes fastest); their
 "rank" attribute is their stream position, and the modifier deletes those whose rank reaches
-the "Count" input, so moving the budget slider only sets one modifier input. Each remaining point instances
+the "Count" input (and coarse stand-ins once Count reaches their "retire" attribute: the
+template faces of their region have all arrived; 0 for every other point), so moving the
+budget slider only sets one modifier input. Each remaining point instances
 a hull that covers the Gaussian as the rasteriser draws it (dilated, out to its 1/255
 cut-off): a camera-facing card by default, or an ellipsoid in the splat's frame; the
 material (splat_look) reads colour, opacity, centre and axes from the instance and evaluates
@@ -14,7 +16,7 @@ import bpy
 GROUP_NAME = "PA Splats"
 MATERIAL_NAME = "PA Splat"
 MODIFIER_NAME = "PA Splats"
-GROUP_VERSION = 5
+GROUP_VERSION = 6
 EPS2D = 0.3  # the rasteriser's screen-space dilation (px²), which training saw
 FOCAL_NODE = "pa_focal_px"  # focal length in pixels (set with the material's by splat_look.set_focal)
 EXTENT_NODE = "pa_extent"  # multiplier on the hull's cut-off radius (1: the rasteriser's own)
@@ -30,6 +32,7 @@ ATTRIBUTES = {
     "color": ("FLOAT_COLOR", "color", 4),
     "level": ("INT", "value", 1),
     "rank": ("INT", "value", 1),
+    "retire": ("INT", "value", 1),
 }
 
 
@@ -125,14 +128,30 @@ def splat_group():
         node.inputs["Name"].default_value = name
         return node.outputs["Attribute"]
 
-    cmp = N("FunctionNodeCompare")
-    cmp.data_type, cmp.operation = "INT", "GREATER_EQUAL"
-    _link(ng, attr("rank", "INT"), _by_id(cmp.inputs, "A_INT"))
-    _link(ng, gin.outputs["Count"], _by_id(cmp.inputs, "B_INT"))
+    def compare(op, a, b):
+        node = N("FunctionNodeCompare")
+        node.data_type, node.operation = "INT", op
+        for key, v in (("A_INT", a), ("B_INT", b)):
+            if isinstance(v, int):
+                _by_id(node.inputs, key).default_value = v
+            else:
+                _link(ng, v, _by_id(node.inputs, key))
+        return node.outputs["Result"]
+
+    def boolean(op, a, b):
+        node = N("FunctionNodeBooleanMath")
+        node.operation = op
+        _link(ng, a, node.inputs[0])
+        _link(ng, b, node.inputs[1])
+        return node.outputs[0]
+
+    retire = attr("retire", "INT")
+    not_sent = compare("GREATER_EQUAL", attr("rank", "INT"), gin.outputs["Count"])
+    retired = boolean("AND", compare("GREATER_THAN", retire, 0), compare("GREATER_EQUAL", gin.outputs["Count"], retire))
     delete = N("GeometryNodeDeleteGeometry")
     delete.domain = "POINT"
     _link(ng, gin.outputs["Geometry"], delete.inputs["Geometry"])
-    _link(ng, cmp.outputs["Result"], delete.inputs["Selection"])
+    _link(ng, boolean("OR", not_sent, retired), delete.inputs["Selection"])
 
     # Two hulls, either of which covers each splat as the rasteriser draws it: out to its
     # cut-off radius k = sqrt(2 ln(255 o)) (alpha below 1/255 there; 3.33 at the 0.99 clamp)
@@ -275,7 +294,8 @@ def splat_group():
 
 def create_preview_object(name, source, static):
     """A point-only mesh with one vertex per Gaussian, parented to ``source``, carrying the
-    static attributes (opacity, colour, level, rank); positions and frames come per frame."""
+    static attributes (opacity, colour, level, rank, retire; a missing retire reads 0: never);
+    positions and frames come per frame."""
     n = len(static["rank"])
     me = bpy.data.meshes.new(name)
     me.vertices.add(n)

@@ -89,7 +89,9 @@ def main(argv=None):
                 f"error: {data}: no timestep {args.frame} (have {ds.timesteps[0]}..{ds.timesteps[-1]})", file=sys.stderr
             )
             return 2
-        n = 0 if part is None else part.num_gaussians
+        held = 0 if part is None else part.num_gaussians
+        shown = np.zeros(0, np.int64) if part is None else part.forest.drawn()  # no retired stand-ins
+        n = len(shown)
         if part is None:  # the budget holds no whole record (e.g. less than the header)
             print(
                 f"note: {args.budget:g} % of the stream ({int(args.budget / 100 * info.total_bytes):,} of "
@@ -106,13 +108,13 @@ def main(argv=None):
                 "colors": z,
             }
         else:
-            g = part.gaussians(ds.vertices_at(args.frame))
+            g = part.gaussians(ds.vertices_at(args.frame), ids=shown)
         if avatar.sh_degree:  # every band, from the trained avatar's faces of this prefix
             # the prefix holds r roots, then the other faces: in the whole stream's decoded
-            # avatar (info.order's faces) those are faces 0..r-1 and R..R+(n-r)-1
-            k = np.arange(n)
+            # avatar (info.order's faces) those are faces 0..r-1 and R..R+(held-r)-1
+            k = np.arange(held)
             r = 0 if part is None else part.forest.num_roots
-            mine = info.order[np.where(k < r, k, k - r + info.num_roots)]
+            mine = info.order[np.where(k < r, k, k - r + info.num_roots)][shown]
             g["sh_rest"] = avatar.f_rest[mine]
             g["colors"] = sh_to_rgb(avatar.f_dc[mine])
         write_ply(args.ply, g)

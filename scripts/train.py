@@ -49,6 +49,12 @@ def main(argv=None):
         help="coarse levels above the template, as fractions of its face count (default 1/32,1/16)",
     )
     ap.add_argument("--no-coarse", action="store_true", help="no coarse levels (the paper's levels; ablation)")
+    ap.add_argument(
+        "--coarse-stand-ins",
+        action="store_true",
+        help="coarse levels as stand-ins that make way for the template faces of their region (docs/FORMAT.md "
+        "2.4) instead of staying in every prefix and in the finished avatar",
+    )
     ap.add_argument("--coarse-weight", type=float, help="factor on the coarse levels' loss weights (default 0.5)")
     ap.add_argument(
         "--prefix-cuts",
@@ -117,6 +123,7 @@ def main(argv=None):
             sh_degree=args.sh_degree,
             coarse_levels=() if args.no_coarse else args.coarse_levels,
             coarse_weight=args.coarse_weight,
+            coarse_stand_ins=args.coarse_stand_ins or None,
             prefix_cuts=args.prefix_cuts,
             prefix_cut_weight=args.prefix_cut_weight,
             refine_flame=args.refine_flame or None,

@@ -73,14 +73,19 @@ def cut_session(tiny_run, tiny_dataset, tmp_path_factory):
     out = os.path.join(tmp, "out")
     os.makedirs(out)
     av = Avatar.load(os.path.join(tiny_run, "avatar.npz"))
-    seq = Dataset(tiny_dataset, "train").sequence()
+    train = Dataset(tiny_dataset, "train")
+    seq = train.sequence()
     seq_path = os.path.join(out, "head_seq.npz")
     np.savez(seq_path, vertices=seq.vertices, faces=seq.faces)
     imp = np.random.default_rng(0).random(av.num_gaussians)
     full = os.path.join(out, "full.pavs")
-    write_stream(full, av, imp)
+    # Its coarse levels as stand-ins (train.py --coarse-stand-ins; the Gaussians as trained):
+    # Blender must hide each once its region has arrived. Their regions need the rest pose.
+    av.forest._set_stand_ins(True, None)
+    rest = train.canonical_vertices
+    write_stream(full, av, imp, vertices=rest)
     bare = os.path.join(out, "bare.pavs")  # no embedded template: the mesh in Blender is it
-    write_stream(bare, av, imp, embed_template=False)
+    write_stream(bare, av, imp, embed_template=False, vertices=rest)
     hb, hf = read_header(bare), read_header(full)
     raw_bare, raw_full = open(bare, "rb").read(), open(full, "rb").read()
     cuts = {}
@@ -162,9 +167,11 @@ def test_cut_streams_load_and_preview_what_arrived(cut_session):
         loaded += 1
         assert r["result"] == ["FINISHED"], (name, r)
         n = av.num_gaussians
-        assert r["total"] == r["instances"] == n > 0, (name, r)
+        # every point has its place; Geometry Nodes draws those the forest draws (a coarse
+        # stand-in makes way once its region has arrived)
+        assert r["total"] == n and r["instances"] == len(av.forest.drawn()) > 0, (name, r)
         assert not r["status"], r["status"]
-        ref = av.gaussians(seq.vertices[1].astype(np.float32))
+        ref = av.gaussians(seq.vertices[1].astype(np.float32), ids=np.arange(n))
         # positions in rank order: the avatar's faces in stream order (roots come first in the
         # decoded avatar; version 5 sends some after deeper faces)
         np.testing.assert_allclose(arrays[f"pos_{name}"], ref["means"][av.forest.stream_order()], atol=1e-5, rtol=0)
@@ -178,7 +185,8 @@ def test_cut_streams_load_and_preview_what_arrived(cut_session):
         # The slider: a percent of the whole stream, as far as it arrived.
         for p, (count, inst, status) in r["slider"].items():
             want = min(h.count_for_percent(float(p)), n)
-            assert count == inst == want, (name, p, count, inst, want, status)
+            shown = len(av.forest.drawn(av.forest.stream_ids(want), records=want))
+            assert count == want and inst == shown, (name, p, count, inst, want, shown, status)
     K = h.num_coarse_levels  # the case of issue 16: a cut inside the template level loads
     assert loaded >= len(h.level_counts) and sum(h.level_counts[:K]) < rep["cuts"][f"level{K}"]["total"] < sum(
         h.level_counts[: K + 1]
@@ -214,14 +222,15 @@ def test_cut_url_transfers(cut_session):
         if n == 0:  # only the header arrived
             assert "no complete Gaussian" in r["result"] and r["unchanged"], r
             continue
-        assert r["result"] == ["FINISHED"] and r["total"] == r["instances"] == n, (key, r, n)
         assert r["file"] == h.bytes_for_count(n)
         faces = None if h.template_embedded else seq.faces
         path = cut_session["bare"] if not h.template_embedded else cut_session["full"]
         from progressive_avatars.core.stream.reader import read_stream
 
         part = read_stream(path, max_gaussians=n, template_faces=faces)
-        ref = part.gaussians(seq.vertices[1].astype(np.float32))
+        shown = len(part.forest.drawn())
+        assert r["result"] == ["FINISHED"] and r["total"] == n and r["instances"] == shown, (key, r, n, shown)
+        ref = part.gaussians(seq.vertices[1].astype(np.float32), ids=np.arange(n))
         np.testing.assert_allclose(arrays[f"urlpos_{key}"], ref["means"][part.forest.stream_order()], atol=1e-5, rtol=0)
     assert rep["url"]["bare_3"]["result"] == ["FINISHED"]  # (1 % of this small stream is inside its header)
 
@@ -275,7 +284,8 @@ def test_depth_colours_toggle_and_levels(cut_session):
     lv = rep["levels"]
     for k in range(3):
         assert lv[str(k)][0] == h.level_counts[k] and lv[str(k)][1][0] == "PA Level"
-    assert lv["-1"][0] == h.num_records and "PA Level" not in lv["-1"][1]
+    whole = _expected(cut_session["bare"], seq.faces)
+    assert lv["-1"][0] == len(whole.forest.drawn()) < h.num_records and "PA Level" not in lv["-1"][1]
     assert "mesh was deleted" in rep["deleted_mesh"]
 
 
@@ -289,24 +299,25 @@ def test_topology_changing_modifier_is_refused(cut_session, kind):
     _no_error(rep, "topology")
     t = rep["topology"]
     n = cut_session["header"].num_records
-    assert t["clean"] == ["", n]
+    from progressive_avatars.core.stream.reader import read_stream
+
+    whole = read_stream(cut_session["bare"], template_faces=seq.faces)
+    shown = len(whole.forest.drawn())  # the whole stream: no stand-in
+    assert shown < n and t["clean"] == ["", shown]
     r = t[kind]
     mod = f"my_{kind.lower()}"
     assert mod in r["status"] and "head_seq" in r["status"] and "Shape keys only" in r["status"], r
     if kind != "SUBSURF":
         assert "2562" in r["status"] and "5120" in r["status"]
     assert r["instances"] == 0
-    assert r["shape_keys"] == ["", n]
-    from progressive_avatars.core.stream.reader import read_stream
-
-    whole = read_stream(cut_session["bare"], template_faces=seq.faces)
-    ref = whole.gaussians(seq.vertices[1].astype(np.float32))
+    assert r["shape_keys"] == ["", shown]
+    ref = whole.gaussians(seq.vertices[1].astype(np.float32), ids=np.arange(n))
     np.testing.assert_allclose(arrays[f"topo_pos_{kind}"], ref["means"][whole.forest.stream_order()], atol=1e-5, rtol=0)
     assert r["load"] == ["FINISHED"] and mod in r["load_status"]
     report = rep["stdout"].split(f"PA_LOAD_WITH {kind}")[1].split("PA_LOAD_WITH")[0]  # the operator's reports
     assert "Warning" in report and mod in report, report
-    assert r["removed"] == ["", n]
-    assert t["render_only_subsurf"] == ["", n]
+    assert r["removed"] == ["", shown]
+    assert t["render_only_subsurf"] == ["", shown]
 
 
 # -- training from the installed zip, messages and state --------------------------------------
@@ -419,7 +430,10 @@ def test_train_from_installed_zip_loads_onto_starting_mesh(train_session, kind):
     run = os.path.join(train_session["args"]["out"], "run_" + kind)
     assert r["loaded"] == os.path.join(run, "avatar.pavs")
     h = read_header(r["loaded"])
-    assert r["total"] == r["instances"] == h.num_records > 0 and not r["status"]
+    from progressive_avatars.core.stream.reader import read_stream
+
+    shown = len(read_stream(r["loaded"]).forest.drawn())  # (all: trained without coarse stand-ins)
+    assert r["total"] == h.num_records == shown == r["instances"] > 0 and not r["status"]
     assert len(r["previews"]) == 1  # replaced the seed preview on the starting mesh
     cfg = json.load(open(os.path.join(run, "config.json")))
     if kind == "flame":

@@ -206,3 +206,64 @@ def test_root_rank_interleaved_stream_positions(tmp_path):
         Forest(f.template_faces, f.parent, f.slot, f.split_logits, root_rank=[2, 3, 5])  # faces 3, 4 before root 0
     with pytest.raises(ValueError, match="increasing"):
         Forest(f.template_faces, f.parent, f.slot, f.split_logits, root_rank=[0, 5, 3])
+
+
+def test_stand_ins_make_way_for_the_template_and_persist(tmp_path):
+    """Coarse stand-ins (Forest.drawn): in every set without the whole template level, gone
+    from the finished avatar and from any set holding every template face; with retire
+    positions, a stream prefix of n records keeps a stand-in exactly while n <= its retire
+    position; prefix() and save/load keep the rule, reorder() and split() drop the positions
+    (they no longer name this forest's stream), and a forest without stand-ins is unchanged."""
+    rng = np.random.default_rng(3)
+    v, f = sphere_mesh(8, 10)
+    fo = random_forest(f, rng, depth=2, frac=0.5, coarse_from=v, stand_ins=True)
+    cum = random_forest(f, np.random.default_rng(3), depth=2, frac=0.5, coarse_from=v)
+    K, C, N = fo.num_coarse_levels, fo.num_coarse, fo.num_faces
+    assert fo.stand_ins and not cum.stand_ins and C > 0
+    coarse = np.flatnonzero(fo.level < K)
+    np.testing.assert_array_equal(cum.drawn(), np.arange(N))
+    np.testing.assert_array_equal(fo.drawn(), np.flatnonzero(fo.level >= K))  # the finished avatar
+    np.testing.assert_array_equal(fo.drawn(fo.cumulative(K - 1)), fo.cumulative(K - 1))  # coarse levels only
+    np.testing.assert_array_equal(fo.drawn(fo.cumulative(K)), np.flatnonzero(fo.level == K))
+    some = np.concatenate([coarse, np.flatnonzero(fo.level == K)[:-1]])  # one template face short
+    np.testing.assert_array_equal(fo.drawn(some), some)
+    # Without retire positions a prefix keeps its stand-ins until the last template face.
+    last_t = int(fo.stream_rank()[fo.level == K].max())
+    assert len(fo.drawn(fo.stream_ids(last_t), records=last_t)) == last_t
+    assert not np.any(fo.level[fo.drawn(fo.stream_ids(last_t + 1), records=last_t + 1)] < K)
+    # With them: exactly while records <= retire.
+    retire = rng.integers(C, N, C)
+    fr = Forest(
+        f,
+        fo.parent,
+        fo.slot,
+        fo.split_logits,
+        coarse_faces=fo.coarse_faces,
+        coarse_counts=fo.coarse_counts,
+        root_ref=fo.root_ref,
+        stand_ins=True,
+        retire=retire,
+    )
+    for n in (1, C, C + 1, int(np.median(retire)), N - 1, N):
+        ids = fr.stream_ids(n)
+        assert np.array_equal(ids, np.arange(n))  # roots first: prefix faces keep their numbers
+        got = fr.drawn(ids, records=n)
+        shown = [i for i in ids if fr.level[i] >= K or retire[fr.root_ref[i]] >= n]
+        np.testing.assert_array_equal(got, shown)
+        kept = fr.prefix(n)
+        assert kept.stand_ins and np.array_equal(kept.retire, retire)
+        np.testing.assert_array_equal(kept.drawn(), got)
+    assert not np.any(fr.level[fr.drawn()] < K)  # every retire position < N
+    p = str(tmp_path / "f.npz")
+    fr.save(p)
+    back = Forest.load(p)
+    assert back.stand_ins and np.array_equal(back.retire, retire)
+    np.testing.assert_array_equal(back.drawn(), fr.drawn())
+    cum.save(p)
+    assert not Forest.load(p).stand_ins  # a cumulative forest stays one (older files carry no key)
+    assert fr.reorder(np.arange(N)).retire is None and fr.reorder(np.arange(N)).stand_ins
+    with pytest.raises(ValueError, match="retire"):
+        Forest(f, coarse_faces=fo.coarse_faces, coarse_counts=fo.coarse_counts, stand_ins=True, retire=retire[:-1])
+    leaf = fr.splittable()[:1]
+    fr.split(leaf)
+    assert fr.retire is None and fr.stand_ins

@@ -39,10 +39,12 @@ from tests.helpers import random_forest, sphere_mesh
 PARAMS = ("d_mu", "d_log_scale", "d_rot", "opacity_logit", "f_dc")
 
 
-def make_avatar(seed=0, n_lat=4, n_lon=6, depth=3, frac=0.5, coarse=False):
+def make_avatar(seed=0, n_lat=4, n_lon=6, depth=3, frac=0.5, coarse=False, stand_ins=False):
     rng = np.random.default_rng(seed)
     verts, faces = sphere_mesh(n_lat, n_lon)
-    forest = random_forest(faces, rng, depth=depth, frac=frac, coarse_from=verts if coarse else None)
+    forest = random_forest(
+        faces, rng, depth=depth, frac=frac, coarse_from=verts if coarse else None, stand_ins=stand_ins
+    )
     N = forest.num_faces
     av = Avatar(
         forest,
@@ -168,6 +170,76 @@ def test_header_layout_is_the_documented_one(small):
     full = read_stream(data)
     rows = np.concatenate([table, f.template_faces])
     np.testing.assert_array_equal(full.forest.root_faces, rows[refs])
+
+
+def test_coarse_stand_ins_retire_by_region_in_every_prefix(tmp_path, monkeypatch):
+    """Flag bit 2 (FORMAT.md 2.4): the coarse table's fourth column holds, per stored row, the
+    stream index of the template record with which its region's records received hold
+    RETIRE_IMPORTANCE of the region's importance and RETIRE_AREA of its area (region: the
+    template faces whose centroid is nearest that row's among its level's triangles),
+    recomputed here by brute force from the writer's order and importance; every prefix of records, decoded, renders exactly the stand-ins it holds
+    whose region is incomplete, in versions 5 and 4, quantised and lossless, and the whole
+    stream none. A retire position outside [C, N) is refused."""
+    from progressive_avatars.core.stream import writer as stream_writer
+    from progressive_avatars.core.stream.format import FLAG_STAND_INS, StreamError
+    from progressive_avatars.core.stream.writer import RETIRE_AREA, RETIRE_IMPORTANCE
+
+    verts, av, imp = make_avatar(seed=4, n_lat=6, n_lon=9, depth=2, coarse=True, stand_ins=True)
+    f = av.forest
+    K, C, N = f.num_coarse_levels, f.num_coarse, f.num_faces
+    cen = verts[f.root_table].mean(1)
+    tmpl = np.flatnonzero(f.level == K)
+    starts = np.concatenate([[0], np.cumsum(f.coarse_counts)])
+    path = str(tmp_path / "s.pavs")
+    for version, quantize in ((5, True), (5, False), (4, True)):
+        info = write_stream(path, av, imp, vertices=verts, version=version, quantize=quantize)
+        with open(path, "rb") as fh:
+            data = fh.read()
+        assert info.flags & FLAG_STAND_INS
+        pos = np.empty(N, np.int64)
+        pos[info.stream_order] = np.arange(N)
+        last, early = {}, 0  # coarse triangle (corners sorted) -> its retire position
+        for k in range(K):
+            rows = np.arange(starts[k], starts[k + 1])
+            d = ((cen[f.root_ref[tmpl]][:, None] - cen[rows][None]) ** 2).sum(-1)
+            near = rows[np.argmin(d, 1)]
+            for r in rows:
+                mine = tmpl[near == r]
+                at = pos[tmpl].max()  # an empty region waits for the whole template level
+                if len(mine):
+                    mine = mine[np.argsort(pos[mine])]
+                    tri = verts[f.root_table[f.root_ref[mine]]]
+                    area = np.cumsum(
+                        0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+                    )
+                    seen = np.cumsum(imp[mine])
+                    ok = (seen >= RETIRE_IMPORTANCE * seen[-1] * (1 - 1e-12)) & (
+                        area >= RETIRE_AREA * area[-1] * (1 - 1e-12)
+                    )
+                    at = pos[mine][np.flatnonzero(ok)[0]]
+                last[tuple(sorted(f.coarse_faces[r]))] = int(at)
+                early += len(mine) and at < pos[mine].max()
+        assert early  # some stand-ins make way before their region's last template face
+        fo = read_stream(data).forest
+        assert fo.stand_ins and {tuple(sorted(t)): int(r) for t, r in zip(fo.coarse_faces, fo.retire)} == last
+        for n in range(1, N + 1):
+            got = read_stream(data, max_gaussians=n)
+            part = got.forest
+            shown = part.drawn()
+            if n % 7 == 0:  # the avatar's Gaussians (what export.py writes) are the drawn ones
+                np.testing.assert_array_equal(
+                    got.gaussians(verts)["opacities"], got.gaussians(verts, ids=shown)["opacities"]
+                )
+                assert len(got.gaussians(verts)["means"]) == len(shown)
+            held = [tuple(sorted(part.root_table[part.root_ref[i]])) for i in np.flatnonzero(part.level < K)]
+            tri = [tuple(sorted(part.root_table[part.root_ref[i]])) for i in shown if part.level[i] < K]
+            assert sorted(tri) == sorted(t for t in held if last[t] >= n), (version, n)
+            assert len(shown) == np.count_nonzero(part.level >= K) + len(tri)
+        assert not np.any(fo.level[fo.drawn()] < K)
+    monkeypatch.setattr(stream_writer, "stand_in_retire", lambda *a, **k: np.zeros(C, np.int64))
+    write_stream(path, av, imp, vertices=verts)
+    with pytest.raises(StreamError, match="retire positions"):
+        read_stream(path)
 
 
 # -- order --------------------------------------------------------------------------------
@@ -542,11 +614,13 @@ def test_trusted_forest_and_avatar_equal_the_validated_constructors():
             coarse_counts=f.coarse_counts,
             root_ref=f.root_ref,
             root_rank=f.root_rank,
+            stand_ins=f.stand_ins,
+            retire=f.retire,
         )
         assert set(vars(a.forest)) == set(vars(ref_f))
         for k, v in vars(ref_f).items():
             got = getattr(a.forest, k)
-            if isinstance(v, tuple):
+            if isinstance(v, (tuple, bool)) or v is None:
                 assert got == v, (n, k)
                 continue
             assert got.dtype == v.dtype and got.shape == v.shape and np.array_equal(got, v), (n, k)

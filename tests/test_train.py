@@ -495,6 +495,70 @@ def test_coarse_levels_on_by_default_and_switchable(tiny_dataset, tmp_path):
     assert off.model.forest.num_coarse_levels == 0 and off.model.forest.level_counts().tolist() == [F0]
 
 
+def test_coarse_stand_ins_train_apart_and_leave_the_finished_avatar(tiny_dataset, tmp_path, monkeypatch):
+    """Coarse stand-ins (coarse_stand_ins=True): the coarse levels' images render the coarse
+    Gaussians alone; every image of the template level and finer, and the validation render of
+    the finished avatar, leave them out (opacity 0), so they learn from their own levels only.
+    Cumulative coarse levels (the default) stay in every image. In-level prefix cuts need
+    cumulative ones: refused by name."""
+    from progressive_avatars.core.train import trainer as trainer_mod
+
+    cfg = dict(eval_every=10**6, checkpoint_every=10**6)
+    tr = Trainer(tiny_dataset, str(tmp_path / "si"), config_for("tiny", coarse_stand_ins=True, **cfg))
+    f = tr.model.forest
+    K, coarse = f.num_coarse_levels, np.flatnonzero(f.level < f.num_coarse_levels)
+    assert f.stand_ins and K == 2 and len(coarse) == f.num_coarse
+    calls = []
+    real = trainer_mod.render_levels
+
+    def spy(means, quats, scales, opacities, colors, *args, level, upto, **kw):
+        calls.append((len(means), opacities.detach().numpy().copy(), list(upto)))
+        return real(means, quats, scales, opacities, colors, *args, level=level, upto=upto, **kw)
+
+    monkeypatch.setattr(trainer_mod, "render_levels", spy)
+    tr.step()
+    (n0, _, up0), (n1, op1, up1) = calls
+    assert n0 == len(coarse) and up0 == [0, 1] and n1 == f.num_faces and up1 == [2]
+    assert np.all(op1[coarse] == 0) and np.all(op1[f.level >= K] > 0)
+    monkeypatch.setattr(trainer_mod, "render_levels", real)
+
+    # Weighted 0, the coarse levels teach their Gaussians nothing (their colours stay), while
+    # cumulative coarse Gaussians still learn through the template level's image.
+    def coarse_colour_moved(name, **kw):
+        t = Trainer(tiny_dataset, str(tmp_path / name), config_for("tiny", coarse_weight=0.0, **cfg, **kw))
+        before = t.model.params["f_dc"].detach().numpy()[coarse].copy()
+        t.step()
+        return not np.array_equal(t.model.params["f_dc"].detach().numpy()[coarse], before)
+
+    assert not coarse_colour_moved("si0", coarse_stand_ins=True) and coarse_colour_moved("cum0")
+
+    # The validation score of the finished avatar does not see the stand-ins at all.
+    def val_with_loud_coarse(t):
+        a = t.evaluate(2)["val_psnr"]
+        with torch.no_grad():
+            t.model.params["opacity_logit"][coarse] = 8.0
+            t.model.params["f_dc"][coarse] = 5.0
+        return a, t.evaluate(2)["val_psnr"]
+
+    si = config_for("tiny", coarse_stand_ins=True, **cfg)
+    a, b = val_with_loud_coarse(Trainer(tiny_dataset, str(tmp_path / "v1"), si))
+    assert a == b
+    a, b = val_with_loud_coarse(Trainer(tiny_dataset, str(tmp_path / "v2"), config_for("tiny", **cfg)))
+    assert b < a - 0.1
+    # A run keeps its kind when resumed without the option.
+    old = config_for("tiny", iterations=4, checkpoint_every=2, eval_every=10**6, coarse_stand_ins=True)
+    Trainer(tiny_dataset, str(tmp_path / "old"), old).run(progress=False)
+    again = Trainer(
+        tiny_dataset, str(tmp_path / "old"), config_for("tiny", iterations=6, eval_every=10**6), resume=True
+    )
+    assert again.model.forest.stand_ins and again.cfg.coarse_stand_ins
+    assert json.load(open(tmp_path / "old" / "config.json"))["coarse_stand_ins"] is True
+    with pytest.raises(ValueError, match="cumulative coarse"):
+        config_for("tiny", prefix_cuts=1, coarse_stand_ins=True)
+    config_for("tiny", prefix_cuts=1)
+    config_for("tiny", prefix_cuts=1, coarse_stand_ins=True, coarse_levels=())
+
+
 def test_coarse_weight_scales_the_coarse_levels_loss(tiny_dataset, tmp_path):
     cfg = dict(eval_every=10**6, checkpoint_every=10**6)
     full = Trainer(tiny_dataset, str(tmp_path / "w1"), config_for("tiny", **cfg))

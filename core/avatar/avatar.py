@@ -124,11 +124,14 @@ class Avatar:
         )
 
     def gaussians(self, vertices: np.ndarray, ids=None, weights=None, camera_center=None) -> dict:
-        """World-space, activated Gaussians for one frame's mesh vertices [V,3].
+        """World-space, activated Gaussians for one frame's mesh vertices [V,3] (faces ``ids``;
+        default: those that render, Forest.drawn).
 
         Returns means, quats (wxyz), scales, opacities, colors (RGB) as float32 numpy; colours
         are seen from ``camera_center`` when the avatar has SH bands (DC otherwise).
         """
+        if ids is None and self.forest.stand_ins:
+            ids = self.forest.drawn()  # the finished avatar (or this prefix) without retired stand-ins
         sel = slice(None) if ids is None else np.asarray(ids)
         means, quats, scales = self.evaluator(ids=ids, weights=weights)(vertices)
         return {

@@ -137,3 +137,19 @@ def build_coarse(vertices, faces, fractions=DEFAULT_FRACTIONS):
     if not tris:
         return np.zeros((0, 3), np.int32), ()
     return np.concatenate(tris).astype(np.int32), tuple(counts)
+
+
+def stand_in_regions(vertices, coarse_faces, coarse_counts, template_faces) -> np.ndarray:
+    """[F0, K] the coarse row (index into ``coarse_faces``) whose region holds each template
+    face, per coarse level: the level's triangle with the nearest centroid on the rest-pose
+    ``vertices``. A stand-in makes way once every template face of its region has arrived."""
+    v = np.asarray(vertices, np.float64)
+    tc = centroids(v, template_faces)
+    starts = np.concatenate([[0], np.cumsum(np.asarray(coarse_counts, np.int64))])
+    out = np.empty((len(tc), len(coarse_counts)), np.int64)
+    for k in range(len(coarse_counts)):
+        cc = centroids(v, np.asarray(coarse_faces)[starts[k] : starts[k + 1]])
+        for a in range(0, len(tc), 4096):  # [4096, C_k] distances at a time
+            d = ((tc[a : a + 4096, None, :] - cc[None, :, :]) ** 2).sum(-1)
+            out[a : a + 4096, k] = starts[k] + np.argmin(d, axis=1)
+    return out

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..io.atomic import atomic_savez
 
-FORMAT_VERSION = 3  # 3: root_rank (a stream that interleaves roots with other faces)
+FORMAT_VERSION = 4  # 3: root_rank (a stream that interleaves roots with other faces); 4: stand-ins
 
 
 def softmax(logits: np.ndarray) -> np.ndarray:
@@ -53,6 +53,13 @@ class Forest:
     Without coarse levels (K = 0) and without ``root_ref`` the roots are the template faces in
     template order, as before. ``depth`` = level - K is the subdivision depth below the
     template (negative for coarse faces); only template faces and their descendants split.
+
+    Coarse faces are *stand-ins* when ``stand_ins`` (docs/DESIGN.md, docs/FORMAT.md 2.3): they
+    render only until the template faces around them have arrived, so the finished avatar is
+    the template level and its subdivisions alone (see ``drawn``). ``retire`` [C], per coarse
+    table row, is the stream position at which the stand-in makes way (docs/FORMAT.md 2.4; a
+    stream's forest; None for a trained one): it renders in a prefix of n records while
+    n <= retire. Without stand-ins coarse faces stay in every prefix (cumulative levels).
     """
 
     def __init__(
@@ -66,6 +73,8 @@ class Forest:
         coarse_counts=(),
         root_ref=None,
         root_rank=None,
+        stand_ins=False,
+        retire=None,
     ):
         faces = np.ascontiguousarray(template_faces, dtype=np.int32)
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
@@ -98,6 +107,54 @@ class Forest:
         self.split_logits = np.asarray(split_logits, np.float32).reshape(N, 3).copy()
         self._derive()
         self.root_rank = self._check_root_rank(root_rank)
+        self._set_stand_ins(stand_ins, retire)
+
+    def _set_stand_ins(self, stand_ins, retire):
+        self.stand_ins = bool(stand_ins) and self.num_coarse > 0
+        self.retire = None
+        if self.stand_ins and retire is not None:
+            retire = np.asarray(retire, np.int64).reshape(-1)
+            if len(retire) != self.num_coarse or (len(retire) and retire.min() < 0):
+                raise ValueError(
+                    f"Forest: stand-in retire positions {retire.shape} must be {self.num_coarse} values >= 0"
+                )
+            self.retire = retire.copy()
+
+    def shown_until(self) -> np.ndarray | None:
+        """[N] per face, the most stream records with which it still renders: a coarse
+        stand-in's retire position (without them, the stream position of the last template
+        face), every other face for ever (int32 max). None without stand-ins."""
+        if not self.stand_ins:
+            return None
+        K = self.num_coarse_levels
+        until = np.full(self.num_faces, np.iinfo(np.int32).max, np.int64)
+        coarse = np.flatnonzero(self.level < K)
+        if self.retire is not None:
+            until[coarse] = self.retire[self.root_ref[coarse]]
+        else:
+            tmpl = self.level == K
+            until[coarse] = self.stream_rank()[tmpl].max() if tmpl.any() else until[0]
+        return until
+
+    def drawn(self, ids=None, records=None) -> np.ndarray:
+        """The faces that render when faces ``ids`` (default: every face) have arrived, in the
+        order given. Without stand-ins: all of them. With stand-ins a coarse face drops out
+        once its region is complete: when ``ids`` are the first ``records`` stream records
+        (for ``ids=None`` by default this forest's own faces: a stream prefix or the whole
+        avatar), once ``records`` exceeds its ``shown_until``; otherwise (a set of whole levels,
+        another order's prefix) once every template face is among ``ids``."""
+        whole = ids is None
+        ids = np.arange(self.num_faces, dtype=np.int64) if whole else np.asarray(ids, np.int64)
+        if not self.stand_ins or len(ids) == 0:
+            return ids
+        if whole and records is None:
+            records = self.num_faces
+        if records is not None:
+            return ids[self.shown_until()[ids] >= int(records)]
+        K = self.num_coarse_levels
+        if np.count_nonzero(self.level[ids] == K) < len(self.template_faces):
+            return ids
+        return ids[self.level[ids] >= K]
 
     # -- structure ------------------------------------------------------------------------
     @property
@@ -277,6 +334,7 @@ class Forest:
         self.children[ids] = new
         self.level = np.concatenate([self.level, np.repeat(self.level[ids] + 1, 3).astype(np.int8)])
         self.root = np.concatenate([self.root, np.repeat(self.root[ids], 3)])
+        self.retire = None  # stream positions of a stream this forest no longer is
         return new
 
     def subdivide_uniform(self, depth: int) -> "Forest":
@@ -326,9 +384,10 @@ class Forest:
         inverse[order] = np.arange(len(order))
         parent = self.parent[order]
         parent = np.where(parent >= 0, inverse[np.maximum(parent, 0)], -1)
-        return self._like(parent, self.slot[order], self.split_logits[order], self.root_ref[order[:R]])
+        # (the stream positions change with the order: the retire positions no longer hold)
+        return self._like(parent, self.slot[order], self.split_logits[order], self.root_ref[order[:R]], retire=None)
 
-    def _like(self, parent, slot, split_logits, root_ref, root_rank=None) -> "Forest":
+    def _like(self, parent, slot, split_logits, root_ref, root_rank=None, retire="same") -> "Forest":
         return Forest(
             self.template_faces,
             parent,
@@ -338,6 +397,8 @@ class Forest:
             coarse_counts=self.coarse_counts,
             root_ref=root_ref,
             root_rank=root_rank,
+            stand_ins=self.stand_ins,
+            retire=self.retire if isinstance(retire, str) else retire,
         )
 
     def prefix(self, n: int) -> "Forest":
@@ -382,7 +443,9 @@ class Forest:
         # lowest version that reads it, so plain forests stay readable by version 1 readers
         interleaved = not np.array_equal(self.root_rank, np.arange(self.num_roots))
         version = (
-            3
+            4
+            if self.stand_ins
+            else 3
             if interleaved
             else 2
             if self.num_coarse or not np.array_equal(self.root_ref, np.arange(len(self.root_ref)))
@@ -400,6 +463,10 @@ class Forest:
         }
         if interleaved:
             out[prefix + "root_rank"] = self.root_rank
+        if self.stand_ins:
+            out[prefix + "stand_ins"] = np.array(True)
+            if self.retire is not None:
+                out[prefix + "retire"] = self.retire
         return out
 
     @classmethod
@@ -417,6 +484,8 @@ class Forest:
         coarse_counts=(),
         root_ref=None,
         root_rank=None,
+        stand_ins=False,
+        retire=None,
     ) -> "Forest":
         """A Forest from arrays already checked against every rule ``_derive`` enforces (roots
         first, parents precede children in the previous level, slots 0..2 and unique), with
@@ -434,6 +503,7 @@ class Forest:
         f.parent, f.slot, f.split_logits = parent, slot, split_logits
         f.children, f.level, f.root = children, level, root
         f.root_rank = np.arange(n_roots, dtype=np.int64) if root_rank is None else root_rank
+        f._set_stand_ins(stand_ins, retire)
         return f
 
     @classmethod
@@ -454,6 +524,10 @@ class Forest:
                 )
                 if prefix + "root_rank" in data:
                     extra["root_rank"] = data[prefix + "root_rank"]
+                if prefix + "stand_ins" in data:
+                    extra["stand_ins"] = bool(data[prefix + "stand_ins"])
+                    if prefix + "retire" in data:
+                        extra["retire"] = data[prefix + "retire"]
             return cls(
                 data[prefix + "template_faces"],
                 data[prefix + "parent"],

@@ -27,10 +27,16 @@ def preview_order(avatar: Avatar) -> np.ndarray:
 
 def static_attributes(avatar: Avatar, order=None) -> dict:
     """Per-Gaussian values that do not change with the frame: activated opacity, RGBA
-    colour (linear, as Blender's colour attributes are), level and rank (stream position),
-    for the Gaussians ``order`` (default: all, in stream order)."""
+    colour (linear, as Blender's colour attributes are), level, rank (stream position) and
+    retire (a coarse stand-in hides from that many records on, Forest.shown_until + 1; 0:
+    never), for the Gaussians ``order`` (default: all, in stream order)."""
     sel = np.arange(avatar.num_gaussians) if order is None else np.asarray(order, np.int64)
     rank = avatar.forest.stream_rank()
+    until = avatar.forest.shown_until()
+    retire = np.zeros(len(sel), np.int32)
+    if until is not None:
+        u = until[sel]
+        retire = np.where(u < np.iinfo(np.int32).max, u + 1, 0).astype(np.int32)
     rgba = np.ones((len(sel), 4), np.float32)
     rgba[:, :3] = srgb_to_linear(sh_to_rgb(avatar.f_dc[sel]))
     return {
@@ -38,6 +44,7 @@ def static_attributes(avatar: Avatar, order=None) -> dict:
         "color": rgba.ravel(),
         "level": avatar.forest.level[sel].astype(np.int32),
         "rank": rank[sel].astype(np.int32),
+        "retire": retire,
     }
 
 

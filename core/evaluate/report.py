@@ -66,9 +66,10 @@ def _shown(path: str) -> str:
 
 
 def _levels_prefixes(avatar):
-    """Cumulative level sets: level l shows the faces of level <= l (how many)."""
-    level = avatar.forest.level
-    return {int(lvl): int(np.count_nonzero(level <= lvl)) for lvl in range(int(level.max()) + 1)}
+    """Cumulative level sets: level l shows the faces of level <= l (how many are drawn: coarse
+    stand-ins make way once the template level is whole, Forest.drawn)."""
+    f = avatar.forest
+    return {int(lvl): len(f.drawn(np.flatnonzero(f.level <= lvl))) for lvl in range(int(f.level.max()) + 1)}
 
 
 def _score_levels(renderer):

@@ -31,17 +31,20 @@ class SplitRenderer:
         self.bg = np.asarray(dataset.background, np.float32)
 
     def first(self, n: int) -> np.ndarray:
-        """The faces of the avatar's first n stream records (0..n-1 unless its stream
-        interleaved roots with deeper faces, docs/FORMAT.md version 5)."""
-        return self.avatar.forest.stream_ids(n)
+        """The faces the avatar's first n stream records render (0..n-1 unless its stream
+        interleaved roots with deeper faces, docs/FORMAT.md version 5, or holds coarse
+        stand-ins whose regions are complete, Forest.drawn)."""
+        f = self.avatar.forest
+        return f.drawn(f.stream_ids(n), records=n)
 
     def render(self, view: int, ids: np.ndarray, with_alpha: bool = False):
-        """(image, seconds) of faces `ids` on a view, plus the alpha [H,W] with `with_alpha`.
-        No faces (a budget inside the header): the background, alpha 0."""
+        """(image, seconds) of faces `ids` on a view, plus the alpha [H,W] with `with_alpha`:
+        those of them that render (Forest.drawn: coarse stand-ins make way once every template
+        face is among them). No faces (a budget inside the header): the background, alpha 0."""
         from ..render.rasterize import render_numpy
 
         info = self.dataset.frame_info(int(view))
-        ids = np.asarray(ids, np.int64)
+        ids = self.avatar.forest.drawn(ids)
         if len(ids) == 0:
             cam = info.camera
             image = np.broadcast_to(self.bg, (cam.height, cam.width, len(self.bg))).astype(np.float32)

@@ -64,10 +64,16 @@ def face_importance(
     bg = np.asarray(dataset.background, np.float32)
     level = avatar.forest.level
     # (faces rendered, which of them are scored) per render: levels <= l and level l.
+    # Per level, coarse stand-ins (Forest.drawn) stay in every render, as cumulative coarse
+    # levels do: a face sent early arrives while the stand-ins of its region still show.
+    # (Leaving them out of the renders below the template level measured no better: 5 % of
+    # the coarse-template head's stream 21.49 against 21.53 dB, seed 0, 16 views.) The whole
+    # avatar, the paper's importance, leaves them out as the finished avatar does.
     if per_level and avatar.num_gaussians:
         renders = [(np.flatnonzero(level <= lv), level[level <= lv] == lv) for lv in np.unique(level)]
     else:
-        renders = [(np.arange(avatar.num_gaussians), np.ones(avatar.num_gaussians, bool))]
+        faces = avatar.forest.drawn()
+        renders = [(faces, np.ones(len(faces), bool))]
     for i in tqdm(view_subset(len(dataset), max_views), desc="importance", disable=not progress):
         info = dataset.frame_info(int(i))
         means, quats, scales = evaluator(dataset.vertices_at(info.timestep_index))

@@ -41,7 +41,8 @@ VERSION = 5  # what the writer writes
 READ_VERSIONS = (1, 2, 3, 4, 5)
 FLAG_LOSSLESS = 1
 FLAG_TEMPLATE = 2
-KNOWN_FLAGS = FLAG_LOSSLESS | FLAG_TEMPLATE
+FLAG_STAND_INS = 4  # the coarse faces are stand-ins; the coarse table adds their retire positions (FORMAT.md 2.3)
+KNOWN_FLAGS = FLAG_LOSSLESS | FLAG_TEMPLATE | FLAG_STAND_INS
 FIXED_HEADER = struct.Struct("<8sHHIIIHHHH16sII")
 FIXED_SIZE = FIXED_HEADER.size  # 56: versions 1 and 2; version 3 adds u32 coarse_length
 FIXED_SIZE_V3 = FIXED_SIZE + 4
@@ -265,6 +266,9 @@ class StreamInfo:
     order: np.ndarray | None = field(default=None, repr=False, compare=False)
     num_coarse_levels: int = 0  # version 3: levels 0..K-1 are coarse, level K the template
     coarse_faces: np.ndarray | None = field(default=None, repr=False, compare=False)  # [C,3], grouped by level
+    # flag bit 2: per coarse row, the stream index of the last template face of its region (a
+    # stand-in renders in a prefix of n records while n <= retire)
+    coarse_retire: np.ndarray | None = field(default=None, repr=False, compare=False)
     # version 4: (record index int64 [E], component uint8 [E], value float32 [E]), sorted by
     # (index, component); values replace the decoded component exactly (FORMAT.md 3.2)
     exceptions: tuple | None = field(default=None, repr=False, compare=False)
@@ -530,6 +534,8 @@ def _parse_fixed(buf, source: str):
         problems.append(f"template length {T} disagrees with flag bit 1")
     if K >= L or bool(K) != bool(CL):
         problems.append(f"coarse levels {K} with {L} levels and a coarse table of {CL} bytes")
+    if flags & FLAG_STAND_INS and not K:
+        problems.append("flag bit 2 (coarse stand-ins) without coarse levels")
     if E and (lossless or E > max_exceptions(N)):
         problems.append(f"{E} exceptions (at most {max_exceptions(N)} for N={N}, none in a lossless stream)")
     fixed = FIXED_SIZE_V4 if version >= 4 else FIXED_SIZE_V3 if version == 3 else FIXED_SIZE
@@ -598,10 +604,17 @@ def _parse_header(buf, source: str) -> StreamInfo:
     if f["E"]:
         exceptions = _parse_exceptions(bytes(buf[pos : pos + EXCEPTION_SIZE * f["E"]]), f["num_records"], source)
         pos += EXCEPTION_SIZE * f["E"]
-    coarse = None
+    coarse, retire = None, None
     if K:
-        coarse = _decode_coarse(bytes(buf[pos : pos + f["CL"]]), int(counts[:K].sum()), source)
+        stand_ins = bool(f["flags"] & FLAG_STAND_INS)
+        coarse, retire = _decode_coarse(bytes(buf[pos : pos + f["CL"]]), int(counts[:K].sum()), source, stand_ins)
         pos += f["CL"]
+        lead = int(counts[:K].sum())
+        if retire is not None and len(retire) and (retire.min() < lead or retire.max() >= f["num_records"]):
+            raise StreamError(
+                f"{source}: coarse stand-in retire positions must lie in [{lead}, {f['num_records']}) "
+                f"(after the coarse levels, within the stream), got {retire.min()}..{retire.max()}"
+            )
     template = None
     if f["T"]:
         blob = bytes(buf[pos : pos + f["T"]])
@@ -647,6 +660,7 @@ def _parse_header(buf, source: str) -> StreamInfo:
         stored,
         num_coarse_levels=K,
         coarse_faces=coarse,
+        coarse_retire=retire,
         exceptions=exceptions,
     )
 
@@ -674,29 +688,33 @@ def _parse_exceptions(blob: bytes, N: int, source: str):
     return idx, comp, val
 
 
-def _encode_coarse(tris) -> bytes:
+def _encode_coarse(tris, retire=None) -> bytes:
     """FORMAT.md 2.3: zlib of int32 LE columns (a[i] - a[i-1], b - a, c - a) of the [C,3]
-    coarse table (a[-1] = 0). Rows sorted by their first vertex make small numbers."""
+    coarse table (a[-1] = 0), and with stand-ins a fourth column, each row's retire position.
+    Rows sorted by their first vertex make small numbers."""
     t = np.asarray(tris, np.int64).reshape(-1, 3)
     a = t[:, 0]
-    cols = np.concatenate([np.diff(a, prepend=0), t[:, 1] - a, t[:, 2] - a]).astype("<i4")
-    return zlib.compress(cols.tobytes(), 9)
+    cols = [np.diff(a, prepend=0), t[:, 1] - a, t[:, 2] - a]
+    if retire is not None:
+        cols.append(np.asarray(retire, np.int64).reshape(-1))
+    return zlib.compress(np.concatenate(cols).astype("<i4").tobytes(), 9)
 
 
-def _decode_coarse(blob: bytes, C: int, source: str) -> np.ndarray:
-    want = 12 * C
+def _decode_coarse(blob: bytes, C: int, source: str, stand_ins: bool = False):
+    """(triangles [C,3] int32, retire positions [C] int64 with stand-ins else None)."""
+    want = (16 if stand_ins else 12) * C
     try:
         raw = zlib.decompressobj().decompress(blob, want + 1)  # bounded, as the template
     except zlib.error as exc:
         raise StreamError(f"{source}: coarse triangle table does not decompress: {exc}") from None
     if len(raw) != want:
         raise StreamError(f"{source}: coarse triangle table holds {len(raw)} bytes, expected {want} ({C} triangles)")
-    cols = np.frombuffer(raw, "<i4").astype(np.int64).reshape(3, C)
+    cols = np.frombuffer(raw, "<i4").astype(np.int64).reshape(-1, C)
     a = np.cumsum(cols[0])
     t = np.stack([a, a + cols[1], a + cols[2]], axis=1)
     if C and (t.min() < 0 or t.max() > 0x7FFFFFFF):
         raise StreamError(f"{source}: coarse triangle table holds invalid vertex indices")
-    return t.astype(np.int32)
+    return t.astype(np.int32), (cols[3].copy() if stand_ins else None)
 
 
 def check_template(header: StreamInfo, faces) -> None:

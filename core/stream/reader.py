@@ -745,6 +745,8 @@ class StreamReader:
             coarse_counts=tuple(h.level_counts[:K]),
             root_ref=self._root_ref.data[rpos].copy(),
             root_rank=rpos,
+            stand_ins=h.coarse_retire is not None,
+            retire=h.coarse_retire,
         )
         return forest, [out[name] for name in PARAM_NAMES]
 
@@ -784,6 +786,8 @@ class StreamReader:
             coarse_faces=coarse,
             coarse_counts=tuple(h.level_counts[:K]),
             root_ref=root_ref,
+            stand_ins=h.coarse_retire is not None,
+            retire=h.coarse_retire,
         )
 
 

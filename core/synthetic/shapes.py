@@ -19,10 +19,11 @@ def sphere_mesh(n_lat=24, n_lon=32, radius=0.1):
     return verts.astype(np.float64), np.concatenate([top, quads, bottom]).astype(np.int32)
 
 
-def random_forest(faces, rng, depth=3, frac=0.5, logit_scale=1.0, coarse_from=None):
+def random_forest(faces, rng, depth=3, frac=0.5, logit_scale=1.0, coarse_from=None, stand_ins=False):
     """A forest grown by splitting a random fraction of leaves per level, random logits.
     With `coarse_from` (the vertices) it also has two coarse levels (core/avatar/coarse.py) and its
-    template roots in spread-out order, as a trained avatar."""
+    template roots in spread-out order, as a trained avatar; `stand_ins`: those coarse faces are
+    stand-ins (Forest.drawn), as training makes them by default, rather than cumulative levels."""
     from ..avatar.forest import Forest
 
     if coarse_from is None:
@@ -33,7 +34,7 @@ def random_forest(faces, rng, depth=3, frac=0.5, logit_scale=1.0, coarse_from=No
         cf, counts = coarse.build_coarse(coarse_from, faces, (0.25, 0.5))
         assert len(counts) == 2
         ref = np.concatenate([np.arange(len(cf)), len(cf) + coarse.spread_order(coarse.centroids(coarse_from, faces))])
-        forest = Forest(faces, coarse_faces=cf, coarse_counts=counts, root_ref=ref)
+        forest = Forest(faces, coarse_faces=cf, coarse_counts=counts, root_ref=ref, stand_ins=stand_ins)
     for _ in range(depth):
         leaves = forest.splittable()
         leaves = leaves[forest.level[leaves] == forest.max_level]

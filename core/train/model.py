@@ -38,14 +38,16 @@ class TorchAvatar:
         device="cpu",
         sh_degree: int = 0,
         coarse=None,
+        stand_ins: bool = False,
     ) -> "TorchAvatar":
         """`coarse`: None, or (coarse_faces, coarse_counts, root_ref or None), the table and
-        counts from core.coarse.build_coarse."""
+        counts from core.coarse.build_coarse; `stand_ins`: the coarse faces are stand-ins
+        (Forest.drawn) rather than cumulative levels."""
         if coarse is None:
             forest = Forest(faces)
         else:
             cf, counts, ref = coarse
-            forest = Forest(faces, coarse_faces=cf, coarse_counts=counts, root_ref=ref)
+            forest = Forest(faces, coarse_faces=cf, coarse_counts=counts, root_ref=ref, stand_ins=stand_ins)
         av = Avatar.initial(forest, color=color, opacity=opacity)
         av.d_log_scale[:] = np.asarray(log_scale, np.float32)
         av.f_rest = np.zeros((forest.num_faces, sh.num_rest(sh_degree), 3), np.float32)
@@ -57,9 +59,21 @@ class TorchAvatar:
 
     def _structure_changed(self):
         self.binding = binding_kernels.FaceBinding(self.forest)
+        # 0 at coarse stand-ins, 1 elsewhere (without_stand_ins); the stand-ins' faces
+        finer = self.forest.level >= self.forest.num_coarse_levels
+        self._finer = torch.as_tensor(finer, dtype=torch.float32)
+        self.stand_in_ids = torch.as_tensor(np.flatnonzero(~finer), device=self.device)
         self.level_ids = [
             torch.as_tensor(self.forest.cumulative(lvl), device=self.device) for lvl in range(self.forest.max_level + 1)
         ]
+
+    def without_stand_ins(self, opacities: torch.Tensor) -> torch.Tensor:
+        """``opacities`` [N] with the coarse stand-ins at zero: what the template level and finer
+        show, the whole avatar included (Forest.drawn). Zero rather than dropped, so that every
+        image keeps all N Gaussians in face order (growth reads per-face gradients)."""
+        if not self.forest.stand_ins:
+            return opacities
+        return opacities * self._finer.to(device=opacities.device, dtype=opacities.dtype)
 
     @property
     def num_faces(self) -> int:

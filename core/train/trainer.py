@@ -54,10 +54,20 @@ class TrainConfig:
     # both ranked by whole-avatar importance, as then).
     coarse_levels: tuple = (1 / 32, 1 / 16)
     # Multiplies w_l of the coarse levels in the multi-level loss. 0.5 measured on the default head
-    # (docs/BENCHMARKS.md, issue 16): 1.0 gains 0.3-0.5 dB at 5 % but costs 0.1-0.2 dB at 100 %
-    # against the run without coarse levels; 0.5 costs 0.08 ± 0.07 dB over six seeds (as much as the
-    # seeds' own spread); 0.25 cost no less (coarse-template head grown by a budget, 3 seeds).
+    # with cumulative coarse levels (docs/BENCHMARKS.md, issue 16, in git history): 1.0 gained
+    # 0.3-0.5 dB at 5 % but cost 0.1-0.2 dB at 100 % against the run without coarse levels. Stand-ins
+    # (below, an option) learn from their own levels' images only, so there it only weighs those images
+    # against the regularisers, which every face shares.
     coarse_weight: float = 0.5
+    # Coarse faces as stand-ins (Forest.drawn): images of the template level and finer leave
+    # them out, and a stream reader drops each once the template faces of its region have
+    # arrived (docs/FORMAT.md 2.4), so they fill short prefixes and cost nothing at 100 %. Off
+    # by default (cumulative coarse levels, in every prefix, as the paper's levels): measured on
+    # both heads (docs/BENCHMARKS.md, issue 16, "coarse stand-ins"), stand-ins bring the
+    # 1,280-face head's 5 % budget within 3 dB of its 100 % and cost nothing there, but a
+    # retiring stand-in can leave the prefix slightly worse than the one before (coverage -0.004,
+    # PSNR -0.05..-0.12 dB in 1 % steps), which cumulative levels never do.
+    coarse_stand_ins: bool = False
     # Extra images per step whose prefix ends *inside* a level: the levels below it plus the
     # first k faces of a random level (k uniform), in the order the stream will send them (each
     # level by importance measured on the levels up to its own, as core/render/importance.py).
@@ -201,6 +211,11 @@ def config_for(preset: str, **overrides) -> TrainConfig:
         raise ValueError(
             f"prefix cuts must be >= 0, rank_every and rank_views >= 1, got "
             f"{cfg.prefix_cuts}, {cfg.rank_every}, {cfg.rank_views}"
+        )
+    if cfg.prefix_cuts and cfg.coarse_levels and cfg.coarse_stand_ins:
+        raise ValueError(
+            "in-level prefix cuts supervise cumulative coarse levels only: with coarse stand-ins a cut would "
+            "need each stand-in's region; drop --coarse-stand-ins or --prefix-cuts"
         )
     images = len(cfg.coarse_levels) + 1 + int(cfg.max_depth) + int(cfg.prefix_cuts)
     if images > MAX_IMAGES:  # render_levels composites at most MAX_IMAGES nested images a pass
@@ -369,6 +384,13 @@ class Trainer:
         self.on_checkpoint = None  # called with the iteration after each checkpoint (rank 0)
         if resume and os.path.exists(self.ckpt_path):
             self._load_checkpoint()
+            f = self.model.forest
+            if f.stand_ins and config.prefix_cuts:
+                raise ValueError(
+                    f"{out_dir}: this run's coarse faces are stand-ins; in-level prefix cuts need cumulative ones"
+                )
+            if f.num_coarse and f.stand_ins != config.coarse_stand_ins:  # the run keeps its kind
+                config = self.cfg = replace(config, coarse_stand_ins=f.stand_ins)
         else:
             coarse = None
             if config.coarse_levels:
@@ -376,7 +398,9 @@ class Trainer:
 
                 cf, counts = build_coarse(self.train.canonical_vertices, self.train.faces, config.coarse_levels)
                 coarse = (cf, counts, None) if counts else None
-            self.model = TorchAvatar.from_template(self.train.faces, sh_degree=config.sh_degree, coarse=coarse)
+            self.model = TorchAvatar.from_template(
+                self.train.faces, sh_degree=config.sh_degree, coarse=coarse, stand_ins=config.coarse_stand_ins
+            )
             self.opt = Adam(self.model.params, config.lr)
             self.rng = np.random.default_rng(config.seed)
             self.iteration = 0
@@ -524,17 +548,31 @@ class Trainer:
             _check_gaussians(it, g)
             loss = torch.zeros(())
             finest = None
-            # One projection, sort and tile binning shared by every supervised level.
-            outs = render_levels(
+            # One projection, sort and tile binning shared by every supervised level; with
+            # stand-ins the coarse levels render apart (their Gaussians only), and the
+            # template level and finer leave them out. The finest image comes last either way.
+            K = self.model.forest.num_coarse_levels if self.model.forest.stand_ins else 0
+            coarse_up, finer_up = [u for u in upto if u < K], [u for u in upto if u >= K]
+            outs = []
+            if coarse_up:
+                sub = self.model.stand_in_ids
+                outs += render_levels(
+                    *(g[k][sub] for k in ("means", "quats", "scales", "opacities", "colors")),
+                    sample.camera,
+                    self.background,
+                    level=np.asarray(order_key)[sub.numpy()],
+                    upto=coarse_up,
+                )
+            outs += render_levels(
                 g["means"],
                 g["quats"],
                 g["scales"],
-                g["opacities"],
+                self.model.without_stand_ins(g["opacities"]),
                 g["colors"],
                 sample.camera,
                 self.background,
                 level=order_key,
-                upto=upto,
+                upto=finer_up,
             )
             for lvl, out, cut in zip(image_levels, outs, is_cut):
                 ids = self.model.level_ids[top]  # every level's output covers all faces (means2d, radii)
@@ -621,7 +659,8 @@ class Trainer:
         for i in pick:
             s = self.val[int(i)]
             g = self.model.gaussians(self._vertices(s), s.camera.center)
-            out = render(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], s.camera, self.background)
+            opacities = self.model.without_stand_ins(g["opacities"])  # the whole avatar: Forest.drawn()
+            out = render(g["means"], g["quats"], g["scales"], opacities, g["colors"], s.camera, self.background)
             values.append(psnr(out.image.numpy(), s.image, s.mask))
         return {"val_psnr": float(np.mean(values))}
 
