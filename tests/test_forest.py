@@ -233,17 +233,7 @@ def test_stand_ins_make_way_for_the_template_and_persist(tmp_path):
     assert not np.any(fo.level[fo.drawn(fo.stream_ids(last_t + 1), records=last_t + 1)] < K)
     # With them: exactly while records <= retire.
     retire = rng.integers(C, N, C)
-    fr = Forest(
-        f,
-        fo.parent,
-        fo.slot,
-        fo.split_logits,
-        coarse_faces=fo.coarse_faces,
-        coarse_counts=fo.coarse_counts,
-        root_ref=fo.root_ref,
-        stand_ins=True,
-        retire=retire,
-    )
+    fr = fo._like(fo.parent, fo.slot, fo.split_logits, fo.root_ref, retire=retire)  # the same, with them
     for n in (1, C, C + 1, int(np.median(retire)), N - 1, N):
         ids = fr.stream_ids(n)
         assert np.array_equal(ids, np.arange(n))  # roots first: prefix faces keep their numbers
