@@ -3,7 +3,7 @@
 Points are grouped by root face (the layout the per-frame evaluator writes fastest); their
 "rank" attribute is their stream position, and the modifier deletes those whose rank reaches
 the "Count" input (and coarse stand-ins once Count reaches their "retire" attribute: the
-template faces of their region have all arrived; 0 for every other point), so moving the
+template faces of their region have arrived; 0 for every other point), so moving the
 budget slider only sets one modifier input. Each remaining point instances
 a hull that covers the Gaussian as the rasteriser draws it (dilated, out to its 1/255
 cut-off): a camera-facing card by default, or an ellipsoid in the splat's frame; the

@@ -54,7 +54,7 @@ class Forest:
     template order, as before. ``depth`` = level - K is the subdivision depth below the
     template (negative for coarse faces); only template faces and their descendants split.
 
-    Coarse faces are *stand-ins* when ``stand_ins`` (docs/DESIGN.md, docs/FORMAT.md 2.3): they
+    Coarse faces are *stand-ins* when ``stand_ins`` (docs/FORMAT.md 2.4, docs/ARCHITECTURE.md): they
     render only until the template faces around them have arrived, so the finished avatar is
     the template level and its subdivisions alone (see ``drawn``). ``retire`` [C], per coarse
     table row, is the stream position at which the stand-in makes way (docs/FORMAT.md 2.4; a

@@ -66,9 +66,10 @@ def face_importance(
     # (faces rendered, which of them are scored) per render: levels <= l and level l.
     # Per level, coarse stand-ins (Forest.drawn) stay in every render, as cumulative coarse
     # levels do: a face sent early arrives while the stand-ins of its region still show.
-    # (Leaving them out of the renders below the template level measured no better: 5 % of
-    # the coarse-template head's stream 21.49 against 21.53 dB, seed 0, 16 views.) The whole
-    # avatar, the paper's importance, leaves them out as the finished avatar does.
+    # (Leaving them out of the subdivision levels' renders measured no better: 5 % of the
+    # coarse-template head's stream 21.49 against 21.53 dB, seed 0, 16 views, stand-ins retired
+    # with their region's last template face.) The whole avatar, the paper's importance, leaves
+    # them out as the finished avatar does.
     if per_level and avatar.num_gaussians:
         renders = [(np.flatnonzero(level <= lv), level[level <= lv] == lv) for lv in np.unique(level)]
     else:

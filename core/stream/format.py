@@ -41,7 +41,7 @@ VERSION = 5  # what the writer writes
 READ_VERSIONS = (1, 2, 3, 4, 5)
 FLAG_LOSSLESS = 1
 FLAG_TEMPLATE = 2
-FLAG_STAND_INS = 4  # the coarse faces are stand-ins; the coarse table adds their retire positions (FORMAT.md 2.3)
+FLAG_STAND_INS = 4  # the coarse faces are stand-ins; the coarse table adds their retire positions (FORMAT.md 2.4)
 KNOWN_FLAGS = FLAG_LOSSLESS | FLAG_TEMPLATE | FLAG_STAND_INS
 FIXED_HEADER = struct.Struct("<8sHHIIIHHHH16sII")
 FIXED_SIZE = FIXED_HEADER.size  # 56: versions 1 and 2; version 3 adds u32 coarse_length
@@ -266,8 +266,8 @@ class StreamInfo:
     order: np.ndarray | None = field(default=None, repr=False, compare=False)
     num_coarse_levels: int = 0  # version 3: levels 0..K-1 are coarse, level K the template
     coarse_faces: np.ndarray | None = field(default=None, repr=False, compare=False)  # [C,3], grouped by level
-    # flag bit 2: per coarse row, the stream index of the last template face of its region (a
-    # stand-in renders in a prefix of n records while n <= retire)
+    # flag bit 2: per coarse row, the stream index at which that stand-in makes way (it renders
+    # in a prefix of n records while n <= retire; FORMAT.md 2.4)
     coarse_retire: np.ndarray | None = field(default=None, repr=False, compare=False)
     # version 4: (record index int64 [E], component uint8 [E], value float32 [E]), sorted by
     # (index, component); values replace the decoded component exactly (FORMAT.md 3.2)

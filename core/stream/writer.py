@@ -207,8 +207,9 @@ _PATH_KEYS = ("data", "run")  # metadata entries that hold local folders
 
 
 # A stand-in makes way once the template faces of its region received hold RETIRE_IMPORTANCE of
-# the region's importance and RETIRE_AREA of its area (rest pose). Measured on the default head
-# (seed 0, 8 views, 1 % steps; docs/BENCHMARKS.md issue 16): waiting for the last template face
+# the region's importance and RETIRE_AREA of its area (rest pose). Compared on the default head's
+# stand-in run (seed 0, 8 views, 1 % steps, a scratch script; the chosen rule's curves are in
+# docs/BENCHMARKS.md, "coarse stand-ins"): waiting for the last template face
 # kept stand-ins over nearly finished regions far into the stream (25 %: 23.88 dB); importance
 # alone retired some while a third of their region's area was missing (a 0.9 dB dip at 18 %:
 # importance measured with the stand-ins present is low where they already look right); area
