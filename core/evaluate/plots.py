@@ -150,16 +150,17 @@ def depth_picture(path, avatar, dataset, views=(0,)):
             info.camera,
             np.ones(3, np.float32),
         )
-        full = evaluate(avatar.forest, verts)
-        m2, q2, s2 = compose(full.t, full.r, full.s, avatar.d_mu, avatar.d_log_scale, avatar.d_rot)
+        shown = avatar.forest.drawn()  # the finished avatar (no coarse stand-in)
+        full = evaluate(avatar.forest, verts, ids=shown)
+        m2, q2, s2 = compose(full.t, full.r, full.s, avatar.d_mu[shown], avatar.d_log_scale[shown], avatar.d_rot[shown])
         from ..avatar.avatar import sh_to_rgb, sigmoid
 
         ref, _, _ = render_numpy(
             m2,
             q2,
             s2,
-            sigmoid(avatar.opacity_logit),
-            sh_to_rgb(avatar.f_dc),
+            sigmoid(avatar.opacity_logit[shown]),
+            sh_to_rgb(avatar.f_dc[shown]),
             info.camera,
             np.asarray(dataset.background, np.float32),
         )
