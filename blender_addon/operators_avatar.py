@@ -261,10 +261,8 @@ def current_gaussians(context, obj, world=True):
     if not runtime.refresh(obj, context.evaluated_depsgraph_get(), count):
         raise RuntimeError(obj.pa_avatar.status)
     ev = e.evaluator
-    faces = e.face_at[:count]  # the faces of stream positions 0..count-1
-    until = e.avatar.forest.shown_until()
-    if until is not None:  # coarse stand-ins whose region has arrived are not shown
-        faces = faces[until[faces] >= count]
+    # the faces of stream positions 0..count-1, less coarse stand-ins whose region has arrived
+    faces = e.avatar.forest.drawn(e.face_at[:count], records=count)
     points = e.point_of_face[faces]
     means, quats, scales = ev.means[points], ev.quats[points], ev.scales[points]
     if world:
