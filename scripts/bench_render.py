@@ -249,7 +249,15 @@ def run(quick: bool = False) -> str:
 
 # ----------------------------------------------------------------------------- old against new kernels
 
-STAGES = ["project_forward", "sort", "bin_tiles", "raster_forward", "raster_backward", "project_backward"]
+STAGES = [
+    "project_forward",
+    "sort",
+    "pack_splats",
+    "bin_tiles",
+    "raster_forward",
+    "raster_backward",
+    "project_backward",
+]
 
 
 def old_kernels(commit):
@@ -304,14 +312,30 @@ def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.
         visible = np.flatnonzero(radii != 0)
         order = visible[np.argsort(depth[visible], kind="stable")].astype(np.int64)
     mark("sort")
-    tiles_x = -(-W // rk.TILE)
-    tile_start, ids = rk.bin_tiles(rect, order, tiles_x, -(-H // rk.TILE))
-    mark("bin_tiles")
     if glevel is None:
         glevel, upto = np.zeros(len(means), np.int64), np.zeros(1, np.int64)
         grad_image, grad_alpha = grad_image[None], grad_alpha[None]
     else:
         upto = np.arange(int(glevel.max()) + 1, dtype=np.int64)
+    tiles_x = -(-W // rk.TILE)
+    packed = hasattr(rk, "pack_splats")  # kernels that read the depth-ordered splat rows
+    if packed:
+        n_ch = colors.shape[1]
+        row_of, gaussian = rk.splat_rows(order, rect, tiles_x, -(-H // rk.TILE))
+        splats = rk.pack_splats(
+            gaussian, xy, conic, opac, cut, colors, rect, glevel, rk.aligned_splats(len(order), n_ch)
+        )
+        # what the kernels take in place of the per-Gaussian arrays
+        gaussians_fwd = (splats, gaussian, len(means), n_ch)
+        gaussians_bwd = gaussians_fwd
+    mark("pack_splats")
+    if packed:
+        tile_start, ids = rk.bin_tiles(splats, row_of, tiles_x, -(-H // rk.TILE))
+    else:
+        tile_start, ids = rk.bin_tiles(rect, order, tiles_x, -(-H // rk.TILE))
+        gaussians_fwd = (xy, conic, opac, cut, colors, rect)
+        gaussians_bwd = (xy, conic, opac, colors)
+    mark("bin_tiles")
     record_args = inspect.signature(rk.raster_forward.py_func).parameters
     if "rec_keep" in record_args or "rec_gauss" in record_args:
         # Kernels whose backward replays the forward's record: rasterize.py's buffer pool, as in
@@ -331,8 +355,9 @@ def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.
                 run_bufs = (_OLD_RECORD, bufs[1])
             else:  # kernels before the shared record of nested images took no image bits
                 run_bufs = bufs if "rec_img" in record_args else bufs[:2]
+            levels = (upto,) if packed else (glevel, upto)
             image, t_final, last, _, (rec_start, rec_n, used) = rk.raster_forward(
-                tile_start, ids, xy, conic, opac, cut, colors, rect, bg, W, H, tiles_x, glevel, upto, chunks, *run_bufs
+                tile_start, ids, *gaussians_fwd, bg, W, H, tiles_x, *levels, chunks, *run_bufs
             )
             if pool.learn(used, len(bufs[0]), W * H, len(upto)):
                 break
@@ -344,7 +369,7 @@ def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.
             slot_start = rk.backward_slots(tile_start, last, W, H, tiles_x)
             slots = (slot_start, _scratch.take(rk.scratch_entries(slot_start, colors.shape[1])))
         grads, _ = rk.raster_backward(
-            tile_start, ids, xy, conic, opac, colors, bg, t_final, last,
+            tile_start, ids, *gaussians_bwd, bg, t_final, last,
             grad_image, grad_alpha, W, H, tiles_x, *run_bufs, rec_start, rec_n, *slots,
         )  # fmt: skip
         pool.give(bufs)

@@ -411,6 +411,58 @@ def test_depth_order_is_numpys_stable_argsort():
         assert got.dtype == np.int64 and np.array_equal(got, expected), n
 
 
+def test_splat_rows_and_tile_lists():
+    # The packed rows: a permutation of the visible Gaussians grouped by the tile of their box
+    # centre (front to back inside a group), each row holding its Gaussian's values; every tile
+    # lists exactly the Gaussians whose box touches it, front to back (ties in depth order).
+    from progressive_avatars.core.render import kernels as rk
+
+    rng = np.random.default_rng(8)
+    n, tiles_x, tiles_y = 3000, 7, 5
+    rect = np.empty((n, 4), np.int32)
+    rect[:, 0] = rng.integers(0, tiles_x * rk.TILE, n)
+    rect[:, 1] = rng.integers(0, tiles_y * rk.TILE, n)
+    rect[:, 2] = np.minimum(rect[:, 0] + rng.integers(0, 40, n), tiles_x * rk.TILE - 1)
+    rect[:, 3] = np.minimum(rect[:, 1] + rng.integers(0, 40, n), tiles_y * rk.TILE - 1)
+    depth = rng.uniform(1.0, 2.0, n)
+    depth[::7] = depth[3]  # ties
+    keep = rng.random(n) < 0.9
+    order = rk.depth_order(depth, keep)
+    m = len(order)
+    xy, conic = rng.normal(size=(n, 2)), rng.uniform(0.1, 1.0, size=(n, 3))
+    opac, cut, colors = rng.uniform(0.1, 1.0, n), -rng.uniform(0.1, 5.0, n), rng.uniform(size=(n, 3))
+    glevel = rng.integers(0, 4, n)
+
+    row_of, gaussian = rk.splat_rows(order, rect, tiles_x, tiles_y)
+    assert np.array_equal(np.sort(row_of), np.arange(m)) and np.array_equal(gaussian[row_of], order)
+    centre = ((rect[:, 1] + rect[:, 3]) // 2 // rk.TILE) * tiles_x + (rect[:, 0] + rect[:, 2]) // 2 // rk.TILE
+    key = centre[gaussian]  # the group of each row
+    assert np.all(np.diff(key) >= 0)  # rows grouped by centre tile
+    rank = np.empty(m, np.int64)
+    rank[row_of] = np.arange(m)  # depth rank of each row
+    same = np.diff(key) == 0
+    assert np.all(np.diff(rank)[same] > 0)  # front to back inside a group
+
+    splats = rk.aligned_splats(m, 3)
+    assert splats.ctypes.data % 64 == 0 and splats.shape[1] == rk.splat_width(3) == 16
+    rk.pack_splats(gaussian, xy, conic, opac, cut, colors, rect, glevel, splats)
+    g = gaussian
+    assert np.array_equal(splats[:, rk.S_U], xy[g, 0]) and np.array_equal(splats[:, rk.S_CC], conic[g, 2])
+    assert np.array_equal(splats[:, rk.S_ECUT], -2.0 * conic[g, 0] * cut[g])
+    assert np.array_equal(splats[:, rk.S_X1], rect[g, 2]) and np.array_equal(splats[:, rk.S_LEVEL], glevel[g])
+    assert np.array_equal(splats[:, rk.S_COLOR : rk.S_COLOR + 3], colors[g])
+
+    tile_start, ids = rk.bin_tiles(splats, row_of, tiles_x, tiles_y)
+    for t in range(tiles_x * tiles_y):
+        tx, ty = t % tiles_x, t // tiles_x
+        touch = (
+            (rect[:, 0] // rk.TILE <= tx) & (rect[:, 2] // rk.TILE >= tx)
+            & (rect[:, 1] // rk.TILE <= ty) & (rect[:, 3] // rk.TILE >= ty)
+        )  # fmt: skip
+        expected = [q for q in order if touch[q]]  # depth order
+        assert list(gaussian[ids[tile_start[t] : tile_start[t + 1]]]) == expected, t
+
+
 def test_render_bitwise_deterministic_across_runs_and_thread_counts():
     # The per-pair gradient buffers, their parallel gather, the interleaved tile split and the
     # radix depth order must give the same bits whatever the thread count, run after run.

@@ -22,7 +22,8 @@ So binning never drops a pixel that the dense reference would composite.
 
 Parallel loops never share an accumulator: projection runs over blocks of Gaussians, the
 rasteriser over tiles, and each (tile, Gaussian) pair writes its own slot of a per-intersection
-buffer that a serial pass sums afterwards. No atomics, deterministic sums, and no thread ids
+buffer that a pass sums afterwards in pair order (in parallel over ranges of Gaussians). No
+atomics, deterministic sums, and no thread ids
 (get_thread_id would stop numba from caching the kernels). Tiles are split statically between
 threads: numba's dynamic chunking (parallel_chunksize) measured several times slower here; the
 tiles are interleaved first (_spread_tiles) so that each static share sees all of the image.
@@ -32,6 +33,12 @@ row (not its bounding box), cut to the pixels still compositing (per-row bit mas
 whose pixels have all stopped are skipped). The backward walks nothing: the forward records
 every composited (Gaussian, pixel) pair with its 1 - alpha, and the backward replays those
 pairs back to front (raster_forward's record, raster_backward).
+
+The tile kernels read the Gaussians as packed rows (pack_splats: two cache lines per Gaussian
+instead of one line in each of seven arrays), grouped by screen tile so that neighbouring
+tiles share runs of rows, and ask for the rows a few pairs ahead before they need them
+(_prefetch): without that, the first read of each pair's Gaussian was the forward's and the
+backward's largest single cost.
 
 The nested images of one pass (the levels of a forest: image l shows the Gaussians with
 glevel <= upto[l]) are composited together, not one after another: a Gaussian walks its
@@ -48,8 +55,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from llvmlite import ir
+from numba import njit, prange, types
+from numba.core import cgutils
 from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
+from numba.extending import intrinsic
 
 TILE = 16
 BLOCK = 1024  # Gaussians per parallel work item in the projection kernels
@@ -71,8 +81,24 @@ _PARALLEL = dict(
     comprehension=False,
     inplace_binop=False,
 )
+PREFETCH = 4  # (tile, Gaussian) pairs ahead whose splat rows a tile kernel asks the cache for
+PREFETCH_PACK = 16  # Gaussians ahead whose rows pack_splats asks the cache for
+GATHER_PARTS = 4  # ranges of splat rows whose per-pair sums are gathered in parallel
 # Slack on the pixel box so that rounding can never drop a pixel at the exact boundary.
 _BOX_SLACK = 1.0 + 1e-6
+
+# Row of the packed splat array (pack_splats): what the tile kernels read of one visible Gaussian,
+# (rows grouped by screen tile, see splat_rows). The first 64-byte line holds what a chord walk needs, the second the pixel box,
+# level and colours, so that a (tile, Gaussian) pair touches two adjacent cache lines instead of
+# one line in each of seven per-Gaussian arrays.
+S_U, S_V, S_CA, S_CB, S_CC, S_OPAC, S_DCONIC, S_ECUT = 0, 1, 2, 3, 4, 5, 6, 7
+S_X0, S_X1, S_Y0, S_Y1, S_LEVEL, S_COLOR = 8, 9, 10, 11, 12, 13
+
+
+def splat_width(n_ch: int) -> int:
+    """Row width of pack_splats' array for n_ch colour channels: whole 64-byte lines."""
+    return -(-(S_COLOR + n_ch) // 8) * 8
+
 
 # Gradient record per Gaussian written by raster_backward: d/du, d/dv, d/dconic (a, b, c),
 # d/dopacity, then d/dcolor[0..C).
@@ -94,6 +120,49 @@ def fov_limits(width, height, fx, fy, cx, cy):
             (height - cy) / fy + 0.3 * tan_y,
         ]
     )
+
+
+@intrinsic
+def _prefetch(typingctx, arr, index):
+    """Ask the CPU to bring the cache line of arr[index] (a C array, an index tuple as long as
+    its dimensions, no bounds check) into its caches; the code goes on without waiting.
+
+    numba has no prefetch of its own. The tile kernels need it: a tile takes its Gaussians in
+    depth order, which jumps between the rows of the tiles around it, and each pair's first
+    read of its row waited for memory (with the per-Gaussian arrays of before, a fifth of the
+    forward's and a sixth of the backward's samples in a perf profile of the bench head);
+    the row of the pair a few places ahead is known long before it is read."""
+    if not (
+        isinstance(arr, types.Array)
+        and isinstance(index, types.UniTuple)
+        and index.count == arr.ndim
+        and isinstance(index.dtype, types.Integer)
+    ):
+        return None
+
+    def codegen(context, builder, sig, args):
+        aryty, idxty = sig.args
+        ary = context.make_array(aryty)(context, builder, args[0])
+        idx = [context.cast(builder, i, idxty.dtype, types.intp) for i in cgutils.unpack_tuple(builder, args[1])]
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, idx, wraparound=False)
+        i8p = ir.PointerType()  # opaque pointer (LLVM >= 15)
+        i32 = ir.IntType(32)
+        fnty = ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32])
+        fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.prefetch.p0")
+        builder.call(fn, [builder.bitcast(ptr, i8p), i32(0), i32(3), i32(1)])  # read, keep, data
+        return context.get_dummy_value()
+
+    return types.void(arr, index), codegen
+
+
+@njit(cache=True)
+def _prefetch_splat(splats, ids, k, end):
+    """Prefetch the first two lines of the splat row of pair k (all of it with up to three
+    colours), when k lies in [0, end)."""
+    if 0 <= k < end:
+        s = np.int64(ids[k])
+        _prefetch(splats, (s, 0))
+        _prefetch(splats, (s, 8))
 
 
 @njit(cache=True)
@@ -302,23 +371,109 @@ def depth_order(depth, keep):
     return order
 
 
-@njit(parallel=_PARALLEL, cache=True)
-def bin_tiles(rect, order, tiles_x, tiles_y):
-    """Counting sort of (tile, Gaussian) pairs into per-tile lists.
+@njit(cache=True)
+def splat_rows(order, rect, tiles_x, tiles_y):
+    """Where pack_splats puts each visible Gaussian: grouped by the tile that holds the centre
+    of its pixel box, front to back within a group. Returns row_of [m] (the row of the Gaussian
+    of depth rank q, order[q]) and gaussian [m] (the Gaussian of each row).
 
-    ``order`` holds the visible Gaussians front to back; it is binned in BIN_CHUNKS contiguous
-    slices in parallel, and slice c's entries precede slice c+1's inside every tile, so each
-    tile's list stays depth-sorted. Returns tile_start [T+1] and the flat Gaussian ids.
+    A tile's Gaussians are spread over the whole depth order, so rows in depth order would
+    put every pair of a tile in a different part of memory; grouped by screen position, a
+    tile and its neighbours read a few contiguous runs of rows instead."""
+    m = order.shape[0]
+    start = np.zeros(tiles_x * tiles_y + 1, np.int64)
+    key = np.empty(m, np.int64)
+    for q in range(m):
+        g = order[q]
+        tx = min((rect[g, 0] + rect[g, 2]) // 2 // TILE, tiles_x - 1)
+        ty = min((rect[g, 1] + rect[g, 3]) // 2 // TILE, tiles_y - 1)
+        key[q] = ty * tiles_x + tx
+        start[key[q] + 1] += 1
+    for t in range(tiles_x * tiles_y):
+        start[t + 1] += start[t]
+    row_of = np.empty(m, np.int64)
+    gaussian = np.empty(m, np.int64)
+    for q in range(m):
+        r = start[key[q]]
+        start[key[q]] = r + 1
+        row_of[q] = r
+        gaussian[r] = order[q]
+    return row_of, gaussian
+
+
+@njit(parallel=_PARALLEL, cache=True)
+def pack_splats(order, xy, conic, opacities, cut, colors, rect, glevel, out):
+    """Fill ``out`` [len(order), >= splat_width(C)] (rows S_*) with the visible Gaussians: row
+    k is Gaussian order[k] (splat_rows' ``gaussian``). The tile kernels read these rows instead
+    of the per-Gaussian arrays: each Gaussian is then two adjacent cache lines, and the
+    Gaussians of neighbouring tiles lie near each other (docs/BENCHMARKS.md, "Rasteriser
+    kernels"). ``out`` comes from the caller, 64-byte aligned (aligned_splats), so that a row
+    starts a line."""
+    m = order.shape[0]
+    n_ch = colors.shape[1]
+    for blk in prange((m + BLOCK - 1) // BLOCK):
+        end = min(m, (blk + 1) * BLOCK)
+        for k in range(blk * BLOCK, end):
+            if k + PREFETCH_PACK < end:  # the rows of a Gaussian further on: order is random access
+                h = order[k + PREFETCH_PACK]
+                _prefetch(xy, (h, 0))
+                _prefetch(conic, (h, 0))
+                _prefetch(opacities, (h,))
+                _prefetch(cut, (h,))
+                _prefetch(colors, (h, 0))
+                _prefetch(rect, (h, 0))
+                _prefetch(glevel, (h,))
+            g = order[k]
+            ca = conic[g, 0]
+            cb = conic[g, 1]
+            cc = conic[g, 2]
+            out[k, S_U] = xy[g, 0]
+            out[k, S_V] = xy[g, 1]
+            out[k, S_CA] = ca
+            out[k, S_CB] = cb
+            out[k, S_CC] = cc
+            out[k, S_OPAC] = opacities[g]
+            out[k, S_DCONIC] = cb * cb - ca * cc
+            out[k, S_ECUT] = -2.0 * ca * cut[g]
+            out[k, S_X0] = rect[g, 0]
+            out[k, S_X1] = rect[g, 2]
+            out[k, S_Y0] = rect[g, 1]
+            out[k, S_Y1] = rect[g, 3]
+            out[k, S_LEVEL] = glevel[g]
+            for ch in range(n_ch):
+                out[k, S_COLOR + ch] = colors[g, ch]
+    return out
+
+
+def aligned_splats(m: int, n_ch: int) -> np.ndarray:
+    """An uninitialised [m, splat_width(n_ch)] float64 array whose rows start 64-byte lines."""
+    width = splat_width(n_ch)
+    buf = np.empty(m * width + 8)
+    skip = (-buf.ctypes.data % 64) // 8
+    return buf[skip : skip + m * width].reshape(m, width)
+
+
+@njit(parallel=_PARALLEL, cache=True)
+def bin_tiles(splats, row_of, tiles_x, tiles_y):
+    """Counting sort of (tile, splat) pairs into per-tile lists.
+
+    The splat rows are taken front to back (``row_of[q]``: the row of depth rank q, see
+    splat_rows), in BIN_CHUNKS contiguous slices of the depth order binned in parallel; slice
+    c's entries precede slice c+1's inside every tile, so each tile's list stays depth-sorted.
+    Returns tile_start [T+1] and the flat splat rows (ids: rows of ``splats``).
     """
     n_tiles = tiles_x * tiles_y
-    m = order.shape[0]
+    m = splats.shape[0]
     n_chunks = BIN_CHUNKS
     counts = np.zeros((n_chunks, n_tiles), np.int64)
     for ch in prange(n_chunks):
-        for k in range(m * ch // n_chunks, m * (ch + 1) // n_chunks):
-            g = order[k]
-            for ty in range(rect[g, 1] // TILE, rect[g, 3] // TILE + 1):
-                for tx in range(rect[g, 0] // TILE, rect[g, 2] // TILE + 1):
+        end = m * (ch + 1) // n_chunks
+        for q in range(m * ch // n_chunks, end):
+            if q + PREFETCH_PACK < end:
+                _prefetch(splats, (row_of[q + PREFETCH_PACK], S_X0))
+            k = row_of[q]
+            for ty in range(int(splats[k, S_Y0]) // TILE, int(splats[k, S_Y1]) // TILE + 1):
+                for tx in range(int(splats[k, S_X0]) // TILE, int(splats[k, S_X1]) // TILE + 1):
                     counts[ch, ty * tiles_x + tx] += 1
     tile_start = np.empty(n_tiles + 1, np.int64)
     cursor = np.empty((n_chunks, n_tiles), np.int64)
@@ -331,12 +486,15 @@ def bin_tiles(rect, order, tiles_x, tiles_y):
     tile_start[n_tiles] = total
     ids = np.empty(total, np.int32)
     for ch in prange(n_chunks):
-        for k in range(m * ch // n_chunks, m * (ch + 1) // n_chunks):
-            g = order[k]
-            for ty in range(rect[g, 1] // TILE, rect[g, 3] // TILE + 1):
-                for tx in range(rect[g, 0] // TILE, rect[g, 2] // TILE + 1):
+        end = m * (ch + 1) // n_chunks
+        for q in range(m * ch // n_chunks, end):
+            if q + PREFETCH_PACK < end:
+                _prefetch(splats, (row_of[q + PREFETCH_PACK], S_X0))
+            k = row_of[q]
+            for ty in range(int(splats[k, S_Y0]) // TILE, int(splats[k, S_Y1]) // TILE + 1):
+                for tx in range(int(splats[k, S_X0]) // TILE, int(splats[k, S_X1]) // TILE + 1):
                     t = ty * tiles_x + tx
-                    ids[cursor[ch, t]] = g
+                    ids[cursor[ch, t]] = k
                     cursor[ch, t] += 1
     return tile_start, ids
 
@@ -390,26 +548,25 @@ def _tile_bounds(t, tiles_x, width, height):
 
 
 @njit(cache=True)
-def _splat(g, rect, xy, conic, cut, x0, x1, y0, y1):
-    """What a tile's walk needs of Gaussian g: its pixel box cut to the tile (i0, i1, j0, j1),
+def _splat(s, splats, x0, x1, y0, y1):
+    """What a tile's walk needs of splat row s: its pixel box cut to the tile (i0, i1, j0, j1),
     centre and conic, and _row_span's per-Gaussian constants (half_u, inv_ca, d_conic, e_cut)."""
-    ca = conic[g, 0]
-    cb = conic[g, 1]
-    cc = conic[g, 2]
+    u = splats[s, S_U]
+    ca = splats[s, S_CA]
     return (
-        max(rect[g, 0], x0),
-        min(rect[g, 2], x1 - 1),
-        max(rect[g, 1], y0),
-        min(rect[g, 3], y1 - 1),
-        xy[g, 0],
-        xy[g, 1],
+        max(int(splats[s, S_X0]), x0),
+        min(int(splats[s, S_X1]), x1 - 1),
+        max(int(splats[s, S_Y0]), y0),
+        min(int(splats[s, S_Y1]), y1 - 1),
+        u,
+        splats[s, S_V],
         ca,
-        cb,
-        cc,
-        xy[g, 0] - 0.5,
+        splats[s, S_CB],
+        splats[s, S_CC],
+        u - 0.5,
         1.0 / ca,
-        cb * cb - ca * cc,
-        -2.0 * ca * cut[g],
+        splats[s, S_DCONIC],
+        splats[s, S_ECUT],
     )
 
 
@@ -450,12 +607,8 @@ def _forward_tile(
     t,
     tile_start,
     ids,
-    xy,
-    conic,
-    opacities,
-    cut,
-    colors,
-    rect,
+    splats,
+    n_ch,
     background,
     width,
     height,
@@ -470,7 +623,6 @@ def _forward_tile(
     image,
     t_final,
     last,
-    glevel,
     upto,
     rec_keep,
     rec_pix,
@@ -494,7 +646,6 @@ def _forward_tile(
 
     With ``pos`` >= 0 every composited pair is recorded for the backward (see raster_forward)
     from entry ``pos`` on; returns the next free entry, or -1 once ``cap_end`` is reached."""
-    n_ch = colors.shape[1]
     n_img = upto.shape[0]
     weighted = pix_weight.shape[0] > 0
     want_contrib = contrib_isect.shape[0] > 0
@@ -514,25 +665,25 @@ def _forward_tile(
             active[im, r] = (1 << tw) - 1 if r < y1 - y0 else 0
         n_done[im] = 0
     n_live = n_img  # images with a pixel still compositing
-    for k in range(tile_start[t], tile_start[t + 1]):
+    k_end = tile_start[t + 1]
+    for k in range(tile_start[t], k_end):
+        _prefetch_splat(splats, ids, k + PREFETCH, k_end)
         g = ids[k]
-        gl = glevel[g]
+        gl = splats[g, S_LEVEL]
         im0 = 0
         while im0 < n_img and upto[im0] < gl:
             im0 += 1
         if im0 == n_img:
             continue
         img_mask = all_img ^ ((np.int64(1) << im0) - 1)
-        i0, i1, j0, j1, u, v, ca, cb, cc, half_u, inv_ca, d_conic, e_cut = _splat(
-            g, rect, xy, conic, cut, x0, x1, y0, y1
-        )
-        o = opacities[g]
+        i0, i1, j0, j1, u, v, ca, cb, cc, half_u, inv_ca, d_conic, e_cut = _splat(g, splats, x0, x1, y0, y1)
+        o = splats[g, S_OPAC]
         e_ca = -1.0  # exp(-ca), computed on the first row walked
         wsum = 0.0
         first = pos
-        c0 = colors[g, 0]
-        c1 = colors[g, 1 % n_ch]
-        c2 = colors[g, 2 % n_ch]
+        c0 = splats[g, S_COLOR]
+        c1 = splats[g, S_COLOR + 1 % n_ch]
+        c2 = splats[g, S_COLOR + 2 % n_ch]
         for j in range(j0, j1 + 1):
             r = j - y0
             union = 0
@@ -595,7 +746,7 @@ def _forward_tile(
                         acc[p, im, 2] += w * c2
                     else:
                         for ch in range(n_ch):
-                            acc[p, im, ch] += w * colors[g, ch]
+                            acc[p, im, ch] += w * splats[g, S_COLOR + ch]
                     if want_contrib and im == n_img - 1:
                         wsum += w * pix_weight[j, i] if weighted else w
                     T[p, im] = t_next
@@ -628,12 +779,8 @@ def _forward_tile_one(
     t,
     tile_start,
     ids,
-    xy,
-    conic,
-    opacities,
-    cut,
-    colors,
-    rect,
+    splats,
+    n_ch,
     background,
     width,
     height,
@@ -646,7 +793,6 @@ def _forward_tile_one(
     image,
     t_final,
     last,
-    glevel,
     upto,
     rec_keep,
     rec_pix,
@@ -666,7 +812,6 @@ def _forward_tile_one(
 
     With ``pos`` >= 0 every composited pair is recorded for the backward (see raster_forward)
     from entry ``pos`` on; returns the next free entry, or -1 once ``cap_end`` is reached."""
-    n_ch = colors.shape[1]
     weighted = pix_weight.shape[0] > 0
     x0, y0, x1, y1 = _tile_bounds(t, tiles_x, width, height)
     tw = x1 - x0
@@ -679,20 +824,20 @@ def _forward_tile_one(
     for r in range(y1 - y0):
         active[r] = (1 << tw) - 1
     n_done = 0
-    for k in range(tile_start[t], tile_start[t + 1]):
+    k_end = tile_start[t + 1]
+    for k in range(tile_start[t], k_end):
+        _prefetch_splat(splats, ids, k + PREFETCH, k_end)
         g = ids[k]
-        if glevel[g] > upto:
+        if splats[g, S_LEVEL] > upto:
             continue
-        i0, i1, j0, j1, u, v, ca, cb, cc, half_u, inv_ca, d_conic, e_cut = _splat(
-            g, rect, xy, conic, cut, x0, x1, y0, y1
-        )
-        o = opacities[g]
+        i0, i1, j0, j1, u, v, ca, cb, cc, half_u, inv_ca, d_conic, e_cut = _splat(g, splats, x0, x1, y0, y1)
+        o = splats[g, S_OPAC]
         e_ca = -1.0  # exp(-ca), computed on the first row walked
         wsum = 0.0
         first = pos
-        c0 = colors[g, 0]
-        c1 = colors[g, 1 % n_ch]
-        c2 = colors[g, 2 % n_ch]
+        c0 = splats[g, S_COLOR]
+        c1 = splats[g, S_COLOR + 1 % n_ch]
+        c2 = splats[g, S_COLOR + 2 % n_ch]
         for j in range(j0, j1 + 1):
             r = j - y0
             if active[r] == 0:
@@ -746,7 +891,7 @@ def _forward_tile_one(
                     acc[p, 2] += w * c2
                 else:
                     for ch in range(n_ch):
-                        acc[p, ch] += w * colors[g, ch]
+                        acc[p, ch] += w * splats[g, S_COLOR + ch]
                 wsum += w * pix_weight[j, i] if weighted else w
                 T[p] = t_next
                 lst[p] = k
@@ -789,17 +934,14 @@ def _spread_tiles(n_tiles, tiles_x):
 def raster_forward(
     tile_start,
     ids,
-    xy,
-    conic,
-    opacities,
-    cut,
-    colors,
-    rect,
+    splats,
+    order,
+    n,
+    n_ch,
     background,
     width,
     height,
     tiles_x,
-    glevel,
     upto,
     n_chunks,
     rec_keep,
@@ -809,7 +951,9 @@ def raster_forward(
 ):
     """Front-to-back compositing, parallel over tiles, of one image per entry of ``upto``:
     image l composites the Gaussians g with glevel[g] <= upto[l] (levels of a forest share
-    the projection, depth order and tile lists; a level only skips entries).
+    the projection, depth order and tile lists; a level only skips entries). The Gaussians
+    come as pack_splats' rows (``splats``, glevel and n_ch colours included; row k is Gaussian
+    order[k] of n) and bin_tiles' lists of rows.
 
     Returns images [L,H,W,C] (background included), final transmittance [L,H,W], the flat
     index (into ``ids``) of the last Gaussian composited at each pixel (-1: none) [L,H,W],
@@ -829,8 +973,6 @@ def raster_forward(
     static shares, one per thread, each filling its own slice of the buffers; ``used`` gives
     the entries each share took, or its capacity + 1 where it ran out (the record is then
     incomplete: the caller calls again with larger buffers). At most MAX_IMAGES images."""
-    n = xy.shape[0]
-    n_ch = colors.shape[1]
     n_tiles = tile_start.shape[0] - 1
     n_img = upto.shape[0]
     if n_img > MAX_IMAGES:
@@ -866,12 +1008,8 @@ def raster_forward(
                     spread[it],
                     tile_start,
                     ids,
-                    xy,
-                    conic,
-                    opacities,
-                    cut,
-                    colors,
-                    rect,
+                    splats,
+                    n_ch,
                     background,
                     width,
                     height,
@@ -884,7 +1022,6 @@ def raster_forward(
                     image[0],
                     t_final[0],
                     last[0],
-                    glevel,
                     upto[0],
                     rec_keep,
                     rec_pix,
@@ -900,12 +1037,8 @@ def raster_forward(
                     spread[it],
                     tile_start,
                     ids,
-                    xy,
-                    conic,
-                    opacities,
-                    cut,
-                    colors,
-                    rect,
+                    splats,
+                    n_ch,
                     background,
                     width,
                     height,
@@ -920,7 +1053,6 @@ def raster_forward(
                     image,
                     t_final,
                     last,
-                    glevel,
                     upto,
                     rec_keep,
                     rec_pix,
@@ -934,9 +1066,15 @@ def raster_forward(
             if pos >= 0:
                 used[c] = nxt - c * chunk_cap if nxt >= 0 else chunk_cap + 1
             pos = nxt
-    contrib = np.zeros(n)
-    for k in range(ids.shape[0]):
-        contrib[ids[k]] += contrib_isect[k]
+    contrib = np.zeros(n)  # summed per Gaussian in pair order, its rows in parallel parts
+    m = splats.shape[0]
+    for part in prange(GATHER_PARTS):
+        lo = m * part // GATHER_PARTS
+        hi = m * (part + 1) // GATHER_PARTS
+        for k in range(ids.shape[0]):
+            s = ids[k]
+            if lo <= s < hi:
+                contrib[order[s]] += contrib_isect[k]
     return image, t_final, last, contrib, (rec_start, rec_n, used)
 
 
@@ -945,10 +1083,8 @@ def _replay_tile(
     t,
     tile_start,
     ids,
-    xy,
-    conic,
-    opacities,
-    colors,
+    splats,
+    n_ch,
     background,
     t_final,
     last,
@@ -976,7 +1112,6 @@ def _replay_tile(
     to front per pixel, a Gaussian's pixels row by row (each row summed before it is added), every
     image at once. A pair's alpha (hence its 1/(1 - alpha) and its pixel offset) is shared by its
     images; transmittance, the colour behind and the incoming gradients are each image's own."""
-    n_ch = colors.shape[1]
     n_img = t_final.shape[0]
     top = n_img - 1
     x0, y0, x1, y1 = _tile_bounds(t, tiles_x, width, height)
@@ -994,17 +1129,20 @@ def _replay_tile(
                     behind[p, im, ch] = tn * background[ch]
                     gimg[p, im, ch] = grad_image[im, j, i, ch]
                     gbg[ch] += grad_image[im, j, i, ch] * tn
-    for k in range(k_max, tile_start[t] - 1, -1):
+    k_first = tile_start[t]
+    for k in range(k_max, k_first - 1, -1):
+        if k - PREFETCH >= k_first:
+            _prefetch_splat(splats, ids, k - PREFETCH, k_max + 1)
         m = rec_n[k]
         if m == 0:
             continue
         g = ids[k]
-        u = xy[g, 0]
-        v = xy[g, 1]
-        ca = conic[g, 0]
-        cb = conic[g, 1]
-        cc = conic[g, 2]
-        o = opacities[g]
+        u = splats[g, S_U]
+        v = splats[g, S_V]
+        ca = splats[g, S_CA]
+        cb = splats[g, S_CB]
+        cc = splats[g, S_CC]
+        o = splats[g, S_OPAC]
         gu = 0.0
         gv = 0.0
         gca = 0.0
@@ -1018,9 +1156,9 @@ def _replay_tile(
         gc0 = 0.0
         gc1 = 0.0
         gc2 = 0.0
-        c0 = colors[g, 0]
-        c1 = colors[g, 1 % n_ch]
-        c2 = colors[g, 2 % n_ch]
+        c0 = splats[g, S_COLOR]
+        c1 = splats[g, S_COLOR + 1 % n_ch]
+        c2 = splats[g, S_COLOR + 2 % n_ch]
         r_cur = -1
         dy = 0.0
         s0 = 0.0
@@ -1073,8 +1211,8 @@ def _replay_tile(
                 else:
                     for ch in range(n_ch):
                         gcol[ch] += w * gimg[p, im, ch]
-                        g_a += gimg[p, im, ch] * (colors[g, ch] * T_before - behind[p, im, ch] * inv)
-                        behind[p, im, ch] += colors[g, ch] * w
+                        g_a += gimg[p, im, ch] * (splats[g, S_COLOR + ch] * T_before - behind[p, im, ch] * inv)
+                        behind[p, im, ch] += splats[g, S_COLOR + ch] * w
                 T[p, im] = T_before
                 g_all += g_a
                 if im == top:
@@ -1108,10 +1246,8 @@ def _replay_tile_one(
     t,
     tile_start,
     ids,
-    xy,
-    conic,
-    opacities,
-    colors,
+    splats,
+    n_ch,
     background,
     t_final,
     last,
@@ -1136,7 +1272,6 @@ def _replay_tile_one(
 ):
     """_replay_tile for a single image (see _forward_tile_one). The backward of one tile from the forward's record: the pairs the forward composited, back
     to front per pixel, a Gaussian's pixels row by row (each row summed before it is added)."""
-    n_ch = colors.shape[1]
     x0, y0, x1, y1 = _tile_bounds(t, tiles_x, width, height)
     tw = x1 - x0
     k_max = -1
@@ -1151,17 +1286,20 @@ def _replay_tile_one(
                 behind[p, ch] = tn * background[ch]
                 gimg[p, ch] = grad_image[j, i, ch]
                 gbg[ch] += grad_image[j, i, ch] * tn
-    for k in range(k_max, tile_start[t] - 1, -1):
+    k_first = tile_start[t]
+    for k in range(k_max, k_first - 1, -1):
+        if k - PREFETCH >= k_first:
+            _prefetch_splat(splats, ids, k - PREFETCH, k_max + 1)
         m = rec_n[k]
         if m == 0:
             continue
         g = ids[k]
-        u = xy[g, 0]
-        v = xy[g, 1]
-        ca = conic[g, 0]
-        cb = conic[g, 1]
-        cc = conic[g, 2]
-        o = opacities[g]
+        u = splats[g, S_U]
+        v = splats[g, S_V]
+        ca = splats[g, S_CA]
+        cb = splats[g, S_CB]
+        cc = splats[g, S_CC]
+        o = splats[g, S_OPAC]
         gu = 0.0
         gv = 0.0
         gca = 0.0
@@ -1173,9 +1311,9 @@ def _replay_tile_one(
         gc0 = 0.0
         gc1 = 0.0
         gc2 = 0.0
-        c0 = colors[g, 0]
-        c1 = colors[g, 1 % n_ch]
-        c2 = colors[g, 2 % n_ch]
+        c0 = splats[g, S_COLOR]
+        c1 = splats[g, S_COLOR + 1 % n_ch]
+        c2 = splats[g, S_COLOR + 2 % n_ch]
         r_cur = -1
         dy = 0.0
         s0 = 0.0
@@ -1217,8 +1355,8 @@ def _replay_tile_one(
             else:
                 for ch in range(n_ch):
                     gcol[ch] += w * gimg[p, ch]
-                    g_a += gimg[p, ch] * (colors[g, ch] * T_before - behind[p, ch] * inv)
-                    behind[p, ch] += colors[g, ch] * w
+                    g_a += gimg[p, ch] * (splats[g, S_COLOR + ch] * T_before - behind[p, ch] * inv)
+                    behind[p, ch] += splats[g, S_COLOR + ch] * w
             T[p] = T_before
             if clamped:
                 continue
@@ -1269,10 +1407,10 @@ def backward_slots(tile_start, last, width, height, tiles_x):
 def raster_backward(
     tile_start,
     ids,
-    xy,
-    conic,
-    opacities,
-    colors,
+    splats,
+    order,
+    n,
+    n_ch,
     background,
     t_final,
     last,
@@ -1310,8 +1448,6 @@ def raster_backward(
     it between calls because a fresh array of that size (tens of MB at 802x550) is page-faulted
     in on every call.
     """
-    n = xy.shape[0]
-    n_ch = colors.shape[1]
     n_tiles = tile_start.shape[0] - 1
     n_img = t_final.shape[0]
     width_g = G_COLOR + n_ch + 2
@@ -1332,10 +1468,8 @@ def raster_backward(
                 t,
                 tile_start,
                 ids,
-                xy,
-                conic,
-                opacities,
-                colors,
+                splats,
+                n_ch,
                 background,
                 t_final[0],
                 last[0],
@@ -1363,10 +1497,8 @@ def raster_backward(
             t,
             tile_start,
             ids,
-            xy,
-            conic,
-            opacities,
-            colors,
+            splats,
+            n_ch,
             background,
             t_final,
             last,
@@ -1390,17 +1522,31 @@ def raster_backward(
             rec_start,
             rec_n,
         )
+    # Summed per splat row, then moved to Gaussian order. A row's pairs add up in tile order
+    # (deterministic); the rows are split into GATHER_PARTS ranges summed in parallel, each part
+    # scanning every pair for its own rows.
+    m = splats.shape[0]
+    sums = np.zeros((m, width_g))
+    for part in prange(GATHER_PARTS):
+        lo = m * part // GATHER_PARTS
+        hi = m * (part + 1) // GATHER_PARTS
+        for t in range(n_tiles):
+            s0 = slot_start[t] - tile_start[t]
+            for k in range(tile_start[t], tile_start[t] + slot_start[t + 1] - slot_start[t]):
+                g = ids[k]
+                if g < lo or g >= hi:
+                    continue
+                for q in range(G_COLOR):
+                    sums[g, q] += geo_isect[s0 + k, q]
+                for ch in range(n_ch):
+                    sums[g, G_COLOR + ch] += col_isect[s0 + k, ch]
+                sums[g, G_COLOR + n_ch] += geo_isect[s0 + k, _GEO_U_LAST]
+                sums[g, G_COLOR + n_ch + 1] += geo_isect[s0 + k, _GEO_U_LAST + 1]
     grads = np.zeros((n, width_g))
-    for t in range(n_tiles):  # pair order, as before: a Gaussian's tiles add up in tile order
-        s0 = slot_start[t] - tile_start[t]
-        for k in range(tile_start[t], tile_start[t] + slot_start[t + 1] - slot_start[t]):
-            g = ids[k]
-            for q in range(G_COLOR):
-                grads[g, q] += geo_isect[s0 + k, q]
-            for ch in range(n_ch):
-                grads[g, G_COLOR + ch] += col_isect[s0 + k, ch]
-            grads[g, G_COLOR + n_ch] += geo_isect[s0 + k, _GEO_U_LAST]
-            grads[g, G_COLOR + n_ch + 1] += geo_isect[s0 + k, _GEO_U_LAST + 1]
+    for blk in prange((m + BLOCK - 1) // BLOCK):
+        for r in range(blk * BLOCK, min(m, (blk + 1) * BLOCK)):
+            for q in range(width_g):
+                grads[order[r], q] = sums[r, q]
     gbg = np.zeros(n_ch)
     for t in range(n_tiles):
         for ch in range(n_ch):

@@ -227,11 +227,15 @@ def _cpu_forward(
     if means2d_offset is not None:
         xy += means2d_offset
     order = rk.depth_order(depth, (radii != 0) & (glevel <= upto.max()))
-    tiles_x, tiles_y = _tiles(camera)
-    tile_start, ids = rk.bin_tiles(rect, order, tiles_x, tiles_y)
     if with_depth:
         colors = np.concatenate([colors, depth[:, None]], axis=1)
         background = np.concatenate([background, [0.0]])
+    n_ch = colors.shape[1]
+    tiles_x, tiles_y = _tiles(camera)
+    row_of, gaussian = rk.splat_rows(order, rect, tiles_x, tiles_y)
+    splats = rk.aligned_splats(len(order), n_ch)
+    rk.pack_splats(gaussian, xy, conic, opacities, cut, colors, rect, glevel, splats)
+    tile_start, ids = rk.bin_tiles(splats, row_of, tiles_x, tiles_y)
     n_chunks = numba.get_num_threads()
     while True:
         bufs = (
@@ -242,17 +246,14 @@ def _cpu_forward(
         image, t_final, last, contrib, (rec_start, rec_n, used) = rk.raster_forward(
             tile_start,
             ids,
-            xy,
-            conic,
-            opacities,
-            cut,
-            colors,
-            rect,
+            splats,
+            gaussian,
+            len(means),
+            n_ch,
             background,
             W,
             H,
             tiles_x,
-            glevel,
             upto,
             n_chunks,
             *bufs,
@@ -261,19 +262,16 @@ def _cpu_forward(
         if not record or _record_buffers.learn(used, len(bufs[0]), W * H, len(upto)):
             break
     state = dict(
-        xy=xy,
-        conic=conic,
-        cut=cut,
-        rect=rect,
+        splats=splats,
+        gaussian=gaussian,
         radii=radii,
         tile_start=tile_start,
         ids=ids,
         t_final=t_final,
         last=last,
-        colors=colors,
+        n_ch=n_ch,
         background=background,
         lim=lim,
-        glevel=glevel,
         upto=upto,
         rec=(*bufs, rec_start, rec_n) if record else None,
     )
@@ -286,14 +284,14 @@ def _cpu_backward(state, means, quats, scales, opacities, camera, eps2d, grad_im
     if state["rec"] is None:
         raise RuntimeError("rasteriser backward: the forward kept no record (a second backward through one render?)")
     slot_start = rk.backward_slots(state["tile_start"], state["last"], camera.width, camera.height, tiles_x)
-    scratch = _scratch.take(rk.scratch_entries(slot_start, state["colors"].shape[1]))
+    scratch = _scratch.take(rk.scratch_entries(slot_start, state["n_ch"]))
     grads, g_bg = rk.raster_backward(
         state["tile_start"],
         state["ids"],
-        state["xy"],
-        state["conic"],
-        opacities,
-        state["colors"],
+        state["splats"],
+        state["gaussian"],
+        len(means),
+        state["n_ch"],
         state["background"],
         state["t_final"],
         state["last"],
@@ -375,7 +373,7 @@ class _RasterizeCPU(torch.autograd.Function):
     def backward(ctx, grad_image, grad_alpha, _grad_contrib, _grad_radii):
         means, quats, scales, opacities, _, _ = ctx.arrays
         H, W = ctx.camera.height, ctx.camera.width
-        n_out = ctx.state["colors"].shape[1]
+        n_out = ctx.state["n_ch"]
         n_img = len(ctx.state["upto"])
         # The incoming gradients keep their dtype (the kernel reads float32 into float64 sums): a
         # float64 copy of every level's image gradient (~75 MB at 550x802, 7 levels) cost more
