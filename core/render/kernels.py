@@ -165,7 +165,10 @@ def _prefetch_splat(splats, ids, k, end):
         _prefetch(splats, (s, 8))
 
 
-@njit(cache=True)
+# The per-Gaussian helpers of the projection kernels take arrays, and LLVM leaves such calls in
+# place; numba's own inlining lets their 3x3 scratch live in registers (projection forward and
+# backward about twice as fast, bit for bit the same, in an A/B run on the bench head).
+@njit(cache=True, inline="always")
 def _camera_factor(q, s, Rc, R, Mc):
     """Fill R = R(q/|q|) and Mc = Rc R diag(s) (so the camera-space covariance is Mc Mc^T).
 
@@ -202,7 +205,7 @@ def _jacobian(x, y, z, fx, fy, lim):
     return fx * rz, -fx * kx * rz, fy * rz, -fy * ky * rz, kx, ky, kx == rx, ky == ry
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _project_one(
     g,
     means,
@@ -1554,7 +1557,7 @@ def raster_backward(
     return grads, gbg
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _project_backward_one(
     g,
     means,
