@@ -49,6 +49,9 @@ import numpy as np  # noqa: E402
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 OLD_COMMIT = "f6907ae"
 OLD_DIR = os.path.join(ROOT, "runs", "bench_old_f6907ae")
+# The old column of the trained rows, which f6907ae cannot read: the tree before the latest
+# speed work (update it when re-measuring after the next).
+PREV_COMMIT = "56df5fa"
 
 
 def old_package():
@@ -64,15 +67,31 @@ def old_package():
     return importlib.import_module("pa_old.core.train"), importlib.import_module("pa_old.core.render")
 
 
+def prev_trainer(commit=PREV_COMMIT):
+    """core/train/trainer.py of ``commit``'s core/, extracted as package `pa_<commit>` (its
+    imports are relative, so it runs on its own kernels)."""
+    name = f"pa_{commit}"
+    folder = os.path.join(ROOT, "runs", f"bench_prev_{commit}")
+    if not os.path.exists(os.path.join(folder, name, "core", "train", "trainer.py")):
+        os.makedirs(os.path.join(folder, name), exist_ok=True)
+        tar = subprocess.run(["git", "-C", ROOT, "archive", commit, "core"], check=True, capture_output=True).stdout
+        subprocess.run(["tar", "-x", "-C", os.path.join(folder, name)], input=tar, check=True)
+        open(os.path.join(folder, name, "__init__.py"), "w").close()
+    if folder not in sys.path:
+        sys.path.insert(0, folder)
+    return importlib.import_module(f"{name}.core.train.trainer")
+
+
 # Where each module lives in this tree's tier folders; the old tree (f6907ae) is flat.
 _NEW_PLACES = {"camera": "geometry.camera", "data": "io.dataset", "losses": "train.losses"}
 
 
 def _in(train_mod, name):
-    """Module `name` of the package train_mod belongs to (old and new each have their own)."""
+    """Module `name` of the package train_mod belongs to (old, previous and new each have their own)."""
     if train_mod.__name__.startswith("pa_old."):
         return importlib.import_module(train_mod.__name__.rsplit(".", 1)[0] + "." + name)
-    return importlib.import_module("progressive_avatars.core." + _NEW_PLACES[name])
+    package = train_mod.__name__.split(".core.")[0]  # progressive_avatars, or pa_<commit>
+    return importlib.import_module(f"{package}.core.{_NEW_PLACES[name]}")
 
 
 def _camera_as(cam, train_mod):
@@ -202,15 +221,16 @@ def trained_run() -> str | None:
 
 
 @contextlib.contextmanager
-def resumed_trainer(run, **overrides):
-    """The working tree's Trainer resumed from a trained run's checkpoint and config (with
-    ``overrides`` of its TrainConfig), in a scratch folder so that the run itself is never
-    written to."""
+def resumed_trainer(run, train_mod=None, **overrides):
+    """The working tree's Trainer (or that of ``train_mod``, a trainer module) resumed from a
+    trained run's checkpoint and config (with ``overrides`` of its TrainConfig), in a scratch
+    folder so that the run itself is never written to."""
     import json
     import shutil
 
     from progressive_avatars.core.train import trainer as new_train
 
+    new_train = train_mod or new_train
     cfg = json.load(open(os.path.join(run, "config.json")))
     fields = {f.name for f in dataclasses.fields(new_train.TrainConfig)}
     config = new_train.TrainConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in cfg.items() if k in fields})
@@ -221,23 +241,31 @@ def resumed_trainer(run, **overrides):
 
 
 def bench_trained(run, supervision, reps):
-    """`Trainer.step()` of the working tree on a trained paper-scale avatar: the run's checkpoint
-    (its last iteration: growth over, every Gaussian trained), its dataset's views preloaded as
-    for the other rows. The old code cannot read the checkpoint: new only."""
+    """`Trainer.step()` on a trained paper-scale avatar: the run's checkpoint (its last
+    iteration: growth over, every Gaussian trained), its dataset's views preloaded as for the
+    other rows. f6907ae cannot read the checkpoint: the old column is PREV_COMMIT's trainer,
+    resumed from the same checkpoint and stepped alternately with the working tree's."""
     from progressive_avatars.core.train import trainer as new_train
 
-    with resumed_trainer(run, supervision=supervision) as tr:
-        tr.train = _Views(tr.data_dir, new_train, tr.train[0].camera.height)
+    prev = prev_trainer()
+    with resumed_trainer(run, supervision=supervision) as tr, resumed_trainer(run, prev, supervision=supervision) as tp:
+        height = tr.train[0].camera.height
+        tr.train, tp.train = _Views(tr.data_dir, new_train, height), _Views(tp.data_dir, prev, height)
         start = tr.iteration
-        tr.step()  # warm-up
-        t_new, c_new = [], []
+        tp.step()  # warm-up
+        tr.step()
+        times = {"old": ([], []), "new": ([], [])}
         for _ in range(reps):
-            t0, c0 = time.perf_counter(), time.process_time()
-            tr.step()
-            t_new.append(time.perf_counter() - t0)
-            c_new.append(time.process_time() - c0)
-        label = f"paper scale, trained ({supervision}; `{os.path.relpath(run, ROOT)}`, iteration {start})"
-        return _row(label, tr, supervision, t_new, c_new)
+            for name, trainer in (("old", tp), ("new", tr)):
+                t0, c0 = time.perf_counter(), time.process_time()
+                trainer.step()
+                times[name][0].append(time.perf_counter() - t0)
+                times[name][1].append(time.process_time() - c0)
+        label = (
+            f"paper scale, trained ({supervision}; `{os.path.relpath(run, ROOT)}`, iteration {start}; "
+            f"old = {PREV_COMMIT})"
+        )
+        return _row(label, tr, supervision, *times["new"], *times["old"])
 
 
 def bench_raster(reps):
@@ -385,7 +413,7 @@ def run(quick: bool = False, data: str | None = None) -> str:
     if run_dir is not None:
         for sup in ("sampled", "all"):
             rows.append(bench_trained(run_dir, sup, 3 * reps))  # each step draws its view and level: more reps
-            print(rows[-1]["label"], _fmt(rows[-1]["new"]), file=sys.stderr)
+            print(rows[-1]["label"], _fmt(rows[-1]["old"]), _fmt(rows[-1]["new"]), file=sys.stderr)
     raster = bench_raster(reps)
     ref = raster_reference_errors()
     ss = bench_ssim(reps)
@@ -405,7 +433,8 @@ def run(quick: bool = False, data: str | None = None) -> str:
         "trained one: its Gaussians are larger and overlap more than trained ones, so rendering costs more; the "
         "*trained* rows step the working tree from a finished paper-scale run's checkpoint instead (its "
         "coarse levels included, the preset's supervision and every level), on 8 of its own training views "
-        "preloaded",
+        f"preloaded; f6907ae cannot read that checkpoint, so their old column is {PREV_COMMIT} (the tree "
+        "before the latest speed work) resumed from the same checkpoint and stepped alternately with the new",
         "- accuracy: loss and whole-gradient relative difference between old and new on the first step from "
         "an identical state (new binds in float64, old's forest weights were float32)",
         "",
@@ -422,10 +451,11 @@ def run(quick: bool = False, data: str | None = None) -> str:
             continue
         speed = np.median(r["old"]) / np.median(r["new"])
         co, cn = min(r["cpu_old"]), min(r["cpu_new"])
+        errs = [f"{e:.1e}" if e is not None else "-" for e in (r["loss_err"], r["grad_err"])]
         lines.append(
             f"| {r['label']} | {r['width']}x{r['height']} | {r['faces']:,} | {r['levels']} "
             f"| {_fmt(r['old'])} | {_fmt(r['new'])} | x{speed:.2f} | {co * 1e3:.0f} / {cn * 1e3:.0f} "
-            f"| x{co / cn:.2f} | {r['loss_err']:.1e} | {r['grad_err']:.1e} |"
+            f"| x{co / cn:.2f} | {errs[0]} | {errs[1]} |"
         )
     speed = np.median(raster["old"]) / np.median(raster["new"])
     lines += [
