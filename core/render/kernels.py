@@ -456,6 +456,18 @@ def aligned_splats(m: int, n_ch: int) -> np.ndarray:
     return buf[skip : skip + m * width].reshape(m, width)
 
 
+@njit(cache=True)
+def _splat_tiles(splats, row_of, q, end):
+    """Row k of depth rank q and the tiles its box covers (tx0, tx1, ty0, ty1, inclusive);
+    asks for the row PREFETCH_PACK ranks on while it is below ``end``."""
+    if q + PREFETCH_PACK < end:
+        _prefetch(splats, (row_of[q + PREFETCH_PACK], S_X0))
+    k = row_of[q]
+    tx0 = int(splats[k, S_X0]) // TILE
+    tx1 = int(splats[k, S_X1]) // TILE
+    return k, tx0, tx1, int(splats[k, S_Y0]) // TILE, int(splats[k, S_Y1]) // TILE
+
+
 @njit(parallel=_PARALLEL, cache=True)
 def bin_tiles(splats, row_of, tiles_x, tiles_y):
     """Counting sort of (tile, splat) pairs into per-tile lists.
@@ -472,11 +484,9 @@ def bin_tiles(splats, row_of, tiles_x, tiles_y):
     for ch in prange(n_chunks):
         end = m * (ch + 1) // n_chunks
         for q in range(m * ch // n_chunks, end):
-            if q + PREFETCH_PACK < end:
-                _prefetch(splats, (row_of[q + PREFETCH_PACK], S_X0))
-            k = row_of[q]
-            for ty in range(int(splats[k, S_Y0]) // TILE, int(splats[k, S_Y1]) // TILE + 1):
-                for tx in range(int(splats[k, S_X0]) // TILE, int(splats[k, S_X1]) // TILE + 1):
+            _, tx0, tx1, ty0, ty1 = _splat_tiles(splats, row_of, q, end)
+            for ty in range(ty0, ty1 + 1):
+                for tx in range(tx0, tx1 + 1):
                     counts[ch, ty * tiles_x + tx] += 1
     tile_start = np.empty(n_tiles + 1, np.int64)
     cursor = np.empty((n_chunks, n_tiles), np.int64)
@@ -491,11 +501,9 @@ def bin_tiles(splats, row_of, tiles_x, tiles_y):
     for ch in prange(n_chunks):
         end = m * (ch + 1) // n_chunks
         for q in range(m * ch // n_chunks, end):
-            if q + PREFETCH_PACK < end:
-                _prefetch(splats, (row_of[q + PREFETCH_PACK], S_X0))
-            k = row_of[q]
-            for ty in range(int(splats[k, S_Y0]) // TILE, int(splats[k, S_Y1]) // TILE + 1):
-                for tx in range(int(splats[k, S_X0]) // TILE, int(splats[k, S_X1]) // TILE + 1):
+            k, tx0, tx1, ty0, ty1 = _splat_tiles(splats, row_of, q, end)
+            for ty in range(ty0, ty1 + 1):
+                for tx in range(tx0, tx1 + 1):
                     t = ty * tiles_x + tx
                     ids[cursor[ch, t]] = k
                     cursor[ch, t] += 1
@@ -570,6 +578,19 @@ def _splat(s, splats, x0, x1, y0, y1):
         1.0 / ca,
         splats[s, S_DCONIC],
         splats[s, S_ECUT],
+    )
+
+
+@njit(cache=True)
+def _splat_shape(splats, s):
+    """Centre (u, v), conic (ca, cb, cc) and opacity of splat row s."""
+    return (
+        splats[s, S_U],
+        splats[s, S_V],
+        splats[s, S_CA],
+        splats[s, S_CB],
+        splats[s, S_CC],
+        splats[s, S_OPAC],
     )
 
 
@@ -1140,12 +1161,7 @@ def _replay_tile(
         if m == 0:
             continue
         g = ids[k]
-        u = splats[g, S_U]
-        v = splats[g, S_V]
-        ca = splats[g, S_CA]
-        cb = splats[g, S_CB]
-        cc = splats[g, S_CC]
-        o = splats[g, S_OPAC]
+        u, v, ca, cb, cc, o = _splat_shape(splats, g)
         gu = 0.0
         gv = 0.0
         gca = 0.0
@@ -1297,12 +1313,7 @@ def _replay_tile_one(
         if m == 0:
             continue
         g = ids[k]
-        u = splats[g, S_U]
-        v = splats[g, S_V]
-        ca = splats[g, S_CA]
-        cb = splats[g, S_CB]
-        cc = splats[g, S_CC]
-        o = splats[g, S_OPAC]
+        u, v, ca, cb, cc, o = _splat_shape(splats, g)
         gu = 0.0
         gv = 0.0
         gca = 0.0
