@@ -516,6 +516,8 @@ def kernels_section(results, command) -> str:
         f"random; {r['reps']} reps after a warm-up; tile-Gaussian pairs old {r['pairs']['old']:,}, new "
         f"{r['pairs']['new']:,}",
         "- old = core/render/kernels.py at that commit (`git show`), imported as its own module in the same process",
+        "- pack_splats: splat_rows and pack_splats, the packed per-Gaussian rows the tile kernels read since c0bb2c0; "
+        "kernels before that have no such stage (0 ms) and read the per-Gaussian arrays of project_forward",
     ]
     for r in results:
 
