@@ -87,10 +87,10 @@ GATHER_PARTS = 4  # ranges of splat rows whose per-pair sums are gathered in par
 # Slack on the pixel box so that rounding can never drop a pixel at the exact boundary.
 _BOX_SLACK = 1.0 + 1e-6
 
-# Row of the packed splat array (pack_splats): what the tile kernels read of one visible Gaussian,
-# (rows grouped by screen tile, see splat_rows). The first 64-byte line holds what a chord walk needs, the second the pixel box,
-# level and colours, so that a (tile, Gaussian) pair touches two adjacent cache lines instead of
-# one line in each of seven per-Gaussian arrays.
+# Columns of the packed splat rows (pack_splats; rows grouped by screen tile, see splat_rows):
+# what the tile kernels read of one visible Gaussian. The first 64-byte line holds what a chord
+# walk needs, the second the pixel box, level and colours, so that a (tile, Gaussian) pair
+# touches two adjacent cache lines instead of one line in each of seven per-Gaussian arrays.
 S_U, S_V, S_CA, S_CB, S_CC, S_OPAC, S_DCONIC, S_ECUT = 0, 1, 2, 3, 4, 5, 6, 7
 S_X0, S_X1, S_Y0, S_Y1, S_LEVEL, S_COLOR = 8, 9, 10, 11, 12, 13
 
