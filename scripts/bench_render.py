@@ -318,7 +318,7 @@ def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.
     else:
         upto = np.arange(int(glevel.max()) + 1, dtype=np.int64)
     tiles_x = -(-W // rk.TILE)
-    packed = hasattr(rk, "pack_splats")  # kernels that read the depth-ordered splat rows
+    packed = hasattr(rk, "pack_splats")  # kernels that read packed splat rows (since c0bb2c0)
     if packed:
         n_ch = colors.shape[1]
         row_of, gaussian = rk.splat_rows(order, rect, tiles_x, -(-H // rk.TILE))

@@ -54,16 +54,22 @@ OLD_DIR = os.path.join(ROOT, "runs", "bench_old_f6907ae")
 PREV_COMMIT = "56df5fa"
 
 
-def old_package():
-    """The f6907ae core/ as package `pa_old` (extracted once; numba caches its kernels there)."""
-    pkg = os.path.join(OLD_DIR, "pa_old")
-    if not os.path.exists(os.path.join(pkg, "core", "render.py")):
+def _extract_core(commit, folder, name, marker):
+    """``commit``'s core/ as package ``name`` under ``folder`` (extracted once, when ``marker``, a
+    path inside core/, is missing; numba caches its kernels there), importable from then on."""
+    pkg = os.path.join(folder, name)
+    if not os.path.exists(os.path.join(pkg, "core", marker)):
         os.makedirs(pkg, exist_ok=True)
-        tar = subprocess.run(["git", "-C", ROOT, "archive", OLD_COMMIT, "core"], check=True, capture_output=True).stdout
+        tar = subprocess.run(["git", "-C", ROOT, "archive", commit, "core"], check=True, capture_output=True).stdout
         subprocess.run(["tar", "-x", "-C", pkg], input=tar, check=True)
         open(os.path.join(pkg, "__init__.py"), "w").close()
-    if OLD_DIR not in sys.path:
-        sys.path.insert(0, OLD_DIR)
+    if folder not in sys.path:
+        sys.path.insert(0, folder)
+
+
+def old_package():
+    """The f6907ae core/ as package `pa_old`."""
+    _extract_core(OLD_COMMIT, OLD_DIR, "pa_old", "render.py")
     return importlib.import_module("pa_old.core.train"), importlib.import_module("pa_old.core.render")
 
 
@@ -71,14 +77,7 @@ def prev_trainer(commit=PREV_COMMIT):
     """core/train/trainer.py of ``commit``'s core/, extracted as package `pa_<commit>` (its
     imports are relative, so it runs on its own kernels)."""
     name = f"pa_{commit}"
-    folder = os.path.join(ROOT, "runs", f"bench_prev_{commit}")
-    if not os.path.exists(os.path.join(folder, name, "core", "train", "trainer.py")):
-        os.makedirs(os.path.join(folder, name), exist_ok=True)
-        tar = subprocess.run(["git", "-C", ROOT, "archive", commit, "core"], check=True, capture_output=True).stdout
-        subprocess.run(["tar", "-x", "-C", os.path.join(folder, name)], input=tar, check=True)
-        open(os.path.join(folder, name, "__init__.py"), "w").close()
-    if folder not in sys.path:
-        sys.path.insert(0, folder)
+    _extract_core(commit, os.path.join(ROOT, "runs", f"bench_prev_{commit}"), name, os.path.join("train", "trainer.py"))
     return importlib.import_module(f"{name}.core.train.trainer")
 
 
@@ -443,12 +442,6 @@ def run(quick: bool = False, data: str | None = None) -> str:
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        if r["old"] is None:  # a trained avatar's checkpoint: the old code cannot load it
-            lines.append(
-                f"| {r['label']} | {r['width']}x{r['height']} | {r['faces']:,} | {r['levels']} | - "
-                f"| {_fmt(r['new'])} | - | - / {min(r['cpu_new']) * 1e3:.0f} | - | - | - |"
-            )
-            continue
         speed = np.median(r["old"]) / np.median(r["new"])
         co, cn = min(r["cpu_old"]), min(r["cpu_new"])
         errs = [f"{e:.1e}" if e is not None else "-" for e in (r["loss_err"], r["grad_err"])]

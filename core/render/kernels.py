@@ -156,10 +156,10 @@ def _prefetch(typingctx, arr, index):
 
 
 @njit(cache=True)
-def _prefetch_splat(splats, ids, k, end):
+def _prefetch_splat(splats, ids, k, first, end):
     """Prefetch the first two lines of the splat row of pair k (all of it with up to three
-    colours), when k lies in [0, end)."""
-    if 0 <= k < end:
+    colours), when k lies in the tile's pairs [first, end)."""
+    if first <= k < end:
         s = np.int64(ids[k])
         _prefetch(splats, (s, 0))
         _prefetch(splats, (s, 8))
@@ -691,7 +691,7 @@ def _forward_tile(
     n_live = n_img  # images with a pixel still compositing
     k_end = tile_start[t + 1]
     for k in range(tile_start[t], k_end):
-        _prefetch_splat(splats, ids, k + PREFETCH, k_end)
+        _prefetch_splat(splats, ids, k + PREFETCH, k, k_end)
         g = ids[k]
         gl = splats[g, S_LEVEL]
         im0 = 0
@@ -850,7 +850,7 @@ def _forward_tile_one(
     n_done = 0
     k_end = tile_start[t + 1]
     for k in range(tile_start[t], k_end):
-        _prefetch_splat(splats, ids, k + PREFETCH, k_end)
+        _prefetch_splat(splats, ids, k + PREFETCH, k, k_end)
         g = ids[k]
         if splats[g, S_LEVEL] > upto:
             continue
@@ -1155,8 +1155,7 @@ def _replay_tile(
                     gbg[ch] += grad_image[im, j, i, ch] * tn
     k_first = tile_start[t]
     for k in range(k_max, k_first - 1, -1):
-        if k - PREFETCH >= k_first:
-            _prefetch_splat(splats, ids, k - PREFETCH, k_max + 1)
+        _prefetch_splat(splats, ids, k - PREFETCH, k_first, k_max + 1)
         m = rec_n[k]
         if m == 0:
             continue
@@ -1307,8 +1306,7 @@ def _replay_tile_one(
                 gbg[ch] += grad_image[j, i, ch] * tn
     k_first = tile_start[t]
     for k in range(k_max, k_first - 1, -1):
-        if k - PREFETCH >= k_first:
-            _prefetch_splat(splats, ids, k - PREFETCH, k_max + 1)
+        _prefetch_splat(splats, ids, k - PREFETCH, k_first, k_max + 1)
         m = rec_n[k]
         if m == 0:
             continue
