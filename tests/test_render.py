@@ -10,7 +10,7 @@ import torch
 from progressive_avatars.core.render.reference import render_reference  # noqa: E402
 
 from progressive_avatars.core.geometry.camera import Camera  # noqa: E402
-from progressive_avatars.core.render.rasterize import RenderOutput, render, render_numpy  # noqa: E402
+from progressive_avatars.core.render.rasterize import RenderOutput, render, render_levels, render_numpy  # noqa: E402
 
 W, H = 40, 36  # not multiples of 16: partial tiles on both axes
 
@@ -98,6 +98,25 @@ def test_forward_matches_reference(dtype):
     assert radii[n] == 0 and radii[n + 1] == 0 and radii[n + 8] == 0  # behind, before near, outside
     assert radii[n + 2] > 20 and radii[n + 6] > 20  # near-plane and huge Gaussians cover the image
     assert (radii[:n] > 0).sum() > n // 2
+
+
+def test_float32_render_is_the_float64_render_rounded_once():
+    """The kernels composite in float64 whatever the input and write a float32 render's image
+    directly in float32: the same values as a float64 render of the same inputs, rounded once
+    (every level of a render_levels pass, and render_numpy, too)."""
+    cam, params = make_scene(2, dtype=torch.float32)
+    out32 = render(*params[:5], cam, params[5])
+    out64 = render(*[p.double() for p in params[:5]], cam, params[5].double())
+    assert out32.image.dtype == torch.float32 and out32.alpha.dtype == torch.float32
+    assert torch.equal(out32.image, out64.image.float()) and torch.equal(out32.alpha, out64.alpha.float())
+    level = np.arange(len(params[0])) % 3
+    lv32 = render_levels(*params[:5], cam, params[5], level=level, upto=[0, 2])
+    lv64 = render_levels(*[p.double() for p in params[:5]], cam, params[5].double(), level=level, upto=[0, 2])
+    for a, b in zip(lv32, lv64):
+        assert torch.equal(a.image, b.image.float()) and torch.equal(a.alpha, b.alpha.float())
+    img, alpha, _ = render_numpy(*[p.numpy() for p in params[:5]], cam, params[5].numpy())
+    assert img.dtype == np.float32 and np.array_equal(img, out32.image.numpy())
+    assert alpha.dtype == np.float32 and np.array_equal(alpha, out32.alpha.numpy())
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -348,7 +367,6 @@ def test_render_levels_equal_separate_renders_and_reference(opaque):
     (to float64 rounding: one pass starts a row's exp recurrence where any image still
     composites), gradients are the sum of the separate renders' gradients and match the
     dense reference, and means2d.grad is the last image's own screen-space gradient."""
-    from progressive_avatars.core.render.rasterize import render_levels
 
     cam, params = make_scene(5, n=300 if opaque else 80)
     rng = np.random.default_rng(5)

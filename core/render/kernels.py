@@ -59,7 +59,7 @@ from llvmlite import ir
 from numba import njit, prange, types
 from numba.core import cgutils
 from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
-from numba.extending import intrinsic
+from numba.extending import intrinsic, overload
 
 TILE = 16
 BLOCK = 1024  # Gaussians per parallel work item in the projection kernels
@@ -954,6 +954,17 @@ def _spread_tiles(n_tiles, tiles_x):
     return order
 
 
+def _image_out(image, n_img, height, width, n_ch):
+    """raster_forward's images: the caller's array (float32 or float64) or a new float64 one."""
+
+
+@overload(_image_out)
+def _image_out_impl(image, n_img, height, width, n_ch):
+    if isinstance(image, (types.NoneType, types.Omitted)):
+        return lambda image, n_img, height, width, n_ch: np.empty((n_img, height, width, n_ch))
+    return lambda image, n_img, height, width, n_ch: image
+
+
 @njit(parallel=_PARALLEL, cache=True)
 def raster_forward(
     tile_start,
@@ -972,6 +983,7 @@ def raster_forward(
     rec_pix,
     rec_img,
     pix_weight=None,
+    image=None,
 ):
     """Front-to-back compositing, parallel over tiles, of one image per entry of ``upto``:
     image l composites the Gaussians g with glevel[g] <= upto[l] (levels of a forest share
@@ -979,7 +991,8 @@ def raster_forward(
     come as pack_splats' rows (``splats``, glevel and n_ch colours included; row k is Gaussian
     order[k] of n) and bin_tiles' lists of rows.
 
-    Returns images [L,H,W,C] (background included), final transmittance [L,H,W], the flat
+    Returns images [L,H,W,C] (background included; written into ``image`` when given, float32
+    or float64, else a new float64 array), final transmittance [L,H,W], the flat
     index (into ``ids``) of the last Gaussian composited at each pixel (-1: none) [L,H,W],
     the per-Gaussian contribution sum_pixels alpha*T of the last image (each pixel weighted by
     ``pix_weight`` [H, W] when given), and the record.
@@ -1001,7 +1014,9 @@ def raster_forward(
     n_img = upto.shape[0]
     if n_img > MAX_IMAGES:
         raise ValueError("raster_forward: more than MAX_IMAGES images in one pass")
-    image = np.empty((n_img, height, width, n_ch))
+    # Written in ``image``'s precision where the caller gives one [L, H, W, C] (float32 for a
+    # float32 render: no float64 copy to convert afterwards); compositing stays float64.
+    images = _image_out(image, n_img, height, width, n_ch)
     t_final = np.empty((n_img, height, width))
     last = np.empty((n_img, height, width), np.int64)
     contrib_isect = np.zeros(ids.shape[0])  # pairs after a tile's early exit stay 0
@@ -1043,7 +1058,7 @@ def raster_forward(
                     lst1,
                     active1,
                     contrib_isect,
-                    image[0],
+                    images[0],
                     t_final[0],
                     last[0],
                     upto[0],
@@ -1074,7 +1089,7 @@ def raster_forward(
                     n_done,
                     pmask,
                     contrib_isect,
-                    image,
+                    images,
                     t_final,
                     last,
                     upto,
@@ -1099,7 +1114,7 @@ def raster_forward(
             s = ids[k]
             if lo <= s < hi:
                 contrib[order[s]] += contrib_isect[k]
-    return image, t_final, last, contrib, (rec_start, rec_n, used)
+    return images, t_final, last, contrib, (rec_start, rec_n, used)
 
 
 @njit(cache=True)

@@ -112,6 +112,9 @@ def _validate(means, quats, scales, opacities, colors, background, camera, near,
 # ----------------------------------------------------------------------------- CPU pipeline
 
 
+_NUMPY_FLOAT = {torch.float32: np.float32, torch.float64: np.float64}
+
+
 def _f64(x) -> np.ndarray:
     if isinstance(x, torch.Tensor):
         x = x.detach().cpu().numpy()
@@ -210,10 +213,11 @@ def _cpu_forward(
     upto=None,
     record=False,
     pixel_weight=None,
+    dtype=np.float64,
 ):
     """Numpy float64 forward of one image per entry of ``upto`` (image l: Gaussians with
-    glevel <= upto[l]; default one image of all); returns images [L,H,W,C], final
-    transmittances [L,H,W], the last image's contrib, radii and the state the backward needs
+    glevel <= upto[l]; default one image of all); returns images [L,H,W,C] and alphas [L,H,W]
+    in ``dtype``, the last image's contrib, radii and the state the backward needs
     (``record``: with the composited pairs, so that the backward replays them). The contrib
     weighs each pixel by ``pixel_weight`` [H, W] when given."""
     if glevel is None:
@@ -237,6 +241,7 @@ def _cpu_forward(
     rk.pack_splats(gaussian, xy, conic, opacities, cut, colors, rect, glevel, splats)
     tile_start, ids = rk.bin_tiles(splats, row_of, tiles_x, tiles_y)
     n_chunks = numba.get_num_threads()
+    image = np.empty((len(upto), H, W, n_ch), dtype)
     while True:
         bufs = (
             _record_buffers.take(W * H, len(upto), n_chunks)
@@ -258,6 +263,7 @@ def _cpu_forward(
             n_chunks,
             *bufs,
             *(() if pixel_weight is None else (pixel_weight,)),
+            image=image,
         )
         if not record or _record_buffers.learn(used, len(bufs[0]), W * H, len(upto)):
             break
@@ -275,7 +281,8 @@ def _cpu_forward(
         upto=upto,
         rec=(*bufs, rec_start, rec_n) if record else None,
     )
-    return image, t_final, contrib, radii, state
+    alpha = np.subtract(1.0, t_final, out=np.empty(t_final.shape, dtype), casting="same_kind")
+    return image, alpha, contrib, radii, state
 
 
 def _cpu_backward(state, means, quats, scales, opacities, camera, eps2d, grad_image, grad_alpha, with_depth):
@@ -347,7 +354,8 @@ class _RasterizeCPU(torch.autograd.Function):
         record,
     ):
         arrays = [_f64(x) for x in (means, quats, scales, opacities, colors, background)]
-        image, t_final, contrib, radii, state = _cpu_forward(
+        dtype, device = means.dtype, means.device
+        image, alpha, contrib, radii, state = _cpu_forward(
             *arrays,
             camera,
             near,
@@ -357,13 +365,13 @@ class _RasterizeCPU(torch.autograd.Function):
             glevel=glevel,
             upto=upto,
             record=record,
+            dtype=np.float32 if dtype == torch.float32 else np.float64,
         )
         ctx.camera, ctx.eps2d, ctx.with_depth = camera, eps2d, with_depth
         ctx.arrays, ctx.state = arrays, state
         ctx.kinds = [(x.dtype, x.device) for x in (means, quats, scales, opacities, colors, background, means2d)]
-        dtype, device = means.dtype, means.device
         out_image = torch.from_numpy(image).to(device=device, dtype=dtype)
-        out_alpha = torch.from_numpy(1.0 - t_final).to(device=device, dtype=dtype)
+        out_alpha = torch.from_numpy(alpha).to(device=device, dtype=dtype)
         out_contrib = torch.from_numpy(contrib).to(device=device, dtype=dtype)
         out_radii = torch.from_numpy(radii).to(device=device)
         ctx.mark_non_differentiable(out_contrib, out_radii)
@@ -388,6 +396,8 @@ class _RasterizeCPU(torch.autograd.Function):
             if not ctx.needs_input_grad[i]:
                 return None
             dtype, device = ctx.kinds[i]
+            if dtype in _NUMPY_FLOAT:  # converted while made contiguous: one copy, not two
+                x = np.ascontiguousarray(x, _NUMPY_FLOAT[dtype])
             return torch.from_numpy(np.ascontiguousarray(x)).to(device=device, dtype=dtype)
 
         return (
@@ -426,8 +436,10 @@ def render_numpy(
                 f"render_numpy: pixel_weight must be finite [{camera.height}, {camera.width}], "
                 f"got {list(pixel_weight.shape)}"
             )
-    image, t_final, contrib, _, _ = _cpu_forward(*arrays, bg, camera, near, eps2d, pixel_weight=pixel_weight)
-    return image[0].astype(np.float32), (1.0 - t_final[0]).astype(np.float32), contrib
+    image, alpha, contrib, _, _ = _cpu_forward(
+        *arrays, bg, camera, near, eps2d, pixel_weight=pixel_weight, dtype=np.float32
+    )
+    return image[0], alpha[0], contrib
 
 
 # ----------------------------------------------------------------------------- gsplat (CUDA)

@@ -544,6 +544,7 @@ class Trainer:
         for view in views:
             sample = self.train[view]
             target = torch.from_numpy(sample.image)
+            target_window = losses.TargetWindow(target)  # shared by the levels' losses
             g = self.model.gaussians(self._vertices(sample), sample.camera.center)
             _check_gaussians(it, g)
             loss = torch.zeros(())
@@ -579,7 +580,7 @@ class Trainer:
                 w = level_weight(c, lvl) * (c.coarse_weight if lvl < self.model.forest.num_coarse_levels else 1.0)
                 w *= c.prefix_cut_weight if cut else 1.0
                 if w:
-                    loss = loss + w * losses.photometric(out.image, target, c.lambda_ssim)
+                    loss = loss + w * losses.photometric(out.image, target, c.lambda_ssim, target_window)
                 finest = (ids, out)  # the last image is the finest level
             loss = (
                 loss
