@@ -368,9 +368,11 @@ def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.
 
             slot_start = rk.backward_slots(tile_start, last, W, H, tiles_x)
             slots = (slot_start, _scratch.take(rk.scratch_entries(slot_start, colors.shape[1])))
+        # Kernels since 2026-11-24 night take upto (Gaussians of the last image only replay apart).
+        levels_bwd = {"upto": upto} if "upto" in inspect.signature(rk.raster_backward.py_func).parameters else {}
         grads, _ = rk.raster_backward(
             tile_start, ids, *gaussians_bwd, bg, t_final, last,
-            grad_image, grad_alpha, W, H, tiles_x, *run_bufs, rec_start, rec_n, *slots,
+            grad_image, grad_alpha, W, H, tiles_x, *run_bufs, rec_start, rec_n, *slots, **levels_bwd,
         )  # fmt: skip
         pool.give(bufs)
     else:

@@ -404,6 +404,52 @@ def test_render_levels_equal_separate_renders_and_reference(opaque):
     assert rel_err(outs[-1].means2d.grad, one.means2d.grad) <= 1e-12
 
 
+def test_backward_of_the_last_images_gaussians_alone_equals_the_general_replay():
+    """raster_backward replays the Gaussians that only the last image shows on that image's state
+    alone when it knows ``upto``; without it every pair takes the general per-image replay. Both
+    give the same sums, bit for bit (a forest's finest level takes the first path in training)."""
+    from progressive_avatars.core.render import kernels as rk
+    from progressive_avatars.core.render import rasterize as rz
+
+    cam, params = make_scene(7, n=300)
+    level = np.random.default_rng(7).integers(0, 4, len(params[0]))
+    arrays = [p.double().numpy() for p in params]
+    upto = np.array([0, 2, 3])
+    _, _, _, _, st = rz._cpu_forward(*arrays, cam, 0.01, 0.3, glevel=level, upto=upto, record=True)
+    assert (level > upto[-2]).sum() > 30 and (level <= upto[-2]).sum() > 30  # both paths run
+    tiles_x, _ = rz._tiles(cam)
+    slot_start = rk.backward_slots(st["tile_start"], st["last"], cam.width, cam.height, tiles_x)
+    rng = np.random.default_rng(8)
+    g_img, g_alpha = rng.normal(size=(3, H, W, 3)), rng.normal(size=(3, H, W))
+    grads = []
+    for kw in ({"upto": upto}, {}):
+        scratch = np.empty(rk.scratch_entries(slot_start, 3))
+        grads.append(
+            rk.raster_backward(
+                st["tile_start"],
+                st["ids"],
+                st["splats"],
+                st["gaussian"],
+                len(level),
+                3,
+                st["background"],
+                st["t_final"],
+                st["last"],
+                g_img,
+                g_alpha,
+                cam.width,
+                cam.height,
+                tiles_x,
+                *st["rec"],
+                slot_start,
+                scratch,
+                **kw,
+            )  # fmt: skip
+        )
+    assert np.abs(grads[0][0]).max() > 0
+    assert np.array_equal(grads[0][0], grads[1][0]) and np.array_equal(grads[0][1], grads[1][1])
+
+
 def test_render_levels_refuses_more_images_than_the_record_holds():
     from progressive_avatars.core.render import kernels as rk
     from progressive_avatars.core.render.rasterize import render_levels

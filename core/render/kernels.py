@@ -46,8 +46,10 @@ chords and computes its alphas once per tile, then composites them into every im
 belongs to where the pixel still runs, and the record lists each pair once with the images
 that took it. With every level supervised this about halves the forward and cuts a third off
 the backward against walking and replaying each image on its own (docs/BENCHMARKS.md,
-"Rasteriser kernels, every level"). A single image keeps tile kernels of its own
-(_forward_tile_one, _replay_tile_one): the per-image bits and loops cost it a quarter more.
+"Rasteriser kernels, every level"). The Gaussians that only the last image shows (the finer
+levels, most of an avatar; with a single image every Gaussian) take a walk and a replay of
+their own inside the same tile kernels, on that image's state alone: the per-image bits and
+loops would cost them about a quarter more.
 """
 
 from __future__ import annotations
@@ -664,7 +666,8 @@ def _forward_tile(
     ``pmask``); its alpha at a pixel is computed once and composited into each of its images
     where that pixel still runs. The exp recurrence of a row starts at the first pixel still
     running in any of those images, so an image can differ from a render of its subset alone
-    by a few ulps (never more: the recurrence drifts by ulps over a tile row).
+    by a few ulps (never more: the recurrence drifts by ulps over a tile row). A Gaussian that
+    only the last image shows (every Gaussian of a single image) walks that image's state alone.
     ``contrib_isect`` (when not empty) gets each pair's sum of alpha*T in the last image, each
     pixel weighted by ``pix_weight`` [H, W] (when not empty).
 
@@ -689,6 +692,15 @@ def _forward_tile(
             active[im, r] = (1 << tw) - 1 if r < y1 - y0 else 0
         n_done[im] = 0
     n_live = n_img  # images with a pixel still compositing
+    # The last image's own state (contiguous rows of T, acc, lst, active) for the Gaussians that
+    # only it shows: most of an avatar (its finer levels), and every Gaussian of a single image.
+    # Those walk as for one image, without per-image loops and masks.
+    top = n_img - 1
+    top_bit = np.int64(1) << top
+    T_top = T[:, top]
+    acc_top = acc[:, top]
+    lst_top = lst[:, top]
+    active_top = active[top]
     k_end = tile_start[t + 1]
     for k in range(tile_start[t], k_end):
         _prefetch_splat(splats, ids, k + PREFETCH, k, k_end)
@@ -699,7 +711,6 @@ def _forward_tile(
             im0 += 1
         if im0 == n_img:
             continue
-        img_mask = all_img ^ ((np.int64(1) << im0) - 1)
         i0, i1, j0, j1, u, v, ca, cb, cc, half_u, inv_ca, d_conic, e_cut = _splat(g, splats, x0, x1, y0, y1)
         o = splats[g, S_OPAC]
         e_ca = -1.0  # exp(-ca), computed on the first row walked
@@ -708,6 +719,76 @@ def _forward_tile(
         c0 = splats[g, S_COLOR]
         c1 = splats[g, S_COLOR + 1 % n_ch]
         c2 = splats[g, S_COLOR + 2 % n_ch]
+        if im0 == top:
+            for j in range(j0, j1 + 1):
+                r = j - y0
+                if active_top[r] == 0:
+                    continue
+                dy = j + 0.5 - v
+                a, b = _row_span(dy, half_u, cb, inv_ca, d_conic, e_cut, i0, i1)
+                if a > b:
+                    continue
+                live = active_top[r] & (((1 << (b + 1 - x0)) - 1) ^ ((1 << (a - x0)) - 1))
+                if live == 0:
+                    continue
+                # Only from the first to the last pixel still compositing (the backward replays
+                # the record, so the walk need not match anything).
+                a = x0 + trailing_zeros(live)
+                b = x0 + 63 - leading_zeros(live)
+                if e_ca < 0.0:
+                    e_ca = math.exp(-ca)
+                row = r * tw - x0
+                pix = r * TILE - x0
+                if pos >= 0 and pos + (b + 1 - a) > cap_end:
+                    pos = -1  # the record cannot hold this row: the caller runs the forward again
+                gauss, e_step = _row_start(dy, u, ca, cb, cc, a)
+                for i in range(a, b + 1):
+                    p = row + i
+                    gs = gauss
+                    gauss *= e_step
+                    e_step *= e_ca
+                    if not (live >> (i - x0)) & 1:  # stopped before this Gaussian
+                        continue
+                    alpha = o * gs
+                    if not alpha >= ALPHA_MIN:
+                        continue
+                    clamped = alpha > ALPHA_MAX
+                    if clamped:
+                        alpha = ALPHA_MAX
+                    Tp = T_top[p]
+                    t_next = Tp * (1.0 - alpha)
+                    if t_next < T_MIN:
+                        active_top[r] &= ~(1 << (i - x0))
+                        pmask[p] &= ~top_bit
+                        n_done[top] += 1
+                        if n_done[top] == n_pix:
+                            n_live -= 1
+                        continue
+                    if pos >= 0:
+                        rec_keep[pos] = -1.0 if clamped else 1.0 - alpha
+                        rec_pix[pos] = pix + i
+                        rec_img[pos] = top_bit
+                        pos += 1
+                    w = alpha * Tp
+                    if n_ch == 3:  # the common case, unrolled
+                        acc_top[p, 0] += w * c0
+                        acc_top[p, 1] += w * c1
+                        acc_top[p, 2] += w * c2
+                    else:
+                        for ch in range(n_ch):
+                            acc_top[p, ch] += w * splats[g, S_COLOR + ch]
+                    wsum += w * pix_weight[j, i] if weighted else w
+                    T_top[p] = t_next
+                    lst_top[p] = k
+            if want_contrib:
+                contrib_isect[k] = wsum
+            if pos > first:
+                rec_start[k] = first
+                rec_n[k] = pos - first
+            if n_live == 0:
+                break
+            continue
+        img_mask = all_img ^ ((np.int64(1) << im0) - 1)
         for j in range(j0, j1 + 1):
             r = j - y0
             union = 0
@@ -795,144 +876,6 @@ def _forward_tile(
                     image[im, j, i, ch] = acc[p, im, ch] + T[p, im] * background[ch]
                 t_final[im, j, i] = T[p, im]
                 last[im, j, i] = lst[p, im]
-    return pos
-
-
-@njit(cache=True)
-def _forward_tile_one(
-    t,
-    tile_start,
-    ids,
-    splats,
-    n_ch,
-    background,
-    width,
-    height,
-    tiles_x,
-    T,
-    acc,
-    lst,
-    active,
-    contrib_isect,
-    image,
-    t_final,
-    last,
-    upto,
-    rec_keep,
-    rec_pix,
-    rec_img,
-    rec_start,
-    rec_n,
-    pos,
-    cap_end,
-    pix_weight,
-):
-    """_forward_tile for a single image (the common case: evaluation, previews, one level
-    supervised), kept apart because the per-image loops and masks of the general tile cost it
-    about a quarter more. Composite one tile front to back, Gaussians with glevel <= upto only. Each Gaussian
-    visits only the chords of its ellipse inside the tile, and skips rows whose pixels have
-    all stopped (bit masks in ``active``). ``contrib_isect`` (when not empty) gets each pair's
-    sum of alpha*T, each pixel weighted by ``pix_weight`` [H, W] (when not empty).
-
-    With ``pos`` >= 0 every composited pair is recorded for the backward (see raster_forward)
-    from entry ``pos`` on; returns the next free entry, or -1 once ``cap_end`` is reached."""
-    weighted = pix_weight.shape[0] > 0
-    x0, y0, x1, y1 = _tile_bounds(t, tiles_x, width, height)
-    tw = x1 - x0
-    n_pix = tw * (y1 - y0)
-    for p in range(n_pix):
-        T[p] = 1.0
-        lst[p] = -1
-        for ch in range(n_ch):
-            acc[p, ch] = 0.0
-    for r in range(y1 - y0):
-        active[r] = (1 << tw) - 1
-    n_done = 0
-    k_end = tile_start[t + 1]
-    for k in range(tile_start[t], k_end):
-        _prefetch_splat(splats, ids, k + PREFETCH, k, k_end)
-        g = ids[k]
-        if splats[g, S_LEVEL] > upto:
-            continue
-        i0, i1, j0, j1, u, v, ca, cb, cc, half_u, inv_ca, d_conic, e_cut = _splat(g, splats, x0, x1, y0, y1)
-        o = splats[g, S_OPAC]
-        e_ca = -1.0  # exp(-ca), computed on the first row walked
-        wsum = 0.0
-        first = pos
-        c0 = splats[g, S_COLOR]
-        c1 = splats[g, S_COLOR + 1 % n_ch]
-        c2 = splats[g, S_COLOR + 2 % n_ch]
-        for j in range(j0, j1 + 1):
-            r = j - y0
-            if active[r] == 0:
-                continue
-            dy = j + 0.5 - v
-            a, b = _row_span(dy, half_u, cb, inv_ca, d_conic, e_cut, i0, i1)
-            if a > b:
-                continue
-            live = active[r] & (((1 << (b + 1 - x0)) - 1) ^ ((1 << (a - x0)) - 1))
-            if live == 0:
-                continue
-            # Only from the first to the last pixel still compositing (the backward replays the
-            # record, so the walk need not match anything).
-            a = x0 + trailing_zeros(live)
-            b = x0 + 63 - leading_zeros(live)
-            if e_ca < 0.0:
-                e_ca = math.exp(-ca)
-            row = r * tw - x0
-            pix = r * TILE - x0
-            if pos >= 0 and pos + (b + 1 - a) > cap_end:
-                pos = -1  # the record cannot hold this row: the caller runs the forward again
-            gauss, e_step = _row_start(dy, u, ca, cb, cc, a)
-            for i in range(a, b + 1):
-                p = row + i
-                gs = gauss
-                gauss *= e_step
-                e_step *= e_ca
-                if not (live >> (i - x0)) & 1:  # stopped before this Gaussian
-                    continue
-                alpha = o * gs
-                if not alpha >= ALPHA_MIN:
-                    continue
-                clamped = alpha > ALPHA_MAX
-                if clamped:
-                    alpha = ALPHA_MAX
-                Tp = T[p]
-                t_next = Tp * (1.0 - alpha)
-                if t_next < T_MIN:
-                    active[r] &= ~(1 << (i - x0))
-                    n_done += 1
-                    continue
-                if pos >= 0:
-                    rec_keep[pos] = -1.0 if clamped else 1.0 - alpha
-                    rec_pix[pos] = pix + i
-                    rec_img[pos] = 1
-                    pos += 1
-                w = alpha * Tp
-                if n_ch == 3:  # the common case, unrolled
-                    acc[p, 0] += w * c0
-                    acc[p, 1] += w * c1
-                    acc[p, 2] += w * c2
-                else:
-                    for ch in range(n_ch):
-                        acc[p, ch] += w * splats[g, S_COLOR + ch]
-                wsum += w * pix_weight[j, i] if weighted else w
-                T[p] = t_next
-                lst[p] = k
-        if contrib_isect.shape[0] > 0:
-            contrib_isect[k] = wsum
-        if pos > first:
-            rec_start[k] = first
-            rec_n[k] = pos - first
-        if n_done == n_pix:
-            break
-    for j in range(y0, y1):
-        for i in range(x0, x1):
-            p = (j - y0) * tw + i - x0
-            for ch in range(n_ch):
-                image[j, i, ch] = acc[p, ch] + T[p] * background[ch]
-            t_final[j, i] = T[p]
-            last[j, i] = lst[p]
     return pos
 
 
@@ -1035,73 +978,39 @@ def raster_forward(
         pmask = np.empty(TILE * TILE, np.int64)
         active = np.empty((n_img, TILE), np.int64)
         n_done = np.empty(n_img, np.int64)
-        T1 = np.empty(TILE * TILE)  # the single-image tile's own (contiguous 1-D) state
-        acc1 = np.empty((TILE * TILE, n_ch))
-        lst1 = np.empty(TILE * TILE, np.int64)
-        active1 = np.empty(TILE, np.int64)
         pos = c * chunk_cap if rec else -1
         cap_end = (c + 1) * chunk_cap
         for it in range(c * per, min(n_tiles, (c + 1) * per)):
-            if n_img == 1:
-                nxt = _forward_tile_one(
-                    spread[it],
-                    tile_start,
-                    ids,
-                    splats,
-                    n_ch,
-                    background,
-                    width,
-                    height,
-                    tiles_x,
-                    T1,
-                    acc1,
-                    lst1,
-                    active1,
-                    contrib_isect,
-                    images[0],
-                    t_final[0],
-                    last[0],
-                    upto[0],
-                    rec_keep,
-                    rec_pix,
-                    rec_img,
-                    rec_start,
-                    rec_n,
-                    pos,
-                    cap_end,
-                    pw,
-                )
-            else:
-                nxt = _forward_tile(
-                    spread[it],
-                    tile_start,
-                    ids,
-                    splats,
-                    n_ch,
-                    background,
-                    width,
-                    height,
-                    tiles_x,
-                    T,
-                    acc,
-                    lst,
-                    active,
-                    n_done,
-                    pmask,
-                    contrib_isect,
-                    images,
-                    t_final,
-                    last,
-                    upto,
-                    rec_keep,
-                    rec_pix,
-                    rec_img,
-                    rec_start,
-                    rec_n,
-                    pos,
-                    cap_end,
-                    pw,
-                )
+            nxt = _forward_tile(
+                spread[it],
+                tile_start,
+                ids,
+                splats,
+                n_ch,
+                background,
+                width,
+                height,
+                tiles_x,
+                T,
+                acc,
+                lst,
+                active,
+                n_done,
+                pmask,
+                contrib_isect,
+                images,
+                t_final,
+                last,
+                upto,
+                rec_keep,
+                rec_pix,
+                rec_img,
+                rec_start,
+                rec_n,
+                pos,
+                cap_end,
+                pw,
+            )
             if pos >= 0:
                 used[c] = nxt - c * chunk_cap if nxt >= 0 else chunk_cap + 1
             pos = nxt
@@ -1146,11 +1055,14 @@ def _replay_tile(
     rec_img,
     rec_start,
     rec_n,
+    split,
 ):
     """The backward of one tile from the forward's record: the pairs the forward composited, back
     to front per pixel, a Gaussian's pixels row by row (each row summed before it is added), every
     image at once. A pair's alpha (hence its 1/(1 - alpha) and its pixel offset) is shared by its
-    images; transmittance, the colour behind and the incoming gradients are each image's own."""
+    images; transmittance, the colour behind and the incoming gradients are each image's own.
+    Gaussians above level ``split`` show in the last image only (with one image: all of them)
+    and replay on its state alone, without per-image loops."""
     n_img = t_final.shape[0]
     top = n_img - 1
     x0, y0, x1, y1 = _tile_bounds(t, tiles_x, width, height)
@@ -1161,13 +1073,17 @@ def _replay_tile(
             for i in range(x0, x1):
                 p = (j - y0) * tw + i - x0
                 tn = t_final[im, j, i]
-                T[p, im] = tn
+                T[im, p] = tn
                 k_max = max(k_max, last[im, j, i])
-                galpha[p, im] = grad_alpha[im, j, i] * tn
+                galpha[im, p] = grad_alpha[im, j, i] * tn
                 for ch in range(n_ch):
-                    behind[p, im, ch] = tn * background[ch]
-                    gimg[p, im, ch] = grad_image[im, j, i, ch]
+                    behind[im, p, ch] = tn * background[ch]
+                    gimg[im, p, ch] = grad_image[im, j, i, ch]
                     gbg[ch] += grad_image[im, j, i, ch] * tn
+    T_top = T[top]
+    behind_top = behind[top]
+    gimg_top = gimg[top]
+    galpha_top = galpha[top]
     k_first = tile_start[t]
     for k in range(k_max, k_first - 1, -1):
         _prefetch_splat(splats, ids, k - PREFETCH, k_first, k_max + 1)
@@ -1197,6 +1113,63 @@ def _replay_tile(
         s0 = 0.0
         s1 = 0.0
         s2 = 0.0
+        if splats[g, S_LEVEL] > split:
+            for e in range(rec_start[k], rec_start[k] + m):
+                q = np.int64(rec_pix[e])
+                r = q // TILE
+                col = q - r * TILE
+                if r != r_cur:
+                    if r_cur >= 0:
+                        du, dv, dca, dcb, dcc = _row_grads(ca, cb, cc, dy, s0, s1, s2)
+                        gu, gv, gca, gcb, gcc = gu + du, gv + dv, gca + dca, gcb + dcb, gcc + dcc
+                    r_cur = r
+                    dy = (y0 + r) + 0.5 - v
+                    s0 = 0.0
+                    s1 = 0.0
+                    s2 = 0.0
+                p = r * tw + col
+                alpha, keep, clamped = _record_alpha(rec_keep[e])
+                dx = (x0 + col) + 0.5 - u
+                inv = 1.0 / keep
+                T_before = T_top[p] * inv
+                w = alpha * T_before
+                g_a = galpha_top[p] * inv
+                if n_ch == 3:
+                    gi0 = gimg_top[p, 0]
+                    gi1 = gimg_top[p, 1]
+                    gi2 = gimg_top[p, 2]
+                    gc0 += w * gi0
+                    gc1 += w * gi1
+                    gc2 += w * gi2
+                    g_a += gi0 * (c0 * T_before - behind_top[p, 0] * inv)
+                    g_a += gi1 * (c1 * T_before - behind_top[p, 1] * inv)
+                    g_a += gi2 * (c2 * T_before - behind_top[p, 2] * inv)
+                    behind_top[p, 0] += c0 * w
+                    behind_top[p, 1] += c1 * w
+                    behind_top[p, 2] += c2 * w
+                else:
+                    for ch in range(n_ch):
+                        gcol[ch] += w * gimg_top[p, ch]
+                        g_a += gimg_top[p, ch] * (splats[g, S_COLOR + ch] * T_before - behind_top[p, ch] * inv)
+                        behind_top[p, ch] += splats[g, S_COLOR + ch] * w
+                T_top[p] = T_before
+                if clamped:
+                    continue
+                g_pow = alpha * g_a  # d/dpower; d/dopacity is g_pow / o
+                go += g_pow
+                s0 += g_pow
+                g_dx = g_pow * dx
+                s1 += g_dx
+                s2 += g_dx * dx
+            du, dv, dca, dcb, dcc = _row_grads(ca, cb, cc, dy, s0, s1, s2)
+            gu, gv, gca, gcb, gcc = gu + du, gv + dv, gca + dca, gcb + dcb, gcc + dcc
+            go /= o
+            if n_ch == 3:
+                gcol[0] = gc0
+                gcol[1] = gc1
+                gcol[2] = gc2
+            _write_slot(geo_isect, col_isect, slot + k, gu, gv, gca, gcb, gcc, go, gcol, gu, gv)
+            continue
         t0 = 0.0  # the same sums for the last image alone (its screen-space gradient)
         t1 = 0.0
         for e in range(rec_start[k], rec_start[k] + m):
@@ -1225,28 +1198,28 @@ def _replay_tile(
             while imgs:
                 im = trailing_zeros(imgs)
                 imgs &= imgs - 1
-                T_before = T[p, im] * inv
+                T_before = T[im, p] * inv
                 w = alpha * T_before
-                g_a = galpha[p, im] * inv
+                g_a = galpha[im, p] * inv
                 if n_ch == 3:
-                    gi0 = gimg[p, im, 0]
-                    gi1 = gimg[p, im, 1]
-                    gi2 = gimg[p, im, 2]
+                    gi0 = gimg[im, p, 0]
+                    gi1 = gimg[im, p, 1]
+                    gi2 = gimg[im, p, 2]
                     gc0 += w * gi0
                     gc1 += w * gi1
                     gc2 += w * gi2
-                    g_a += gi0 * (c0 * T_before - behind[p, im, 0] * inv)
-                    g_a += gi1 * (c1 * T_before - behind[p, im, 1] * inv)
-                    g_a += gi2 * (c2 * T_before - behind[p, im, 2] * inv)
-                    behind[p, im, 0] += c0 * w
-                    behind[p, im, 1] += c1 * w
-                    behind[p, im, 2] += c2 * w
+                    g_a += gi0 * (c0 * T_before - behind[im, p, 0] * inv)
+                    g_a += gi1 * (c1 * T_before - behind[im, p, 1] * inv)
+                    g_a += gi2 * (c2 * T_before - behind[im, p, 2] * inv)
+                    behind[im, p, 0] += c0 * w
+                    behind[im, p, 1] += c1 * w
+                    behind[im, p, 2] += c2 * w
                 else:
                     for ch in range(n_ch):
-                        gcol[ch] += w * gimg[p, im, ch]
-                        g_a += gimg[p, im, ch] * (splats[g, S_COLOR + ch] * T_before - behind[p, im, ch] * inv)
-                        behind[p, im, ch] += splats[g, S_COLOR + ch] * w
-                T[p, im] = T_before
+                        gcol[ch] += w * gimg[im, p, ch]
+                        g_a += gimg[im, p, ch] * (splats[g, S_COLOR + ch] * T_before - behind[im, p, ch] * inv)
+                        behind[im, p, ch] += splats[g, S_COLOR + ch] * w
+                T[im, p] = T_before
                 g_all += g_a
                 if im == top:
                     g_top = g_a
@@ -1272,135 +1245,6 @@ def _replay_tile(
             gcol[1] = gc1
             gcol[2] = gc2
         _write_slot(geo_isect, col_isect, slot + k, gu, gv, gca, gcb, gcc, go, gcol, gu_top, gv_top)
-
-
-@njit(cache=True)
-def _replay_tile_one(
-    t,
-    tile_start,
-    ids,
-    splats,
-    n_ch,
-    background,
-    t_final,
-    last,
-    grad_image,
-    grad_alpha,
-    width,
-    height,
-    tiles_x,
-    T,
-    behind,
-    gimg,
-    galpha,
-    gcol,
-    geo_isect,
-    col_isect,
-    slot,
-    gbg,
-    rec_keep,
-    rec_pix,
-    rec_start,
-    rec_n,
-):
-    """_replay_tile for a single image (see _forward_tile_one). The backward of one tile from the forward's record: the pairs the forward composited, back
-    to front per pixel, a Gaussian's pixels row by row (each row summed before it is added)."""
-    x0, y0, x1, y1 = _tile_bounds(t, tiles_x, width, height)
-    tw = x1 - x0
-    k_max = -1
-    for j in range(y0, y1):
-        for i in range(x0, x1):
-            p = (j - y0) * tw + i - x0
-            tn = t_final[j, i]
-            T[p] = tn
-            k_max = max(k_max, last[j, i])
-            galpha[p] = grad_alpha[j, i] * tn
-            for ch in range(n_ch):
-                behind[p, ch] = tn * background[ch]
-                gimg[p, ch] = grad_image[j, i, ch]
-                gbg[ch] += grad_image[j, i, ch] * tn
-    k_first = tile_start[t]
-    for k in range(k_max, k_first - 1, -1):
-        _prefetch_splat(splats, ids, k - PREFETCH, k_first, k_max + 1)
-        m = rec_n[k]
-        if m == 0:
-            continue
-        g = ids[k]
-        u, v, ca, cb, cc, o = _splat_shape(splats, g)
-        gu = 0.0
-        gv = 0.0
-        gca = 0.0
-        gcb = 0.0
-        gcc = 0.0
-        go = 0.0
-        for ch in range(n_ch):
-            gcol[ch] = 0.0
-        gc0 = 0.0
-        gc1 = 0.0
-        gc2 = 0.0
-        c0 = splats[g, S_COLOR]
-        c1 = splats[g, S_COLOR + 1 % n_ch]
-        c2 = splats[g, S_COLOR + 2 % n_ch]
-        r_cur = -1
-        dy = 0.0
-        s0 = 0.0
-        s1 = 0.0
-        s2 = 0.0
-        for e in range(rec_start[k], rec_start[k] + m):
-            q = np.int64(rec_pix[e])
-            r = q // TILE
-            col = q - r * TILE
-            if r != r_cur:
-                if r_cur >= 0:
-                    du, dv, dca, dcb, dcc = _row_grads(ca, cb, cc, dy, s0, s1, s2)
-                    gu, gv, gca, gcb, gcc = gu + du, gv + dv, gca + dca, gcb + dcb, gcc + dcc
-                r_cur = r
-                dy = (y0 + r) + 0.5 - v
-                s0 = 0.0
-                s1 = 0.0
-                s2 = 0.0
-            p = r * tw + col
-            alpha, keep, clamped = _record_alpha(rec_keep[e])
-            dx = (x0 + col) + 0.5 - u
-            inv = 1.0 / keep
-            T_before = T[p] * inv
-            w = alpha * T_before
-            g_a = galpha[p] * inv
-            if n_ch == 3:
-                gi0 = gimg[p, 0]
-                gi1 = gimg[p, 1]
-                gi2 = gimg[p, 2]
-                gc0 += w * gi0
-                gc1 += w * gi1
-                gc2 += w * gi2
-                g_a += gi0 * (c0 * T_before - behind[p, 0] * inv)
-                g_a += gi1 * (c1 * T_before - behind[p, 1] * inv)
-                g_a += gi2 * (c2 * T_before - behind[p, 2] * inv)
-                behind[p, 0] += c0 * w
-                behind[p, 1] += c1 * w
-                behind[p, 2] += c2 * w
-            else:
-                for ch in range(n_ch):
-                    gcol[ch] += w * gimg[p, ch]
-                    g_a += gimg[p, ch] * (splats[g, S_COLOR + ch] * T_before - behind[p, ch] * inv)
-                    behind[p, ch] += splats[g, S_COLOR + ch] * w
-            T[p] = T_before
-            if clamped:
-                continue
-            g_pow = alpha * g_a  # d/dpower; d/dopacity is g_pow / o
-            go += g_pow
-            s0 += g_pow
-            g_dx = g_pow * dx
-            s1 += g_dx
-            s2 += g_dx * dx
-        du, dv, dca, dcb, dcc = _row_grads(ca, cb, cc, dy, s0, s1, s2)
-        gu, gv, gca, gcb, gcc = gu + du, gv + dv, gca + dca, gcb + dcb, gcc + dcc
-        go /= o
-        if n_ch == 3:
-            gcol[0] = gc0
-            gcol[1] = gc1
-            gcol[2] = gc2
-        _write_slot(geo_isect, col_isect, slot + k, gu, gv, gca, gcb, gcc, go, gcol, gu, gv)
 
 
 def scratch_entries(slot_start, n_ch: int) -> int:
@@ -1430,6 +1274,18 @@ def backward_slots(tile_start, last, width, height, tiles_x):
     return slot_start
 
 
+def _below_top(upto, n_img):
+    """The highest level an image below the last one shows (Gaussians above it show in the last
+    image only): -1 for a single image; without ``upto`` (several images) a level none has."""
+
+
+@overload(_below_top)
+def _below_top_impl(upto, n_img):
+    if isinstance(upto, (types.NoneType, types.Omitted)):
+        return lambda upto, n_img: -1 if n_img == 1 else 1 << 62
+    return lambda upto, n_img: upto[n_img - 2] if n_img >= 2 else -1
+
+
 @njit(parallel=_PARALLEL, cache=True)
 def raster_backward(
     tile_start,
@@ -1453,6 +1309,7 @@ def raster_backward(
     rec_n,
     slot_start,
     scratch,
+    upto=None,
 ):
     """Back-to-front pass per pixel (3DGS) over the pairs the forward recorded (raster_forward's
     record, complete): from the saved final T, T before Gaussian i is T_after / (1 - alpha_i),
@@ -1470,6 +1327,9 @@ def raster_backward(
     add up. Returns per-Gaussian gradients
     [N, 6 + C + 2] (layout G_*, then d/du, d/dv of the last image alone) and d/dbackground [C].
 
+    ``upto`` (raster_forward's, when given) lets the Gaussians that only the last image shows
+    replay on that image alone, without per-image loops (the same sums).
+
     ``slot_start`` is backward_slots(); ``scratch`` (float64, at least slot_start[-1] *
     (_GEO_WIDTH + C) entries, else one is allocated) holds the per-pair sums: the caller keeps
     it between calls because a fresh array of that size (tens of MB at 802x550) is page-faulted
@@ -1485,41 +1345,12 @@ def raster_backward(
     geo_isect = scratch[: n_slots * _GEO_WIDTH].reshape((n_slots, _GEO_WIDTH))
     col_isect = scratch[n_slots * _GEO_WIDTH : n_slots * per_slot].reshape((n_slots, n_ch))
     gbg_tile = np.zeros((n_tiles, n_ch))
+    split = _below_top(upto, n_img)
     spread = _spread_tiles(n_tiles, tiles_x)
     for it in prange(n_tiles):
         t = spread[it]
         geo_isect[slot_start[t] : slot_start[t + 1]] = 0.0
         col_isect[slot_start[t] : slot_start[t + 1]] = 0.0
-        if n_img == 1:
-            _replay_tile_one(
-                t,
-                tile_start,
-                ids,
-                splats,
-                n_ch,
-                background,
-                t_final[0],
-                last[0],
-                grad_image[0],
-                grad_alpha[0],
-                width,
-                height,
-                tiles_x,
-                np.empty(TILE * TILE),
-                np.empty((TILE * TILE, n_ch)),
-                np.empty((TILE * TILE, n_ch)),
-                np.empty(TILE * TILE),
-                np.empty(n_ch),
-                geo_isect,
-                col_isect,
-                slot_start[t] - tile_start[t],
-                gbg_tile[t],
-                rec_keep,
-                rec_pix,
-                rec_start,
-                rec_n,
-            )
-            continue
         _replay_tile(
             t,
             tile_start,
@@ -1534,10 +1365,10 @@ def raster_backward(
             width,
             height,
             tiles_x,
-            np.empty((TILE * TILE, n_img)),
-            np.empty((TILE * TILE, n_img, n_ch)),
-            np.empty((TILE * TILE, n_img, n_ch)),
-            np.empty((TILE * TILE, n_img)),
+            np.empty((n_img, TILE * TILE)),
+            np.empty((n_img, TILE * TILE, n_ch)),
+            np.empty((n_img, TILE * TILE, n_ch)),
+            np.empty((n_img, TILE * TILE)),
             np.empty(n_ch),
             geo_isect,
             col_isect,
@@ -1548,6 +1379,7 @@ def raster_backward(
             rec_img,
             rec_start,
             rec_n,
+            split,
         )
     # Summed per splat row, then moved to Gaussian order. A row's pairs add up in tile order
     # (deterministic); the rows are split into GATHER_PARTS ranges summed in parallel, each part

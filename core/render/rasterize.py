@@ -310,6 +310,7 @@ def _cpu_backward(state, means, quats, scales, opacities, camera, eps2d, grad_im
         *state["rec"],
         slot_start,
         scratch,
+        upto=state["upto"],
     )
     _record_buffers.give(state["rec"][:3])  # back to the pool for the next forward
     state["rec"] = None
