@@ -227,8 +227,11 @@ def _photometric_backward(x, y, g, d, n_ch, s_ssim, s_l1):
         dr = d[k, i]
         # Gathered: U[J] = sum_t g[t] d[J - t C] over 0 <= J - t C < wc. Every tap lies inside
         # from J = 10 C to wc - 1 (unsigned indices there: numba then adds no negative-index
-        # wrap, and the loop vectorises); fewer taps at the edges.
-        for J in range(min(10 * n_ch, WC)):
+        # wrap, and the loop vectorises); fewer taps at the edges, first.
+        n_lo = min(10 * n_ch, WC)  # columns [0, n_lo) and [hi, WC): some taps fall outside
+        hi = max(wc, 10 * n_ch)
+        for e in range(n_lo + WC - hi):
+            J = e if e < n_lo else hi + e - n_lo
             acc = np.float32(0.0)
             for t in range(11):
                 src = J - t * n_ch
@@ -241,13 +244,6 @@ def _photometric_backward(x, y, g, d, n_ch, s_ssim, s_l1):
             for t2 in range(np.uint64(11)):
                 acc += g[np.uint64(10) - t2] * dr[J0 + t2 * c]
             ur[J0 + np.uint64(10) * c] = acc
-        for J in range(max(wc, 10 * n_ch), WC):
-            acc = np.float32(0.0)
-            for t in range(11):
-                src = J - t * n_ch
-                if 0 <= src < wc:
-                    acc += g[t] * dr[src]
-            ur[J] = acc
     out = np.empty((H, WC), np.float32)
     for i in prange(H):
         xr = x[i]
