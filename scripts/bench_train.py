@@ -433,7 +433,8 @@ def run(quick: bool = False, data: str | None = None) -> str:
         "*trained* rows step the working tree from a finished paper-scale run's checkpoint instead (its "
         "coarse levels included, the preset's supervision and every level), on 8 of its own training views "
         f"preloaded; f6907ae cannot read that checkpoint, so their old column is {PREV_COMMIT} (the tree "
-        "before the latest speed work) resumed from the same checkpoint and stepped alternately with the new",
+        "before the packed splat rows, the inlined projections and bindings, the fused photometric loss and "
+        "the last-image walk) resumed from the same checkpoint and stepped alternately with the new",
         "- accuracy: loss and whole-gradient relative difference between old and new on the first step from "
         "an identical state (new binds in float64, old's forest weights were float32)",
         "",
