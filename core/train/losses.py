@@ -35,15 +35,22 @@ def _fused(a: torch.Tensor, b: torch.Tensor) -> bool:
 
 class TargetWindow:
     """The window sums of a constant [H, W, C] target that SSIM needs (its local mean and mean
-    square), computed once for every image compared with it; ``moments`` is None where the
-    fused kernels do not apply (photometric falls back to torch there)."""
+    square), computed on first use and then shared by every image compared with it; ``moments``
+    is None where the fused kernels do not apply (photometric falls back to torch there)."""
 
     def __init__(self, target: torch.Tensor):
         self.target = target
-        self.moments = None
-        if _fused(target, target):
-            g = _gauss1d(torch.device("cpu"), torch.float32).numpy()
-            self.moments = _target_moments(_rows(target), g, target.shape[2])
+        self._moments = None
+        self._done = False
+
+    @property
+    def moments(self):
+        if not self._done:
+            self._done = True
+            if _fused(self.target, self.target):
+                g = _gauss1d(torch.device("cpu"), torch.float32).numpy()
+                self._moments = _target_moments(_rows(self.target), g, self.target.shape[2])
+        return self._moments
 
 
 def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
