@@ -55,7 +55,8 @@ def frames_from_edges(e1: torch.Tensor, e2: torch.Tensor, normal: torch.Tensor |
         y = torch.where(good[..., None], n_hat, own_hat)
         flat = ~good & own_flat
     least = torch.argmin(x.detach().abs(), dim=-1)
-    helper = torch.nn.functional.one_hot(least, 3).to(e1.dtype)
+    # a comparison, not one_hot: one_hot checks its input's range on the host, a sync that a CUDA graph refuses
+    helper = (least[..., None] == torch.arange(3, device=least.device)).to(e1.dtype)
     alt = torch.linalg.cross(x, helper)
     alt = alt / _norm(alt)[..., None]
     y = torch.where(flat[..., None], alt, y)
