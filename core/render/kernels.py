@@ -85,6 +85,7 @@ _PARALLEL = dict(
 )
 PREFETCH = 4  # (tile, Gaussian) pairs ahead whose splat rows a tile kernel asks the cache for
 PREFETCH_PACK = 16  # Gaussians ahead whose rows pack_splats asks the cache for
+REPLAY_CHUNKS = 64  # raster_backward's parallel work items (runs of tiles sharing one allocation of tile state)
 GATHER_PARTS = 4  # ranges of splat rows whose per-pair sums are gathered in parallel
 # Slack on the pixel box so that rounding can never drop a pixel at the exact boundary.
 _BOX_SLACK = 1.0 + 1e-6
@@ -1347,40 +1348,47 @@ def raster_backward(
     gbg_tile = np.zeros((n_tiles, n_ch))
     split = _below_top(upto, n_img)
     spread = _spread_tiles(n_tiles, tiles_x)
-    for it in prange(n_tiles):
-        t = spread[it]
-        geo_isect[slot_start[t] : slot_start[t + 1]] = 0.0
-        col_isect[slot_start[t] : slot_start[t + 1]] = 0.0
-        _replay_tile(
-            t,
-            tile_start,
-            ids,
-            splats,
-            n_ch,
-            background,
-            t_final,
-            last,
-            grad_image,
-            grad_alpha,
-            width,
-            height,
-            tiles_x,
-            np.empty((n_img, TILE * TILE)),
-            np.empty((n_img, TILE * TILE, n_ch)),
-            np.empty((n_img, TILE * TILE, n_ch)),
-            np.empty((n_img, TILE * TILE)),
-            np.empty(n_ch),
-            geo_isect,
-            col_isect,
-            slot_start[t] - tile_start[t],
-            gbg_tile[t],
-            rec_keep,
-            rec_pix,
-            rec_img,
-            rec_start,
-            rec_n,
-            split,
-        )
+    n_chunks = min(n_tiles, REPLAY_CHUNKS)
+    for c in prange(n_chunks):  # runs of the (spread) tiles, each with its own tile state
+        T = np.empty((n_img, TILE * TILE))
+        behind = np.empty((n_img, TILE * TILE, n_ch))
+        gimg = np.empty((n_img, TILE * TILE, n_ch))
+        galpha = np.empty((n_img, TILE * TILE))
+        gcol = np.empty(n_ch)
+        for it in range(n_tiles * c // n_chunks, n_tiles * (c + 1) // n_chunks):
+            t = spread[it]
+            geo_isect[slot_start[t] : slot_start[t + 1]] = 0.0
+            col_isect[slot_start[t] : slot_start[t + 1]] = 0.0
+            _replay_tile(
+                t,
+                tile_start,
+                ids,
+                splats,
+                n_ch,
+                background,
+                t_final,
+                last,
+                grad_image,
+                grad_alpha,
+                width,
+                height,
+                tiles_x,
+                T,
+                behind,
+                gimg,
+                galpha,
+                gcol,
+                geo_isect,
+                col_isect,
+                slot_start[t] - tile_start[t],
+                gbg_tile[t],
+                rec_keep,
+                rec_pix,
+                rec_img,
+                rec_start,
+                rec_n,
+                split,
+            )
     # Summed per splat row, then moved to Gaussian order. A row's pairs add up in tile order
     # (deterministic); the rows are split into GATHER_PARTS ranges summed in parallel, each part
     # scanning every pair for its own rows.
@@ -1411,6 +1419,33 @@ def raster_backward(
         for ch in range(n_ch):
             gbg[ch] += gbg_tile[t, ch]
     return grads, gbg
+
+
+@njit(parallel=_PARALLEL, cache=True)
+def split_grads(grads, g_uv, g_conic, g_depth, g_opac, g_colors, g_uv_last):
+    """raster_backward's rows [N, G_COLOR + C + 2] split in one pass into what project_backward
+    takes (g_uv [N,2], g_conic [N,3], g_depth [N] or empty: no depth channel among the C) and
+    what the caller returns (g_opac [N], g_colors [N, C or C-1], g_uv_last [N,2]), each in its
+    own array's dtype. Column slices of the wide rows, copied one at a time, read every row's
+    cache lines once per slice."""
+    n = grads.shape[0]
+    n_col = g_colors.shape[1]
+    depth = g_depth.shape[0] > 0
+    last = grads.shape[1] - 2
+    for blk in prange((n + BLOCK - 1) // BLOCK):
+        for r in range(blk * BLOCK, min(n, (blk + 1) * BLOCK)):
+            g_uv[r, 0] = grads[r, G_U]
+            g_uv[r, 1] = grads[r, G_V]
+            g_conic[r, 0] = grads[r, G_CA]
+            g_conic[r, 1] = grads[r, G_CB]
+            g_conic[r, 2] = grads[r, G_CC]
+            g_opac[r] = grads[r, G_OPAC]
+            for ch in range(n_col):
+                g_colors[r, ch] = grads[r, G_COLOR + ch]
+            if depth:
+                g_depth[r] = grads[r, G_COLOR + n_col]
+            g_uv_last[r, 0] = grads[r, last]
+            g_uv_last[r, 1] = grads[r, last + 1]
 
 
 @njit(cache=True, inline="always")

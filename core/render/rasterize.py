@@ -285,7 +285,11 @@ def _cpu_forward(
     return image, alpha, contrib, radii, state
 
 
-def _cpu_backward(state, means, quats, scales, opacities, camera, eps2d, grad_image, grad_alpha, with_depth):
+def _cpu_backward(
+    state, means, quats, scales, opacities, camera, eps2d, grad_image, grad_alpha, with_depth, out_dtype=np.float64
+):
+    """Gradients of means, quats, scales (float64), of opacities, colours and the last image's
+    screen positions (``out_dtype``), and of the background."""
     Rc, tc, fx, fy, _, _ = _camera_args(camera)
     tiles_x, _ = _tiles(camera)
     if state["rec"] is None:
@@ -314,19 +318,20 @@ def _cpu_backward(state, means, quats, scales, opacities, camera, eps2d, grad_im
     )
     _record_buffers.give(state["rec"][:3])  # back to the pool for the next forward
     state["rec"] = None
-    g_uv = np.ascontiguousarray(grads[:, rk.G_U : rk.G_V + 1])
-    g_uv_last = grads[:, -2:]  # the last image's own screen-space gradient
-    g_conic = np.ascontiguousarray(grads[:, rk.G_CA : rk.G_CC + 1])
-    g_colors = grads[:, rk.G_COLOR : -2]
+    n, n_col = len(means), state["n_ch"] - int(with_depth)
+    g_uv, g_conic = np.empty((n, 2)), np.empty((n, 3))
+    g_depth = np.empty(n if with_depth else 0)
+    g_opac, g_colors = np.empty(n, out_dtype), np.empty((n, n_col), out_dtype)
+    g_uv_last = np.empty((n, 2), out_dtype)  # the last image's own screen-space gradient
+    rk.split_grads(grads, g_uv, g_conic, g_depth, g_opac, g_colors, g_uv_last)
     if with_depth:
-        g_depth = np.ascontiguousarray(g_colors[:, -1])
-        g_colors, g_bg = g_colors[:, :-1], g_bg[:-1]
+        g_bg = g_bg[:-1]
     else:
-        g_depth = np.zeros(len(means))
+        g_depth = np.zeros(n)
     g_means, g_quats, g_scales = rk.project_backward(
         means, quats, scales, Rc, tc, fx, fy, state["lim"], float(eps2d), state["radii"], g_uv, g_conic, g_depth
     )
-    return g_means, g_quats, g_scales, grads[:, rk.G_OPAC], g_colors, g_bg, g_uv_last
+    return g_means, g_quats, g_scales, g_opac, g_colors, g_bg, g_uv_last
 
 
 def _will_backward(*tensors) -> bool:
@@ -389,8 +394,19 @@ class _RasterizeCPU(torch.autograd.Function):
         # than the copy's arithmetic is worth, and adds no precision to float32 values.
         g_img = _grad_array(grad_image, (n_img, H, W, n_out))
         g_alpha = _grad_array(grad_alpha, (n_img, H, W))
+        dtype = ctx.kinds[0][0]
         g_means, g_quats, g_scales, g_opac, g_colors, g_bg, g_uv = _cpu_backward(
-            ctx.state, means, quats, scales, opacities, ctx.camera, ctx.eps2d, g_img, g_alpha, ctx.with_depth
+            ctx.state,
+            means,
+            quats,
+            scales,
+            opacities,
+            ctx.camera,
+            ctx.eps2d,
+            g_img,
+            g_alpha,
+            ctx.with_depth,
+            out_dtype=_NUMPY_FLOAT.get(dtype, np.float64),
         )
 
         def out(x, i):
