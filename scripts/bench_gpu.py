@@ -245,11 +245,11 @@ def prepare_scene(run, report_path, out):
     meta = {
         "run": run,
         "report": report_path,
-        "camera": {k: getattr(cam, k) for k in ("fx", "fy", "cx", "cy", "width", "height")},
+        "camera": {k: float(getattr(cam, k)) for k in ("fx", "fy", "cx", "cy")}
+        | {"width": int(cam.width), "height": int(cam.height)},
         "budgets": {b: int(report["budgets"][b]["gaussians"]) for b in BUDGETS},
         "cpu_render_ms": {b: float(report["budgets"][b]["render_ms"]) for b in BUDGETS},
     }
-    meta["camera"] = {k: (int(v) if k in ("width", "height") else float(v)) for k, v in meta["camera"].items()}
     with open(os.path.join(out, "scene.json"), "w") as fh:
         json.dump(meta, fh, indent=1)
 
@@ -258,7 +258,7 @@ def avatar_frames(scene):
     """A trained avatar's Table 1 prefixes on the GPU: gsplat forward alone, and a whole animated
     frame (the prefix's faces bound to a new mesh by the torch binding in float64 on the GPU, then
     gsplat), cycling over the scene's meshes. Also how far the GPU frame is from the numpy
-    inference path (Gaussian means relative to face scale; the images of both renderers)."""
+    inference path (Gaussian means over the head's size; the images of both renderers)."""
     from progressive_avatars.core.avatar.avatar import sh_to_rgb, sigmoid
     from progressive_avatars.core.avatar.binding import compose as np_compose
     from progressive_avatars.core.avatar.binding import evaluate as np_evaluate
