@@ -119,6 +119,26 @@ def test_float32_render_is_the_float64_render_rounded_once():
     assert alpha.dtype == np.float32 and np.array_equal(alpha, out32.alpha.numpy())
 
 
+def test_each_gradient_comes_back_in_its_own_inputs_precision():
+    """Mixed precision: float32 means beside float64 opacities and colours. The float64 inputs'
+    gradients are the float64 kernels' values, not rounded through the means' float32: equal bit
+    for bit to an all-float64 render of the same values."""
+    cam, params = make_scene(4, dtype=torch.float64)
+    means32 = params[0].float()
+    # loss weights that float32 holds exactly: the float32 image's incoming gradient is then exact too
+    wi, wa = (w.float().double() for w in loss_weights(5))
+    grads = []
+    for means in (means32, means32.double()):
+        ps = [means.clone().requires_grad_(True)] + [p.clone().requires_grad_(True) for p in params[1:5]]
+        out = render(*ps, cam, params[5])
+        ((out.image.double() * wi).sum() + (out.alpha.double() * wa).sum()).backward()
+        grads.append([p.grad for p in ps])
+    mixed, full = grads
+    assert mixed[0].dtype == torch.float32 and mixed[3].dtype == torch.float64 and mixed[4].dtype == torch.float64
+    assert torch.equal(mixed[3], full[3]) and torch.equal(mixed[4], full[4])
+    assert torch.equal(mixed[0], full[0].float())
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_gradients_match_reference_autograd(dtype):
     cam, params = make_scene(1, dtype=dtype)

@@ -286,10 +286,20 @@ def _cpu_forward(
 
 
 def _cpu_backward(
-    state, means, quats, scales, opacities, camera, eps2d, grad_image, grad_alpha, with_depth, out_dtype=np.float64
+    state,
+    means,
+    quats,
+    scales,
+    opacities,
+    camera,
+    eps2d,
+    grad_image,
+    grad_alpha,
+    with_depth,
+    out_dtypes=(np.float64, np.float64, np.float64),
 ):
     """Gradients of means, quats, scales (float64), of opacities, colours and the last image's
-    screen positions (``out_dtype``), and of the background."""
+    screen positions (in ``out_dtypes``' three dtypes), and of the background."""
     Rc, tc, fx, fy, _, _ = _camera_args(camera)
     tiles_x, _ = _tiles(camera)
     if state["rec"] is None:
@@ -321,8 +331,8 @@ def _cpu_backward(
     n, n_col = len(means), state["n_ch"] - int(with_depth)
     g_uv, g_conic = np.empty((n, 2)), np.empty((n, 3))
     g_depth = np.empty(n if with_depth else 0)
-    g_opac, g_colors = np.empty(n, out_dtype), np.empty((n, n_col), out_dtype)
-    g_uv_last = np.empty((n, 2), out_dtype)  # the last image's own screen-space gradient
+    g_opac, g_colors = np.empty(n, out_dtypes[0]), np.empty((n, n_col), out_dtypes[1])
+    g_uv_last = np.empty((n, 2), out_dtypes[2])  # the last image's own screen-space gradient
     rk.split_grads(grads, g_uv, g_conic, g_depth, g_opac, g_colors, g_uv_last)
     if with_depth:
         g_bg = g_bg[:-1]
@@ -394,7 +404,7 @@ class _RasterizeCPU(torch.autograd.Function):
         # than the copy's arithmetic is worth, and adds no precision to float32 values.
         g_img = _grad_array(grad_image, (n_img, H, W, n_out))
         g_alpha = _grad_array(grad_alpha, (n_img, H, W))
-        dtype = ctx.kinds[0][0]
+        kinds = (ctx.kinds[3][0], ctx.kinds[4][0], ctx.kinds[6][0])  # opacities, colours, means2d
         g_means, g_quats, g_scales, g_opac, g_colors, g_bg, g_uv = _cpu_backward(
             ctx.state,
             means,
@@ -406,7 +416,7 @@ class _RasterizeCPU(torch.autograd.Function):
             g_img,
             g_alpha,
             ctx.with_depth,
-            out_dtype=_NUMPY_FLOAT.get(dtype, np.float64),
+            out_dtypes=tuple(_NUMPY_FLOAT.get(k, np.float64) for k in kinds),
         )
 
         def out(x, i):
