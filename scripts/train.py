@@ -34,7 +34,7 @@ def main(argv=None):
     ap.add_argument("--resume", action="store_true", help="continue from RUN/checkpoint.npz")
     ap.add_argument("--iterations", type=int)
     ap.add_argument("--max-depth", type=int)
-    ap.add_argument("--supervision", choices=["all", "sampled", "finest"])
+    ap.add_argument("--supervision", choices=["all", "sampled", "base", "finest"])
     ap.add_argument("--uniform", action="store_true", help="ablation: uniform subdivision to --max-depth")
     ap.add_argument(
         "--level-weights",

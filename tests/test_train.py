@@ -599,6 +599,25 @@ def test_coarse_weight_scales_the_coarse_levels_loss(tiny_dataset, tmp_path):
         config_for("tiny", coarse_weight=-1.0)
 
 
+def test_base_supervision_takes_the_finest_and_one_base_level(tiny_dataset, tmp_path):
+    """supervision="base": every step the finest level and one of the coarse and template levels
+    (the forest's own count of coarse levels), never a subdivision level below the finest."""
+    cfg = config_for("tiny", supervision="base", max_faces=10**6, eval_every=10**6, checkpoint_every=10**6)
+    tr = Trainer(tiny_dataset, str(tmp_path / "base"), cfg)
+    tr.grad_sum[:] = 1.0
+    tr.grad_count[:] = 1.0
+    tr._grow(cfg.grow_start)
+    tr.grad_sum[:] = 1.0
+    tr.grad_count[:] = 1.0
+    tr._grow(cfg.grow_start + 2 * cfg.grow_every)  # depth 2 opens at the third growth step
+    forest = tr.model.forest
+    K, top = forest.num_coarse_levels, forest.max_level
+    assert K >= 1 and top >= K + 2  # coarse levels, the template and two subdivision levels
+    seen = {tuple(tr._levels()) for _ in range(200)}
+    assert seen == {(lv, top) for lv in range(K + 1)}
+    assert np.isfinite(tr.step()["loss"])
+
+
 def test_prefix_cuts_supervise_the_streams_prefixes_inside_levels(tiny_dataset, tmp_path, monkeypatch):
     """With prefix_cuts the step also supervises prefixes that end inside a level, in exactly
     the order the stream writer sends the faces (importance measured per level)."""
@@ -671,6 +690,13 @@ def test_growth_and_supervision_policies_are_validated(tmp_path):
     rng = np.random.default_rng(0)
     assert Supervision("all").levels(3, rng) == [0, 1, 2, 3] and Supervision("finest").levels(3, rng) == [3]
     assert all(lv[-1] == 3 and len(lv) <= 2 for lv in (Supervision("sampled").levels(3, rng) for _ in range(20)))
+    # base: the finest and one level of the base (coarse levels 0, 1 and the template level 2
+    # here), every one of them in turn, never a subdivision level below the finest
+    base = {tuple(Supervision("base").levels(6, rng, 2)) for _ in range(200)}
+    assert base == {(0, 6), (1, 6), (2, 6)}
+    assert {tuple(Supervision("base").levels(2, rng, 2)) for _ in range(50)} == {(0, 2), (1, 2)}
+    assert {tuple(Supervision("base").levels(3, rng, 0)) for _ in range(20)} == {(0, 3)}
+    assert Supervision("base").levels(0, rng, 0) == [0]
     g = Growth.from_config(config_for("cpu"))
     assert not g.due(149) and g.due(150) and not g.due(2850)  # growth stops at 70 % of 4000
     assert g.depth_cap(150) == 1 and g.depth_cap(2800) == 3

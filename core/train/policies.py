@@ -10,23 +10,28 @@ from __future__ import annotations
 
 import numpy as np
 
-SUPERVISION_MODES = ("all", "sampled", "finest")
+SUPERVISION_MODES = ("all", "sampled", "base", "finest")
 
 
 class Supervision:
     """all: every cumulative level (the multi-level loss); sampled: the finest and one random
-    coarser level per step; finest: the finest level only (the paper's ablation)."""
+    coarser level per step; base: the finest and one random level of the base (the coarse
+    levels and the template level, 0 .. ``base_level``), the prefixes that finest-only training
+    leaves poor (docs/BENCHMARKS.md, "Supervision modes at the paper's scale"); finest: the finest level
+    only (the paper's ablation)."""
 
     def __init__(self, mode: str):
         if mode not in SUPERVISION_MODES:
             raise ValueError(f"supervision must be one of {', '.join(SUPERVISION_MODES)}, got {mode!r}")
         self.mode = mode
 
-    def levels(self, top: int, rng: np.random.Generator) -> list[int]:
+    def levels(self, top: int, rng: np.random.Generator, base_level: int = 0) -> list[int]:
         if self.mode == "finest" or top == 0:
             return [top]
         if self.mode == "sampled":
             return sorted({top, int(rng.integers(0, top))})
+        if self.mode == "base":
+            return sorted({top, int(rng.integers(0, min(base_level, top - 1) + 1))})
         return list(range(top + 1))
 
 

@@ -44,7 +44,7 @@ class TrainConfig:
     # > 0: split by a budget, up to this factor times the base faces at the last growth step
     # (a geometric schedule; policies.Growth); 0: the gradient threshold alone decides.
     grow_to: float = 0.0
-    supervision: str = "all"  # all | sampled | finest
+    supervision: str = "all"  # all | sampled | base | finest (policies.Supervision)
     uniform: bool = False  # ablation: split every leaf when the cap rises, ignore gradients
     # Coarse levels above the template (DESIGN.md 7), as fractions of the template's face count,
     # built once from the canonical mesh; () turns them off (the paper's levels, older runs).
@@ -471,7 +471,8 @@ class Trainer:
 
     # -- one step -------------------------------------------------------------------------
     def _levels(self) -> list[int]:
-        return self.supervision.levels(self.model.forest.max_level, self.rng)
+        forest = self.model.forest
+        return self.supervision.levels(forest.max_level, self.rng, forest.num_coarse_levels)
 
     def _cuts(self) -> list[tuple[int, int]]:
         """The step's in-level prefixes: (level, how many of its faces they show, 1 .. count - 1)."""
