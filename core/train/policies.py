@@ -16,9 +16,10 @@ SUPERVISION_MODES = ("all", "sampled", "base", "finest")
 class Supervision:
     """all: every cumulative level (the multi-level loss); sampled: the finest and one random
     coarser level per step; base: the finest and one random level of the base (the coarse
-    levels and the template level, 0 .. ``base_level``), the prefixes that finest-only training
-    leaves poor (docs/BENCHMARKS.md, "Supervision modes at the paper's scale"); finest: the finest level
-    only (the paper's ablation)."""
+    levels and the template level, 0 .. ``base_level``), an ablation: the base prefixes are the
+    ones finest-only training leaves poor, yet at the paper's scale this scored below "sampled"
+    at every budget, the base's included (docs/BENCHMARKS.md, "Supervision modes at the paper's
+    scale"); finest: the finest level only (the paper's ablation)."""
 
     def __init__(self, mode: str):
         if mode not in SUPERVISION_MODES:
