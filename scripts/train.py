@@ -35,6 +35,11 @@ def main(argv=None):
     ap.add_argument("--iterations", type=int)
     ap.add_argument("--max-depth", type=int)
     ap.add_argument("--supervision", choices=["all", "sampled", "base", "finest"])
+    ap.add_argument(
+        "--finest-tail",
+        type=float,
+        help="last fraction of the iterations that supervises the finest level alone, the base faces kept as they are",
+    )
     ap.add_argument("--uniform", action="store_true", help="ablation: uniform subdivision to --max-depth")
     ap.add_argument(
         "--level-weights",
@@ -114,6 +119,7 @@ def main(argv=None):
             iterations=args.iterations,
             max_depth=args.max_depth,
             supervision=args.supervision,
+            finest_tail=args.finest_tail,
             level_weights=args.level_weights,
             uniform=args.uniform or None,
             grad_threshold=args.grad_threshold,

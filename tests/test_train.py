@@ -618,6 +618,32 @@ def test_base_supervision_takes_the_finest_and_one_base_level(tiny_dataset, tmp_
     assert np.isfinite(tr.step()["loss"])
 
 
+def test_finest_tail_trains_the_finest_alone_and_keeps_the_base(tiny_dataset, tmp_path):
+    """finest_tail: past 1 - tail of the iterations a step supervises the finest level only and
+    leaves the roots' Gaussians (coarse and template faces) exactly as they were; before it, the
+    preset's supervision and every face moves. A tail that would overlap growth is refused."""
+    with pytest.raises(ValueError, match="finest tail"):
+        config_for("tiny", finest_tail=0.5)  # the tiny preset grows until 80 %
+    cfg = config_for("tiny", finest_tail=0.2, eval_every=10**6, checkpoint_every=10**6)
+    tr = Trainer(tiny_dataset, str(tmp_path / "tail"), cfg)
+    tr.grad_sum[:] = 1.0
+    tr.grad_count[:] = 1.0
+    tr._grow(cfg.grow_start)
+    R, top = tr.model.forest.num_roots, tr.model.forest.max_level
+    assert tr.model.num_faces > R and top >= 1
+    p = tr.model.params
+    for it, in_tail in ((47, False), (48, True)):  # the tail starts at 60 * 0.8
+        tr.iteration = it
+        assert (tr._levels() == [top]) == in_tail
+        before = {k: v.detach().clone() for k, v in p.items()}
+        assert np.isfinite(tr.step()["loss"])
+        for name in ("d_mu", "d_log_scale", "f_dc", "opacity_logit"):
+            roots_same = torch.equal(p[name].detach()[:R], before[name][:R])
+            assert roots_same == in_tail, (it, name)
+            assert not torch.equal(p[name].detach()[R:], before[name][R:]), (it, name)
+        assert not torch.equal(p["split_logits"].detach()[:R], before["split_logits"][:R])
+
+
 def test_prefix_cuts_supervise_the_streams_prefixes_inside_levels(tiny_dataset, tmp_path, monkeypatch):
     """With prefix_cuts the step also supervises prefixes that end inside a level, in exactly
     the order the stream writer sends the faces (importance measured per level)."""

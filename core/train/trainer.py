@@ -45,6 +45,12 @@ class TrainConfig:
     # (a geometric schedule; policies.Growth); 0: the gradient threshold alone decides.
     grow_to: float = 0.0
     supervision: str = "all"  # all | sampled | base | finest (policies.Supervision)
+    # The last fraction of the iterations (after growth) supervises the finest level alone and
+    # keeps the base faces' Gaussians (coarse and template levels, the roots) as they are, so
+    # the finer levels finish for the whole avatar while the base prefixes stay what multi-level
+    # training made them. 0: off (an experiment; docs/BENCHMARKS.md, "Supervision modes at the
+    # paper's scale").
+    finest_tail: float = 0.0
     uniform: bool = False  # ablation: split every leaf when the cap rises, ignore gradients
     # Coarse levels above the template (DESIGN.md 7), as fractions of the template's face count,
     # built once from the canonical mesh; () turns them off (the paper's levels, older runs).
@@ -222,6 +228,11 @@ def config_for(preset: str, **overrides) -> TrainConfig:
         raise ValueError(
             f"a step may render {images} images (coarse levels {len(cfg.coarse_levels)} + template + depth "
             f"{cfg.max_depth} + prefix cuts {cfg.prefix_cuts}); at most {MAX_IMAGES}: lower the depth or the cuts"
+        )
+    if not (math.isfinite(cfg.finest_tail) and 0 <= cfg.finest_tail < 1 - cfg.grow_stop + 1e-12):
+        raise ValueError(
+            f"finest tail must be in [0, 1 - grow_stop] (it starts after the last growth step), got "
+            f"{cfg.finest_tail} with grow_stop {cfg.grow_stop}"
         )
     Supervision(cfg.supervision)  # unknown modes and growth settings fail here, before any work
     Growth.from_config(cfg)
@@ -470,8 +481,13 @@ class Trainer:
         return values
 
     # -- one step -------------------------------------------------------------------------
+    def _in_tail(self, it: int) -> bool:
+        return self.cfg.finest_tail > 0 and it >= self.cfg.iterations * (1 - self.cfg.finest_tail)
+
     def _levels(self) -> list[int]:
         forest = self.model.forest
+        if self._in_tail(self.iteration):
+            return [forest.max_level]
         return self.supervision.levels(forest.max_level, self.rng, forest.num_coarse_levels)
 
     def _cuts(self) -> list[tuple[int, int]]:
@@ -620,7 +636,14 @@ class Trainer:
             self.refiner.step()
             _check_finite(it, **self.refiner.corrections())
         decay = c.lr_final_ratio ** (it / max(1, c.iterations))
+        # In the finest tail the roots' Gaussians are put back after the step (their split points
+        # still move: they place the children, not the roots' own Gaussians).
+        R = self.model.forest.num_roots if self._in_tail(it) else 0
+        kept = {name: t.detach()[:R].clone() for name, t in p.items() if name != "split_logits"} if R else {}
         self.opt.step(p, {"d_mu": decay})
+        with torch.no_grad():
+            for name, rows in kept.items():
+                p[name][:R] = rows
         for name, t in p.items():
             _check_finite(it, **{name: t})
         return {"loss": float(stats[0]), "psnr": float(stats[1])}
