@@ -66,6 +66,8 @@ def score(run: str, data: str, views: int) -> dict:
         cfg = json.load(fh)
     row = {"iterations": int(cfg["iterations"]), "supervision": cfg["supervision"], "gaussians": avatar.num_gaussians}
     row["seconds"] = _training_seconds(run)
+    if cfg.get("finest_tail"):
+        row["supervision"] += f", finest tail {cfg['finest_tail']:g}"
     with tempfile.TemporaryDirectory() as tmp:
         for version in (5, 4):
             path = os.path.join(tmp, f"v{version}.pavs")

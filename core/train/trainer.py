@@ -48,8 +48,9 @@ class TrainConfig:
     # The last fraction of the iterations (after growth) supervises the finest level alone and
     # keeps the base faces' Gaussians (coarse and template levels, the roots) as they are, so
     # the finer levels finish for the whole avatar while the base prefixes stay what multi-level
-    # training made them. 0: off (an experiment; docs/BENCHMARKS.md, "Supervision modes at the
-    # paper's scale").
+    # training made them. Off (0) by default: at the paper's scale 0.3 gained 0.2 dB at 50-100 % of
+    # the stream and lost 0.25 at 5-10 % (docs/BENCHMARKS.md, "Supervision modes at the paper's
+    # scale"), a trade, not a gain.
     finest_tail: float = 0.0
     uniform: bool = False  # ablation: split every leaf when the cap rises, ignore gradients
     # Coarse levels above the template (DESIGN.md 7), as fractions of the template's face count,
