@@ -618,14 +618,24 @@ def test_base_supervision_takes_the_finest_and_one_base_level(tiny_dataset, tmp_
     assert np.isfinite(tr.step()["loss"])
 
 
-def test_finest_tail_trains_the_finest_alone_and_keeps_the_base(tiny_dataset, tmp_path):
+def test_finest_tail_trains_the_finest_alone_and_keeps_the_base(tiny_dataset, tmp_path, monkeypatch):
     """finest_tail: past 1 - tail of the iterations a step supervises the finest level only and
     leaves the roots' Gaussians (coarse and template faces) exactly as they were; before it, the
     preset's supervision and every face moves. A tail that would overlap growth is refused."""
     with pytest.raises(ValueError, match="finest tail"):
         config_for("tiny", finest_tail=0.5)  # the tiny preset grows until 80 %
-    cfg = config_for("tiny", finest_tail=0.2, eval_every=10**6, checkpoint_every=10**6)
+    from progressive_avatars.core.train import trainer as trainer_mod
+
+    cfg = config_for("tiny", finest_tail=0.2, prefix_cuts=2, rank_views=2, eval_every=10**6, checkpoint_every=10**6)
     tr = Trainer(tiny_dataset, str(tmp_path / "tail"), cfg)
+    images = []
+    real = trainer_mod.render_levels
+
+    def spy(*args, upto, **kw):
+        images.append(len(upto))
+        return real(*args, upto=upto, **kw)
+
+    monkeypatch.setattr(trainer_mod, "render_levels", spy)
     tr.grad_sum[:] = 1.0
     tr.grad_count[:] = 1.0
     tr._grow(cfg.grow_start)
@@ -637,6 +647,7 @@ def test_finest_tail_trains_the_finest_alone_and_keeps_the_base(tiny_dataset, tm
         assert (tr._levels() == [top]) == in_tail
         before = {k: v.detach().clone() for k, v in p.items()}
         assert np.isfinite(tr.step()["loss"])
+        assert (images[-1] == 1) == in_tail  # no coarser level and no in-level prefix in the tail
         for name in ("d_mu", "d_log_scale", "f_dc", "opacity_logit"):
             roots_same = torch.equal(p[name].detach()[:R], before[name][:R])
             assert roots_same == in_tail, (it, name)

@@ -537,7 +537,7 @@ class Trainer:
         self.model.active_sh_degree = min(c.sh_degree, it // max(1, c.sh_every))
         levels = self._levels()
         top = self.model.forest.max_level
-        cuts = self._cuts()
+        cuts = [] if self._in_tail(it) else self._cuts()  # the tail supervises the finest image alone
         if cuts:
             imp = self.rank_importance
             if imp is None or len(imp) != self.model.num_faces or it % c.rank_every == 0:
