@@ -37,16 +37,11 @@ SECTION = "Supervision modes at the paper's scale (issue 17 experiments)"
 def _training_seconds(run: str):
     """The training time the run's metrics log ends with (seconds of steps, resumes summed), or
     None where the log has none."""
+    from progressive_avatars.core.evaluate.plots import read_log
+
     path = os.path.join(run, "metrics.jsonl")
-    if not os.path.isfile(path):
-        return None
-    last = None
-    with open(path) as fh:
-        for line in fh:
-            rec = json.loads(line)
-            if "seconds" in rec:
-                last = float(rec["seconds"])
-    return last
+    secs = [float(r["seconds"]) for r in read_log(path) if "seconds" in r] if os.path.isfile(path) else []
+    return secs[-1] if secs else None
 
 
 def score(run: str, data: str, views: int) -> dict:
