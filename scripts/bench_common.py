@@ -10,8 +10,17 @@ def machine() -> str:
     cpu = platform.processor() or platform.machine()
     try:
         with open("/proc/cpuinfo") as fh:
-            names = [ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")]
-        cpu = names[0] if names else cpu
+            info = {}
+            for ln in fh:
+                key, _, value = ln.partition(":")
+                info.setdefault(key.strip(), value.strip())
+        cpu = info.get("model name", cpu)
+        # The VMs this runs on change CPU between sessions, and a virtualised Xeon is named
+        # "Intel(R) Xeon(R) Processor" whatever its generation: family, model and the widest
+        # vector unit tell two machines apart (timings differ by up to 2x between them).
+        if "cpu family" in info and "model" in info:
+            vec = next((v for v in ("avx512f", "avx2", "avx") if v in info.get("flags", "").split()), "")
+            cpu += f" (family {info['cpu family']} model {info['model']}" + (f", {vec}" if vec else "") + ")"
     except OSError:
         pass
     mem = ""

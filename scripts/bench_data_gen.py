@@ -10,7 +10,6 @@ quick=True generates a small one (2 sequences x 2 frames x 4 cameras at 64 px).
 import argparse
 import datetime
 import os
-import platform
 import sys
 import tempfile
 import time
@@ -22,21 +21,8 @@ import sys as _sys
 _sys.path.insert(0, _os.path.dirname(_os.path.abspath(__file__)))
 import _bootstrap
 
+from bench_common import machine
 from progressive_avatars.core.synthetic import dataset, surface
-
-
-def _machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return f"{cpu}, {cores} cores available, Python {platform.python_version()}, {platform.system()}"
 
 
 def run(quick: bool = False) -> str:
@@ -54,7 +40,7 @@ def run(quick: bool = False) -> str:
     lines = [
         "## Synthetic dataset generation" + (" (quick)" if quick else ""),
         "",
-        f"- machine: {_machine()}",
+        f"- machine: {machine()}",
         f"- date: {datetime.datetime.now().isoformat(timespec='seconds')}",
         f"- command: `{command}`",
         "",

@@ -23,7 +23,7 @@ import sys as _sys
 _sys.path.insert(0, _os.path.dirname(_os.path.abspath(__file__)))
 import _bootstrap  # noqa: F401
 
-from bench_data_gen import _machine
+from bench_common import machine
 from progressive_avatars.core.synthetic import dataset, surface
 
 PRESET_IMAGES = 16 * 10 * 4
@@ -59,7 +59,7 @@ def run(quick: bool = False) -> str:
     lines = [
         "## Paper-scale synthetic dataset generation (measured on a reduced version, extrapolated)",
         "",
-        f"- machine: {_machine()}; load average at the start {load:.1f} (other work shares the cores)",
+        f"- machine: {machine()}; load average at the start {load:.1f} (other work shares the cores)",
         f"- date: {datetime.datetime.now().isoformat(timespec='seconds')}",
         "- command: `python scripts/bench_data_gen_paper.py`",
         f"- template {len(tf):,} faces / {len(tv):,} vertices; imaged surface {len(ff):,} faces; "

@@ -34,6 +34,7 @@ import platform  # noqa: E402
 import resource  # noqa: E402
 import time  # noqa: E402
 
+from bench_common import machine  # noqa: E402
 import numba  # noqa: E402
 import numpy as np  # noqa: E402
 
@@ -216,9 +217,9 @@ def run(quick: bool = False) -> str:
         "",
         f"- date: {datetime.datetime.now().isoformat(timespec='seconds')}",
         f"- command: `{cmd}`",
-        f"- machine: {platform.platform()}, {platform.processor() or platform.machine()}, "
-        f"{os.cpu_count()} logical CPUs, numba {numba.__version__} with {numba.get_num_threads()} threads "
-        f"({numba.threading_layer()}), torch {torch.__version__}, Python {platform.python_version()}",
+        f"- machine: {machine()}, {platform.platform()}, numba {numba.__version__} with "
+        f"{numba.get_num_threads()} threads "
+        f"({numba.threading_layer()}), torch {torch.__version__}",
         "- scene: Gaussians on an ellipsoid (semi-axes 85/110/95 mm) at ~1 m, scales 1-3 mm (one axis "
         "x0.2), opacity U(0.2, 0.98), float32 tensors; times are the best of several runs after a warm-up "
         f"(OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')})",
@@ -509,8 +510,7 @@ def kernels_section(results, command) -> str:
         "",
         f"- date: {datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%d %H:%M UTC')}",
         f"- command: `{command}`",
-        f"- machine: {platform.platform()}, {os.cpu_count()} logical CPUs, numba {numba.__version__} "
-        f"({numba.threading_layer()}), Python {platform.python_version()}",
+        f"- machine: {machine()}, {platform.platform()}, numba {numba.__version__} ({numba.threading_layer()})",
         f"- load average when written: {load} (2 cores shared with other jobs: above 2, others competed for "
         "the cores; compare old with new, which ran interleaved rep by rep, rather than absolute times)",
         f"- scene: {scene}, {r['width']}x{r['height']}, {r['n']:,} Gaussians; the kernels "
