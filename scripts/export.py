@@ -3,12 +3,14 @@
     python scripts/export.py --run RUN --stream OUT.pavs [--lossless]
     python scripts/export.py --run RUN --ply OUT.ply --budget 25 --frame 0 [--data DIR]
 
-The stream is ordered level by level, each level (the root levels too) by importance,
-computed over the training views on the levels up to each face's own (pixels weighted by the
-error of the levels below) and cached in RUN/importance.npy. --budget is a percentage of the stream's bytes (header included; any value
-in [0, 100]: a budget inside the coarse or template level exports what it holds, a budget with
-no whole record an empty but valid PLY, with a note); --frame a timestep index of the dataset
-(its mesh drives the Gaussians).
+The stream (version 5, docs/FORMAT.md) opens with the coarse levels, then sends any face once its
+parent has, by descending importance, computed over the training views on the levels up to each
+face's own (pixels weighted by the error of the levels below) and cached in RUN/importance.npy.
+Without --stream it is written to RUN/avatar.pavs (the PLY's budget is a prefix of it).
+--budget is a percentage of the stream's bytes (header included; any value in [0, 100]: a
+budget inside the coarse or template level exports what it holds, a budget with no whole record
+an empty but valid PLY, with a note); --frame a timestep index of the dataset (its mesh drives
+the Gaussians; one it lacks is refused before any work).
 """
 
 import argparse
@@ -50,20 +52,28 @@ def main(argv=None):
 
     from progressive_avatars.core.io import run as runs
     from progressive_avatars.core.stream.reader import read_stream
+    from progressive_avatars.core.io.dataset import Dataset
     from progressive_avatars.core.stream.writer import write_stream
 
     try:
         avatar = runs.load_run_avatar(args.run)
         data = runs.run_data_dir(args.run, args.data)
+        ds = Dataset(data, None, flame_model=runs.run_flame_model(args.run, args.flame_model))
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    # A frame the dataset lacks is refused before the importance pass (minutes on a large run)
+    # and before any file is written.
+    if args.ply and args.frame not in set(int(t) for t in ds.timesteps):
+        print(f"error: {data}: no timestep {args.frame} (have {ds.timesteps[0]}..{ds.timesteps[-1]})", file=sys.stderr)
+        return 2
+    try:
         W = runs.run_importance(args.run, avatar, data, max_views=args.max_views)
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     stream_path = args.stream or os.path.join(args.run, "avatar.pavs")
     try:
-        from progressive_avatars.core.io.dataset import Dataset
-
-        ds = Dataset(data, None, flame_model=runs.run_flame_model(args.run, args.flame_model))
         info = write_stream(
             stream_path,
             avatar,
@@ -84,11 +94,6 @@ def main(argv=None):
         from progressive_avatars.core.avatar.avatar import sh_to_rgb
 
         part = read_stream(stream_path, percent=args.budget)
-        if args.frame not in set(int(t) for t in ds.timesteps):
-            print(
-                f"error: {data}: no timestep {args.frame} (have {ds.timesteps[0]}..{ds.timesteps[-1]})", file=sys.stderr
-            )
-            return 2
         held = 0 if part is None else part.num_gaussians
         shown = np.zeros(0, np.int64) if part is None else part.forest.drawn()  # no retired stand-ins
         n = len(shown)

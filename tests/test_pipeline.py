@@ -87,6 +87,28 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
     assert out.returncode == 0 and "holds no whole Gaussian" in out.stderr, out.stderr[-2000:]
     assert json.loads(out.stdout.strip().splitlines()[-1])["ply_gaussians"] == 0
     assert PlyData.read(str(tmp_path / "e.ply"))["vertex"].count == 0
+    # A frame the dataset lacks is refused before anything is written (it used to be checked
+    # only after the stream had been written).
+    out = subprocess.run(
+        [
+            sys.executable,
+            os.path.join(ROOT, "scripts", "export.py"),
+            "--run",
+            tiny_run,
+            "--stream",
+            str(tmp_path / "c.pavs"),
+            "--ply",
+            str(tmp_path / "c.ply"),
+            "--frame",
+            "99999",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=ENV,
+    )
+    assert out.returncode == 2 and "no timestep 99999" in out.stderr, out.stderr[-2000:]
+    assert not (tmp_path / "c.pavs").exists() and not (tmp_path / "c.ply").exists()
 
     report_dir = tmp_path / "report"
     run_script(
