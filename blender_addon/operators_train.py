@@ -83,7 +83,7 @@ def _command(context):
                 [python, "-u", export, "--run", out, "--data", data, "--stream", os.path.join(out, "avatar.pavs")]
                 + flame
             )
-        return cmds, out
+        return cmds, out, None  # a checkout's own scripts: its usual cache
     try:
         tier = training_tier.folder(_extension_root())
     except OSError as exc:
@@ -93,7 +93,9 @@ def _command(context):
         cmd += ["--preset", st.preset]
     if st.iterations:
         cmd += ["--iterations", str(st.iterations)]
-    return [cmd], out
+    # Its own numba cache: in a checkout, entries compiled as pa_ext in the sources' __pycache__
+    # broke every later command-line run there (training_tier.numba_cache_dir).
+    return [cmd], out, training_tier.runner_env()
 
 
 def _start(context):
@@ -147,7 +149,7 @@ class PA_OT_train(bpy.types.Operator):
     def execute(self, context):
         # Blocking path: background mode, where timers (and so the modal path) never run.
         try:
-            cmds, out = _command(context)
+            cmds, out, env = _command(context)
         except RuntimeError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
@@ -156,7 +158,9 @@ class PA_OT_train(bpy.types.Operator):
         st.running = True
         rc = 0
         for cmd in cmds:
-            proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
+            proc = subprocess.Popen(
+                cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1, env=env
+            )
             for line in proc.stdout:
                 self._progress(st, line)
             rc = proc.wait()
@@ -168,7 +172,7 @@ class PA_OT_train(bpy.types.Operator):
         if bpy.app.background:
             return self.execute(context)
         try:
-            self._cmds, self._out = _command(context)
+            self._cmds, self._out, self._env = _command(context)
         except RuntimeError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
@@ -183,7 +187,9 @@ class PA_OT_train(bpy.types.Operator):
 
     def _next_process(self):
         cmd = self._cmds.pop(0)
-        self._proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
+        self._proc = subprocess.Popen(
+            cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1, env=self._env
+        )
         threading.Thread(target=self._pump, args=(self._proc.stdout, self._lines), daemon=True).start()
 
     @staticmethod

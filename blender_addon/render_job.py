@@ -26,30 +26,12 @@ _LOADER = payload.loader("from pa_ext.core.render.worker import serve\nsys.exit(
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-def _cache_dir():
-    """The worker's own numba cache. Never the sources' __pycache__: the worker imports the
-    package under another name ("pa_ext"), and numba keys cache entries by file, not module,
-    so a checkout's training process would load entries that name a module it lacks."""
-    try:
-        import bpy
-
-        from . import ADDON_PACKAGE
-
-        return bpy.utils.extension_path_user(ADDON_PACKAGE, path="numba_cache", create=True)
-    except Exception:  # not installed as an extension (a checkout)
-        path = os.path.join(os.path.expanduser("~"), ".cache", "progressive_avatars", "numba_worker")
-        os.makedirs(path, exist_ok=True)
-        return path
-
-
 class RenderWorker:
     """One worker process and the queue its stdout lines go to."""
 
     def __init__(self, python, root=ROOT, cache_dir=None):
         self.python = python
-        env = dict(os.environ)
-        env.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-        env["NUMBA_CACHE_DIR"] = cache_dir or _cache_dir()
+        env = training_tier.runner_env(cache_dir)
         self.messages = queue.Queue()
         self.ready = None  # None: starting; True: warm; False: failed (see .error)
         self.error = ""

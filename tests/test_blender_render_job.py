@@ -115,3 +115,45 @@ def test_worker_renders_once_warm_returns_at_once_and_cancels(tmp_path, no_worke
     assert again.worker is not worker
     assert again.wait(timeout=200) == "done", again.message
     np.testing.assert_array_equal(again.rgba, second.rgba)
+
+
+_CALL_KERNEL = """import importlib, importlib.util, sys
+import numpy as np
+root, name = sys.argv[1], sys.argv[2]
+spec = importlib.util.spec_from_file_location(name, root + "/__init__.py", submodule_search_locations=[root])
+m = importlib.util.module_from_spec(spec); sys.modules[name] = m; spec.loader.exec_module(m)
+k = importlib.import_module(name + ".core.render.kernels")
+d = np.random.default_rng(0).random(1000)
+print(k.depth_order(d, d > 0.1)[:5].tolist())
+"""
+
+
+def test_private_package_processes_keep_numba_cache_out_of_the_sources(tmp_path, monkeypatch):
+    """The render worker and the Train runner import the extension as "pa_ext". numba keys its
+    cache by source file, and an entry compiled as pa_ext names that module: written into a
+    checkout's __pycache__, it made every later ``python scripts/...`` there fail with "No module
+    named 'pa_ext'" (as the Train operator's runner did). Their environment keeps the cache apart."""
+    import shutil
+    import subprocess
+
+    from progressive_avatars.blender_addon import training_tier
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    checkout = tmp_path / "checkout"  # a copy of the sources, so the real one is never touched
+    shutil.copytree(os.path.join(root, "core"), checkout / "core", ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copy(os.path.join(root, "__init__.py"), checkout / "__init__.py")
+    call = tmp_path / "call.py"
+    call.write_text(_CALL_KERNEL)
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))  # numba_cache_dir()'s fallback lives there
+    env = training_tier.runner_env()
+    assert not env.get("NUMBA_CACHE_DIR", "").startswith((root, str(checkout)))
+    first = subprocess.run(
+        [sys.executable, str(call), str(checkout), "pa_ext"], env=env, capture_output=True, text=True
+    )
+    assert first.returncode == 0, first.stderr[-2000:]
+    assert not list(checkout.rglob("*.nbi")) and list((tmp_path / "home").rglob("*.nbi"))
+    plain = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}  # a command-line run
+    second = subprocess.run(
+        [sys.executable, str(call), str(checkout), "progressive_avatars"], env=plain, capture_output=True, text=True
+    )
+    assert second.returncode == 0 and second.stdout == first.stdout, second.stderr[-2000:]
