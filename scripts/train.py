@@ -32,6 +32,11 @@ def main(argv=None):
     ap.add_argument("--out", required=True, help="run folder to write")
     ap.add_argument("--preset", default="cpu", help="tiny | cpu | paper-cpu | paper (default cpu)")
     ap.add_argument("--resume", action="store_true", help="continue from RUN/checkpoint.npz")
+    ap.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="start over in a RUN that already holds a checkpoint or avatar (refused without it)",
+    )
     ap.add_argument("--iterations", type=int)
     ap.add_argument("--max-depth", type=int)
     ap.add_argument("--supervision", choices=["all", "sampled", "base", "finest"])
@@ -164,9 +169,19 @@ def _train(args, cfg, dist, t0):
         try:
             if dist.is_main:  # the writer of RUN holds its lock for the whole run
                 stack.enter_context(run_lock(args.out))
-            trainer = Trainer(args.data, args.out, cfg, resume=args.resume, progress=not args.no_progress, dist=dist)
+            trainer = Trainer(
+                args.data,
+                args.out,
+                cfg,
+                resume=args.resume,
+                progress=not args.no_progress,
+                dist=dist,
+                overwrite=args.overwrite,
+            )
             if dist.is_main:
                 trainer.on_checkpoint = resources.write
+                if args.overwrite and not args.resume and _os.path.exists(resources.path):
+                    _os.remove(resources.path)  # the replaced run's invocations
         except (ValueError, FileNotFoundError) as exc:
             print(f"error: {who}{exc}", file=sys.stderr)
             return 2

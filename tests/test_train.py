@@ -92,6 +92,18 @@ def test_killed_process_resumes(tiny_dataset, tmp_path):
     rows = [json.loads(ln) for ln in res.read_text().splitlines()]
     assert len(rows) == 2 and rows[0]["iterations"] in (20, 40) and rows[1]["iterations"] == 40
     assert rows[0]["invocation"] != rows[1]["invocation"] and all(r["wall_seconds"] > 0 for r in rows)
+    # The same command without --resume (forgotten) is refused and touches nothing of the run;
+    # --overwrite starts over: a new avatar, the old invocations' rows gone.
+    before = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file() and not p.name.startswith(".")}
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 2 and "already holds a run" in out.stderr and "--resume" in out.stderr, out.stderr
+    after = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file() and not p.name.startswith(".")}
+    assert after == before
+    out = subprocess.run(cmd[:-2] + ["4", "--no-progress", "--overwrite"], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout.strip().splitlines()[-1])["iterations"] == 4
+    rows = [json.loads(ln) for ln in res.read_text().splitlines()]
+    assert len(rows) == 1 and rows[0]["iterations"] == 4
 
 
 def test_adam_grows_with_new_rows():
@@ -775,3 +787,20 @@ def test_growth_by_budget_follows_its_schedule():
     for bad in (0.5, float("nan"), -1.0):
         with pytest.raises(ValueError, match="grow_to"):
             Growth(**kw, max_faces=100, grow_to=bad)
+
+
+def test_blender_train_job_refuses_a_finished_run(tiny_dataset, tiny_run, tmp_path, capsys):
+    """Blender's Train (core/train/jobs.py) into a Run folder that holds a trained run: refused
+    with the UI's words, the run untouched."""
+    import shutil
+
+    from progressive_avatars.core.train import jobs
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    before = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
+    rc = jobs.main(["train", "--data", tiny_dataset, "--out", str(run), "--preset", "tiny", "--no-export"])
+    assert rc == 2 and "choose another Run folder" in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file() and p.name != ".train.lock"} == {
+        k: v for k, v in before.items() if k != ".train.lock"
+    }

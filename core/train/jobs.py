@@ -21,7 +21,7 @@ def _train(args) -> int:
     import contextlib
 
     from .distributed import run_lock
-    from .trainer import Trainer, config_for
+    from .trainer import RunExistsError, Trainer, config_for
 
     flame = os.path.abspath(args.flame_model) if args.flame_model else None
     if flame and not os.path.isfile(flame):
@@ -32,6 +32,13 @@ def _train(args) -> int:
             cfg = config_for(args.preset, iterations=args.iterations or None, flame_model=flame)
             stack.enter_context(run_lock(args.out))  # one training per run folder (as scripts/train.py)
             trainer = Trainer(args.data, args.out, cfg)
+        except RunExistsError:
+            print(
+                f"error: {args.out} already holds a trained run: choose another Run folder (Training > Run), "
+                "or delete this one to start over",
+                file=sys.stderr,
+            )
+            return 2
         except (ValueError, FileNotFoundError, RuntimeError) as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2

@@ -307,6 +307,10 @@ def _log_iteration(line: str) -> float:
         return math.inf
 
 
+class RunExistsError(ValueError):
+    """Training without resume into a run folder that holds a checkpoint or a trained avatar."""
+
+
 def _check_same_data(out_dir: str, data_dir: str) -> None:
     """--resume must continue on the dataset the run was started on (config.json says which)."""
     cfg = os.path.join(out_dir, "config.json")
@@ -345,8 +349,18 @@ class Trainer:
         check_data: bool = True,
         progress: bool = False,
         dist: Dist | None = None,
+        overwrite: bool = False,
     ):
         self.data_dir, self.out_dir, self.cfg = data_dir, out_dir, config
+        # A run folder that holds a checkpoint or a trained avatar is not started over by a
+        # forgotten --resume: its first checkpoint would replace what hours of training made.
+        if not resume and not overwrite:
+            held = [n for n in ("checkpoint.npz", "avatar.npz") if os.path.exists(os.path.join(out_dir, n))]
+            if held:
+                raise RunExistsError(
+                    f"{out_dir} already holds a run ({', '.join(held)}): --resume continues it; to start "
+                    "over, train into another --out folder or pass --overwrite"
+                )
         # World size 1 unless a torchrun job is given: then only rank 0 writes the run folder.
         self.dist = dist or Dist()
         main = self.dist.is_main
