@@ -53,7 +53,8 @@ def _run(cmd: list, out: str) -> dict:
 def run(data: str, iterations: int, reps: int, work: str) -> str:
     if not os.path.isfile(os.path.join(data, "transforms_train.json")):
         subprocess.run([sys.executable, os.path.join(ROOT, "scripts", "make_synthetic.py"), "--out", data], check=True)
-    common = ["--data", data, "--preset", "cpu", "--iterations", str(iterations), "--no-progress"]
+    # --overwrite: a second bench run reuses the run folders of the first (timed from scratch)
+    common = ["--data", data, "--preset", "cpu", "--overwrite", "--iterations", str(iterations), "--no-progress"]
     configs = {
         "1 process x 2 views": lambda out: [sys.executable, TRAIN, "--out", out, "--views-per-step", "2", *common],
         "2 processes x 1 view (torchrun, gloo)": lambda out: [
