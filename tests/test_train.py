@@ -804,3 +804,16 @@ def test_blender_train_job_refuses_a_finished_run(tiny_dataset, tiny_run, tmp_pa
     assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file() and p.name != ".train.lock"} == {
         k: v for k, v in before.items() if k != ".train.lock"
     }
+
+
+def test_config_refuses_negative_counts_and_caches():
+    """Negative iterations used to train 0 iterations silently; a negative seed failed deep in
+    numpy without naming the option; a negative or NaN image cache was taken as is."""
+    with pytest.raises(ValueError, match="iterations and seed must be >= 0, got -5"):
+        config_for("tiny", iterations=-5)
+    with pytest.raises(ValueError, match="iterations and seed must be >= 0, got 60 and -1"):
+        config_for("tiny", seed=-1)
+    for mb in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="image cache must be"):
+            config_for("tiny", image_cache_mb=mb)
+    assert config_for("tiny", iterations=0, image_cache_mb=0).iterations == 0  # untrained avatar, no cache: allowed

@@ -212,6 +212,10 @@ def config_for(preset: str, **overrides) -> TrainConfig:
         raise ValueError(f"coarse weight must be finite and >= 0, got {cfg.coarse_weight}")
     if int(cfg.views_per_step) < 1:
         raise ValueError(f"views per step must be >= 1, got {cfg.views_per_step}")
+    if int(cfg.iterations) < 0 or int(cfg.seed) < 0:
+        raise ValueError(f"iterations and seed must be >= 0, got {cfg.iterations} and {cfg.seed}")
+    if not (math.isfinite(cfg.image_cache_mb) and cfg.image_cache_mb >= 0):
+        raise ValueError(f"image cache must be a finite number of MB >= 0, got {cfg.image_cache_mb}")
     if not (math.isfinite(cfg.prefix_cut_weight) and cfg.prefix_cut_weight >= 0):
         raise ValueError(f"prefix cut weight must be finite and >= 0, got {cfg.prefix_cut_weight}")
     if int(cfg.prefix_cuts) < 0 or int(cfg.rank_every) < 1 or int(cfg.rank_views) < 1:
