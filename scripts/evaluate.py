@@ -105,14 +105,20 @@ def main(argv=None):
     from progressive_avatars.core.evaluate import plots
     from progressive_avatars.core.evaluate.report import ReportOptions, build_report
 
+    def percents(option, text):
+        try:
+            return tuple(float(b) for b in text.split(",") if b.strip())
+        except ValueError:
+            ap.error(f"{option} takes comma-separated percentages, got {text!r}")
+
     try:
         opts = ReportOptions(
             run=args.run,
             out=args.out,
             data=args.data,
             flame_model=args.flame_model,
-            budgets=tuple(float(b) for b in args.budgets.split(",") if b.strip()),
-            strips=tuple(float(b) for b in args.strips.split(",") if b.strip()),
+            budgets=percents("--budgets", args.budgets),
+            strips=percents("--strips", args.strips),
             views=args.views,
             curve_points=args.curve_points,
             curve_views=args.curve_views,

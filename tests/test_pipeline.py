@@ -334,6 +334,22 @@ def test_scripts_report_bad_input(tmp_path):
         env=ENV,
     )
     assert out.returncode == 2 and "no trained avatar" in out.stderr
+    # Counts and percentages are checked before any work, with the option named (these raised
+    # IndexError / ZeroDivisionError deep in the report, or a bare float() message).
+    for args, says in (
+        (["--views", "0"], "views, curve points and curve views must be >= 1"),
+        (["--curve-points", "0"], "views, curve points and curve views must be >= 1"),
+        (["--strips", "101"], "strip budgets must be percentages in [0, 100]"),
+        (["--strips", "abc"], "--strips takes comma-separated percentages"),
+    ):
+        out = subprocess.run(
+            [sys.executable, os.path.join(ROOT, "scripts", "evaluate.py"), "--run", str(tmp_path)]
+            + ["--out", str(tmp_path / "r"), *args],
+            capture_output=True,
+            text=True,
+            env=ENV,
+        )
+        assert out.returncode == 2 and says in out.stderr and "Traceback" not in out.stderr, (args, out.stderr)
     out = subprocess.run(
         [sys.executable, os.path.join(ROOT, "scripts", "export.py"), "--run", str(tmp_path)],
         capture_output=True,

@@ -355,6 +355,13 @@ def build_report(args: ReportOptions) -> dict:
     budgets = [float(b) for b in args.budgets]
     if not budgets or any(not 0 < b <= 100 for b in budgets):
         raise ValueError(f"budgets must be percentages in (0, 100], got {budgets}")
+    if any(not 0 <= float(b) <= 100 for b in args.strips):
+        raise ValueError(f"strip budgets must be percentages in [0, 100], got {list(args.strips)}")
+    if min(args.views, args.curve_points, args.curve_views) < 1:
+        raise ValueError(
+            f"views, curve points and curve views must be >= 1, got {args.views}, {args.curve_points} and "
+            f"{args.curve_views}"
+        )
     avatar = runs.load_run_avatar(args.run)
     data = runs.run_data_dir(args.run, args.data)
     fm = runs.run_flame_model(args.run, args.flame_model)
