@@ -100,9 +100,15 @@ def main(argv=None):
             kw[key] = getattr(args, key)
     if not args.resolution_scale > 0:
         ap.error("--resolution-scale must be positive")
+    if args.resolution is not None and args.resolution < 8:
+        ap.error(f"--resolution is the image height in pixels, at least 8, got {args.resolution}")
     kw["resolution"] = max(8, int(round(kw["resolution"] * args.resolution_scale)))
 
-    summary = dataset.make_dataset(args.out, seed=args.seed, progress=not args.quiet, **kw)
+    try:
+        summary = dataset.make_dataset(args.out, seed=args.seed, progress=not args.quiet, **kw)
+    except ValueError as exc:  # counts the generator refuses, before it writes anything
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     sheet = dataset.contact_sheet(args.out, os.path.join(args.out, "contact_sheet.png"))
     if args.contact_sheet:
         os.makedirs(os.path.dirname(os.path.abspath(args.contact_sheet)), exist_ok=True)

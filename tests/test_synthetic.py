@@ -210,3 +210,21 @@ def test_paper_head_flame_sized_uneven_and_finer_imaged_surface():
         for name, fn in (("paper", texture.paper_albedo), ("default", texture.albedo))
     }
     assert jump["paper"] > 1.5 * jump["default"], jump
+
+
+def test_make_synthetic_script_refuses_bad_counts(tmp_path):
+    """Bad counts are refused with a message and exit 2, no traceback and no folder (they raised a
+    traceback, and --resolution 0 was quietly made 8 px)."""
+    import subprocess
+    import sys
+
+    script = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "scripts", "make_synthetic.py")
+    for args, says in (
+        (["--cameras", "1"], "needs at least 2 sequences, 2 cameras and 1 frame"),
+        (["--resolution", "0"], "--resolution is the image height in pixels, at least 8"),
+    ):
+        out = subprocess.run(
+            [sys.executable, script, "--out", str(tmp_path / "d"), "--quiet", *args], capture_output=True, text=True
+        )
+        assert out.returncode == 2 and says in out.stderr and "Traceback" not in out.stderr, (args, out.stderr)
+        assert not (tmp_path / "d").exists()
