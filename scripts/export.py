@@ -67,6 +67,14 @@ def main(argv=None):
     if args.ply and args.frame not in set(int(t) for t in ds.timesteps):
         print(f"error: {data}: no timestep {args.frame} (have {ds.timesteps[0]}..{ds.timesteps[-1]})", file=sys.stderr)
         return 2
+    for path in (args.stream, args.ply):  # an output folder that cannot be made fails before the work
+        folder = os.path.dirname(os.path.abspath(path)) if path else None
+        if folder:
+            try:
+                os.makedirs(folder, exist_ok=True)
+            except OSError as exc:
+                print(f"error: cannot write {path}: {exc.strerror or exc}", file=sys.stderr)
+                return 2
     try:
         W = runs.run_importance(args.run, avatar, data, max_views=args.max_views)
     except (ValueError, FileNotFoundError) as exc:
@@ -85,6 +93,9 @@ def main(argv=None):
         )
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # the previous file, if any, is kept (written whole, then renamed)
+        print(f"error: cannot write {stream_path}: {exc.strerror or exc}", file=sys.stderr)
         return 2
     result = {"stream": stream_path, "bytes": os.path.getsize(stream_path), "gaussians": avatar.num_gaussians}
     if args.ply:
@@ -122,7 +133,11 @@ def main(argv=None):
             mine = info.order[np.where(k < r, k, k - r + info.num_roots)][shown]
             g["sh_rest"] = avatar.f_rest[mine]
             g["colors"] = sh_to_rgb(avatar.f_dc[mine])
-        write_ply(args.ply, g)
+        try:
+            write_ply(args.ply, g)
+        except OSError as exc:
+            print(f"error: cannot write {args.ply}: {exc.strerror or exc}", file=sys.stderr)
+            return 2
         result.update(
             ply=args.ply,
             ply_gaussians=n,

@@ -109,6 +109,22 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
     )
     assert out.returncode == 2 and "no timestep 99999" in out.stderr, out.stderr[-2000:]
     assert not (tmp_path / "c.pavs").exists() and not (tmp_path / "c.ply").exists()
+    # An output folder that cannot exist (a file stands there): a message, no traceback; a
+    # missing one is made.
+    (tmp_path / "afile").write_text("x")
+    for stream, ok in ((tmp_path / "afile" / "x.pavs", False), (tmp_path / "new" / "dir" / "x.pavs", True)):
+        out = subprocess.run(
+            [sys.executable, os.path.join(ROOT, "scripts", "export.py"), "--run", tiny_run, "--stream", str(stream)],
+            capture_output=True,
+            text=True,
+            timeout=600,
+            env=ENV,
+        )
+        if ok:
+            assert out.returncode == 0 and stream.exists(), out.stderr[-2000:]
+        else:
+            assert out.returncode == 2 and f"cannot write {stream}" in out.stderr, out.stderr[-2000:]
+            assert "Traceback" not in out.stderr
 
     report_dir = tmp_path / "report"
     run_script(
