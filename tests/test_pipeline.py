@@ -24,6 +24,12 @@ def run_script(name, *args):
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+def run_export(run, *args):
+    """scripts/export.py on ``run`` with ``args``, whatever its exit status."""
+    cmd = [sys.executable, os.path.join(ROOT, "scripts", "export.py"), "--run", run, *map(str, args)]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=ENV)
+
+
 @pytest.mark.slow  # a training run or a subprocess
 def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
     from plyfile import PlyData
@@ -64,67 +70,25 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
     assert np.all(rank[f5.parent[kids]] < rank[kids])
     assert np.array_equal(np.bincount(f5.level), trained.forest.level_counts())
     # Any budget exports: 0 % holds no whole Gaussian, so the PLY is empty but valid, with a note.
-    out = subprocess.run(
-        [
-            sys.executable,
-            os.path.join(ROOT, "scripts", "export.py"),
-            "--run",
-            tiny_run,
-            "--stream",
-            str(tmp_path / "b.pavs"),
-            "--ply",
-            str(tmp_path / "e.ply"),
-            "--budget",
-            "0",
-            "--max-views",
-            "8",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        env=ENV,
+    out = run_export(
+        tiny_run, "--stream", tmp_path / "b.pavs", "--ply", tmp_path / "e.ply", "--budget", 0, "--max-views", 8
     )
     assert out.returncode == 0 and "holds no whole Gaussian" in out.stderr, out.stderr[-2000:]
     assert json.loads(out.stdout.strip().splitlines()[-1])["ply_gaussians"] == 0
     assert PlyData.read(str(tmp_path / "e.ply"))["vertex"].count == 0
     # A frame the dataset lacks is refused before anything is written (it used to be checked
     # only after the stream had been written).
-    out = subprocess.run(
-        [
-            sys.executable,
-            os.path.join(ROOT, "scripts", "export.py"),
-            "--run",
-            tiny_run,
-            "--stream",
-            str(tmp_path / "c.pavs"),
-            "--ply",
-            str(tmp_path / "c.ply"),
-            "--frame",
-            "99999",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        env=ENV,
-    )
+    out = run_export(tiny_run, "--stream", tmp_path / "c.pavs", "--ply", tmp_path / "c.ply", "--frame", 99999)
     assert out.returncode == 2 and "no timestep 99999" in out.stderr, out.stderr[-2000:]
     assert not (tmp_path / "c.pavs").exists() and not (tmp_path / "c.ply").exists()
     # An output folder that cannot exist (a file stands there): a message, no traceback; a
     # missing one is made.
     (tmp_path / "afile").write_text("x")
-    for stream, ok in ((tmp_path / "afile" / "x.pavs", False), (tmp_path / "new" / "dir" / "x.pavs", True)):
-        out = subprocess.run(
-            [sys.executable, os.path.join(ROOT, "scripts", "export.py"), "--run", tiny_run, "--stream", str(stream)],
-            capture_output=True,
-            text=True,
-            timeout=600,
-            env=ENV,
-        )
-        if ok:
-            assert out.returncode == 0 and stream.exists(), out.stderr[-2000:]
-        else:
-            assert out.returncode == 2 and f"cannot write {stream}" in out.stderr, out.stderr[-2000:]
-            assert "Traceback" not in out.stderr
+    bad, made = tmp_path / "afile" / "x.pavs", tmp_path / "new" / "dir" / "x.pavs"
+    out = run_export(tiny_run, "--stream", bad)
+    assert out.returncode == 2 and f"cannot write {bad}" in out.stderr and "Traceback" not in out.stderr, out.stderr
+    out = run_export(tiny_run, "--stream", made)
+    assert out.returncode == 0 and made.exists(), out.stderr[-2000:]
 
     report_dir = tmp_path / "report"
     run_script(
