@@ -74,6 +74,8 @@ def _command(context):
             cmd += ["--preset", st.preset]
         if st.iterations:
             cmd += ["--iterations", str(st.iterations)]
+        if st.overwrite:
+            cmd += ["--overwrite"]
         cmds = [cmd + flame]
         # Training writes RUN/avatar.npz in creation order; the importance-ordered stream that
         # the budget slider needs comes from scripts/export.py, run next when it is there.
@@ -93,6 +95,8 @@ def _command(context):
         cmd += ["--preset", st.preset]
     if st.iterations:
         cmd += ["--iterations", str(st.iterations)]
+    if st.overwrite:
+        cmd += ["--overwrite"]
     # Its own numba cache: in a checkout, entries compiled as pa_ext in the sources' __pycache__
     # broke every later command-line run there (training_tier.numba_cache_dir).
     return [cmd], out, training_tier.runner_env()

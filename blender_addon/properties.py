@@ -110,6 +110,11 @@ class PA_TrainState(bpy.types.PropertyGroup):
     iterations: bpy.props.IntProperty(
         name="Iterations", default=0, min=0, description="Training iterations (0: the preset's)"
     )
+    overwrite: bpy.props.BoolProperty(
+        name="Overwrite Run",
+        default=False,
+        description="Start over in a Run folder that already holds a trained run (refused otherwise)",
+    )
     running: bpy.props.BoolProperty(default=False)
     progress: bpy.props.FloatProperty(subtype="PERCENTAGE", min=0, max=100)
     message: bpy.props.StringProperty()

@@ -439,6 +439,10 @@ def test_train_from_installed_zip_loads_onto_starting_mesh(train_session, kind):
     if kind == "flame":
         assert cfg["flame_model"] == train_session["args"]["flame_model"]
     assert os.path.isfile(os.path.join(run, "avatar.npz"))
+    if kind == "mesh":  # trained again into the same Run folder: refused, then Overwrite Run
+        again = rep["train_again"]
+        assert "Training failed (exit 2)" in again["refused"] and "choose another Run folder" in again["message"]
+        assert again["overwritten"] == ["FINISHED"], again
 
 
 @pytest.mark.slow

@@ -804,6 +804,11 @@ def test_blender_train_job_refuses_a_finished_run(tiny_dataset, tiny_run, tmp_pa
     assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file() and p.name != ".train.lock"} == {
         k: v for k, v in before.items() if k != ".train.lock"
     }
+    # The panel's Overwrite Run (--overwrite) starts over.
+    args = ["train", "--data", tiny_dataset, "--out", str(run), "--preset", "tiny", "--iterations", "2"]
+    assert jobs.main(args + ["--no-export", "--overwrite"]) == 0
+    assert (run / "avatar.npz").read_bytes() != before["avatar.npz"]
+    assert [json.loads(ln)["iteration"] for ln in open(run / "metrics.jsonl")][-1] == 2
 
 
 def test_config_refuses_negative_counts_and_caches():

@@ -31,11 +31,11 @@ def _train(args) -> int:
         try:
             cfg = config_for(args.preset, iterations=args.iterations or None, flame_model=flame)
             stack.enter_context(run_lock(args.out))  # one training per run folder (as scripts/train.py)
-            trainer = Trainer(args.data, args.out, cfg)
+            trainer = Trainer(args.data, args.out, cfg, overwrite=args.overwrite)
         except RunExistsError:
             print(
                 f"error: {args.out} already holds a trained run: choose another Run folder (Training > Run), "
-                "or delete this one to start over",
+                "or tick Overwrite Run to start over",
                 file=sys.stderr,
             )
             return 2
@@ -75,6 +75,7 @@ def main(argv=None) -> int:
     t.add_argument("--flame-model", help="your FLAME model file, for FLAME-mode datasets")
     t.add_argument("--iterations", type=int, default=0, help="override the preset's iterations (0: keep)")
     t.add_argument("--no-export", action="store_true", help="stop after training (RUN/avatar.npz)")
+    t.add_argument("--overwrite", action="store_true", help="start over in a RUN that holds a trained run")
     args = ap.parse_args(argv)
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     return _train(args)

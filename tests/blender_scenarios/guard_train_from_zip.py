@@ -34,6 +34,14 @@ def _():
             "mesh": mesh.name,
             "previews": [o.name for o in bpy.data.objects if o.pa_avatar.is_preview and o.pa_avatar.source == mesh],
         }
+    # Train again into the finished mesh run: refused (the run kept) unless Overwrite Run is ticked.
+    st.data_dir, st.out_dir = ARGS["train"]["mesh"][0], os.path.join(ARGS["out"], "run_mesh")
+    bpy.context.view_layer.objects.active = bpy.data.objects[R["train"]["mesh"]["mesh"]]
+    again = {"refused": run_op(bpy.ops.progressive_avatars.train), "message": st.message}
+    st.overwrite = True
+    again["overwritten"] = run_op(bpy.ops.progressive_avatars.train)
+    st.overwrite = False
+    R["train_again"] = again
 
 
 @section("messages")
