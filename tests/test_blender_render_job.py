@@ -145,6 +145,7 @@ def test_private_package_processes_keep_numba_cache_out_of_the_sources(tmp_path,
     call = tmp_path / "call.py"
     call.write_text(_CALL_KERNEL)
     monkeypatch.setenv("HOME", str(tmp_path / "home"))  # numba_cache_dir()'s fallback lives there
+    monkeypatch.setitem(sys.modules, "bpy", None)  # not inside Blender: the fallback, and no bpy loaded here
     env = training_tier.runner_env()
     assert not env.get("NUMBA_CACHE_DIR", "").startswith((root, str(checkout)))
     first = subprocess.run(
