@@ -26,6 +26,11 @@ _sys.path.insert(0, _os.path.dirname(_os.path.abspath(__file__)))
 import _bootstrap
 
 
+def _cannot_write(path, exc: OSError) -> int:
+    print(f"error: cannot write {path}: {exc.strerror or exc}", file=sys.stderr)
+    return 2
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run", required=True)
@@ -73,8 +78,7 @@ def main(argv=None):
             try:
                 os.makedirs(folder, exist_ok=True)
             except OSError as exc:
-                print(f"error: cannot write {path}: {exc.strerror or exc}", file=sys.stderr)
-                return 2
+                return _cannot_write(path, exc)
     try:
         W = runs.run_importance(args.run, avatar, data, max_views=args.max_views)
     except (ValueError, FileNotFoundError) as exc:
@@ -95,8 +99,7 @@ def main(argv=None):
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # the previous file, if any, is kept (written whole, then renamed)
-        print(f"error: cannot write {stream_path}: {exc.strerror or exc}", file=sys.stderr)
-        return 2
+        return _cannot_write(stream_path, exc)
     result = {"stream": stream_path, "bytes": os.path.getsize(stream_path), "gaussians": avatar.num_gaussians}
     if args.ply:
         import numpy as np
@@ -136,8 +139,7 @@ def main(argv=None):
         try:
             write_ply(args.ply, g)
         except OSError as exc:
-            print(f"error: cannot write {args.ply}: {exc.strerror or exc}", file=sys.stderr)
-            return 2
+            return _cannot_write(args.ply, exc)
         result.update(
             ply=args.ply,
             ply_gaussians=n,
