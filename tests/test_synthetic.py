@@ -222,6 +222,9 @@ def test_make_synthetic_script_refuses_bad_counts(tmp_path):
     for args, says in (
         (["--cameras", "1"], "needs at least 2 sequences, 2 cameras and 1 frame"),
         (["--resolution", "0"], "--resolution is the image height in pixels, at least 8"),
+        (["--template-subdivisions", "9"], "template_subdivisions must be 0-7"),
+        (["--template-subdivisions", "-1"], "template_subdivisions must be 0-7"),
+        (["--preset", "paper", "--surface-levels", "6"], "surface_levels must be 0-4"),
     ):
         out = subprocess.run(
             [sys.executable, script, "--out", str(tmp_path / "d"), "--quiet", *args], capture_output=True, text=True

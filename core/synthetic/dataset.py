@@ -59,6 +59,8 @@ def _frame_record(cam: Camera, T: int, C: int, S: int) -> dict:
 
 
 _JOB = None  # what forked generation workers render (set by make_dataset)
+MAX_TEMPLATE_SUBDIVISIONS = 7  # 327,680 faces: about half a minute to build, then the ray casts
+MAX_SURFACE_LEVELS = 4  # the paper head's imaged surface: 8,192 x 4^4 = 2.1 M faces
 
 
 def _write_timestep(job, s, f, stats):
@@ -128,6 +130,18 @@ def make_dataset(
 
     if sequences < 2 or cameras < 2 or frames < 1:
         raise ValueError("make_dataset needs at least 2 sequences, 2 cameras and 1 frame")
+    if detail == "default" and not 0 <= template_subdivisions <= MAX_TEMPLATE_SUBDIVISIONS:
+        # Each subdivision quadruples the faces, and the images are ray-cast from the template
+        # itself: 9 subdivisions (5.2 M faces) ran silently for many minutes before this check.
+        raise ValueError(
+            f"make_dataset: template_subdivisions must be 0-{MAX_TEMPLATE_SUBDIVISIONS} "
+            f"(20 to {20 * 4**MAX_TEMPLATE_SUBDIVISIONS:,} faces; 4 gives the default 5,120), got {template_subdivisions}"
+        )
+    if detail == "paper" and not 0 <= surface_levels <= MAX_SURFACE_LEVELS:
+        raise ValueError(
+            f"make_dataset: surface_levels must be 0-{MAX_SURFACE_LEVELS} (each level 4x the imaged "
+            f"surface's faces; the paper preset's is {PAPER_SURFACE_LEVELS}), got {surface_levels}"
+        )
     t0 = time.perf_counter()
     out = os.fspath(out)
     for sub in ("images", "fg_masks", "meshes"):
