@@ -338,6 +338,68 @@ def bench_ssim(reps, size=(802, 551)):
     )
 
 
+def bench_adam(reps, rows=(21_444, 161_098)):
+    """The Adam step with the trainer's finite checks of every gradient and parameter: the
+    previous tree's (PREV_COMMIT: torch elementwise operations, a torch sum per check) against
+    the compiled pass, interleaved, on the avatar's parameters at a cpu-preset and a
+    paper-scale size. Returns per size the times and the largest parameter difference after
+    one step from the same state."""
+    import torch
+
+    from progressive_avatars.core.avatar.avatar import PARAM_NAMES
+    from progressive_avatars.core.train.adam import Adam
+
+    prev = prev_trainer()
+    widths = {"d_mu": 3, "d_log_scale": 3, "d_rot": 4, "opacity_logit": 1, "f_dc": 3, "split_logits": 3}
+    out = []
+    for n in rows:
+        g = torch.Generator().manual_seed(0)
+
+        def params():
+            return {
+                k: torch.randn((n, widths[k]) if widths[k] > 1 else (n,), generator=g).requires_grad_(True)
+                for k in PARAM_NAMES
+            }
+
+        ours, theirs = params(), params()
+        with torch.no_grad():
+            for k in PARAM_NAMES:
+                theirs[k].copy_(ours[k])
+        lrs = {k: 1e-3 for k in PARAM_NAMES}
+        opt_new, opt_old = Adam(ours, lrs), prev.Adam(theirs, lrs)
+        grads = [{k: 1e-3 * torch.randn(ours[k].shape, generator=g) for k in PARAM_NAMES} for _ in range(4)]
+
+        def new_step(i):
+            for k in PARAM_NAMES:
+                ours[k].grad = grads[i % 4][k].clone()
+            t0 = time.perf_counter()
+            assert not opt_new.nonfinite_gradients(ours)
+            assert not opt_new.step(ours, {"d_mu": 0.5})
+            return time.perf_counter() - t0
+
+        def old_step(i):
+            for k in PARAM_NAMES:
+                theirs[k].grad = grads[i % 4][k].clone()
+            t0 = time.perf_counter()
+            for k, t in theirs.items():
+                prev._check_finite(i, **{f"gradient of {k}": t.grad})
+            opt_old.step(theirs, {"d_mu": 0.5})
+            for k, t in theirs.items():
+                prev._check_finite(i, **{k: t})
+            return time.perf_counter() - t0
+
+        new_step(0), old_step(0)
+        diff = max(
+            float((ours[k] - theirs[k]).detach().abs().max() / theirs[k].detach().abs().max()) for k in PARAM_NAMES
+        )
+        t_old, t_new = [], []
+        for i in range(1, 4 * reps + 1):
+            t_old.append(old_step(i))
+            t_new.append(new_step(i))
+        out.append(dict(rows=n, old=t_old, new=t_new, diff=diff))
+    return out
+
+
 def raster_reference_errors():
     """Both rasterisers against the dense float64 reference on a small head-like scene:
     max abs image error and the worst relative gradient error over all inputs."""
@@ -416,6 +478,7 @@ def run(quick: bool = False, data: str | None = None) -> str:
     raster = bench_raster(reps)
     ref = raster_reference_errors()
     ss = bench_ssim(reps)
+    adam = bench_adam(reps)
     load1 = os.getloadavg()
     cmd = "python scripts/bench.py --only train" + (" --quick" if quick else "")
     lines = [
@@ -461,6 +524,18 @@ def run(quick: bool = False, data: str | None = None) -> str:
         f"SSIM loss alone ({ss['size'][0]}x{ss['size'][1]}, forward + backward, min / median ms): old "
         f"{_fmt(ss['old'])}, new {_fmt(ss['new'])} (x{np.median(ss['old']) / np.median(ss['new']):.2f}); value "
         f"difference {ss['value_err']:.1e}, gradient relative difference {ss['grad_err']:.1e}.",
+        "",
+        "Adam: the step of every parameter with the trainer's finite checks of each gradient and parameter, "
+        f"{PREV_COMMIT} (torch elementwise operations, a torch sum per check) against the compiled pass "
+        "(core/train/adam.py), min / median ms: "
+        + "; ".join(
+            f"{a['rows']:,} rows: old {1e3 * min(a['old']):.1f} / {1e3 * np.median(a['old']):.1f}, "
+            f"new {1e3 * min(a['new']):.1f} / {1e3 * np.median(a['new']):.1f} "
+            f"(x{np.median(a['old']) / np.median(a['new']):.2f})"
+            for a in adam
+        )
+        + f"; parameters after one step from the same state differ by at most {max(a['diff'] for a in adam):.1e} "
+        "of their largest value (float32 rounding: torch fuses some multiply-adds).",
         "",
         "Against the dense float64 reference (64x64, 400 head-scene Gaussians, float32 inputs): old max image "
         f"error {ref['old'][0]:.1e}, worst relative gradient error {ref['old'][1]:.1e}; new {ref['new'][0]:.1e}, "

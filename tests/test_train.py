@@ -120,6 +120,51 @@ def test_adam_grows_with_new_rows():
     np.testing.assert_allclose(p["a"].detach()[0].numpy(), -0.2, rtol=1e-3)
 
 
+def test_adam_compiled_step_matches_torch():
+    """The compiled pass takes torch's float32 steps (to rounding: torch fuses some multiply-adds),
+    across growth, 1-D and 2-D parameters and a per-parameter lr scale."""
+    rng = np.random.default_rng(0)
+
+    def params(n):
+        torch.manual_seed(n)
+        return {"a": torch.randn(n, 3).requires_grad_(True), "b": torch.randn(n).requires_grad_(True)}
+
+    ours, ref = params(3000), params(3000)
+    lrs = {"a": 1e-2, "b": 5e-3}
+    opt, opt_ref = Adam(ours, lrs), Adam(ref, lrs)
+    for it in range(12):
+        if it == 6:  # a split appends rows with their own bias correction
+            for p, o in ((ours, opt), (ref, opt_ref)):
+                for k in p:
+                    p[k] = torch.cat([p[k].detach(), torch.ones((500,) + tuple(p[k].shape[1:]))]).requires_grad_(True)
+                o.grow(p)
+        for k in ours:
+            g = torch.tensor(rng.normal(size=tuple(ours[k].shape)) * 10.0 ** rng.uniform(-6, 1), dtype=torch.float32)
+            ours[k].grad, ref[k].grad = g.clone(), g.clone()
+        assert opt.step(ours, {"a": 0.7}) == []
+        opt_ref.steps += 1
+        opt_ref._torch_step(ref, {"a": 0.7})
+        assert all(ours[k].grad is None for k in ours)
+    for k in ours:
+        np.testing.assert_allclose(ours[k].detach().numpy(), ref[k].detach().numpy(), rtol=1e-6, atol=1e-7)
+        for ours_m, ref_m in ((opt.m[k], opt_ref.m[k]), (opt.v[k], opt_ref.v[k])):
+            ref_m = ref_m.numpy()
+            np.testing.assert_allclose(ours_m.numpy(), ref_m, rtol=1e-6, atol=1e-6 * np.abs(ref_m).max())
+    assert ours["a"].shape == (3500, 3) and not torch.equal(ours["a"][:3000], params(3000)["a"])
+
+
+def test_adam_reports_nonfinite_gradients_and_parameters():
+    p = {"a": torch.zeros(4000, 3, requires_grad=True), "b": torch.zeros(4000, requires_grad=True)}
+    opt = Adam(p, {"a": 0.1, "b": 0.1})
+    p["a"].grad, p["b"].grad = torch.ones(4000, 3), torch.ones(4000)
+    p["b"].grad[3999] = float("nan")
+    assert opt.nonfinite_gradients(p) == ["b"]
+    p["b"].grad[3999] = 1.0
+    opt.m["a"][2500, 1] = float("inf")  # an overflowed moment
+    assert opt.step(p) == ["a"]
+    assert torch.isinf(p["a"][2500, 1]) and torch.isfinite(p["b"]).all()
+
+
 @pytest.mark.slow  # a training run or a subprocess
 def test_extreme_expressions_stay_finite(tiny_dataset, tmp_path):
     """10x the tiny preset's iterations on exaggerated meshes (crumpled, repeated vertices) never goes NaN."""

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from . import losses
+from .adam import Adam
 from ..avatar.avatar import PARAM_NAMES
 from ..io.dataset import Dataset
 from ..io.atomic import atomic_open, atomic_savez
@@ -250,49 +251,6 @@ def config_for(preset: str, **overrides) -> TrainConfig:
 def level_weight(cfg: TrainConfig, level: int) -> float:
     w = cfg.level_weights
     return float(w[min(level, len(w) - 1)]) if w else 1.0
-
-
-class Adam:
-    """Adam with per-row step counts, so rows added by a split start their own bias correction."""
-
-    def __init__(self, params: dict, lrs: dict, betas=(0.9, 0.999), eps=1e-15):
-        self.lrs = dict(lrs)
-        self.betas, self.eps = betas, eps
-        self.m = {k: torch.zeros_like(v) for k, v in params.items()}
-        self.v = {k: torch.zeros_like(v) for k, v in params.items()}
-        self.steps = torch.zeros(len(next(iter(params.values()))), dtype=torch.float64)
-
-    @torch.no_grad()
-    def step(self, params: dict, lr_scale: dict | None = None):
-        b1, b2 = self.betas
-        self.steps += 1
-        c1 = (1 - b1**self.steps).to(torch.float32)
-        c2 = (1 - b2**self.steps).to(torch.float32)
-        for name, p in params.items():
-            if p.grad is None:
-                continue
-            g = p.grad
-            m, v = self.m[name], self.v[name]
-            m.mul_(b1).add_(g, alpha=1 - b1)
-            v.mul_(b2).addcmul_(g, g, value=1 - b2)
-            shape = (-1,) + (1,) * (p.dim() - 1)
-            denom = (v / c2.view(shape)).sqrt_().add_(self.eps)
-            lr = self.lrs[name] * (lr_scale or {}).get(name, 1.0)
-            p.addcdiv_(m / c1.view(shape), denom, value=-lr)
-            p.grad = None
-
-    def grow(self, params: dict):
-        """Extend the state for rows appended to the parameters (zero moments, zero steps)."""
-        n_old = len(self.steps)
-        for name, p in params.items():
-            extra = p.shape[0] - self.m[name].shape[0]
-            if extra > 0:
-                z = torch.zeros((extra,) + tuple(p.shape[1:]), dtype=p.dtype)
-                self.m[name] = torch.cat([self.m[name], z])
-                self.v[name] = torch.cat([self.v[name], z.clone()])
-        n_new = next(iter(params.values())).shape[0]
-        if n_new > n_old:
-            self.steps = torch.cat([self.steps, torch.zeros(n_new - n_old, dtype=torch.float64)])
 
 
 def _check_finite(it: int, **tensors):
@@ -648,8 +606,8 @@ class Trainer:
         stats = np.array([loss_sum, psnr_sum / b])
         if self.dist.world_size > 1:
             self._average_gradients(stats)
-        for name, t in p.items():
-            _check_finite(it, **{f"gradient of {name}": t.grad})
+        for name in self.opt.nonfinite_gradients(p):
+            _check_finite(it, **{f"gradient of {name}": p[name].grad})
         if self.refiner is not None:
             _check_finite(it, **self.refiner.gradients())
             self.refiner.step()
@@ -659,12 +617,12 @@ class Trainer:
         # still move: they place the children, not the roots' own Gaussians).
         R = self.model.forest.num_roots if self._in_tail(it) else 0
         kept = {name: t.detach()[:R].clone() for name, t in p.items() if name != "split_logits"} if R else {}
-        self.opt.step(p, {"d_mu": decay})
+        went_bad = self.opt.step(p, {"d_mu": decay})  # the parameters it left with a NaN or an inf
         with torch.no_grad():
             for name, rows in kept.items():
                 p[name][:R] = rows
-        for name, t in p.items():
-            _check_finite(it, **{name: t})
+        for name in went_bad:
+            _check_finite(it, **{name: p[name]})
         return {"loss": float(stats[0]), "psnr": float(stats[1])}
 
     def _average_gradients(self, stats: np.ndarray):

@@ -1,0 +1,186 @@
+"""Adam for the avatar's parameters: per-row step counts, so rows added by a split start their
+own bias correction; on the CPU one compiled pass per parameter.
+
+The torch version (kept for tensors on a GPU, and as the tests' reference) costs eight
+elementwise passes over memory per parameter, plus a torch sum for each finite check of a
+gradient and of a parameter; at the cpu preset's sizes that was about an eighth of a training
+step (docs/BENCHMARKS.md, "Adam"). The compiled pass does the same float32 operations in the
+same order and counts the non-finite values it meets, so the trainer's checks come with it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from numba import njit, prange
+
+from ..render.kernels import _PARALLEL  # only explicit prange loops run in parallel
+
+_ROWS = 2048  # rows per parallel work item
+
+
+@njit(parallel=_PARALLEL, cache=True)
+def count_nonfinite(a):
+    """NaN and inf values in a [N, K] array."""
+    n = a.shape[0]
+    blocks = (n + _ROWS - 1) // _ROWS
+    bad = np.zeros(blocks, np.int64)
+    for blk in prange(blocks):
+        for i in range(blk * _ROWS, min(n, (blk + 1) * _ROWS)):
+            for j in range(a.shape[1]):
+                if not np.isfinite(a[i, j]):
+                    bad[blk] += 1
+    return bad.sum()
+
+
+@njit(parallel=_PARALLEL, cache=True)
+def adam_rows(p, g, m, v, c1, c2, neg_lr, b1, one_b1, b2, one_b2, eps):
+    """One Adam step of the rows of p [N, K] in place (moments m, v [N, K]; gradient g), row i
+    bias-corrected by c1[i] = 1 - b1^t_i and c2[i] = 1 - b2^t_i. The scalars come in p's dtype,
+    so a float32 parameter is stepped in float32, with torch's operations in torch's order.
+    Returns the number of non-finite values the step left in p."""
+    n = p.shape[0]
+    blocks = (n + _ROWS - 1) // _ROWS
+    bad = np.zeros(blocks, np.int64)
+    for blk in prange(blocks):
+        for i in range(blk * _ROWS, min(n, (blk + 1) * _ROWS)):
+            a = c1[i]
+            b = c2[i]
+            for j in range(p.shape[1]):
+                gi = g[i, j]
+                mi = m[i, j] * b1 + one_b1 * gi
+                vi = v[i, j] * b2 + one_b2 * gi * gi
+                m[i, j] = mi
+                v[i, j] = vi
+                pi = p[i, j] + neg_lr * (mi / a) / (np.sqrt(vi / b) + eps)
+                p[i, j] = pi
+                if not np.isfinite(pi):
+                    bad[blk] += 1
+    return bad.sum()
+
+
+def _bias_corrections(t: np.ndarray, b1: float, b2: float, dtype=np.float32):
+    """(1 - b1^t, 1 - b2^t) per row, in ``dtype``, the powers taken in float64 once per run of
+    equal step counts: rows come in blocks that were added together, so there are few runs,
+    and a power per row was a third of the step."""
+    starts = np.flatnonzero(np.concatenate([[True], t[1:] != t[:-1]]))
+    lengths = np.diff(np.append(starts, len(t)))
+    ts = t[starts]
+    return (
+        np.repeat((1 - b1**ts).astype(dtype), lengths),
+        np.repeat((1 - b2**ts).astype(dtype), lengths),
+    )
+
+
+def _rows(t: torch.Tensor) -> np.ndarray:
+    """A CPU tensor as a [N, K] numpy view of its memory (a 1-D tensor as [N, 1])."""
+    a = t.detach().numpy()
+    return a.reshape(len(a), -1)
+
+
+class Adam:
+    """Adam with per-row step counts, so rows added by a split start their own bias correction."""
+
+    def __init__(self, params: dict, lrs: dict, betas=(0.9, 0.999), eps=1e-15):
+        self.lrs = dict(lrs)
+        self.betas, self.eps = betas, eps
+        self.m = {k: torch.zeros_like(v) for k, v in params.items()}
+        self.v = {k: torch.zeros_like(v) for k, v in params.items()}
+        self.steps = torch.zeros(len(next(iter(params.values()))), dtype=torch.float64)
+
+    @staticmethod
+    def _compiled(params: dict) -> bool:
+        return all(
+            p.device.type == "cpu" and p.is_contiguous() and p.dtype in (torch.float32, torch.float64)
+            for p in params.values()
+        )
+
+    def nonfinite_gradients(self, params: dict) -> list:
+        """Names of the parameters whose gradient holds a NaN or an inf."""
+        bad = []
+        for name, p in params.items():
+            g = p.grad
+            if g is None:
+                continue
+            if g.device.type == "cpu" and g.dtype in (torch.float32, torch.float64):
+                found = count_nonfinite(_rows(g.contiguous())) > 0
+            else:
+                found = not bool(torch.isfinite(g).all())
+            if found:
+                bad.append(name)
+        return bad
+
+    @torch.no_grad()
+    def step(self, params: dict, lr_scale: dict | None = None) -> list:
+        """One step of every parameter that has a gradient (then cleared); returns the names of
+        those the step left with a NaN or an inf."""
+        b1, b2 = self.betas
+        self.steps += 1
+        if not self._compiled(params):
+            return self._torch_step(params, lr_scale)
+        t = self.steps.numpy()
+        corrections = {}  # dtype -> (c1, c2)
+        bad = []
+        for name, p in params.items():
+            if p.grad is None:
+                continue
+            lr = self.lrs[name] * (lr_scale or {}).get(name, 1.0)
+            pa = _rows(p)
+            ty = pa.dtype.type
+            if pa.dtype not in corrections:
+                corrections[pa.dtype] = _bias_corrections(t, b1, b2, pa.dtype)
+            cc1, cc2 = corrections[pa.dtype]
+            n = adam_rows(
+                pa,
+                _rows(p.grad.contiguous()),
+                _rows(self.m[name]),
+                _rows(self.v[name]),
+                cc1,
+                cc2,
+                ty(-lr),
+                ty(b1),
+                ty(1 - b1),
+                ty(b2),
+                ty(1 - b2),
+                ty(self.eps),
+            )
+            p.grad = None
+            if n:
+                bad.append(name)
+        return bad
+
+    @torch.no_grad()
+    def _torch_step(self, params: dict, lr_scale: dict | None) -> list:
+        """The same step with torch's elementwise operations (parameters on a GPU)."""
+        b1, b2 = self.betas
+        c1 = (1 - b1**self.steps).to(torch.float32)
+        c2 = (1 - b2**self.steps).to(torch.float32)
+        bad = []
+        for name, p in params.items():
+            if p.grad is None:
+                continue
+            g = p.grad
+            m, v = self.m[name], self.v[name]
+            m.mul_(b1).add_(g, alpha=1 - b1)
+            v.mul_(b2).addcmul_(g, g, value=1 - b2)
+            shape = (-1,) + (1,) * (p.dim() - 1)
+            denom = (v / c2.to(v.device).view(shape)).sqrt_().add_(self.eps)
+            lr = self.lrs[name] * (lr_scale or {}).get(name, 1.0)
+            p.addcdiv_(m / c1.to(m.device).view(shape), denom, value=-lr)
+            p.grad = None
+            if not bool(torch.isfinite(p).all()):
+                bad.append(name)
+        return bad
+
+    def grow(self, params: dict):
+        """Extend the state for rows appended to the parameters (zero moments, zero steps)."""
+        n_old = len(self.steps)
+        for name, p in params.items():
+            extra = p.shape[0] - self.m[name].shape[0]
+            if extra > 0:
+                z = torch.zeros((extra,) + tuple(p.shape[1:]), dtype=p.dtype)
+                self.m[name] = torch.cat([self.m[name], z])
+                self.v[name] = torch.cat([self.v[name], z.clone()])
+        n_new = next(iter(params.values())).shape[0]
+        if n_new > n_old:
+            self.steps = torch.cat([self.steps, torch.zeros(n_new - n_old, dtype=torch.float64)])
