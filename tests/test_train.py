@@ -132,6 +132,7 @@ def test_adam_compiled_step_matches_torch():
     ours, ref = params(3000), params(3000)
     lrs = {"a": 1e-2, "b": 5e-3}
     opt, opt_ref = Adam(ours, lrs), Adam(ref, lrs)
+    assert opt._compiled(ours)  # else both would take the torch path
     for it in range(12):
         if it == 6:  # a split appends rows with their own bias correction
             for p, o in ((ours, opt), (ref, opt_ref)):

@@ -1,11 +1,12 @@
 """Adam for the avatar's parameters: per-row step counts, so rows added by a split start their
-own bias correction; on the CPU one compiled pass per parameter.
+own bias correction; on the CPU one compiled pass over all of them.
 
 The torch version (kept for tensors on a GPU, and as the tests' reference) costs eight
-elementwise passes over memory per parameter, plus a torch sum for each finite check of a
-gradient and of a parameter; at the cpu preset's sizes that was about an eighth of a training
-step (docs/BENCHMARKS.md, "Adam"). The compiled pass does the same float32 operations in the
-same order and counts the non-finite values it meets, so the trainer's checks come with it.
+elementwise passes over memory per parameter, plus a torch sum for each of the trainer's finite
+checks of a gradient and of a parameter: about an eighth of a cpu-preset training step
+(docs/BENCHMARKS.md, "Training iteration", the Adam line). The compiled pass does the same
+float32 operations in the same order and counts the non-finite values it meets, so the checks
+come with it.
 """
 
 from __future__ import annotations
@@ -20,43 +21,49 @@ _ROWS = 2048  # rows per parallel work item
 
 
 @njit(parallel=_PARALLEL, cache=True)
-def count_nonfinite(a):
-    """NaN and inf values in a [N, K] array."""
-    n = a.shape[0]
+def count_nonfinite(arrays):
+    """NaN and inf values in each of a tuple of [N, K] arrays of N rows (one parallel pass)."""
+    n = arrays[0].shape[0]
     blocks = (n + _ROWS - 1) // _ROWS
-    bad = np.zeros(blocks, np.int64)
+    bad = np.zeros((blocks, len(arrays)), np.int64)
     for blk in prange(blocks):
-        for i in range(blk * _ROWS, min(n, (blk + 1) * _ROWS)):
-            for j in range(a.shape[1]):
-                if not np.isfinite(a[i, j]):
-                    bad[blk] += 1
-    return bad.sum()
+        for q in range(len(arrays)):
+            a = arrays[q]
+            for i in range(blk * _ROWS, min(n, (blk + 1) * _ROWS)):
+                for j in range(a.shape[1]):
+                    if not np.isfinite(a[i, j]):
+                        bad[blk, q] += 1
+    return bad.sum(axis=0)
 
 
 @njit(parallel=_PARALLEL, cache=True)
-def adam_rows(p, g, m, v, c1, c2, neg_lr, b1, one_b1, b2, one_b2, eps):
-    """One Adam step of the rows of p [N, K] in place (moments m, v [N, K]; gradient g), row i
-    bias-corrected by c1[i] = 1 - b1^t_i and c2[i] = 1 - b2^t_i. The scalars come in p's dtype,
-    so a float32 parameter is stepped in float32, with torch's operations in torch's order.
-    Returns the number of non-finite values the step left in p."""
-    n = p.shape[0]
+def adam_rows(ps, gs, ms, vs, c1, c2, neg_lrs, b1, one_b1, b2, one_b2, eps):
+    """One Adam step in place of each parameter ps[q] [N, K_q] (moments ms[q], vs[q]; gradient
+    gs[q]; step size -neg_lrs[q]), row i bias-corrected by c1[i] = 1 - b1^t_i and c2[i] =
+    1 - b2^t_i. The scalars come in the parameters' dtype, so float32 parameters are stepped in
+    float32, with torch's operations in torch's order. One parallel pass for all of them (a
+    pass each cost a start of the threads each). Returns per parameter the number of
+    non-finite values the step left in it."""
+    n = ps[0].shape[0]
     blocks = (n + _ROWS - 1) // _ROWS
-    bad = np.zeros(blocks, np.int64)
+    bad = np.zeros((blocks, len(ps)), np.int64)
     for blk in prange(blocks):
-        for i in range(blk * _ROWS, min(n, (blk + 1) * _ROWS)):
-            a = c1[i]
-            b = c2[i]
-            for j in range(p.shape[1]):
-                gi = g[i, j]
-                mi = m[i, j] * b1 + one_b1 * gi
-                vi = v[i, j] * b2 + one_b2 * gi * gi
-                m[i, j] = mi
-                v[i, j] = vi
-                pi = p[i, j] + neg_lr * (mi / a) / (np.sqrt(vi / b) + eps)
-                p[i, j] = pi
-                if not np.isfinite(pi):
-                    bad[blk] += 1
-    return bad.sum()
+        for q in range(len(ps)):
+            p, g, m, v, neg_lr = ps[q], gs[q], ms[q], vs[q], neg_lrs[q]
+            for i in range(blk * _ROWS, min(n, (blk + 1) * _ROWS)):
+                a = c1[i]
+                b = c2[i]
+                for j in range(p.shape[1]):
+                    gi = g[i, j]
+                    mi = m[i, j] * b1 + one_b1 * gi
+                    vi = v[i, j] * b2 + one_b2 * gi * gi
+                    m[i, j] = mi
+                    v[i, j] = vi
+                    pi = p[i, j] + neg_lr * (mi / a) / (np.sqrt(vi / b) + eps)
+                    p[i, j] = pi
+                    if not np.isfinite(pi):
+                        bad[blk, q] += 1
+    return bad.sum(axis=0)
 
 
 def _bias_corrections(t: np.ndarray, b1: float, b2: float, dtype=np.float32):
@@ -88,27 +95,30 @@ class Adam:
         self.v = {k: torch.zeros_like(v) for k, v in params.items()}
         self.steps = torch.zeros(len(next(iter(params.values()))), dtype=torch.float64)
 
-    @staticmethod
-    def _compiled(params: dict) -> bool:
-        return all(
-            p.device.type == "cpu" and p.is_contiguous() and p.dtype in (torch.float32, torch.float64)
-            for p in params.values()
+    def _compiled(self, params: dict) -> bool:
+        """Whether the compiled pass takes these parameters: CPU, contiguous, one float dtype,
+        a row per step count (as the avatar's are)."""
+        dtypes = {p.dtype for p in params.values()}
+        return (
+            len(dtypes) == 1
+            and dtypes <= {torch.float32, torch.float64}
+            and all(
+                p.device.type == "cpu"
+                and len(p) == len(self.steps)
+                and all(t.is_contiguous() and t.dtype == p.dtype for t in (p, self.m[k], self.v[k]))
+                for k, p in params.items()
+            )
         )
 
     def nonfinite_gradients(self, params: dict) -> list:
         """Names of the parameters whose gradient holds a NaN or an inf."""
-        bad = []
-        for name, p in params.items():
-            g = p.grad
-            if g is None:
-                continue
-            if g.device.type == "cpu" and g.dtype in (torch.float32, torch.float64):
-                found = count_nonfinite(_rows(g.contiguous())) > 0
-            else:
-                found = not bool(torch.isfinite(g).all())
-            if found:
-                bad.append(name)
-        return bad
+        named = {k: p.grad for k, p in params.items() if p.grad is not None}
+        if not named:
+            return []
+        if self._compiled(params) and all(g.dtype == next(iter(named.values())).dtype for g in named.values()):
+            counts = count_nonfinite(tuple(_rows(g.contiguous()) for g in named.values()))
+            return [k for k, c in zip(named, counts) if c]
+        return [k for k, g in named.items() if not bool(torch.isfinite(g).all())]
 
     @torch.no_grad()
     def step(self, params: dict, lr_scale: dict | None = None) -> list:
@@ -118,36 +128,30 @@ class Adam:
         self.steps += 1
         if not self._compiled(params):
             return self._torch_step(params, lr_scale)
-        t = self.steps.numpy()
-        corrections = {}  # dtype -> (c1, c2)
-        bad = []
-        for name, p in params.items():
-            if p.grad is None:
-                continue
-            lr = self.lrs[name] * (lr_scale or {}).get(name, 1.0)
-            pa = _rows(p)
-            ty = pa.dtype.type
-            if pa.dtype not in corrections:
-                corrections[pa.dtype] = _bias_corrections(t, b1, b2, pa.dtype)
-            cc1, cc2 = corrections[pa.dtype]
-            n = adam_rows(
-                pa,
-                _rows(p.grad.contiguous()),
-                _rows(self.m[name]),
-                _rows(self.v[name]),
-                cc1,
-                cc2,
-                ty(-lr),
-                ty(b1),
-                ty(1 - b1),
-                ty(b2),
-                ty(1 - b2),
-                ty(self.eps),
-            )
+        names = [k for k, p in params.items() if p.grad is not None]
+        if not names:
+            return []
+        ps = [params[k] for k in names]
+        ty = _rows(ps[0]).dtype.type
+        c1, c2 = _bias_corrections(self.steps.numpy(), b1, b2, ty)
+        lrs = np.array([-self.lrs[k] * (lr_scale or {}).get(k, 1.0) for k in names], ty)
+        counts = adam_rows(
+            tuple(_rows(p) for p in ps),
+            tuple(_rows(p.grad.contiguous()) for p in ps),
+            tuple(_rows(self.m[k]) for k in names),
+            tuple(_rows(self.v[k]) for k in names),
+            c1,
+            c2,
+            lrs,
+            ty(b1),
+            ty(1 - b1),
+            ty(b2),
+            ty(1 - b2),
+            ty(self.eps),
+        )
+        for p in ps:
             p.grad = None
-            if n:
-                bad.append(name)
-        return bad
+        return [k for k, c in zip(names, counts) if c]
 
     @torch.no_grad()
     def _torch_step(self, params: dict, lr_scale: dict | None) -> list:
