@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The main job on the embedded default: synthetic head -> trained avatar -> stream -> report.
 # Creates the project's virtual environment on first use. Outputs go to runs/ (git-ignored).
-#   PRESET=tiny bash scripts/run_demo.sh   # a one-minute smoke run instead of the ~30 min cpu preset
+#   PRESET=tiny bash scripts/run_demo.sh   # a smoke run instead of the cpu preset's few minutes
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup_env.sh
