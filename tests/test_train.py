@@ -164,6 +164,13 @@ def test_adam_reports_nonfinite_gradients_and_parameters():
     opt.m["a"][2500, 1] = float("inf")  # an overflowed moment
     assert opt.step(p) == ["a"]
     assert torch.isinf(p["a"][2500, 1]) and torch.isfinite(p["b"]).all()
+    # The torch path (GPU tensors) reports alike.
+    q = {"a": torch.zeros(50, 3, requires_grad=True), "b": torch.zeros(50, requires_grad=True)}
+    ref = Adam(q, {"a": 0.1, "b": 0.1})
+    q["a"].grad, q["b"].grad = torch.ones(50, 3), torch.ones(50)
+    ref.m["b"][7] = float("inf")
+    ref.steps += 1
+    assert ref._torch_step(q, None) == ["b"] and torch.isfinite(q["a"]).all()
 
 
 @pytest.mark.slow  # a training run or a subprocess

@@ -159,7 +159,7 @@ class Adam:
         b1, b2 = self.betas
         c1 = (1 - b1**self.steps).to(torch.float32)
         c2 = (1 - b2**self.steps).to(torch.float32)
-        bad = []
+        finite = {}
         for name, p in params.items():
             if p.grad is None:
                 continue
@@ -172,9 +172,11 @@ class Adam:
             lr = self.lrs[name] * (lr_scale or {}).get(name, 1.0)
             p.addcdiv_(m / c1.to(m.device).view(shape), denom, value=-lr)
             p.grad = None
-            if not bool(torch.isfinite(p).all()):
-                bad.append(name)
-        return bad
+            finite[name] = torch.isfinite(p).all()
+        if not finite:
+            return []
+        flags = torch.stack(list(finite.values())).tolist()  # one wait for a GPU, not one per parameter
+        return [name for name, ok in zip(finite, flags) if not ok]
 
     def grow(self, params: dict):
         """Extend the state for rows appended to the parameters (zero moments, zero steps)."""
