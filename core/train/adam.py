@@ -115,7 +115,7 @@ class Adam:
         named = {k: p.grad for k, p in params.items() if p.grad is not None}
         if not named:
             return []
-        if self._compiled(params) and all(g.dtype == next(iter(named.values())).dtype for g in named.values()):
+        if self._compiled(params):  # torch keeps a gradient in its parameter's dtype
             counts = count_nonfinite(tuple(_rows(g.contiguous()) for g in named.values()))
             return [k for k, c in zip(named, counts) if c]
         return [k for k, g in named.items() if not bool(torch.isfinite(g).all())]
