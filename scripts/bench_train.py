@@ -338,6 +338,55 @@ def bench_ssim(reps, size=(802, 551)):
     )
 
 
+BINDING_COMMIT = "5dda6c5"  # the binding's float64 copies in and out (before the kernels read float32)
+
+
+def bench_binding(run_dir, reps):
+    """The face binding forward + backward (core/train/binding_kernels.py) on a trained paper-scale
+    avatar's parameters and one of its frames: BINDING_COMMIT's (float64 copies of the float32
+    parameters and gradients in, float64 results cast back) against this tree's (the kernels read
+    and write the float32 arrays), interleaved. Returns the times and whether every output and
+    gradient is bit-identical."""
+    import torch
+
+    from progressive_avatars.core.avatar.avatar import Avatar
+    from progressive_avatars.core.io.dataset import Dataset
+    from progressive_avatars.core.train import binding_kernels as new_kernels
+
+    prev_trainer(BINDING_COMMIT)
+    old_kernels = importlib.import_module(f"pa_{BINDING_COMMIT}.core.train.binding_kernels")
+    av = Avatar.load(os.path.join(run_dir, "avatar.npz"))
+    data = Dataset(av.meta["data"], "train", cache_images=0)
+    verts = torch.from_numpy(np.asarray(data.vertices_at(data.frame_info(0).timestep_index), np.float32))
+    n = av.num_gaussians
+    arrays = [av.forest.split_logits, av.d_mu, av.d_log_scale, av.d_rot]
+    params = {
+        i: torch.from_numpy(np.ascontiguousarray(x, np.float32)).requires_grad_(True) for i, x in enumerate(arrays)
+    }
+    g = torch.Generator().manual_seed(0)
+    upstream = [torch.randn((n, k), generator=g) for k in (3, 3, 4)]
+
+    def step(kernels):
+        for t in params.values():
+            t.grad = None
+        t0 = time.perf_counter()
+        out = kernels.FaceBinding(av.forest).gaussians(verts, *params.values())
+        sum((x * u).sum() for x, u in zip((out.means, out.scales, out.quats), upstream)).backward()
+        dt = time.perf_counter() - t0
+        return dt, [x.detach().clone() for x in (out.means, out.scales, out.quats)] + [
+            t.grad.clone() for t in params.values()
+        ]
+
+    _, a = step(old_kernels)
+    _, b = step(new_kernels)
+    identical = all(torch.equal(x, y) for x, y in zip(a, b))
+    t_old, t_new = [], []
+    for _ in range(reps):
+        t_old.append(step(old_kernels)[0])
+        t_new.append(step(new_kernels)[0])
+    return dict(faces=n, old=t_old, new=t_new, identical=identical)
+
+
 def bench_adam(reps, rows=(21_444, 161_098)):
     """The Adam step with the trainer's finite checks of every gradient and parameter: the
     previous tree's (PREV_COMMIT: torch elementwise operations, a torch sum per check) against
@@ -479,6 +528,7 @@ def run(quick: bool = False, data: str | None = None) -> str:
     ref = raster_reference_errors()
     ss = bench_ssim(reps)
     adam = bench_adam(reps)
+    binding = bench_binding(run_dir, 3 * reps) if run_dir is not None else None
     load1 = os.getloadavg()
     cmd = "python scripts/bench.py --only train" + (" --quick" if quick else "")
     lines = [
@@ -537,6 +587,17 @@ def run(quick: bool = False, data: str | None = None) -> str:
         + f"; parameters after one step from the same state differ by at most {max(a['diff'] for a in adam):.1e} "
         "of their largest value (float32 rounding: torch fuses some multiply-adds).",
         "",
+    ]
+    if binding is not None:
+        lines += [
+            f"Face binding, forward + backward ({binding['faces']:,} faces of `{os.path.relpath(run_dir, ROOT)}`, "
+            f"one frame), {BINDING_COMMIT} (float64 copies of the float32 parameters and gradients, float64 results "
+            "cast back) against the kernels reading and writing the float32 arrays, min / median ms: old "
+            f"{_fmt(binding['old'])}, new {_fmt(binding['new'])} (x{np.median(binding['old']) / np.median(binding['new']):.2f}); "
+            + ("every output and gradient bit-identical." if binding["identical"] else "**outputs differ**."),
+            "",
+        ]
+    lines += [
         "Against the dense float64 reference (64x64, 400 head-scene Gaussians, float32 inputs): old max image "
         f"error {ref['old'][0]:.1e}, worst relative gradient error {ref['old'][1]:.1e}; new {ref['new'][0]:.1e}, "
         f"{ref['new'][1]:.1e}.",

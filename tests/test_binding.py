@@ -388,3 +388,57 @@ def test_binding_kernels_deterministic_across_thread_counts():
     numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
     for other in results[1:]:
         assert all(torch.equal(a, b) for a, b in zip(results[0], other))
+
+
+def test_binding_kernels_read_float32_as_their_float64_copies():
+    """The kernels read and write the trainer's float32 arrays directly (no float64 copies in
+    or out) and widen every load, so the Gaussians and gradients are bit for bit those of the
+    same values given in float64, rounded once to float32 (what the copies gave). Sizes with
+    a wide spread (|d_rot| from 1e-3 to 1e3, log-scales to +-8) would show a sum or an exp
+    taken in float32."""
+    from progressive_avatars.core.train import binding_kernels
+
+    rng = np.random.default_rng(15)
+    verts, faces = sphere_mesh(12, 14)
+    forest = random_forest(faces, rng, depth=3, frac=0.6, logit_scale=1.5)
+    plan = binding_kernels.FaceBinding(forest)
+    N = forest.num_faces
+    values = [
+        verts + rng.normal(0, 1e-3, verts.shape),
+        forest.split_logits,
+        rng.normal(0, 0.5, (N, 3)),
+        rng.uniform(-8, 8, (N, 3)),
+        rng.normal(size=(N, 4)) * 10.0 ** rng.uniform(-3, 3, (N, 1)),
+    ]
+    values = [np.asarray(v, np.float32) for v in values]  # exactly representable in both
+    cot = [rng.normal(size=(N, k)).astype(np.float32) for k in (3, 3, 4)]
+
+    def run(dtype):
+        inputs = [torch.tensor(v, dtype=dtype, requires_grad=True) for v in values]
+        out = plan.gaussians(*inputs)
+        outs = (out.means, out.scales, out.quats)
+        sum((x * torch.tensor(c, dtype=dtype)).sum() for x, c in zip(outs, cot)).backward()
+        return [x.detach() for x in outs] + [p.grad for p in inputs]
+
+    f32, f64 = run(torch.float32), run(torch.float64)
+    for name, a, b in zip(
+        ("means", "scales", "quats", "g_verts", "g_logits", "g_d_mu", "g_d_log_scale", "g_d_rot"), f32, f64
+    ):
+        assert a.dtype == torch.float32, name
+        assert torch.equal(a, b.to(torch.float32)), (name, float((a.double() - b).abs().max()))
+
+
+def test_binding_kernels_refuse_a_backward_after_an_in_place_change():
+    """The backward reads the residuals' own memory (no copy): changing one in place between
+    forward and backward is refused by torch, not silently differentiated at the new values."""
+    from progressive_avatars.core.train import binding_kernels
+
+    rng = np.random.default_rng(16)
+    verts, faces = sphere_mesh(4, 6)
+    forest = random_forest(faces, rng, depth=2, frac=0.5)
+    inputs = _kernel_inputs(forest, verts, rng, torch.float32)
+    out = binding_kernels.FaceBinding(forest).gaussians(*inputs)
+    with torch.no_grad():
+        inputs[2].add_(1.0)  # d_mu, as an optimiser step would
+    with pytest.raises(RuntimeError, match="modified by an inplace operation"):
+        out.means.sum().backward()

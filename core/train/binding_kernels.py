@@ -359,13 +359,11 @@ def _face_frame(verts, tri, pack, root, f, Wf, r):
 
 
 @njit(parallel=_PARALLEL, cache=True)
-def bind_forward(verts, tri, pack, order, root_start, W, d_mu, d_log_scale, d_rot):
-    """World Gaussians (means [N,3], scales [N,3], quats [N,4] wxyz) of every face, float64."""
-    n = W.shape[0]
+def bind_forward(verts, tri, pack, order, root_start, W, d_mu, d_log_scale, d_rot, means, scales, quats):
+    """World Gaussians of every face into means [N,3], scales [N,3], quats [N,4] (wxyz), computed
+    in float64 and rounded once on the store when the outputs are float32. The residuals may be
+    float32 or float64: every load is widened first, so both give the same bits."""
     F0 = tri.shape[0]
-    means = np.empty((n, 3))
-    scales = np.empty((n, 3))
-    quats = np.empty((n, 4))
     for root in prange(F0):
         r = np.empty((3, 3))
         qr = np.empty(4)
@@ -374,34 +372,37 @@ def bind_forward(verts, tri, pack, order, root_start, W, d_mu, d_log_scale, d_ro
         for k in range(root_start[root], root_start[root + 1]):
             f = order[k]
             sc, t0, t1, t2, _, _, _, _, _, _, _, _, _, _ = _face_frame(verts, tri, pack, root, f, W[f], r)
+            m0 = np.float64(d_mu[f, 0])
+            m1 = np.float64(d_mu[f, 1])
+            m2 = np.float64(d_mu[f, 2])
+            means[f, 0] = sc * (r[0, 0] * m0 + r[0, 1] * m1 + r[0, 2] * m2) + t0
+            means[f, 1] = sc * (r[1, 0] * m0 + r[1, 1] * m1 + r[1, 2] * m2) + t1
+            means[f, 2] = sc * (r[2, 0] * m0 + r[2, 1] * m1 + r[2, 2] * m2) + t2
             for i in range(3):
-                means[f, i] = sc * (r[i, 0] * d_mu[f, 0] + r[i, 1] * d_mu[f, 1] + r[i, 2] * d_mu[f, 2])
-                scales[f, i] = sc * math.exp(d_log_scale[f, i])
-            means[f, 0] += t0
-            means[f, 1] += t1
-            means[f, 2] += t2
+                scales[f, i] = sc * math.exp(np.float64(d_log_scale[f, i]))
             _rotmat_to_quat(r, qr)
-            nd = math.sqrt(d_rot[f, 0] ** 2 + d_rot[f, 1] ** 2 + d_rot[f, 2] ** 2 + d_rot[f, 3] ** 2)
+            for i in range(4):
+                qd[i] = np.float64(d_rot[f, i])
+            nd = math.sqrt(qd[0] ** 2 + qd[1] ** 2 + qd[2] ** 2 + qd[3] ** 2)
             nd = max(nd, 1e-12)
             for i in range(4):
-                qd[i] = d_rot[f, i] / nd
+                qd[i] = qd[i] / nd
             _qmul(qr, qd, qf)
             for i in range(4):
                 quats[f, i] = qf[i]
-    return means, scales, quats
 
 
 @njit(parallel=_PARALLEL, cache=True)
-def bind_backward(verts, tri, pack, order, root_start, W, d_mu, d_log_scale, d_rot, g_means, g_scales, g_quats):
-    """Gradients: per root of (v0, v1, v2) [F0,3,3], per face of the geometry weights
-    [N,3,2], d_mu, d_log_scale and d_rot."""
+def bind_backward(
+    verts, tri, pack, order, root_start, W, d_mu, d_log_scale, d_rot, g_means, g_scales, g_quats, g_dmu, g_dls, g_drot
+):
+    """Gradients: per root of (v0, v1, v2) [F0,3,3] and per face of the geometry weights [N,3,2]
+    (returned, float64), of d_mu, d_log_scale and d_rot (into g_dmu, g_dls, g_drot, rounded once
+    on the store when float32). Inputs float32 or float64 alike: every load is widened first."""
     n = W.shape[0]
     F0 = tri.shape[0]
     g_root = np.zeros((F0, 3, 3))
     gW = np.zeros((n, 3, 2))
-    g_dmu = np.empty((n, 3))
-    g_dls = np.empty((n, 3))
-    g_drot = np.empty((n, 4))
     for root in prange(F0):
         r = np.empty((3, 3))
         qr = np.empty(4)
@@ -410,37 +411,45 @@ def bind_backward(verts, tri, pack, order, root_start, W, d_mu, d_log_scale, d_r
         tmp = np.empty(4)
         gq = np.empty(4)
         G = np.zeros((3, 3))  # dL/d columns x, y, z
+        dm = np.empty(3)
+        gmv = np.empty(3)
         acc = np.zeros(15)  # dL/d root rows v0, X, N, Z, L, a, b
         g = pack[root]
         good = g[_R_GOOD] != 0.0
         for k in range(root_start[root], root_start[root + 1]):
             f = order[k]
             sc, t0, t1, t2, c, s, ell, p1, q1, p2, q2, cx, cz, proper = _face_frame(verts, tri, pack, root, f, W[f], r)
-            gm0 = g_means[f, 0]
-            gm1 = g_means[f, 1]
-            gm2 = g_means[f, 2]
+            for i in range(3):
+                dm[i] = np.float64(d_mu[f, i])
+                gmv[i] = np.float64(g_means[f, i])
+            gm0 = gmv[0]
+            gm1 = gmv[1]
+            gm2 = gmv[2]
             # scales = sc exp(dls)
             gsc = 0.0
             for i in range(3):
-                e = math.exp(d_log_scale[f, i])
-                gsc += g_scales[f, i] * e
-                g_dls[f, i] = g_scales[f, i] * sc * e
+                e = math.exp(np.float64(d_log_scale[f, i]))
+                gs_i = np.float64(g_scales[f, i])
+                gsc += gs_i * e
+                g_dls[f, i] = gs_i * sc * e
             # means = sc r dmu + t
-            rd0 = r[0, 0] * d_mu[f, 0] + r[0, 1] * d_mu[f, 1] + r[0, 2] * d_mu[f, 2]
-            rd1 = r[1, 0] * d_mu[f, 0] + r[1, 1] * d_mu[f, 1] + r[1, 2] * d_mu[f, 2]
-            rd2 = r[2, 0] * d_mu[f, 0] + r[2, 1] * d_mu[f, 1] + r[2, 2] * d_mu[f, 2]
+            rd0 = r[0, 0] * dm[0] + r[0, 1] * dm[1] + r[0, 2] * dm[2]
+            rd1 = r[1, 0] * dm[0] + r[1, 1] * dm[1] + r[1, 2] * dm[2]
+            rd2 = r[2, 0] * dm[0] + r[2, 1] * dm[1] + r[2, 2] * dm[2]
             gsc += gm0 * rd0 + gm1 * rd1 + gm2 * rd2
             for j in range(3):
                 g_dmu[f, j] = sc * (r[0, j] * gm0 + r[1, j] * gm1 + r[2, j] * gm2)
                 for i in range(3):
-                    G[i, j] = sc * d_mu[f, j] * g_means[f, i]
+                    G[i, j] = sc * dm[j] * gmv[i]
             # quats = q(r) x qd
             _rotmat_to_quat(r, qr)
-            nd = math.sqrt(d_rot[f, 0] ** 2 + d_rot[f, 1] ** 2 + d_rot[f, 2] ** 2 + d_rot[f, 3] ** 2)
+            for i in range(4):
+                qd[i] = np.float64(d_rot[f, i])
+            nd = math.sqrt(qd[0] ** 2 + qd[1] ** 2 + qd[2] ** 2 + qd[3] ** 2)
             nd = max(nd, 1e-12)
             for i in range(4):
-                qd[i] = d_rot[f, i] / nd
-                gq[i] = g_quats[f, i]
+                qd[i] = qd[i] / nd
+                gq[i] = np.float64(g_quats[f, i])
             # dL/dqd = conj(qr) x gq; d_rot: project off qd, divide by |d_rot|
             tmp[0] = qr[0]
             tmp[1] = -qr[1]
@@ -478,7 +487,7 @@ def bind_backward(verts, tri, pack, order, root_start, W, d_mu, d_log_scale, d_r
                 acc[_R_X + i] += c * G[i, 0] - s * G[i, 2]
                 acc[_R_Z + i] += s * G[i, 0] + c * G[i, 2]
                 acc[_R_N + i] += G[i, 1]
-                gt = g_means[f, i]
+                gt = gmv[i]
                 acc[_R_V0 + i] += gt
                 acc[_R_X + i] += cx * gt
                 acc[_R_Z + i] += cz * gt
@@ -574,7 +583,7 @@ def bind_backward(verts, tri, pack, order, root_start, W, d_mu, d_log_scale, d_r
             g_root[root, 0, i] = acc[_R_V0 + i] - gE1[i] - gE2[i]
             g_root[root, 1, i] = gE1[i]
             g_root[root, 2, i] = gE2[i]
-    return g_root, gW, g_dmu, g_dls, g_drot
+    return g_root, gW
 
 
 @njit(cache=True)
@@ -623,6 +632,28 @@ def _f64(x: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(x.detach().cpu().numpy(), dtype=np.float64)
 
 
+def _direct(x: torch.Tensor) -> bool:
+    """Whether the kernels read or write ``x``'s memory as it is (CPU float32 / float64): they
+    widen every load, so a float32 array gives the bits of its float64 copy without the copy."""
+    return x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64)
+
+
+def _array(x: torch.Tensor) -> np.ndarray:
+    return np.ascontiguousarray(x.detach().numpy()) if _direct(x) else _f64(x)
+
+
+def _outputs(like: torch.Tensor, n: int, widths) -> list:
+    """Output tensors [n, w] the kernels write: in ``like``'s dtype on the CPU (one rounding on
+    the store, as a float64 result cast afterwards), else float64, cast by ``_moved``."""
+    dtype = like.dtype if _direct(like) else torch.float64
+    return [torch.empty((n, w), dtype=dtype) for w in widths]
+
+
+def _moved(x: torch.Tensor, like_kind) -> torch.Tensor:
+    dtype, device = like_kind
+    return x.to(device=device, dtype=dtype)
+
+
 class _Bind(torch.autograd.Function):
     @staticmethod
     def forward(ctx, vertices, split_logits, d_mu, d_log_scale, d_rot, plan):
@@ -640,34 +671,42 @@ class _Bind(torch.autograd.Function):
         verts = _f64(vertices)
         bary, W = weights_forward(_f64(split_logits), plan.parent, plan.slot, plan.forest.num_roots)
         pack = roots_forward(verts, plan.tri)
-        arrays = (_f64(d_mu), _f64(d_log_scale), _f64(d_rot))
-        means, scales, quats = bind_forward(verts, plan.tri, pack, plan.order, plan.root_start, W, *arrays)
-        ctx.saved = (plan, verts, bary, W, pack, arrays)
+        means, scales, quats = _outputs(d_mu, n, (3, 3, 4))
+        arrays = tuple(_array(x) for x in (d_mu, d_log_scale, d_rot))
+        bind_forward(
+            verts, plan.tri, pack, plan.order, plan.root_start, W, *arrays, means.numpy(), scales.numpy(), quats.numpy()
+        )
+        # The residuals are read again in the backward: saved, so that torch refuses a backward
+        # after they were changed in place (the kernels read their memory, not a copy).
+        ctx.save_for_backward(d_mu, d_log_scale, d_rot)
+        ctx.saved = (plan, verts, bary, W, pack)
         ctx.kinds = [(x.dtype, x.device) for x in (vertices, split_logits, d_mu, d_log_scale, d_rot)]
-        dtype, device = d_mu.dtype, d_mu.device
-        return tuple(torch.from_numpy(x).to(device=device, dtype=dtype) for x in (means, scales, quats))
+        kind = (d_mu.dtype, d_mu.device)
+        return tuple(_moved(x, kind) for x in (means, scales, quats))
 
     @staticmethod
     def backward(ctx, g_means, g_scales, g_quats):
-        plan, verts, bary, W, pack, arrays = ctx.saved
+        plan, verts, bary, W, pack = ctx.saved
+        arrays = tuple(_array(x) for x in ctx.saved_tensors)
         n = W.shape[0]
         zeros = lambda k: np.zeros((n, k))  # noqa: E731
-        gm = _f64(g_means) if g_means is not None else zeros(3)
-        gs = _f64(g_scales) if g_scales is not None else zeros(3)
-        gq = _f64(g_quats) if g_quats is not None else zeros(4)
-        g_root, gW, g_dmu, g_dls, g_drot = bind_backward(
-            verts, plan.tri, pack, plan.order, plan.root_start, W, *arrays, gm, gs, gq
-        )
+        gm = _array(g_means) if g_means is not None else zeros(3)
+        gs = _array(g_scales) if g_scales is not None else zeros(3)
+        gq = _array(g_quats) if g_quats is not None else zeros(4)
+        g_dmu, g_dls, g_drot = _outputs(ctx.saved_tensors[0], n, (3, 3, 4))
+        g_root, gW = bind_backward(
+            verts, plan.tri, pack, plan.order, plan.root_start, W, *arrays, gm, gs, gq,
+            g_dmu.numpy(), g_dls.numpy(), g_drot.numpy(),
+        )  # fmt: skip
         g_verts = g_logits = None
         if ctx.needs_input_grad[0]:
-            g_verts = scatter_roots(g_root, plan.tri, verts.shape[0])
+            g_verts = torch.from_numpy(scatter_roots(g_root, plan.tri, verts.shape[0]))
         if ctx.needs_input_grad[1]:
-            g_logits = weights_backward(gW, W, bary, plan.parent, plan.slot, plan.forest.num_roots)
+            g_logits = torch.from_numpy(weights_backward(gW, W, bary, plan.parent, plan.slot, plan.forest.num_roots))
 
         def out(x, i):
             if x is None or not ctx.needs_input_grad[i]:
                 return None
-            dtype, device = ctx.kinds[i]
-            return torch.from_numpy(x).to(device=device, dtype=dtype)
+            return _moved(x, ctx.kinds[i])
 
         return (out(g_verts, 0), out(g_logits, 1), out(g_dmu, 2), out(g_dls, 3), out(g_drot, 4), None)
