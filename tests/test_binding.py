@@ -442,3 +442,25 @@ def test_binding_kernels_refuse_a_backward_after_an_in_place_change():
         inputs[2].add_(1.0)  # d_mu, as an optimiser step would
     with pytest.raises(RuntimeError, match="modified by an inplace operation"):
         out.means.sum().backward()
+
+
+def test_binding_kernels_give_each_gradient_its_parameters_dtype():
+    """Mixed parameter dtypes: each gradient comes back in its own parameter's dtype, at that
+    dtype's precision (a float64 parameter's gradient is not rounded through float32)."""
+    from progressive_avatars.core.train import binding_kernels
+
+    rng = np.random.default_rng(17)
+    verts, faces = sphere_mesh(4, 6)
+    forest = random_forest(faces, rng, depth=2, frac=0.5)
+    plan = binding_kernels.FaceBinding(forest)
+    v, logits, d_mu, d_ls, d_rot = _kernel_inputs(forest, verts, rng, torch.float32)
+    d_ls64 = d_ls.detach().double().requires_grad_(True)
+    out = plan.gaussians(v, logits, d_mu, d_ls64, d_rot)
+    out.scales.sum().backward()
+    ref = _kernel_inputs(forest, verts, rng, torch.float64)[3]
+    with torch.no_grad():
+        ref.copy_(d_ls64)
+    ref_out = plan.gaussians(*(x.detach().double() for x in (v, logits, d_mu)), ref, d_rot.detach().double())
+    ref_out.scales.sum().backward()
+    assert d_mu.grad.dtype == torch.float32 and d_ls64.grad.dtype == torch.float64
+    assert torch.equal(d_ls64.grad, ref.grad)

@@ -693,7 +693,7 @@ class _Bind(torch.autograd.Function):
         gm = _array(g_means) if g_means is not None else zeros(3)
         gs = _array(g_scales) if g_scales is not None else zeros(3)
         gq = _array(g_quats) if g_quats is not None else zeros(4)
-        g_dmu, g_dls, g_drot = _outputs(ctx.saved_tensors[0], n, (3, 3, 4))
+        g_dmu, g_dls, g_drot = (_outputs(x, n, (w,))[0] for x, w in zip(ctx.saved_tensors, (3, 3, 4)))
         g_root, gW = bind_backward(
             verts, plan.tri, pack, plan.order, plan.root_start, W, *arrays, gm, gs, gq,
             g_dmu.numpy(), g_dls.numpy(), g_drot.numpy(),
