@@ -338,14 +338,14 @@ def bench_ssim(reps, size=(802, 551)):
     )
 
 
-BINDING_COMMIT = "5dda6c5"  # the binding's float64 copies in and out (before the kernels read float32)
+BINDING_COMMIT = "5dda6c5"  # before the binding read float32 and ran its weight recursion in parallel
 
 
 def bench_binding(run_dir, reps):
     """The face binding forward + backward (core/train/binding_kernels.py) on a trained paper-scale
     avatar's parameters and one of its frames: BINDING_COMMIT's (float64 copies of the float32
-    parameters and gradients in, float64 results cast back) against this tree's (the kernels read
-    and write the float32 arrays), interleaved. Returns the times and whether every output and
+    parameters and gradients in, float64 results cast back, a serial weight recursion) against this
+    tree's (the kernels read and write the float32 arrays, the weights per root in parallel), interleaved. Returns the times and whether every output and
     gradient is bit-identical."""
     import torch
 
@@ -592,7 +592,8 @@ def run(quick: bool = False, data: str | None = None) -> str:
         lines += [
             f"Face binding, forward + backward ({binding['faces']:,} faces of `{os.path.relpath(run_dir, ROOT)}`, "
             f"one frame), {BINDING_COMMIT} (float64 copies of the float32 parameters and gradients, float64 results "
-            "cast back) against the kernels reading and writing the float32 arrays, min / median ms: old "
+            "cast back, the weight recursion serial) against this tree (the kernels read and write the float32 arrays; "
+            "the weight recursion and its backward run per root in parallel), min / median ms: old "
             f"{_fmt(binding['old'])}, new {_fmt(binding['new'])} (x{np.median(binding['old']) / np.median(binding['new']):.2f}); "
             + ("every output and gradient bit-identical." if binding["identical"] else "**outputs differ**."),
             "",

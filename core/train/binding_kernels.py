@@ -45,14 +45,39 @@ _ROOT_ROWS = 16
 
 
 # ----------------------------------------------------------------------------- weights
-@njit(cache=True)
-def weights_forward(logits, parent, slot, n_roots):
+@njit(cache=True, inline="always")
+def _child_weights(W, bary, i, p, s):
+    b0 = bary[p, 0]
+    b1 = bary[p, 1]
+    b2 = bary[p, 2]
+    for c in range(2):
+        w0 = W[p, 0, c]
+        d1 = W[p, 1, c]
+        d2 = W[p, 2, c]
+        if s == 0:
+            W[i, 0, c] = w0
+            W[i, 1, c] = d1
+            W[i, 2, c] = b1 * d1 + b2 * d2
+        elif s == 1:
+            W[i, 0, c] = w0 + d1
+            W[i, 1, c] = d2 - d1
+            W[i, 2, c] = b2 * d2 - (b0 + b2) * d1
+        else:
+            W[i, 0, c] = w0 + d2
+            W[i, 1, c] = -d2
+            W[i, 2, c] = b1 * d1 - (b0 + b1) * d2
+
+
+@njit(parallel=_PARALLEL, cache=True)
+def weights_forward(logits, parent, slot, n_roots, order, root_start):
     """Softmax barycentrics [N,3] and the columns 1, 2 of the geometry weights [N,3,2] in float64
     (rows w_v0, w_v1 - w_v0, w_v2 - w_v0 over the root's vertices; column 0 is never used
-    by the geometry). Faces must come parents first (forest order)."""
+    by the geometry). One parallel pass over the roots, each root's faces in ``order`` (grouped
+    by root, parents first, as FaceBinding holds them): the same arithmetic per face as one
+    serial pass in face order, so the same bits for any thread count."""
     n = logits.shape[0]
     bary = np.empty((n, 3))
-    for i in range(n):
+    for i in prange(n):
         m = max(logits[i, 0], max(logits[i, 1], logits[i, 2]))
         e0 = math.exp(logits[i, 0] - m)
         e1 = math.exp(logits[i, 1] - m)
@@ -62,70 +87,60 @@ def weights_forward(logits, parent, slot, n_roots):
         bary[i, 1] = e1 / tot
         bary[i, 2] = e2 / tot
     W = np.zeros((n, 3, 2))
-    for i in range(n_roots):
-        W[i, 1, 0] = 1.0
-        W[i, 2, 1] = 1.0
-    for i in range(n_roots, n):
-        p = parent[i]
-        b0 = bary[p, 0]
-        b1 = bary[p, 1]
-        b2 = bary[p, 2]
-        s = slot[i]
-        for c in range(2):
-            w0 = W[p, 0, c]
-            d1 = W[p, 1, c]
-            d2 = W[p, 2, c]
-            if s == 0:
-                W[i, 0, c] = w0
-                W[i, 1, c] = d1
-                W[i, 2, c] = b1 * d1 + b2 * d2
-            elif s == 1:
-                W[i, 0, c] = w0 + d1
-                W[i, 1, c] = d2 - d1
-                W[i, 2, c] = b2 * d2 - (b0 + b2) * d1
+    for root in prange(len(root_start) - 1):
+        for k in range(root_start[root], root_start[root + 1]):
+            i = order[k]
+            if i < n_roots:
+                W[i, 1, 0] = 1.0
+                W[i, 2, 1] = 1.0
             else:
-                W[i, 0, c] = w0 + d2
-                W[i, 1, c] = -d2
-                W[i, 2, c] = b1 * d1 - (b0 + b1) * d2
+                _child_weights(W, bary, i, parent[i], slot[i])
     return bary, W
 
 
-@njit(cache=True)
-def weights_backward(gW, W, bary, parent, slot, n_roots):
+@njit(parallel=_PARALLEL, cache=True)
+def weights_backward(gW, W, bary, parent, slot, n_roots, order, root_start):
     """d loss / d logits [N,3] from d loss / d W [N,3,2] (gW is consumed: children add into
-    their parents' rows, last face first)."""
+    their parents' rows, last face first). Per root in parallel, its faces last first: every
+    parent receives its children's terms in the order one serial pass from the last face
+    gives them (a parent and its children share a root), so the bits do not depend on the
+    thread count."""
     n = W.shape[0]
     gb = np.zeros((n, 3))
-    for i in range(n - 1, n_roots - 1, -1):
-        p = parent[i]
-        b0 = bary[p, 0]
-        b1 = bary[p, 1]
-        b2 = bary[p, 2]
-        s = slot[i]
-        for c in range(2):
-            g0 = gW[i, 0, c]
-            g1 = gW[i, 1, c]
-            g2 = gW[i, 2, c]
-            d1 = W[p, 1, c]
-            d2 = W[p, 2, c]
-            gW[p, 0, c] += g0
-            if s == 0:
-                gW[p, 1, c] += g1 + b1 * g2
-                gW[p, 2, c] += b2 * g2
-                gb[p, 1] += g2 * d1
-                gb[p, 2] += g2 * d2
-            elif s == 1:
-                gW[p, 1, c] += g0 - g1 - (b0 + b2) * g2
-                gW[p, 2, c] += g1 + b2 * g2
-                gb[p, 2] += g2 * (d2 - d1)
-                gb[p, 0] -= g2 * d1
-            else:
-                gW[p, 2, c] += g0 - g1 - (b0 + b1) * g2
-                gW[p, 1, c] += b1 * g2
-                gb[p, 1] += g2 * (d1 - d2)
-                gb[p, 0] -= g2 * d2
+    for root in prange(len(root_start) - 1):
+        for k in range(root_start[root + 1] - 1, root_start[root] - 1, -1):
+            i = order[k]
+            if i < n_roots:
+                continue
+            p = parent[i]
+            b0 = bary[p, 0]
+            b1 = bary[p, 1]
+            b2 = bary[p, 2]
+            s = slot[i]
+            for c in range(2):
+                g0 = gW[i, 0, c]
+                g1 = gW[i, 1, c]
+                g2 = gW[i, 2, c]
+                d1 = W[p, 1, c]
+                d2 = W[p, 2, c]
+                gW[p, 0, c] += g0
+                if s == 0:
+                    gW[p, 1, c] += g1 + b1 * g2
+                    gW[p, 2, c] += b2 * g2
+                    gb[p, 1] += g2 * d1
+                    gb[p, 2] += g2 * d2
+                elif s == 1:
+                    gW[p, 1, c] += g0 - g1 - (b0 + b2) * g2
+                    gW[p, 2, c] += g1 + b2 * g2
+                    gb[p, 2] += g2 * (d2 - d1)
+                    gb[p, 0] -= g2 * d1
+                else:
+                    gW[p, 2, c] += g0 - g1 - (b0 + b1) * g2
+                    gW[p, 1, c] += b1 * g2
+                    gb[p, 1] += g2 * (d1 - d2)
+                    gb[p, 0] -= g2 * d2
     g_logits = np.empty((n, 3))
-    for i in range(n):
+    for i in prange(n):
         dot = gb[i, 0] * bary[i, 0] + gb[i, 1] * bary[i, 1] + gb[i, 2] * bary[i, 2]
         for k in range(3):
             g_logits[i, k] = bary[i, k] * (gb[i, k] - dot)
@@ -614,7 +629,7 @@ class FaceBinding:
     def weights(self, split_logits) -> np.ndarray:
         """Forest.weights' layout [N,3,3] in float64 (column 0 filled in), for comparisons."""
         logits = np.ascontiguousarray(np.asarray(split_logits, np.float64))
-        _, W = weights_forward(logits, self.parent, self.slot, self.forest.num_roots)
+        _, W = weights_forward(logits, self.parent, self.slot, self.forest.num_roots, self.order, self.root_start)
         full = np.empty((len(W), 3, 3))
         full[:, :, 1:] = W
         full[:, 0, 0] = 1 - W[:, 0, 0] - W[:, 0, 1]
@@ -669,7 +684,9 @@ class _Bind(torch.autograd.Function):
                 f"FaceBinding: vertices must be [V,3] with V > {int(plan.tri.max())}, got {tuple(vertices.shape)}"
             )
         verts = _f64(vertices)
-        bary, W = weights_forward(_f64(split_logits), plan.parent, plan.slot, plan.forest.num_roots)
+        bary, W = weights_forward(
+            _f64(split_logits), plan.parent, plan.slot, plan.forest.num_roots, plan.order, plan.root_start
+        )
         pack = roots_forward(verts, plan.tri)
         means, scales, quats = _outputs(d_mu, n, (3, 3, 4))
         arrays = tuple(_array(x) for x in (d_mu, d_log_scale, d_rot))
@@ -702,7 +719,11 @@ class _Bind(torch.autograd.Function):
         if ctx.needs_input_grad[0]:
             g_verts = torch.from_numpy(scatter_roots(g_root, plan.tri, verts.shape[0]))
         if ctx.needs_input_grad[1]:
-            g_logits = torch.from_numpy(weights_backward(gW, W, bary, plan.parent, plan.slot, plan.forest.num_roots))
+            g_logits = torch.from_numpy(
+                weights_backward(
+                    gW, W, bary, plan.parent, plan.slot, plan.forest.num_roots, plan.order, plan.root_start
+                )
+            )
 
         def out(x, i):
             if x is None or not ctx.needs_input_grad[i]:
