@@ -344,9 +344,10 @@ BINDING_COMMIT = "5dda6c5"  # before the binding read float32 and ran its weight
 def bench_binding(run_dir, reps):
     """The face binding forward + backward (core/train/binding_kernels.py) on a trained paper-scale
     avatar's parameters and one of its frames: BINDING_COMMIT's (float64 copies of the float32
-    parameters and gradients in, float64 results cast back, a serial weight recursion) against this
-    tree's (the kernels read and write the float32 arrays, the weights per root in parallel), interleaved. Returns the times and whether every output and
-    gradient is bit-identical."""
+    parameters and gradients in, float64 results cast back, a serial weight recursion) against
+    this tree's (the kernels read and write the float32 arrays, the weights per root in
+    parallel), interleaved; each side's index plan made once, as training makes it once per
+    forest. Returns the times and whether every output and gradient is bit-identical."""
     import torch
 
     from progressive_avatars.core.avatar.avatar import Avatar
@@ -366,11 +367,13 @@ def bench_binding(run_dir, reps):
     g = torch.Generator().manual_seed(0)
     upstream = [torch.randn((n, k), generator=g) for k in (3, 3, 4)]
 
+    plans = {old_kernels: old_kernels.FaceBinding(av.forest), new_kernels: new_kernels.FaceBinding(av.forest)}
+
     def step(kernels):
         for t in params.values():
             t.grad = None
         t0 = time.perf_counter()
-        out = kernels.FaceBinding(av.forest).gaussians(verts, *params.values())
+        out = plans[kernels].gaussians(verts, *params.values())
         sum((x * u).sum() for x, u in zip((out.means, out.scales, out.quats), upstream)).backward()
         dt = time.perf_counter() - t0
         return dt, [x.detach().clone() for x in (out.means, out.scales, out.quats)] + [
