@@ -657,11 +657,10 @@ def _array(x: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(x.detach().numpy()) if _direct(x) else _f64(x)
 
 
-def _outputs(like: torch.Tensor, n: int, widths) -> list:
-    """Output tensors [n, w] the kernels write: in ``like``'s dtype on the CPU (one rounding on
+def _output(like: torch.Tensor, n: int, width: int) -> torch.Tensor:
+    """An output [n, width] the kernels write: in ``like``'s dtype on the CPU (one rounding on
     the store, as a float64 result cast afterwards), else float64, cast by ``_moved``."""
-    dtype = like.dtype if _direct(like) else torch.float64
-    return [torch.empty((n, w), dtype=dtype) for w in widths]
+    return torch.empty((n, width), dtype=like.dtype if _direct(like) else torch.float64)
 
 
 def _moved(x: torch.Tensor, like_kind) -> torch.Tensor:
@@ -688,7 +687,7 @@ class _Bind(torch.autograd.Function):
             _f64(split_logits), plan.parent, plan.slot, plan.forest.num_roots, plan.order, plan.root_start
         )
         pack = roots_forward(verts, plan.tri)
-        means, scales, quats = _outputs(d_mu, n, (3, 3, 4))
+        means, scales, quats = (_output(d_mu, n, w) for w in (3, 3, 4))
         arrays = tuple(_array(x) for x in (d_mu, d_log_scale, d_rot))
         bind_forward(
             verts, plan.tri, pack, plan.order, plan.root_start, W, *arrays, means.numpy(), scales.numpy(), quats.numpy()
@@ -710,7 +709,7 @@ class _Bind(torch.autograd.Function):
         gm = _array(g_means) if g_means is not None else zeros(3)
         gs = _array(g_scales) if g_scales is not None else zeros(3)
         gq = _array(g_quats) if g_quats is not None else zeros(4)
-        g_dmu, g_dls, g_drot = (_outputs(x, n, (w,))[0] for x, w in zip(ctx.saved_tensors, (3, 3, 4)))
+        g_dmu, g_dls, g_drot = (_output(x, n, w) for x, w in zip(ctx.saved_tensors, (3, 3, 4)))
         g_root, gW = bind_backward(
             verts, plan.tri, pack, plan.order, plan.root_start, W, *arrays, gm, gs, gq,
             g_dmu.numpy(), g_dls.numpy(), g_drot.numpy(),
