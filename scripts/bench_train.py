@@ -267,41 +267,69 @@ def bench_trained(run, supervision, reps):
         return _row(label, tr, supervision, *times["new"], *times["old"])
 
 
-def bench_raster(reps):
+def _raster_pair(old_render, old_cam, reps):
+    """802x550, 170k head-scene Gaussians (float32 tensors), forward + backward: ``old_render``
+    (a render function of another tree, with its own Camera ``old_cam``) against this tree's,
+    interleaved; times, CPU times, visible count, and whether image, alpha and every gradient
+    are bit-identical."""
     import torch
 
     from bench_render import head_camera, head_scene
     from progressive_avatars.core.render.rasterize import render as new_render
 
-    old_train, old_render_mod = old_package()
     cam = head_camera(802, 550)
-    old_cam = _camera_as(cam, old_train)
     params = [torch.from_numpy(x) for x in head_scene(170_000)]
 
-    def run(fn):
+    def run(fn, c):
         ps = [p.clone().requires_grad_(True) for p in params]
         t0, c0 = time.perf_counter(), time.process_time()
-        out = fn(*ps, cam)
+        out = fn(*ps, c)
         ((out.image * 0.5).sum() + out.alpha.sum()).backward()
-        return (time.perf_counter() - t0, time.process_time() - c0), out
+        return (time.perf_counter() - t0, time.process_time() - c0), [out.image, out.alpha] + [p.grad for p in ps]
 
-    def old_render(*a):
-        return old_render_mod.render(*a[:-1], old_cam)
+    def old(*a):
+        return old_render(*a[:-1], old_cam)
 
-    run(old_render)
-    run(new_render)
+    _, a = run(old, None)
+    _, b = run(new_render, cam)
+    identical = all(torch.equal(x, y) for x, y in zip(a, b))
     t_old, t_new = [], []
     for _ in range(reps):
-        t_old.append(run(old_render)[0])
-        dt, out = run(new_render)
-        t_new.append(dt)
+        t_old.append(run(old, None)[0])
+        t_new.append(run(new_render, cam)[0])
+    out = new_render(*params, cam)
     return dict(
         old=[t[0] for t in t_old],
         new=[t[0] for t in t_new],
         cpu_old=[t[1] for t in t_old],
         cpu_new=[t[1] for t in t_new],
         visible=int((out.radii > 0).sum()),
+        identical=identical,
     )
+
+
+def bench_raster(reps):
+    """The raster-only row: f6907ae's render against this tree's."""
+    from bench_render import head_camera
+
+    old_train, old_render_mod = old_package()
+    return _raster_pair(old_render_mod.render, _camera_as(head_camera(802, 550), old_train), reps)
+
+
+RASTER_INPUTS_COMMIT = "527199a"  # before the rasteriser read float32 inputs in place and checked them in one pass
+
+
+def bench_raster_inputs(reps):
+    """RASTER_INPUTS_COMMIT's render (float64 copies of the float32 inputs, checks as torch
+    operations, a zero screen-space offset added) against this tree's, on the raster-only row's scene."""
+    from bench_render import head_camera
+
+    prev_trainer(RASTER_INPUTS_COMMIT)
+    package = f"pa_{RASTER_INPUTS_COMMIT}.core"
+    old_render = importlib.import_module(f"{package}.render.rasterize").render
+    Camera = importlib.import_module(f"{package}.geometry.camera").Camera
+    c = head_camera(802, 550)
+    return _raster_pair(old_render, Camera(c.R, c.t, c.fx, c.fy, c.cx, c.cy, c.width, c.height), reps)
 
 
 def bench_ssim(reps, size=(802, 551)):
@@ -528,6 +556,7 @@ def run(quick: bool = False, data: str | None = None) -> str:
             rows.append(bench_trained(run_dir, sup, 3 * reps))  # each step draws its view and level: more reps
             print(rows[-1]["label"], _fmt(rows[-1]["old"]), _fmt(rows[-1]["new"]), file=sys.stderr)
     raster = bench_raster(reps)
+    raster_inputs = bench_raster_inputs(2 * reps)
     ref = raster_reference_errors()
     ss = bench_ssim(reps)
     adam = bench_adam(reps)
@@ -602,6 +631,13 @@ def run(quick: bool = False, data: str | None = None) -> str:
             "",
         ]
     lines += [
+        f"Raster only (the row above), {RASTER_INPUTS_COMMIT} (float64 copies of the float32 inputs, the input "
+        "checks as torch operations) against this tree (the kernels read the float32 arrays in place, widening "
+        "every load to float64; one compiled pass checks them), min / median ms: old "
+        f"{_fmt(raster_inputs['old'])}, new {_fmt(raster_inputs['new'])} "
+        f"(x{np.median(raster_inputs['old']) / np.median(raster_inputs['new']):.2f}); "
+        + ("image, alpha and every gradient bit-identical." if raster_inputs["identical"] else "**outputs differ**."),
+        "",
         "Against the dense float64 reference (64x64, 400 head-scene Gaussians, float32 inputs): old max image "
         f"error {ref['old'][0]:.1e}, worst relative gradient error {ref['old'][1]:.1e}; new {ref['new'][0]:.1e}, "
         f"{ref['new'][1]:.1e}.",

@@ -736,3 +736,58 @@ def test_pixel_weighted_contribution_is_the_colour_gradient():
     np.testing.assert_allclose(weighted, col.grad[:, 0].numpy(), rtol=1e-6, atol=1e-9 * weighted.max())
     with pytest.raises(ValueError, match="pixel_weight"):
         render_numpy(means, quats, scales, opac, colors, cam, pixel_weight=np.ones((3, 3)))
+
+
+def test_float32_inputs_are_read_in_place_and_give_the_float64_gradients_rounded_once():
+    """The rasteriser reads float32 parameters without float64 copies and widens every load in its
+    kernels: each gradient is the all-float64 render's, rounded once to float32."""
+    cam, params = make_scene(6, dtype=torch.float32)
+    wi, wa = (w.float().double() for w in loss_weights(6))
+    grads = []
+    for dtype in (torch.float32, torch.float64):
+        ps = [p.detach().to(dtype).clone().requires_grad_(True) for p in params[:5]]
+        out = render(*ps, cam, params[5].to(dtype))
+        ((out.image.double() * wi).sum() + (out.alpha.double() * wa).sum()).backward()
+        grads.append([p.grad for p in ps])
+    for g32, g64, name in zip(*grads, NAMES):
+        assert g32.dtype == torch.float32 and torch.equal(g32, g64.float()), name
+
+
+def test_an_input_changed_in_place_before_the_backward_is_refused():
+    """The backward reads the means, quats and scales from their tensors' memory: torch must refuse
+    it after an in-place change rather than differentiate other values than the image shows."""
+    cam, params = make_scene(6, dtype=torch.float32)
+    ps = [p.clone().requires_grad_(True) for p in params[:5]]
+    scales = ps[2] * 1.0  # a non-leaf, as the trainer's activated scales are
+    out = render(ps[0], ps[1], scales, *ps[3:5], cam, params[5])
+    with torch.no_grad():
+        scales.mul_(2.0)
+    with pytest.raises(RuntimeError, match="modified by an inplace operation"):
+        out.image.sum().backward()
+
+
+def test_compiled_input_checks_agree_with_the_tensor_checks():
+    """render's one-pass check of float32/float64 inputs flags exactly what the torch tests flag
+    (the path CUDA tensors and other dtypes take), each bad value alone and all together."""
+    from progressive_avatars.core.render import rasterize as rz
+
+    _, params = make_scene(3, n=20, special=False)
+    bad = {
+        0: [(0, 1, float("nan")), (3, 2, float("-inf"))],
+        1: [(2, 0, float("inf"))],
+        2: [(1, 1, 0.0), (4, 0, -1e-3), (5, 2, float("nan")), (6, 1, float("inf"))],
+        3: [(7, None, 1.5), (8, None, -0.1), (9, None, float("nan"))],
+        4: [(10, 2, float("inf"))],
+    }
+    cases = [(i, [c]) for i, cs in bad.items() for c in cs] + [(None, None)]
+    for which, changes in cases:
+        ps = [p.clone() for p in params[:5]]
+        for i, cs in bad.items() if which is None else [(which, changes)]:
+            for row, col, value in cs:
+                ps[i][row if col is None else (row, col)] = value
+        if which is None:
+            ps[1][11] = 0.0  # a zero quaternion beside non-finite ones
+        expected = rz._value_flags(*[p.half() for p in ps])  # no compiled path for float16
+        assert expected != 0
+        for dtype in (torch.float32, torch.float64):
+            assert rz._value_flags(*[p.to(dtype) for p in ps]) == expected, (which, changes, dtype)

@@ -175,13 +175,19 @@ def _prefetch_splat(splats, ids, k, first, end):
 def _camera_factor(q, s, Rc, R, Mc):
     """Fill R = R(q/|q|) and Mc = Rc R diag(s) (so the camera-space covariance is Mc Mc^T).
 
-    Returns |q| and the normalised quaternion, which the backward needs.
+    Returns |q| and the normalised quaternion, which the backward needs. q and s may be float32
+    (the rasteriser reads the caller's arrays): every load is widened, so the arithmetic is the
+    float64 a float64 copy of them would get.
     """
-    qn = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    w = q[0] / qn
-    x = q[1] / qn
-    y = q[2] / qn
-    z = q[3] / qn
+    q0 = np.float64(q[0])
+    q1 = np.float64(q[1])
+    q2 = np.float64(q[2])
+    q3 = np.float64(q[3])
+    qn = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
+    w = q0 / qn
+    x = q1 / qn
+    y = q2 / qn
+    z = q3 / qn
     R[0, 0] = 1.0 - 2.0 * (y * y + z * z)
     R[0, 1] = 2.0 * (x * y - w * z)
     R[0, 2] = 2.0 * (x * z + w * y)
@@ -193,7 +199,7 @@ def _camera_factor(q, s, Rc, R, Mc):
     R[2, 2] = 1.0 - 2.0 * (x * x + y * y)
     for i in range(3):
         for j in range(3):
-            Mc[i, j] = (Rc[i, 0] * R[0, j] + Rc[i, 1] * R[1, j] + Rc[i, 2] * R[2, j]) * s[j]
+            Mc[i, j] = (Rc[i, 0] * R[0, j] + Rc[i, 1] * R[1, j] + Rc[i, 2] * R[2, j]) * np.float64(s[j])
     return qn, w, x, y, z
 
 
@@ -236,11 +242,12 @@ def _project_one(
     cut,
 ):
     """One Gaussian of project_forward (R, Mc: scratch)."""
-    px = Rc[0, 0] * means[g, 0] + Rc[0, 1] * means[g, 1] + Rc[0, 2] * means[g, 2] + tc[0]
-    py = Rc[1, 0] * means[g, 0] + Rc[1, 1] * means[g, 1] + Rc[1, 2] * means[g, 2] + tc[1]
-    pz = Rc[2, 0] * means[g, 0] + Rc[2, 1] * means[g, 1] + Rc[2, 2] * means[g, 2] + tc[2]
+    mx, my, mz = np.float64(means[g, 0]), np.float64(means[g, 1]), np.float64(means[g, 2])
+    px = Rc[0, 0] * mx + Rc[0, 1] * my + Rc[0, 2] * mz + tc[0]
+    py = Rc[1, 0] * mx + Rc[1, 1] * my + Rc[1, 2] * mz + tc[1]
+    pz = Rc[2, 0] * mx + Rc[2, 1] * my + Rc[2, 2] * mz + tc[2]
     depth[g] = pz
-    o = opacities[g]
+    o = np.float64(opacities[g])
     if not (pz >= near) or not (o >= ALPHA_MIN):
         return
     _camera_factor(quats[g], scales[g], Rc, R, Mc)
@@ -285,6 +292,38 @@ def _project_one(
     rect[g, 3] = j1
     radii[g] = int(math.ceil(min(max(ex, ey), 1e9)))
     cut[g] = -level
+
+
+# check_gaussians' bits: what render refuses in the Gaussians' values.
+BAD_MEANS, BAD_QUATS, ZERO_QUATS, BAD_SCALES, BAD_OPACITIES, BAD_COLORS = 1, 2, 4, 8, 16, 32
+
+
+@njit(cache=True)
+def check_gaussians(means, quats, scales, opacities, colors):
+    """One pass over the render inputs: the bits of the tests that fail (non-finite means, quats,
+    scales or colours; a quaternion whose squared norm, in float64, is <= 1e-24; scales <= 0;
+    opacities outside [0, 1], NaN included)."""
+    flags = 0
+    for g in range(means.shape[0]):
+        for k in range(3):
+            if not math.isfinite(means[g, k]):
+                flags |= BAD_MEANS
+            if not scales[g, k] > 0.0 or not math.isfinite(scales[g, k]):
+                flags |= BAD_SCALES
+        qq = 0.0
+        for k in range(4):
+            q = np.float64(quats[g, k])
+            if not math.isfinite(q):
+                flags |= BAD_QUATS
+            qq += q * q
+        if not qq > 1e-24:
+            flags |= ZERO_QUATS
+        if not (opacities[g] >= 0.0 and opacities[g] <= 1.0):
+            flags |= BAD_OPACITIES
+        for k in range(colors.shape[1]):
+            if not math.isfinite(colors[g, k]):
+                flags |= BAD_COLORS
+    return flags
 
 
 @njit(parallel=_PARALLEL, cache=True)
@@ -1473,9 +1512,10 @@ def _project_backward_one(
     g_scales,
 ):
     """One Gaussian of project_backward (R, Mc, A, GA, GM: scratch)."""
-    px = Rc[0, 0] * means[g, 0] + Rc[0, 1] * means[g, 1] + Rc[0, 2] * means[g, 2] + tc[0]
-    py = Rc[1, 0] * means[g, 0] + Rc[1, 1] * means[g, 1] + Rc[1, 2] * means[g, 2] + tc[1]
-    pz = Rc[2, 0] * means[g, 0] + Rc[2, 1] * means[g, 1] + Rc[2, 2] * means[g, 2] + tc[2]
+    mx, my, mz = np.float64(means[g, 0]), np.float64(means[g, 1]), np.float64(means[g, 2])
+    px = Rc[0, 0] * mx + Rc[0, 1] * my + Rc[0, 2] * mz + tc[0]
+    py = Rc[1, 0] * mx + Rc[1, 1] * my + Rc[1, 2] * mz + tc[1]
+    pz = Rc[2, 0] * mx + Rc[2, 1] * my + Rc[2, 2] * mz + tc[2]
     qn, qw, qx, qy, qz = _camera_factor(quats[g], scales[g], Rc, R, Mc)
     j00, j02, j11, j12, kx, ky, x_free, y_free = _jacobian(px, py, pz, fx, fy, lim)
     a = eps2d
@@ -1516,18 +1556,18 @@ def _project_backward_one(
         r2 = j02 * GA[0, k] + j12 * GA[1, k]
         for i in range(3):
             GM[i, k] = Rc[0, i] * r0 + Rc[1, i] * r1 + Rc[2, i] * r2
-    s = scales[g]
+    s0, s1, s2 = np.float64(scales[g, 0]), np.float64(scales[g, 1]), np.float64(scales[g, 2])
     for k in range(3):
         g_scales[g, k] = GM[0, k] * R[0, k] + GM[1, k] * R[1, k] + GM[2, k] * R[2, k]
-    d00 = GM[0, 0] * s[0]
-    d01 = GM[0, 1] * s[1]
-    d02 = GM[0, 2] * s[2]
-    d10 = GM[1, 0] * s[0]
-    d11 = GM[1, 1] * s[1]
-    d12 = GM[1, 2] * s[2]
-    d20 = GM[2, 0] * s[0]
-    d21 = GM[2, 1] * s[1]
-    d22 = GM[2, 2] * s[2]
+    d00 = GM[0, 0] * s0
+    d01 = GM[0, 1] * s1
+    d02 = GM[0, 2] * s2
+    d10 = GM[1, 0] * s0
+    d11 = GM[1, 1] * s1
+    d12 = GM[1, 2] * s2
+    d20 = GM[2, 0] * s0
+    d21 = GM[2, 1] * s1
+    d22 = GM[2, 2] * s2
     # dR/dq of the rotation in _camera_factor, contracted with dL/dR = (d_ij).
     gw = 2.0 * (-qz * d01 + qy * d02 + qz * d10 - qx * d12 - qy * d20 + qx * d21)
     gx = 2.0 * (qy * d01 + qz * d02 + qy * d10 - 2.0 * qx * d11 - qw * d12 + qz * d20 + qw * d21 - 2.0 * qx * d22)

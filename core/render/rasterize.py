@@ -65,6 +65,40 @@ def all_finite(x) -> bool:
     return bool(np.isfinite(x).all())
 
 
+# What render refuses in the Gaussians' values, in the order it reports them (rk.check_gaussians' bits).
+_VALUE_ERRORS = (
+    (rk.BAD_MEANS, "render: means contain NaN or inf"),
+    (rk.BAD_QUATS, "render: quats contain NaN or inf"),
+    (rk.ZERO_QUATS, "render: quats must have non-zero norm"),
+    (rk.BAD_SCALES, "render: scales must be finite and > 0 (activated standard deviations)"),
+    (rk.BAD_OPACITIES, "render: opacities must be finite and in [0, 1] (activated, not logits)"),
+    (rk.BAD_COLORS, "render: colors contain NaN or inf"),
+)
+
+
+def _value_flags(means, quats, scales, opacities, colors) -> int:
+    """rk.check_gaussians' bits: one compiled pass over the callers' arrays when they are float32
+    or float64 in main memory (the rasteriser's own path), else the same tests as torch or numpy
+    operations (CUDA tensors for gsplat, other dtypes)."""
+    arrays = _host_arrays(means, quats, scales, opacities, colors)
+    if arrays is not None:
+        return int(rk.check_gaussians(*arrays))
+    flags = 0
+    if not all_finite(means):
+        flags |= rk.BAD_MEANS
+    if not all_finite(quats):
+        flags |= rk.BAD_QUATS
+    if len(quats) and not bool(((quats * quats).sum(-1) > 1e-24).all()):  # a NaN row fails too
+        flags |= rk.ZERO_QUATS
+    if not all_finite(scales) or (len(scales) and not bool((scales > 0).all())):
+        flags |= rk.BAD_SCALES
+    if not all_finite(opacities) or (len(opacities) and not bool(((opacities >= 0) & (opacities <= 1)).all())):
+        flags |= rk.BAD_OPACITIES
+    if not all_finite(colors):
+        flags |= rk.BAD_COLORS
+    return flags
+
+
 def _validate(means, quats, scales, opacities, colors, background, camera, near, eps2d):
     """Raise ValueError on anything the kernels must never see; returns (N, C)."""
     if not isinstance(camera, Camera):
@@ -87,19 +121,10 @@ def _validate(means, quats, scales, opacities, colors, background, camera, near,
             f"render: background must have shape [{n_ch}] (one value per colour channel), "
             f"got {list(_shape(background))}"
         )
-    if not all_finite(means):
-        raise ValueError("render: means contain NaN or inf")
-    if not all_finite(quats):
-        raise ValueError("render: quats contain NaN or inf")
-    qnorm = (quats * quats).sum(-1)
-    if n and not bool((qnorm > 1e-24).all()):
-        raise ValueError("render: quats must have non-zero norm")
-    if not all_finite(scales) or (n and not bool((scales > 0).all())):
-        raise ValueError("render: scales must be finite and > 0 (activated standard deviations)")
-    if not all_finite(opacities) or (n and not bool(((opacities >= 0) & (opacities <= 1)).all())):
-        raise ValueError("render: opacities must be finite and in [0, 1] (activated, not logits)")
-    if not all_finite(colors):
-        raise ValueError("render: colors contain NaN or inf")
+    flags = _value_flags(means, quats, scales, opacities, colors)
+    for bit, message in _VALUE_ERRORS:
+        if flags & bit:
+            raise ValueError(message)
     if background is not None and not all_finite(background):
         raise ValueError("render: background contains NaN or inf")
     if not (near > 0 and np.isfinite(near)):
@@ -119,6 +144,34 @@ def _f64(x) -> np.ndarray:
     if isinstance(x, torch.Tensor):
         x = x.detach().cpu().numpy()
     return np.ascontiguousarray(x, dtype=np.float64)
+
+
+def _host_arrays(*xs):
+    """xs (CPU tensors or arrays) as C-contiguous numpy arrays sharing their memory when they
+    are all float32 or all float64, else None. The kernels widen every load to float64, so
+    float32 arrays give the bits a float64 copy would, without the copy's memory traffic;
+    mixed dtypes would compile a kernel per combination."""
+    dtypes = set()
+    out = []
+    for x in xs:
+        if isinstance(x, torch.Tensor):
+            if x.device.type != "cpu":
+                return None
+            x = x.detach().numpy()
+        elif not isinstance(x, np.ndarray):
+            return None
+        dtypes.add(x.dtype)
+        out.append(x)
+    if len(dtypes) != 1 or next(iter(dtypes)) not in (np.float32, np.float64):
+        return None
+    return [np.ascontiguousarray(x) for x in out]
+
+
+def _kernel_arrays(*xs) -> list:
+    """The Gaussians' arrays for the kernels: the callers' own memory where _host_arrays can
+    share it, float64 copies otherwise."""
+    arrays = _host_arrays(*xs)
+    return arrays if arrays is not None else [_f64(x) for x in xs]
 
 
 def _grad_array(g, shape) -> np.ndarray:
@@ -207,7 +260,6 @@ def _cpu_forward(
     camera,
     near,
     eps2d,
-    means2d_offset=None,
     with_depth=False,
     glevel=None,
     upto=None,
@@ -215,11 +267,11 @@ def _cpu_forward(
     pixel_weight=None,
     dtype=np.float64,
 ):
-    """Numpy float64 forward of one image per entry of ``upto`` (image l: Gaussians with
-    glevel <= upto[l]; default one image of all); returns images [L,H,W,C] and alphas [L,H,W]
-    in ``dtype``, the last image's contrib, radii and the state the backward needs
-    (``record``: with the composited pairs, so that the backward replays them). The contrib
-    weighs each pixel by ``pixel_weight`` [H, W] when given."""
+    """Forward (float32 or float64 arrays, float64 arithmetic) of one image per entry of
+    ``upto`` (image l: Gaussians with glevel <= upto[l]; default one image of all); returns
+    images [L,H,W,C] and alphas [L,H,W] in ``dtype``, the last image's contrib, radii and the
+    state the backward needs (``record``: with the composited pairs, so that the backward
+    replays them). The contrib weighs each pixel by ``pixel_weight`` [H, W] when given."""
     if glevel is None:
         glevel, upto = np.zeros(len(means), np.int64), np.zeros(1, np.int64)
     Rc, tc, fx, fy, cx, cy = _camera_args(camera)
@@ -228,11 +280,10 @@ def _cpu_forward(
     xy, conic, depth, rect, radii, cut = rk.project_forward(
         means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, lim, W, H, float(near), float(eps2d)
     )
-    if means2d_offset is not None:
-        xy += means2d_offset
     order = rk.depth_order(depth, (radii != 0) & (glevel <= upto.max()))
-    if with_depth:
-        colors = np.concatenate([colors, depth[:, None]], axis=1)
+    if with_depth:  # float64 like depth, and opacities with them (pack_splats takes one dtype)
+        colors = np.concatenate([colors, depth[:, None]], axis=1, dtype=np.float64)
+        opacities = np.asarray(opacities, np.float64)
         background = np.concatenate([background, [0.0]])
     n_ch = colors.shape[1]
     tiles_x, tiles_y = _tiles(camera)
@@ -290,7 +341,6 @@ def _cpu_backward(
     means,
     quats,
     scales,
-    opacities,
     camera,
     eps2d,
     grad_image,
@@ -369,14 +419,14 @@ class _RasterizeCPU(torch.autograd.Function):
         upto,
         record,
     ):
-        arrays = [_f64(x) for x in (means, quats, scales, opacities, colors, background)]
+        arrays = _kernel_arrays(means, quats, scales, opacities, colors)
         dtype, device = means.dtype, means.device
         image, alpha, contrib, radii, state = _cpu_forward(
             *arrays,
+            _f64(background),
             camera,
             near,
             eps2d,
-            means2d_offset=_f64(means2d),
             with_depth=with_depth,
             glevel=glevel,
             upto=upto,
@@ -384,7 +434,10 @@ class _RasterizeCPU(torch.autograd.Function):
             dtype=np.float32 if dtype == torch.float32 else np.float64,
         )
         ctx.camera, ctx.eps2d, ctx.with_depth = camera, eps2d, with_depth
-        ctx.arrays, ctx.state = arrays, state
+        ctx.state = state
+        # The backward reads these tensors' memory again (no copies): saved, so that torch
+        # refuses a backward after an in-place change instead of differentiating other values.
+        ctx.save_for_backward(means, quats, scales)
         ctx.kinds = [(x.dtype, x.device) for x in (means, quats, scales, opacities, colors, background, means2d)]
         out_image = torch.from_numpy(image).to(device=device, dtype=dtype)
         out_alpha = torch.from_numpy(alpha).to(device=device, dtype=dtype)
@@ -395,7 +448,7 @@ class _RasterizeCPU(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_image, grad_alpha, _grad_contrib, _grad_radii):
-        means, quats, scales, opacities, _, _ = ctx.arrays
+        means, quats, scales = _kernel_arrays(*ctx.saved_tensors)
         H, W = ctx.camera.height, ctx.camera.width
         n_out = ctx.state["n_ch"]
         n_img = len(ctx.state["upto"])
@@ -410,7 +463,6 @@ class _RasterizeCPU(torch.autograd.Function):
             means,
             quats,
             scales,
-            opacities,
             ctx.camera,
             ctx.eps2d,
             g_img,
@@ -454,7 +506,7 @@ def render_numpy(
     means, quats, scales, opacities, colors = (np.asarray(x) for x in (means, quats, scales, opacities, colors))
     background = None if background is None else np.asarray(background)
     _validate(means, quats, scales, opacities, colors, background, camera, near, eps2d)
-    arrays = [_f64(x) for x in (means, quats, scales, opacities, colors)]
+    arrays = _kernel_arrays(means, quats, scales, opacities, colors)
     bg = _f64(background) if background is not None else np.zeros(arrays[4].shape[1])
     if pixel_weight is not None:
         pixel_weight = np.ascontiguousarray(pixel_weight, np.float64)

@@ -29,7 +29,9 @@ def _say(out, **msg):
 
 
 def warm_up():
-    """Load (or compile, the first time) every kernel a forward render uses, on a tiny scene."""
+    """Load (or compile, the first time) every kernel a forward render uses, on a tiny scene: in
+    float32 and in float64, since the kernels read float32 inputs as they are and anything else
+    (mixed dtypes, as a world-space transform in float64 beside float32 colours gives) as float64."""
     import numpy as np
 
     from ..geometry.camera import Camera
@@ -37,19 +39,17 @@ def warm_up():
 
     rng = np.random.default_rng(0)
     n = 16
-    means = rng.normal(0, 0.05, (n, 3)).astype(np.float32)
-    quats = np.tile(np.array([1, 0, 0, 0], np.float32), (n, 1))
-    scales = np.full((n, 3), 0.02, np.float32)
     cam = Camera(np.eye(3), np.array([0.0, 0.0, 1.0]), 40.0, 40.0, 16.0, 16.0, 32, 32)
-    render_numpy(
-        means,
-        quats,
-        scales,
-        np.full(n, 0.5, np.float32),
-        np.full((n, 3), 0.5, np.float32),
-        cam,
-        np.zeros(3, np.float32),
-    )
+    for dtype in (np.float32, np.float64):
+        render_numpy(
+            rng.normal(0, 0.05, (n, 3)).astype(dtype),
+            np.tile(np.array([1, 0, 0, 0], dtype), (n, 1)),
+            np.full((n, 3), 0.02, dtype),
+            np.full(n, 0.5, dtype),
+            np.full((n, 3), 0.5, dtype),
+            cam,
+            np.zeros(3, dtype),
+        )
 
 
 def serve(inp=None, out=None) -> int:
