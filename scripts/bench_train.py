@@ -316,12 +316,13 @@ def bench_raster(reps):
     return _raster_pair(old_render_mod.render, _camera_as(head_camera(802, 550), old_train), reps)
 
 
-RASTER_INPUTS_COMMIT = "527199a"  # before the rasteriser read float32 inputs in place and checked them in one pass
+RASTER_INPUTS_COMMIT = "527199a"  # before the rasteriser read float32 inputs in place (and the keyed depth sort)
 
 
 def bench_raster_inputs(reps):
     """RASTER_INPUTS_COMMIT's render (float64 copies of the float32 inputs, checks as torch
-    operations, a zero screen-space offset added) against this tree's, on the raster-only row's scene."""
+    operations, a zero screen-space offset added, the depth sort gathering its keys in every
+    pass) against this tree's, on the raster-only row's scene."""
     from bench_render import head_camera
 
     prev_trainer(RASTER_INPUTS_COMMIT)
@@ -632,8 +633,9 @@ def run(quick: bool = False, data: str | None = None) -> str:
         ]
     lines += [
         f"Raster only (the row above), {RASTER_INPUTS_COMMIT} (float64 copies of the float32 inputs, the input "
-        "checks as torch operations) against this tree (the kernels read the float32 arrays in place, widening "
-        "every load to float64; one compiled pass checks them), min / median ms: old "
+        "checks as torch operations, the depth sort gathering its keys in every pass) against this tree (the "
+        "kernels read the float32 arrays in place, widening every load to float64; one compiled pass checks them; "
+        "the sort's keys travel with the indices and one pass counts every digit), min / median ms: old "
         f"{_fmt(raster_inputs['old'])}, new {_fmt(raster_inputs['new'])} "
         f"(x{np.median(raster_inputs['old']) / np.median(raster_inputs['new']):.2f}); "
         + ("image, alpha and every gradient bit-identical." if raster_inputs["identical"] else "**outputs differ**."),

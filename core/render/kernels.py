@@ -380,39 +380,48 @@ def depth_order(depth, keep):
     ``np.flatnonzero(keep)[np.argsort(depth[keep], kind="stable")]``, for depths > 0 (a kept
     Gaussian lies beyond the near plane). LSD radix sort on the float64 bits, which order
     positive floats as their values, 11 bits a pass; passes where every key has the same
-    digit are skipped (depths share their sign and most exponent bits)."""
+    digit are skipped (depths share their sign and most exponent bits). The keys travel with
+    the indices, so each pass reads them in sequence, and one pass counts every digit."""
     m = 0
     for g in range(keep.shape[0]):
         if keep[g]:
             m += 1
     order = np.empty(m, np.int64)
+    key = np.empty(m, np.uint64)
+    bits = depth.view(np.uint64)
     m = 0
     for g in range(keep.shape[0]):
         if keep[g]:
             order[m] = g
+            key[m] = bits[g]
             m += 1
     if m < 2:
         return order
-    bits = depth.view(np.uint64)
+    count = np.zeros((6, 2048), np.int64)
+    for q in range(m):
+        k = key[q]
+        for p in range(6):
+            count[p, (k >> np.uint64(11 * p)) & np.uint64(2047)] += 1
     spare = np.empty(m, np.int64)
-    count = np.empty(2048, np.int64)
-    for shift in range(0, 64, 11):
-        count[:] = 0
-        for q in range(m):
-            count[(bits[order[q]] >> np.uint64(shift)) & np.uint64(2047)] += 1
-        if count.max() == m:
+    spare_key = np.empty(m, np.uint64)
+    for p in range(6):
+        if count[p].max() == m:
             continue
         total = 0
         for d in range(2048):
-            c = count[d]
-            count[d] = total
+            c = count[p, d]
+            count[p, d] = total
             total += c
+        shift = np.uint64(11 * p)
         for q in range(m):
-            g = order[q]
-            d = (bits[g] >> np.uint64(shift)) & np.uint64(2047)
-            spare[count[d]] = g
-            count[d] += 1
+            k = key[q]
+            d = (k >> shift) & np.uint64(2047)
+            r = count[p, d]
+            count[p, d] = r + 1
+            spare[r] = order[q]
+            spare_key[r] = k
         order, spare = spare, order
+        key, spare_key = spare_key, key
     return order
 
 
