@@ -117,6 +117,10 @@ def test_float32_render_is_the_float64_render_rounded_once():
     img, alpha, _ = render_numpy(*[p.numpy() for p in params[:5]], cam, params[5].numpy())
     assert img.dtype == np.float32 and np.array_equal(img, out32.image.numpy())
     assert alpha.dtype == np.float32 and np.array_equal(alpha, out32.alpha.numpy())
+    frozen = [p.numpy().copy() for p in params[:5]]
+    for a in frozen:
+        a.flags.writeable = False  # read-only arrays (np.frombuffer, memory maps) take the copies
+    assert np.array_equal(render_numpy(*frozen, cam, params[5].numpy())[0], img)
 
 
 def test_each_gradient_comes_back_in_its_own_inputs_precision():

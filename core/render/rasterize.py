@@ -158,7 +158,7 @@ def _host_arrays(*xs):
             if x.device.type != "cpu":
                 return None
             x = x.detach().numpy()
-        elif not isinstance(x, np.ndarray):
+        elif not isinstance(x, np.ndarray) or not x.flags.writeable:  # numba types read-only arrays apart
             return None
         dtypes.add(x.dtype)
         out.append(x)
