@@ -755,6 +755,12 @@ def test_float32_inputs_are_read_in_place_and_give_the_float64_gradients_rounded
         grads.append([p.grad for p in ps])
     for g32, g64, name in zip(*grads, NAMES):
         assert g32.dtype == torch.float32 and torch.equal(g32, g64.float()), name
+    from progressive_avatars.core.render import rasterize as rz
+
+    shared = rz._kernel_arrays(*params[:5])  # no copies: the kernels get the tensors' own memory
+    assert all(np.shares_memory(a, p.numpy()) for a, p in zip(shared, params[:5]))
+    mixed = rz._kernel_arrays(*params[:4], params[4].double())  # one kernel per dtype combination at most
+    assert all(a.dtype == np.float64 and not np.shares_memory(a, p.numpy()) for a, p in zip(mixed, params[:4]))
 
 
 def test_an_input_changed_in_place_before_the_backward_is_refused():
