@@ -140,38 +140,42 @@ def _validate(means, quats, scales, opacities, colors, background, camera, near,
 _NUMPY_FLOAT = {torch.float32: np.float32, torch.float64: np.float64}
 
 
-def _f64(x) -> np.ndarray:
+def float64_array(x) -> np.ndarray:
+    """x (a tensor on any device, or an array) as a C-contiguous float64 numpy copy."""
     if isinstance(x, torch.Tensor):
         x = x.detach().cpu().numpy()
     return np.ascontiguousarray(x, dtype=np.float64)
 
 
-def _host_arrays(*xs):
-    """xs (CPU tensors or arrays) as C-contiguous numpy arrays sharing their memory when they
-    are all float32 or all float64, else None. The kernels widen every load to float64, so
-    float32 arrays give the bits a float64 copy would, without the copy's memory traffic;
-    mixed dtypes would compile a kernel per combination."""
-    dtypes = set()
-    out = []
-    for x in xs:
-        if isinstance(x, torch.Tensor):
-            if x.device.type != "cpu":
-                return None
-            x = x.detach().numpy()
-        elif not isinstance(x, np.ndarray) or not x.flags.writeable:  # numba types read-only arrays apart
+def shared_array(x) -> Optional[np.ndarray]:
+    """x as a C-contiguous numpy array on its own memory where compiled kernels can read or write
+    it as it is: a CPU tensor or a writeable array (numba types read-only arrays apart, another
+    specialisation to compile), float32 or float64; else None. The rasteriser's and the face
+    binding's kernels widen every load to float64, so a float32 array gives the bits its float64
+    copy would, without the copy's memory traffic."""
+    if isinstance(x, torch.Tensor):
+        if x.device.type != "cpu":
             return None
-        dtypes.add(x.dtype)
-        out.append(x)
-    if len(dtypes) != 1 or next(iter(dtypes)) not in (np.float32, np.float64):
+        x = x.detach().numpy()
+    elif not isinstance(x, np.ndarray) or not x.flags.writeable:
         return None
-    return [np.ascontiguousarray(x) for x in out]
+    return np.ascontiguousarray(x) if x.dtype in (np.float32, np.float64) else None
+
+
+def _host_arrays(*xs):
+    """shared_array of each of xs when all share one dtype, else None (mixed dtypes would
+    compile a kernel per combination)."""
+    out = [shared_array(x) for x in xs]
+    if any(a is None for a in out) or len({a.dtype for a in out}) != 1:
+        return None
+    return out
 
 
 def _kernel_arrays(*xs) -> list:
     """The Gaussians' arrays for the kernels: the callers' own memory where _host_arrays can
     share it, float64 copies otherwise."""
     arrays = _host_arrays(*xs)
-    return arrays if arrays is not None else [_f64(x) for x in xs]
+    return arrays if arrays is not None else [float64_array(x) for x in xs]
 
 
 def _grad_array(g, shape) -> np.ndarray:
@@ -423,7 +427,7 @@ class _RasterizeCPU(torch.autograd.Function):
         dtype, device = means.dtype, means.device
         image, alpha, contrib, radii, state = _cpu_forward(
             *arrays,
-            _f64(background),
+            float64_array(background),
             camera,
             near,
             eps2d,
@@ -507,7 +511,7 @@ def render_numpy(
     background = None if background is None else np.asarray(background)
     _validate(means, quats, scales, opacities, colors, background, camera, near, eps2d)
     arrays = _kernel_arrays(means, quats, scales, opacities, colors)
-    bg = _f64(background) if background is not None else np.zeros(arrays[4].shape[1])
+    bg = float64_array(background) if background is not None else np.zeros(arrays[4].shape[1])
     if pixel_weight is not None:
         pixel_weight = np.ascontiguousarray(pixel_weight, np.float64)
         if pixel_weight.shape != (camera.height, camera.width) or not np.all(np.isfinite(pixel_weight)):

@@ -37,6 +37,7 @@ from ..avatar.binding import MIN_EDGE, MIN_SCALE
 from ..avatar.forest import Forest
 from ..geometry.gaussians import Gaussians
 from ..render.kernels import _PARALLEL  # only explicit prange loops run in parallel
+from ..render.rasterize import float64_array, shared_array
 
 _EPS64 = 8 * np.finfo(np.float64).eps
 # Root rows: v0 (3), X (3), N (3), Z (3), L, a, b, good
@@ -643,24 +644,15 @@ class FaceBinding:
         return Gaussians(means, quats, scales)
 
 
-def _f64(x: torch.Tensor) -> np.ndarray:
-    return np.ascontiguousarray(x.detach().cpu().numpy(), dtype=np.float64)
-
-
-def _direct(x: torch.Tensor) -> bool:
-    """Whether the kernels read or write ``x``'s memory as it is (CPU float32 / float64): they
-    widen every load, so a float32 array gives the bits of its float64 copy without the copy."""
-    return x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64)
-
-
 def _array(x: torch.Tensor) -> np.ndarray:
-    return np.ascontiguousarray(x.detach().numpy()) if _direct(x) else _f64(x)
+    a = shared_array(x)
+    return a if a is not None else float64_array(x)
 
 
 def _output(like: torch.Tensor, n: int, width: int) -> torch.Tensor:
     """An output [n, width] the kernels write: in ``like``'s dtype on the CPU (one rounding on
     the store, as a float64 result cast afterwards), else float64, cast by ``_moved``."""
-    return torch.empty((n, width), dtype=like.dtype if _direct(like) else torch.float64)
+    return torch.empty((n, width), dtype=like.dtype if shared_array(like) is not None else torch.float64)
 
 
 def _moved(x: torch.Tensor, like_kind) -> torch.Tensor:
@@ -682,9 +674,9 @@ class _Bind(torch.autograd.Function):
             raise ValueError(
                 f"FaceBinding: vertices must be [V,3] with V > {int(plan.tri.max())}, got {tuple(vertices.shape)}"
             )
-        verts = _f64(vertices)
+        verts = float64_array(vertices)
         bary, W = weights_forward(
-            _f64(split_logits), plan.parent, plan.slot, plan.forest.num_roots, plan.order, plan.root_start
+            float64_array(split_logits), plan.parent, plan.slot, plan.forest.num_roots, plan.order, plan.root_start
         )
         pack = roots_forward(verts, plan.tri)
         means, scales, quats = (_output(d_mu, n, w) for w in (3, 3, 4))
