@@ -1,5 +1,6 @@
 """Load an avatar onto a mesh, colour faces by depth, export PLY, render splats."""
 
+import hashlib
 import os
 import tempfile
 import urllib.parse
@@ -35,6 +36,14 @@ def preview_of(context):
     return None
 
 
+def orphan_depth_mesh(context):
+    """The active mesh when it shows depth colours but no longer has a preview (deleted)."""
+    obj = context.active_object
+    if obj is None or obj.type != "MESH" or not obj.pa_mesh.depth_shown or preview_of(context) is not None:
+        return None
+    return obj
+
+
 def _fetch(url, template_faces=None):
     """Stream an avatar from a URL into the extension's user cache (online access only),
     verifying it as it arrives (core/http_stream). A transfer that stalls or is cut keeps its
@@ -44,7 +53,10 @@ def _fetch(url, template_faces=None):
     from ..core.stream import http as http_stream
     from ..core.stream.reader import StreamReader
 
-    name = os.path.basename(urllib.parse.urlparse(url).path) or "avatar.pavs"
+    # One file per URL: two previews streamed from .../a/avatar.pavs and .../b/avatar.pavs must
+    # not share (and overwrite) one download that both .blend references point to.
+    stem, ext = os.path.splitext(os.path.basename(urllib.parse.urlparse(url).path) or "avatar.pavs")
+    name = f"{stem}-{hashlib.sha256(url.encode()).hexdigest()[:12]}{ext or '.pavs'}"
     try:
         folder = bpy.utils.extension_path_user(ADDON_PACKAGE, path="downloads", create=True)
     except (ValueError, AttributeError):  # not installed as an extension
@@ -57,9 +69,14 @@ def _fetch(url, template_faces=None):
             fh.write(chunk)
             return super().feed(chunk)
 
-    with open(part, "wb") as fh:
-        # A deadline: this runs on Blender's UI thread, which a slow server must not hold forever.
-        res = http_stream.fetch_stream(url, reader=_Tee(template_faces, source=url), timeout=30.0, deadline=300.0)
+    try:
+        with open(part, "wb") as fh:
+            # A deadline: this runs on Blender's UI thread, which a slow server must not hold forever.
+            res = http_stream.fetch_stream(url, reader=_Tee(template_faces, source=url), timeout=30.0, deadline=300.0)
+    except BaseException:  # e.g. the download folder full: no half-written file stays behind
+        if os.path.exists(part):
+            os.remove(part)
+        raise
     n = res.keepable_gaussians
     if n == 0:  # nothing verified, or the old file's bytes after the server replaced it
         os.remove(part)
@@ -112,7 +129,10 @@ def load_avatar_onto(context, mesh_obj, path, budget=100.0):
     abspath = runtime.resolve(path)
     faces = mesh_faces(mesh_obj.data)
     avatar, budget_info = load_avatar(abspath, faces)
-    check_mesh(avatar, budget_info, faces)
+    try:
+        check_mesh(avatar, budget_info, faces)
+    except ValueError as exc:
+        raise ValueError(f"{abspath}: not made for {mesh_obj.name}: {exc}") from None
     count = budget_info.count_for_percent(budget)
     depth_per_face(avatar.forest, len(faces), count)  # raises before any change
     static = static_attributes(avatar, preview_order(avatar))
@@ -142,9 +162,13 @@ def load_avatar_onto(context, mesh_obj, path, budget=100.0):
     for child in old:
         runtime.forget(child)
         me = child.data
+        groups = {m.node_group for m in child.modifiers if m.type == "NODES" and m.node_group is not None}
         bpy.data.objects.remove(child)
         if me.users == 0:
             bpy.data.meshes.remove(me)
+        for ng in groups:  # its level filter; the splat group stays in use by the new preview
+            if ng.users == 0:
+                bpy.data.node_groups.remove(ng)
     obj.name = name
     obj.data.name = name
     return obj
@@ -197,6 +221,9 @@ class PA_OT_load_avatar(bpy.types.Operator, ImportHelper):
     def execute(self, context):
         mesh_obj = _mesh_target(context)
         path = self.filepath
+        if not self.url and not path.strip():
+            self.report({"ERROR"}, "Cannot load avatar: choose a stream (.pavs) or avatar (.npz) file, or give a URL")
+            return {"CANCELLED"}
         try:
             note = ""
             if self.url:
@@ -225,10 +252,18 @@ class PA_OT_depth_colors(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return preview_of(context) is not None
+        return preview_of(context) is not None or orphan_depth_mesh(context) is not None
 
     def execute(self, context):
+        from . import ply_import
+
         obj = preview_of(context)
+        if obj is None:  # the preview was deleted while the colours were shown: they can still go
+            depth.hide_colors(context, orphan_depth_mesh(context))
+            return {"FINISHED"}
+        if ply_import.is_splat_ply(obj):
+            self.report({"ERROR"}, f"{obj.name}: PLY splats carry no subdivision depth; load an avatar onto a mesh")
+            return {"CANCELLED"}
         src = obj.pa_avatar.source
         if src is None or src.type != "MESH":
             self.report({"ERROR"}, f"{obj.name}: its mesh was deleted; load the avatar onto a mesh again")

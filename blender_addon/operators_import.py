@@ -52,6 +52,9 @@ class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
         from ..core.flame import model as flame
         from ..core.flame import rig as flame_rig
 
+        if not self.filepath.strip():
+            self.report({"ERROR"}, "Cannot read sequence: choose a sequence file (or a folder of frames)")
+            return {"CANCELLED"}
         path = bpy.path.abspath(self.filepath)
         if self.whole_folder and os.path.isfile(path):
             path = os.path.dirname(path)
@@ -76,6 +79,10 @@ class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
             return {"CANCELLED"}
         if seq.n_frames == 0:
             self.report({"ERROR"}, f"{path}: no frames")
+            return {"CANCELLED"}
+        problem = sequence.face_problem(seq.faces) if rig is None else ""
+        if problem:
+            self.report({"ERROR"}, f"Cannot read sequence: {path}: {problem}; Blender cannot hold such a mesh")
             return {"CANCELLED"}
         scene = context.scene
         kept_range = (scene.frame_start, scene.frame_end)

@@ -77,11 +77,17 @@ class PA_PT_depth(_Base, bpy.types.Panel):
 
     @classmethod
     def poll(cls, context):
-        return operators_avatar.preview_of(context) is not None
+        return (
+            operators_avatar.preview_of(context) is not None or operators_avatar.orphan_depth_mesh(context) is not None
+        )
 
     def draw(self, context):
         obj = operators_avatar.preview_of(context)
         lay = self.layout
+        if obj is None:
+            lay.label(text="The avatar preview was deleted", icon="ERROR")
+            lay.operator("object.progressive_avatars_depth_colors", icon="COLOR", text="Hide Depth Colours")
+            return
         src = obj.pa_avatar.source
         if src is None:
             lay.label(text="The preview's mesh was deleted", icon="ERROR")

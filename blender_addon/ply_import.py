@@ -172,13 +172,17 @@ class PA_OT_import_splat_ply(bpy.types.Operator, ImportHelper):
     )
 
     def execute(self, context):
+        if not self.filepath.strip():
+            self.report({"ERROR"}, "Cannot import splats: choose a 3DGS .ply file")
+            return {"CANCELLED"}
         path = bpy.path.abspath(self.filepath)
         try:
             g = core_ply.read_ply(path)
             name = os.path.splitext(os.path.basename(path))[0] or "splats"
             obj = create_splat_object(context, name, g, self.order, self.filepath)
         except Exception as exc:  # nothing was added: read_ply and the checks run before any datablock
-            self.report({"ERROR"}, f"Cannot import {path}: {exc}")
+            msg = str(exc)  # the readers' messages mostly name the file already
+            self.report({"ERROR"}, f"Cannot import splats: {msg}" if path in msg else f"Cannot import {path}: {msg}")
             return {"CANCELLED"}
         for o in context.selected_objects:
             o.select_set(False)

@@ -36,7 +36,9 @@ class PA_LegendItem(bpy.types.PropertyGroup):
 class PA_MeshState(bpy.types.PropertyGroup):
     """On the animated mesh (the sequence) object."""
 
-    sequence_path: bpy.props.StringProperty(name="Sequence", subtype="FILE_PATH")
+    sequence_path: bpy.props.StringProperty(
+        name="Sequence", subtype="FILE_PATH", options={"PATH_SUPPORTS_BLEND_RELATIVE"}
+    )
     frame_start: bpy.props.IntProperty(name="First frame")
     num_frames: bpy.props.IntProperty(name="Frames")
     depth_legend: bpy.props.CollectionProperty(type=PA_LegendItem)
@@ -50,7 +52,10 @@ class PA_AvatarState(bpy.types.PropertyGroup):
 
     is_preview: bpy.props.BoolProperty(default=False)
     filepath: bpy.props.StringProperty(
-        name="Avatar", subtype="FILE_PATH", description="Stream or avatar file this preview was loaded from"
+        name="Avatar",
+        subtype="FILE_PATH",
+        description="Stream or avatar file this preview was loaded from",
+        options={"PATH_SUPPORTS_BLEND_RELATIVE"},
     )
     source: bpy.props.PointerProperty(
         type=bpy.types.Object, name="Mesh", description="Mesh whose evaluated vertices drive the Gaussians"
@@ -104,8 +109,8 @@ class PA_AvatarState(bpy.types.PropertyGroup):
 
 
 class PA_TrainState(bpy.types.PropertyGroup):
-    data_dir: bpy.props.StringProperty(name="Data", subtype="DIR_PATH")
-    out_dir: bpy.props.StringProperty(name="Run", subtype="DIR_PATH")
+    data_dir: bpy.props.StringProperty(name="Data", subtype="DIR_PATH", options={"PATH_SUPPORTS_BLEND_RELATIVE"})
+    out_dir: bpy.props.StringProperty(name="Run", subtype="DIR_PATH", options={"PATH_SUPPORTS_BLEND_RELATIVE"})
     preset: bpy.props.StringProperty(name="Preset", default="")
     iterations: bpy.props.IntProperty(
         name="Iterations", default=0, min=0, description="Training iterations (0: the preset's)"

@@ -69,6 +69,7 @@ def entry(obj):
         faces = mesh_faces(src.data) if src is not None and src.type == "MESH" else None
     except ValueError:
         faces = None
+    _drop_dead()
     try:
         e = _cache[key] = _Entry(path, template_faces=faces)
     except (ValueError, OSError) as exc:
@@ -79,7 +80,16 @@ def entry(obj):
 
 def prime(obj, path, avatar, budget):
     """Cache an avatar the caller has just read, so it is not decoded twice."""
+    _drop_dead()
     _cache[obj.session_uid] = _Entry(resolve(path), (avatar, budget))
+
+
+def _drop_dead():
+    """Forget the decoded avatars of previews that no longer exist (deleted by the user): each
+    holds the whole avatar and its evaluator."""
+    live = {o.session_uid for o in bpy.data.objects}
+    for key in [k for k in _cache if k not in live]:
+        del _cache[key]
 
 
 def forget(obj=None):
@@ -193,6 +203,8 @@ def refresh(obj, depsgraph, count=None):
     if e is None or src is None or src.type != "MESH":
         if src is None:
             state.status = "No mesh bound"
+        if e is not None:  # show only what was placed on the mesh before it went, never unplaced points
+            preview.set_count(obj, min(e.budget.count_for_percent(state.budget) if count is None else count, e.valid))
         return False
     count = e.budget.count_for_percent(state.budget) if count is None else count
     if state.bind_mode == "SHAPE_KEYS":

@@ -10,6 +10,24 @@ def _keyframe_interp(name):
     return bpy.types.Keyframe.bl_rna.properties["interpolation"].enum_items[name].value
 
 
+def face_problem(faces) -> str:
+    """Why Blender cannot hold these triangles as a valid mesh ("" when it can): a face that
+    names one vertex twice, or the same three vertices twice. Such a mesh builds, but Blender
+    treats it as corrupt (Edit Mode can hang on it), so the import refuses it up front."""
+    f = np.asarray(faces, np.int64).reshape(-1, 3)
+    bad = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
+    if bad.any():
+        i = int(np.argmax(bad))
+        return f"face {i} {tuple(int(v) for v in f[i])} uses a vertex twice ({int(bad.sum())} such faces)"
+    _, first, inverse = np.unique(np.sort(f, axis=1), axis=0, return_index=True, return_inverse=True)
+    dup = first[inverse.reshape(-1)] != np.arange(len(f))
+    if dup.any():
+        i = int(np.argmax(dup))
+        j = int(first[inverse.reshape(-1)[i]])
+        return f"face {i} {tuple(int(v) for v in f[i])} repeats face {j}'s vertices ({int(dup.sum())} such faces)"
+    return ""
+
+
 def build_mesh(name, vertices0, faces):
     faces = np.ascontiguousarray(faces, np.int32)
     me = bpy.data.meshes.new(name)

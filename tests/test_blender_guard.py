@@ -119,6 +119,7 @@ def cut_session(tiny_run, tiny_dataset, tmp_path_factory):
         "full": bare,
         "url_streams": [bare, full],
         "url_cuts": url_cuts,
+        "url_same_tail": hf.total_bytes // 2,
     }
     rep, arrays = run_scenario(tmp, CUT_SCENARIO, args)
     return {
@@ -129,6 +130,7 @@ def cut_session(tiny_run, tiny_dataset, tmp_path_factory):
         "bare": bare,
         "full": full,
         "url_cuts": url_cuts,
+        "url_same_tail": args["url_same_tail"],
         "header": hb,
     }
 
@@ -233,6 +235,44 @@ def test_cut_url_transfers(cut_session):
         ref = part.gaussians(seq.vertices[1].astype(np.float32), ids=np.arange(n))
         np.testing.assert_allclose(arrays[f"urlpos_{key}"], ref["means"][part.forest.stream_order()], atol=1e-5, rtol=0)
     assert rep["url"]["bare_3"]["result"] == ["FINISHED"]  # (1 % of this small stream is inside its header)
+
+
+@pytest.mark.slow
+def test_url_downloads_do_not_share_a_file(cut_session):
+    """Two URLs whose paths end alike: each preview keeps its own verified download."""
+    from progressive_avatars.core.stream.format import read_header
+
+    rep = cut_session["rep"]
+    _no_error(rep, "url")
+    (n1, r1, p1, t1, s1), (n2, r2, p2, t2, s2) = rep["url_same_tail"]
+    assert r1 == r2 == ["FINISHED"] and p1 != p2
+    for name, total, size in ((n1, t1, s1), (n2, t2, s2)):
+        h = read_header(cut_session[name.split(".")[0]])
+        n = h.count_for_bytes(cut_session["url_same_tail"])
+        assert total == n > 0 and size == h.bytes_for_count(n), (name, total, n, size)
+
+
+@pytest.mark.slow
+def test_artist_slips(cut_session):
+    """The mesh deleted under a preview, the preview deleted under its depth colours, a reload
+    over a level filter, no file chosen, a saved project: each ends in a sane scene and the
+    decoded avatars of deleted previews are let go."""
+    rep = cut_session["rep"]
+    _no_error(rep, "slips")
+    r = rep["slips"]
+    assert "choose a stream" in r["no_file"]
+    res, unchanged = r["repeated_vertex"]
+    assert "repeated_vertex.npz: face 5" in res and "uses a vertex twice" in res and unchanged, res
+    res, unchanged = r["duplicate_face"]
+    assert "duplicate_face.npz: face 9" in res and "repeats face 3" in res and unchanged, res
+    shown, after, count, status = r["mesh_gone"]
+    assert 0 < shown == after < count and status == "No mesh bound"  # never points left unplaced
+    assert r["groups_after_reload"] == []
+    assert r["orphan_poll"] and r["orphan_hide"] == ["FINISHED"] and r["orphan_after"] == [False, []]
+    assert r["cache"][0] >= 1 and r["cache"][1]  # one decoded avatar per live preview, no more
+    assert r["saved_load"] == ["FINISHED"] and r["stored"].startswith("//")
+    saving = rep["stdout"].split("PA_SAVE_BEGIN")[1].split("PA_SAVE_END")[0]
+    assert "blend relative" not in saving, saving
 
 
 @pytest.mark.slow

@@ -93,6 +93,31 @@ def test_write_is_atomic(tmp_path, gaussians, monkeypatch):
     assert p.read_bytes() == before and os.listdir(tmp_path) == ["g.ply"]
 
 
+@pytest.mark.parametrize(
+    "field, value", [("x", np.nan), ("scale_1", 200.0), ("scale_0", np.inf), ("opacity", np.nan), ("f_dc_2", -np.inf)]
+)
+def test_non_finite_splats_are_refused(tmp_path, gaussians, monkeypatch, field, value):
+    """Another tool's PLY with one NaN position or a log-scale whose exp overflows float32 is
+    refused naming the file, the vertex and the field, on both readers (Blender has no plyfile):
+    one such splat poisons a preview, a render or an export."""
+    from plyfile import PlyData
+
+    p = tmp_path / "g.ply"
+    P.write_ply(p, gaussians)
+    ply = PlyData.read(str(p), mmap=False)
+    ply["vertex"].data[field][7] = value
+    ply.write(str(p))
+    for use_plyfile in (True, False):
+        if not use_plyfile:
+            monkeypatch.setitem(sys.modules, "plyfile", None)
+        with pytest.raises(ValueError, match=rf"g\.ply: vertex 7 of {len(gaussians['means'])}: {field} = "):
+            P.read_ply(p)
+    ply["vertex"].data[field][7] = 0.0
+    ply["vertex"].data["opacity"][7] = np.inf  # a saturated logit is a valid opacity of 1
+    ply.write(str(p))
+    assert P.read_ply(p)["opacities"][7] == 1.0
+
+
 def test_bad_files_are_refused(tmp_path):
     p = tmp_path / "bad.ply"
     p.write_bytes(b"hello")

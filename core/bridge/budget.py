@@ -102,7 +102,10 @@ def load_avatar(path, template_faces=None) -> tuple[Avatar, Budget]:
         tmpl = None if info.template_embedded else template_faces
         from ..stream.reader import read_stream
 
-        avatar = read_stream(path, template_faces=tmpl)
+        try:
+            avatar = read_stream(path, template_faces=tmpl)
+        except stream.TemplateMismatch as exc:  # the mesh's; name the file it was checked against
+            raise stream.TemplateMismatch(f"{path}: {exc}") from None
         if avatar is None:
             raise ValueError(
                 f"{path}: the stream holds no complete Gaussian record ({size} of "

@@ -237,6 +237,32 @@ def _read_vertices(path: str) -> np.ndarray:
         return np.frombuffer(buf, dt)
 
 
+# exp() of a log-scale above this overflows float32: the scale would be inf.
+_MAX_LOG_SCALE = float(np.log(np.finfo(np.float32).max))
+
+
+def _check_finite(path, v, names):
+    """Refuse NaN/inf fields (and log-scales whose scale overflows float32), naming the first
+    bad vertex: one such splat turns a whole preview, render or export into garbage."""
+    # Normals are unused and quaternions are made unit (or identity) on reading.
+    skip = ("nx", "ny", "nz", "rot_0", "rot_1", "rot_2", "rot_3")
+    fields = [k for k in names if k.startswith("f_rest_") or (k in PROPERTIES and k not in skip)]
+    for k in fields:
+        x = np.asarray(v[k], np.float64)
+        if k == "opacity":  # ±inf is a valid logit (opacity 0 or 1); NaN is not
+            bad = np.isnan(x)
+        elif k.startswith("scale_"):
+            bad = ~np.isfinite(x) | (x > _MAX_LOG_SCALE)
+        else:
+            bad = ~np.isfinite(x)
+        if bad.any():
+            i = int(np.argmax(bad))
+            what = "a log-scale whose scale overflows float32" if np.isfinite(x[i]) else "not finite"
+            raise ValueError(
+                f"{path}: vertex {i} of {len(x)}: {k} = {x[i]!r} is {what} ({int(bad.sum())} such vertices)"
+            )
+
+
 def read_ply(path) -> dict:
     """A 3DGS PLY back as activated Gaussians: means, quats (wxyz, unit), scales, opacities,
     colors (RGB = max(0.5 + C0·f_dc, 0)) and sh_rest [N,K,3] (K = 0 without f_rest_* fields)."""
@@ -257,6 +283,7 @@ def read_ply(path) -> dict:
     if n_rest % 3 or any(f"f_rest_{j}" not in names for j in range(n_rest)):
         raise ValueError(f"{path}: f_rest_* properties must be f_rest_0..f_rest_(3K-1), got {n_rest}")
     K = n_rest // 3
+    _check_finite(path, v, names)
     rest = (
         np.stack([col(*(f"f_rest_{c * K + k}" for c in range(3))) for k in range(K)], axis=1)
         if K

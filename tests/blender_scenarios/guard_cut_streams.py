@@ -80,6 +80,24 @@ def _():
         else:
             r["unchanged"] = scene_state() == before
         R["url"][key] = r
+    # Two previews streamed from URLs that end alike (.../bare.pavs/N, .../full.pavs/N): each
+    # keeps its own download, so neither file is overwritten by the other.
+    made = []
+    for name in ("bare.pavs", "full.pavs"):
+        res, m = import_mesh(ARGS["seq"])
+        bpy.context.view_layer.objects.active = m
+        res = run_op(
+            bpy.ops.object.progressive_avatars_load, url=f"{base}/{name}/{ARGS['url_same_tail']}", budget=100.0
+        )
+        pv = preview_of(m)
+        made += [m, pv]
+        R.setdefault("url_same_tail", []).append(
+            [name, res, bpy.path.abspath(pv.pa_avatar.filepath), pv.pa_avatar.total]
+        )
+    for r in R["url_same_tail"]:  # the file each preview refers to, after both loads
+        r.append(os.path.getsize(r[2]))
+    for o in made:
+        bpy.data.objects.remove(o)
     srv.shutdown()
 
 
@@ -196,6 +214,67 @@ def _():
     R["topology"]["render_only_subsurf"] = [pv.pa_avatar.status, instances(pv)]
     bpy.data.objects.remove(pv)
     bpy.data.objects.remove(mesh)
+
+
+@section("slips")
+def _():
+    """What an artist does by accident: delete the mesh or the preview under the other, reload
+    over a level filter, forget to pick a file, save with relative paths."""
+    rt = sys.modules[PKG + ".blender_addon.runtime"]
+    out = {}
+    # Triangles Blender cannot hold (a vertex twice; one triangle twice) are refused up front.
+    d = dict(np.load(ARGS["seq"]))
+    for kind in ("repeated_vertex", "duplicate_face"):
+        f = d["faces"].copy()
+        if kind == "repeated_vertex":
+            f[5] = [f[5][0], f[5][0], f[5][1]]
+        else:
+            f[9] = np.roll(f[3], 1)
+        bad = os.path.join(ARGS["out"], f"{kind}.npz")
+        np.savez(bad, vertices=d["vertices"], faces=f)
+        before = scene_state()
+        res, _ = import_mesh(bad)
+        out[kind] = [res, scene_state() == before]
+    res, m = import_mesh(ARGS["seq"])
+    bpy.context.view_layer.objects.active = m
+    out["no_file"] = run_op(bpy.ops.object.progressive_avatars_load, filepath="")
+    # The mesh deleted at 25 %, then the slider raised: only placed Gaussians are drawn.
+    run_op(bpy.ops.object.progressive_avatars_load, filepath=ARGS["full"], budget=25.0)
+    pv = preview_of(m)
+    shown = instances(pv)
+    bpy.data.objects.remove(m)
+    pv.pa_avatar.budget = 100.0
+    out["mesh_gone"] = [shown, instances(pv), pv.pa_avatar.count, pv.pa_avatar.status]
+    bpy.data.objects.remove(pv)
+    # A level filter, then a reload: the old preview's filter group goes with it.
+    res, m = import_mesh(ARGS["seq"])
+    bpy.context.view_layer.objects.active = m
+    run_op(bpy.ops.object.progressive_avatars_load, filepath=ARGS["full"])
+    preview_of(m).pa_avatar.level_only = 1
+    run_op(bpy.ops.object.progressive_avatars_load, filepath=ARGS["full"])
+    out["groups_after_reload"] = sorted(g.name for g in bpy.data.node_groups if g.users == 0)
+    # Depth colours shown, then the preview deleted: the mesh can still hide them.
+    pv = preview_of(m)
+    bpy.context.view_layer.objects.active = pv
+    run_op(bpy.ops.object.progressive_avatars_depth_colors)
+    bpy.data.objects.remove(pv)
+    bpy.context.view_layer.objects.active = m
+    out["orphan_poll"] = bpy.ops.object.progressive_avatars_depth_colors.poll()
+    out["orphan_hide"] = run_op(bpy.ops.object.progressive_avatars_depth_colors)
+    out["orphan_after"] = [m.pa_mesh.depth_shown, sorted(a.name for a in m.data.color_attributes)]
+    # Decoded avatars of deleted previews are not kept: one load, one entry.
+    run_op(bpy.ops.object.progressive_avatars_load, filepath=ARGS["full"])
+    live = {o.session_uid for o in bpy.data.objects if o.pa_avatar.is_preview}
+    out["cache"] = [len(live), sorted(rt._cache) == sorted(live)]
+    # Relative paths: saved, then loaded into the saved file (Blender warns on a path property
+    # that does not take "//").
+    print("PA_SAVE_BEGIN")
+    bpy.ops.wm.save_as_mainfile(filepath=os.path.join(ARGS["out"], "slips.blend"))
+    bpy.context.view_layer.objects.active = bpy.data.objects[m.name]
+    out["saved_load"] = run_op(bpy.ops.object.progressive_avatars_load, filepath=ARGS["full"])
+    out["stored"] = preview_of(bpy.data.objects[m.name]).pa_avatar.filepath
+    print("PA_SAVE_END")
+    R["slips"] = out
 
 
 np.savez(os.path.join(ARGS["out"], "arrays.npz"), **arrays)
