@@ -145,6 +145,9 @@ def main(argv=None):
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if args.threads is not None and args.threads < 1:
+        print(f"error: --threads must be at least 1, got {args.threads}", file=sys.stderr)
+        return 2
     dist = Dist.from_env(threads=args.threads)  # world size 1 without torchrun
     rc = _train(args, cfg, dist, t0)
     if rc == 0:  # after a failure the group is left to the process exit (a dead peer cannot say goodbye)
@@ -209,6 +212,15 @@ def _train(args, cfg, dist, t0):
         except RuntimeError as exc:  # a rank died or hung (gloo), or the ranks' state diverged
             print(f"error: {who}{_lost_peer(exc, args.out, trainer.checkpoint_iteration) or exc}", file=sys.stderr)
             return 4
+        except KeyboardInterrupt:
+            ck = trainer.checkpoint_iteration
+            kept = (
+                "no checkpoint was written yet"
+                if ck is None
+                else f"the last checkpoint in {args.out} (iteration {ck}) is kept; --resume continues from it"
+            )
+            print(f"\nstopped (Ctrl-C) at iteration {trainer.iteration}; {kept}", file=sys.stderr)
+            return 130
         except _Stopped:
             print(
                 f"error: {who}stopped by the launcher (SIGTERM: torchrun stops every process of the job when one "

@@ -106,6 +106,59 @@ def test_killed_process_resumes(tiny_dataset, tmp_path):
     assert len(rows) == 1 and rows[0]["iterations"] == 4
 
 
+def test_resume_keeps_the_runs_settings_and_overwrite_clears_the_old_run(tiny_dataset, tmp_path):
+    """--resume continues the run that is there, as it was set up: other run-defining settings
+    are refused at once (they mixed two trainings, or crashed mid-run), a finished run without
+    its checkpoint is not silently started over, and --overwrite clears the replaced run's
+    checkpoint before anything else can be resumed from it."""
+    from progressive_avatars.core.train.trainer import RunExistsError
+
+    run = tmp_path / "run"
+    cfg = config_for("tiny", iterations=4, checkpoint_every=2, eval_every=10**6)
+    Trainer(tiny_dataset, str(run), cfg).run(progress=False)
+    with pytest.raises(ValueError, match=r"settings other than the run's: coarse_levels .*; seed 0 -> 7"):
+        Trainer(tiny_dataset, str(run), config_for("tiny", iterations=4, seed=7, coarse_levels=()), resume=True)
+    with pytest.raises(ValueError, match=r"prefix_cuts 0 -> 2"):
+        Trainer(tiny_dataset, str(run), config_for("tiny", iterations=4, prefix_cuts=2), resume=True)
+    # What may change: the length, logging, checkpoints, memory and batch.
+    more = config_for("tiny", iterations=6, checkpoint_every=3, eval_every=5, image_cache_mb=64.0)
+    again = Trainer(tiny_dataset, str(run), more, resume=True)
+    assert again.iteration == 4
+    again.run(progress=False)
+    assert again.iteration == 6
+    # A checkpoint from before the settings travelled in it: config.json's are checked.
+    ck = dict(np.load(run / "checkpoint.npz"))
+    state = json.loads(str(ck["state_json"]))
+    del state["settings"]
+    ck["state_json"] = np.array(json.dumps(state))
+    np.savez(run / "checkpoint.npz", **ck)
+    with pytest.raises(ValueError, match=r"seed 0 -> 3"):
+        Trainer(tiny_dataset, str(run), config_for("tiny", iterations=6, seed=3), resume=True)
+    # A finished run whose checkpoint is gone is refused, not trained again from scratch.
+    os.remove(run / "checkpoint.npz")
+    avatar = (run / "avatar.npz").read_bytes()
+    with pytest.raises(RunExistsError, match="no checkpoint.npz to resume from"):
+        Trainer(tiny_dataset, str(run), cfg, resume=True)
+    assert (run / "avatar.npz").read_bytes() == avatar
+    # --overwrite: once the new data passed its checks, the old run's files are gone, so a kill
+    # before the new run's first checkpoint leaves nothing a --resume could continue wrongly.
+    (run / "avatar.pavs").write_bytes(b"old stream")
+    (run / "importance.npy").write_bytes(b"old cache")
+    fresh = Trainer(tiny_dataset, str(run), config_for("tiny", iterations=4, seed=1), overwrite=True)
+    assert sorted(os.listdir(run)) == ["config.json"]
+    assert fresh.iteration == 0
+
+
+def test_threads_must_be_positive(tiny_dataset, tmp_path):
+    for n in ("0", "-1"):
+        cmd = [sys.executable, os.path.join(ROOT, "scripts", "train.py"), "--data", tiny_dataset]
+        out = subprocess.run(
+            cmd + ["--out", str(tmp_path / "r"), "--preset", "tiny", "--threads", n], capture_output=True, text=True
+        )
+        assert out.returncode == 2 and f"--threads must be at least 1, got {n}" in out.stderr, out.stderr
+        assert not (tmp_path / "r").exists()
+
+
 def test_adam_grows_with_new_rows():
     p = {"a": torch.zeros(2, 3, requires_grad=True)}
     opt = Adam(p, {"a": 0.1})

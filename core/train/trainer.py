@@ -269,6 +269,88 @@ def _log_iteration(line: str) -> float:
         return math.inf
 
 
+# What a run may change when it is resumed: how long it trains, how it logs and checkpoints, its
+# memory and batch (a resume may use any number of processes). Everything else defines the run
+# (the model, the losses, the schedule's shape, the seed's random stream); changed on a resume,
+# it would silently mix two trainings, or fail mid-run where the fresh start refuses it at once.
+RESUMABLE = (
+    "iterations",
+    "log_every",
+    "eval_every",
+    "eval_views",
+    "checkpoint_every",
+    "image_cache_mb",
+    "views_per_step",
+)
+_RUN_OUTPUTS = ("checkpoint.npz", "avatar.npz", "avatar.pavs", "flame_refined.npz")
+
+
+def run_settings(cfg: TrainConfig) -> dict:
+    """The settings that define a run, as JSON values; the FLAME model by its content, so a
+    moved file still resumes and another model with the same faces does not."""
+    out = {k: v for k, v in json.loads(json.dumps(asdict(cfg))).items() if k not in RESUMABLE}
+    if cfg.flame_model:
+        out["flame_model"] = _file_digest(cfg.flame_model)
+    return out
+
+
+def _file_digest(path: str) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    try:
+        with open(path, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+    except OSError:
+        return os.path.abspath(path)  # unreadable: the dataset load reports it
+    return "sha256:" + h.hexdigest()
+
+
+def _config_json_settings(out_dir: str) -> dict | None:
+    """A checkpoint written before the settings travelled in it: config.json's, if readable
+    (the FLAME model by its path then, which cannot be compared with a digest: left out)."""
+    try:
+        with open(os.path.join(out_dir, "config.json"), encoding="utf-8") as fh:
+            cfg = json.load(fh)
+    except (OSError, ValueError):
+        return None
+    if not isinstance(cfg, dict):
+        return None
+    known = {f for f in TrainConfig.__dataclass_fields__ if f not in RESUMABLE and f != "flame_model"}
+    return {k: v for k, v in cfg.items() if k in known}
+
+
+def _check_same_settings(source: str, was: dict | None, now: dict) -> None:
+    if not was:
+        return
+    diff = [f"{k} {was[k]!r} -> {now.get(k)!r}" for k in sorted(was) if k in now and was[k] != now[k]]
+    if diff:
+        raise ValueError(
+            f"{source}: --resume with settings other than the run's: {'; '.join(diff)}. Resume with the options "
+            "the run was started with (its config.json), or train into a new --out folder "
+            f"(a resume may change only {', '.join(RESUMABLE)})"
+        )
+
+
+def _remove_run_outputs(out_dir: str, everything: bool) -> None:
+    """A fresh start: the metrics log of an earlier start, and with ``everything`` (--overwrite)
+    the replaced run's checkpoint, avatar, stream and importance caches too, so a kill before
+    the new run's first checkpoint cannot leave the old checkpoint beside the new config.json
+    for a --resume to continue on the new data."""
+    names = ["metrics.jsonl"]
+    if everything:
+        names += _RUN_OUTPUTS
+        try:
+            names += [n for n in os.listdir(out_dir) if n.startswith("importance") and n.endswith((".npy", ".json"))]
+        except OSError:
+            pass
+    for name in names:
+        path = os.path.join(out_dir, name)
+        if os.path.isfile(path):
+            os.remove(path)
+
+
 class RunExistsError(ValueError):
     """Training without resume into a run folder that holds a checkpoint or a trained avatar."""
 
@@ -322,6 +404,12 @@ class Trainer:
                 raise RunExistsError(
                     f"{out_dir} already holds a run ({', '.join(held)}): --resume continues it; to start "
                     "over, train into another --out folder or pass --overwrite"
+                )
+        if resume and not os.path.exists(os.path.join(out_dir, "checkpoint.npz")):
+            if os.path.exists(os.path.join(out_dir, "avatar.npz")):  # resuming would start it over
+                raise RunExistsError(
+                    f"{out_dir} holds a trained avatar (avatar.npz) but no checkpoint.npz to resume from; "
+                    "train into another --out folder, or pass --overwrite without --resume to start over"
                 )
         # World size 1 unless a torchrun job is given: then only rank 0 writes the run folder.
         self.dist = dist or Dist()
@@ -379,6 +467,8 @@ class Trainer:
                 )
             if f.num_coarse and f.stand_ins != config.coarse_stand_ins:  # the run keeps its kind
                 config = self.cfg = replace(config, coarse_stand_ins=f.stand_ins)
+            self.settings = run_settings(config)
+            _check_same_settings(self.ckpt_path, self.run_settings, self.settings)
         else:
             coarse = None
             if config.coarse_levels:
@@ -394,8 +484,9 @@ class Trainer:
             self.iteration = 0
             self.elapsed = 0.0
             self._reset_accumulators()
-            if main and os.path.exists(self.log_path):
-                os.remove(self.log_path)
+            self.settings = run_settings(config)
+            if main:  # --overwrite: the replaced run's files; else a log left by a kill before any checkpoint
+                _remove_run_outputs(out_dir, everything=overwrite)
         if self.dist.world_size > 1:
             # Same start on every rank (template init or checkpoint), or stop before any step.
             self._check_ranks_agree("parameters and optimiser state", self._state_digest())
@@ -687,6 +778,7 @@ class Trainer:
                     "elapsed": self.elapsed,
                     "rng": self.rng.bit_generator.state,
                     "world_size": self.dist.world_size,
+                    "settings": self.settings,
                 }
             )
         )
@@ -733,6 +825,7 @@ class Trainer:
             if self.refiner is not None:
                 self.refiner.load_state(d, self.ckpt_path)
             state = json.loads(str(d["state_json"]))
+        self.run_settings = state.get("settings") or _config_json_settings(self.out_dir)
         self.iteration, self.elapsed = state["iteration"], state["elapsed"]
         self.checkpoint_iteration = self.iteration
         self.rng = np.random.default_rng()
