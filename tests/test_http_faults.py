@@ -12,7 +12,7 @@ import pytest
 
 from progressive_avatars.core.stream import http as H
 from progressive_avatars.core.stream.format import FIXED_SIZE_MAX, read_header
-from progressive_avatars.core.stream.reader import read_stream
+from progressive_avatars.core.stream.reader import StreamReader, read_stream
 from progressive_avatars.core.stream.writer import encode_stream
 from progressive_avatars.core.avatar.avatar import Avatar
 from tests.test_stream import assert_prefix, make_avatar
@@ -216,3 +216,196 @@ def test_nested_json_metadata_reported_as_corrupt(serve):
     srv = serve(data)
     res = H.fetch_stream(srv.url, timeout=2)
     assert res.status == H.CORRUPT and "JSON nested" in res.message, str(res)
+
+
+# -- scripted servers: each test says how the server answers --------------------------------------
+
+
+class ScriptHandler(BaseHTTPRequestHandler):
+    protocol_version = "HTTP/1.1"
+
+    def log_message(self, *args):
+        pass
+
+    def do_GET(self):
+        self.server.requests += 1
+        self.server.script(self)
+
+
+def _send(h, status, body=b"", headers=()):
+    h.send_response(status)
+    for k, v in headers:
+        h.send_header(k, v)
+    h.send_header("Content-Length", str(len(body)))
+    h.end_headers()
+    h.wfile.write(body)
+
+
+def _static(data, ranges=True):
+    """An honest static server for `data`: 206 for a range, 416 past the end, 200 without ranges."""
+
+    def script(h):
+        m = re.match(r"bytes=(\d+)-(\d*)", h.headers.get("Range") or "")
+        if not (m and ranges):
+            return _send(h, 200, data)
+        start = int(m.group(1))
+        if start >= len(data):
+            return _send(h, 416, headers=[("Content-Range", f"bytes */{len(data)}")])
+        end = min(int(m.group(2)) if m.group(2) else len(data) - 1, len(data) - 1)
+        _send(h, 206, data[start : end + 1], [("Content-Range", f"bytes {start}-{end}/{len(data)}")])
+
+    return script
+
+
+@pytest.fixture
+def scripted():
+    servers = []
+
+    def start(script):
+        httpd = _QuietServer(("127.0.0.1", 0), ScriptHandler)
+        httpd.daemon_threads = True
+        httpd.script, httpd.requests = script, 0
+        threading.Thread(target=httpd.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True).start()
+        servers.append(httpd)
+        return httpd, f"http://127.0.0.1:{httpd.server_address[1]}/s.pavs"
+
+    yield start
+    for httpd in servers:
+        httpd.shutdown()
+        httpd.server_close()
+
+
+@pytest.mark.parametrize(
+    "location",
+    ["http://:81/s.pavs", "http://127.0.0.1:99999/s.pavs", "http://127.0.0.1:port/s.pavs", "http://[::1/s.pavs"],
+)
+def test_redirect_to_an_unusable_url_is_an_http_error_naming_it(scripted, location):
+    """A Location without a host or with a bad port was a raw TypeError/AttributeError out of
+    http.client, or 'refused' (the reader's status for bytes it cannot use)."""
+    _, url = scripted(lambda h: _send(h, 302, headers=[("Location", location)]))
+    res = H.fetch_stream(url, timeout=2)
+    assert res.status == H.HTTP_ERROR and res.http_status == 302, str(res)
+    assert "redirected to a bad URL" in res.message and location in res.message, res.message
+
+
+@pytest.mark.parametrize("url", ["http:///s.pavs", "http://:81/s.pavs", "http://127.0.0.1:99999/s.pavs"])
+def test_caller_url_without_host_or_with_bad_port_is_an_http_error(url):
+    res = H.fetch_stream(url, timeout=2)
+    assert res.status == H.HTTP_ERROR and res.requests == 0, str(res)
+    assert f"bad URL {url!r}" in res.message, res.message
+
+
+@pytest.mark.parametrize("bad", ["backwards", "past-the-end"])
+def test_unusable_content_range_fails_at_once(two_streams, scripted, bad):
+    """A 206 whose Content-Range ends before it starts made the client re-request the same range
+    thousands of times a second (only a deadline or min_rate ended it); one ending past the file's
+    size was read as a cut connection."""
+    a = two_streams[0]
+
+    def script(h):
+        start = int(re.match(r"bytes=(\d+)-", h.headers["Range"]).group(1))
+        if start == 0:  # the first chunk is honest
+            return _send(h, 206, a[:64], [("Content-Range", f"bytes 0-63/{len(a)}")])
+        last = start - 1 if bad == "backwards" else len(a) + 10
+        _send(h, 206, b"", [("Content-Range", f"bytes {start}-{last}/{len(a)}")])
+
+    httpd, url = scripted(script)
+    t = time.monotonic()
+    res = H.fetch_stream(url, chunk_size=64, timeout=2, min_rate=None, deadline=3)
+    assert time.monotonic() - t < 2, str(res)
+    assert res.status == H.HTTP_ERROR and "unexpected Content-Range" in res.message, str(res)
+    assert res.requests == httpd.requests == 2 and res.bytes_received == 64
+
+
+@pytest.mark.parametrize("ranges", [True, False], ids=["ranges", "server-ignores-range"])
+@pytest.mark.parametrize("k", [30, 60, 400])  # inside the fixed header part, after it, deep in the header
+def test_percent_budget_holds_when_resuming_inside_the_header(two_streams, scripted, ranges, k):
+    """A reader that stopped inside the stream header, resumed with a percent budget, fetched the
+    whole stream ('complete'): the budget logic ran only for a fresh reader."""
+    a, _, full = two_streams
+    info = read_header(a)
+    assert FIXED_SIZE_MAX < 400 < info.header_size
+    _, url = scripted(_static(a, ranges))
+    fresh = H.fetch_stream(url, timeout=2, percent=10)
+    assert fresh.status == H.BUDGET and fresh.num_gaussians == info.count_for_percent(10), str(fresh)
+    reader = StreamReader(source=url)
+    reader.feed(a[:k])
+    assert reader.header is None
+    res = H.fetch_stream(url, reader=reader, timeout=2, percent=10)
+    assert res.status == H.BUDGET, str(res)
+    assert (res.bytes_received, res.num_gaussians) == (fresh.bytes_received, fresh.num_gaussians)
+    assert_prefix(res.avatar(), full, res.num_gaussians)
+
+
+def test_caller_errors_propagate_and_bad_arguments_raise_up_front(two_streams, scripted):
+    """The catch-all `except ValueError -> refused` also swallowed the caller's own bugs and bad
+    arguments; 'refused' is for the reader's verdict on the bytes only."""
+    a, _, full = two_streams
+    httpd, url = scripted(_static(a))
+
+    def buggy(reader, new):
+        int("not a number")
+
+    with pytest.raises(ValueError, match="not a number"):
+        H.fetch_stream(url, timeout=2, on_chunk=buggy)
+
+    def full_disk(reader, new):
+        raise OSError(28, "No space left on device")  # not the connection's fault: not 'connection_cut'
+
+    with pytest.raises(OSError, match="No space left"):
+        H.fetch_stream(url, timeout=2, on_chunk=full_disk)
+
+    class Tee(StreamReader):  # a caller's reader that writes what it is fed (the add-on's kind)
+        def feed(self, chunk):
+            raise OSError(5, "write failed")
+
+    with pytest.raises(OSError, match="write failed"):
+        H.fetch_stream(url, reader=Tee(source=url), timeout=2)
+    served = httpd.requests
+    bad = [
+        ({"timeout": 0}, "timeout"),
+        ({"timeout": -1}, "timeout"),
+        ({"timeout": float("nan")}, "timeout"),
+        ({"max_bytes": -5}, "max_bytes"),
+        ({"max_bytes": 1.5}, "max_bytes"),
+        ({"percent": 101}, "percent"),
+        ({"percent": float("nan")}, "percent"),
+        ({"percent": "abc"}, "percent"),
+        ({"chunk_size": 0}, "chunk_size"),
+        ({"chunk_size": 1.5}, "chunk_size"),
+        ({"read_size": -1}, "read_size"),
+        ({"max_redirects": -1}, "max_redirects"),
+        ({"headers": {"X-Bad": "a\r\nInjected: 1"}}, "header"),
+        ({"validator": '"\u20ac"'}, "If-Range"),
+    ]
+    for kw, name in bad:
+        with pytest.raises(ValueError, match=f"fetch_stream: .*{name}"):
+            H.fetch_stream(url, timeout=kw.pop("timeout", 2), **kw)
+    assert httpd.requests == served  # refused before any request
+    # The reader's own refusal of valid bytes is still 'refused'.
+    other = full.forest.template_faces[::-1].copy()
+    res = H.fetch_stream(url, template_faces=other, timeout=2)
+    assert res.status == H.REFUSED and "template mismatch" in res.message, str(res)
+
+
+@pytest.mark.parametrize("ranges", [True, False], ids=["ranges", "server-ignores-range"])
+def test_file_shorter_than_its_header_is_truncated_not_a_bare_416(two_streams, scripted, ranges):
+    """A server file shorter than its header announces (an interrupted upload) ended in
+    "HTTP 416 Requested Range Not Satisfiable: ", naming neither the truncation nor the sizes."""
+    a, _, full = two_streams
+    info = read_header(a)
+    k = len(a) * 2 // 3
+    httpd, url = scripted(_static(a[:k], ranges))
+    res = H.fetch_stream(url, chunk_size=4000, timeout=2)
+    assert res.status == H.TRUNCATED and not res.ok, str(res)
+    assert f"holds only {k} of the {len(a)} bytes the stream's header announces" in res.message, res.message
+    assert res.bytes_received == k and res.num_gaussians == info.count_for_bytes(k)
+    assert res.keepable_gaussians == res.num_gaussians  # the verified prefix is kept
+    assert_prefix(res.avatar(), full, res.num_gaussians)
+    assert httpd.requests == (-(-k // 4000) if ranges else 1)  # Content-Range's size: no request for a 416
+    if ranges:
+        # Resuming against a file shorter still: the 416's Content-Range gives its size.
+        _, url2 = scripted(_static(a[: k // 2]))
+        res2 = H.fetch_stream(url2, reader=res.reader, timeout=2)
+        assert res2.status == H.TRUNCATED and res2.http_status == 416, str(res2)
+        assert f"holds only {k // 2} of the {len(a)} bytes" in res2.message, res2.message

@@ -5,12 +5,19 @@ receiver can stop at any budget and a dropped connection costs one chunk), and f
 reading a plain GET incrementally when the server ignores Range. Every piece goes through a
 StreamReader, so what has been received is verified as it arrives and survives a stall, a cut
 connection or an HTTP error: the result says what happened and keeps the verified Gaussians.
+
+Failures of the transfer come back as a status; mistakes of the caller do not: bad arguments
+raise ValueError before any request, and an exception raised by the caller's on_chunk (or by a
+caller's StreamReader subclass, other than the reader's own verdict on the bytes) propagates
+unchanged.
 """
 
 from __future__ import annotations
 
 import http.client
 import math
+import numbers
+import operator
 import re
 import socket
 import threading
@@ -33,8 +40,77 @@ CANCELLED = "cancelled"  # the callback asked to stop
 CHANGED = "changed"  # the file on the server was replaced mid-download: discard what arrived
 DEADLINE = "deadline"  # the total `deadline` passed
 TOO_SLOW = "too_slow"  # fewer than `min_rate` bytes/s over a `rate_window`
+# The file on the server is shorter than its stream header announces (an interrupted upload): its
+# verified prefix is kept, but resuming cannot help until the file is replaced.
+TRUNCATED = "truncated"
 
 _CONTENT_RANGE = re.compile(r"bytes\s+(\d+)-(\d+)/(\d+|\*)")
+_UNSATISFIED_RANGE = re.compile(r"bytes\s+\*/(\d+)")  # a 416's Content-Range: the file's size
+
+
+class _CallerError(Exception):
+    """Carries an exception raised by the caller's code (on_chunk, a StreamReader subclass) past
+    fetch_stream's handlers, which classify failures of the transfer, not the caller's bugs."""
+
+    def __init__(self, error):
+        super().__init__(error)
+        self.error = error
+
+
+def _split_url(url):
+    """(parts, None) for a usable http(s) URL, else (None, why not): http.client would raise
+    on a missing host or a bad port instead of failing the request."""
+    try:
+        parts = urlsplit(url)
+        parts.port  # raises ValueError for a port out of range or not a number
+    except ValueError as exc:
+        return None, str(exc)
+    if parts.scheme not in ("http", "https"):
+        return None, f"unsupported URL scheme {parts.scheme!r}"
+    if not parts.hostname:
+        return None, "no host"
+    return parts, None
+
+
+def _check_args(timeout, chunk_size, read_size, max_bytes, percent, max_redirects, headers, validator):
+    """Raise ValueError for arguments no download can honour (they would otherwise fail deep in
+    http.client or socket and come back as a misleading status, or be silently ignored)."""
+
+    def integer(name, v, low):
+        try:
+            n = operator.index(v)
+        except TypeError:
+            raise ValueError(f"fetch_stream: {name} must be an integer, got {v!r}") from None
+        if n < low:
+            raise ValueError(f"fetch_stream: {name} must be >= {low}, got {v!r}")
+
+    integer("chunk_size", chunk_size, 1)
+    integer("read_size", read_size, 1)
+    integer("max_redirects", max_redirects, 0)
+    if max_bytes is not None:
+        integer("max_bytes", max_bytes, 0)
+    if timeout is not None and not (
+        isinstance(timeout, numbers.Real) and not isinstance(timeout, bool) and math.isfinite(timeout) and timeout > 0
+    ):
+        raise ValueError(f"fetch_stream: timeout must be a positive number of seconds, got {timeout!r}")
+    if percent is not None:
+        try:
+            ok = 0.0 <= float(percent) <= 100.0  # False for NaN
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise ValueError(f"fetch_stream: percent must be a number in [0, 100], got {percent!r}")
+    sent = {**(headers or {}), **({} if validator is None else {"If-Range": validator})}
+    if sent:
+        # http.client itself checks each header (no connection is made: putrequest and putheader
+        # only build the request), so a bad one fails here, not as a status mid-download.
+        probe = http.client.HTTPConnection("localhost")
+        probe.putrequest("GET", "/", skip_host=True, skip_accept_encoding=True)
+        for k, v in sent.items():
+            try:
+                probe.putheader(k, v)
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"fetch_stream: bad header {k!r}: {exc}") from None
 
 
 @dataclass
@@ -157,22 +233,25 @@ def fetch_stream(
     """Download `url` progressively into a StreamReader (a new one, or `reader` to resume).
 
     on_chunk(reader, new_gaussians) runs after each piece (every `read_size` bytes at most);
-    returning False stops the download ("cancelled"). `timeout` is the longest wait for any
-    byte; `deadline` (seconds, None: none) bounds the whole download and `min_rate` (bytes/s,
-    None: none) the pace over each `rate_window` seconds, response headers included
-    ("deadline", "too_slow"). max_bytes / percent (of the stream's size, FORMAT.md section 6)
-    stop early ("budget"); a percent budget is exact from the first request (the fixed header
-    part is fetched alone first). Range requests carry If-Range with the file's ETag or
-    Last-Modified (`validator` to resume an earlier fetch): if the file changes on the server
-    the result is "changed" and the bytes received belong to the old file: discard them.
+    returning False stops the download ("cancelled"); an exception it raises propagates.
+    `timeout` is the longest wait for any byte; `deadline` (seconds, None: none) bounds the
+    whole download and `min_rate` (bytes/s, None: none) the pace over each `rate_window`
+    seconds, response headers included ("deadline", "too_slow"). max_bytes / percent (of the
+    stream's size, FORMAT.md section 6) stop early ("budget"); a percent budget is exact from
+    the first request (the fixed header part is fetched alone first, again by a resumed reader
+    that lacks its header rather than overshoot). Range requests carry If-Range with the file's
+    ETag or Last-Modified (`validator` to resume an earlier fetch): if the file changes on the
+    server the result is "changed" and the bytes received belong to the old file: discard them.
+    A file on the server shorter than its header announces ends "truncated" (its verified
+    prefix kept; resuming cannot help). A URL, or a redirect's, without a host, with a bad port
+    or a scheme other than http(s) is an "http_error" naming it. Bad arguments raise ValueError
+    before any request.
     """
-    if chunk_size < 1 or read_size < 1:
-        raise ValueError("fetch_stream: chunk_size and read_size must be positive")
+    _check_args(timeout, chunk_size, read_size, max_bytes, percent, max_redirects, headers, validator)
     for name, v in (("deadline", deadline), ("min_rate", min_rate), ("rate_window", rate_window)):
         if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
             raise ValueError(f"fetch_stream: {name} must be a positive number of seconds or bytes/s, got {v!r}")
-    if percent is not None and not (0.0 <= float(percent) <= 100.0):
-        raise ValueError(f"fetch_stream: percent must be in [0, 100], got {percent}")
+    pct = None if percent is None else float(percent)
     reader = reader if reader is not None else StreamReader(template_faces, source=url)
     res = FetchResult(UNREACHABLE, reader, url, validator=validator)
     t0 = time.monotonic()
@@ -180,28 +259,36 @@ def fetch_stream(
     redirects = 0
     use_ranges = True
     total_seen = None  # the file size a Content-Range reported first
-    head = bytearray()  # the fixed header part, kept while the full header is incomplete
+    # The fixed header part (bytes from offset 0), kept while the stream's size is unknown. A
+    # fresh download collects it from what it feeds; a resumed reader's earlier bytes are not
+    # ours to read, so with a percent budget they are requested again (see need_head).
+    head = bytearray()
     fixed_total = [None]  # stream size implied by the fixed part (before the whole header)
-    fresh = reader.bytes_received == 0
+    bad_url = "bad URL"  # how an unusable target is named: the caller's URL, or a redirect's
 
     def limit() -> int | None:
         """Bytes wanted in total (None: unknown until the header arrives)."""
-        lim = 0 if percent is not None and float(percent) == 0.0 else None
+        lim = 0 if pct == 0.0 else None
         h = reader.header
         total = h.total_bytes if h is not None else fixed_total[0]
         if total is not None:
             lim = total if lim is None else lim
-            if percent is not None:
-                lim = min(lim, math.floor(float(percent) / 100.0 * total))
+            if pct is not None:
+                lim = min(lim, math.floor(pct / 100.0 * total))
         if max_bytes is not None:
             lim = max_bytes if lim is None else min(lim, max_bytes)
         return lim
+
+    def need_head() -> bool:
+        """A percent budget needs the stream's size before the bytes it would overshoot: the
+        fixed header part comes first, alone (re-fetched when a resumed reader lacks it)."""
+        return pct is not None and reader.header is None and fixed_total[0] is None
 
     def request_cap() -> int | None:
         """Where the next request must end: the budget, or with a percent budget and no
         header yet, the fixed header part (its fields give the stream's size)."""
         lim = limit()
-        if percent is not None and reader.header is None and fixed_total[0] is None and fresh:
+        if need_head():
             lim = FIXED_SIZE_MAX if lim is None else min(lim, FIXED_SIZE_MAX)
         return lim
 
@@ -213,23 +300,49 @@ def fetch_stream(
             return BUDGET
         return None
 
-    def feed(data) -> bool:
-        """Feed, call back; False when the caller cancelled."""
-        if fresh and fixed_total[0] is None and len(head) < FIXED_SIZE_MAX:
-            head.extend(bytes(data[: FIXED_SIZE_MAX - len(head)]))
-            # The fixed part is 56 bytes up to version 2, 60 in version 3, 64 from version 4 (its version
-            # field, inside the first 56, says which).
-            if len(head) >= FIXED_SIZE and len(head) >= _fixed_size(head):
-                f = _parse_fixed(head, url)
-                fixed_total[0] = (
-                    f["header_size"]
-                    + f["num_records"] * f["record_size"]
-                    + 4 * -(-f["num_records"] // f["records_per_block"])
-                )
-        new = reader.feed(data)
-        if on_chunk is not None and on_chunk(reader, new) is False:
-            res.status, res.message = CANCELLED, "stopped by the callback"
+    def take_head(data, at):
+        """Keep the fixed-part bytes among `data` (stream offset `at`) until its fields are known."""
+        n = len(head)
+        if fixed_total[0] is not None or not (at <= n < min(at + len(data), FIXED_SIZE_MAX)):
+            return
+        head.extend(bytes(data[n - at : FIXED_SIZE_MAX - at]))
+        # The fixed part is 56 bytes up to version 2, 60 in version 3, 64 from version 4 (its version
+        # field, inside the first 56, says which).
+        if len(head) >= FIXED_SIZE and len(head) >= _fixed_size(head):
+            f = _parse_fixed(head, url)
+            fixed_total[0] = (
+                f["header_size"]
+                + f["num_records"] * f["record_size"]
+                + 4 * -(-f["num_records"] // f["records_per_block"])
+            )
+
+    def feed(data, at) -> bool:
+        """Take the bytes at stream offset `at`: note the fixed part, feed the reader what it
+        lacks (bytes it holds were only re-read for the fixed part), call back. False: stop
+        (cancelled by the callback, or refused by the reader; res says which)."""
+        take_head(data, at)
+        skip = reader.bytes_received - at
+        if skip >= len(data):
+            return True
+        if skip > 0:
+            data = data[skip:]
+        try:
+            new = reader.feed(data)
+        except StreamError:
+            raise  # failed verification: "corrupt"
+        except ValueError as exc:  # valid bytes the reader refuses (template mismatch, ...)
+            res.status, res.message = REFUSED, str(exc)
             return False
+        except Exception as exc:  # a caller's StreamReader subclass failing (e.g. its own file)
+            raise _CallerError(exc) from None
+        if on_chunk is not None:
+            try:
+                go = on_chunk(reader, new)
+            except Exception as exc:  # the caller's bug: theirs to see, not a transfer status
+                raise _CallerError(exc) from None
+            if go is False:
+                res.status, res.message = CANCELLED, "stopped by the callback"
+                return False
         return True
 
     def changed(resp, what) -> bool:
@@ -247,8 +360,33 @@ def fetch_stream(
             return True
         return False
 
+    def resized(size) -> bool:
+        """Set CHANGED when a response reports another file size than the first one did."""
+        if total_seen is not None and size != total_seen:
+            res.status = CHANGED
+            res.message = (
+                f"the file on the server changed mid-download (size {total_seen} -> {size}); the "
+                f"{reader.bytes_received} bytes received belong to the old file: discard them"
+            )
+            return True
+        return False
+
+    def truncated(size):
+        """The server's whole file (`size` bytes) arrived and the stream is not complete."""
+        h = reader.header
+        announced = h.total_bytes if h is not None else fixed_total[0]
+        res.status = TRUNCATED
+        if announced is None:
+            res.message = f"the server's file ends after {size} bytes, inside the stream's header: truncated"
+        else:
+            res.message = (
+                f"the server's file holds only {size} of the {announced} bytes the stream's header "
+                "announces (truncated on the server, e.g. an interrupted upload); the verified prefix is kept"
+            )
+
     dog = _Watchdog(reader, deadline, min_rate, rate_window)
     target = url
+    caller_error = None
     try:
         while True:
             if dog.reason:
@@ -257,16 +395,18 @@ def fetch_stream(
             if done:
                 res.status = done
                 break
-            parts = urlsplit(target)
-            if parts.scheme not in ("http", "https"):
-                res.status, res.message = HTTP_ERROR, f"unsupported URL scheme {parts.scheme!r}"
+            parts, problem = _split_url(target)
+            if problem:
+                res.status, res.message = HTTP_ERROR, f"{bad_url} {target!r}: {problem}"
                 break
-            if conn is None:
-                cls = http.client.HTTPSConnection if parts.scheme == "https" else http.client.HTTPConnection
-                conn = cls(parts.hostname, parts.port, timeout=timeout)
-                dog.conn = conn
             path = (parts.path or "/") + (f"?{parts.query}" if parts.query else "")
-            start = reader.bytes_received
+            start = len(head) if need_head() else reader.bytes_received
+            if use_ranges and total_seen is not None and start >= total_seen:
+                # Content-Range gave the file's size and every byte of it arrived: asking for
+                # more only gets a 416.
+                truncated(total_seen)
+                break
+            progress = (len(head), reader.bytes_received)
             hdrs = {"Accept-Encoding": "identity", **(headers or {})}
             lim = request_cap()
             if use_ranges:
@@ -277,7 +417,15 @@ def fetch_stream(
                 if res.validator is not None:
                     hdrs["If-Range"] = res.validator
             try:
+                if conn is None:
+                    cls = http.client.HTTPSConnection if parts.scheme == "https" else http.client.HTTPConnection
+                    conn = cls(parts.hostname, parts.port, timeout=timeout)
+                    dog.conn = conn
                 conn.request("GET", path, headers=hdrs)
+            except (http.client.InvalidURL, UnicodeError) as exc:
+                # Characters http.client will not send (or a host name IDNA cannot encode).
+                res.status, res.message = HTTP_ERROR, f"{bad_url} {target!r}: {exc}"
+                break
             except OSError as exc:
                 if res.requests == 0:
                     res.status, res.message = UNREACHABLE, f"cannot connect: {exc}"
@@ -294,46 +442,58 @@ def fetch_stream(
                 if not loc or redirects > max_redirects:
                     res.status, res.message = HTTP_ERROR, f"HTTP {resp.status}: bad or too many redirects"
                     break
-                target = urljoin(target, loc)
+                bad_url = f"HTTP {resp.status} redirected to a bad URL"
+                try:
+                    target = urljoin(target, loc)
+                except ValueError as exc:  # e.g. an unclosed IPv6 bracket
+                    res.status, res.message = HTTP_ERROR, f"{bad_url} {loc!r}: {exc}"
+                    break
                 conn.close()
                 conn = None
                 continue
             if resp.status == 416 and reader.complete:
                 res.status = COMPLETE
                 break
+            if resp.status == 416:
+                m = _UNSATISFIED_RANGE.match(resp.getheader("Content-Range") or "")
+                if m and int(m.group(1)) <= start:
+                    if changed(resp, "validator") or resized(int(m.group(1))):
+                        break
+                    truncated(int(m.group(1)))
+                    break
             if resp.status == 206:
-                m = _CONTENT_RANGE.match(resp.getheader("Content-Range") or "")
-                if not m or int(m.group(1)) != start:
-                    res.status, res.message = (
-                        HTTP_ERROR,
-                        f"unexpected Content-Range {resp.getheader('Content-Range')!r}",
-                    )
+                cr = resp.getheader("Content-Range")
+                m = _CONTENT_RANGE.match(cr or "")
+                first, last = (int(m.group(1)), int(m.group(2))) if m else (None, None)
+                size = int(m.group(3)) if m and m.group(3) != "*" else None
+                # A range that does not start where asked, ends before it starts (which would
+                # be re-requested forever) or past the file's end cannot be used.
+                if not m or first != start or last < first or (size is not None and last >= size):
+                    res.status, res.message = HTTP_ERROR, f"unexpected Content-Range {cr!r}"
                     break
                 if changed(resp, "validator"):
                     break
-                if m.group(3) != "*":
-                    if total_seen is not None and int(m.group(3)) != total_seen:
-                        res.status = CHANGED
-                        res.message = (
-                            f"the file on the server changed mid-download (size {total_seen} -> "
-                            f"{m.group(3)}); the {reader.bytes_received} bytes received belong to the "
-                            "old file: discard them"
-                        )
+                if size is not None:
+                    if resized(size):
                         break
-                    total_seen = int(m.group(3))
+                    total_seen = size
                 res.used_ranges = True
-                want = int(m.group(2)) - start + 1
+                want = last - start + 1
                 got = 0
                 while got < want:
                     # read1: whatever arrived (one recv), so a stall loses nothing already received
                     piece = resp.read1(min(read_size, want - got))
                     if not piece:
                         break
-                    got += len(piece)
-                    if not feed(piece):
+                    if not feed(piece, start + got):
                         return _done(res, conn, t0, dog)
+                    got += len(piece)
                 if got < want:
                     res.status, res.message = CUT, f"range response ended after {got} of {want} bytes"
+                    break
+                if (len(head), reader.bytes_received) == progress:
+                    # Cannot happen with the checks above; a guard against a hot loop of requests.
+                    res.status, res.message = HTTP_ERROR, f"no progress from Content-Range {cr!r}"
                     break
                 resp.read()  # nothing left; marks the response done so the connection is reusable
                 if resp.will_close:
@@ -343,21 +503,22 @@ def fetch_stream(
             if resp.status == 200:
                 # Either the server ignores Range, or (If-Range) the file changed: a 200 to a
                 # conditional range request after bytes arrived with another validator.
-                if start == 0:
+                if reader.bytes_received == 0:
                     res.validator = res.validator or _validator(resp)
                 elif changed(resp, "If-Range answered with the whole file"):
                     break
-                # The server ignored Range: the body starts at byte 0. Skip what we have and
-                # read the rest incrementally on this one response.
+                # The server ignored Range: the body starts at byte 0. Skip what we have (noting
+                # the fixed part) and read the rest incrementally on this one response.
                 res.used_ranges = False
                 use_ranges = False
-                skip = start
-                while skip > 0:
-                    dropped = resp.read(min(read_size, skip))
+                pos = 0
+                while pos < reader.bytes_received:
+                    dropped = resp.read(min(read_size, reader.bytes_received - pos))
                     if not dropped:
                         break
-                    skip -= len(dropped)
-                while True:
+                    take_head(dropped, pos)
+                    pos += len(dropped)
+                while pos >= reader.bytes_received:
                     if finished():
                         break
                     lim = request_cap()
@@ -365,17 +526,22 @@ def fetch_stream(
                     piece = resp.read1(n)
                     if not piece:
                         break
-                    if not feed(piece):
+                    if not feed(piece, pos):
                         return _done(res, conn, t0, dog)
+                    pos += len(piece)
                 done = finished()
                 if done:
                     res.status = done
+                elif resp.length == 0:  # the whole body (Content-Length) arrived: the file is short
+                    truncated(pos)
                 else:
-                    res.status, res.message = CUT, f"response body ended after {reader.bytes_received} bytes"
+                    res.status, res.message = CUT, f"response body ended after {pos} bytes"
                 break
             body = resp.read(2048).decode("utf-8", "replace")
             res.status, res.message = HTTP_ERROR, f"HTTP {resp.status} {resp.reason}: {body[:200]}"
             break
+    except _CallerError as exc:
+        caller_error = exc.error
     except (socket.timeout, TimeoutError):
         res.status, res.message = STALLED, f"no data for {timeout} s"
     except (http.client.IncompleteRead, http.client.RemoteDisconnected, ConnectionError) as exc:
@@ -384,16 +550,19 @@ def fetch_stream(
         res.status, res.message = HTTP_ERROR, f"malformed response: {type(exc).__name__}: {exc}"
     except StreamError as exc:  # the bytes failed verification
         res.status, res.message = CORRUPT, str(exc)
-    except ValueError as exc:  # verified bytes the reader refuses (template mismatch, ...)
-        res.status, res.message = REFUSED, str(exc)
     except OSError as exc:
         res.status, res.message = CUT, f"{type(exc).__name__}: {exc}"
+    if caller_error is not None:
+        _done(res, conn, t0, dog)  # stop the watchdog, close the connection
+        # Raised here, outside the handler, so what the caller sees is their exception with
+        # its own traceback, nothing of fetch_stream's chained onto it.
+        raise caller_error
     return _done(res, conn, t0, dog)
 
 
 def _done(res: FetchResult, conn, t0: float, dog: _Watchdog) -> FetchResult:
     dog.stop()
-    if dog.reason and res.status not in (COMPLETE, BUDGET, CANCELLED, CHANGED):
+    if dog.reason and res.status not in (COMPLETE, BUDGET, CANCELLED, CHANGED, TRUNCATED):
         res.status, res.message = dog.reason, dog.message  # what woke the read, not the cut it caused
     if conn is not None:
         conn.close()
