@@ -396,10 +396,12 @@ def test_dataset_bad_inputs(tmp_path):
     write_mesh_dataset(root)
 
     os.remove(root / "images" / "00001_00.png")
+    ds = Dataset(root)  # a missing image is reported when its frame is read (and by validate)
     with pytest.raises(
         MissingFileError, match=r"images/00001_00\.png: image listed in .*transforms_train\.json not found"
     ):
-        Dataset(root)
+        ds[2]
+    ds[3]  # other frames still load
     write_mesh_dataset(root)
 
     np.savez(root / "meshes" / "00001.npz", vertices=np.zeros((5, 3), np.float32))
@@ -427,6 +429,131 @@ def test_dataset_bad_inputs(tmp_path):
     edit_json(root, "train", lambda m: [f.pop("w") for f in m["frames"]])
     with pytest.raises(DataError, match=r"frames\[0\]: missing image size"):
         Dataset(root)
+
+
+def test_dataset_missing_files_listed_with_every_problem(tmp_path):
+    """Missing images and masks do not stop indexing at the first one: validation lists every
+    missing file together with the other problems (here a truncated PNG) in one error."""
+    from progressive_avatars.core.io.validate import dataset_problems, validate_dataset
+
+    root = tmp_path / "ds"
+    write_mesh_dataset(root)
+    gone = [root / "images" / f"{n}.png" for n in ("00000_00", "00001_01", "00002_00")]
+    gone.append(root / "fg_masks" / "00002_01.png")
+    for p in gone:
+        os.remove(p)
+    cut = root / "images" / "00000_01.png"
+    cut.write_bytes(cut.read_bytes()[:100])
+    ds = Dataset(root)
+    problems = dataset_problems(ds, progress=False)
+    assert len(problems) == 5, problems
+    with pytest.raises(DataError, match=r"5 problem\(s\)") as ei:
+        validate_dataset(ds, progress=False)
+    text = str(ei.value)
+    for p in gone[:3]:
+        assert f"{p}: image listed in {ds.json_path} not found" in text
+    assert f"{gone[3]}: mask listed in {ds.json_path} not found" in text
+    assert f"{cut}: image: cannot be decoded" in text
+    with pytest.raises(MissingFileError, match=r"00001_01\.png: image listed in"):
+        ds[3]
+
+
+def _set(i, key, value):
+    return lambda m: m["frames"][i].__setitem__(key, value)
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (_set(0, "timestep_index", None), r"frames\[0\]: timestep_index must be a whole number, got None"),
+        (_set(2, "timestep_index", "x"), r"frames\[2\]: timestep_index must be a whole number, got 'x'"),
+        (_set(1, "camera_index", [0]), r"frames\[1\]: camera_index must be a whole number, got \[0\]"),
+        (_set(0, "fl_x", [1, 2]), r"frames\[0\]: fl_x must be a number, got \[1, 2\]"),
+        (_set(4, "cx", "mid"), r"frames\[4\]: cx must be a number, got 'mid'"),
+        (_set(1, "w", "wide"), r"frames\[1\]: w must be a positive whole number, got 'wide'"),
+        (
+            _set(3, "transform_matrix", "abc"),
+            r"frames\[3\]: transform_matrix must be a 4x4 .*array of numbers, got 'abc'",
+        ),
+        (
+            _set(0, "transform_matrix", [[1, 0, 0, 0], [0, 1, 0], [0, 0, 1, 0], [0, 0, 0, 1]]),
+            r"frames\[0\]: transform_matrix must be a 4x4 .*got \[\[1, 0, 0, 0\], \[0, 1, 0\]",
+        ),
+        (_set(0, "file_path", None), r"frames\[0\]: file_path must be a file path \(a string\), got None"),
+        (_set(5, "fg_mask_path", 7), r"frames\[5\]: fg_mask_path must be a file path \(a string\), got 7"),
+        (_set(2, "mesh_path", None), r"frames\[2\]: mesh_path must be a file path \(a string\), got None"),
+        (lambda m: m["frames"].__setitem__(1, 5), r"frames\[1\] must be an object \(one frame\), got 5"),
+        (lambda m: m.__setitem__("frames", {"a": 1}), r"'frames' must be a list of frame objects"),
+        (lambda m: m.__setitem__("background", "white"), r"'background' must be \[r,g,b\], got 'white'"),
+        (lambda m: m.__setitem__("canonical_mesh_path", 3), r"canonical_mesh_path must be a file path"),
+    ],
+)
+def test_dataset_hostile_fields_name_file_frame_and_field(tmp_path, edit, message):
+    """A wrong type or shape in transforms_*.json is a DataError naming the file, the frame
+    and the field, never a bare TypeError/KeyError/ValueError from deep inside."""
+    root = tmp_path / "ds"
+    write_mesh_dataset(root)
+    edit_json(root, "train", edit)
+    with pytest.raises(DataError, match=r"transforms_train\.json: " + message):
+        Dataset(root)
+
+
+def test_dataset_frame_problems_are_listed_together_and_empty_faces_refused(tmp_path):
+    root = tmp_path / "ds"
+    write_mesh_dataset(root)
+
+    def two(m):
+        m["frames"][1]["timestep_index"] = None
+        m["frames"][4]["transform_matrix"] = "abc"
+
+    edit_json(root, "train", two)
+    with pytest.raises(DataError, match=r"transforms_train\.json: 2 problem\(s\)") as ei:
+        Dataset(root)
+    assert "frames[1]: timestep_index" in str(ei.value) and "frames[4]: transform_matrix" in str(ei.value)
+    # A bad top-level fallback is one problem, not one per frame.
+    write_mesh_dataset(root, top_level_intrinsics=True)
+    edit_json(root, "train", lambda m: m.__setitem__("fl_x", "abc"))
+    with pytest.raises(DataError, match=r"transforms_train\.json: top-level fl_x must be a number, got 'abc'$"):
+        Dataset(root)
+    write_mesh_dataset(root)
+    np.savez(root / "canonical_mesh.npz", vertices=octahedron(0), faces=OCTA_F[:0])
+    with pytest.raises(DataError, match=r"canonical_mesh\.npz: the canonical mesh has no faces"):
+        Dataset(root)
+
+
+def test_validate_accepts_the_pixel_formats_the_loader_reads(tmp_path):
+    """1-bit PNG masks and CMYK JPEG images are read by Dataset.images, so the pre-training
+    check accepts them too (one definition of the readable formats); a float image is refused
+    by both."""
+    from PIL import Image
+
+    from progressive_avatars.core.io.dataset import IMAGE_MODES
+    from progressive_avatars.core.io.validate import dataset_problems
+
+    assert {"1", "CMYK", "YCbCr", "I;16"} <= IMAGE_MODES
+    root = tmp_path / "ds"
+    write_mesh_dataset(root)
+    ref = Dataset(root, cache_images=0)
+    masks = [ref.images(i)[1] for i in range(len(ref))]
+    for info in ref.frames:
+        Image.open(info.mask_path).convert("1").save(info.mask_path)
+    img0 = ref.frames[0].image_path
+    Image.open(img0).convert("CMYK").save(root / "images" / "cmyk.jpg", quality=100)
+    edit_json(root, "train", _set(0, "file_path", "images/cmyk.jpg"))
+    ds = Dataset(root, cache_images=0)
+    assert Image.open(ds.frames[0].mask_path).mode == "1"
+    assert dataset_problems(ds, progress=False) == []
+    for i, want in enumerate(masks):
+        np.testing.assert_array_equal(ds.images(i)[1], want)  # binary masks read as 0 / 1
+    np.testing.assert_allclose(ds.images(0)[0], ref.images(0)[0], atol=0.1)
+    Image.open(img0).convert("F").save(root / "images" / "float.tif")
+    edit_json(root, "train", _set(0, "file_path", "images/float.tif"))
+    ds = Dataset(root, cache_images=0)
+    assert dataset_problems(ds, progress=False) == [
+        f"{ds.frames[0].image_path}: image has pixel format 'F'; use 8-bit RGB/RGBA/L or 16-bit greyscale PNG"
+    ]
+    with pytest.raises(DataError, match="pixel format 'F'"):
+        ds.images(0)
 
 
 def test_flame_mode_dataset(tmp_path, flame_model):

@@ -59,34 +59,83 @@ class Sample:
     image_path: str = ""
 
 
+# PIL modes the loader reads: 8-bit ones PIL converts to RGB/L itself, and 16-bit greyscale,
+# which _to_8bit rescales. validate.py checks images against this same set (via _to_8bit).
+_MODES_16BIT = ("I;16", "I;16L", "I;16B", "I")
+IMAGE_MODES = frozenset(("RGB", "RGBA", "L", "LA", "P", "1", "CMYK", "YCbCr") + _MODES_16BIT)
+_MAX_LISTED = 40  # problems listed in one error; the rest are counted
+
+
 def _to_8bit(im, path: str, what: str):
     """16-bit greyscale PNGs (PIL modes I;16*, I) rescaled to 8-bit L: PIL's own convert
-    clips them at 255, so they would read as pure white."""
-    if im.mode in ("I;16", "I;16L", "I;16B", "I"):
+    clips them at 255, so they would read as pure white. Modes outside IMAGE_MODES are refused."""
+    if im.mode in _MODES_16BIT:
         from PIL import Image
 
         a = np.asarray(im, dtype=np.float64)
         if a.size and (a.min() < 0 or a.max() > 65535):
             raise DataError(f"{path}: {what} has 32-bit pixel values outside 0..65535")
         return Image.fromarray(np.round(a * (255.0 / 65535.0)).astype(np.uint8), "L")
-    if im.mode not in ("RGB", "RGBA", "L", "LA", "P", "1", "CMYK", "YCbCr"):
+    if im.mode not in IMAGE_MODES:
         raise DataError(f"{path}: {what} has pixel format {im.mode!r}; use 8-bit RGB/RGBA/L or 16-bit greyscale PNG")
     return im
+
+
+def _listing(problems: list) -> str:
+    """Problems one per line (indented), at most _MAX_LISTED of them, the rest counted."""
+    listed = "\n  ".join(problems[:_MAX_LISTED])
+    more = f"\n  ... and {len(problems) - _MAX_LISTED} more" if len(problems) > _MAX_LISTED else ""
+    return f"\n  {listed}{more}"
+
+
+def _show(value, limit: int = 60) -> str:
+    s = repr(value)
+    return s if len(s) <= limit else s[: limit - 3] + "..."
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def _path_field(fr: dict, key: str, where: str) -> str:
+    v = fr[key]
+    if not isinstance(v, str) or not v:
+        raise DataError(f"{where}: {key} must be a file path (a string), got {_show(v)}")
+    return v
+
+
+def _index_field(fr: dict, key: str, where: str) -> int:
+    # A fractional value passes here (it indexes as its integer part); validate.py reports it.
+    v = fr[key]
+    if not _is_number(v) or not np.isfinite(v):
+        raise DataError(f"{where}: {key} must be a whole number, got {_show(v)}")
+    return int(v)
+
+
+def _frame_object(fr, where: str) -> dict:
+    if not isinstance(fr, dict):
+        raise DataError(f"{where} must be an object (one frame), got {_show(fr)}")
+    return fr
 
 
 def _resolve(root: str, rel: str) -> str:
     return os.path.normpath(rel if os.path.isabs(rel) else os.path.join(root, rel))
 
 
-def _find_image(root: str, rel: str, json_path: str, what: str) -> str:
+def _find_image(root: str, rel: str) -> str:
+    """The image file ``rel`` names (an extensionless name tries .png, .jpg, .jpeg); the
+    resolved path as given when there is none: a missing file is reported when the frame is
+    read, and by validate.py with every other problem of the split."""
     p = _resolve(root, rel)
-    if os.path.isfile(p):
-        return p
-    if not os.path.splitext(p)[1]:
+    if not os.path.isfile(p) and not os.path.splitext(p)[1]:
         for ext in _IMAGE_EXTS:
             if os.path.isfile(p + ext):
                 return p + ext
-    raise MissingFileError(f"{p}: {what} listed in {json_path} not found")
+    return p
+
+
+def _not_found(path: str, what: str, json_path: str) -> str:
+    return f"{path}: {what} listed in {json_path} not found"
 
 
 class Dataset:
@@ -136,12 +185,17 @@ class Dataset:
         rows = meta.get("frames") if isinstance(meta, dict) else None
         if not rows:
             raise DataError(f"{json_path}: no frames (the '{split}' split is empty)")
+        if not isinstance(rows, list):
+            raise DataError(f"{json_path}: 'frames' must be a list of frame objects, got {_show(rows)}")
         bg = meta.get("background", [1.0, 1.0, 1.0])
-        self.background = np.asarray(bg, np.float32).reshape(-1)
+        try:
+            self.background = np.asarray(bg, np.float32).reshape(-1)
+        except (TypeError, ValueError):
+            self.background = np.zeros(0, np.float32)
         if self.background.shape != (3,) or not np.all(np.isfinite(self.background)):
-            raise DataError(f"{json_path}: 'background' must be [r,g,b], got {bg!r}")
+            raise DataError(f"{json_path}: 'background' must be [r,g,b], got {_show(bg)}")
 
-        mesh_mode = "mesh_path" in rows[0]
+        mesh_mode = "mesh_path" in _frame_object(rows[0], f"{json_path}: frames[0]")
         self.mode = "mesh" if mesh_mode else "flame"
         geo_key = "mesh_path" if mesh_mode else "flame_param_path"
         if not mesh_mode and "flame_param_path" not in rows[0]:
@@ -149,7 +203,10 @@ class Dataset:
 
         self.flame_model = None
         if mesh_mode:
-            canon_path = _resolve(self.root, meta.get("canonical_mesh_path") or "canonical_mesh.npz")
+            rel = meta.get("canonical_mesh_path") or "canonical_mesh.npz"
+            if not isinstance(rel, str):
+                raise DataError(f"{json_path}: canonical_mesh_path must be a file path (a string), got {_show(rel)}")
+            canon_path = _resolve(self.root, rel)
             d = _npz(canon_path)
             for key in ("vertices", "faces"):
                 if key not in d:
@@ -158,6 +215,8 @@ class Dataset:
             if self.canonical_vertices.ndim != 2:
                 raise DataError(f"{canon_path}: 'vertices' must be [V,3], got {self.canonical_vertices.shape}")
             self.faces = _check_faces(d["faces"], canon_path, self.canonical_vertices.shape[0])
+            if not len(self.faces):
+                raise DataError(f"{canon_path}: the canonical mesh has no faces ('faces' is empty)")
         else:
             if flame_model is None:
                 raise DataError(
@@ -170,24 +229,26 @@ class Dataset:
             self.faces = self.flame_model.faces
         self.n_vertices = self.canonical_vertices.shape[0]
 
-        frames, cams, geo = [], {}, {}
+        # Every frame is read; the problems of all of them make one error.
+        frames, cams, geo, problems = [], {}, {}, []
         for i, fr in enumerate(rows):
             where = f"{json_path}: frames[{i}]"
-            for key in ("file_path", "transform_matrix", "timestep_index", "camera_index", geo_key):
-                if key not in fr:
-                    raise DataError(f"{where}: missing key '{key}'")
-            cam_full, full_size = self._camera(fr, meta, where)
-            cam = cam_full if self.downscale == 1.0 else cam_full.scaled(1.0 / self.downscale)
-            img = _find_image(self.root, fr["file_path"], json_path, "image")
-            mask = fr.get("fg_mask_path")
-            mask = _find_image(self.root, mask, json_path, "mask") if mask else None
-            ts, ci = int(fr["timestep_index"]), int(fr["camera_index"])
-            gpath = _resolve(self.root, fr[geo_key])
-            if ts in geo and geo[ts] != gpath:
-                raise DataError(f"{where}: timestep {ts} refers to {gpath}, an earlier frame to {geo[ts]}")
+            try:
+                info = self._frame(i, fr, meta, where, geo_key)
+                ts, gpath = info.timestep_index, info.geometry_path
+                if ts in geo and geo[ts] != gpath:
+                    raise DataError(f"{where}: timestep {ts} refers to {gpath}, an earlier frame to {geo[ts]}")
+            except DataError as exc:
+                problems.append(str(exc))
+                continue
             geo[ts] = gpath
-            cams.setdefault(ci, cam)
-            frames.append(FrameInfo(i, img, mask, cam, full_size, ts, ci, gpath))
+            cams.setdefault(info.camera_index, info.camera)
+            frames.append(info)
+        problems = list(dict.fromkeys(problems))  # a bad top-level fallback is listed once
+        if len(problems) == 1:
+            raise DataError(problems[0])
+        if problems:
+            raise DataError(f"{json_path}: {len(problems)} problem(s) in the frames:{_listing(problems)}")
         self.frames = frames
         self.cameras = cams
         self._geometry = geo
@@ -195,32 +256,56 @@ class Dataset:
 
     # -- metadata ----------------------------------------------------------------------
 
-    @staticmethod
-    def _camera(fr: dict, meta: dict, where: str):
-        def get(key):
-            return fr[key] if key in fr else meta.get(key)
+    def _frame(self, i: int, fr, meta: dict, where: str, geo_key: str) -> FrameInfo:
+        fr = _frame_object(fr, where)
+        for key in ("file_path", "transform_matrix", "timestep_index", "camera_index", geo_key):
+            if key not in fr:
+                raise DataError(f"{where}: missing key '{key}'")
+        cam_full, full_size = self._camera(fr, meta, where)
+        cam = cam_full if self.downscale == 1.0 else cam_full.scaled(1.0 / self.downscale)
+        img = _find_image(self.root, _path_field(fr, "file_path", where))
+        # Without fg_mask_path (or with null / ""), the image's alpha is the mask.
+        mask = _find_image(self.root, _path_field(fr, "fg_mask_path", where)) if fr.get("fg_mask_path") else None
+        ts = _index_field(fr, "timestep_index", where)
+        ci = _index_field(fr, "camera_index", where)
+        gpath = _resolve(self.root, _path_field(fr, geo_key, where))
+        return FrameInfo(i, img, mask, cam, full_size, ts, ci, gpath)
 
-        w, h = get("w"), get("h")
+    def _camera(self, fr: dict, meta: dict, where: str):
+        def get(key, whole=False):
+            """A number from the frame, else the top level; None where neither has it."""
+            v = fr[key] if key in fr else meta.get(key)
+            if v is None:
+                return None
+            if not _is_number(v) or (whole and not (np.isfinite(v) and float(v).is_integer() and v > 0)):
+                at = f"{where}: {key}" if key in fr else f"{self.json_path}: top-level {key}"
+                raise DataError(f"{at} must be {'a positive whole number' if whole else 'a number'}, got {_show(v)}")
+            return int(v) if whole else float(v)
+
+        w, h = get("w", whole=True), get("h", whole=True)
         if w is None or h is None:
             raise DataError(f"{where}: missing image size 'w'/'h' (per frame or at the top level)")
-        w, h = int(w), int(h)
         fx, fy = get("fl_x"), get("fl_y")
         if fx is None and get("camera_angle_x") is not None:
-            fx = 0.5 * w / np.tan(0.5 * float(get("camera_angle_x")))
+            fx = float(0.5 * w / np.tan(0.5 * get("camera_angle_x")))
         if fx is None:
             raise DataError(f"{where}: missing focal length 'fl_x' (or 'camera_angle_x')")
         fy = fx if fy is None else fy
-        cx = get("cx")
-        cy = get("cy")
-        cx = w / 2.0 if cx is None else float(cx)
-        cy = h / 2.0 if cy is None else float(cy)
-        c2w = np.asarray(fr["transform_matrix"], dtype=np.float64)
-        if c2w.shape not in ((4, 4), (3, 4)):
-            raise DataError(f"{where}: transform_matrix must be 4x4, got {c2w.shape}")
+        cx, cy = get("cx"), get("cy")
+        cx = w / 2.0 if cx is None else cx
+        cy = h / 2.0 if cy is None else cy
+        m = fr["transform_matrix"]
+        if not (
+            isinstance(m, list)
+            and len(m) in (3, 4)
+            and all(isinstance(r, list) and len(r) == 4 and all(_is_number(x) for x in r) for r in m)
+        ):
+            raise DataError(f"{where}: transform_matrix must be a 4x4 (or 3x4) array of numbers, got {_show(m)}")
+        c2w = np.asarray(m, dtype=np.float64)
         if c2w.shape == (3, 4):
             c2w = np.vstack([c2w, [0.0, 0.0, 0.0, 1.0]])
         try:
-            return Camera.from_c2w_opengl(c2w, float(fx), float(fy), cx, cy, w, h), (w, h)
+            return Camera.from_c2w_opengl(c2w, fx, fy, cx, cy, w, h), (w, h)
         except ValueError as exc:
             raise DataError(f"{where}: {exc}") from exc
 
@@ -286,6 +371,8 @@ class Dataset:
         full = info.full_size
 
         def read(path, what):
+            if not os.path.isfile(path):
+                raise MissingFileError(_not_found(path, what, self.json_path))
             try:
                 im = Image.open(path)
                 im.load()

@@ -1,10 +1,11 @@
 """Whole-dataset validation before training: every problem of every file, in one report.
 
-``Dataset`` checks what it needs to index a split (the JSON, that listed files exist) and
-decodes pixels and meshes lazily, when a frame is first sampled: fine for previews, but a
-training run would meet a truncated PNG or a NaN mesh hours in. :func:`validate_dataset`
-walks a split once (with a progress bar): it decodes every image and mask and checks their
-sizes and pixel formats, loads every timestep's mesh (vertex count, NaN, missing file),
+``Dataset`` checks what it needs to index a split (the JSON and its fields) and opens
+images, masks and meshes lazily, when a frame is first sampled: fine for previews, but a
+training run would meet a missing image, a truncated PNG or a NaN mesh hours in.
+:func:`validate_dataset` walks a split once (with a progress bar): it checks that every
+listed image and mask exists, decodes it and checks its size and pixel format (the loader's
+own check, ``dataset._to_8bit``), loads every timestep's mesh (vertex count, NaN, missing file),
 checks every camera (a rotation, finite intrinsics, principal point) and that timestep and
 camera indices are whole numbers. Problems are collected, not raised one by one; the
 DataError lists each with its file and field.
@@ -16,15 +17,11 @@ import os
 
 import numpy as np
 
-from .dataset import Dataset
+from .dataset import _listing, _not_found, _to_8bit, Dataset
 from .sequences import DataError
 from .safe_io import loads_json
 
 __all__ = ["validate_dataset", "dataset_problems"]
-
-# PIL modes the loader decodes correctly (16-bit greyscale is rescaled, see data._to_8bit).
-_IMAGE_MODES = {"RGB", "RGBA", "L", "LA", "P", "I;16", "I;16L", "I;16B", "I"}
-_MAX_LISTED = 40
 
 
 def _frame_rows(ds: Dataset) -> list:
@@ -56,20 +53,24 @@ def _camera_problems(cam, where: str) -> list:
     return out
 
 
-def _image_problems(path: str, what: str, full: tuple, target: tuple) -> list:
+def _image_problems(path: str, what: str, full: tuple, target: tuple, json_path: str) -> list:
     from PIL import Image
 
+    if not os.path.isfile(path):
+        return [_not_found(path, what, json_path)]
+    out = []
     try:
         with Image.open(path) as im:
             im.load()  # decodes every byte: a truncated file fails here
-            size, mode = im.size, im.mode
+            size = im.size
+            try:
+                _to_8bit(im, path, what)  # the pixel formats (and 16-bit range) the loader reads
+            except DataError as exc:
+                out.append(str(exc))
     except Exception as exc:  # PIL raises many types for broken files
         return [f"{path}: {what}: cannot be decoded ({type(exc).__name__}: {exc})"]
-    out = []
     if size != tuple(full) and size != tuple(target):
-        out.append(f"{path}: {what}: size {size[0]}x{size[1]}, the dataset says {full[0]}x{full[1]}")
-    if mode not in _IMAGE_MODES:
-        out.append(f"{path}: {what}: pixel format {mode!r} is not supported (8-bit RGB/RGBA/L or 16-bit L)")
+        out.insert(0, f"{path}: {what}: size {size[0]}x{size[1]}, the dataset says {full[0]}x{full[1]}")
     return out
 
 
@@ -93,9 +94,9 @@ def dataset_problems(ds: Dataset, progress: bool = True) -> list:
     for info in tqdm(ds.frames, desc=f"checking {ds.split or 'all'} images", disable=not progress, leave=False):
         problems.extend(_camera_problems(info.camera, f"{ds.json_path}: frames[{info.index}]"))
         target = (info.camera.width, info.camera.height)
-        problems.extend(_image_problems(info.image_path, "image", info.full_size, target))
+        problems.extend(_image_problems(info.image_path, "image", info.full_size, target, ds.json_path))
         if info.mask_path is not None:
-            problems.extend(_image_problems(info.mask_path, "mask", info.full_size, target))
+            problems.extend(_image_problems(info.mask_path, "mask", info.full_size, target, ds.json_path))
     return problems
 
 
@@ -103,9 +104,7 @@ def validate_dataset(ds: Dataset, progress: bool = True) -> None:
     """Raise one DataError listing every problem of split ``ds`` (see module doc)."""
     problems = dataset_problems(ds, progress)
     if problems:
-        listed = "\n  ".join(problems[:_MAX_LISTED])
-        more = f"\n  ... and {len(problems) - _MAX_LISTED} more" if len(problems) > _MAX_LISTED else ""
         raise DataError(
             f"{ds.root}: the '{ds.split}' split has {len(problems)} problem(s); fix them before "
-            f"training:\n  {listed}{more}"
+            f"training:{_listing(problems)}"
         )
