@@ -1,19 +1,34 @@
-"""Export a trained run: the progressive stream, or a standard 3DGS PLY of one frame.
+"""Export a trained run: the progressive stream, and/or a standard 3DGS PLY of one frame.
 
-    python scripts/export.py --run RUN --stream OUT.pavs [--lossless]
+    python scripts/export.py --run RUN --stream OUT.pavs [--lossless] [--drop-sh]
     python scripts/export.py --run RUN --ply OUT.ply --budget 25 --frame 0 [--data DIR]
 
 The stream (version 5, docs/FORMAT.md) opens with the coarse levels, then sends any face once its
 parent has, by descending importance, computed over the training views on the levels up to each
 face's own (pixels weighted by the error of the levels below) and cached in RUN/importance.npy.
-Without --stream it is written to RUN/avatar.pavs (the PLY's budget is a prefix of it).
---budget is a percentage of the stream's bytes (header included; any value in [0, 100]: a
-budget inside the coarse or template level exports what it holds, a budget with no whole record
-an empty but valid PLY, with a note); --frame a timestep index of the dataset (its mesh drives
-the Gaussians; one it lacks is refused before any work).
+An export writes the files it is given and no other: --ply alone writes the PLY only, and leaves
+any stream of the run (RUN/avatar.pavs, perhaps a lossless one) as it is: one frame's PLY is no
+reason to replace a stream the user did not name. The PLY holds a prefix of the stream this
+command would write with --stream (encoded in memory: quantised, or with --lossless float32;
+the same command with --stream writes that very stream). --budget is a percentage of that
+stream's bytes (header included; any value in [0, 100]: a budget inside the coarse or template
+level exports what it holds, a budget with no whole record an empty but valid PLY, with a
+note); --frame a timestep index of the dataset (its mesh drives the Gaussians; one it lacks is
+refused before any work).
+
+A failed export changes nothing: every output path (an existing folder there, a folder that
+cannot be made, --stream and --ply naming one file) and every refusal (a missing frame, an
+avatar with SH bands streamed without --drop-sh) is checked before any work; output folders
+are made and files written only once everything is computed, each file atomically (written
+whole, then renamed over the old one), the PLY before the stream's rename, so a PLY that cannot
+be written leaves the stream as it was. An avatar trained with SH degree > 0: a PLY keeps every
+band of it (no flag needed); stream records carry the DC colour only, so --stream needs
+--drop-sh to say that is meant.
 """
 
 import argparse
+import contextlib
+import errno
 import json
 import os
 import sys
@@ -31,13 +46,34 @@ def _cannot_write(path, exc: OSError) -> int:
     return 2
 
 
+def _unwritable(path) -> OSError | None:
+    """Why `path` cannot be written as a file, checked without changing anything (None: it
+    can, as far as can be told): it is a folder, or its nearest existing ancestor is not a
+    folder this process may create entries in (missing folders are made at write time)."""
+    full = os.path.abspath(path)
+    if os.path.isdir(full):
+        return IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR))
+    folder = os.path.dirname(full)
+    while not os.path.lexists(folder):
+        folder = os.path.dirname(folder)
+    if not os.path.isdir(folder):
+        return NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR))
+    if not os.access(folder, os.W_OK | os.X_OK):
+        return PermissionError(errno.EACCES, os.strerror(errno.EACCES))
+    return None
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run", required=True)
     ap.add_argument("--data", help="dataset folder (default: the one the run trained on)")
     ap.add_argument("--flame-model", help="FLAME model for FLAME-mode datasets (default: the run's)")
-    ap.add_argument("--stream", help="write the progressive stream here")
-    ap.add_argument("--lossless", action="store_true", help="float32 records instead of quantised ones")
+    ap.add_argument("--stream", help="write the progressive stream here (without it, no stream is written)")
+    ap.add_argument(
+        "--lossless",
+        action="store_true",
+        help="float32 records instead of quantised ones (the stream's, and so the PLY's values and budget bytes)",
+    )
     ap.add_argument("--ply", help="write a 3DGS PLY of one frame here")
     ap.add_argument("--budget", type=float, default=100.0, help="percent of the stream (PLY export)")
     ap.add_argument("--frame", type=int, default=0, help="timestep index (PLY export)")
@@ -45,7 +81,8 @@ def main(argv=None):
     ap.add_argument(
         "--drop-sh",
         action="store_true",
-        help="stream an avatar trained with SH degree > 0 (records carry its DC colour only)",
+        help="stream an avatar trained with SH degree > 0 (records carry its DC colour only; a PLY keeps "
+        "every band and needs no --drop-sh)",
     )
     args = ap.parse_args(_bootstrap.script_args() if argv is None else argv)
     if not args.stream and not args.ply:
@@ -56,10 +93,20 @@ def main(argv=None):
         ap.error(f"--max-views must be at least 1, got {args.max_views}")
 
     from progressive_avatars.core.io import run as runs
+    from progressive_avatars.core.io.atomic import atomic_open
     from progressive_avatars.core.stream.reader import read_stream
     from progressive_avatars.core.io.dataset import Dataset
-    from progressive_avatars.core.stream.writer import write_stream
+    from progressive_avatars.core.stream.writer import build_stream
 
+    # Every output path is checked before any work (and before anything is written or made).
+    outputs = [p for p in (args.stream, args.ply) if p]
+    for path in outputs:
+        problem = _unwritable(path)
+        if problem is not None:
+            return _cannot_write(path, problem)
+    if len(outputs) == 2 and os.path.realpath(args.stream) == os.path.realpath(args.ply):
+        print(f"error: --stream and --ply name the same file ({args.ply})", file=sys.stderr)
+        return 2
     try:
         avatar = runs.load_run_avatar(args.run)
         data = runs.run_data_dir(args.run, args.data)
@@ -67,47 +114,44 @@ def main(argv=None):
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    # A frame the dataset lacks is refused before the importance pass (minutes on a large run)
-    # and before any file is written.
+    # A frame the dataset lacks, or a stream that would drop SH bands unasked, is refused before
+    # the importance pass (minutes on a large run) and before any file is written.
     if args.ply and args.frame not in set(int(t) for t in ds.timesteps):
         print(f"error: {data}: no timestep {args.frame} (have {ds.timesteps[0]}..{ds.timesteps[-1]})", file=sys.stderr)
         return 2
-    for path in (args.stream, args.ply):  # an output folder that cannot be made fails before the work
-        folder = os.path.dirname(os.path.abspath(path)) if path else None
-        if folder:
-            try:
-                os.makedirs(folder, exist_ok=True)
-            except OSError as exc:
-                return _cannot_write(path, exc)
+    if args.stream and avatar.sh_degree and not args.drop_sh:
+        print(
+            f"error: --stream {args.stream}: the avatar has SH degree {avatar.sh_degree}; stream records carry "
+            "the DC colour only (docs/FORMAT.md). Pass --drop-sh to stream its view-independent colour "
+            "(a PLY keeps every band: --ply without --stream needs no --drop-sh)",
+            file=sys.stderr,
+        )
+        return 2
     try:
         W = runs.run_importance(args.run, avatar, data, max_views=args.max_views)
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    stream_path = args.stream or os.path.join(args.run, "avatar.pavs")
-    try:
-        info = write_stream(
-            stream_path,
+    try:  # in memory: written (--stream) only once the PLY, if any, is
+        stream_bytes, info = build_stream(
             avatar,
             W,
             quantize=not args.lossless,
             metadata={"run": os.path.abspath(args.run)},
-            drop_sh=args.drop_sh,
+            drop_sh=args.drop_sh or not args.stream,  # a PLY takes every band from the avatar itself
             vertices=ds.canonical_vertices,
         )
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    except OSError as exc:  # the previous file, if any, is kept (written whole, then renamed)
-        return _cannot_write(stream_path, exc)
-    result = {"stream": stream_path, "bytes": os.path.getsize(stream_path), "gaussians": avatar.num_gaussians}
+    result = {"stream": args.stream, "bytes": len(stream_bytes), "gaussians": avatar.num_gaussians}
+    g = None
     if args.ply:
         import numpy as np
 
-        from progressive_avatars.core.io.ply import write_ply
         from progressive_avatars.core.avatar.avatar import sh_to_rgb
 
-        part = read_stream(stream_path, percent=args.budget)
+        part = read_stream(stream_bytes, percent=args.budget)
         held = 0 if part is None else part.num_gaussians
         shown = np.zeros(0, np.int64) if part is None else part.forest.drawn()  # no retired stand-ins
         n = len(shown)
@@ -136,10 +180,6 @@ def main(argv=None):
             mine = info.order[np.where(k < r, k, k - r + info.num_roots)][shown]
             g["sh_rest"] = avatar.f_rest[mine]
             g["colors"] = sh_to_rgb(avatar.f_dc[mine])
-        try:
-            write_ply(args.ply, g)
-        except OSError as exc:
-            return _cannot_write(args.ply, exc)
         result.update(
             ply=args.ply,
             ply_gaussians=n,
@@ -147,6 +187,27 @@ def main(argv=None):
             frame=args.frame,
             head_complete=bool(part is not None and part.meta["stream"]["head_complete"]),
         )
+    # Everything is computed: write. The stream's temporary is written first and renamed last,
+    # after the PLY (itself atomic), so a PLY that cannot be written leaves the stream as it was.
+    from progressive_avatars.core.io.ply import write_ply
+
+    where, ply_written = None, False
+    try:
+        with contextlib.ExitStack() as stack:
+            if args.stream:
+                where = args.stream
+                os.makedirs(os.path.dirname(os.path.abspath(args.stream)), exist_ok=True)
+                stack.enter_context(atomic_open(args.stream)).write(stream_bytes)
+            if args.ply:
+                where = args.ply
+                os.makedirs(os.path.dirname(os.path.abspath(args.ply)), exist_ok=True)
+                write_ply(args.ply, g)
+                ply_written = True
+            where = args.stream  # its fsync and rename, on leaving
+    except OSError as exc:
+        if ply_written:
+            print(f"note: the PLY {args.ply} was written; the stream was not", file=sys.stderr)
+        return _cannot_write(where, exc)
     print(json.dumps(result))
     return 0
 

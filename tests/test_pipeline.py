@@ -192,6 +192,119 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
     assert f"| `tiny` | 2 | {trained.num_gaussians:,} ± 0 | {g['nvs_psnr_mean']:.3f} ± 0.000 |" in md
 
 
+def _run_copy(tiny_run, tmp_path):
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    return run
+
+
+@pytest.mark.slow  # subprocesses
+def test_export_writes_only_what_it_is_given_and_a_failed_one_changes_nothing(tiny_run, tmp_path):
+    """--ply alone writes the PLY and nothing else: the run's own stream (here a lossless one)
+    is kept, also when the PLY cannot be written (it used to be replaced by a quantised one
+    first); the PLY is the prefix of the stream the same command with --stream writes; every
+    output path is checked before any work."""
+    from progressive_avatars.core.avatar.avatar import Avatar
+    from progressive_avatars.core.stream.format import read_header
+    from progressive_avatars.core.stream.writer import write_stream
+
+    run = _run_copy(tiny_run, tmp_path)
+    own = run / "avatar.pavs"
+    write_stream(own, Avatar.load(run / "avatar.npz"), quantize=False)
+    before = own.read_bytes()
+    assert read_header(before).lossless
+    adir = tmp_path / "adir"
+    adir.mkdir()
+    common = ["--budget", 50, "--max-views", 4]
+    out = run_export(str(run), "--ply", adir, *common)  # a folder: the PLY cannot be written there
+    assert out.returncode == 2 and f"cannot write {adir}" in out.stderr and "Traceback" not in out.stderr, out.stderr
+    assert own.read_bytes() == before and os.listdir(adir) == []
+    # ... nor when the stream is asked for too: neither file is written
+    out = run_export(str(run), "--stream", tmp_path / "s0.pavs", "--ply", adir, *common)
+    assert out.returncode == 2 and not (tmp_path / "s0.pavs").exists(), out.stderr
+    out = run_export(str(run), "--stream", tmp_path / "same", "--ply", tmp_path / "." / "same", *common)
+    assert out.returncode == 2 and "name the same file" in out.stderr and not (tmp_path / "same").exists()
+    # A PLY alone: written, the run's stream untouched, no stream named in the result.
+    out = run_export(str(run), "--ply", tmp_path / "alone.ply", *common)
+    assert out.returncode == 0, out.stderr[-2000:]
+    res = json.loads(out.stdout.strip().splitlines()[-1])
+    assert own.read_bytes() == before and res["stream"] is None and res["ply_gaussians"] > 0
+    # ... the same PLY as with --stream, whose stream holds the bytes the budget counted.
+    both = run_script(
+        "export.py",
+        "--run",
+        str(run),
+        "--stream",
+        str(tmp_path / "s.pavs"),
+        "--ply",
+        str(tmp_path / "b.ply"),
+        *map(str, common),
+    )
+    assert (tmp_path / "alone.ply").read_bytes() == (tmp_path / "b.ply").read_bytes()
+    assert both["bytes"] == res["bytes"] == os.path.getsize(tmp_path / "s.pavs") and both["stream"] == str(
+        tmp_path / "s.pavs"
+    )
+    assert own.read_bytes() == before
+
+
+def test_export_ply_write_failing_late_leaves_the_stream_unwritten(tiny_run, tmp_path, monkeypatch, capsys):
+    """A PLY write that fails after the checks (a full disk): the stream asked for in the same
+    export is not written either (it is renamed into place only after the PLY)."""
+    import errno
+    import importlib.util
+
+    from progressive_avatars.core.io import ply
+
+    monkeypatch.setattr(sys, "path", list(sys.path))  # the script puts its folder on sys.path
+    monkeypatch.setenv("OMP_WAIT_POLICY", os.environ.get("OMP_WAIT_POLICY", "PASSIVE"))  # and sets this
+    spec = importlib.util.spec_from_file_location("export_script", os.path.join(ROOT, "scripts", "export.py"))
+    export = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(export)
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(ply, "write_ply", full)
+    run = _run_copy(tiny_run, tmp_path)
+    old = (run / "avatar.pavs").read_bytes() if (run / "avatar.pavs").exists() else None
+    out = tmp_path / "out"
+    rc = export.main(
+        ["--run", str(run), "--stream", str(out / "s.pavs"), "--ply", str(out / "f.ply"), "--max-views", "2"]
+    )
+    err = capsys.readouterr().err
+    assert rc == 2 and f"cannot write {out / 'f.ply'}" in err and "No space left" in err, err
+    assert not (out / "s.pavs").exists() and not (out / "f.ply").exists() and os.listdir(out) == []
+    assert ((run / "avatar.pavs").read_bytes() if (run / "avatar.pavs").exists() else None) == old
+
+
+@pytest.mark.slow  # subprocesses
+def test_export_ply_of_an_sh_avatar_needs_no_drop_sh(tiny_run, tmp_path):
+    """A PLY of an avatar with SH bands keeps every band and needs no --drop-sh (it used to be
+    refused by the stream write every export made, with a message telling the user to export a
+    PLY); --stream without --drop-sh is refused before any work, the message naming --drop-sh."""
+    from plyfile import PlyData
+
+    from progressive_avatars.core.avatar.avatar import Avatar
+
+    run = _run_copy(tiny_run, tmp_path)
+    av = Avatar.load(run / "avatar.npz")
+    av.f_rest = np.random.default_rng(0).normal(0, 0.1, (av.num_gaussians, 3, 3)).astype(np.float32)
+    av.save(run / "avatar.npz")
+    res = run_script(
+        "export.py", "--run", str(run), "--ply", str(tmp_path / "sh.ply"), "--budget", "30", "--max-views", "2"
+    )
+    names = PlyData.read(str(tmp_path / "sh.ply"))["vertex"].data.dtype.names
+    assert res["ply_gaussians"] > 0 and [n for n in names if n.startswith("f_rest_")] == [
+        f"f_rest_{j}" for j in range(9)
+    ]
+    out = run_export(str(run), "--stream", tmp_path / "s.pavs", "--ply", tmp_path / "both.ply", "--max-views", "2")
+    assert out.returncode == 2 and "Pass --drop-sh" in out.stderr and "Traceback" not in out.stderr, out.stderr
+    assert "export a PLY to keep" not in out.stderr
+    assert not (tmp_path / "s.pavs").exists() and not (tmp_path / "both.ply").exists()
+
+
 def test_seed_groups():
     from progressive_avatars.core.evaluate.plots import seed_group, seed_groups, seed_pairs
 

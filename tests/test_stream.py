@@ -838,6 +838,89 @@ def test_structurally_invalid_records_are_refused():
         read_stream(bytes(data[: o + 73]))
 
 
+@pytest.mark.parametrize("version", [4, 5])
+def test_lossless_log_scale_whose_scale_overflows_is_refused(version):
+    """A lossless record with a finite log-scale at or above Avatar's limit (exp overflows
+    float32: an infinite scale) is invalid like any broken record: it and what follows are not
+    available, with a message naming it; the reader's trusted Avatar never holds such a value.
+    The largest float32 below the limit (which Avatar() accepts) still reads, its scale finite."""
+    from progressive_avatars.core.avatar.avatar import LOG_SCALE_MAX
+
+    _, av, imp = make_avatar(25)
+    clean = encode_stream(av, imp, quantize=False, records_per_block=4, version=version)
+    info = read_header(clean)
+    R, B, i = info.record_size, info.records_per_block, info.num_roots + 5
+
+    def with_log_scale(value):
+        """The stream with record i's first log-scale component set, every checksum resealed."""
+        data = bytearray(clean)
+        o = info.record_offset(i)
+        rec = bytearray(data[o : o + R])
+        rec[28:32] = struct.pack("<f", value)
+        rec[72] = _crc8_bytewise(struct.pack("<I", i) + bytes(rec[:72]))
+        data[o : o + R] = rec
+        bi = i // B
+        b0 = info.record_offset(bi * B)
+        n = min(B, info.num_records - bi * B)
+        crc = zlib.crc32(bytes(data[b0 : b0 + n * R]), zlib.crc32(struct.pack("<II", info.header_crc, bi)))
+        data[b0 + n * R : b0 + n * R + 4] = struct.pack("<I", crc)
+        return bytes(data), o
+
+    top = np.nextafter(np.float32(LOG_SCALE_MAX), np.float32(0))  # the largest float32 below the limit
+    for value in (100.0, float(np.float32(LOG_SCALE_MAX)), 1e30):
+        data, o = with_log_scale(value)
+        with pytest.raises(ValueError, match=f"record {i} is invalid: its log-scale .* at or above 88.72"):
+            read_stream(data)  # whole blocks: the CRC-32 path
+        r = StreamReader()
+        r.feed(data[:o])
+        assert r.num_gaussians == i
+        with pytest.raises(ValueError, match=f"record {i} is invalid: its log-scale"):
+            r.feed(data[o : o + R])  # its block incomplete: the CRC-8 path
+        assert r.num_gaussians == i  # everything before it stays available, and finite
+        assert np.all(np.isfinite(r.avatar().gaussians(_verts(av))["scales"]))
+    data, _ = with_log_scale(float(top))
+    out = read_stream(data)
+    assert out.num_gaussians == info.num_records and out.d_log_scale.max() == top
+    Avatar(out.forest, *(getattr(out, name) for name in PARAMS))  # what the validating constructor accepts
+    assert np.all(np.isfinite(out.gaussians(_verts(av))["scales"]))
+
+
+def _verts(av):
+    """Vertices for `av`'s template (make_avatar's sphere)."""
+    faces = av.forest.template_faces
+    for n_lat, n_lon in ((4, 6), (5, 7)):
+        verts, f = sphere_mesh(n_lat, n_lon)
+        if np.array_equal(f, faces):
+            return verts
+    raise AssertionError("unknown template")
+
+
+def test_arrays_is_none_exactly_when_avatar_is():
+    """arrays() before the header (or any record) has arrived is None, as avatar() is, not an
+    AttributeError; then the first n records' decoded columns."""
+    _, av, imp = make_avatar(26)
+    data = encode_stream(av, imp, records_per_block=4)
+    info = read_header(data)
+    H = info.header_size
+    r = StreamReader()
+    assert r.arrays() is None and r.avatar() is None
+    for cut in (10, H - 1, H, info.record_offset(1) - 1):  # no header yet, then a header and no record
+        r = StreamReader()
+        r.feed(data[:cut])
+        assert r.num_gaussians == 0
+        assert r.arrays() is None and r.avatar() is None and r.arrays(5) is None
+    r = StreamReader()
+    r.feed(data[: info.record_offset(3)])
+    a = r.arrays()
+    assert r.num_gaussians == 3 and len(a["d_mu"]) == len(a["parent"]) == 3 and r.arrays(0) is None
+    r.feed(data[info.record_offset(3) :])
+    full = read_stream(data)
+    a = r.arrays()
+    s = full.forest.stream_ids(full.num_gaussians)  # arrays() are in stream order
+    for name in PARAMS:
+        np.testing.assert_array_equal(a[name], getattr(full, name)[s])
+
+
 # -- template binding ---------------------------------------------------------------------
 def test_template_mismatch_is_refused(tmp_path):
     verts, av, imp = make_avatar(5)

@@ -15,7 +15,7 @@ import zlib
 
 import numpy as np
 
-from ..avatar.avatar import Avatar, PARAM_NAMES
+from ..avatar.avatar import LOG_SCALE_MAX, Avatar, PARAM_NAMES
 from ..avatar.forest import Forest
 from .decode import _decode_quantised, _decode_scratch
 from .format import (
@@ -161,6 +161,27 @@ def _block_seeds(header_crc: int, n: int) -> np.ndarray:
         d = np.uint32(zlib.crc32(pre + (1 << k).to_bytes(4, "little")) ^ base)
         out ^= ((i >> np.uint32(k)) & np.uint32(1)) * d
     return out
+
+
+def _lossless_values_bad(rows: np.ndarray):
+    """(bad, big) per lossless record of rows [n, 73]: bad where a float is not finite or a
+    log-scale component is at or above LOG_SCALE_MAX (its scale exp(.) would be infinite in
+    float32: the Avatar constructor's own limit, which the reader's trusted Avatar.from_verified
+    relies on the records having passed); big where the latter holds."""
+    f = rows[:, 4:72].copy().view("<f4")  # split_logits, d_mu, d_log_scale, d_rot, opacity, f_dc
+    big = np.any(f[:, 6:9] >= LOG_SCALE_MAX, axis=1)  # (float32 against the same bound as Avatar)
+    return ~np.all(np.isfinite(f), axis=1) | big, big
+
+
+def _invalid_record(rows, big, i0: int, k: int) -> str:
+    """The problem of record i0 + k, the first of its batch that breaks a rule of FORMAT.md 3."""
+    if big is not None and big[k]:
+        ls = rows[k, 28:40].copy().view("<f4")
+        return (
+            f"record {i0 + k} is invalid: its log-scale {float(ls.max()):g} is at or above "
+            f"{LOG_SCALE_MAX:.2f} (its scale would be infinite)"
+        )
+    return f"record {i0 + k} is structurally invalid (parent/slot/level/root marker/reserved bits/values)"
 
 
 class StreamReader:
@@ -376,8 +397,9 @@ class StreamReader:
         N = header.num_records
         self._crc_seed = zlib.crc32(struct.pack("<I", header.header_crc))
         self._seed_table = _block_seeds(header.header_crc, header.num_blocks) if header.num_blocks <= 1 << 20 else None
-        # Every decoded value is finite (so the Avatar need not scan for NaN/inf): lossless
-        # floats are checked per record; quantised ones are affine in bounded codes.
+        # Every decoded value is finite and every log-scale below LOG_SCALE_MAX (so the Avatar
+        # need not scan for them): lossless floats are checked per record; quantised ones are
+        # affine in bounded codes (log-scale ranges within +-80, checked with the header).
         self._finite = header.lossless or bool(np.all(np.abs(header.quant) <= 1e30))
         self._raw = _Grow((R,), np.uint8, N)  # verified record bytes (decoding is lazy)
         self._child = _Grow((), np.int32, 3 * N, fill=0)  # 1 + record index per parent*3 + slot; N < 2^30
@@ -418,11 +440,12 @@ class StreamReader:
         n = i1 - i0
         rows, rec, par, slt = self._structure(i0, i1, self._cols.cols)
         if h.lossless:
-            bad = ~np.all(np.isfinite(rows[:, 4:72].copy().view("<f4")), axis=1)  # finite floats
+            bad, big = _lossless_values_bad(rows)
             bad |= slt == 3  # two link bits: slot 3 is possible, and invalid
             root_val = LOSSLESS_ROOT
         else:
             bad = slt >= 3  # slot 3 or a reserved bit set (slt holds all four top bits here)
+            big = None
             s = np.right_shift(rec["b0"], np.uint16(4))
             s += rec["b1"] & np.uint16(0xFFF)
             bad |= s > np.uint16(4095)  # beta0 + beta1 <= 4095
@@ -446,7 +469,7 @@ class StreamReader:
         k, problem = n, None
         if bad.any():
             k = int(np.argmax(bad))
-            problem = f"record {i0 + k} is structurally invalid (parent/slot/level/root marker/reserved bits/values)"
+            problem = _invalid_record(rows, big, i0, k)
         # (parent, slot) must be unique: scatter the record indices, read them back.
         if k > nr:
             keys = par[nr:k] * 3
@@ -494,8 +517,9 @@ class StreamReader:
         K, L = h.num_coarse_levels, h.num_levels
         starts = self._starts_list
         idx = np.arange(i0, i1, dtype=np.int64)
+        big = None
         if h.lossless:
-            bad = ~np.all(np.isfinite(rows[:, 4:72].copy().view("<f4")), axis=1)
+            bad, big = _lossless_values_bad(rows)
             root = slt == LOSSLESS_ROOT_SLOT
         else:
             root = (slt & 4) != 0
@@ -546,7 +570,7 @@ class StreamReader:
             k = min(k, int(np.flatnonzero(got == lv)[full[lv]]))
         problem = None
         if k < n:
-            problem = f"record {i0 + k} is structurally invalid (parent/slot/level/root marker/reserved bits/values)"
+            problem = _invalid_record(rows, big, i0, k)
         # (parent, slot) unique among non-roots; root rows unique among roots.
         nz = np.flatnonzero(~root[:k])
         if len(nz):
@@ -644,10 +668,16 @@ class StreamReader:
             self._lut_cache = quant_steps(self.header.quant)
         return self._lut_cache
 
-    def arrays(self, n=None) -> dict:
-        """Decoded arrays of the first n available records (views; do not modify)."""
-        self._decode()
+    def arrays(self, n=None) -> dict | None:
+        """Decoded arrays of the first n available records (all if None), in stream order
+        (views; do not modify). None exactly when ``avatar(n)`` is None: before the header has
+        arrived, or while no record is available (or n is 0)."""
+        if self.header is None or self._n == 0:
+            return None
         n = self._n if n is None else max(0, min(int(n), self._n))
+        if n == 0:
+            return None
+        self._decode()
         cols = self._reserve_cols(n)
         return {name: cols[name][:n] for name in ("split_logits",) + PARAM_NAMES + ("parent", "slot")}
 

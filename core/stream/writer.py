@@ -263,8 +263,16 @@ def stand_in_retire(forest, s: np.ndarray, vertices=None, importance=None) -> np
     return retire
 
 
-def write_stream(
-    path,
+def write_stream(path, avatar: Avatar, importance=None, **kwargs) -> StreamInfo:
+    """Write `avatar` as a stream to `path` (atomically: written whole, then renamed over any
+    previous file, which a failure leaves as it was). Returns its header (build_stream)."""
+    data, info = build_stream(avatar, importance, **kwargs)
+    with atomic_open(path) as fh:
+        fh.write(data)
+    return info
+
+
+def build_stream(
     avatar: Avatar,
     importance=None,
     *,
@@ -276,8 +284,8 @@ def write_stream(
     root_order: str | None = None,
     vertices=None,
     version: int = VERSION,
-) -> StreamInfo:
-    """Write `avatar` as a stream (atomically). Returns its header; `.order` maps each face of
+) -> tuple[bytes, StreamInfo]:
+    """`avatar` as a stream, in memory: (its bytes, its header). `.order` maps each face of
     the avatar a reader decodes (roots first) to this avatar's face, `.stream_order` each
     stream position to this avatar's face. Records carry the DC colour only: an avatar with
     higher SH bands is refused unless ``drop_sh`` (then the metadata says which degree was
@@ -300,7 +308,8 @@ def write_stream(
         raise ValueError(
             f"write_stream: the avatar has SH degree {avatar.sh_degree}; stream records carry the "
             "DC colour only (docs/FORMAT.md). Pass drop_sh=True (export.py --drop-sh) to stream "
-            "its view-independent colour, or export a PLY to keep every band"
+            "its view-independent colour; a 3DGS PLY keeps every band (export.py --ply, which "
+            "needs no --drop-sh without --stream)"
         )
     N = forest.num_faces
     if not 1 <= int(records_per_block) <= 0xFFFF:
@@ -411,19 +420,11 @@ def write_stream(
         parts.append(struct.pack("<I", crc))
     data = b"".join(parts)
     assert len(data) == info.total_bytes
-    with atomic_open(path) as fh:
-        fh.write(data)
     info.order = order
     info.stream_order = s
-    return info
+    return data, info
 
 
 def encode_stream(avatar: Avatar, importance=None, **kwargs) -> bytes:
-    """The stream as bytes (writes through a temporary file so there is one writer)."""
-    import tempfile
-
-    with tempfile.TemporaryDirectory() as d:
-        p = os.path.join(d, "s.pavs")
-        write_stream(p, avatar, importance, **kwargs)
-        with open(p, "rb") as fh:
-            return fh.read()
+    """The stream as bytes (build_stream's: the same encoder as write_stream)."""
+    return build_stream(avatar, importance, **kwargs)[0]
