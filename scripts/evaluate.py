@@ -141,6 +141,8 @@ def main(argv=None):
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # disk full, permission denied, ...: the report files written before are kept
+        return _os_error(exc, args.out)
     if args.benchmarks:
         import bench_common
 
@@ -148,7 +150,10 @@ def main(argv=None):
         rel = os.path.relpath(os.path.abspath(args.out), os.path.dirname(os.path.abspath(args.benchmarks)))
         body = body.replace("](", f"]({rel}/")
         title = args.section or os.path.basename(os.path.abspath(args.out))
-        bench_common.replace_section(args.benchmarks, title, f"## {title}\n{body}")
+        try:
+            bench_common.replace_section(args.benchmarks, title, f"## {title}\n{body}")
+        except OSError as exc:
+            return _os_error(exc, args.benchmarks)
     print(
         json.dumps(
             {
@@ -158,6 +163,13 @@ def main(argv=None):
         )
     )
     return 0
+
+
+def _os_error(exc: OSError, where: str) -> int:
+    """A clean message naming the file (or else ``where``) for an OSError; exit status 2."""
+    path = exc.filename if exc.filename is not None else where
+    print(f"error: {path}: {exc.strerror or exc}", file=sys.stderr)
+    return 2
 
 
 if __name__ == "__main__":

@@ -299,3 +299,178 @@ def test_numpy_evaluator_matches_torch_at_absurd_unit_scales(unit):
     t, r, s = tf.evaluate(v, tf.weights(torch.tensor(forest.split_logits)))
     mt, qt, st = compose(t, r, s, *(torch.tensor(getattr(av, n)) for n in ("d_mu", "d_log_scale", "d_rot")))
     np.testing.assert_allclose(np.abs(np.sum(qt.numpy() * qk, axis=1)), 1.0, atol=1e-4)  # same rotation (±q)
+
+
+# -- evaluation report ------------------------------------------------------------------
+def _report_opts(run, out, **kw):
+    from progressive_avatars.core.evaluate.report import ReportOptions
+
+    small = dict(views=2, curve_points=2, curve_views=1, budgets=(50, 100), strips=(50, 100), progress=False)
+    return ReportOptions(run=str(run), out=str(out), **{**small, **kw})
+
+
+@pytest.fixture
+def run_copy(tiny_run, tmp_path):
+    dst = tmp_path / "run"
+    shutil.copytree(tiny_run, dst)
+    return dst
+
+
+@pytest.fixture
+def scratch_root(tmp_path, monkeypatch):
+    """tempfile's folder for this test: what build_report leaves behind shows up here."""
+    import tempfile
+
+    root = tmp_path / "tmp"
+    root.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(root))
+    return root
+
+
+def test_read_log_skips_torn_last_line_and_names_a_bad_line(tmp_path):
+    from progressive_avatars.core.evaluate.plots import read_log
+
+    log = tmp_path / "metrics.jsonl"
+    good = '{"iteration": 1, "seconds": 0.5}\n\n{"iteration": 2, "seconds": 1.0}\n'
+    log.write_text(good + '{"iteration": 3, "seconds": 1.2, "lo')  # a writer killed mid-line
+    assert [r["iteration"] for r in read_log(log)] == [1, 2]
+    log.write_bytes(good.encode() + '{"note": "caf\u00e9'.encode()[:-1])  # cut inside a character
+    assert len(read_log(log)) == 2
+    log.write_text('{"iteration": 1}\n{"iteration": 2, "sec\n{"iteration": 3}\n')
+    with pytest.raises(ValueError, match=r"metrics\.jsonl: line 2 is not valid JSON"):
+        read_log(log)
+    log.write_text('{"iteration": 1}\n[1, 2]\n')
+    with pytest.raises(ValueError, match=r"metrics\.jsonl: line 2 is not a JSON object"):
+        read_log(log)
+
+
+@pytest.mark.slow  # evaluations of the tiny run
+def test_evaluate_torn_metrics_line_bad_log_fails_fast_and_scratch_always_removed(
+    run_copy, tmp_path, scratch_root, monkeypatch
+):
+    from progressive_avatars.core.evaluate import plots
+    from progressive_avatars.core.evaluate.report import build_report
+
+    log = run_copy / "metrics.jsonl"
+    lines = log.read_text().splitlines(keepends=True)
+    with open(log, "a") as fh:
+        fh.write('{"iteration": 61, "seconds": 1.2, "lo')  # the trainer was killed mid-write
+    rep = build_report(_report_opts(run_copy, tmp_path / "ok"))
+    assert rep["training"]["this run"]["iterations"] == json.loads(lines[-1])["iteration"]
+    assert json.loads((tmp_path / "ok" / "report.json").read_text())["training"] == rep["training"]
+    assert os.listdir(scratch_root) == []
+    # A bad line before the end is an error naming the file and line, before any rendering.
+    log.write_text(lines[0] + "{oops\n" + "".join(lines[1:]))
+    with pytest.raises(ValueError, match=r"metrics\.jsonl: line 2 is not valid JSON"):
+        build_report(_report_opts(run_copy, tmp_path / "bad_log"))
+    assert os.listdir(tmp_path / "bad_log") == [] and os.listdir(scratch_root) == []
+    # A failure in the middle of the evaluation still removes the scratch folder.
+    log.write_text("".join(lines))
+
+    def broken(*a, **k):
+        raise RuntimeError("drawing failed")
+
+    monkeypatch.setattr(plots, "depth_picture", broken)
+    with pytest.raises(RuntimeError, match="drawing failed"):
+        build_report(_report_opts(run_copy, tmp_path / "crash"))
+    assert os.listdir(scratch_root) == []
+
+
+def test_run_config_errors_name_the_file_and_damaged_importance_cache_is_recomputed(
+    run_copy, tiny_dataset, monkeypatch
+):
+    from progressive_avatars.core.io import run as runs
+    from progressive_avatars.core.render import importance
+
+    cfg = run_copy / "config.json"
+    text = cfg.read_text()
+    cfg.write_text(text[:30])  # a truncated write
+    with pytest.raises(ValueError, match=r"run/config\.json: not valid JSON"):
+        runs.run_data_dir(str(run_copy))
+    cfg.write_text('{"seed": 0}')
+    with pytest.raises(ValueError, match=r'run/config\.json: no "data" entry naming the dataset; pass --data'):
+        runs.run_data_dir(str(run_copy))
+    cfg.write_text("[1]")
+    with pytest.raises(ValueError, match=r"run/config\.json: not a JSON object"):
+        runs.run_flame_model(str(run_copy))
+    assert runs.run_data_dir(str(run_copy), tiny_dataset) == tiny_dataset  # --data needs no config
+    cfg.write_text(text)
+    assert runs.run_data_dir(str(run_copy)) == json.loads(text)["data"]
+
+    av = runs.load_run_avatar(str(run_copy))
+    calls = []
+    real = importance.face_importance
+    monkeypatch.setattr(importance, "face_importance", lambda *a, **k: calls.append(1) or real(*a, **k))
+    w = runs.run_importance(str(run_copy), av, tiny_dataset, max_views=2, progress=False)
+    calls.clear()
+    npy = run_copy / "importance.npy"
+    good = npy.read_bytes()
+    for damaged in (good[:200], b"x\n", b"", np.lib.format.magic(1, 0) + b"garbage"):
+        npy.write_bytes(damaged)  # newer than the avatar, same key: only its contents are wrong
+        np.testing.assert_array_equal(
+            runs.run_importance(str(run_copy), av, tiny_dataset, max_views=2, progress=False), w
+        )
+        np.testing.assert_array_equal(np.load(npy), w)  # the cache was rewritten
+    np.save(npy, np.zeros(3))  # a cache of another avatar
+    np.testing.assert_array_equal(runs.run_importance(str(run_copy), av, tiny_dataset, max_views=2, progress=False), w)
+    assert len(calls) == 5
+
+
+@pytest.mark.slow  # evaluations of the tiny run
+def test_evaluate_disk_full_keeps_the_previous_report(run_copy, tmp_path, scratch_root, monkeypatch, capsys):
+    import errno
+    import runpy
+
+    from progressive_avatars.core.evaluate import plots, report
+
+    monkeypatch.setattr(sys, "path", list(sys.path))  # the script puts its folder on sys.path
+    main = runpy.run_path(os.path.join(ROOT, "scripts", "evaluate.py"), run_name="evaluate_script")["main"]
+    out = tmp_path / "report"
+    args = ["--run", str(run_copy), "--out", str(out), "--views", "2", "--curve-points", "2"]
+    args += ["--curve-views", "1", "--budgets", "50,100", "--strips", "50,100", "--no-progress"]
+    assert main(args) == 0
+    before = {n: (out / n).read_bytes() for n in ("report.json", "report.md", "strip_nvs.png")}
+    capsys.readouterr()
+
+    def half_then_disk_full(obj, fh, **kw):
+        s = json.dumps(obj, **kw)
+        fh.write(s[: len(s) // 2])
+        fh.flush()
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(report.json, "dump", half_then_disk_full)
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert f"error: {out / 'report.json'}: No space left on device" in err and "Traceback" not in err
+    assert (out / "report.json").read_bytes() == before["report.json"]  # the previous report, whole
+    json.loads(before["report.json"])
+    assert [n for n in os.listdir(out) if n.endswith(".tmp")] == [] and os.listdir(scratch_root) == []
+    monkeypatch.undo()
+
+    # A picture whose write fails keeps the earlier picture (written beside it, then renamed).
+    import matplotlib.figure
+
+    def half_png(self, fh, **kw):
+        fh.write(b"\x89PNG\r\n")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", half_png)
+    fig = plots._plt().figure()
+    with pytest.raises(OSError):
+        plots._save(fig, str(out / "strip_nvs.png"))
+    assert (out / "strip_nvs.png").read_bytes() == before["strip_nvs.png"]
+    assert [n for n in os.listdir(out) if n.endswith(".tmp")] == []
+
+
+@pytest.mark.slow  # an evaluation of the tiny run
+def test_evaluate_refuses_a_corrupt_test_image_before_rendering(run_copy, data_copy, tmp_path, scratch_root):
+    from progressive_avatars.core.evaluate.report import build_report
+
+    frames = json.loads((data_copy / "transforms_test.json").read_text())["frames"]
+    img = data_copy / frames[-1]["file_path"]
+    img.write_bytes(img.read_bytes()[:100])
+    with pytest.raises(
+        DataError, match=rf"(?s)'test' split has 1 problem.*{frames[-1]['file_path']}: image: cannot be"
+    ):
+        build_report(_report_opts(run_copy, tmp_path / "out", data=str(data_copy)))
+    assert os.listdir(tmp_path / "out") == [] and os.listdir(scratch_root) == []

@@ -18,8 +18,18 @@ def _plt():
 
 
 def _save(fig, path):
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    _plt().close(fig)
+    """Save ``fig`` atomically (temporary beside ``path``, then one rename): a failed write
+    (disk full, an exception while drawing) leaves an earlier picture at ``path`` intact."""
+    import os
+
+    from ..io.atomic import atomic_open
+
+    fmt = os.path.splitext(os.fspath(path))[1][1:].lower() or "png"
+    try:
+        with atomic_open(path, "wb") as fh:
+            fig.savefig(fh, format=fmt, dpi=110, bbox_inches="tight")
+    finally:
+        _plt().close(fig)
     return path
 
 
@@ -194,8 +204,23 @@ def depth_detail_stats(depth: np.ndarray, detail: np.ndarray) -> dict:
 
 
 def read_log(metrics_log) -> list[dict]:
-    with open(metrics_log) as fh:
-        return [json.loads(line) for line in fh if line.strip()]
+    """The JSON objects of a .jsonl log (RUN/metrics.jsonl, RUN/resources.jsonl), one a line.
+    A torn last line (a trainer killed mid-write leaves one; the trainer drops it on resume) is
+    skipped; a line elsewhere that is not a JSON object is a ValueError naming the file and line."""
+    with open(metrics_log, "rb") as fh:
+        lines = [(i, ln) for i, ln in enumerate(fh.read().split(b"\n"), 1) if ln.strip()]
+    rows = []
+    for k, (i, line) in enumerate(lines):
+        try:
+            row = json.loads(line)
+        except ValueError as exc:  # UnicodeDecodeError too (a write cut inside a character)
+            if k == len(lines) - 1:
+                break  # the torn last line of a killed writer
+            raise ValueError(f"{metrics_log}: line {i} is not valid JSON ({exc})") from None
+        if not isinstance(row, dict):
+            raise ValueError(f"{metrics_log}: line {i} is not a JSON object (a {type(row).__name__})")
+        rows.append(row)
+    return rows
 
 
 def first_reaching(rows: list[dict], target: float, key: str) -> float | None:
@@ -313,7 +338,7 @@ def _group_styles(names, also=()) -> dict:
 
 
 def psnr_vs_time(path, logs: dict, this_name=None):
-    """NVS PSNR against training time for one or more runs ({name: metrics.jsonl}), and a
+    """NVS PSNR against training time for one or more runs ({name: metrics.jsonl or its rows}), and a
     second panel against iterations zoomed on the plateau (time depends on the machine's
     load; iterations do not). ``this_name``: the name of the run logged as "this run", so it
     joins its seed group (one colour and one legend entry with its other seeds)."""
@@ -324,7 +349,7 @@ def psnr_vs_time(path, logs: dict, this_name=None):
     grouped = _group_styles([alias[k] for k in logs])
     style = {k: grouped[alias[k]] for k in logs}
     for name, log in logs.items():
-        ev = [r for r in read_log(log) if "val_psnr" in r]
+        ev = [r for r in (log if isinstance(log, list) else read_log(log)) if "val_psnr" in r]
         y = [r["val_psnr"] for r in ev]
         colour, label = style[name]
         ax.plot([r["seconds"] / 60 for r in ev], y, "-o", ms=3, color=colour, label=label)

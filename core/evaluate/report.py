@@ -16,6 +16,7 @@ import shutil
 import sys
 import tempfile
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -346,6 +347,70 @@ def _paper_extras(args, report, streamed, info, rend, splits, data, progress, sc
     return figs
 
 
+def _validate_splits(splits: dict, progress: bool) -> None:
+    """Every image, mask, mesh and camera of the splits the report scores, checked before any
+    rendering (core/io/validate.py): a corrupt file is one DataError naming it, not a failure
+    minutes into the evaluation."""
+    from ..io.sequences import DataError
+    from ..io.validate import validate_dataset
+
+    for ds in splits.values():
+        try:
+            validate_dataset(ds, progress=progress)
+        except DataError as exc:  # its advice is worded for training
+            raise DataError(str(exc).replace("fix them before training", "fix them before evaluating", 1)) from None
+
+
+def _read_logs(args: ReportOptions) -> dict:
+    """{name: rows} of the training logs the report uses (this run's and the compared runs'
+    metrics.jsonl, when present), read before the rendering so that a damaged log fails at
+    once (a torn last line is skipped, plots.read_log). With ``paper_table`` the logs that
+    plots.run_resources reads later (metrics.jsonl and resources.jsonl of every run in the
+    table) are checked now as well."""
+    logs = {"this run": args.run}
+    logs.update({spec.partition("=")[0]: spec.partition("=")[2] for spec in args.compare})
+    rows = {}
+    for name, run in logs.items():
+        path = os.path.join(run, "metrics.jsonl")
+        if os.path.exists(path):
+            rows[name] = plots.read_log(path)
+    if args.paper_table:
+        others = [args.run, args.finest_only] + [spec.partition("=")[2] for spec in (*args.adaptive, *args.uniform)]
+        for run in filter(None, others):
+            for log in ("metrics.jsonl", "resources.jsonl"):
+                if os.path.exists(os.path.join(run, log)):
+                    plots.read_log(os.path.join(run, log))
+    return rows
+
+
+def _write_json(path: str, obj) -> None:
+    """``obj`` as JSON at ``path``, atomically: a failed write (disk full) keeps the previous file."""
+    from ..io.atomic import atomic_open
+
+    with _naming(path), atomic_open(path, "w") as fh:
+        json.dump(obj, fh, indent=1)
+
+
+def _write_text(path: str, text: str) -> None:
+    """``text`` (UTF-8) at ``path``, atomically."""
+    from ..io.atomic import atomic_open
+
+    with _naming(path), atomic_open(path, "wb") as fh:
+        fh.write(text.encode("utf-8"))
+
+
+@contextmanager
+def _naming(path: str):
+    """An OSError that names no file (a disk-full write) is given ``path``, so the message says
+    which file could not be written."""
+    try:
+        yield
+    except OSError as exc:
+        if exc.filename is None:
+            raise OSError(exc.errno, exc.strerror or str(exc), path) from exc
+        raise
+
+
 def build_report(args: ReportOptions) -> dict:
     """Evaluate ``args.run`` and write the report into ``args.out``; returns the report dict.
     Bad input (budgets, a missing run or dataset) raises ValueError / FileNotFoundError."""
@@ -368,6 +433,10 @@ def build_report(args: ReportOptions) -> dict:
     splits = {"nvs": Dataset(data, "val", flame_model=fm), "nes": Dataset(data, "test", flame_model=fm)}
     strips = [float(b) for b in args.strips]
     progress = args.progress
+    # Everything read later is checked now, before minutes of rendering: every image, mask, mesh
+    # and camera of the splits scored, and the training logs (a bad line is refused here).
+    _validate_splits(splits, progress)
+    log_rows = _read_logs(args)
     W = runs.run_importance(args.run, avatar, data, progress=progress)
     stream_path = os.path.join(args.run, "avatar.pavs")
     if avatar.sh_degree:
@@ -389,236 +458,238 @@ def build_report(args: ReportOptions) -> dict:
         embed_template=args.embed_template,
     )
     scratch = tempfile.mkdtemp(prefix="pa_eval_")
-    lossless_path = os.path.join(scratch, "lossless.pavs")  # only to measure what quantisation costs
-    write_stream(lossless_path, avatar, W, quantize=False, drop_sh=True, vertices=rest, root_order=args.root_order)
-    streamed = read_stream(stream_path, template_faces=splits["nvs"].faces)
-    exact = read_stream(lossless_path)
-    order = info.order
-    total_bytes = os.path.getsize(stream_path)
+    try:  # the scratch folder goes on every exit path (an error, Ctrl-C), not only on success
+        lossless_path = os.path.join(scratch, "lossless.pavs")  # only to measure what quantisation costs
+        write_stream(lossless_path, avatar, W, quantize=False, drop_sh=True, vertices=rest, root_order=args.root_order)
+        streamed = read_stream(stream_path, template_faces=splits["nvs"].faces)
+        exact = read_stream(lossless_path)
+        order = info.order
+        total_bytes = os.path.getsize(stream_path)
 
-    rend = {k: SplitRenderer(streamed, ds, args.views) for k, ds in splits.items()}
-    report = {
-        "run": _shown(args.run),
-        "data": _shown(data),
-        "data_summary": _data_summary(data),
-        "about": args.about,
-        "name": args.name,
-        "stream_bytes": total_bytes,
-        "bytes_per_gaussian": total_bytes / streamed.num_gaussians,
-        "gaussians": streamed.num_gaussians,
-        "level_counts": streamed.forest.level_counts().tolist(),
-        "stream_version": info.version,
-        "budgets": {},
-        "ablations": {},
-    }
-    for b in budgets:
-        n = int(info.count_for_percent(b))
-        ids = rend["nvs"].first(n)
-        entry = {"gaussians": n, "bytes": int(info.bytes_for_count(n))}
-        for k, r in rend.items():
-            entry[k] = r.score(ids)
-        entry["render_ms"] = entry["nvs"]["render_ms"]
-        report["budgets"][f"{b:g}"] = entry
-        if progress:
-            print(
-                f"budget {b:g}%: {n} Gaussians, NVS {entry['nvs']['psnr']:.2f} dB "
-                f"(coverage {entry['nvs']['coverage']:.3f}), NES {entry['nes']['psnr']:.2f} dB"
+        rend = {k: SplitRenderer(streamed, ds, args.views) for k, ds in splits.items()}
+        report = {
+            "run": _shown(args.run),
+            "data": _shown(data),
+            "data_summary": _data_summary(data),
+            "about": args.about,
+            "name": args.name,
+            "stream_bytes": total_bytes,
+            "bytes_per_gaussian": total_bytes / streamed.num_gaussians,
+            "gaussians": streamed.num_gaussians,
+            "level_counts": streamed.forest.level_counts().tolist(),
+            "stream_version": info.version,
+            "budgets": {},
+            "ablations": {},
+        }
+        for b in budgets:
+            n = int(info.count_for_percent(b))
+            ids = rend["nvs"].first(n)
+            entry = {"gaussians": n, "bytes": int(info.bytes_for_count(n))}
+            for k, r in rend.items():
+                entry[k] = r.score(ids)
+            entry["render_ms"] = entry["nvs"]["render_ms"]
+            report["budgets"][f"{b:g}"] = entry
+            if progress:
+                print(
+                    f"budget {b:g}%: {n} Gaussians, NVS {entry['nvs']['psnr']:.2f} dB "
+                    f"(coverage {entry['nvs']['coverage']:.3f}), NES {entry['nes']['psnr']:.2f} dB"
+                )
+
+        # PSNR and coverage against bytes, many budgets (NVS, fewer views to keep it quick).
+        curve_r = SplitRenderer(streamed, splits["nvs"], args.curve_views)
+        curve = []
+        for b in np.linspace(100 / args.curve_points, 100, args.curve_points):
+            n = int(info.count_for_percent(b))
+            sc = curve_r.score(curve_r.first(n), ssim=False)
+            curve.append(
+                {
+                    "percent": float(b),
+                    "bytes": int(info.bytes_for_count(n)),
+                    "gaussians": n,
+                    "psnr": sc["psnr"],
+                    "coverage": sc["coverage"],
+                }
             )
+        report["curve_nvs"] = curve
+        report["curve_views"] = len(curve_r.views)
+        report["first_head"] = first_head(info)
+        report["root_order"] = args.root_order
+        report["template_embedded"] = info.template_embedded
 
-    # PSNR and coverage against bytes, many budgets (NVS, fewer views to keep it quick).
-    curve_r = SplitRenderer(streamed, splits["nvs"], args.curve_views)
-    curve = []
-    for b in np.linspace(100 / args.curve_points, 100, args.curve_points):
-        n = int(info.count_for_percent(b))
-        sc = curve_r.score(curve_r.first(n), ssim=False)
-        curve.append(
-            {
-                "percent": float(b),
-                "bytes": int(info.bytes_for_count(n)),
-                "gaussians": n,
-                "psnr": sc["psnr"],
-                "coverage": sc["coverage"],
-            }
-        )
-    report["curve_nvs"] = curve
-    report["curve_views"] = len(curve_r.views)
-    report["first_head"] = first_head(info)
-    report["root_order"] = args.root_order
-    report["template_embedded"] = info.template_embedded
-
-    # Ablations on our data.
-    abl = report["ablations"]
-    nvs = rend["nvs"]
-    abl["root_order"] = root_order_ablation(avatar, W, rest, info, SplitRenderer(avatar, splits["nvs"], args.views))
-    if args.no_coarse_run:
-        abl["coarse_vs_none"] = coarse_ablation(
-            args.no_coarse_run,
-            data,
+        # Ablations on our data.
+        abl = report["ablations"]
+        nvs = rend["nvs"]
+        abl["root_order"] = root_order_ablation(avatar, W, rest, info, SplitRenderer(avatar, splits["nvs"], args.views))
+        if args.no_coarse_run:
+            abl["coarse_vs_none"] = coarse_ablation(
+                args.no_coarse_run,
+                data,
+                rest,
+                rend["nvs"],
+                info,
+                splits["nvs"],
+                args.views,
+                scratch,
+                progress,
+                args.root_order,
+            )
+        n25, n50 = int(info.count_for_percent(25)), int(info.count_for_percent(50))
+        rand = random_within_levels(streamed.forest.level, seed=0)[:n25]
+        abl["random_order_25"] = {
+            "ranked": report["budgets"].get("25", {}).get("nvs") or nvs.score(nvs.first(n25)),
+            "random": nvs.score(np.sort(rand)),
+            "gaussians": n25,
+        }
+        # The paper's importance-only ablation ranks by importance measured on the whole avatar (per
+        # level, the stream's own ranking, coarse faces would simply come first).
+        W_whole = runs.run_importance(args.run, avatar, data, progress=progress, per_level=False)
+        imp = importance_only(W_whole[order])[:n50]
+        W_alpha = runs.run_importance(args.run, avatar, data, progress=progress, weighting="alpha")
+        abl["importance_kind"] = importance_kind_ablation(
+            avatar,
+            {"alpha": W_alpha, "whole": W_whole},
             rest,
-            rend["nvs"],
+            report["budgets"],
             info,
             splits["nvs"],
-            args.views,
+            nvs,
+            args,
             scratch,
-            progress,
-            args.root_order,
         )
-    n25, n50 = int(info.count_for_percent(25)), int(info.count_for_percent(50))
-    rand = random_within_levels(streamed.forest.level, seed=0)[:n25]
-    abl["random_order_25"] = {
-        "ranked": report["budgets"].get("25", {}).get("nvs") or nvs.score(nvs.first(n25)),
-        "random": nvs.score(np.sort(rand)),
-        "gaussians": n25,
-    }
-    # The paper's importance-only ablation ranks by importance measured on the whole avatar (per
-    # level, the stream's own ranking, coarse faces would simply come first).
-    W_whole = runs.run_importance(args.run, avatar, data, progress=progress, per_level=False)
-    imp = importance_only(W_whole[order])[:n50]
-    W_alpha = runs.run_importance(args.run, avatar, data, progress=progress, weighting="alpha")
-    abl["importance_kind"] = importance_kind_ablation(
-        avatar, {"alpha": W_alpha, "whole": W_whole}, rest, report["budgets"], info, splits["nvs"], nvs, args, scratch
-    )
-    # This stream (version 5: any face as soon as its parent has arrived) against the order
-    # that sends every root first, level by level (version 4's), over the same faces.
-    W_dec = W[order]
-    levels_first = stream_order(streamed.forest, W_dec, streamed.forest.root_rank)
-    abl["interleaved_order"] = {}
-    for b in (1, 2, 3, 5, 10, 25, 50):
-        n = int(info.count_for_percent(b))
-        abl["interleaved_order"][f"{b:g}"] = {
-            "gaussians": n,
-            "levels_first": nvs.score(np.sort(levels_first[:n])),
-            "interleaved": report["budgets"].get(f"{b:g}", {}).get("nvs") or nvs.score(nvs.first(n)),
+        # This stream (version 5: any face as soon as its parent has arrived) against the order
+        # that sends every root first, level by level (version 4's), over the same faces.
+        W_dec = W[order]
+        levels_first = stream_order(streamed.forest, W_dec, streamed.forest.root_rank)
+        abl["interleaved_order"] = {}
+        for b in (1, 2, 3, 5, 10, 25, 50):
+            n = int(info.count_for_percent(b))
+            abl["interleaved_order"][f"{b:g}"] = {
+                "gaussians": n,
+                "levels_first": nvs.score(np.sort(levels_first[:n])),
+                "interleaved": report["budgets"].get(f"{b:g}", {}).get("nvs") or nvs.score(nvs.first(n)),
+            }
+        abl["importance_only_50"] = {
+            "levels_then_importance": nvs.score(nvs.first(n50)),
+            "importance_only": nvs.score(np.sort(imp)),
+            "gaussians": n50,
         }
-    abl["importance_only_50"] = {
-        "levels_then_importance": nvs.score(nvs.first(n50)),
-        "importance_only": nvs.score(np.sort(imp)),
-        "gaussians": n50,
-    }
-    exact_nvs = SplitRenderer(exact, splits["nvs"], args.views)
-    abl["quantisation_100"] = {
-        "quantised": nvs.score(np.arange(streamed.num_gaussians)),
-        "float32": exact_nvs.score(np.arange(exact.num_gaussians)),
-        "bytes_quantised": total_bytes,
-        "bytes_float32": os.path.getsize(lossless_path),
-    }
-    abl["quantisation_100"]["psnr_loss_db"] = (
-        abl["quantisation_100"]["float32"]["psnr"] - abl["quantisation_100"]["quantised"]["psnr"]
-    )
-    abl["level_prefixes"] = {
-        "counts": _levels_prefixes(streamed),
-        "nvs": _score_levels(nvs),
-    }
-    sizes = {f"{b:g}": int(info.bytes_for_count(int(info.count_for_percent(b)))) for b in budgets}
-    abl["single_asset_vs_discrete"] = {
-        "stream_bytes": total_bytes,
-        "discrete_sum_bytes": int(sum(sizes.values())),
-        "discrete_budgets": sizes,
-    }
-    short = (1, 2, 5, 10, 25, 100)
-    for spec in args.budget_compare:
-        name, _, other = spec.partition("=")
-        info0, scores = _own_stream_scores(
-            other, data, rest, info, splits["nvs"], args.views, scratch, progress, args.root_order, short
+        exact_nvs = SplitRenderer(exact, splits["nvs"], args.views)
+        abl["quantisation_100"] = {
+            "quantised": nvs.score(np.arange(streamed.num_gaussians)),
+            "float32": exact_nvs.score(np.arange(exact.num_gaussians)),
+            "bytes_quantised": total_bytes,
+            "bytes_float32": os.path.getsize(lossless_path),
+        }
+        abl["quantisation_100"]["psnr_loss_db"] = (
+            abl["quantisation_100"]["float32"]["psnr"] - abl["quantisation_100"]["quantised"]["psnr"]
         )
-        mine = {}
-        for b in short:
-            n1 = int(info.count_for_percent(b))
-            mine[f"{b:g}"] = report["budgets"].get(f"{b:g}", {}).get("nvs") or nvs.score(nvs.first(n1))
-        abl.setdefault("budget_compare", {"this": mine})[name] = {
-            "run": _shown(other),
-            "bytes": info0.total_bytes,
-            "budgets": scores,
+        abl["level_prefixes"] = {
+            "counts": _levels_prefixes(streamed),
+            "nvs": _score_levels(nvs),
         }
-    for spec in args.compare:
-        name, _, other = spec.partition("=")
-        other_av = runs.load_run_avatar(other)
-        other_rend = SplitRenderer(other_av, splits["nvs"], args.views)
-        entry = {
-            "run": _shown(other),
-            "gaussians": other_av.num_gaussians,
-            "level_counts": other_av.forest.level_counts().tolist(),
-            "nvs": other_rend.score(np.arange(other_av.num_gaussians)),
+        sizes = {f"{b:g}": int(info.bytes_for_count(int(info.count_for_percent(b)))) for b in budgets}
+        abl["single_asset_vs_discrete"] = {
+            "stream_bytes": total_bytes,
+            "discrete_sum_bytes": int(sum(sizes.values())),
+            "discrete_budgets": sizes,
         }
-        level = other_av.forest.level
-        entry["level_prefixes_nvs"] = {
-            int(lvl): other_rend.score(np.flatnonzero(level <= lvl)) for lvl in range(int(level.max()) + 1)
-        }
-        abl.setdefault("compare", {})[name] = entry
-    grouped = dict(abl.get("compare", {}))
-    if args.name:  # this run joins its seeds' group, scored like them from its float32 avatar
-        grouped = {
-            args.name: {
-                "gaussians": avatar.num_gaussians,
-                "nvs": abl["quantisation_100"]["float32"],
-                "level_prefixes_nvs": _score_levels(exact_nvs),
-            },
-            **grouped,
-        }
-    report["seed_groups"] = plots.seed_groups(grouped)
-    report["seed_pairs"] = plots.seed_pairs(grouped)
+        short = (1, 2, 5, 10, 25, 100)
+        for spec in args.budget_compare:
+            name, _, other = spec.partition("=")
+            info0, scores = _own_stream_scores(
+                other, data, rest, info, splits["nvs"], args.views, scratch, progress, args.root_order, short
+            )
+            mine = {}
+            for b in short:
+                n1 = int(info.count_for_percent(b))
+                mine[f"{b:g}"] = report["budgets"].get(f"{b:g}", {}).get("nvs") or nvs.score(nvs.first(n1))
+            abl.setdefault("budget_compare", {"this": mine})[name] = {
+                "run": _shown(other),
+                "bytes": info0.total_bytes,
+                "budgets": scores,
+            }
+        for spec in args.compare:
+            name, _, other = spec.partition("=")
+            other_av = runs.load_run_avatar(other)
+            other_rend = SplitRenderer(other_av, splits["nvs"], args.views)
+            entry = {
+                "run": _shown(other),
+                "gaussians": other_av.num_gaussians,
+                "level_counts": other_av.forest.level_counts().tolist(),
+                "nvs": other_rend.score(np.arange(other_av.num_gaussians)),
+            }
+            level = other_av.forest.level
+            entry["level_prefixes_nvs"] = {
+                int(lvl): other_rend.score(np.flatnonzero(level <= lvl)) for lvl in range(int(level.max()) + 1)
+            }
+            abl.setdefault("compare", {})[name] = entry
+        grouped = dict(abl.get("compare", {}))
+        if args.name:  # this run joins its seeds' group, scored like them from its float32 avatar
+            grouped = {
+                args.name: {
+                    "gaussians": avatar.num_gaussians,
+                    "nvs": abl["quantisation_100"]["float32"],
+                    "level_prefixes_nvs": _score_levels(exact_nvs),
+                },
+                **grouped,
+            }
+        report["seed_groups"] = plots.seed_groups(grouped)
+        report["seed_pairs"] = plots.seed_pairs(grouped)
 
-    # Detail against depth.
-    detail_path = os.path.join(data, "detail.npz")
-    depth = avatar.forest.depth_per_root()
-    if os.path.exists(detail_path):
-        detail = np.load(detail_path)["face_detail"]
-        if len(detail) == len(depth):
-            report["depth_vs_detail"] = plots.depth_detail_stats(depth, detail)
+        # Detail against depth.
+        detail_path = os.path.join(data, "detail.npz")
+        depth = avatar.forest.depth_per_root()
+        if os.path.exists(detail_path):
+            detail = np.load(detail_path)["face_detail"]
+            if len(detail) == len(depth):
+                report["depth_vs_detail"] = plots.depth_detail_stats(depth, detail)
 
-    # Pictures.
-    figs = {}
-    figs["psnr_vs_bytes"] = plots.psnr_vs_bytes(
-        os.path.join(args.out, "psnr_vs_bytes.png"), curve, report["budgets"], report.get("curve_views")
-    )
-    for k, r in rend.items():
-        figs[f"strip_{k}"] = plots.budget_strip(os.path.join(args.out, f"strip_{k}.png"), r, info, strips)
-    figs["strip_interleaved"] = plots.order_strip(
-        os.path.join(args.out, "strip_interleaved.png"),
-        rend["nvs"],
-        info,
-        (2, 5, 10),
-        {"every root first (v4)": levels_first, "this stream (v5)": None},
-    )
-    figs["depth"] = plots.depth_picture(os.path.join(args.out, "depth.png"), streamed, splits["nes"])
-    logs = {"this run": os.path.join(args.run, "metrics.jsonl")}
-    logs.update(
-        {spec.partition("=")[0]: os.path.join(spec.partition("=")[2], "metrics.jsonl") for spec in args.compare}
-    )
-    logs = {k: v for k, v in logs.items() if os.path.exists(v)}
-    if logs:
-        figs["psnr_vs_time"] = plots.psnr_vs_time(os.path.join(args.out, "psnr_vs_time.png"), logs, args.name)
-        rows = {k: plots.read_log(v) for k, v in logs.items()}
-        finals = [max(r.get("val_psnr", -np.inf) for r in rs) for rs in rows.values()]
-        target = min(finals) - 0.5  # a level every run reaches, so the times compare
-        report["time_to_psnr"] = {
-            "target": float(target),
-            "seconds": {k: plots.first_reaching(rs, target, "seconds") for k, rs in rows.items()},
-            "iterations": {k: plots.first_reaching(rs, target, "iteration") for k, rs in rows.items()},
-        }
-        report["training"] = {k: plots.training_summary(rs) for k, rs in rows.items()}
-    figs["quality_vs_gaussians"] = plots.quality_vs_gaussians(
-        os.path.join(args.out, "quality_vs_gaussians.png"), report
-    )
-    if args.paper_table:
-        figs.update(_paper_extras(args, report, streamed, info, rend, splits, data, progress, scratch))
-    report["figures"] = {k: os.path.basename(v) for k, v in figs.items() if v}
-    report["machine"] = f"{platform.node()} ({os.cpu_count()} CPUs, {platform.processor() or platform.machine()})"
-    report["date"] = time.strftime("%Y-%m-%d %H:%M:%S")
-    report["command"] = args.command
-    report["done_when"] = plots.done_when(report)
-    report["seconds"] = time.perf_counter() - t_start
-    shutil.rmtree(scratch, ignore_errors=True)
-    with open(os.path.join(args.out, "report.json"), "w") as fh:
-        json.dump(report, fh, indent=1)
-    with open(os.path.join(args.out, "report.md"), "w") as fh:
-        fh.write(plots.report_markdown(report))
+        # Pictures.
+        figs = {}
+        figs["psnr_vs_bytes"] = plots.psnr_vs_bytes(
+            os.path.join(args.out, "psnr_vs_bytes.png"), curve, report["budgets"], report.get("curve_views")
+        )
+        for k, r in rend.items():
+            figs[f"strip_{k}"] = plots.budget_strip(os.path.join(args.out, f"strip_{k}.png"), r, info, strips)
+        figs["strip_interleaved"] = plots.order_strip(
+            os.path.join(args.out, "strip_interleaved.png"),
+            rend["nvs"],
+            info,
+            (2, 5, 10),
+            {"every root first (v4)": levels_first, "this stream (v5)": None},
+        )
+        figs["depth"] = plots.depth_picture(os.path.join(args.out, "depth.png"), streamed, splits["nes"])
+        rows = {k: rs for k, rs in log_rows.items() if rs}  # read (and checked) before the rendering
+        if rows:
+            figs["psnr_vs_time"] = plots.psnr_vs_time(os.path.join(args.out, "psnr_vs_time.png"), rows, args.name)
+            finals = [max((r.get("val_psnr", -np.inf) for r in rs), default=-np.inf) for rs in rows.values()]
+            target = min(finals) - 0.5  # a level every run reaches, so the times compare
+            if np.isfinite(target):
+                report["time_to_psnr"] = {
+                    "target": float(target),
+                    "seconds": {k: plots.first_reaching(rs, target, "seconds") for k, rs in rows.items()},
+                    "iterations": {k: plots.first_reaching(rs, target, "iteration") for k, rs in rows.items()},
+                }
+            report["training"] = {k: plots.training_summary(rs) for k, rs in rows.items()}
+        figs["quality_vs_gaussians"] = plots.quality_vs_gaussians(
+            os.path.join(args.out, "quality_vs_gaussians.png"), report
+        )
+        if args.paper_table:
+            figs.update(_paper_extras(args, report, streamed, info, rend, splits, data, progress, scratch))
+        report["figures"] = {k: os.path.basename(v) for k, v in figs.items() if v}
+        report["machine"] = f"{platform.node()} ({os.cpu_count()} CPUs, {platform.processor() or platform.machine()})"
+        report["date"] = time.strftime("%Y-%m-%d %H:%M:%S")
+        report["command"] = args.command
+        report["done_when"] = plots.done_when(report)
+        report["seconds"] = time.perf_counter() - t_start
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    _write_json(os.path.join(args.out, "report.json"), report)
+    _write_text(os.path.join(args.out, "report.md"), plots.report_markdown(report))
     if args.paper_table:
         from .sweep import paper_table
 
         report["paper_table"] = paper_table(report)
-        with open(os.path.join(args.out, "report.json"), "w") as fh:
-            json.dump(report, fh, indent=1)
-        with open(os.path.join(args.out, "paper_table.md"), "w") as fh:
-            fh.write(plots.paper_table_markdown(report))
+        _write_json(os.path.join(args.out, "report.json"), report)
+        _write_text(os.path.join(args.out, "paper_table.md"), plots.paper_table_markdown(report))
     return report

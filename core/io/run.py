@@ -23,25 +23,49 @@ def load_run_avatar(run: str) -> Avatar:
     return Avatar.load(path)
 
 
+def run_config(run: str) -> dict | None:
+    """RUN/config.json as a dict (None when the run has none). A file that cannot be read, is
+    not JSON (a truncated write) or is not a JSON object is a ValueError naming the file."""
+    cfg = os.path.join(run, "config.json")
+    if not os.path.exists(cfg):
+        return None
+    from .safe_io import loads_json, read_bounded
+
+    try:
+        out = loads_json(read_bounded(cfg, 1 << 24, "config"), cfg)
+    except OSError as exc:
+        raise ValueError(f"{cfg}: cannot be read ({exc.strerror or exc})") from None
+    except ValueError as exc:
+        msg = str(exc)
+        raise ValueError(msg if msg.startswith(cfg) else f"{cfg}: not valid JSON ({msg})") from None
+    if not isinstance(out, dict):
+        raise ValueError(f"{cfg}: not a JSON object (a {type(out).__name__}); the run's configuration is damaged")
+    return out
+
+
 def run_data_dir(run: str, data: str | None = None) -> str:
     if data:
         return data
-    cfg = os.path.join(run, "config.json")
-    if os.path.exists(cfg):
-        with open(cfg) as fh:
-            return json.load(fh)["data"]
-    raise ValueError(f"{run}: no --data given and no config.json naming the dataset")
+    cfg = run_config(run)
+    if cfg is None:
+        raise ValueError(f"{run}: no --data given and no config.json naming the dataset")
+    where = os.path.join(run, "config.json")
+    if "data" not in cfg:
+        raise ValueError(f'{where}: no "data" entry naming the dataset; pass --data DIR')
+    if not isinstance(cfg["data"], str) or not cfg["data"]:
+        raise ValueError(f'{where}: "data" is {cfg["data"]!r}, not a dataset folder; pass --data DIR')
+    return cfg["data"]
 
 
 def run_flame_model(run: str, flame_model: str | None = None) -> str | None:
     """The FLAME model a run trained with (FLAME-mode datasets), unless one is given."""
     if flame_model:
         return flame_model
-    cfg = os.path.join(run, "config.json")
-    if os.path.exists(cfg):
-        with open(cfg) as fh:
-            return json.load(fh).get("flame_model")
-    return None
+    cfg = run_config(run)
+    fm = None if cfg is None else cfg.get("flame_model")
+    if fm is not None and not isinstance(fm, str):
+        raise ValueError(f'{os.path.join(run, "config.json")}: "flame_model" is {fm!r}, not a file path')
+    return fm or None
 
 
 def run_importance(
@@ -71,8 +95,11 @@ def run_importance(
         except (OSError, ValueError):
             cached = None
         if cached == key:
-            W = np.load(path, allow_pickle=False)
-            if W.shape == (avatar.num_gaussians,):
+            try:  # a cache: one that is damaged (truncated, garbage) or does not fit is recomputed
+                W = np.load(path, allow_pickle=False)
+            except (OSError, ValueError, EOFError):
+                W = None
+            if isinstance(W, np.ndarray) and W.shape == (avatar.num_gaussians,) and W.dtype.kind == "f":
                 return W
     from .dataset import Dataset
     from ..render.importance import face_importance
