@@ -617,3 +617,11 @@ def test_flame_track_reads_parameters_without_a_model(tmp_path, flame_model):
     np.savez(tmp_path / "mesh.npz", vertices=np.zeros((2, 3, 3)), faces=np.array([[0, 1, 2]]))
     with pytest.raises(DataError, match=r"mesh\.npz: holds meshes, not FLAME parameters"):
         read_flame_track(tmp_path / "mesh.npz")
+
+
+def test_missing_dataset_folder_is_named(tmp_path):
+    from progressive_avatars.core.io.sequences import MissingFileError
+
+    for split in ("train", None):
+        with pytest.raises(MissingFileError, match=r"nope: dataset folder not found"):
+            Dataset(str(tmp_path / "nope"), split)

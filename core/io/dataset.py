@@ -169,6 +169,8 @@ class Dataset:
         self._verts: dict[int, np.ndarray] = {}
         # split=None reads transforms.json (VHAP's export of every frame).
         json_path = os.path.join(self.root, "transforms.json" if split is None else f"transforms_{split}.json")
+        if not os.path.isdir(self.root):
+            raise MissingFileError(f"{self.root}: dataset folder not found")
         if not os.path.isfile(json_path):
             have = (
                 sorted(f for f in os.listdir(self.root) if f.startswith("transforms"))
