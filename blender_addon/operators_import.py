@@ -80,7 +80,7 @@ class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
         if seq.n_frames == 0:
             self.report({"ERROR"}, f"{path}: no frames")
             return {"CANCELLED"}
-        problem = sequence.face_problem(seq.faces) if rig is None else ""
+        problem = sequence.face_problem(rig.faces if rig is not None else seq.faces)
         if problem:
             self.report({"ERROR"}, f"Cannot read sequence: {path}: {problem}; Blender cannot hold such a mesh")
             return {"CANCELLED"}

@@ -90,9 +90,13 @@ def make_rig_inputs(folder):
 
     from progressive_avatars.core.flame.model import _model_from_mapping
 
-    model = _model_from_mapping(make_flame_arrays(seed=3), "test model", N_SHAPE)
+    arrays = make_flame_arrays(seed=3)
+    model = _model_from_mapping(arrays, "test model", N_SHAPE)
     model_path = os.path.join(folder, "flame_model.npz")
     model.save_npz(model_path)
+    f = arrays["f"].copy()  # a model whose face 4 names a vertex twice: no valid Blender mesh
+    f[4, 2] = f[4, 0]
+    _model_from_mapping(dict(arrays, f=f), "bad model", N_SHAPE).save_npz(os.path.join(folder, "flame_badface.npz"))
     prm = random_params(T_FRAMES, seed=11, scale=0.4)
     prm["expr"][2, 1] = 14.0  # beyond Blender's slider range: stored scaled
     params_path = os.path.join(folder, "tracked_flame_params.npz")
@@ -239,6 +243,7 @@ def test_import_flame_rig(session):
     rig = build_flame_rig(model, prm)
     r = rep["rig"]
     assert "holds meshes, not FLAME parameters" in rep["rig_mesh_sequence"]
+    assert "face 4" in rep["rig_bad_faces"] and "uses a vertex twice" in rep["rig_bad_faces"]
     assert r["result"] == ["FINISHED"] and r["modifiers"] == ["ARMATURE"]
     assert r["keys"] == ["Basis"] + rig.expr_key_names() + rig.pose_key_names()
     assert r["bones"] == ["root", "neck", "jaw", "eye_0", "eye_1"] and r["groups"] == r["bones"]

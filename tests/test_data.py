@@ -182,6 +182,22 @@ def test_nersemble_tracking(tmp_path, flame_model):
         want[1],
         atol=1e-5,
     )
+    # A NaN or overflowing placement is refused for the rig too (not evaluated there: the rig
+    # keeps it as keyframes), naming the file and the key.
+    d["rotation_matrices"] = R
+    for key, value in (
+        ("rotation_matrices", np.nan),
+        ("translation", np.inf),
+        ("scale", np.nan),
+        ("translation", 1e300),
+    ):
+        bad = dict(d)
+        bad[key] = np.array(d[key], np.float64)
+        bad[key].reshape(-1)[0] = value
+        np.savez(tmp_path / "bad.npz", **bad)
+        name = "rotation" if key == "rotation_matrices" else key
+        with pytest.raises(DataError, match=rf"bad\.npz: '{name}' placement"):
+            read_nersemble_tracking(tmp_path / "bad.npz", evaluate=False)
 
 
 def test_read_sequence_errors(tmp_path):
@@ -625,3 +641,21 @@ def test_missing_dataset_folder_is_named(tmp_path):
     for split in ("train", None):
         with pytest.raises(MissingFileError, match=r"nope: dataset folder not found"):
             Dataset(str(tmp_path / "nope"), split)
+
+
+def test_camera_refuses_values_that_would_project_garbage():
+    """NaN/inf intrinsics (camera_angle_x 0 gives fx = inf), a zero, scaled or mirrored
+    rotation and absurd translations: refused, not imported as cameras that frame nothing."""
+    good = dict(R=np.eye(3), t=np.zeros(3), fx=50.0, fy=50.0, cx=16.0, cy=16.0, width=32, height=32)
+    Camera(**good)
+    bad = {
+        "intrinsics": dict(cx=np.nan),
+        "intrinsics ": dict(fx=np.inf),
+        "beyond": dict(t=np.array([0.0, 0.0, 1e300])),
+        "not a rotation": dict(R=np.zeros((3, 3))),
+        "not a rotation ": dict(R=2 * np.eye(3)),
+        "not a rotation  ": dict(R=np.diag([-1.0, 1.0, 1.0])),
+    }
+    for what, change in bad.items():
+        with pytest.raises(ValueError, match=what.strip()):
+            Camera(**{**good, **change})

@@ -327,6 +327,11 @@ def read_nersemble_tracking(path, frames=None, flame_model=None, evaluate=True):
     t = rows("translation", 3)
     t = np.zeros((len(sel), 3)) if t is None else t
     scale = float(np.asarray(d["scale"]).reshape(-1)[0]) if "scale" in d else 1.0
+    # The placement is checked here, not only through the evaluated vertices: a FLAME rig keeps
+    # it as keyframes and would carry NaN (or float32 overflow) into Blender unseen.
+    for key, v in (("rotation", R), ("translation", t), ("scale", np.float64(scale))):
+        if not (np.all(np.isfinite(v)) and np.abs(v).max(initial=0.0) <= 1e30):
+            raise DataError(f"{path}: '{key}' placement values must be finite numbers within ±1e30")
     ids = _ids_from(d.get("frames"), T)[sel]
     if not evaluate:
         return FlameTrack(dict(params, rotation_matrices=R, translation=t, scale=scale), ids, path)

@@ -39,10 +39,9 @@ from ..geometry.gaussians import Gaussians
 from ..render.kernels import _PARALLEL  # only explicit prange loops run in parallel
 from ..render.rasterize import float64_array, shared_array
 
-_EPS64 = 8 * np.finfo(np.float64).eps
-# Root rows: v0 (3), X (3), N (3), Z (3), L, a, b, good
-_R_V0, _R_X, _R_N, _R_Z, _R_L, _R_A, _R_B, _R_GOOD = 0, 3, 6, 9, 12, 13, 14, 15
-_ROOT_ROWS = 16
+# Root rows: v0 (3), X (3), N (3), Z (3), L, a, b, good, eps (the flatness bound, _root_frame)
+_R_V0, _R_X, _R_N, _R_Z, _R_L, _R_A, _R_B, _R_GOOD, _R_EPS = 0, 3, 6, 9, 12, 13, 14, 15, 16
+_ROOT_ROWS = 17
 
 
 # ----------------------------------------------------------------------------- weights
@@ -153,8 +152,11 @@ def weights_backward(gW, W, bary, parent, slot, n_roots, order, root_start):
 # takes a third off the bind forward and a fifth off its backward on a 161k-face forest (an
 # A/B run, same bits).
 @njit(cache=True, inline="always")
-def _root_frame(verts, tri, f, out):
-    """Fill root row `out` for template face f (see _R_*)."""
+def _root_frame(verts, tri, f, out, eps):
+    """Fill root row `out` for template face f (see _R_*). `eps` is the inference evaluator's
+    flatness bound for the vertices' own precision (8 eps of float32 for float32 meshes): a
+    triangle flatter than that has no trustworthy normal there, so here neither, or training
+    and inference would place its Gaussians by different frames."""
     i0 = tri[f, 0]
     i1 = tri[f, 1]
     i2 = tri[f, 2]
@@ -166,13 +168,14 @@ def _root_frame(verts, tri, f, out):
     e2z = verts[i2, 2] - verts[i0, 2]
     for k in range(3):
         out[_R_V0 + k] = verts[i0, k]
+    out[_R_EPS] = eps
     nx = e1y * e2z - e1z * e2y
     ny = e1z * e2x - e1x * e2z
     nz = e1x * e2y - e1y * e2x
     L = math.sqrt(e1x * e1x + e1y * e1y + e1z * e1z)
     nn = math.sqrt(nx * nx + ny * ny + nz * nz)
     l2 = math.sqrt(e2x * e2x + e2y * e2y + e2z * e2z)
-    good = L > MIN_EDGE and nn > MIN_EDGE * MIN_EDGE and nn > _EPS64 * L * l2
+    good = L > MIN_EDGE and nn > MIN_EDGE * MIN_EDGE and nn > eps * L * l2
     out[_R_GOOD] = 1.0 if good else 0.0
     if not good:
         for k in range(3, 15):
@@ -202,11 +205,11 @@ def _root_frame(verts, tri, f, out):
 
 
 @njit(parallel=_PARALLEL, cache=True)
-def roots_forward(verts, tri):
+def roots_forward(verts, tri, eps):
     F0 = tri.shape[0]
     pack = np.empty((F0, _ROOT_ROWS))
     for f in prange(F0):
-        _root_frame(verts, tri, f, pack[f])
+        _root_frame(verts, tri, f, pack[f], eps)
     return pack
 
 
@@ -224,9 +227,9 @@ def _unit3(x, y, z):
 
 
 @njit(cache=True, inline="always")
-def _general_frame(verts, tri, f, Wi, r):
-    """numpy frames_from_edges(e1, e2) without a normal, for faces under degenerate roots:
-    fills r (3x3, columns x, y, z) and returns (s, t0, t1, t2)."""
+def _general_frame(verts, tri, f, Wi, r, eps):
+    """numpy frames_from_edges(e1, e2) without a normal, for faces under degenerate roots,
+    flat below `eps` as there: fills r (3x3, columns x, y, z) and returns (s, t0, t1, t2)."""
     i0 = tri[f, 0]
     i1 = tri[f, 1]
     i2 = tri[f, 2]
@@ -254,7 +257,7 @@ def _general_frame(verts, tri, f, Wi, r):
     o1 = x2 * e2[0] - x0 * e2[2]
     o2 = x0 * e2[1] - x1 * e2[0]
     y0, y1, y2, on = _unit3(o0, o1, o2)
-    if n2 <= MIN_EDGE or on <= _EPS64 * n2:
+    if n2 <= MIN_EDGE or on <= eps * n2:
         ax, ay, az = abs(x0), abs(x1), abs(x2)
         h0, h1, h2 = 0.0, 0.0, 0.0
         if ax <= ay and ax <= az:
@@ -359,7 +362,7 @@ def _face_frame(verts, tri, pack, root, f, Wf, r):
     """Frame r, scale and centroid of face f; also the plane quantities the backward needs."""
     g = pack[root]
     if g[_R_GOOD] == 0.0:
-        sc, t0, t1, t2 = _general_frame(verts, tri, root, Wf, r)
+        sc, t0, t1, t2 = _general_frame(verts, tri, root, Wf, r, g[_R_EPS])
         return sc, t0, t1, t2, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, False
     c, s, ell, p1, q1, p2, q2, cx, cz, sc, proper = _plane_face(g, Wf)
     for k in range(3):
@@ -678,7 +681,11 @@ class _Bind(torch.autograd.Function):
         bary, W = weights_forward(
             float64_array(split_logits), plan.parent, plan.slot, plan.forest.num_roots, plan.order, plan.root_start
         )
-        pack = roots_forward(verts, plan.tri)
+        # The flatness bound of the numpy evaluator for these vertices' precision (binding.py).
+        eps = 8 * float(
+            torch.finfo(vertices.dtype).eps if vertices.dtype.is_floating_point else np.finfo(np.float64).eps
+        )
+        pack = roots_forward(verts, plan.tri, eps)
         means, scales, quats = (_output(d_mu, n, w) for w in (3, 3, 4))
         arrays = tuple(_array(x) for x in (d_mu, d_log_scale, d_rot))
         bind_forward(

@@ -408,6 +408,12 @@ def _():
         R["rig_mesh_sequence"] = "no error"
     except RuntimeError as exc:
         R["rig_mesh_sequence"] = str(exc).splitlines()[0]
+    try:
+        bad = os.path.join(os.path.dirname(flame_path), "flame_badface.npz")
+        bpy.ops.import_scene.progressive_avatars_sequence(filepath=params_path, as_rig=True, flame_model=bad)
+        R["rig_bad_faces"] = "no error"
+    except RuntimeError as exc:
+        R["rig_bad_faces"] = str(exc).splitlines()[0]
     bpy.context.scene.frame_start = 3
     t0 = time.perf_counter()
     res = bpy.ops.import_scene.progressive_avatars_sequence(filepath=params_path, as_rig=True, flame_model=flame_path)
