@@ -396,6 +396,27 @@ def test_training_and_inference_agree_on_a_collapsing_float32_root(height):
     assert np.abs(np.abs((qa * qb).sum(1)) - 1).max() < 1e-5  # the same rotations (up to sign)
 
 
+def test_zero_and_tiny_rotation_residuals_match_inference():
+    """d_rot of 0 (the face's own frame) or of norm ~1e-30 (its direction): the training kernel
+    gives inference's unit quaternions and finite gradients (it used to give a zero or ~1e-18
+    quaternion, which the rasteriser refuses)."""
+    from progressive_avatars.core.avatar.avatar import Avatar
+    from progressive_avatars.core.train.binding_kernels import FaceBinding
+
+    V = np.array([[0, 0, 0], [0.02, 0, 0], [0.005, 0.018, 0.003]], np.float32)
+    forest = Forest(np.array([[0, 1, 2]], np.int32))
+    av = Avatar.initial(forest)
+    for d in ([0.0, 0, 0, 0], [1e-30, 1e-30, 0, 0], [0.3, -0.2, 0.1, 0.9]):
+        av.d_rot[0] = d
+        want = binding.GaussianEvaluator(forest, av.d_mu, av.d_log_scale, av.d_rot)(V).quats[0]
+        d_rot = torch.tensor(av.d_rot, requires_grad=True)
+        t = torch.tensor
+        g = FaceBinding(forest).gaussians(t(V), t(forest.split_logits), t(av.d_mu), t(av.d_log_scale), d_rot)
+        np.testing.assert_allclose(g.quats[0].detach().numpy(), want, atol=1e-6)
+        (g.quats * torch.tensor([0.1, 0.2, 0.3, 0.4])).sum().backward()
+        assert torch.isfinite(d_rot.grad).all()
+
+
 def test_binding_kernels_deterministic_across_thread_counts():
     import numba
 

@@ -358,6 +358,28 @@ def _qmul(a, b, out):
 
 
 @njit(cache=True, inline="always")
+def _normalise_residual(qd):
+    """qd (4,) to a unit quaternion in place, as the numpy evaluator does: the plain norm for
+    any usual residual (the bits of before), a rescaled one below 1e-12 (1e-30 components
+    square to 0), the identity for a zero residual (the face's own frame). Returns |qd|."""
+    nd = math.sqrt(qd[0] ** 2 + qd[1] ** 2 + qd[2] ** 2 + qd[3] ** 2)
+    if nd < 1e-12:
+        m = max(abs(qd[0]), abs(qd[1]), abs(qd[2]), abs(qd[3]))
+        if m == 0.0:
+            qd[0] = 1.0
+            return 0.0
+        for i in range(4):
+            qd[i] = qd[i] / m
+        n = math.sqrt(qd[0] ** 2 + qd[1] ** 2 + qd[2] ** 2 + qd[3] ** 2)
+        for i in range(4):
+            qd[i] = qd[i] / n
+        return n * m
+    for i in range(4):
+        qd[i] = qd[i] / nd
+    return nd
+
+
+@njit(cache=True, inline="always")
 def _face_frame(verts, tri, pack, root, f, Wf, r):
     """Frame r, scale and centroid of face f; also the plane quantities the backward needs."""
     g = pack[root]
@@ -402,10 +424,7 @@ def bind_forward(verts, tri, pack, order, root_start, W, d_mu, d_log_scale, d_ro
             _rotmat_to_quat(r, qr)
             for i in range(4):
                 qd[i] = np.float64(d_rot[f, i])
-            nd = math.sqrt(qd[0] ** 2 + qd[1] ** 2 + qd[2] ** 2 + qd[3] ** 2)
-            nd = max(nd, 1e-12)
-            for i in range(4):
-                qd[i] = qd[i] / nd
+            _normalise_residual(qd)
             _qmul(qr, qd, qf)
             for i in range(4):
                 quats[f, i] = qf[i]
@@ -464,10 +483,10 @@ def bind_backward(
             _rotmat_to_quat(r, qr)
             for i in range(4):
                 qd[i] = np.float64(d_rot[f, i])
-            nd = math.sqrt(qd[0] ** 2 + qd[1] ** 2 + qd[2] ** 2 + qd[3] ** 2)
-            nd = max(nd, 1e-12)
+            # |d_rot| bounded below for the gradient only (it is 1/|d_rot|; 0 for a zero residual)
+            nd = _normalise_residual(qd)
+            nd = max(nd, 1e-12) if nd > 0 else math.inf
             for i in range(4):
-                qd[i] = qd[i] / nd
                 gq[i] = np.float64(g_quats[f, i])
             # dL/dqd = conj(qr) x gq; d_rot: project off qd, divide by |d_rot|
             tmp[0] = qr[0]
