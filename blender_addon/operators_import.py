@@ -134,8 +134,8 @@ class PA_OT_import_cameras(bpy.types.Operator):
         from ..core.io.dataset import Dataset
 
         root = bpy.path.abspath(self.directory)
-        try:
-            cams = Dataset(root, self.split, flame_model=prefs.flame_model(context) or None).cameras
+        try:  # cameras need neither the meshes nor a FLAME model
+            cams = Dataset(root, self.split, geometry=False).cameras
         except Exception as exc:
             self.report({"ERROR"}, f"Cannot read dataset cameras: {exc}")
             return {"CANCELLED"}
@@ -146,6 +146,14 @@ class PA_OT_import_cameras(bpy.types.Operator):
             r = context.scene.render
             r.resolution_x, r.resolution_y = settings["resolution"]
             r.pixel_aspect_x, r.pixel_aspect_y = settings["pixel_aspect"]
+        sizes = {(c.width, c.height) for c in cams.values()}
+        if len(sizes) > 1:  # Blender has one resolution per scene, not per camera
+            last = max(cams)
+            self.report(
+                {"WARNING"},
+                f"The cameras' images differ in size ({', '.join(f'{w}x{h}' for w, h in sorted(sizes))}); the scene "
+                f"resolution is cam_{last:02d}'s: set it to a camera's own size before rendering from it",
+            )
         self.report({"INFO"}, f"Added {len(cams)} cameras")
         return {"FINISHED"}
 

@@ -659,3 +659,20 @@ def test_camera_refuses_values_that_would_project_garbage():
     for what, change in bad.items():
         with pytest.raises(ValueError, match=what.strip()):
             Camera(**{**good, **change})
+
+
+def test_cameras_read_without_geometry(tiny_dataset, tmp_path):
+    """A camera import needs neither the canonical mesh nor (FLAME mode) a FLAME model."""
+    import shutil
+
+    root = tmp_path / "ds"
+    shutil.copytree(tiny_dataset, root)
+    full = Dataset(str(root), "train").cameras
+    os.remove(root / "canonical_mesh.npz")
+    with pytest.raises(MissingFileError, match="canonical_mesh.npz"):
+        Dataset(str(root), "train")
+    bare = Dataset(str(root), "train", geometry=False)
+    assert bare.faces is None and sorted(bare.cameras) == sorted(full)
+    for k, cam in full.items():
+        np.testing.assert_array_equal(bare.cameras[k].R, cam.R)
+        assert (bare.cameras[k].fx, bare.cameras[k].width) == (cam.fx, cam.width)

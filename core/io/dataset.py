@@ -156,7 +156,10 @@ class Dataset:
         cache_images: int = 256,
         flame_model=None,
         cache_bytes: int | None = None,
+        geometry: bool = True,
     ):
+        """``geometry=False`` reads the frames and cameras only (no canonical mesh or FLAME
+        model: a camera import needs neither); its geometry attributes are then None."""
         self.root = os.path.abspath(os.fspath(root))
         self.split = split
         if not (downscale > 0):
@@ -204,7 +207,9 @@ class Dataset:
             raise DataError(f"{json_path}: frame 0 has neither 'mesh_path' nor 'flame_param_path'")
 
         self.flame_model = None
-        if mesh_mode:
+        if not geometry:
+            self.canonical_vertices = self.faces = None
+        elif mesh_mode:
             rel = meta.get("canonical_mesh_path") or "canonical_mesh.npz"
             if not isinstance(rel, str):
                 raise DataError(f"{json_path}: canonical_mesh_path must be a file path (a string), got {_show(rel)}")
@@ -229,7 +234,7 @@ class Dataset:
             canon_path = os.path.join(self.root, "canonical_flame_param.npz")
             self.canonical_vertices = self._flame_vertices(canon_path)
             self.faces = self.flame_model.faces
-        self.n_vertices = self.canonical_vertices.shape[0]
+        self.n_vertices = 0 if self.canonical_vertices is None else self.canonical_vertices.shape[0]
 
         # Every frame is read; the problems of all of them make one error.
         frames, cams, geo, problems = [], {}, {}, []
