@@ -14,7 +14,7 @@ from ..core.bridge.depth import depth_per_face
 from ..core.bridge.splats import preview_order, static_attributes
 from ..core.bridge.transforms import camera_from_blender, transform_gaussians
 from ..core.avatar.avatar import sh_to_rgb, sigmoid
-from . import ADDON_PACKAGE, depth, prefs, preview, runtime
+from . import ADDON_PACKAGE, depth, prefs, preview, runtime, splat_look
 
 
 def _mesh_target(context):
@@ -353,6 +353,47 @@ class PA_OT_export_ply(bpy.types.Operator, ExportHelper):
         return {"FINISHED"}
 
 
+MIN_RENDER_SCALE = 1e-12  # the rasteriser takes scales > 0 only
+
+
+def renderable(g):
+    """The Gaussians as the rasteriser takes them, looking as Blender shows them: a splat an
+    object transform collapsed to a point (all scales 0, e.g. object scale 0) shows nothing
+    and is left out (the rasteriser would still draw its screen-space dilation); one collapsed
+    to a disc or a line keeps a tiny positive scale on its collapsed axes."""
+    keep = g["scales"].max(axis=1) > 0
+    if not keep.all():
+        g = {k: v[keep] for k, v in g.items()}
+    g["scales"] = np.maximum(g["scales"], np.float32(MIN_RENDER_SCALE))
+    return g
+
+
+def world_background(world):
+    """The scene-linear RGB a render shows behind everything for this world (Film > Transparent
+    off): its Background shader's Color × Strength, the colour users edit, when the world uses
+    nodes (always from Blender 5.0), else its viewport colour ``world.color``; black without a
+    world or with nothing connected to its output. A world drawn by a texture or another shader
+    gives its viewport colour (the nearest plain colour there is)."""
+    if world is None:
+        return np.zeros(3, np.float32)
+    tree = world.node_tree
+    if tree is None or (bpy.app.version < (5, 0, 0) and not world.use_nodes):
+        return np.array(world.color[:3], np.float32)
+    outputs = [n for n in tree.nodes if n.type == "OUTPUT_WORLD"]
+    out = next((n for n in outputs if n.is_active_output), outputs[0] if outputs else None)
+    socket = out.inputs["Surface"] if out is not None else None
+    node = None
+    while socket is not None and socket.is_linked:
+        node = socket.links[0].from_node
+        socket = node.inputs[0] if node.type == "REROUTE" else None
+    if node is None or node.type == "REROUTE":  # nothing drawn: Blender renders black
+        return np.zeros(3, np.float32)
+    colour, strength = node.inputs.get("Color"), node.inputs.get("Strength")
+    if node.type != "BACKGROUND" or colour.is_linked or strength.is_linked:
+        return np.array(world.color[:3], np.float32)
+    return (np.array(colour.default_value[:3], np.float64) * strength.default_value).astype(np.float32)
+
+
 class PA_OT_render_splats(bpy.types.Operator):
     """Render the splats with ProgressiveAvatars' own rasteriser (runs the configured Python)"""
 
@@ -374,29 +415,27 @@ class PA_OT_render_splats(bpy.types.Operator):
             return {"CANCELLED"}
         python = prefs.python_path(context)
         scene = context.scene
-        cam_obj = scene.camera
-        r = scene.render
-        w = int(r.resolution_x * r.resolution_percentage / 100)
-        h = int(r.resolution_y * r.resolution_percentage / 100)
         try:
-            g = current_gaussians(context, preview_of(context), world=True)
-            cam = camera_from_blender(
-                np.array(cam_obj.matrix_world),
-                cam_obj.data.lens,
-                cam_obj.data.sensor_width,
-                cam_obj.data.shift_x,
-                cam_obj.data.shift_y,
-                w,
-                h,
-                z_up=False,
-            )
+            cam_obj, settings = splat_look.scene_camera(scene)
+        except ValueError as exc:
+            self.report({"ERROR"}, f"Render Splats: {exc}")
+            return {"CANCELLED"}
+        w, h = settings["width"], settings["height"]
+        try:
+            g = renderable(current_gaussians(context, preview_of(context), world=True))
+            cam = camera_from_blender(np.array(cam_obj.matrix_world), z_up=False, **settings)
         except Exception as exc:
             self.report({"ERROR"}, f"Render splats: {exc}")
             return {"CANCELLED"}
-        world = scene.world
-        bg = np.array(world.color[:3] if world else (0, 0, 0), np.float32)
+        # The splats are drawn over black; store_image puts the world behind them in scene-linear.
+        self._background = None if scene.render.film_transparent else world_background(scene.world)
         arrays = dict(
-            R=cam.R, t=cam.t, intr=np.array([cam.fx, cam.fy, cam.cx, cam.cy]), size=np.array([w, h]), background=bg, **g
+            R=cam.R,
+            t=cam.t,
+            intr=np.array([cam.fx, cam.fy, cam.cx, cam.cy]),
+            size=np.array([w, h]),
+            background=np.zeros(3, np.float32),
+            **g,
         )
         # A persistent worker renders (render_job): control returns at once; the modal
         # timer polls it. Without a UI (timers never fire) or with wait=True it is awaited.
@@ -449,7 +488,7 @@ class PA_OT_render_splats(bpy.types.Operator):
         if job.state != "done":
             self.report({"ERROR"}, f"Splat render failed: {job.message}")
             return {"CANCELLED"}
-        render_job.store_image(job.rgba)
+        render_job.store_image(job.rgba, background=self._background)
         self.report({"INFO"}, f"Rendered {self._count} Gaussians into image 'PA Splats' in {job.seconds:.1f} s")
         return {"FINISHED"}
 

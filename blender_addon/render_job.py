@@ -8,6 +8,7 @@ first render of a session pays the interpreter, torch and kernel start-up; the n
 cache lives in the extension's user folder, so even that compiles once per machine.
 """
 
+import atexit
 import json
 import os
 import queue
@@ -123,10 +124,20 @@ def worker_for(python, cache_dir=None):
     return w
 
 
+_jobs: set = set()  # jobs not finished yet: their folders go when the add-on stops
+
+
 def stop_all():
+    """Stop every worker (the add-on is disabled, Blender quits); unfinished jobs are cancelled
+    and their folders removed."""
+    for job in list(_jobs):
+        job.cancel()
     for w in _workers.values():
         w.stop()
     _workers.clear()
+
+
+atexit.register(stop_all)  # Blender quits (it does not unregister extensions): no folder left
 
 
 class RenderJob:
@@ -138,20 +149,31 @@ class RenderJob:
         self.tmp = tempfile.mkdtemp(prefix="pa_render_")
         self.job = os.path.join(self.tmp, "job.npz")
         self.out = os.path.join(self.tmp, "image.npy")
-        np.savez(self.job, **arrays)
-        self.worker = worker_for(python, cache_dir)
         self.id = None
         self.state = "starting"
         self.progress = 0.05
-        self.message = "starting the renderer" if self.worker.ready is None else "rendering"
+        self.message = "starting the renderer"
         self.seconds = None
         self.t0 = time.perf_counter()
         self.rgba = None
+        try:  # a full disk, or a Python that cannot start (OSError): no folder left behind
+            np.savez(self.job, **arrays)
+            self.worker = worker_for(python, cache_dir)
+        except BaseException:
+            self._cleanup()
+            raise
+        _jobs.add(self)
+        if self.worker.ready is not None:
+            self.message = "rendering"
         if self.worker.ready:
             self._send()
 
     def _send(self):
-        self.id = self.worker.submit(self.job, self.out)
+        try:
+            self.id = self.worker.submit(self.job, self.out)
+        except (OSError, ValueError) as exc:  # the worker died since: a broken or closed pipe
+            self._fail(f"the render process ended: {self.worker.stderr_tail() or exc}")
+            return
         self.state, self.progress, self.message = "rendering", 0.3, "rendering"
 
     def _fail(self, message):
@@ -162,6 +184,13 @@ class RenderJob:
         """Drain the worker's messages; returns the state."""
         if self.state in ("done", "failed", "cancelled"):
             return self.state
+        try:
+            return self._poll()
+        except Exception as exc:  # never leave the job (and its folder) behind half-read
+            self._fail(f"the render job broke: {type(exc).__name__}: {exc}")
+            return self.state
+
+    def _poll(self):
         w = self.worker
         w.drain()
         if self.id is None:  # waiting for the worker to come up
@@ -170,6 +199,8 @@ class RenderJob:
                 return self.state
             if w.ready:
                 self._send()
+                if self.state == "failed":
+                    return self.state
         for msg in w.inbox.pop(self.id, []) if self.id is not None else ():
             if "error" in msg:
                 self._fail(msg["error"])
@@ -196,12 +227,16 @@ class RenderJob:
     def wait(self, timeout=600.0, interval=0.02):
         """Poll until finished (for a Blender without a UI, where timers never fire)."""
         end = time.perf_counter() + timeout
-        while self.poll() not in ("done", "failed", "cancelled"):
-            if time.perf_counter() > end:
-                self.cancel()
-                self.message = f"timed out after {timeout:.0f} s"
-                break
-            time.sleep(interval)
+        try:
+            while self.poll() not in ("done", "failed", "cancelled"):
+                if time.perf_counter() > end:
+                    self.cancel()
+                    self.message = f"timed out after {timeout:.0f} s"
+                    break
+                time.sleep(interval)
+        except BaseException:  # Ctrl+C in a script: stop the render, remove its folder
+            self.cancel()
+            raise
         return self.state
 
     def cancel(self):
@@ -209,27 +244,66 @@ class RenderJob:
         render starts a new one."""
         if self.state in ("done", "failed", "cancelled"):
             return
-        self.worker.stop()
-        _workers.pop(self.worker.python, None)
         self.state, self.message = "cancelled", "cancelled"
-        self._cleanup()
+        try:
+            self.worker.stop()
+        finally:
+            if _workers.get(self.worker.python) is self.worker:
+                del _workers[self.worker.python]
+            self._cleanup()
 
     def _cleanup(self):
+        """Remove the job's folder (inputs and image); every way a job ends comes here."""
+        _jobs.discard(self)
         shutil.rmtree(self.tmp, ignore_errors=True)
 
 
-def store_image(rgba, name="PA Splats"):
-    """The render (sRGB-encoded RGBA, rows top-down) as a float Blender image, scene-linear."""
+def store_image(rgba, background=None, name="PA Splats"):
+    """Put a render into the float image ``name`` (made, or resized, as needed) and return it.
+
+    ``rgba`` [H, W, 4], rows top-down, is what the render job returns (``RenderJob.rgba``): the
+    splats' colours as the avatar learned them (sRGB-encoded) blended front to back over black,
+    so RGB is premultiplied by the coverage A (the 4th channel) in that sRGB-encoded space.
+
+    The image holds premultiplied scene-linear RGBA and says so (``alpha_mode`` 'PREMUL'), as
+    Blender's own render results do: its compositor, "Save As Render" and ``save_render`` read
+    a float image's pixels as premultiplied whatever its alpha_mode (checked in Blender 5.0), and
+    with 'PREMUL' its image editor shows them that way too. Each pixel's own colour RGB / A is decoded from sRGB to linear,
+    then multiplied by A again (decoding the premultiplied RGB would darken every
+    semi-transparent edge: a red splat at A 0.39 stored 0.13 instead of 0.39).
+
+    ``background`` (what is behind the splats):
+      - None: nothing; the image is transparent where the splats are (as Film > Transparent).
+      - three floats in Blender's scene-linear colour space, e.g. ``world.color[:3]`` exactly as
+        bpy gives it: used as they are (never decoded from, or encoded to, sRGB here), put
+        behind the splats in scene-linear (RGB + (1 - A) * background) with A set to 1, as
+        Blender renders a world background (Film > Transparent off).
+    """
     import bpy
 
     from ..core.bridge.splats import srgb_to_linear
 
+    rgba = np.asarray(rgba, np.float32)
+    if rgba.ndim != 3 or rgba.shape[2] != 4:
+        raise ValueError(f"store_image: rgba must be [H, W, 4], got {list(rgba.shape)}")
+    if background is not None:
+        background = np.asarray(background, np.float32)
+        if background.shape != (3,) or not np.all(np.isfinite(background)):
+            raise ValueError(f"store_image: background must be 3 finite scene-linear values, got {background!r}")
+    alpha = np.clip(rgba[..., 3:], 0.0, 1.0)
+    colour = np.divide(rgba[..., :3], alpha, out=np.zeros_like(rgba[..., :3]), where=alpha > 0)  # straight
+    out = np.empty(rgba.shape, np.float32)
+    out[..., :3] = srgb_to_linear(colour) * alpha  # linear, premultiplied again
+    out[..., 3:] = alpha
+    if background is not None:
+        out[..., :3] += (1.0 - alpha) * background
+        out[..., 3] = 1.0
     h, w = rgba.shape[:2]
     img = bpy.data.images.get(name) or bpy.data.images.new(name, w, h, alpha=True, float_buffer=True)
+    if img.alpha_mode != "PREMUL":  # an image kept from an older version said STRAIGHT
+        img.alpha_mode = "PREMUL"
     if tuple(img.size) != (w, h):
         img.scale(w, h)
-    rgba = np.array(rgba, np.float32)
-    rgba[..., :3] = srgb_to_linear(rgba[..., :3])  # float images hold scene-linear values
-    img.pixels.foreach_set(np.ascontiguousarray(rgba[::-1]).ravel())  # Blender rows run bottom-up
+    img.pixels.foreach_set(np.ascontiguousarray(out[::-1]).ravel())  # Blender rows run bottom-up
     img.update()
     return img

@@ -26,7 +26,11 @@ so colours are the avatar's own sRGB values) and, opt-in, the "as trained" compo
 sRGB-encoded colours blended as they are under the Raw view transform, as in training.
 """
 
+import math
+
 import bpy
+
+from ..core.bridge.transforms import blender_intrinsics
 
 MATERIAL_NAME = "PA Splat"
 VERSION = 5
@@ -169,17 +173,76 @@ def _value_nodes(name, mat=None):
     return [t.nodes[name] for t in trees if t is not None and name in t.nodes]
 
 
+_KINDS = {"ORTHO": "orthographic", "PANO": "panoramic"}
+
+
+def render_size(scene):
+    """The render's size in pixels, (width, height), as Blender computes it (resolution ×
+    percentage / 100, rounded down); ValueError where that leaves no pixel."""
+    r = scene.render
+    w = r.resolution_x * r.resolution_percentage // 100
+    h = r.resolution_y * r.resolution_percentage // 100
+    if w < 1 or h < 1:
+        raise ValueError(
+            f"the render would be {w}×{h} px ({r.resolution_x}×{r.resolution_y} at "
+            f"{r.resolution_percentage} %): raise the resolution or its percentage"
+        )
+    return w, h
+
+
+def scene_camera(scene):
+    """The scene camera object and its settings at the render size, as keyword arguments for
+    core.bridge.transforms (``blender_intrinsics``, ``camera_from_blender``): lens, sensor
+    size and fit, shifts, width, height and pixel aspect. ValueError, saying why, where the
+    splats cannot be drawn for it: no camera, an object that is not a camera, an orthographic
+    or panoramic camera (our renderer and the splat dilation are perspective only), a render
+    with no pixels."""
+    obj = scene.camera
+    if obj is None:
+        raise ValueError("the scene has no camera: set one in Scene Properties > Camera")
+    if obj.type != "CAMERA":
+        kind = obj.type.lower()
+        raise ValueError(
+            f"the scene camera '{obj.name}' is {'an' if kind[0] in 'aeiou' else 'a'} {kind} object, "
+            "not a camera: set a camera in Scene Properties > Camera"
+        )
+    cam = obj.data
+    if cam.type != "PERSP":
+        kind = _KINDS.get(cam.type, cam.type.lower())
+        raise ValueError(
+            f"the scene camera '{obj.name}' is {kind}: splats are drawn for perspective cameras only "
+            "(set its Type to Perspective)"
+        )
+    w, h = render_size(scene)
+    r = scene.render
+    return obj, dict(
+        lens=cam.lens,
+        sensor_width=cam.sensor_width,
+        sensor_height=cam.sensor_height,
+        sensor_fit=cam.sensor_fit,
+        shift_x=cam.shift_x,
+        shift_y=cam.shift_y,
+        width=w,
+        height=h,
+        pixel_aspect=(r.pixel_aspect_x, r.pixel_aspect_y),
+    )
+
+
 def set_focal(scene, mat=None):
     """The scene camera's focal length in pixels, for the dilation in the material and in
     the hull (it changes with the camera and the resolution: Splat Render Settings sets it
-    again)."""
+    again). Returns it, or None where there is nothing to set or no perspective camera
+    (``scene_camera`` says why). With non-square pixels (fx ≠ fy) the dilation, isotropic in
+    world units, uses √(fx·fy): the rasteriser's dilated area."""
     nodes = _value_nodes(FOCAL_NODE, mat)
-    cam = scene.camera
-    if not nodes or cam is None or cam.type != "CAMERA" or cam.data.type != "PERSP":
+    if not nodes:
         return None
-    r = scene.render
-    big = max(r.resolution_x, r.resolution_y) * r.resolution_percentage / 100.0
-    f = cam.data.lens / cam.data.sensor_width * big
+    try:
+        _, settings = scene_camera(scene)
+    except ValueError:
+        return None
+    fx, fy, _, _ = blender_intrinsics(**settings)
+    f = math.sqrt(fx * fy)
     for node in nodes:
         node.outputs[0].default_value = f
     return f
@@ -238,6 +301,11 @@ class PA_OT_splat_render_settings(bpy.types.Operator):
     def execute(self, context):
         changed = configure_scene(context.scene, as_trained=self.as_trained)
         text = ", ".join(f"{k}: {a} → {b}" for k, (a, b) in changed.items()) or "already set"
+        try:
+            scene_camera(context.scene)
+        except ValueError as exc:  # the rest is set; the dilation needs a perspective camera
+            self.report({"WARNING"}, f"Splat render settings: {text}; splat focal length not set: {exc}")
+            return {"FINISHED"}
         self.report({"INFO"}, f"Splat render settings: {text}")
         return {"FINISHED"}
 

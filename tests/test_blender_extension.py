@@ -422,9 +422,12 @@ def test_render_splats_operator_matches_core_render(session):
     image, alpha = render_numpy(means, quats, scales, g["opacities"], g["colors"], cam, np.zeros(3, np.float32))[:2]
     got = session["arrays"]["splats_image"]
     assert alpha.max() > 0.5 and (alpha > 0.01).mean() > 0.05  # the head is in view, not a blank frame
-    # Rendered with the model's (sRGB) colours, stored scene-linear as Blender float images are.
-    np.testing.assert_allclose(got[..., :3], srgb_to_linear(image), atol=1e-4)
+    # Rendered with the model's (sRGB) colours over nothing (Film > Transparent), stored as Blender
+    # keeps render results: scene-linear and premultiplied by the coverage.
+    straight = image / np.where(alpha > 0, alpha, 1)[..., None]
+    np.testing.assert_allclose(got[..., :3], srgb_to_linear(straight) * alpha[..., None], atol=1e-4)
     np.testing.assert_allclose(got[..., 3], alpha, atol=1e-4)
+    assert r["alpha_mode"] == "PREMUL"
 
 
 def test_preview_follows_a_modifier_deformation(session):

@@ -167,3 +167,105 @@ def _ellipsoids_are_3_sigma_hulls(g, rep):
     np.testing.assert_allclose(np.linalg.norm(m, axis=1), g["scales"][order], rtol=1e-3)
     rot = m / np.linalg.norm(m, axis=1, keepdims=True)  # columns: the splat's own axes
     assert np.allclose(np.abs(np.einsum("nij,nij->nj", rot, quat_to_rotmat(g["quats"][order]))), 1, atol=1e-3)
+
+
+_FOCAL_CHILD = r"""
+import importlib.util, json, os, sys, traceback
+root, out = sys.argv[1:3]
+import bpy
+import numpy as np
+
+spec = importlib.util.spec_from_file_location("pa_focal", os.path.join(root, "__init__.py"), submodule_search_locations=[root])
+pkg = importlib.util.module_from_spec(spec)
+sys.modules["pa_focal"] = pkg
+spec.loader.exec_module(pkg)
+pkg.register()
+ply_import = sys.modules["pa_focal.blender_addon.ply_import"]
+look = sys.modules["pa_focal.blender_addon.splat_look"]
+R = {"cases": {}}
+try:
+    for ob in list(bpy.data.objects):
+        bpy.data.objects.remove(ob)
+    sc = bpy.context.scene
+    with np.load(os.path.join(out, "splats.npz")) as d:
+        g = {k: d[k] for k in d.files}
+    ply_import.create_splat_object(bpy.context, "splats", g)
+    camd = bpy.data.cameras.new("cam")
+    cam = bpy.data.objects.new("cam", camd)
+    sc.collection.objects.link(cam)
+    sc.camera = cam
+    cases = {
+        "auto 200x100": dict(res=(200, 100)),
+        "auto 100x200": dict(res=(100, 200)),
+        "vertical 200x100": dict(res=(200, 100), fit="VERTICAL"),
+        "horizontal 100x200": dict(res=(100, 200), fit="HORIZONTAL"),
+        "pixel aspect 2:1": dict(res=(120, 100), aspect=(2.0, 1.0)),
+        "pixel aspect 1:2 vertical": dict(res=(120, 100), aspect=(1.0, 2.0), fit="VERTICAL"),
+        "percentage 50": dict(res=(300, 200), pct=50, fit="VERTICAL"),
+    }
+    for tag, c in cases.items():
+        r = sc.render
+        r.resolution_x, r.resolution_y = c["res"]
+        r.resolution_percentage = c.get("pct", 100)
+        r.pixel_aspect_x, r.pixel_aspect_y = c.get("aspect", (1.0, 1.0))
+        camd.sensor_fit = c.get("fit", "AUTO")
+        camd.lens, camd.sensor_width, camd.sensor_height = 40.0, 36.0, 20.0
+        res = list(bpy.ops.render.progressive_avatars_splat_settings())
+        w = r.resolution_x * r.resolution_percentage // 100
+        h = r.resolution_y * r.resolution_percentage // 100
+        # Blender's own framing: the camera frame (camera space, at depth -z) spans the image.
+        frame = camd.view_frame(scene=sc)
+        xs, ys, z = [v.x for v in frame], [v.y for v in frame], -frame[0].z
+        focal = [n.outputs[0].default_value for n in look._value_nodes(look.FOCAL_NODE)]
+        R["cases"][tag] = {
+            "result": res,
+            "focal": focal,
+            "fx": w * z / (max(xs) - min(xs)),
+            "fy": h * z / (max(ys) - min(ys)),
+            "pct": r.resolution_percentage,
+        }
+    before = [n.outputs[0].default_value for n in look._value_nodes(look.FOCAL_NODE)]
+    camd.type = "ORTHO"
+    R["ortho"] = {"result": list(bpy.ops.render.progressive_avatars_splat_settings())}
+    try:
+        look.scene_camera(sc)
+    except Exception as exc:
+        R["ortho"]["why"] = f"{type(exc).__name__}: {exc}"
+    R["ortho"]["unchanged"] = before == [n.outputs[0].default_value for n in look._value_nodes(look.FOCAL_NODE)]
+except Exception:
+    R["error"] = traceback.format_exc()
+print("PA_FOCAL " + json.dumps(R))
+"""
+
+
+def test_splat_focal_follows_blenders_framing(tmp_path):
+    """Splat Render Settings sets the splats' dilation focal length (pixels) as Blender frames
+    the render: the sensor height for sensor fit Vertical, the fitted side for Auto, and with
+    non-square pixels the geometric mean of fx and fy; an orthographic camera leaves it
+    unset and the operator says why (not "already set")."""
+    _bpy_dir()
+    g = _splats(np.random.default_rng(4), n=8)
+    np.savez(tmp_path / "splats.npz", **g)
+    script = tmp_path / "focal.py"
+    script.write_text(_FOCAL_CHILD)
+    proc = subprocess.run(
+        [sys.executable, str(script), ROOT, str(tmp_path)],
+        capture_output=True,
+        text=True,
+        env=_clean_env(str(tmp_path)),
+        timeout=300,
+    )
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("PA_FOCAL ")]
+    assert lines, proc.stdout[-3000:] + proc.stderr[-3000:]
+    rep = json.loads(lines[-1][len("PA_FOCAL ") :])
+    assert "error" not in rep, rep["error"]
+    for tag, c in rep["cases"].items():
+        assert c["result"] == ["FINISHED"], tag
+        assert len(c["focal"]) == 2, tag  # the material's node and the Geometry Nodes group's
+        if c["pct"] == 100:  # view_frame frames the unscaled resolution (same aspect here)
+            np.testing.assert_allclose(c["focal"], np.sqrt(c["fx"] * c["fy"]), rtol=1e-5, err_msg=tag)
+    np.testing.assert_allclose(rep["cases"]["vertical 200x100"]["focal"], 40.0 / 20.0 * 100, rtol=1e-6)
+    np.testing.assert_allclose(rep["cases"]["percentage 50"]["focal"], 40.0 / 20.0 * 100, rtol=1e-6)
+    assert rep["ortho"]["result"] == ["FINISHED"] and rep["ortho"]["unchanged"]
+    assert "orthographic" in rep["ortho"]["why"]
+    assert "splat focal length not set" in proc.stdout and "orthographic" in proc.stdout

@@ -291,6 +291,7 @@ def _():
     pv.pa_avatar.budget = 50.0
     bpy.context.scene.frame_set(bpy.context.scene.frame_start + 3)
     bpy.context.scene.render.resolution_x, bpy.context.scene.render.resolution_y = 80, 64
+    bpy.context.scene.render.film_transparent = True  # the splats alone (the world: test_blender_render_job)
     res = bpy.ops.render.progressive_avatars_splats()
     img = bpy.data.images["PA Splats"]
     px = np.empty(img.size[0] * img.size[1] * 4, np.float32)
@@ -306,6 +307,7 @@ def _():
         "sensor": co.data.sensor_width,
         "shift": [co.data.shift_x, co.data.shift_y],
         "size": list(img.size),
+        "alpha_mode": img.alpha_mode,
         "frame": bpy.context.scene.frame_current - bpy.context.scene.frame_start,
     }
 
