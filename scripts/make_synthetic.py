@@ -84,6 +84,7 @@ def main(argv=None):
     ap.add_argument("--closeup", default=None, help="also render a frontal close-up strip PNG here")
     ap.add_argument("--closeup-height", type=int, default=384)
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
+    ap.add_argument("--overwrite", action="store_true", help="generate again into a folder that holds a dataset")
     args = ap.parse_args(_bootstrap.script_args(argv))
     kw = dict(PRESETS[args.preset])
     for key in (
@@ -103,9 +104,13 @@ def main(argv=None):
     if args.resolution is not None and args.resolution < 8:
         ap.error(f"--resolution is the image height in pixels, at least 8, got {args.resolution}")
     kw["resolution"] = max(8, int(round(kw["resolution"] * args.resolution_scale)))
+    if args.closeup and args.closeup_height < 8:
+        ap.error(f"--closeup-height must be at least 8 px, got {args.closeup_height}")
 
     try:
-        summary = dataset.make_dataset(args.out, seed=args.seed, progress=not args.quiet, **kw)
+        summary = dataset.make_dataset(
+            args.out, seed=args.seed, progress=not args.quiet, overwrite=args.overwrite, **kw
+        )
     except ValueError as exc:  # counts the generator refuses, before it writes anything
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -231,3 +231,34 @@ def test_make_synthetic_script_refuses_bad_counts(tmp_path):
         )
         assert out.returncode == 2 and says in out.stderr and "Traceback" not in out.stderr, (args, out.stderr)
         assert not (tmp_path / "d").exists()
+
+
+def test_generation_checks_its_arguments_first_and_does_not_mix_datasets(tmp_path):
+    """Nonsense options are refused before anything is written; a folder holding a dataset is
+    not generated into again without overwrite, and with it the old transforms go first, so an
+    interrupted regeneration cannot leave old poses beside new images as a loadable dataset."""
+    kw = dict(resolution=16, cameras=2, sequences=2, frames=1, progress=False, template_subdivisions=1)
+    for bad, match in (
+        (dict(supersample=0), "supersample"),
+        (dict(resolution=100000), "resolution"),
+        (dict(seed=-1), "seed"),
+        (dict(workers=0), "workers"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            dataset.make_dataset(tmp_path / "bad", **{**kw, **bad})
+        assert not (tmp_path / "bad").exists()
+    out = tmp_path / "ds"
+    dataset.make_dataset(out, **kw)
+    with pytest.raises(ValueError, match="already holds a dataset"):
+        dataset.make_dataset(out, **{**kw, "seed": 3})
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    import unittest.mock
+
+    with unittest.mock.patch.object(dataset, "make_cameras", interrupted), pytest.raises(KeyboardInterrupt):
+        dataset.make_dataset(out, overwrite=True, **kw)
+    assert not any(n.startswith("transforms") for n in os.listdir(out))  # nothing that loads as a dataset
+    dataset.make_dataset(out, overwrite=True, **kw)
+    assert (out / "transforms_train.json").exists()

@@ -59,6 +59,16 @@ def _frame_record(cam: Camera, T: int, C: int, S: int) -> dict:
 
 
 _JOB = None  # what forked generation workers render (set by make_dataset)
+MAX_SUPERSAMPLE = 8
+MAX_RESOLUTION = 4096  # image height; the paper's is 802
+# What makes a folder a dataset, written last (the transforms) and after them (the summary).
+_DATASET_FILES = (
+    "transforms_train.json",
+    "transforms_val.json",
+    "transforms_test.json",
+    "transforms.json",
+    "summary.json",
+)
 MAX_TEMPLATE_SUBDIVISIONS = 7  # 327,680 faces: about half a minute to build, then the ray casts
 MAX_SURFACE_LEVELS = 4  # the paper head's imaged surface: 8,192 x 4^4 = 2.1 M faces
 
@@ -108,6 +118,7 @@ def make_dataset(
     detail: str = "default",
     workers: int = 1,
     surface_levels: int = PAPER_SURFACE_LEVELS,
+    overwrite: bool = False,
 ) -> dict:
     """Write the synthetic mesh-mode dataset into ``out``; returns a summary dict.
 
@@ -124,6 +135,11 @@ def make_dataset(
     ``paper_albedo``); ``template_subdivisions`` is then ignored, ``surface_levels`` sets how
     much finer the imaged surface is (each level 4x the faces). ``workers`` > 1 renders
     timesteps in that many forked processes (the files are the same).
+
+    Every argument is checked before anything is written. A folder that already holds a
+    dataset (its transforms JSONs) is refused unless ``overwrite``; then those JSONs go first,
+    and as they are written last, an interrupted regeneration never leaves old poses beside
+    new images as a dataset that loads.
     """
     if detail not in ("default", "paper"):
         raise ValueError(f"make_dataset: detail must be 'default' or 'paper', got {detail!r}")
@@ -142,8 +158,25 @@ def make_dataset(
             f"make_dataset: surface_levels must be 0-{MAX_SURFACE_LEVELS} (each level 4x the imaged "
             f"surface's faces; the paper preset's is {PAPER_SURFACE_LEVELS}), got {surface_levels}"
         )
+    if not (isinstance(supersample, (int, np.integer)) and 1 <= supersample <= MAX_SUPERSAMPLE):
+        raise ValueError(f"make_dataset: supersample must be a whole number 1-{MAX_SUPERSAMPLE}, got {supersample!r}")
+    if not (isinstance(resolution, (int, np.integer)) and 8 <= resolution <= MAX_RESOLUTION):
+        # The ray buffers grow with resolution² x supersample²: 100,000 px asked for 204 GiB.
+        raise ValueError(f"make_dataset: resolution (image height) must be 8-{MAX_RESOLUTION} px, got {resolution!r}")
+    if not (isinstance(seed, (int, np.integer)) and seed >= 0):
+        raise ValueError(f"make_dataset: seed must be a whole number >= 0, got {seed!r}")
+    if int(workers) < 1:
+        raise ValueError(f"make_dataset: workers must be at least 1, got {workers}")
     t0 = time.perf_counter()
     out = os.fspath(out)
+    held = [n for n in _DATASET_FILES if os.path.isfile(os.path.join(out, n))]
+    if held and not overwrite:
+        raise ValueError(
+            f"{out} already holds a dataset ({', '.join(held)}): pass --overwrite to generate it again, "
+            "or choose another --out"
+        )
+    for name in held:
+        os.remove(os.path.join(out, name))
     for sub in ("images", "fg_masks", "meshes"):
         os.makedirs(os.path.join(out, sub), exist_ok=True)
     if detail == "paper":
