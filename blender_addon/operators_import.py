@@ -134,10 +134,17 @@ class PA_OT_import_cameras(bpy.types.Operator):
         from ..core.io.dataset import Dataset
 
         root = bpy.path.abspath(self.directory)
+        from ..core.io.validate import camera_problems
+
         try:  # cameras need neither the meshes nor a FLAME model
-            cams = Dataset(root, self.split, geometry=False).cameras
+            ds = Dataset(root, self.split, geometry=False)
         except Exception as exc:
             self.report({"ERROR"}, f"Cannot read dataset cameras: {exc}")
+            return {"CANCELLED"}
+        cams = ds.cameras
+        problems = [p for i, c in sorted(cams.items()) for p in camera_problems(c, f"{ds.json_path}: camera {i}")]
+        if problems:  # NaN intrinsics or a zero matrix would make cameras that frame nothing
+            self.report({"ERROR"}, "Cannot import dataset cameras: " + "; ".join(problems[:5]))
             return {"CANCELLED"}
         settings = None
         for idx in sorted(cams):

@@ -38,7 +38,12 @@ def _whole(value) -> bool:
     )
 
 
-def _camera_problems(cam, where: str) -> list:
+_MAX_ABS = 1e30  # beyond it a camera value means nothing (and overflows float32 in Blender)
+
+
+def camera_problems(cam, where: str) -> list:
+    """What makes ``cam`` project garbage (empty when nothing): a rotation part that is not a
+    rotation, intrinsics that are not finite (camera_angle_x 0 gives fx = inf), absurd values."""
     out = []
     R = np.asarray(cam.R)
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or abs(np.linalg.det(R) - 1.0) > 1e-3:
@@ -46,9 +51,11 @@ def _camera_problems(cam, where: str) -> list:
             f"{where}: transform_matrix: the rotation part is not a rotation (det {np.linalg.det(R):.3g}; "
             "an all-zero or scaled matrix?)"
         )
+    if np.abs(np.asarray(cam.t)).max() > _MAX_ABS:
+        out.append(f"{where}: transform_matrix: the camera is placed beyond ±{_MAX_ABS:g}")
     for name in ("fx", "fy", "cx", "cy"):
         v = getattr(cam, name)
-        if not np.isfinite(v):
+        if not np.isfinite(v) or abs(v) > _MAX_ABS:
             out.append(f"{where}: {'principal point' if name[0] == 'c' else 'focal length'} {name} is {v}")
     return out
 
@@ -92,7 +99,7 @@ def dataset_problems(ds: Dataset, progress: bool = True) -> list:
         except (DataError, OSError, ValueError, KeyError) as exc:
             problems.append(f"{exc}" if os.sep in str(exc) else f"timestep {ts}: {exc}")
     for info in tqdm(ds.frames, desc=f"checking {ds.split or 'all'} images", disable=not progress, leave=False):
-        problems.extend(_camera_problems(info.camera, f"{ds.json_path}: frames[{info.index}]"))
+        problems.extend(camera_problems(info.camera, f"{ds.json_path}: frames[{info.index}]"))
         target = (info.camera.width, info.camera.height)
         problems.extend(_image_problems(info.image_path, "image", info.full_size, target, ds.json_path))
         if info.mask_path is not None:
