@@ -59,6 +59,8 @@ def _command(context):
         raise RuntimeError(f"Data folder not found: '{data}' (Training > Data)")
     if not st.out_dir:
         raise RuntimeError("Choose a run folder (Training > Run)")
+    if st.resume and st.overwrite:
+        raise RuntimeError("Resume continues the run, Overwrite Run starts it over: tick one of them")
     model = prefs.flame_model(context)
     if model and not os.path.isfile(model):
         raise RuntimeError(
@@ -76,6 +78,8 @@ def _command(context):
             cmd += ["--iterations", str(st.iterations)]
         if st.overwrite:
             cmd += ["--overwrite"]
+        if st.resume:
+            cmd += ["--resume"]
         cmds = [cmd + flame]
         # Training writes RUN/avatar.npz in creation order; the importance-ordered stream that
         # the budget slider needs comes from scripts/export.py, run next when it is there.
@@ -97,6 +101,8 @@ def _command(context):
         cmd += ["--iterations", str(st.iterations)]
     if st.overwrite:
         cmd += ["--overwrite"]
+    if st.resume:
+        cmd += ["--resume"]
     # Its own numba cache: in a checkout, entries compiled as pa_ext in the sources' __pycache__
     # broke every later command-line run there (training_tier.numba_cache_dir).
     return [cmd], out, training_tier.runner_env()
@@ -158,13 +164,21 @@ class PA_OT_train(bpy.types.Operator):
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         st = context.scene.pa_train
+        if st.running:
+            self.report({"ERROR"}, "A training is already running in this scene: wait for it, or cancel it")
+            return {"CANCELLED"}
         _start(context)
         st.running = True
         rc = 0
         for cmd in cmds:
-            proc = subprocess.Popen(
-                cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1, env=env
-            )
+            try:
+                proc = subprocess.Popen(
+                    cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1, env=env
+                )
+            except OSError as exc:
+                st.running = False
+                self.report({"ERROR"}, f"Cannot start training with {cmd[0]}: {exc}")
+                return {"CANCELLED"}
             for line in proc.stdout:
                 self._progress(st, line)
             rc = proc.wait()
@@ -181,19 +195,26 @@ class PA_OT_train(bpy.types.Operator):
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         st = context.scene.pa_train
+        if st.running:  # the panel hides Train then; the operator search does not
+            self.report({"ERROR"}, "A training is already running in this scene: wait for it, or cancel it")
+            return {"CANCELLED"}
+        self._lines = queue.Queue()
+        try:
+            self._next_process()
+        except OSError as exc:
+            self.report({"ERROR"}, f"Cannot start training with {self._cmds[0][0] if self._cmds else 'Python'}: {exc}")
+            return {"CANCELLED"}
         _start(context)
         st.running, st.progress, st.message = True, 0.0, "starting"
-        self._lines = queue.Queue()
-        self._next_process()
         self._timer = context.window_manager.event_timer_add(0.25, window=context.window)
         context.window_manager.modal_handler_add(self)
         return {"RUNNING_MODAL"}
 
     def _next_process(self):
-        cmd = self._cmds.pop(0)
         self._proc = subprocess.Popen(
-            cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1, env=self._env
+            self._cmds[0], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1, env=self._env
         )
+        self._cmds.pop(0)
         threading.Thread(target=self._pump, args=(self._proc.stdout, self._lines), daemon=True).start()
 
     @staticmethod
@@ -229,8 +250,13 @@ class PA_OT_train(bpy.types.Operator):
         if rc is None:
             return {"PASS_THROUGH"}
         if rc == 0 and self._cmds:
-            self._next_process()
-            return {"PASS_THROUGH"}
+            try:
+                self._next_process()
+                return {"PASS_THROUGH"}
+            except OSError as exc:
+                self._stop(context)
+                self.report({"ERROR"}, f"Trained, but cannot start the export: {exc}")
+                return {"CANCELLED"}
         self._stop(context)
         return _finish(self, context, rc, self._out)
 

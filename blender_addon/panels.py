@@ -124,7 +124,9 @@ class PA_PT_train(_Base, bpy.types.Panel):
         lay.prop(st, "out_dir")
         lay.prop(st, "preset")
         lay.prop(st, "iterations")
-        lay.prop(st, "overwrite")
+        row = lay.row()
+        row.prop(st, "resume")
+        row.prop(st, "overwrite")
         if st.running:
             lay.progress(factor=st.progress / 100.0, text=f"{st.progress:.0f}%")
             lay.operator("progressive_avatars.train_cancel", icon="CANCEL")

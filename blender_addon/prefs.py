@@ -69,6 +69,8 @@ def python_problem(context=None, needs="torch and numba") -> str:
         return f"No Python set: choose one with {needs} in {where}"
     if not os.path.isfile(python):
         return f"Python not found: {python} (set in {where})"
+    if not os.access(python, os.X_OK):
+        return f"Python is not executable: {python} (set in {where})"
     return ""
 
 

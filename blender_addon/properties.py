@@ -120,6 +120,12 @@ class PA_TrainState(bpy.types.PropertyGroup):
         default=False,
         description="Start over in a Run folder that already holds a trained run (refused otherwise)",
     )
+    resume: bpy.props.BoolProperty(
+        name="Resume",
+        default=False,
+        description="Continue the Run folder's unfinished (cancelled or stopped) training from its checkpoint, "
+        "with the same preset",
+    )
     running: bpy.props.BoolProperty(default=False)
     progress: bpy.props.FloatProperty(subtype="PERCENTAGE", min=0, max=100)
     message: bpy.props.StringProperty()

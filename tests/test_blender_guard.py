@@ -492,6 +492,10 @@ def test_messages_name_the_file_or_setting(train_session):
     m = rep["messages"]
     assert "Python not found" in m["bad_python"] and os.path.join(args["out"], "no", "python3") in m["bad_python"]
     assert "Preferences" in m["bad_python"]
+    msg, running = m["python_not_executable"]
+    assert "not executable" in msg and "not_executable_python" in msg and not running, m["python_not_executable"]
+    msg, running = m["second_training"]
+    assert "already running" in msg and running, m["second_training"]  # the first one's state untouched
     assert (
         "Python not found" in m["bad_python_render"]
         and os.path.join(args["out"], "no", "python3") in m["bad_python_render"]

@@ -928,3 +928,21 @@ def test_config_refuses_negative_counts_and_caches():
         with pytest.raises(ValueError, match="image cache must be"):
             config_for("tiny", image_cache_mb=mb)
     assert config_for("tiny", iterations=0, image_cache_mb=0).iterations == 0  # untrained avatar, no cache: allowed
+
+
+def test_blender_training_job_resumes_a_cancelled_run(tiny_dataset, tmp_path, capsys):
+    """The Train operator's job (core/train/jobs.py): a cancelled run (checkpoint, no avatar) is
+    named as unfinished and offered Resume, which continues it; Resume with Overwrite is one too many."""
+    from progressive_avatars.core.train import jobs
+
+    run = tmp_path / "run"
+    cfg = config_for("tiny", iterations=8, checkpoint_every=4, eval_every=10**6)
+    Trainer(tiny_dataset, str(run), cfg).run(progress=False, stop_after=4)
+    os.remove(run / "avatar.npz")  # as Cancel leaves it: killed after its checkpoint, before any avatar
+    args = ["train", "--data", tiny_dataset, "--out", str(run), "--preset", "tiny", "--no-export"]
+    assert jobs.main(args + ["--iterations", "8"]) == 2
+    assert "unfinished training" in capsys.readouterr().err
+    assert jobs.main(args + ["--iterations", "8", "--resume"]) == 0
+    assert Avatar.load(run / "avatar.npz").num_gaussians > 0
+    assert jobs.main(args + ["--iterations", "8"]) == 2
+    assert "already holds a trained run" in capsys.readouterr().err

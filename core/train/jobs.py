@@ -31,13 +31,22 @@ def _train(args) -> int:
         try:
             cfg = config_for(args.preset, iterations=args.iterations or None, flame_model=flame)
             stack.enter_context(run_lock(args.out))  # one training per run folder (as scripts/train.py)
-            trainer = Trainer(args.data, args.out, cfg, overwrite=args.overwrite)
-        except RunExistsError:
-            print(
-                f"error: {args.out} already holds a trained run: choose another Run folder (Training > Run), "
-                "or tick Overwrite Run to start over",
-                file=sys.stderr,
-            )
+            trainer = Trainer(args.data, args.out, cfg, resume=args.resume, overwrite=args.overwrite)
+        except RunExistsError as exc:
+            unfinished = not os.path.exists(os.path.join(args.out, "avatar.npz"))
+            if args.resume:
+                why = str(exc)
+            elif unfinished:  # cancelled or stopped: its checkpoint can go on
+                why = (
+                    f"{args.out} holds an unfinished training (checkpoint.npz): tick Resume to continue it, or "
+                    "Overwrite Run to start over, or choose another Run folder (Training > Run)"
+                )
+            else:
+                why = (
+                    f"{args.out} already holds a trained run: choose another Run folder (Training > Run), "
+                    "or tick Overwrite Run to start over"
+                )
+            print(f"error: {why}", file=sys.stderr)
             return 2
         except (ValueError, FileNotFoundError, RuntimeError) as exc:
             print(f"error: {exc}", file=sys.stderr)
@@ -76,6 +85,7 @@ def main(argv=None) -> int:
     t.add_argument("--iterations", type=int, default=0, help="override the preset's iterations (0: keep)")
     t.add_argument("--no-export", action="store_true", help="stop after training (RUN/avatar.npz)")
     t.add_argument("--overwrite", action="store_true", help="start over in a RUN that holds a trained run")
+    t.add_argument("--resume", action="store_true", help="continue RUN's unfinished training from its checkpoint")
     args = ap.parse_args(argv)
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     return _train(args)

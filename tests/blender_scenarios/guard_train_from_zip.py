@@ -51,7 +51,15 @@ def _():
     prefs.python_path = bad_python
     st.data_dir, st.out_dir = ARGS["out"], os.path.join(ARGS["out"], "never")
     M["bad_python"] = run_op(bpy.ops.progressive_avatars.train)
+    not_exec = os.path.join(ARGS["out"], "not_executable_python")
+    with open(not_exec, "w") as fh:
+        fh.write("#!/bin/sh\n")
+    prefs.python_path = not_exec
+    M["python_not_executable"] = [run_op(bpy.ops.progressive_avatars.train), st.running]
     prefs.python_path = ARGS["python"]
+    st.running = True  # a training already running in this scene (F3 still finds the operator)
+    M["second_training"] = [run_op(bpy.ops.progressive_avatars.train), st.running]
+    st.running = False
     prefs.flame_model = ""
     res, mesh = import_mesh(ARGS["seq"])
     bpy.context.view_layer.objects.active = mesh
