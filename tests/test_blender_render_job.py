@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 from progressive_avatars.blender_addon import render_job
+from tests.helpers import BPY_CHILD_PRELUDE, run_bpy_child
 
 
 def _job_arrays(n=4000, size=(72, 96), seed=3):
@@ -335,19 +336,13 @@ def test_private_package_processes_keep_numba_cache_out_of_the_sources(tmp_path,
 
 
 # -- the operator's side: what Render Splats hands the renderer ---------------------------
-_OPERATOR_CHILD = r'''
-import importlib.util, json, os, sys, traceback
-root, out = sys.argv[1:3]
-import bpy
-import numpy as np
+_OPERATOR_CHILD = (
+    BPY_CHILD_PRELUDE
+    + r'''
 from bpy_extras.object_utils import world_to_camera_view
 from mathutils import Vector
 
-spec = importlib.util.spec_from_file_location("pa_rj", os.path.join(root, "__init__.py"), submodule_search_locations=[root])
-pkg = importlib.util.module_from_spec(spec)
-sys.modules["pa_rj"] = pkg
-spec.loader.exec_module(pkg)
-pkg.register()
+load_extension("pa_rj")
 ply_import = sys.modules["pa_rj.blender_addon.ply_import"]
 render_job = sys.modules["pa_rj.blender_addon.render_job"]
 sys.modules["pa_rj.blender_addon.prefs"].python_problem = lambda *a, **k: ""  # no Python runs here
@@ -508,6 +503,7 @@ except Exception:
 np.savez(os.path.join(out, "sent.npz"), **arrays)
 print("PA_RJ " + json.dumps(R))
 '''
+)
 
 
 @pytest.mark.blender
@@ -518,8 +514,6 @@ def test_render_splats_frames_like_blender_and_draws_the_world(tmp_path):
     cameras, an Empty as scene camera and a render of 0 px are refused with their reason.
     The world behind the splats is the World's Background colour (scene-linear, what users
     edit); a zero-scaled object draws nothing and a mirrored one keeps its covariances."""
-    import json
-    import subprocess
 
     from progressive_avatars.core.geometry.camera import Camera
     from progressive_avatars.core.geometry.rotations import quat_to_rotmat
@@ -537,20 +531,7 @@ def test_render_splats_frames_like_blender_and_draws_the_world(tmp_path):
         "colors": rng.uniform(0.1, 0.9, (n, 3)).astype(np.float32),
     }
     np.savez(tmp_path / "splats.npz", **g)
-    script = tmp_path / "child.py"
-    script.write_text(_OPERATOR_CHILD)
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    proc = subprocess.run(
-        [sys.executable, str(script), root, str(tmp_path)],
-        capture_output=True,
-        text=True,
-        env=_clean_env(str(tmp_path)),
-        timeout=300,
-    )
-    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("PA_RJ ")]
-    assert lines, proc.stdout[-3000:] + proc.stderr[-3000:]
-    rep = json.loads(lines[-1][len("PA_RJ ") :])
-    assert "error" not in rep, rep["error"]
+    rep, _ = run_bpy_child(_OPERATOR_CHILD, tmp_path, "PA_RJ", _clean_env(str(tmp_path)))
     with np.load(tmp_path / "sent.npz") as d:
         sent = {k: d[k] for k in d.files}
     for tag, case in rep["cases"].items():

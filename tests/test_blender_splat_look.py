@@ -21,6 +21,7 @@ import sys
 import numpy as np
 import pytest
 
+from tests.helpers import BPY_CHILD_PRELUDE, run_bpy_child
 from tests.test_blender_extension import _bpy_dir, _clean_env
 
 pytestmark = pytest.mark.blender
@@ -169,17 +170,10 @@ def _ellipsoids_are_3_sigma_hulls(g, rep):
     assert np.allclose(np.abs(np.einsum("nij,nij->nj", rot, quat_to_rotmat(g["quats"][order]))), 1, atol=1e-3)
 
 
-_FOCAL_CHILD = r"""
-import importlib.util, json, os, sys, traceback
-root, out = sys.argv[1:3]
-import bpy
-import numpy as np
-
-spec = importlib.util.spec_from_file_location("pa_focal", os.path.join(root, "__init__.py"), submodule_search_locations=[root])
-pkg = importlib.util.module_from_spec(spec)
-sys.modules["pa_focal"] = pkg
-spec.loader.exec_module(pkg)
-pkg.register()
+_FOCAL_CHILD = (
+    BPY_CHILD_PRELUDE
+    + r"""
+load_extension("pa_focal")
 ply_import = sys.modules["pa_focal.blender_addon.ply_import"]
 look = sys.modules["pa_focal.blender_addon.splat_look"]
 R = {"cases": {}}
@@ -236,6 +230,7 @@ except Exception:
     R["error"] = traceback.format_exc()
 print("PA_FOCAL " + json.dumps(R))
 """
+)
 
 
 def test_splat_focal_follows_blenders_framing(tmp_path):
@@ -246,19 +241,7 @@ def test_splat_focal_follows_blenders_framing(tmp_path):
     _bpy_dir()
     g = _splats(np.random.default_rng(4), n=8)
     np.savez(tmp_path / "splats.npz", **g)
-    script = tmp_path / "focal.py"
-    script.write_text(_FOCAL_CHILD)
-    proc = subprocess.run(
-        [sys.executable, str(script), ROOT, str(tmp_path)],
-        capture_output=True,
-        text=True,
-        env=_clean_env(str(tmp_path)),
-        timeout=300,
-    )
-    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("PA_FOCAL ")]
-    assert lines, proc.stdout[-3000:] + proc.stderr[-3000:]
-    rep = json.loads(lines[-1][len("PA_FOCAL ") :])
-    assert "error" not in rep, rep["error"]
+    rep, stdout = run_bpy_child(_FOCAL_CHILD, tmp_path, "PA_FOCAL", _clean_env(str(tmp_path)), name="focal.py")
     for tag, c in rep["cases"].items():
         assert c["result"] == ["FINISHED"], tag
         assert len(c["focal"]) == 2, tag  # the material's node and the Geometry Nodes group's
@@ -268,4 +251,4 @@ def test_splat_focal_follows_blenders_framing(tmp_path):
     np.testing.assert_allclose(rep["cases"]["percentage 50"]["focal"], 40.0 / 20.0 * 100, rtol=1e-6)
     assert rep["ortho"]["result"] == ["FINISHED"] and rep["ortho"]["unchanged"]
     assert "orthographic" in rep["ortho"]["why"]
-    assert "splat focal length not set" in proc.stdout and "orthographic" in proc.stdout
+    assert "splat focal length not set" in stdout and "orthographic" in stdout
