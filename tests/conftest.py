@@ -22,3 +22,14 @@ def tiny_run(tiny_dataset, tmp_path_factory):
     Trainer(tiny_dataset, out, config_for("tiny")).run(progress=False)
     assert os.path.exists(os.path.join(out, "avatar.npz"))
     return out
+
+
+@pytest.fixture
+def own_tmp(tmp_path, monkeypatch):
+    """tempfile's folder for this test: the temporary folders a job leaves behind show up here."""
+    import tempfile
+
+    d = tmp_path / "tmp"
+    d.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(d))
+    return d

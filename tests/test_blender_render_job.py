@@ -14,7 +14,6 @@ import os
 import stat
 import subprocess
 import sys
-import tempfile
 import textwrap
 import time
 
@@ -77,15 +76,6 @@ def _fake_python(tmp_path, script, name="fake_python"):
     fake.write_text("#!/bin/sh\n" + script)
     fake.chmod(fake.stat().st_mode | stat.S_IXUSR)
     return str(fake)
-
-
-@pytest.fixture
-def own_tmp(tmp_path, monkeypatch):
-    """The jobs' temporary folders go here, so that a test sees exactly the ones it made."""
-    d = tmp_path / "tmp"
-    d.mkdir()
-    monkeypatch.setattr(tempfile, "tempdir", str(d))
-    return d
 
 
 def test_a_job_that_cannot_start_leaves_no_folder(tmp_path, own_tmp, no_workers):

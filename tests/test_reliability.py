@@ -316,17 +316,6 @@ def run_copy(tiny_run, tmp_path):
     return dst
 
 
-@pytest.fixture
-def scratch_root(tmp_path, monkeypatch):
-    """tempfile's folder for this test: what build_report leaves behind shows up here."""
-    import tempfile
-
-    root = tmp_path / "tmp"
-    root.mkdir()
-    monkeypatch.setattr(tempfile, "tempdir", str(root))
-    return root
-
-
 def test_read_log_skips_torn_last_line_and_names_a_bad_line(tmp_path):
     from progressive_avatars.core.evaluate.plots import read_log
 
@@ -346,7 +335,7 @@ def test_read_log_skips_torn_last_line_and_names_a_bad_line(tmp_path):
 
 @pytest.mark.slow  # evaluations of the tiny run
 def test_evaluate_torn_metrics_line_bad_log_fails_fast_and_scratch_always_removed(
-    run_copy, tmp_path, scratch_root, monkeypatch
+    run_copy, tmp_path, own_tmp, monkeypatch
 ):
     from progressive_avatars.core.evaluate import plots
     from progressive_avatars.core.evaluate.report import build_report
@@ -358,12 +347,12 @@ def test_evaluate_torn_metrics_line_bad_log_fails_fast_and_scratch_always_remove
     rep = build_report(_report_opts(run_copy, tmp_path / "ok"))
     assert rep["training"]["this run"]["iterations"] == json.loads(lines[-1])["iteration"]
     assert json.loads((tmp_path / "ok" / "report.json").read_text())["training"] == rep["training"]
-    assert os.listdir(scratch_root) == []
+    assert os.listdir(own_tmp) == []
     # A bad line before the end is an error naming the file and line, before any rendering.
     log.write_text(lines[0] + "{oops\n" + "".join(lines[1:]))
     with pytest.raises(ValueError, match=r"metrics\.jsonl: line 2 is not valid JSON"):
         build_report(_report_opts(run_copy, tmp_path / "bad_log"))
-    assert os.listdir(tmp_path / "bad_log") == [] and os.listdir(scratch_root) == []
+    assert os.listdir(tmp_path / "bad_log") == [] and os.listdir(own_tmp) == []
     # A failure in the middle of the evaluation still removes the scratch folder.
     log.write_text("".join(lines))
 
@@ -373,7 +362,7 @@ def test_evaluate_torn_metrics_line_bad_log_fails_fast_and_scratch_always_remove
     monkeypatch.setattr(plots, "depth_picture", broken)
     with pytest.raises(RuntimeError, match="drawing failed"):
         build_report(_report_opts(run_copy, tmp_path / "crash"))
-    assert os.listdir(scratch_root) == []
+    assert os.listdir(own_tmp) == []
 
 
 def test_run_config_errors_name_the_file_and_damaged_importance_cache_is_recomputed(
@@ -417,7 +406,7 @@ def test_run_config_errors_name_the_file_and_damaged_importance_cache_is_recompu
 
 
 @pytest.mark.slow  # evaluations of the tiny run
-def test_evaluate_disk_full_keeps_the_previous_report(run_copy, tmp_path, scratch_root, monkeypatch, capsys):
+def test_evaluate_disk_full_keeps_the_previous_report(run_copy, tmp_path, own_tmp, monkeypatch, capsys):
     import errno
     import runpy
 
@@ -444,7 +433,7 @@ def test_evaluate_disk_full_keeps_the_previous_report(run_copy, tmp_path, scratc
     assert f"error: {out / 'report.json'}: No space left on device" in err and "Traceback" not in err
     assert (out / "report.json").read_bytes() == before["report.json"]  # the previous report, whole
     json.loads(before["report.json"])
-    assert [n for n in os.listdir(out) if n.endswith(".tmp")] == [] and os.listdir(scratch_root) == []
+    assert [n for n in os.listdir(out) if n.endswith(".tmp")] == [] and os.listdir(own_tmp) == []
     monkeypatch.undo()
 
     # A picture whose write fails keeps the earlier picture (written beside it, then renamed).
@@ -463,7 +452,7 @@ def test_evaluate_disk_full_keeps_the_previous_report(run_copy, tmp_path, scratc
 
 
 @pytest.mark.slow  # an evaluation of the tiny run
-def test_evaluate_refuses_a_corrupt_test_image_before_rendering(run_copy, data_copy, tmp_path, scratch_root):
+def test_evaluate_refuses_a_corrupt_test_image_before_rendering(run_copy, data_copy, tmp_path, own_tmp):
     from progressive_avatars.core.evaluate.report import build_report
 
     frames = json.loads((data_copy / "transforms_test.json").read_text())["frames"]
@@ -473,4 +462,4 @@ def test_evaluate_refuses_a_corrupt_test_image_before_rendering(run_copy, data_c
         DataError, match=rf"(?s)'test' split has 1 problem.*{frames[-1]['file_path']}: image: cannot be"
     ):
         build_report(_report_opts(run_copy, tmp_path / "out", data=str(data_copy)))
-    assert os.listdir(tmp_path / "out") == [] and os.listdir(scratch_root) == []
+    assert os.listdir(tmp_path / "out") == [] and os.listdir(own_tmp) == []
