@@ -12,6 +12,11 @@ bytes. Mask coverage: the fraction of ground-truth mask pixels whose rendered al
 Also: bytes and time to the first whole head at 1/10/100 Mbit/s, the order of the roots inside
 their levels (forest / spatial / importance / both) at cuts inside the coarse and template
 levels, and with --no-coarse-run the same model trained without coarse levels at 2/5/100 %.
+
+The report scores the stream it writes as RUN/avatar.pavs (replacing the run's stream: the same
+bytes when export.py wrote it with the same options) and caches the importance ranking in RUN
+(importance*.npy, keyed on the avatar and the data); runs named by --finest-only, --adaptive and
+--uniform get theirs likewise. Evaluate a copy of a run you want left untouched.
 """
 
 import argparse

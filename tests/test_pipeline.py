@@ -477,3 +477,21 @@ def test_report_is_a_library_function(tiny_run, tmp_path):
     assert rep["budgets"]["100"]["gaussians"] == rep["gaussians"] > 0
     assert json.load(open(out / "report.json"))["budgets"]["100"]["gaussians"] == rep["gaussians"]
     assert (out / "report.md").read_text().startswith("#")
+
+
+def test_done_when_checks_the_budget_table_and_names_the_curve_it_had():
+    """The non-decreasing criteria look at the budget table as well as the curve (each on its
+    own views), and say how many curve points they saw: a one-point curve used to report 'met
+    ... in 1 % steps' having checked nothing."""
+    from progressive_avatars.core.evaluate.plots import _steps, done_when
+
+    def budgets(psnr):
+        return {str(k): {"nvs": {"psnr": v, "coverage": 0.99}} for k, v in psnr.items()}
+
+    flat = {"1": 20.0, "5": 23.0, "50": 25.0, "100": 25.0}
+    r = {"budgets": budgets(flat), "curve_nvs": [{"percent": 100.0, "psnr": 25.0, "coverage": 0.99}]}
+    assert done_when(r)["psnr_non_decreasing"]["met"]
+    r["budgets"] = budgets(dict(flat, **{"50": 26.0}))  # 50 % a dB above 100 %
+    d = done_when(r)["psnr_non_decreasing"]
+    assert not d["met"] and abs(d["worst_drop"] - 1.0) < 1e-9 and d["curve_points"] == 1
+    assert _steps(d) == "the curve's 1 point(s)"

@@ -977,6 +977,12 @@ def test_budgets(small, tmp_path):
         assert info.count_for_percent(info.percent_for_count(n)) >= n
     counts = [info.count_for_percent(x) for x in np.linspace(0, 100, 101)]
     assert counts == sorted(counts)
+    # Exactly floor(p/100 * total) (FORMAT.md 6): in floating point 29 % of 47,200 bytes was
+    # 13,687.999... and floored a byte, and so a record ending there, short.
+    from progressive_avatars.core.stream.format import percent_bytes
+
+    assert percent_bytes(29, 47200) == 13688 and percent_bytes(0.5, 3) == 0 and percent_bytes(100, 47201) == 47201
+    assert all(percent_bytes(p, 100 * m) == p * m for p in range(101) for m in (1, 7, 472, 10**9 + 7))
     for n in range(N + 1):
         k = info.bytes_for_count(n)
         assert info.count_for_bytes(k) >= n and (n == 0 or info.count_for_bytes(k - 1) < n)

@@ -25,7 +25,7 @@ import time
 from dataclasses import dataclass, field
 from urllib.parse import urljoin, urlsplit
 
-from .format import FIXED_SIZE, FIXED_SIZE_MAX, StreamError, _fixed_size, _parse_fixed
+from .format import FIXED_SIZE, FIXED_SIZE_MAX, StreamError, _fixed_size, _parse_fixed, percent_bytes
 from .reader import StreamReader
 
 COMPLETE = "complete"  # the whole stream arrived and verified
@@ -274,7 +274,7 @@ def fetch_stream(
         if total is not None:
             lim = total if lim is None else lim
             if pct is not None:
-                lim = min(lim, math.floor(pct / 100.0 * total))
+                lim = min(lim, percent_bytes(pct, total))  # what count_for_percent means
         if max_bytes is not None:
             lim = max_bytes if lim is None else min(lim, max_bytes)
         return lim
