@@ -82,7 +82,12 @@ def prev_trainer(commit=PREV_COMMIT):
 
 
 # Where each module lives in this tree's tier folders; the old tree (f6907ae) is flat.
-_NEW_PLACES = {"camera": "geometry.camera", "data": "io.dataset", "losses": "train.losses"}
+_NEW_PLACES = {
+    "camera": "geometry.camera",
+    "data": "io.dataset",
+    "losses": "train.losses",
+    "policies": "train.policies",
+}
 
 
 def _in(train_mod, name):
@@ -219,24 +224,43 @@ def trained_run() -> str | None:
     return os.path.dirname(found[-1]) if found else None
 
 
+def run_config(run, train_mod):
+    """The TrainConfig a run was trained with (its config.json), in ``train_mod``'s class."""
+    import json
+
+    cfg = json.load(open(os.path.join(run, "config.json")))
+    fields = {f.name for f in dataclasses.fields(train_mod.TrainConfig)}
+    return cfg["data"], train_mod.TrainConfig(
+        **{k: tuple(v) if isinstance(v, list) else v for k, v in cfg.items() if k in fields}
+    )
+
+
+def step_with(trainer, train_mod, **overrides):
+    """A resumed trainer stepped under other settings: a trainer resumes only with its run's
+    own settings (d1531d9), but stepping a trained avatar under another supervision or with
+    in-level prefixes is what the benches measure. Only fields the step reads per iteration
+    may be overridden (supervision, prefix cuts, schedules)."""
+    trainer.cfg = dataclasses.replace(trainer.cfg, **overrides)
+    if "supervision" in overrides:
+        trainer.supervision = _in(train_mod, "policies").Supervision(trainer.cfg.supervision)
+    return trainer
+
+
 @contextlib.contextmanager
 def resumed_trainer(run, train_mod=None, **overrides):
     """The working tree's Trainer (or that of ``train_mod``, a trainer module) resumed from a
-    trained run's checkpoint and config (with ``overrides`` of its TrainConfig), in a scratch
-    folder so that the run itself is never written to."""
-    import json
+    trained run's checkpoint and config, in a scratch folder so that the run itself is never
+    written to, then stepped with ``overrides`` of its TrainConfig (step_with)."""
     import shutil
 
     from progressive_avatars.core.train import trainer as new_train
 
     new_train = train_mod or new_train
-    cfg = json.load(open(os.path.join(run, "config.json")))
-    fields = {f.name for f in dataclasses.fields(new_train.TrainConfig)}
-    config = new_train.TrainConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in cfg.items() if k in fields})
+    data, config = run_config(run, new_train)
     with tempfile.TemporaryDirectory() as tmp:
         for name in ("checkpoint.npz", "config.json"):
             shutil.copy(os.path.join(run, name), tmp)
-        yield new_train.Trainer(cfg["data"], tmp, dataclasses.replace(config, **overrides), resume=True)
+        yield step_with(new_train.Trainer(data, tmp, config, resume=True), new_train, **overrides)
 
 
 def bench_trained(run, supervision, reps):
@@ -520,6 +544,65 @@ def raster_reference_errors():
     return rows
 
 
+def binding_inference_errors(depth: int = 6, roots: int = 200) -> dict:
+    """The training binding against numpy inference (float64) on the finest faces of a forest
+    `depth` levels deep with random (learned-like) split logits on a FLAME-sized template in
+    metres, the parameters in float32 as the trainer holds them: max scale error relative to
+    each face's scale, max frame-entry error, max centroid error in float32 spacings of the
+    centroid's coordinates (world positions are float32: a sliver's centroid cannot be finer); f6907ae's torch binding (float32
+    weight recursion) and this tree's compiled kernels."""
+    import torch
+
+    from progressive_avatars.core.avatar import binding
+    from progressive_avatars.core.avatar.forest import Forest
+    from progressive_avatars.core.geometry.rotations import quat_to_rotmat
+    from progressive_avatars.core.synthetic.shapes import sphere_mesh
+    from progressive_avatars.core.train import binding_kernels
+
+    old_train, _ = old_package()
+    OldTorchForest = _in(old_train, "binding_torch").TorchForest
+    rng = np.random.default_rng(6)
+    verts, faces = sphere_mesh(70, 72, radius=0.1)
+    forest = Forest(faces)
+    current = rng.choice(len(faces), roots, replace=False)
+    for _ in range(depth):
+        current = forest.split(current).ravel()
+    forest.split_logits[:] = rng.normal(0, 1.0, forest.split_logits.shape).astype(np.float32)
+    v32 = (verts + rng.normal(0, 1e-3, verts.shape)).astype(np.float32)
+    ref = binding.evaluate(forest, v32.astype(np.float64), dtype=np.float64)
+    finest = np.flatnonzero(forest.level == depth)
+    s_ref, t_ref, r_ref = ref.s[finest], ref.t[finest], ref.r[finest]
+    logits = torch.tensor(forest.split_logits)
+
+    def errors(t, r, s):
+        return {
+            "centroid": float(
+                (np.abs(t[finest] - t_ref).max(1) / np.spacing(np.abs(t_ref).max(1).astype(np.float32))).max()
+            ),
+            "scale": float((np.abs(s[finest] - s_ref) / s_ref).max()),
+            "frame": float(np.abs(r[finest] - r_ref).max()),
+        }
+
+    n = forest.num_faces
+    zero, ident = torch.zeros(n, 3), torch.zeros(n, 4)
+    ident[:, 0] = 1
+    m, q, sc = binding_kernels.FaceBinding(forest).gaussians(torch.tensor(v32), logits, zero, zero, ident)
+    new = errors(m.double().numpy(), quat_to_rotmat(q.double().numpy()), sc.double().numpy()[:, 0])
+    old_forest = OldTorchForest(forest)
+    t, r, s = old_forest.evaluate(torch.tensor(v32), old_forest.weights(logits))
+    old = errors(t.double().numpy(), r.double().numpy(), s.double().numpy())
+    return {
+        "old": old,
+        "new": new,
+        "faces": n,
+        "template_faces": len(faces),
+        "finest": len(finest),
+        "depth": depth,
+        "roots": roots,
+        "median_scale": float(np.median(s_ref)),
+    }
+
+
 def _fmt(times):
     t = sorted(times)
     return f"{t[0] * 1e3:.0f} / {t[len(t) // 2] * 1e3:.0f}"
@@ -559,6 +642,7 @@ def run(quick: bool = False, data: str | None = None) -> str:
     raster = bench_raster(reps)
     raster_inputs = bench_raster_inputs(2 * reps)
     ref = raster_reference_errors()
+    bind_err = binding_inference_errors()
     ss = bench_ssim(reps)
     adam = bench_adam(reps)
     binding = bench_binding(run_dir, 3 * reps) if run_dir is not None else None
@@ -643,6 +727,18 @@ def run(quick: bool = False, data: str | None = None) -> str:
         "Against the dense float64 reference (64x64, 400 head-scene Gaussians, float32 inputs): old max image "
         f"error {ref['old'][0]:.1e}, worst relative gradient error {ref['old'][1]:.1e}; new {ref['new'][0]:.1e}, "
         f"{ref['new'][1]:.1e}.",
+        "",
+        f"Training binding against numpy inference (float64), depth {bind_err['depth']} with random split logits "
+        f"({bind_err['roots']} of a {bind_err['template_faces']:,}-face sphere's faces split {bind_err['depth']} times, "
+        f"{bind_err['faces']:,} faces, metres, median finest face scale {bind_err['median_scale'] * 1e3:.3f} mm; "
+        "float32 parameters as the trainer holds them), worst of the "
+        f"{bind_err['finest']:,} finest faces, scale relative to the face's scale, frame entries absolute, "
+        "centroid in float32 spacings of its coordinates: "
+        + "; ".join(
+            f"{side} scale {e['scale']:.1e}, frame {e['frame']:.1e}, centroid {e['centroid']:.2f} spacings"
+            for side, e in (("old", bind_err["old"]), ("new", bind_err["new"]))
+        )
+        + " (target: scale and frame 1e-5).",
         "",
     ]
     return "\n".join(lines)
