@@ -549,8 +549,8 @@ def binding_inference_errors(depth: int = 6, roots: int = 200) -> dict:
     `depth` levels deep with random (learned-like) split logits on a FLAME-sized template in
     metres, the parameters in float32 as the trainer holds them: max scale error relative to
     each face's scale, max frame-entry error, max centroid error in float32 spacings of the
-    centroid's coordinates (world positions are float32: a sliver's centroid cannot be finer); f6907ae's torch binding (float32
-    weight recursion) and this tree's compiled kernels."""
+    centroid's coordinates (world positions are float32: a sliver's centroid cannot be
+    finer). For f6907ae's torch binding (float32 weight recursion) and this tree's kernels."""
     import torch
 
     from progressive_avatars.core.avatar import binding
