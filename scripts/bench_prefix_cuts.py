@@ -32,7 +32,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def run(run_dir: str, data: str, reps: int) -> str:
-    from bench_train import run_config, step_with
+    from bench_train import step_with, train_config
 
     from progressive_avatars.core.train import trainer as train_mod
     from progressive_avatars.core.train.trainer import Trainer, config_for
@@ -46,7 +46,7 @@ def run(run_dir: str, data: str, reps: int) -> str:
         d = tempfile.mkdtemp(prefix="bench_cuts_")
         scratch.append(d)
         shutil.copy(ckpt, d)
-        tr = Trainer(data, d, run_config(run_dir, train_mod)[1], resume=True, check_data=False)
+        tr = Trainer(data, d, train_config(run_dir, train_mod)[1], resume=True, check_data=False)
         step_with(tr, train_mod, prefix_cuts=cuts, prefix_cut_weight=0.5, eval_every=10**9, checkpoint_every=10**9)
         tr.step()  # warm-up (the cut trainer also ranks here)
         trainers[name] = tr

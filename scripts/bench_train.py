@@ -224,11 +224,14 @@ def trained_run() -> str | None:
     return os.path.dirname(found[-1]) if found else None
 
 
-def run_config(run, train_mod):
-    """The TrainConfig a run was trained with (its config.json), in ``train_mod``'s class."""
-    import json
+def train_config(run, train_mod):
+    """(dataset folder, TrainConfig) a run was trained with (its config.json, read by
+    core.io.run.run_config), the config in ``train_mod``'s class."""
+    from progressive_avatars.core.io.run import run_config
 
-    cfg = json.load(open(os.path.join(run, "config.json")))
+    cfg = run_config(run)
+    if cfg is None:
+        raise FileNotFoundError(f"{run}: no config.json")
     fields = {f.name for f in dataclasses.fields(train_mod.TrainConfig)}
     return cfg["data"], train_mod.TrainConfig(
         **{k: tuple(v) if isinstance(v, list) else v for k, v in cfg.items() if k in fields}
@@ -256,7 +259,7 @@ def resumed_trainer(run, train_mod=None, **overrides):
     from progressive_avatars.core.train import trainer as new_train
 
     new_train = train_mod or new_train
-    data, config = run_config(run, new_train)
+    data, config = train_config(run, new_train)
     with tempfile.TemporaryDirectory() as tmp:
         for name in ("checkpoint.npz", "config.json"):
             shutil.copy(os.path.join(run, name), tmp)

@@ -202,8 +202,8 @@ def main():
         seeds = [int(x) for x in a.seeds.split(",")]
     except ValueError:
         ap.error(f"--seeds: comma-separated integers, got {a.seeds!r}")
-    if not seeds or min(seeds) < 0:
-        ap.error(f"--seeds: non-negative integers, got {a.seeds!r}")
+    if min(seeds) < 0 or len(set(seeds)) != len(seeds):
+        ap.error(f"--seeds: distinct non-negative integers, got {a.seeds!r}")
     text = run(a.data, a.iterations, a.work, seeds)
     print(text)
     if a.write:
