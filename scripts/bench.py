@@ -53,6 +53,8 @@ HEADINGS = {  # how each section's heading starts, to read the current page back
     "quant": "## Robust quantisation",  # scripts/bench_quant.py, included with --section quant=FILE
     # bench_render.py --against COMMIT --run RUN, with --section raster_levels=FILE (before the next: same prefix)
     "raster_levels": "## Rasteriser kernels, every level",
+    # bench_render.py --against COMMIT --run RUN --one-image, with --section raster_trained=FILE
+    "raster_trained": "## Rasteriser kernels, trained avatar",
     "raster_kernels": "## Rasteriser kernels",  # bench_render.py --against COMMIT, with --section raster_kernels=FILE
 }
 

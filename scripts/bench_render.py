@@ -2,7 +2,7 @@
 and time/error against the dense float64 reference of the tests.
 
     python scripts/bench_render.py [--quick]
-    python scripts/bench_render.py --against COMMIT [--reps N] [--threads 1,2] [--run RUN] [--out FILE]
+    python scripts/bench_render.py --against COMMIT [--reps N] [--threads 1,2] [--run RUN [--one-image]] [--out FILE]
 
 ``run(quick=False)`` returns the Markdown section the script prints. ``--against`` instead
 times each kernel of core/render/kernels.py at COMMIT (extracted with `git show` and imported
@@ -11,7 +11,8 @@ thread count of --threads, and checks both against the dense float64 reference (
 "Rasteriser kernels"; put it into docs/BENCHMARKS.md with `scripts/bench.py --only none
 --section raster_kernels=FILE`). With --run RUN the scene is that trained run's avatar, every
 level rendered in one pass (section "Rasteriser kernels, every level": --section
-raster_levels=FILE).
+raster_levels=FILE); with --one-image too, that avatar as one image (section "Rasteriser kernels,
+trained avatar": --section raster_trained=FILE).
 """
 
 from __future__ import annotations
@@ -447,11 +448,12 @@ def trained_scene(run):
         return arrays, sample.camera, np.asarray(tr.model.forest.level, np.int64)
 
 
-def compare_kernels(commit, width=802, height=550, n=170_000, reps=5, threads=None, run=None):
+def compare_kernels(commit, width=802, height=550, n=170_000, reps=5, threads=None, run=None, one_image=False):
     """Old (``commit``) and new kernels on the same scene, interleaved rep by rep; per stage the
     min / median wall ms and min CPU ms, plus both against each other and the reference. With
     ``run`` (a trained run folder) the scene is that avatar, every level rendered in one pass (as
-    training with every level supervised does), instead of the synthetic head."""
+    training with every level supervised does), instead of the synthetic head; with ``one_image``
+    too, the whole avatar as one image (as inference and a finest-level step render it)."""
     import numba
 
     from progressive_avatars.core.render import kernels as new_rk
@@ -462,6 +464,8 @@ def compare_kernels(commit, width=802, height=550, n=170_000, reps=5, threads=No
     if run:
         arrays, cam, glevel = trained_scene(run)
         width, height, n = cam.width, cam.height, len(glevel)
+        if one_image:
+            glevel = None
     else:
         cam = head_camera(width, height)
         arrays = [np.ascontiguousarray(x, np.float64) for x in head_scene(n)] + [np.zeros(3)]
@@ -489,7 +493,7 @@ def compare_kernels(commit, width=802, height=550, n=170_000, reps=5, threads=No
     return dict(
         rev=rev, width=width, height=height, n=n, reps=reps, threads=threads, runs=runs,
         pairs={k: v["pairs"] for k, v in outs.items()}, diff_img=diff_img, diff_grad=diff_grad, ref=ref,
-        run=run, images=n_img,
+        run=run, images=n_img, one_image=bool(run and one_image),
     )  # fmt: skip
 
 
@@ -501,12 +505,16 @@ def kernels_section(results, command) -> str:
     r = results[0]
     scene = "scripts/bench_render.py's head"
     images = "one image"
+    kind = ""
     if r.get("run"):
         scene = f"the trained avatar of `{os.path.relpath(r['run'], ROOT)}` bound for its first training view"
         images = f"every level at once ({r['images']} nested images, one pass, as with every level supervised)"
+        kind = ", every level"
+        if r.get("one_image"):
+            images = "the whole avatar as one image (as inference and a finest-level step render it)"
+            kind = ", trained avatar"
     lines = [
-        f"## Rasteriser kernels{', every level' if r.get('run') else ''}: {r['rev']} (old) against this tree "
-        "(new), same run",
+        f"## Rasteriser kernels{kind}: {r['rev']} (old) against this tree (new), same run",
         "",
         f"- date: {datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%d %H:%M UTC')}",
         f"- command: `{command}`",
@@ -570,7 +578,12 @@ if __name__ == "__main__":
         cmd = "python scripts/bench_render.py " + " ".join(args)
         threads = args[args.index("--threads") + 1] if "--threads" in args else "1,2"
         run = args[args.index("--run") + 1] if "--run" in args else None
-        results = [compare_kernels(commit, reps=reps, threads=int(t), run=run) for t in threads.split(",")]
+        one_image = "--one-image" in args
+        if one_image and run is None:
+            _sys.exit("bench_render: --one-image needs --run RUN (the synthetic head is one image already)")
+        results = [
+            compare_kernels(commit, reps=reps, threads=int(t), run=run, one_image=one_image) for t in threads.split(",")
+        ]
         text = kernels_section(results, cmd)
         if "--out" in args:
             with open(args[args.index("--out") + 1], "w") as fh:

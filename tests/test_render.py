@@ -244,6 +244,56 @@ def test_early_termination_matches_reference():
         assert rel_err(a.grad, b.grad) <= 1e-3, name
 
 
+def test_box_and_chord_walks_match_reference():
+    # Thin splats facing the camera, turned about the view axis from axis-aligned to diagonal:
+    # the forward walks the near-axis-aligned ones by their pixel box and the tilted ones by
+    # chords (kernels.CHORD_RHO2); both must composite exactly the dense reference's pixels.
+    from progressive_avatars.core.geometry.rotations import rotmat_to_quat
+    from progressive_avatars.core.render import kernels as rk
+
+    rng = np.random.default_rng(21)
+    cam = make_camera()
+    n = 60
+    z = rng.uniform(1.0, 2.0, n)
+    pc = np.stack([rng.uniform(-0.4, 0.4, n) * z, rng.uniform(-0.45, 0.4, n) * z, z], 1)
+    turn = np.linspace(0.0, np.pi, n)
+    quats = []
+    for a in turn:
+        rz = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+        quats.append(rotmat_to_quat(cam.R.T @ rz))  # camera-frame rotation about the view axis
+    long = rng.uniform(0.02, 0.25, n) * z  # ~1 to ~11 px standard deviation along the long axis
+    scales = np.stack([long, long / rng.uniform(3.0, 10.0, n), np.full(n, 1e-5)], 1)
+    params = [
+        torch.tensor(x)
+        for x in (
+            world_from_camera(cam, pc),
+            np.array(quats),
+            scales,
+            rng.uniform(0.3, 0.95, n),
+            rng.uniform(0, 1, (n, 3)),
+            np.array([0.2, 0.5, 0.1]),
+        )
+    ]
+    conic = rk.project_forward(
+        *[np.ascontiguousarray(p.numpy()) for p in params[:4]],
+        np.ascontiguousarray(cam.R, np.float64), np.ascontiguousarray(cam.t, np.float64),
+        cam.fx, cam.fy, cam.cx, cam.cy, rk.fov_limits(W, H, cam.fx, cam.fy, cam.cx, cam.cy), W, H, 0.01, 0.3,
+    )[1]  # fmt: skip
+    rho2 = conic[:, 1] ** 2 / (conic[:, 0] * conic[:, 2])
+    assert (rho2 <= rk.CHORD_RHO2).sum() >= 10 and (rho2 > rk.CHORD_RHO2).sum() >= 10  # both walks
+    wi, wa = loss_weights(5)
+    ours = leaves(params)
+    out = render(*ours[:5], cam, ours[5])
+    ((out.image * wi).sum() + (out.alpha * wa).sum()).backward()
+    ref = leaves(params)
+    img, alpha, contrib = render_reference(*ref[:5], cam, ref[5])
+    assert float((out.image - img).detach().abs().max()) <= 1e-10
+    assert torch.allclose(out.contrib, contrib, atol=1e-10)
+    ((img * wi).sum() + (alpha * wa).sum()).backward()
+    for name, a, b in zip(NAMES, ours, ref):
+        assert rel_err(a.grad, b.grad) <= 1e-6, name
+
+
 def test_contrib_is_gradient_of_image_wrt_constant_colour():
     cam, params = make_scene(3)
     probe = torch.zeros(len(params[0]), 1, dtype=torch.float64, requires_grad=True)

@@ -28,9 +28,13 @@ atomics, deterministic sums, and no thread ids
 threads: numba's dynamic chunking (parallel_chunksize) measured several times slower here; the
 tiles are interleaved first (_spread_tiles) so that each static share sees all of the image.
 
-Work per tile is trimmed twice: each Gaussian visits only the chord of its ellipse on each
-row (not its bounding box), cut to the pixels still compositing (per-row bit masks; rows
-whose pixels have all stopped are skipped). The backward walks nothing: the forward records
+Work per tile is trimmed twice: a tilted Gaussian visits only the chord of its ellipse on
+each row (not its bounding box), cut to the pixels still compositing (per-row bit masks; rows
+whose pixels have all stopped are skipped). An ellipse close to axis-aligned (cb^2 <= CHORD_RHO2
+ca cc: its box is at most 1.41 chords wide) walks its box row instead when it is the last
+image's alone: the few pixels more cost less than the square root and the branches of a chord
+per row (docs/BENCHMARKS.md, "Rasteriser kernels"); the nested-image walk keeps the chords,
+whose skipped pixels each cost a pass over the images. The backward walks nothing: the forward records
 every composited (Gaussian, pixel) pair with its 1 - alpha, and the backward replays those
 pairs back to front (raster_forward's record, raster_backward).
 
@@ -70,6 +74,9 @@ SPREAD = 4  # tile rows interleaved between the threads' static shares (see _spr
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
 T_MIN = 1e-4
+# Single-image walks take a row's chord only for ellipses tilted more than this (cb^2 / (ca cc), the
+# squared correlation); the rest walk the pixel box's row (see the module docstring).
+CHORD_RHO2 = 0.5
 MAX_IMAGES = 16  # images of one raster_forward: the record keeps each pair's images as uint16 bits
 # Only explicit prange loops run in parallel: numba would otherwise turn every np.zeros and
 # array expression into its own parallel region, and each launch is costly on a busy machine.
@@ -568,8 +575,11 @@ def _row_start(dy, u, ca, cb, cc, a):
     Along a row power = -(ca dx^2 + cc dy^2)/2 - cb dx dy is quadratic in dx, so the step falls
     by ca per column and exp(power) follows as gauss *= exp(step), exp(step) *= exp(-ca): two
     exps per row (and exp(-ca) per Gaussian) instead of one per pixel. With eps2d > 0 the conic
-    is bounded (ca <= 1/eps2d) and a chord stays inside one tile, so nothing overflows; the
-    product drifts by a few ulps over a tile row. power <= 0 for a positive definite conic, so
+    is bounded (ca <= 1/eps2d) and a walk stays inside one tile row, so nothing overflows: a walk
+    starts on its row's chord or, for an ellipse walked by its box (_forward_tile), inside that
+    box, where power >= -ln(255) 2 (1 + rho) / (1 - rho^2) >= -38 (rho^2 <= CHORD_RHO2; exp
+    underflows below -745); the product
+    drifts by a few ulps over a tile row. power <= 0 for a positive definite conic, so
     alpha = o * exp(power) < 1/255 is the whole cut-off test. Only the forward walks rows: the
     backward replays the values it recorded.
     """
@@ -656,10 +666,12 @@ def _record_alpha(entry):
 
 
 @njit(cache=True)
-def _row_grads(ca, cb, cc, dy, s0, s1, s2):
-    """One row's share of d/du, d/dv and d/dconic (a, b, c) from its sums over the row's pixels of
-    g, g dx and g dx^2, g = d/dpower: power = -(ca dx^2 + cc dy^2)/2 - cb dx dy, dx = px - u."""
-    return ca * s1 + cb * dy * s0, cb * s1 + cc * dy * s0, -0.5 * s2, -dy * s1, -0.5 * dy * dy * s0
+def _moment_grads(ca, cb, cc, sx, sy, sxx, sxy, syy):
+    """d/du, d/dv and d/dconic (a, b, c) of a pair from the sums over its pixels of g dx, g dy,
+    g dx^2, g dx dy and g dy^2, g = d/dpower: power = -(ca dx^2 + cc dy^2)/2 - cb dx dy,
+    dx = px - u, dy = py - v. (Summing per row and combining at each row's end, as before, took
+    a branch per record entry that mispredicts at every row end: about 3 % of the backward.)"""
+    return ca * sx + cb * sy, cb * sx + cc * sy, -0.5 * sxx, -sxy, -0.5 * syy
 
 
 @njit(cache=True)
@@ -768,16 +780,21 @@ def _forward_tile(
         c0 = splats[g, S_COLOR]
         c1 = splats[g, S_COLOR + 1 % n_ch]
         c2 = splats[g, S_COLOR + 2 % n_ch]
+        box = ((1 << (i1 + 1 - x0)) - 1) ^ ((1 << (i0 - x0)) - 1) if i0 <= i1 else 0
+        chord = cb * cb > CHORD_RHO2 * ca * cc
         if im0 == top:
             for j in range(j0, j1 + 1):
                 r = j - y0
                 if active_top[r] == 0:
                     continue
                 dy = j + 0.5 - v
-                a, b = _row_span(dy, half_u, cb, inv_ca, d_conic, e_cut, i0, i1)
-                if a > b:
-                    continue
-                live = active_top[r] & (((1 << (b + 1 - x0)) - 1) ^ ((1 << (a - x0)) - 1))
+                if chord:
+                    a, b = _row_span(dy, half_u, cb, inv_ca, d_conic, e_cut, i0, i1)
+                    if a > b:
+                        continue
+                    live = active_top[r] & (((1 << (b + 1 - x0)) - 1) ^ ((1 << (a - x0)) - 1))
+                else:
+                    live = active_top[r] & box
                 if live == 0:
                     continue
                 # Only from the first to the last pixel still compositing (the backward replays
@@ -1141,14 +1158,7 @@ def _replay_tile(
             continue
         g = ids[k]
         u, v, ca, cb, cc, o = _splat_shape(splats, g)
-        gu = 0.0
-        gv = 0.0
-        gca = 0.0
-        gcb = 0.0
-        gcc = 0.0
         go = 0.0
-        gu_top = 0.0
-        gv_top = 0.0
         for ch in range(n_ch):
             gcol[ch] = 0.0
         gc0 = 0.0
@@ -1157,28 +1167,24 @@ def _replay_tile(
         c0 = splats[g, S_COLOR]
         c1 = splats[g, S_COLOR + 1 % n_ch]
         c2 = splats[g, S_COLOR + 2 % n_ch]
-        r_cur = -1
-        dy = 0.0
-        s0 = 0.0
-        s1 = 0.0
-        s2 = 0.0
+        # Moments of g = d/dpower over the pair's pixels (see _moment_grads); each entry adds to
+        # them directly, so the loop has no branch at row ends.
+        sx = 0.0
+        sy = 0.0
+        sxx = 0.0
+        sxy = 0.0
+        syy = 0.0
+        fu = (x0 + 0.5) - u  # dx of the tile's first column
+        fv = (y0 + 0.5) - v
         if splats[g, S_LEVEL] > split:
             for e in range(rec_start[k], rec_start[k] + m):
                 q = np.int64(rec_pix[e])
                 r = q // TILE
                 col = q - r * TILE
-                if r != r_cur:
-                    if r_cur >= 0:
-                        du, dv, dca, dcb, dcc = _row_grads(ca, cb, cc, dy, s0, s1, s2)
-                        gu, gv, gca, gcb, gcc = gu + du, gv + dv, gca + dca, gcb + dcb, gcc + dcc
-                    r_cur = r
-                    dy = (y0 + r) + 0.5 - v
-                    s0 = 0.0
-                    s1 = 0.0
-                    s2 = 0.0
                 p = r * tw + col
                 alpha, keep, clamped = _record_alpha(rec_keep[e])
-                dx = (x0 + col) + 0.5 - u
+                dx = col + fu
+                dy = r + fv
                 inv = 1.0 / keep
                 T_before = T_top[p] * inv
                 w = alpha * T_before
@@ -1206,12 +1212,14 @@ def _replay_tile(
                     continue
                 g_pow = alpha * g_a  # d/dpower; d/dopacity is g_pow / o
                 go += g_pow
-                s0 += g_pow
-                g_dx = g_pow * dx
-                s1 += g_dx
-                s2 += g_dx * dx
-            du, dv, dca, dcb, dcc = _row_grads(ca, cb, cc, dy, s0, s1, s2)
-            gu, gv, gca, gcb, gcc = gu + du, gv + dv, gca + dca, gcb + dcb, gcc + dcc
+                gx = g_pow * dx
+                gy = g_pow * dy
+                sx += gx
+                sy += gy
+                sxx += gx * dx
+                sxy += gx * dy
+                syy += gy * dy
+            gu, gv, gca, gcb, gcc = _moment_grads(ca, cb, cc, sx, sy, sxx, sxy, syy)
             go /= o
             if n_ch == 3:
                 gcol[0] = gc0
@@ -1219,25 +1227,12 @@ def _replay_tile(
                 gcol[2] = gc2
             _write_slot(geo_isect, col_isect, slot + k, gu, gv, gca, gcb, gcc, go, gcol, gu, gv)
             continue
-        t0 = 0.0  # the same sums for the last image alone (its screen-space gradient)
-        t1 = 0.0
+        tx = 0.0  # the same moments for the last image alone (its screen-space gradient)
+        ty = 0.0
         for e in range(rec_start[k], rec_start[k] + m):
             q = np.int64(rec_pix[e])
             r = q // TILE
             col = q - r * TILE
-            if r != r_cur:
-                if r_cur >= 0:
-                    du, dv, dca, dcb, dcc = _row_grads(ca, cb, cc, dy, s0, s1, s2)
-                    gu, gv, gca, gcb, gcc = gu + du, gv + dv, gca + dca, gcb + dcb, gcc + dcc
-                    du, dv, _, _, _ = _row_grads(ca, cb, cc, dy, t0, t1, 0.0)
-                    gu_top, gv_top = gu_top + du, gv_top + dv
-                r_cur = r
-                dy = (y0 + r) + 0.5 - v
-                s0 = 0.0
-                s1 = 0.0
-                s2 = 0.0
-                t0 = 0.0
-                t1 = 0.0
             p = r * tw + col
             alpha, keep, clamped = _record_alpha(rec_keep[e])
             inv = 1.0 / keep
@@ -1274,20 +1269,22 @@ def _replay_tile(
                     g_top = g_a
             if clamped:
                 continue
-            dx = (x0 + col) + 0.5 - u
+            dx = col + fu
+            dy = r + fv
             g_pow = alpha * g_all  # d/dpower; d/dopacity is g_pow / o
             go += g_pow
-            s0 += g_pow
-            g_dx = g_pow * dx
-            s1 += g_dx
-            s2 += g_dx * dx
+            gx = g_pow * dx
+            gy = g_pow * dy
+            sx += gx
+            sy += gy
+            sxx += gx * dx
+            sxy += gx * dy
+            syy += gy * dy
             g_pow = alpha * g_top
-            t0 += g_pow
-            t1 += g_pow * dx
-        du, dv, dca, dcb, dcc = _row_grads(ca, cb, cc, dy, s0, s1, s2)
-        gu, gv, gca, gcb, gcc = gu + du, gv + dv, gca + dca, gcb + dcb, gcc + dcc
-        du, dv, _, _, _ = _row_grads(ca, cb, cc, dy, t0, t1, 0.0)
-        gu_top, gv_top = gu_top + du, gv_top + dv
+            tx += g_pow * dx
+            ty += g_pow * dy
+        gu, gv, gca, gcb, gcc = _moment_grads(ca, cb, cc, sx, sy, sxx, sxy, syy)
+        gu_top, gv_top, _, _, _ = _moment_grads(ca, cb, cc, tx, ty, 0.0, 0.0, 0.0)
         go /= o
         if n_ch == 3:
             gcol[0] = gc0
