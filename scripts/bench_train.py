@@ -722,7 +722,9 @@ def run(quick: bool = False, data: str | None = None) -> str:
         f"Raster only (the row above), {RASTER_INPUTS_COMMIT} (float64 copies of the float32 inputs, the input "
         "checks as torch operations, the depth sort gathering its keys in every pass) against this tree (the "
         "kernels read the float32 arrays in place, widening every load to float64; one compiled pass checks them; "
-        "the sort's keys travel with the indices and one pass counts every digit), min / median ms: old "
+        "the sort's keys travel with the indices and one pass counts every digit; from 0c6a277 also the box walk of "
+        "near-axis-aligned splats and the replay's moment sums, docs/BENCHMARKS.md 'Rasteriser kernels'), min / "
+        "median ms: old "
         f"{_fmt(raster_inputs['old'])}, new {_fmt(raster_inputs['new'])} "
         f"(x{np.median(raster_inputs['old']) / np.median(raster_inputs['new']):.2f}); "
         + ("image, alpha and every gradient bit-identical." if raster_inputs["identical"] else "**outputs differ**."),
