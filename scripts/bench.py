@@ -56,6 +56,7 @@ HEADINGS = {  # how each section's heading starts, to read the current page back
     # bench_render.py --against COMMIT --run RUN --one-image, with --section raster_trained=FILE
     "raster_trained": "## Rasteriser kernels, trained avatar",
     "raster_kernels": "## Rasteriser kernels",  # bench_render.py --against COMMIT, with --section raster_kernels=FILE
+    "memory": "## Freed memory kept by training processes",  # bench_memory.py, with --section memory=FILE
 }
 
 
@@ -103,7 +104,9 @@ def main(argv=None):
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
     wanted = SECTIONS if not args.only else [s.strip() for s in args.only.split(",") if s.strip() not in ("", "none")]
     parts = read_sections(args.out)  # sections not re-measured now are kept as they are
-    for name in wanted:
+    # The training section sets the process's malloc as training processes run (bench_train.run):
+    # it runs last so that no other section is measured under that setting.
+    for name in sorted(wanted, key=lambda n: n == "train"):
         t0 = time.perf_counter()
         try:
             mod = importlib.import_module(f"bench_{name}")

@@ -617,6 +617,9 @@ def run(quick: bool = False, data: str | None = None) -> str:
 
     from bench_common import header
 
+    from progressive_avatars.core.train.memory import retain_freed_memory
+
+    retained = retain_freed_memory()  # as scripts/train.py runs a training process (old and new alike)
     data = data or os.path.join(ROOT, "runs", "synthetic")
     if not os.path.exists(os.path.join(data, "transforms_train.json")):
         raise FileNotFoundError(f"{data}: no synthetic dataset; make it with scripts/make_synthetic.py --out {data}")
@@ -661,6 +664,14 @@ def run(quick: bool = False, data: str | None = None) -> str:
         "runs one old step then one new step; times are min / median ms over the reps",
         "- CPU ms: process CPU time (all threads) per iteration, min over the reps: less sensitive to "
         "waiting for the cores than wall time, though contention still inflates it",
+        "- malloc: "
+        + (
+            "freed memory kept for reuse (core/train/memory.py retain_freed_memory, as scripts/train.py sets it for "
+            "a training process), for old and new alike; its effect on its own: section 'Freed memory kept by "
+            "training processes'"
+            if retained
+            else "the C library's defaults (retain_freed_memory had no effect here)"
+        ),
         "- state: the initial avatar after a fixed split plan (children copy their parent's Gaussian), not a "
         "trained one: its Gaussians are larger and overlap more than trained ones, so rendering costs more; the "
         "*trained* rows step the working tree from a finished paper-scale run's checkpoint instead (its "

@@ -148,6 +148,9 @@ def main(argv=None):
     if args.threads is not None and args.threads < 1:
         print(f"error: --threads must be at least 1, got {args.threads}", file=sys.stderr)
         return 2
+    from progressive_avatars.core.train.memory import retain_freed_memory
+
+    retain_freed_memory()  # this process trains: freed arrays are reused by the next step
     dist = Dist.from_env(threads=args.threads)  # world size 1 without torchrun
     rc = _train(args, cfg, dist, t0)
     if rc == 0:  # after a failure the group is left to the process exit (a dead peer cannot say goodbye)

@@ -88,6 +88,9 @@ def main(argv=None) -> int:
     t.add_argument("--resume", action="store_true", help="continue RUN's unfinished training from its checkpoint")
     args = ap.parse_args(argv)
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    from .memory import retain_freed_memory
+
+    retain_freed_memory()  # the job owns its process (the add-on starts it)
     return _train(args)
 
 
