@@ -634,11 +634,12 @@ def run(quick: bool = False, data: str | None = None) -> str:
     if quick:
         cpu_plans = cpu_plans[1:2]
     for label, plan in cpu_plans:
-        rows.append(bench_steps(data, label, "all", plan, reps))
+        # 15-50 ms steps: five times the reps, so that one slow moment of the VM does not move the median
+        rows.append(bench_steps(data, label, "all", plan, 5 * reps))
         print(rows[-1]["label"], _fmt(rows[-1]["old"]), _fmt(rows[-1]["new"]), file=sys.stderr)
     paper_plan = [1.0, 1.0, 0.45, 0.12]  # levels 0-4, ~150k faces
     for sup in ("sampled", "all"):
-        rows.append(bench_steps(data, f"paper scale ({sup})", sup, paper_plan, max(2, reps // 2), 802))
+        rows.append(bench_steps(data, f"paper scale ({sup})", sup, paper_plan, reps, 802))
         print(rows[-1]["label"], _fmt(rows[-1]["old"]), _fmt(rows[-1]["new"]), file=sys.stderr)
     run_dir = trained_run()
     if run_dir is not None:
@@ -661,7 +662,8 @@ def run(quick: bool = False, data: str | None = None) -> str:
         f"({os.cpu_count()} cores, shared with other jobs: read the ratios, taken from interleaved runs, "
         "rather than the absolute times)",
         "- old = `git archive f6907ae core` imported as its own package in the same process; each rep "
-        "runs one old step then one new step; times are min / median ms over the reps",
+        f"runs one old step then one new step; times are min / median ms over the reps ({5 * reps} reps of the cpu "
+        f"preset rows, {reps} of the untrained paper-scale rows, {3 * reps} of the trained ones)",
         "- CPU ms: process CPU time (all threads) per iteration, min over the reps: less sensitive to "
         "waiting for the cores than wall time, though contention still inflates it",
         "- malloc: "
