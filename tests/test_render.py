@@ -80,6 +80,24 @@ def leaves(params, dtype=None):
 NAMES = ["means", "quats", "scales", "opacities", "colors", "background"]
 
 
+def assert_matches_reference(params, cam, wi, wa, image_tol, grad_tol, contrib_tol=None):
+    """Our render of ``params`` against the dense float64 reference: image (and contrib) within
+    the absolute tolerances, every gradient of sum(image * wi) + sum(alpha * wa) within grad_tol
+    relative. Returns our RenderOutput."""
+    ours = leaves(params)
+    out = render(*ours[:5], cam, ours[5])
+    ((out.image * wi).sum() + (out.alpha * wa).sum()).backward()
+    ref = leaves(params)
+    img, alpha, contrib = render_reference(*ref[:5], cam, ref[5])
+    assert float((out.image - img).detach().abs().max()) <= image_tol
+    if contrib_tol is not None:
+        assert torch.allclose(out.contrib, contrib, atol=contrib_tol)
+    ((img * wi).sum() + (alpha * wa).sum()).backward()
+    for name, a, b in zip(NAMES, ours, ref):
+        assert rel_err(a.grad, b.grad) <= grad_tol, name
+    return out
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_forward_matches_reference(dtype):
     cam, params = make_scene(0, dtype=dtype)
@@ -231,17 +249,8 @@ def test_early_termination_matches_reference():
             np.array([0.3, 0.3, 0.3]),
         )
     ]
-    wi, wa = loss_weights(7)
-    ours = leaves(params)
-    out = render(*ours[:5], cam, ours[5])
+    out = assert_matches_reference(params, cam, *loss_weights(7), image_tol=1e-4, grad_tol=1e-3)
     assert float(out.alpha.detach().max()) > 1 - 1e-3  # the stop rule is exercised
-    ((out.image * wi).sum() + (out.alpha * wa).sum()).backward()
-    ref = leaves(params)
-    img, alpha, _ = render_reference(*ref[:5], cam, ref[5])
-    assert float((out.image - img).detach().abs().max()) <= 1e-4
-    ((img * wi).sum() + (alpha * wa).sum()).backward()
-    for name, a, b in zip(NAMES, ours, ref):
-        assert rel_err(a.grad, b.grad) <= 1e-3, name
 
 
 def test_box_and_chord_walks_match_reference():
@@ -281,17 +290,7 @@ def test_box_and_chord_walks_match_reference():
     )[1]  # fmt: skip
     rho2 = conic[:, 1] ** 2 / (conic[:, 0] * conic[:, 2])
     assert (rho2 <= rk.CHORD_RHO2).sum() >= 10 and (rho2 > rk.CHORD_RHO2).sum() >= 10  # both walks
-    wi, wa = loss_weights(5)
-    ours = leaves(params)
-    out = render(*ours[:5], cam, ours[5])
-    ((out.image * wi).sum() + (out.alpha * wa).sum()).backward()
-    ref = leaves(params)
-    img, alpha, contrib = render_reference(*ref[:5], cam, ref[5])
-    assert float((out.image - img).detach().abs().max()) <= 1e-10
-    assert torch.allclose(out.contrib, contrib, atol=1e-10)
-    ((img * wi).sum() + (alpha * wa).sum()).backward()
-    for name, a, b in zip(NAMES, ours, ref):
-        assert rel_err(a.grad, b.grad) <= 1e-6, name
+    assert_matches_reference(params, cam, *loss_weights(5), image_tol=1e-10, grad_tol=1e-6, contrib_tol=1e-10)
 
 
 def test_contrib_is_gradient_of_image_wrt_constant_colour():

@@ -665,6 +665,14 @@ def _record_alpha(entry):
     return 1.0 - keep, keep, False
 
 
+@njit(cache=True, inline="always")
+def _add_moments(g, dx, dy, sx, sy, sxx, sxy, syy):
+    """The moments of _moment_grads with one pixel's g = d/dpower at (dx, dy) added."""
+    gx = g * dx
+    gy = g * dy
+    return sx + gx, sy + gy, sxx + gx * dx, sxy + gx * dy, syy + gy * dy
+
+
 @njit(cache=True)
 def _moment_grads(ca, cb, cc, sx, sy, sxx, sxy, syy):
     """d/du, d/dv and d/dconic (a, b, c) of a pair from the sums over its pixels of g dx, g dy,
@@ -1212,13 +1220,7 @@ def _replay_tile(
                     continue
                 g_pow = alpha * g_a  # d/dpower; d/dopacity is g_pow / o
                 go += g_pow
-                gx = g_pow * dx
-                gy = g_pow * dy
-                sx += gx
-                sy += gy
-                sxx += gx * dx
-                sxy += gx * dy
-                syy += gy * dy
+                sx, sy, sxx, sxy, syy = _add_moments(g_pow, dx, dy, sx, sy, sxx, sxy, syy)
             gu, gv, gca, gcb, gcc = _moment_grads(ca, cb, cc, sx, sy, sxx, sxy, syy)
             go /= o
             if n_ch == 3:
@@ -1273,13 +1275,7 @@ def _replay_tile(
             dy = r + fv
             g_pow = alpha * g_all  # d/dpower; d/dopacity is g_pow / o
             go += g_pow
-            gx = g_pow * dx
-            gy = g_pow * dy
-            sx += gx
-            sy += gy
-            sxx += gx * dx
-            sxy += gx * dy
-            syy += gy * dy
+            sx, sy, sxx, sxy, syy = _add_moments(g_pow, dx, dy, sx, sy, sxx, sxy, syy)
             g_pow = alpha * g_top
             tx += g_pow * dx
             ty += g_pow * dy
