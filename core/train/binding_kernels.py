@@ -39,6 +39,10 @@ from ..geometry.gaussians import Gaussians
 from ..render.kernels import _PARALLEL  # only explicit prange loops run in parallel
 from ..render.rasterize import float64_array, shared_array
 
+# Runs of roots the binding kernels take in parallel: each run makes its small scratch arrays once
+# rather than once per root (most roots of a young avatar are a single face).
+ROOT_CHUNKS = 64
+
 # Root rows: v0 (3), X (3), N (3), Z (3), L, a, b, good, eps (the flatness bound, _root_frame)
 _R_V0, _R_X, _R_N, _R_Z, _R_L, _R_A, _R_B, _R_GOOD, _R_EPS = 0, 3, 6, 9, 12, 13, 14, 15, 16
 _ROOT_ROWS = 17
@@ -405,29 +409,31 @@ def bind_forward(verts, tri, pack, order, root_start, W, d_mu, d_log_scale, d_ro
     in float64 and rounded once on the store when the outputs are float32. The residuals may be
     float32 or float64: every load is widened first, so both give the same bits."""
     F0 = tri.shape[0]
-    for root in prange(F0):
+    n_chunks = min(F0, ROOT_CHUNKS)
+    for chunk in prange(n_chunks):  # scratch made once per run of roots, not once per root
         r = np.empty((3, 3))
         qr = np.empty(4)
         qd = np.empty(4)
         qf = np.empty(4)
-        for k in range(root_start[root], root_start[root + 1]):
-            f = order[k]
-            sc, t0, t1, t2, _, _, _, _, _, _, _, _, _, _ = _face_frame(verts, tri, pack, root, f, W[f], r)
-            m0 = np.float64(d_mu[f, 0])
-            m1 = np.float64(d_mu[f, 1])
-            m2 = np.float64(d_mu[f, 2])
-            means[f, 0] = sc * (r[0, 0] * m0 + r[0, 1] * m1 + r[0, 2] * m2) + t0
-            means[f, 1] = sc * (r[1, 0] * m0 + r[1, 1] * m1 + r[1, 2] * m2) + t1
-            means[f, 2] = sc * (r[2, 0] * m0 + r[2, 1] * m1 + r[2, 2] * m2) + t2
-            for i in range(3):
-                scales[f, i] = sc * math.exp(np.float64(d_log_scale[f, i]))
-            _rotmat_to_quat(r, qr)
-            for i in range(4):
-                qd[i] = np.float64(d_rot[f, i])
-            _normalise_residual(qd)
-            _qmul(qr, qd, qf)
-            for i in range(4):
-                quats[f, i] = qf[i]
+        for root in range(F0 * chunk // n_chunks, F0 * (chunk + 1) // n_chunks):
+            for k in range(root_start[root], root_start[root + 1]):
+                f = order[k]
+                sc, t0, t1, t2, _, _, _, _, _, _, _, _, _, _ = _face_frame(verts, tri, pack, root, f, W[f], r)
+                m0 = np.float64(d_mu[f, 0])
+                m1 = np.float64(d_mu[f, 1])
+                m2 = np.float64(d_mu[f, 2])
+                means[f, 0] = sc * (r[0, 0] * m0 + r[0, 1] * m1 + r[0, 2] * m2) + t0
+                means[f, 1] = sc * (r[1, 0] * m0 + r[1, 1] * m1 + r[1, 2] * m2) + t1
+                means[f, 2] = sc * (r[2, 0] * m0 + r[2, 1] * m1 + r[2, 2] * m2) + t2
+                for i in range(3):
+                    scales[f, i] = sc * math.exp(np.float64(d_log_scale[f, i]))
+                _rotmat_to_quat(r, qr)
+                for i in range(4):
+                    qd[i] = np.float64(d_rot[f, i])
+                _normalise_residual(qd)
+                _qmul(qr, qd, qf)
+                for i in range(4):
+                    quats[f, i] = qf[i]
 
 
 @njit(parallel=_PARALLEL, cache=True)
@@ -441,186 +447,197 @@ def bind_backward(
     F0 = tri.shape[0]
     g_root = np.zeros((F0, 3, 3))
     gW = np.zeros((n, 3, 2))
-    for root in prange(F0):
+    n_chunks = min(F0, ROOT_CHUNKS)
+    for chunk in prange(n_chunks):  # scratch made once per run of roots, not once per root
         r = np.empty((3, 3))
         qr = np.empty(4)
         qd = np.empty(4)
         h = np.empty(4)
         tmp = np.empty(4)
         gq = np.empty(4)
-        G = np.zeros((3, 3))  # dL/d columns x, y, z
+        G = np.empty((3, 3))  # dL/d columns x, y, z
         dm = np.empty(3)
         gmv = np.empty(3)
-        acc = np.zeros(15)  # dL/d root rows v0, X, N, Z, L, a, b
-        g = pack[root]
-        good = g[_R_GOOD] != 0.0
-        for k in range(root_start[root], root_start[root + 1]):
-            f = order[k]
-            sc, t0, t1, t2, c, s, ell, p1, q1, p2, q2, cx, cz, proper = _face_frame(verts, tri, pack, root, f, W[f], r)
-            for i in range(3):
-                dm[i] = np.float64(d_mu[f, i])
-                gmv[i] = np.float64(g_means[f, i])
-            gm0 = gmv[0]
-            gm1 = gmv[1]
-            gm2 = gmv[2]
-            # scales = sc exp(dls)
-            gsc = 0.0
-            for i in range(3):
-                e = math.exp(np.float64(d_log_scale[f, i]))
-                gs_i = np.float64(g_scales[f, i])
-                gsc += gs_i * e
-                g_dls[f, i] = gs_i * sc * e
-            # means = sc r dmu + t
-            rd0 = r[0, 0] * dm[0] + r[0, 1] * dm[1] + r[0, 2] * dm[2]
-            rd1 = r[1, 0] * dm[0] + r[1, 1] * dm[1] + r[1, 2] * dm[2]
-            rd2 = r[2, 0] * dm[0] + r[2, 1] * dm[1] + r[2, 2] * dm[2]
-            gsc += gm0 * rd0 + gm1 * rd1 + gm2 * rd2
-            for j in range(3):
-                g_dmu[f, j] = sc * (r[0, j] * gm0 + r[1, j] * gm1 + r[2, j] * gm2)
-                for i in range(3):
-                    G[i, j] = sc * dm[j] * gmv[i]
-            # quats = q(r) x qd
-            _rotmat_to_quat(r, qr)
-            for i in range(4):
-                qd[i] = np.float64(d_rot[f, i])
-            # |d_rot| bounded below for the gradient only (it is 1/|d_rot|; 0 for a zero residual)
-            nd = _normalise_residual(qd)
-            nd = max(nd, 1e-12) if nd > 0 else math.inf
-            for i in range(4):
-                gq[i] = np.float64(g_quats[f, i])
-            # dL/dqd = conj(qr) x gq; d_rot: project off qd, divide by |d_rot|
-            tmp[0] = qr[0]
-            tmp[1] = -qr[1]
-            tmp[2] = -qr[2]
-            tmp[3] = -qr[3]
-            _qmul(tmp, gq, h)
-            dot = h[0] * qd[0] + h[1] * qd[1] + h[2] * qd[2] + h[3] * qd[3]
-            for i in range(4):
-                g_drot[f, i] = (h[i] - dot * qd[i]) / nd
-            if not good or not proper:
-                continue
-            # body-frame rotation gradient: g_w = vec(h x conj(qd)) / 2
-            tmp[0] = qd[0]
-            tmp[1] = -qd[1]
-            tmp[2] = -qd[2]
-            tmp[3] = -qd[3]
-            _qmul(h, tmp, gq)
-            gwx = 0.5 * gq[1]
-            gwy = 0.5 * gq[2]
-            gwz = 0.5 * gq[3]
-            for i in range(3):
-                G[i, 0] += gwz * r[i, 1]
-                G[i, 1] += gwx * r[i, 2]
-                G[i, 2] += gwy * r[i, 0]
-            # x = c X + s Z, y = N, z = c Z - s X; t = v0 + cx X + cz Z
-            gc = 0.0
-            gs = 0.0
-            gcx = 0.0
-            gcz = 0.0
-            for i in range(3):
-                X = g[_R_X + i]
-                Z = g[_R_Z + i]
-                gc += G[i, 0] * X + G[i, 2] * Z
-                gs += G[i, 0] * Z - G[i, 2] * X
-                acc[_R_X + i] += c * G[i, 0] - s * G[i, 2]
-                acc[_R_Z + i] += s * G[i, 0] + c * G[i, 2]
-                acc[_R_N + i] += G[i, 1]
-                gt = gmv[i]
-                acc[_R_V0 + i] += gt
-                acc[_R_X + i] += cx * gt
-                acc[_R_Z + i] += cz * gt
-                gcx += gt * X
-                gcz += gt * Z
-            # scale = (ell + |c q2 - s p2|) / 2 (unless clamped)
-            gell = 0.0
-            gp2 = 0.0
-            gq2 = 0.0
-            d = c * q2 - s * p2
-            if 0.5 * (ell + abs(d)) > MIN_SCALE:
-                gell = 0.5 * gsc
-                gd = 0.5 * gsc * (1.0 if d > 0 else (-1.0 if d < 0 else 0.0))
-                gc += gd * q2
-                gs -= gd * p2
-                gq2 = gd * c
-                gp2 = -gd * s
-            # (c, s) = (p1, q1) / ell
-            ge = gell - (gc * c + gs * s) / ell
-            gp1 = gc / ell + ge * c
-            gq1 = gs / ell + ge * s
-            L = g[_R_L]
-            a = g[_R_A]
-            b = g[_R_B]
-            Wf = W[f]
-            k1 = Wf[0, 0] + (Wf[1, 0] + Wf[2, 0]) / 3.0
-            k2 = Wf[0, 1] + (Wf[1, 1] + Wf[2, 1]) / 3.0
-            acc[_R_L] += gp1 * Wf[1, 0] + gp2 * Wf[2, 0] + gcx * k1
-            acc[_R_A] += gp1 * Wf[1, 1] + gp2 * Wf[2, 1] + gcx * k2
-            acc[_R_B] += gq1 * Wf[1, 1] + gq2 * Wf[2, 1] + gcz * k2
-            gk1 = gcx * L
-            gk2 = gcx * a + gcz * b
-            gW[f, 0, 0] = gk1
-            gW[f, 0, 1] = gk2
-            gW[f, 1, 0] = gp1 * L + gk1 / 3.0
-            gW[f, 1, 1] = gp1 * a + gq1 * b + gk2 / 3.0
-            gW[f, 2, 0] = gp2 * L + gk1 / 3.0
-            gW[f, 2, 1] = gp2 * a + gq2 * b + gk2 / 3.0
-        if not good:
-            continue
-        # root rows -> v0, E1, E2 -> vertices
-        i0 = tri[root, 0]
-        i1 = tri[root, 1]
-        i2 = tri[root, 2]
+        acc = np.empty(15)  # dL/d root rows v0, X, N, Z, L, a, b
         E1 = np.empty(3)
         E2 = np.empty(3)
-        for i in range(3):
-            E1[i] = verts[i1, i] - verts[i0, i]
-            E2[i] = verts[i2, i] - verts[i0, i]
-        X = g[_R_X : _R_X + 3]
-        Nv = g[_R_N : _R_N + 3]
-        Z = g[_R_Z : _R_Z + 3]
-        gX = acc[_R_X : _R_X + 3].copy()
-        gN = acc[_R_N : _R_N + 3].copy()
-        gZ = acc[_R_Z : _R_Z + 3]
-        gE1 = np.zeros(3)
-        gE2 = np.zeros(3)
-        ga = acc[_R_A]
-        gb = acc[_R_B]
-        for i in range(3):  # a = E2.X, b = E2.Z
-            gE2[i] += ga * X[i] + gb * Z[i]
-            gX[i] += ga * E2[i]
+        gX = np.empty(3)
+        gN = np.empty(3)
+        gE1 = np.empty(3)
+        gE2 = np.empty(3)
         gZt = np.empty(3)
-        for i in range(3):
-            gZt[i] = gZ[i] + gb * E2[i]
-        # Z = X x N
-        gX[0] += Nv[1] * gZt[2] - Nv[2] * gZt[1]
-        gX[1] += Nv[2] * gZt[0] - Nv[0] * gZt[2]
-        gX[2] += Nv[0] * gZt[1] - Nv[1] * gZt[0]
-        gN[0] += gZt[1] * X[2] - gZt[2] * X[1]
-        gN[1] += gZt[2] * X[0] - gZt[0] * X[2]
-        gN[2] += gZt[0] * X[1] - gZt[1] * X[0]
-        # N = n / |n|, n = E1 x E2
-        n0 = E1[1] * E2[2] - E1[2] * E2[1]
-        n1 = E1[2] * E2[0] - E1[0] * E2[2]
-        n2 = E1[0] * E2[1] - E1[1] * E2[0]
-        nn = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
-        dn = gN[0] * Nv[0] + gN[1] * Nv[1] + gN[2] * Nv[2]
-        gn0 = (gN[0] - dn * Nv[0]) / nn
-        gn1 = (gN[1] - dn * Nv[1]) / nn
-        gn2 = (gN[2] - dn * Nv[2]) / nn
-        gE1[0] += E2[1] * gn2 - E2[2] * gn1
-        gE1[1] += E2[2] * gn0 - E2[0] * gn2
-        gE1[2] += E2[0] * gn1 - E2[1] * gn0
-        gE2[0] += gn1 * E1[2] - gn2 * E1[1]
-        gE2[1] += gn2 * E1[0] - gn0 * E1[2]
-        gE2[2] += gn0 * E1[1] - gn1 * E1[0]
-        # X = E1 / L, L = |E1|
-        L = g[_R_L]
-        dx = gX[0] * X[0] + gX[1] * X[1] + gX[2] * X[2]
-        for i in range(3):
-            gE1[i] += (gX[i] - dx * X[i]) / L + acc[_R_L] * X[i]
-            g_root[root, 0, i] = acc[_R_V0 + i] - gE1[i] - gE2[i]
-            g_root[root, 1, i] = gE1[i]
-            g_root[root, 2, i] = gE2[i]
+        for root in range(F0 * chunk // n_chunks, F0 * (chunk + 1) // n_chunks):
+            G[:] = 0.0
+            acc[:] = 0.0
+            g = pack[root]
+            good = g[_R_GOOD] != 0.0
+            for k in range(root_start[root], root_start[root + 1]):
+                f = order[k]
+                sc, t0, t1, t2, c, s, ell, p1, q1, p2, q2, cx, cz, proper = _face_frame(
+                    verts, tri, pack, root, f, W[f], r
+                )
+                for i in range(3):
+                    dm[i] = np.float64(d_mu[f, i])
+                    gmv[i] = np.float64(g_means[f, i])
+                gm0 = gmv[0]
+                gm1 = gmv[1]
+                gm2 = gmv[2]
+                # scales = sc exp(dls)
+                gsc = 0.0
+                for i in range(3):
+                    e = math.exp(np.float64(d_log_scale[f, i]))
+                    gs_i = np.float64(g_scales[f, i])
+                    gsc += gs_i * e
+                    g_dls[f, i] = gs_i * sc * e
+                # means = sc r dmu + t
+                rd0 = r[0, 0] * dm[0] + r[0, 1] * dm[1] + r[0, 2] * dm[2]
+                rd1 = r[1, 0] * dm[0] + r[1, 1] * dm[1] + r[1, 2] * dm[2]
+                rd2 = r[2, 0] * dm[0] + r[2, 1] * dm[1] + r[2, 2] * dm[2]
+                gsc += gm0 * rd0 + gm1 * rd1 + gm2 * rd2
+                for j in range(3):
+                    g_dmu[f, j] = sc * (r[0, j] * gm0 + r[1, j] * gm1 + r[2, j] * gm2)
+                    for i in range(3):
+                        G[i, j] = sc * dm[j] * gmv[i]
+                # quats = q(r) x qd
+                _rotmat_to_quat(r, qr)
+                for i in range(4):
+                    qd[i] = np.float64(d_rot[f, i])
+                # |d_rot| bounded below for the gradient only (it is 1/|d_rot|; 0 for a zero residual)
+                nd = _normalise_residual(qd)
+                nd = max(nd, 1e-12) if nd > 0 else math.inf
+                for i in range(4):
+                    gq[i] = np.float64(g_quats[f, i])
+                # dL/dqd = conj(qr) x gq; d_rot: project off qd, divide by |d_rot|
+                tmp[0] = qr[0]
+                tmp[1] = -qr[1]
+                tmp[2] = -qr[2]
+                tmp[3] = -qr[3]
+                _qmul(tmp, gq, h)
+                dot = h[0] * qd[0] + h[1] * qd[1] + h[2] * qd[2] + h[3] * qd[3]
+                for i in range(4):
+                    g_drot[f, i] = (h[i] - dot * qd[i]) / nd
+                if not good or not proper:
+                    continue
+                # body-frame rotation gradient: g_w = vec(h x conj(qd)) / 2
+                tmp[0] = qd[0]
+                tmp[1] = -qd[1]
+                tmp[2] = -qd[2]
+                tmp[3] = -qd[3]
+                _qmul(h, tmp, gq)
+                gwx = 0.5 * gq[1]
+                gwy = 0.5 * gq[2]
+                gwz = 0.5 * gq[3]
+                for i in range(3):
+                    G[i, 0] += gwz * r[i, 1]
+                    G[i, 1] += gwx * r[i, 2]
+                    G[i, 2] += gwy * r[i, 0]
+                # x = c X + s Z, y = N, z = c Z - s X; t = v0 + cx X + cz Z
+                gc = 0.0
+                gs = 0.0
+                gcx = 0.0
+                gcz = 0.0
+                for i in range(3):
+                    X = g[_R_X + i]
+                    Z = g[_R_Z + i]
+                    gc += G[i, 0] * X + G[i, 2] * Z
+                    gs += G[i, 0] * Z - G[i, 2] * X
+                    acc[_R_X + i] += c * G[i, 0] - s * G[i, 2]
+                    acc[_R_Z + i] += s * G[i, 0] + c * G[i, 2]
+                    acc[_R_N + i] += G[i, 1]
+                    gt = gmv[i]
+                    acc[_R_V0 + i] += gt
+                    acc[_R_X + i] += cx * gt
+                    acc[_R_Z + i] += cz * gt
+                    gcx += gt * X
+                    gcz += gt * Z
+                # scale = (ell + |c q2 - s p2|) / 2 (unless clamped)
+                gell = 0.0
+                gp2 = 0.0
+                gq2 = 0.0
+                d = c * q2 - s * p2
+                if 0.5 * (ell + abs(d)) > MIN_SCALE:
+                    gell = 0.5 * gsc
+                    gd = 0.5 * gsc * (1.0 if d > 0 else (-1.0 if d < 0 else 0.0))
+                    gc += gd * q2
+                    gs -= gd * p2
+                    gq2 = gd * c
+                    gp2 = -gd * s
+                # (c, s) = (p1, q1) / ell
+                ge = gell - (gc * c + gs * s) / ell
+                gp1 = gc / ell + ge * c
+                gq1 = gs / ell + ge * s
+                L = g[_R_L]
+                a = g[_R_A]
+                b = g[_R_B]
+                Wf = W[f]
+                k1 = Wf[0, 0] + (Wf[1, 0] + Wf[2, 0]) / 3.0
+                k2 = Wf[0, 1] + (Wf[1, 1] + Wf[2, 1]) / 3.0
+                acc[_R_L] += gp1 * Wf[1, 0] + gp2 * Wf[2, 0] + gcx * k1
+                acc[_R_A] += gp1 * Wf[1, 1] + gp2 * Wf[2, 1] + gcx * k2
+                acc[_R_B] += gq1 * Wf[1, 1] + gq2 * Wf[2, 1] + gcz * k2
+                gk1 = gcx * L
+                gk2 = gcx * a + gcz * b
+                gW[f, 0, 0] = gk1
+                gW[f, 0, 1] = gk2
+                gW[f, 1, 0] = gp1 * L + gk1 / 3.0
+                gW[f, 1, 1] = gp1 * a + gq1 * b + gk2 / 3.0
+                gW[f, 2, 0] = gp2 * L + gk1 / 3.0
+                gW[f, 2, 1] = gp2 * a + gq2 * b + gk2 / 3.0
+            if not good:
+                continue
+            # root rows -> v0, E1, E2 -> vertices
+            i0 = tri[root, 0]
+            i1 = tri[root, 1]
+            i2 = tri[root, 2]
+            for i in range(3):
+                E1[i] = verts[i1, i] - verts[i0, i]
+                E2[i] = verts[i2, i] - verts[i0, i]
+            X = g[_R_X : _R_X + 3]
+            Nv = g[_R_N : _R_N + 3]
+            Z = g[_R_Z : _R_Z + 3]
+            for i in range(3):
+                gX[i] = acc[_R_X + i]
+                gN[i] = acc[_R_N + i]
+            gZ = acc[_R_Z : _R_Z + 3]
+            gE1[:] = 0.0
+            gE2[:] = 0.0
+            ga = acc[_R_A]
+            gb = acc[_R_B]
+            for i in range(3):  # a = E2.X, b = E2.Z
+                gE2[i] += ga * X[i] + gb * Z[i]
+                gX[i] += ga * E2[i]
+            for i in range(3):
+                gZt[i] = gZ[i] + gb * E2[i]
+            # Z = X x N
+            gX[0] += Nv[1] * gZt[2] - Nv[2] * gZt[1]
+            gX[1] += Nv[2] * gZt[0] - Nv[0] * gZt[2]
+            gX[2] += Nv[0] * gZt[1] - Nv[1] * gZt[0]
+            gN[0] += gZt[1] * X[2] - gZt[2] * X[1]
+            gN[1] += gZt[2] * X[0] - gZt[0] * X[2]
+            gN[2] += gZt[0] * X[1] - gZt[1] * X[0]
+            # N = n / |n|, n = E1 x E2
+            n0 = E1[1] * E2[2] - E1[2] * E2[1]
+            n1 = E1[2] * E2[0] - E1[0] * E2[2]
+            n2 = E1[0] * E2[1] - E1[1] * E2[0]
+            nn = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+            dn = gN[0] * Nv[0] + gN[1] * Nv[1] + gN[2] * Nv[2]
+            gn0 = (gN[0] - dn * Nv[0]) / nn
+            gn1 = (gN[1] - dn * Nv[1]) / nn
+            gn2 = (gN[2] - dn * Nv[2]) / nn
+            gE1[0] += E2[1] * gn2 - E2[2] * gn1
+            gE1[1] += E2[2] * gn0 - E2[0] * gn2
+            gE1[2] += E2[0] * gn1 - E2[1] * gn0
+            gE2[0] += gn1 * E1[2] - gn2 * E1[1]
+            gE2[1] += gn2 * E1[0] - gn0 * E1[2]
+            gE2[2] += gn0 * E1[1] - gn1 * E1[0]
+            # X = E1 / L, L = |E1|
+            L = g[_R_L]
+            dx = gX[0] * X[0] + gX[1] * X[1] + gX[2] * X[2]
+            for i in range(3):
+                gE1[i] += (gX[i] - dx * X[i]) / L + acc[_R_L] * X[i]
+                g_root[root, 0, i] = acc[_R_V0 + i] - gE1[i] - gE2[i]
+                g_root[root, 1, i] = gE1[i]
+                g_root[root, 2, i] = gE2[i]
     return g_root, gW
 
 
