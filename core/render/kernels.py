@@ -30,13 +30,13 @@ tiles are interleaved first (_spread_tiles) so that each static share sees all o
 
 Work per tile is trimmed twice: a tilted Gaussian visits only the chord of its ellipse on
 each row (not its bounding box), cut to the pixels still compositing (per-row bit masks; rows
-whose pixels have all stopped are skipped). An ellipse close to axis-aligned (cb^2 <= CHORD_RHO2
-ca cc: its box is at most 1.41 chords wide) walks its box row instead when it is the last
-image's alone: the few pixels more cost less than the square root and the branches of a chord
-per row (docs/BENCHMARKS.md, "Rasteriser kernels"); the nested-image walk keeps the chords,
-whose skipped pixels each cost a pass over the images. The backward walks nothing: the forward records
-every composited (Gaussian, pixel) pair with its 1 - alpha, and the backward replays those
-pairs back to front (raster_forward's record, raster_backward).
+whose pixels have all stopped are skipped). An ellipse close to axis-aligned (cb^2 <=
+CHORD_RHO2 ca cc: its box is at most 1.41 chords wide) walks its box row instead when it is
+the last image's alone: the few pixels more cost less than the square root and the branches of
+a chord per row (docs/BENCHMARKS.md, "Rasteriser kernels"); the nested-image walk keeps the
+chords, whose skipped pixels each cost a pass over the images. The backward walks nothing: the
+forward records every composited (Gaussian, pixel) pair with its 1 - alpha, and the backward
+replays those pairs back to front (raster_forward's record, raster_backward).
 
 The tile kernels read the Gaussians as packed rows (pack_splats: two cache lines per Gaussian
 instead of one line in each of seven arrays), grouped by screen tile so that neighbouring
@@ -577,11 +577,10 @@ def _row_start(dy, u, ca, cb, cc, a):
     exps per row (and exp(-ca) per Gaussian) instead of one per pixel. With eps2d > 0 the conic
     is bounded (ca <= 1/eps2d) and a walk stays inside one tile row, so nothing overflows: a walk
     starts on its row's chord or, for an ellipse walked by its box (_forward_tile), inside that
-    box, where power >= -ln(255) 2 (1 + rho) / (1 - rho^2) >= -38 (rho^2 <= CHORD_RHO2; exp
-    underflows below -745); the product
-    drifts by a few ulps over a tile row. power <= 0 for a positive definite conic, so
-    alpha = o * exp(power) < 1/255 is the whole cut-off test. Only the forward walks rows: the
-    backward replays the values it recorded.
+    box, where power >= -2 ln(255) / (1 - rho) >= -38 (rho^2 <= CHORD_RHO2; exp underflows only
+    below -745); the product drifts by a few ulps over a tile row. power <= 0 for a positive
+    definite conic, so alpha = o * exp(power) < 1/255 is the whole cut-off test. Only the
+    forward walks rows: the backward replays the values it recorded.
     """
     p_base = -0.5 * cc * dy * dy
     p_lin = -cb * dy
