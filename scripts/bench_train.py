@@ -634,7 +634,7 @@ def run(quick: bool = False, data: str | None = None) -> str:
     if quick:
         cpu_plans = cpu_plans[1:2]
     for label, plan in cpu_plans:
-        # 15-50 ms steps: five times the reps, so that one slow moment of the VM does not move the median
+        # short steps (tens of ms): five times the reps, so that one slow moment of the VM does not move the median
         rows.append(bench_steps(data, label, "all", plan, 5 * reps))
         print(rows[-1]["label"], _fmt(rows[-1]["old"]), _fmt(rows[-1]["new"]), file=sys.stderr)
     paper_plan = [1.0, 1.0, 0.45, 0.12]  # levels 0-4, ~150k faces

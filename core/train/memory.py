@@ -5,8 +5,8 @@ A training step allocates and frees the same large arrays every iteration: the r
 projection outputs, splat rows and per-Gaussian gradient rows, the binding's outputs, torch's
 autograd buffers (each a few to tens of MB at the paper's scale). With glibc's default malloc
 settings many of them come back as fresh pages from the kernel on every step and fault in
-again: 6,000-30,000 page faults and 15-65 ms of system CPU per paper-scale step on the 2-core
-VM (docs/BENCHMARKS.md, "Freed memory kept by training processes"). Keeping freed memory in the
+again: tens of thousands of page faults per paper-scale step, tens of ms of system CPU
+(docs/BENCHMARKS.md, "Freed memory kept by training processes"). Keeping freed memory in the
 process for the next step removes most of that.
 """
 
