@@ -308,8 +308,12 @@ def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.
         means, quats, scales, opac, Rc, tc, fx, fy, cx, cy, lim, W, H, near, eps2d
     )
     mark("project_forward")
+    # depth_order and splat_rows sort parts at once since 2026-11-27 (rasterize.py passes its
+    # thread count); before, one thread sorted
+    parts = hasattr(rk, "depth_order") and "parts" in inspect.signature(rk.depth_order.py_func).parameters
+    parts = (numba.get_num_threads(),) if parts else ()
     if hasattr(rk, "depth_order"):
-        order = rk.depth_order(depth, radii != 0)
+        order = rk.depth_order(depth, radii != 0, *parts)
     else:  # kernels before the radix sort: rasterize.py sorted with numpy
         visible = np.flatnonzero(radii != 0)
         order = visible[np.argsort(depth[visible], kind="stable")].astype(np.int64)
@@ -323,7 +327,7 @@ def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.
     packed = hasattr(rk, "pack_splats")  # kernels that read packed splat rows (since c0bb2c0)
     if packed:
         n_ch = colors.shape[1]
-        row_of, gaussian = rk.splat_rows(order, rect, tiles_x, -(-H // rk.TILE))
+        row_of, gaussian = rk.splat_rows(order, rect, tiles_x, -(-H // rk.TILE), *parts)
         splats = rk.pack_splats(
             gaussian, xy, conic, opac, cut, colors, rect, glevel, rk.aligned_splats(len(order), n_ch)
         )
@@ -387,11 +391,17 @@ def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.
             grad_image, grad_alpha, W, H, tiles_x, glevel, upto,
         )  # fmt: skip
     mark("raster_backward")
-    g_means, g_quats, g_scales = rk.project_backward(
+    proj_args = (
         means, quats, scales, Rc, tc, fx, fy, lim, eps2d, radii,
         np.ascontiguousarray(grads[:, rk.G_U : rk.G_V + 1]), np.ascontiguousarray(grads[:, rk.G_CA : rk.G_CC + 1]),
         np.zeros(len(means)),
     )  # fmt: skip
+    if "g_means" in inspect.signature(rk.project_backward.py_func).parameters:
+        # kernels since 2026-11-27 write into the caller's arrays, in the dtype training wants
+        g_means, g_quats, g_scales = (np.empty((len(means), k), means.dtype) for k in (3, 4, 3))
+        rk.project_backward(*proj_args, g_means, g_quats, g_scales)
+    else:
+        g_means, g_quats, g_scales = rk.project_backward(*proj_args)
     mark("project_backward")
     g_colors = grads[:, rk.G_COLOR : rk.G_COLOR + colors.shape[1]]
     one = len(upto) == 1 and glevel.max() == 0

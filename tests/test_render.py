@@ -544,8 +544,9 @@ def test_depth_order_is_numpys_stable_argsort():
         depth[::5] = depth[0] if n else 0.0
         keep = rng.random(n) < 0.8
         expected = np.flatnonzero(keep)[np.argsort(depth[keep], kind="stable")]
-        got = rk.depth_order(depth, keep)
-        assert got.dtype == np.int64 and np.array_equal(got, expected), n
+        for parts in (1, 2, 3, 8):  # parts sort at once; any split gives the one stable order
+            got = rk.depth_order(depth, keep, parts)
+            assert got.dtype == np.int64 and np.array_equal(got, expected), (n, parts)
 
 
 def test_splat_rows_and_tile_lists():
@@ -572,6 +573,9 @@ def test_splat_rows_and_tile_lists():
 
     row_of, gaussian = rk.splat_rows(order, rect, tiles_x, tiles_y)
     assert np.array_equal(np.sort(row_of), np.arange(m)) and np.array_equal(gaussian[row_of], order)
+    for parts in (2, 3, 16):  # slices of the depth order grouped at once: the same rows
+        rows_p, gaussian_p = rk.splat_rows(order, rect, tiles_x, tiles_y, parts)
+        assert np.array_equal(rows_p, row_of) and np.array_equal(gaussian_p, gaussian), parts
     centre = ((rect[:, 1] + rect[:, 3]) // 2 // rk.TILE) * tiles_x + (rect[:, 0] + rect[:, 2]) // 2 // rk.TILE
     key = centre[gaussian]  # the group of each row
     assert np.all(np.diff(key) >= 0)  # rows grouped by centre tile

@@ -191,10 +191,13 @@ def _camera_factor(q, s, Rc, R, Mc):
     q2 = np.float64(q[2])
     q3 = np.float64(q[3])
     qn = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
-    w = q0 / qn
-    x = q1 / qn
-    y = q2 / qn
-    z = q3 / qn
+    # One division and four products, not four divisions: divisions are most of the
+    # projection kernels' latency (within an ulp of q/|q|).
+    inv = 1.0 / qn
+    w = q0 * inv
+    x = q1 * inv
+    y = q2 * inv
+    z = q3 * inv
     R[0, 0] = 1.0 - 2.0 * (y * y + z * z)
     R[0, 1] = 2.0 * (x * y - w * z)
     R[0, 2] = 2.0 * (x * z + w * y)
@@ -248,7 +251,8 @@ def _project_one(
     radii,
     cut,
 ):
-    """One Gaussian of project_forward (R, Mc: scratch)."""
+    """One Gaussian of project_forward (R, Mc: scratch); False where it is culled (then only
+    its depth is written)."""
     mx, my, mz = np.float64(means[g, 0]), np.float64(means[g, 1]), np.float64(means[g, 2])
     px = Rc[0, 0] * mx + Rc[0, 1] * my + Rc[0, 2] * mz + tc[0]
     py = Rc[1, 0] * mx + Rc[1, 1] * my + Rc[1, 2] * mz + tc[1]
@@ -256,7 +260,7 @@ def _project_one(
     depth[g] = pz
     o = np.float64(opacities[g])
     if not (pz >= near) or not (o >= ALPHA_MIN):
-        return
+        return False
     _camera_factor(quats[g], scales[g], Rc, R, Mc)
     j00, j02, j11, j12, _, _, _, _ = _jacobian(px, py, pz, fx, fy, lim)
     a = eps2d
@@ -270,9 +274,10 @@ def _project_one(
         c += r1 * r1
     det = a * c - b * b
     if not (det > 0.0) or not math.isfinite(det):
-        return
-    u = fx * px / pz + cx
-    v = fy * py / pz + cy
+        return False
+    rz = 1.0 / pz
+    u = fx * px * rz + cx
+    v = fy * py * rz + cy
     level = math.log(255.0 * o)
     reach = math.sqrt(2.0 * level) * _BOX_SLACK
     ex = reach * math.sqrt(a)
@@ -287,31 +292,47 @@ def _project_one(
     j0 = max(0, int(math.ceil(lo_y)))
     j1 = min(height - 1, int(math.floor(hi_y)))
     if i0 > i1 or j0 > j1:
-        return
+        return False
     xy[g, 0] = u
     xy[g, 1] = v
-    conic[g, 0] = c / det
-    conic[g, 1] = -b / det
-    conic[g, 2] = a / det
+    inv_det = 1.0 / det
+    conic[g, 0] = c * inv_det
+    conic[g, 1] = -b * inv_det
+    conic[g, 2] = a * inv_det
     rect[g, 0] = i0
     rect[g, 1] = j0
     rect[g, 2] = i1
     rect[g, 3] = j1
     radii[g] = int(math.ceil(min(max(ex, ey), 1e9)))
     cut[g] = -level
+    return True
 
 
 # check_gaussians' bits: what render refuses in the Gaussians' values.
 BAD_MEANS, BAD_QUATS, ZERO_QUATS, BAD_SCALES, BAD_OPACITIES, BAD_COLORS = 1, 2, 4, 8, 16, 32
 
 
-@njit(cache=True)
+@njit(parallel=_PARALLEL, cache=True)
 def check_gaussians(means, quats, scales, opacities, colors):
     """One pass over the render inputs: the bits of the tests that fail (non-finite means, quats,
     scales or colours; a quaternion whose squared norm, in float64, is <= 1e-24; scales <= 0;
-    opacities outside [0, 1], NaN included)."""
+    opacities outside [0, 1], NaN included). Blocks of Gaussians in parallel, their bits or-ed."""
+    n = means.shape[0]
+    nb = (n + BLOCK - 1) // BLOCK
+    block_flags = np.zeros(nb, np.int64)
+    for blk in prange(nb):
+        block_flags[blk] = _check_block(means, quats, scales, opacities, colors, blk * BLOCK, min(n, (blk + 1) * BLOCK))
     flags = 0
-    for g in range(means.shape[0]):
+    for blk in range(nb):
+        flags |= block_flags[blk]
+    return flags
+
+
+@njit(cache=True)
+def _check_block(means, quats, scales, opacities, colors, lo, hi):
+    """check_gaussians' bits of Gaussians lo..hi-1."""
+    flags = 0
+    for g in range(lo, hi):
         for k in range(3):
             if not math.isfinite(means[g, k]):
                 flags |= BAD_MEANS
@@ -342,17 +363,19 @@ def project_forward(means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, lim
     cut[g] = -ln(255 o), the exponent below which alpha < 1/255.
     """
     n = means.shape[0]
-    xy = np.zeros((n, 2))
-    conic = np.zeros((n, 3))
-    depth = np.zeros(n)
-    rect = np.zeros((n, 4), np.int32)
-    radii = np.zeros(n, np.int32)
-    cut = np.zeros(n)
+    # Uninitialised, each row written once below (zeros for a culled Gaussian): zero-filled
+    # arrays were ~13 MB of serial memset in front of the parallel loop at 170k Gaussians.
+    xy = np.empty((n, 2))
+    conic = np.empty((n, 3))
+    depth = np.empty(n)
+    rect = np.empty((n, 4), np.int32)
+    radii = np.empty(n, np.int32)
+    cut = np.empty(n)
     for blk in prange((n + BLOCK - 1) // BLOCK):
         R = np.empty((3, 3))
         Mc = np.empty((3, 3))
         for g in range(blk * BLOCK, min(n, (blk + 1) * BLOCK)):
-            _project_one(
+            if not _project_one(
                 g,
                 means,
                 quats,
@@ -377,88 +400,139 @@ def project_forward(means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, lim
                 rect,
                 radii,
                 cut,
-            )
+            ):
+                xy[g, 0] = xy[g, 1] = 0.0
+                conic[g, 0] = conic[g, 1] = conic[g, 2] = 0.0
+                rect[g, 0] = rect[g, 1] = rect[g, 2] = rect[g, 3] = 0
+                radii[g] = 0
+                cut[g] = 0.0
     return xy, conic, depth, rect, radii, cut
 
 
 @njit(cache=True)
-def depth_order(depth, keep):
+def _digit_counts(key, lo, hi, shift, counts):
+    """counts[d] = how many of key[lo:hi] have (key >> shift) & 2047 == d."""
+    counts[:] = 0
+    for q in range(lo, hi):
+        counts[(key[q] >> shift) & np.uint64(2047)] += 1
+
+
+@njit(parallel=_PARALLEL, cache=True)
+def depth_order(depth, keep, parts=1):
     """Indices g with keep[g], ascending in depth[g], ties in index order: the same as
     ``np.flatnonzero(keep)[np.argsort(depth[keep], kind="stable")]``, for depths > 0 (a kept
     Gaussian lies beyond the near plane). LSD radix sort on the float64 bits, which order
     positive floats as their values, 11 bits a pass; passes where every key has the same
     digit are skipped (depths share their sign and most exponent bits). The keys travel with
-    the indices, so each pass reads them in sequence, and one pass counts every digit."""
+    the indices, so each pass reads them in sequence.
+
+    Each pass runs on ``parts`` contiguous parts at once (the caller passes its thread count):
+    every part counts its digits and scatters its keys after the parts before it within each
+    digit, which keeps the sort stable, so the result is the same for any number of parts (the
+    serial sort was ~4 % of a render at 2 threads, on one of them)."""
+    n = keep.shape[0]
+    parts = max(1, min(parts, n))
+    span = (n + parts - 1) // parts
+    kept = np.zeros(parts, np.int64)
+    for c in prange(parts):
+        for g in range(c * span, min(n, (c + 1) * span)):
+            if keep[g]:
+                kept[c] += 1
     m = 0
-    for g in range(keep.shape[0]):
-        if keep[g]:
-            m += 1
+    first = np.empty(parts, np.int64)
+    for c in range(parts):
+        first[c] = m
+        m += kept[c]
     order = np.empty(m, np.int64)
     key = np.empty(m, np.uint64)
     bits = depth.view(np.uint64)
-    m = 0
-    for g in range(keep.shape[0]):
-        if keep[g]:
-            order[m] = g
-            key[m] = bits[g]
-            m += 1
+    for c in prange(parts):
+        i = first[c]
+        for g in range(c * span, min(n, (c + 1) * span)):
+            if keep[g]:
+                order[i] = g
+                key[i] = bits[g]
+                i += 1
     if m < 2:
         return order
-    count = np.zeros((6, 2048), np.int64)
-    for q in range(m):
-        k = key[q]
-        for p in range(6):
-            count[p, (k >> np.uint64(11 * p)) & np.uint64(2047)] += 1
+    parts = max(1, min(parts, m))
+    span = (m + parts - 1) // parts
+    counts = np.zeros((parts, 2048), np.int64)
+    # Which passes sort anything: a digit position where one digit holds every key is skipped.
+    varies = np.zeros(6, np.bool_)
+    k0 = key[0]
+    for p in range(6):
+        shift = np.uint64(11 * p)
+        d0 = (k0 >> shift) & np.uint64(2047)
+        for q in range(m):
+            if (key[q] >> shift) & np.uint64(2047) != d0:
+                varies[p] = True
+                break
     spare = np.empty(m, np.int64)
     spare_key = np.empty(m, np.uint64)
     for p in range(6):
-        if count[p].max() == m:
+        if not varies[p]:
             continue
+        shift = np.uint64(11 * p)
+        for c in prange(parts):
+            _digit_counts(key, c * span, min(m, (c + 1) * span), shift, counts[c])
         total = 0
         for d in range(2048):
-            c = count[p, d]
-            count[p, d] = total
-            total += c
-        shift = np.uint64(11 * p)
-        for q in range(m):
-            k = key[q]
-            d = (k >> shift) & np.uint64(2047)
-            r = count[p, d]
-            count[p, d] = r + 1
-            spare[r] = order[q]
-            spare_key[r] = k
+            for c in range(parts):
+                x = counts[c, d]
+                counts[c, d] = total
+                total += x
+        for c in prange(parts):
+            for q in range(c * span, min(m, (c + 1) * span)):
+                k = key[q]
+                d = (k >> shift) & np.uint64(2047)
+                r = counts[c, d]
+                counts[c, d] = r + 1
+                spare[r] = order[q]
+                spare_key[r] = k
         order, spare = spare, order
         key, spare_key = spare_key, key
     return order
 
 
-@njit(cache=True)
-def splat_rows(order, rect, tiles_x, tiles_y):
+@njit(parallel=_PARALLEL, cache=True)
+def splat_rows(order, rect, tiles_x, tiles_y, parts=1):
     """Where pack_splats puts each visible Gaussian: grouped by the tile that holds the centre
     of its pixel box, front to back within a group. Returns row_of [m] (the row of the Gaussian
     of depth rank q, order[q]) and gaussian [m] (the Gaussian of each row).
 
     A tile's Gaussians are spread over the whole depth order, so rows in depth order would
     put every pair of a tile in a different part of memory; grouped by screen position, a
-    tile and its neighbours read a few contiguous runs of rows instead."""
+    tile and its neighbours read a few contiguous runs of rows instead. A stable counting sort
+    on ``parts`` contiguous slices of the depth order at once (as depth_order): the same rows
+    for any number of parts."""
     m = order.shape[0]
-    start = np.zeros(tiles_x * tiles_y + 1, np.int64)
+    n_tiles = tiles_x * tiles_y
+    parts = max(1, min(parts, m))
+    span = (m + parts - 1) // parts
+    counts = np.zeros((parts, n_tiles), np.int64)
     key = np.empty(m, np.int64)
-    for q in range(m):
-        g = order[q]
-        tx = min((rect[g, 0] + rect[g, 2]) // 2 // TILE, tiles_x - 1)
-        ty = min((rect[g, 1] + rect[g, 3]) // 2 // TILE, tiles_y - 1)
-        key[q] = ty * tiles_x + tx
-        start[key[q] + 1] += 1
-    for t in range(tiles_x * tiles_y):
-        start[t + 1] += start[t]
+    for c in prange(parts):
+        for q in range(c * span, min(m, (c + 1) * span)):
+            g = order[q]
+            tx = min((rect[g, 0] + rect[g, 2]) // 2 // TILE, tiles_x - 1)
+            ty = min((rect[g, 1] + rect[g, 3]) // 2 // TILE, tiles_y - 1)
+            key[q] = ty * tiles_x + tx
+            counts[c, key[q]] += 1
+    total = 0
+    for t in range(n_tiles):
+        for c in range(parts):
+            x = counts[c, t]
+            counts[c, t] = total
+            total += x
     row_of = np.empty(m, np.int64)
     gaussian = np.empty(m, np.int64)
-    for q in range(m):
-        r = start[key[q]]
-        start[key[q]] = r + 1
-        row_of[q] = r
-        gaussian[r] = order[q]
+    for c in prange(parts):
+        for q in range(c * span, min(m, (c + 1) * span)):
+            r = counts[c, key[q]]
+            counts[c, key[q]] = r + 1
+            row_of[q] = r
+            gaussian[r] = order[q]
     return row_of, gaussian
 
 
@@ -1528,10 +1602,10 @@ def _project_backward_one(
         a += A[0, k] * A[0, k]
         b += A[0, k] * A[1, k]
         c += A[1, k] * A[1, k]
-    det = a * c - b * b
-    qa = c / det
-    qb = -b / det
-    qc = a / det
+    inv_det = 1.0 / (a * c - b * b)
+    qa = c * inv_det
+    qb = -b * inv_det
+    qc = a * inv_det
     ga = grad_conic[g, 0]
     gb = 0.5 * grad_conic[g, 1]
     gc = grad_conic[g, 2]
@@ -1576,10 +1650,11 @@ def _project_backward_one(
     gz = 2.0 * (-2.0 * qz * d00 - qw * d01 + qx * d02 + qw * d10 - 2.0 * qz * d11 + qy * d12 + qx * d20 + qy * d21)
     # Through q/|q|: drop the radial part, scale by 1/|q|.
     dot = gw * qw + gx * qx + gy * qy + gz * qz
-    g_quats[g, 0] = (gw - dot * qw) / qn
-    g_quats[g, 1] = (gx - dot * qx) / qn
-    g_quats[g, 2] = (gy - dot * qy) / qn
-    g_quats[g, 3] = (gz - dot * qz) / qn
+    inv_qn = 1.0 / qn
+    g_quats[g, 0] = (gw - dot * qw) * inv_qn
+    g_quats[g, 1] = (gx - dot * qx) * inv_qn
+    g_quats[g, 2] = (gy - dot * qy) * inv_qn
+    g_quats[g, 3] = (gz - dot * qz) * inv_qn
     # Camera-space mean: u = fx x/z + cx, v = fy y/z + cy, J00 = fx/z, J11 = fy/z, and
     # J02 = -fx kx / z with kx = x/z unless clamped (then kx is a constant); same for y.
     rz = 1.0 / pz
@@ -1604,8 +1679,13 @@ def _project_backward_one(
 
 
 @njit(parallel=_PARALLEL, cache=True)
-def project_backward(means, quats, scales, Rc, tc, fx, fy, lim, eps2d, radii, grad_uv, grad_conic, grad_depth):
-    """Chain rule from (u, v), conic and camera z back to means, quats (wxyz, unnormalised) and scales.
+def project_backward(
+    means, quats, scales, Rc, tc, fx, fy, lim, eps2d, radii, grad_uv, grad_conic, grad_depth, g_means, g_quats, g_scales
+):
+    """Chain rule from (u, v), conic and camera z back to means, quats (wxyz, unnormalised) and
+    scales, written into g_means [N,3], g_quats [N,4], g_scales [N,3] (float32 or float64: the
+    sums are float64 and each value is rounded once, where a float64 result and a separate
+    conversion cost a pass over 10 values a Gaussian and their memory).
 
     With A = J Mc (2x3), cov2d = A A^T + eps2d I, conic Q = cov2d^-1:
       dL/dcov2d = -Q G_Q Q      (G_Q symmetric: the off-diagonal scalar's gradient split in two)
@@ -1615,9 +1695,6 @@ def project_backward(means, quats, scales, Rc, tc, fx, fy, lim, eps2d, radii, gr
     Culled Gaussians (radius 0) get zero gradients.
     """
     n = means.shape[0]
-    g_means = np.zeros((n, 3))
-    g_quats = np.zeros((n, 4))
-    g_scales = np.zeros((n, 3))
     for blk in prange((n + BLOCK - 1) // BLOCK):
         R = np.empty((3, 3))
         Mc = np.empty((3, 3))
@@ -1625,7 +1702,13 @@ def project_backward(means, quats, scales, Rc, tc, fx, fy, lim, eps2d, radii, gr
         GA = np.empty((2, 3))
         GM = np.empty((3, 3))
         for g in range(blk * BLOCK, min(n, (blk + 1) * BLOCK)):
-            if radii[g] != 0:
+            if radii[g] == 0:
+                for k in range(3):
+                    g_means[g, k] = 0.0
+                    g_scales[g, k] = 0.0
+                for k in range(4):
+                    g_quats[g, k] = 0.0
+            else:
                 _project_backward_one(
                     g,
                     means,
@@ -1649,4 +1732,3 @@ def project_backward(means, quats, scales, Rc, tc, fx, fy, lim, eps2d, radii, gr
                     g_quats,
                     g_scales,
                 )
-    return g_means, g_quats, g_scales

@@ -284,14 +284,14 @@ def _cpu_forward(
     xy, conic, depth, rect, radii, cut = rk.project_forward(
         means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, lim, W, H, float(near), float(eps2d)
     )
-    order = rk.depth_order(depth, (radii != 0) & (glevel <= upto.max()))
+    order = rk.depth_order(depth, (radii != 0) & (glevel <= upto.max()), numba.get_num_threads())
     if with_depth:  # float64 like depth, and opacities with them (pack_splats takes one dtype)
         colors = np.concatenate([colors, depth[:, None]], axis=1, dtype=np.float64)
         opacities = np.asarray(opacities, np.float64)
         background = np.concatenate([background, [0.0]])
     n_ch = colors.shape[1]
     tiles_x, tiles_y = _tiles(camera)
-    row_of, gaussian = rk.splat_rows(order, rect, tiles_x, tiles_y)
+    row_of, gaussian = rk.splat_rows(order, rect, tiles_x, tiles_y, numba.get_num_threads())
     splats = rk.aligned_splats(len(order), n_ch)
     rk.pack_splats(gaussian, xy, conic, opacities, cut, colors, rect, glevel, splats)
     tile_start, ids = rk.bin_tiles(splats, row_of, tiles_x, tiles_y)
@@ -350,10 +350,11 @@ def _cpu_backward(
     grad_image,
     grad_alpha,
     with_depth,
-    out_dtypes=(np.float64, np.float64, np.float64),
+    out_dtypes=(np.float64,) * 6,
 ):
-    """Gradients of means, quats, scales (float64), of opacities, colours and the last image's
-    screen positions (in ``out_dtypes``' three dtypes), and of the background."""
+    """Gradients of means, quats, scales, opacities, colours and the last image's screen
+    positions, each in its entry of ``out_dtypes`` (the kernels round each float64 sum once into
+    it), and of the background."""
     Rc, tc, fx, fy, _, _ = _camera_args(camera)
     tiles_x, _ = _tiles(camera)
     if state["rec"] is None:
@@ -385,16 +386,18 @@ def _cpu_backward(
     n, n_col = len(means), state["n_ch"] - int(with_depth)
     g_uv, g_conic = np.empty((n, 2)), np.empty((n, 3))
     g_depth = np.empty(n if with_depth else 0)
-    g_opac, g_colors = np.empty(n, out_dtypes[0]), np.empty((n, n_col), out_dtypes[1])
-    g_uv_last = np.empty((n, 2), out_dtypes[2])  # the last image's own screen-space gradient
+    g_opac, g_colors = np.empty(n, out_dtypes[3]), np.empty((n, n_col), out_dtypes[4])
+    g_uv_last = np.empty((n, 2), out_dtypes[5])  # the last image's own screen-space gradient
     rk.split_grads(grads, g_uv, g_conic, g_depth, g_opac, g_colors, g_uv_last)
     if with_depth:
         g_bg = g_bg[:-1]
     else:
         g_depth = np.zeros(n)
-    g_means, g_quats, g_scales = rk.project_backward(
-        means, quats, scales, Rc, tc, fx, fy, state["lim"], float(eps2d), state["radii"], g_uv, g_conic, g_depth
-    )
+    g_means, g_quats, g_scales = (np.empty((n, k), dt) for k, dt in zip((3, 4, 3), out_dtypes))
+    rk.project_backward(
+        means, quats, scales, Rc, tc, fx, fy, state["lim"], float(eps2d), state["radii"], g_uv, g_conic, g_depth,
+        g_means, g_quats, g_scales,
+    )  # fmt: skip
     return g_means, g_quats, g_scales, g_opac, g_colors, g_bg, g_uv_last
 
 
@@ -461,7 +464,7 @@ class _RasterizeCPU(torch.autograd.Function):
         # than the copy's arithmetic is worth, and adds no precision to float32 values.
         g_img = _grad_array(grad_image, (n_img, H, W, n_out))
         g_alpha = _grad_array(grad_alpha, (n_img, H, W))
-        kinds = (ctx.kinds[3][0], ctx.kinds[4][0], ctx.kinds[6][0])  # opacities, colours, means2d
+        kinds = [ctx.kinds[i][0] for i in (0, 1, 2, 3, 4, 6)]  # all but the background's
         g_means, g_quats, g_scales, g_opac, g_colors, g_bg, g_uv = _cpu_backward(
             ctx.state,
             means,
