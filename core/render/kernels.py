@@ -457,37 +457,51 @@ def depth_order(depth, keep, parts=1):
         return order
     parts = max(1, min(parts, m))
     span = (m + parts - 1) // parts
-    counts = np.zeros((parts, 2048), np.int64)
-    # Which passes sort anything: a digit position where one digit holds every key is skipped.
+    # Every part's digits at every position in one read: they decide which passes sort anything
+    # (a position where one digit holds every key is skipped), and with one part they are the
+    # counts of every pass (the order inside the part does not change what it holds).
+    counts = np.zeros((parts, 6, 2048), np.int64)
+    for c in prange(parts):
+        for q in range(c * span, min(m, (c + 1) * span)):
+            k = key[q]
+            for p in range(6):
+                counts[c, p, (k >> np.uint64(11 * p)) & np.uint64(2047)] += 1
     varies = np.zeros(6, np.bool_)
-    k0 = key[0]
     for p in range(6):
-        shift = np.uint64(11 * p)
-        d0 = (k0 >> shift) & np.uint64(2047)
-        for q in range(m):
-            if (key[q] >> shift) & np.uint64(2047) != d0:
+        for d in range(2048):
+            x = 0
+            for c in range(parts):
+                x += counts[c, p, d]
+            if x == m:
+                break
+            if x > 0:
                 varies[p] = True
                 break
+    first_pass = 6
+    for p in range(5, -1, -1):
+        if varies[p]:
+            first_pass = p
     spare = np.empty(m, np.int64)
     spare_key = np.empty(m, np.uint64)
     for p in range(6):
         if not varies[p]:
             continue
         shift = np.uint64(11 * p)
-        for c in prange(parts):
-            _digit_counts(key, c * span, min(m, (c + 1) * span), shift, counts[c])
+        if parts > 1 and p > first_pass:  # the keys moved between parts in the passes before
+            for c in prange(parts):
+                _digit_counts(key, c * span, min(m, (c + 1) * span), shift, counts[c, p])
         total = 0
         for d in range(2048):
             for c in range(parts):
-                x = counts[c, d]
-                counts[c, d] = total
+                x = counts[c, p, d]
+                counts[c, p, d] = total
                 total += x
         for c in prange(parts):
             for q in range(c * span, min(m, (c + 1) * span)):
                 k = key[q]
                 d = (k >> shift) & np.uint64(2047)
-                r = counts[c, d]
-                counts[c, d] = r + 1
+                r = counts[c, p, d]
+                counts[c, p, d] = r + 1
                 spare[r] = order[q]
                 spare_key[r] = k
         order, spare = spare, order
