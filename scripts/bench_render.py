@@ -311,7 +311,7 @@ def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.
     # depth_order and splat_rows sort parts at once since 2026-11-27 (rasterize.py passes its
     # thread count); before, one thread sorted
     parts = hasattr(rk, "depth_order") and "parts" in inspect.signature(rk.depth_order.py_func).parameters
-    parts = (numba.get_num_threads(),) if parts else ()
+    parts = (rk.sort_parts(len(means), numba.get_num_threads()),) if parts else ()
     if hasattr(rk, "depth_order"):
         order = rk.depth_order(depth, radii != 0, *parts)
     else:  # kernels before the radix sort: rasterize.py sorted with numpy

@@ -318,6 +318,8 @@ def check_gaussians(means, quats, scales, opacities, colors):
     scales or colours; a quaternion whose squared norm, in float64, is <= 1e-24; scales <= 0;
     opacities outside [0, 1], NaN included). Blocks of Gaussians in parallel, their bits or-ed."""
     n = means.shape[0]
+    if n < 65536:  # a parallel pass wakes the threads, which costs more than it saves here
+        return _check_block(means, quats, scales, opacities, colors, 0, n)
     nb = (n + BLOCK - 1) // BLOCK
     block_flags = np.zeros(nb, np.int64)
     for blk in prange(nb):
@@ -410,11 +412,51 @@ def project_forward(means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, lim
 
 
 @njit(cache=True)
+def _count_kept(keep, lo, hi):
+    c = 0
+    for g in range(lo, hi):
+        if keep[g]:
+            c += 1
+    return c
+
+
+@njit(cache=True)
+def _gather_kept(keep, bits, lo, hi, at, order, key):
+    """The kept indices of lo..hi-1 and their keys, from position ``at`` on."""
+    for g in range(lo, hi):
+        if keep[g]:
+            order[at] = g
+            key[at] = bits[g]
+            at += 1
+
+
+@njit(cache=True)
+def _count_digits(key, lo, hi, counts):
+    """counts[p, d]: how many of key[lo:hi] have digit d at position p (11 bits each)."""
+    for q in range(lo, hi):
+        k = key[q]
+        for p in range(counts.shape[0]):
+            counts[p, (k >> np.uint64(11 * p)) & np.uint64(2047)] += 1
+
+
+@njit(cache=True)
 def _digit_counts(key, lo, hi, shift, counts):
     """counts[d] = how many of key[lo:hi] have (key >> shift) & 2047 == d."""
     counts[:] = 0
     for q in range(lo, hi):
         counts[(key[q] >> shift) & np.uint64(2047)] += 1
+
+
+@njit(cache=True)
+def _scatter_digits(key, order, lo, hi, shift, cursor, out_order, out_key):
+    """One counting-sort pass over key[lo:hi]: each key (and its index) to its digit's cursor."""
+    for q in range(lo, hi):
+        k = key[q]
+        d = (k >> shift) & np.uint64(2047)
+        r = cursor[d]
+        cursor[d] = r + 1
+        out_order[r] = order[q]
+        out_key[r] = k
 
 
 @njit(parallel=_PARALLEL, cache=True)
@@ -426,33 +468,33 @@ def depth_order(depth, keep, parts=1):
     digit are skipped (depths share their sign and most exponent bits). The keys travel with
     the indices, so each pass reads them in sequence.
 
-    Each pass runs on ``parts`` contiguous parts at once (the caller passes its thread count):
-    every part counts its digits and scatters its keys after the parts before it within each
-    digit, which keeps the sort stable, so the result is the same for any number of parts (the
-    serial sort was ~4 % of a render at 2 threads, on one of them)."""
+    With ``parts`` > 1 each step runs on that many contiguous parts at once: every part counts
+    its digits and scatters its keys after the parts before it within each digit, which keeps
+    the sort stable, so the result is the same for any number of parts. Each parallel step is
+    a wake-up of the threads, which costs more than it saves below some 60k keys (callers pass
+    1 there: sort_parts); with one part nothing runs in parallel."""
     n = keep.shape[0]
     parts = max(1, min(parts, n))
     span = (n + parts - 1) // parts
     kept = np.zeros(parts, np.int64)
-    for c in prange(parts):
-        for g in range(c * span, min(n, (c + 1) * span)):
-            if keep[g]:
-                kept[c] += 1
-    m = 0
+    if parts > 1:
+        for c in prange(parts):
+            kept[c] = _count_kept(keep, c * span, min(n, (c + 1) * span))
+    else:
+        kept[0] = _count_kept(keep, 0, n)
     first = np.empty(parts, np.int64)
+    m = 0
     for c in range(parts):
         first[c] = m
         m += kept[c]
     order = np.empty(m, np.int64)
     key = np.empty(m, np.uint64)
     bits = depth.view(np.uint64)
-    for c in prange(parts):
-        i = first[c]
-        for g in range(c * span, min(n, (c + 1) * span)):
-            if keep[g]:
-                order[i] = g
-                key[i] = bits[g]
-                i += 1
+    if parts > 1:
+        for c in prange(parts):
+            _gather_kept(keep, bits, c * span, min(n, (c + 1) * span), first[c], order, key)
+    else:
+        _gather_kept(keep, bits, 0, n, 0, order, key)
     if m < 2:
         return order
     parts = max(1, min(parts, m))
@@ -461,24 +503,21 @@ def depth_order(depth, keep, parts=1):
     # (a position where one digit holds every key is skipped), and with one part they are the
     # counts of every pass (the order inside the part does not change what it holds).
     counts = np.zeros((parts, 6, 2048), np.int64)
-    for c in prange(parts):
-        for q in range(c * span, min(m, (c + 1) * span)):
-            k = key[q]
-            for p in range(6):
-                counts[c, p, (k >> np.uint64(11 * p)) & np.uint64(2047)] += 1
+    if parts > 1:
+        for c in prange(parts):
+            _count_digits(key, c * span, min(m, (c + 1) * span), counts[c])
+    else:
+        _count_digits(key, 0, m, counts[0])
     varies = np.zeros(6, np.bool_)
-    for p in range(6):
+    first_pass = 6
+    for p in range(5, -1, -1):
         for d in range(2048):
             x = 0
             for c in range(parts):
                 x += counts[c, p, d]
-            if x == m:
-                break
             if x > 0:
-                varies[p] = True
+                varies[p] = x < m
                 break
-    first_pass = 6
-    for p in range(5, -1, -1):
         if varies[p]:
             first_pass = p
     spare = np.empty(m, np.int64)
@@ -496,17 +535,41 @@ def depth_order(depth, keep, parts=1):
                 x = counts[c, p, d]
                 counts[c, p, d] = total
                 total += x
-        for c in prange(parts):
-            for q in range(c * span, min(m, (c + 1) * span)):
-                k = key[q]
-                d = (k >> shift) & np.uint64(2047)
-                r = counts[c, p, d]
-                counts[c, p, d] = r + 1
-                spare[r] = order[q]
-                spare_key[r] = k
+        if parts > 1:
+            for c in prange(parts):
+                _scatter_digits(key, order, c * span, min(m, (c + 1) * span), shift, counts[c, p], spare, spare_key)
+        else:
+            _scatter_digits(key, order, 0, m, shift, counts[0, p], spare, spare_key)
         order, spare = spare, order
         key, spare_key = spare_key, key
     return order
+
+
+def sort_parts(m: int, threads: int) -> int:
+    """How many parts depth_order and splat_rows should sort m keys in: the thread count from
+    about 64k keys on, else 1 (below, waking the threads for each step costs more than the
+    parts save; measured on the bench head's depths, scratch A/B 2026-11-27)."""
+    return threads if m >= 65536 else 1
+
+
+@njit(cache=True)
+def _tile_keys(order, rect, tiles_x, tiles_y, lo, hi, key, counts):
+    """The centre tile of each Gaussian of ranks lo..hi-1 (key) and how many fall in each tile."""
+    for q in range(lo, hi):
+        g = order[q]
+        tx = min((rect[g, 0] + rect[g, 2]) // 2 // TILE, tiles_x - 1)
+        ty = min((rect[g, 1] + rect[g, 3]) // 2 // TILE, tiles_y - 1)
+        key[q] = ty * tiles_x + tx
+        counts[key[q]] += 1
+
+
+@njit(cache=True)
+def _place_rows(order, key, lo, hi, cursor, row_of, gaussian):
+    for q in range(lo, hi):
+        r = cursor[key[q]]
+        cursor[key[q]] = r + 1
+        row_of[q] = r
+        gaussian[r] = order[q]
 
 
 @njit(parallel=_PARALLEL, cache=True)
@@ -517,22 +580,20 @@ def splat_rows(order, rect, tiles_x, tiles_y, parts=1):
 
     A tile's Gaussians are spread over the whole depth order, so rows in depth order would
     put every pair of a tile in a different part of memory; grouped by screen position, a
-    tile and its neighbours read a few contiguous runs of rows instead. A stable counting sort
-    on ``parts`` contiguous slices of the depth order at once (as depth_order): the same rows
-    for any number of parts."""
+    tile and its neighbours read a few contiguous runs of rows instead. A stable counting sort,
+    on ``parts`` contiguous slices of the depth order at once (as depth_order; one: serial):
+    the same rows for any number of parts."""
     m = order.shape[0]
     n_tiles = tiles_x * tiles_y
     parts = max(1, min(parts, m))
     span = (m + parts - 1) // parts
     counts = np.zeros((parts, n_tiles), np.int64)
     key = np.empty(m, np.int64)
-    for c in prange(parts):
-        for q in range(c * span, min(m, (c + 1) * span)):
-            g = order[q]
-            tx = min((rect[g, 0] + rect[g, 2]) // 2 // TILE, tiles_x - 1)
-            ty = min((rect[g, 1] + rect[g, 3]) // 2 // TILE, tiles_y - 1)
-            key[q] = ty * tiles_x + tx
-            counts[c, key[q]] += 1
+    if parts > 1:
+        for c in prange(parts):
+            _tile_keys(order, rect, tiles_x, tiles_y, c * span, min(m, (c + 1) * span), key, counts[c])
+    else:
+        _tile_keys(order, rect, tiles_x, tiles_y, 0, m, key, counts[0])
     total = 0
     for t in range(n_tiles):
         for c in range(parts):
@@ -541,12 +602,11 @@ def splat_rows(order, rect, tiles_x, tiles_y, parts=1):
             total += x
     row_of = np.empty(m, np.int64)
     gaussian = np.empty(m, np.int64)
-    for c in prange(parts):
-        for q in range(c * span, min(m, (c + 1) * span)):
-            r = counts[c, key[q]]
-            counts[c, key[q]] = r + 1
-            row_of[q] = r
-            gaussian[r] = order[q]
+    if parts > 1:
+        for c in prange(parts):
+            _place_rows(order, key, c * span, min(m, (c + 1) * span), counts[c], row_of, gaussian)
+    else:
+        _place_rows(order, key, 0, m, counts[0], row_of, gaussian)
     return row_of, gaussian
 
 

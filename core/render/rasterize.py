@@ -284,14 +284,16 @@ def _cpu_forward(
     xy, conic, depth, rect, radii, cut = rk.project_forward(
         means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, lim, W, H, float(near), float(eps2d)
     )
-    order = rk.depth_order(depth, (radii != 0) & (glevel <= upto.max()), numba.get_num_threads())
+    keep = (radii != 0) & (glevel <= upto.max())
+    order = rk.depth_order(depth, keep, rk.sort_parts(len(keep), numba.get_num_threads()))
     if with_depth:  # float64 like depth, and opacities with them (pack_splats takes one dtype)
         colors = np.concatenate([colors, depth[:, None]], axis=1, dtype=np.float64)
         opacities = np.asarray(opacities, np.float64)
         background = np.concatenate([background, [0.0]])
     n_ch = colors.shape[1]
     tiles_x, tiles_y = _tiles(camera)
-    row_of, gaussian = rk.splat_rows(order, rect, tiles_x, tiles_y, numba.get_num_threads())
+    parts = rk.sort_parts(len(order), numba.get_num_threads())
+    row_of, gaussian = rk.splat_rows(order, rect, tiles_x, tiles_y, parts)
     splats = rk.aligned_splats(len(order), n_ch)
     rk.pack_splats(gaussian, xy, conic, opacities, cut, colors, rect, glevel, splats)
     tile_start, ids = rk.bin_tiles(splats, row_of, tiles_x, tiles_y)
