@@ -311,7 +311,11 @@ def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.
     # depth_order and splat_rows sort parts at once since 2026-11-27 (rasterize.py passes its
     # thread count); before, one thread sorted
     parts = hasattr(rk, "depth_order") and "parts" in inspect.signature(rk.depth_order.py_func).parameters
-    parts = (rk.sort_parts(len(means), numba.get_num_threads()),) if parts else ()
+    if parts:  # ad3d079 sorted in one part per thread at any size; sort_parts chooses since
+        threads = numba.get_num_threads()
+        parts = (rk.sort_parts(len(means), threads) if hasattr(rk, "sort_parts") else threads,)
+    else:
+        parts = ()
     if hasattr(rk, "depth_order"):
         order = rk.depth_order(depth, radii != 0, *parts)
     else:  # kernels before the radix sort: rasterize.py sorted with numpy
@@ -372,7 +376,10 @@ def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.
         if hasattr(rk, "backward_slots"):  # kernels that take the per-pair scratch from the caller
             from progressive_avatars.core.render.rasterize import _scratch
 
-            slot_start = rk.backward_slots(tile_start, last, W, H, tiles_x)
+            if len(inspect.signature(rk.backward_slots.py_func).parameters) == 2:
+                slot_start = rk.backward_slots(tile_start, last)  # last per tile since 2026-11-27
+            else:
+                slot_start = rk.backward_slots(tile_start, last, W, H, tiles_x)
             slots = (slot_start, _scratch.take(rk.scratch_entries(slot_start, colors.shape[1])))
         # Kernels since 2026-11-24 night take upto (Gaussians of the last image only replay apart).
         levels_bwd = {"upto": upto} if "upto" in inspect.signature(rk.raster_backward.py_func).parameters else {}

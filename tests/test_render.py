@@ -491,7 +491,7 @@ def test_backward_of_the_last_images_gaussians_alone_equals_the_general_replay()
     _, _, _, _, st = rz._cpu_forward(*arrays, cam, 0.01, 0.3, glevel=level, upto=upto, record=True)
     assert (level > upto[-2]).sum() > 30 and (level <= upto[-2]).sum() > 30  # both paths run
     tiles_x, _ = rz._tiles(cam)
-    slot_start = rk.backward_slots(st["tile_start"], st["last"], cam.width, cam.height, tiles_x)
+    slot_start = rk.backward_slots(st["tile_start"], st["last"])
     rng = np.random.default_rng(8)
     g_img, g_alpha = rng.normal(size=(3, H, W, 3)), rng.normal(size=(3, H, W))
     grads = []

@@ -857,7 +857,7 @@ def _forward_tile(
     tiles_x,
     T,
     acc,
-    lst,
+    k_last,
     active,
     n_done,
     pmask,
@@ -900,13 +900,13 @@ def _forward_tile(
         pmask[p] = all_img
         for im in range(n_img):
             T[p, im] = 1.0
-            lst[p, im] = -1
             for ch in range(n_ch):
                 acc[p, im, ch] = 0.0
     for im in range(n_img):
         for r in range(TILE):
             active[im, r] = (1 << tw) - 1 if r < y1 - y0 else 0
         n_done[im] = 0
+        k_last[im] = tile_start[t] - 1
     n_live = n_img  # images with a pixel still compositing
     # The last image's own state (contiguous rows of T, acc, lst, active) for the Gaussians that
     # only it shows: most of an avatar (its finer levels), and every Gaussian of a single image.
@@ -915,7 +915,6 @@ def _forward_tile(
     top_bit = np.int64(1) << top
     T_top = T[:, top]
     acc_top = acc[:, top]
-    lst_top = lst[:, top]
     active_top = active[top]
     k_end = tile_start[t + 1]
     for k in range(tile_start[t], k_end):
@@ -938,6 +937,7 @@ def _forward_tile(
         box = ((1 << (i1 + 1 - x0)) - 1) ^ ((1 << (i0 - x0)) - 1) if i0 <= i1 else 0
         chord = cb * cb > CHORD_RHO2 * ca * cc
         if im0 == top:
+            hit = False
             for j in range(j0, j1 + 1):
                 r = j - y0
                 if active_top[r] == 0:
@@ -1000,7 +1000,9 @@ def _forward_tile(
                             acc_top[p, ch] += w * splats[g, S_COLOR + ch]
                     wsum += w * pix_weight[j, i] if weighted else w
                     T_top[p] = t_next
-                    lst_top[p] = k
+                    hit = True
+            if hit:
+                k_last[top] = k
             if want_contrib:
                 contrib_isect[k] = wsum
             if pos > first:
@@ -1010,6 +1012,7 @@ def _forward_tile(
                 break
             continue
         img_mask = all_img ^ ((np.int64(1) << im0) - 1)
+        took_any = 0
         for j in range(j0, j1 + 1):
             r = j - y0
             union = 0
@@ -1076,12 +1079,15 @@ def _forward_tile(
                     if want_contrib and im == n_img - 1:
                         wsum += w * pix_weight[j, i] if weighted else w
                     T[p, im] = t_next
-                    lst[p, im] = k
+                took_any |= took
                 if took and pos >= 0:
                     rec_keep[pos] = -1.0 if clamped else keep
                     rec_pix[pos] = pix + i
                     rec_img[pos] = took
                     pos += 1
+        while took_any:
+            k_last[trailing_zeros(took_any)] = k
+            took_any &= took_any - 1
         if want_contrib:
             contrib_isect[k] = wsum
         if pos > first:
@@ -1090,13 +1096,13 @@ def _forward_tile(
         if n_live == 0:
             break
     for im in range(n_img):
+        last[im, t] = k_last[im]
         for j in range(y0, y1):
             for i in range(x0, x1):
                 p = (j - y0) * tw + i - x0
                 for ch in range(n_ch):
                     image[im, j, i, ch] = acc[p, im, ch] + T[p, im] * background[ch]
                 t_final[im, j, i] = T[p, im]
-                last[im, j, i] = lst[p, im]
     return pos
 
 
@@ -1156,8 +1162,9 @@ def raster_forward(
     order[k] of n) and bin_tiles' lists of rows.
 
     Returns images [L,H,W,C] (background included; written into ``image`` when given, float32
-    or float64, else a new float64 array), final transmittance [L,H,W], the flat
-    index (into ``ids``) of the last Gaussian composited at each pixel (-1: none) [L,H,W],
+    or float64, else a new float64 array), final transmittance [L,H,W], the flat index (into
+    ``ids``) of the last pair each tile composited at any of its pixels [L, tiles] (its first
+    pair's index - 1: none; the backward starts there),
     the per-Gaussian contribution sum_pixels alpha*T of the last image (each pixel weighted by
     ``pix_weight`` [H, W] when given), and the record.
 
@@ -1182,7 +1189,7 @@ def raster_forward(
     # float32 render: no float64 copy to convert afterwards); compositing stays float64.
     images = _image_out(image, n_img, height, width, n_ch)
     t_final = np.empty((n_img, height, width))
-    last = np.empty((n_img, height, width), np.int64)
+    last = np.empty((n_img, n_tiles), np.int64)
     contrib_isect = np.zeros(ids.shape[0])  # pairs after a tile's early exit stay 0
     pw = np.zeros((0, 0)) if pix_weight is None else pix_weight
     chunk_cap = min(rec_keep.shape[0], rec_pix.shape[0], rec_img.shape[0]) // n_chunks
@@ -1195,7 +1202,7 @@ def raster_forward(
     for c in prange(n_chunks):
         T = np.empty((TILE * TILE, n_img))
         acc = np.empty((TILE * TILE, n_img, n_ch))
-        lst = np.empty((TILE * TILE, n_img), np.int64)
+        k_last = np.empty(n_img, np.int64)
         pmask = np.empty(TILE * TILE, np.int64)
         active = np.empty((n_img, TILE), np.int64)
         n_done = np.empty(n_img, np.int64)
@@ -1214,7 +1221,7 @@ def raster_forward(
                 tiles_x,
                 T,
                 acc,
-                lst,
+                k_last,
                 active,
                 n_done,
                 pmask,
@@ -1290,12 +1297,12 @@ def _replay_tile(
     tw = x1 - x0
     k_max = -1
     for im in range(n_img):
+        k_max = max(k_max, last[im, t])
         for j in range(y0, y1):
             for i in range(x0, x1):
                 p = (j - y0) * tw + i - x0
                 tn = t_final[im, j, i]
                 T[im, p] = tn
-                k_max = max(k_max, last[im, j, i])
                 galpha[im, p] = grad_alpha[im, j, i] * tn
                 for ch in range(n_ch):
                     behind[im, p, ch] = tn * background[ch]
@@ -1442,21 +1449,19 @@ def scratch_entries(slot_start, n_ch: int) -> int:
 
 
 @njit(cache=True)
-def backward_slots(tile_start, last, width, height, tiles_x):
+def backward_slots(tile_start, last):
     """Where each tile's pairs keep their gradient sums in raster_backward's scratch: slot
-    slot_start[t] + (k - tile_start[t]) for pair k of tile t. Only pairs up to the last index a
-    tile's pixels composited (in any image of ``last`` [L, H, W]) get a slot (less than half of
-    all pairs on a head). Returns slot_start [T + 1] (its last entry: the number of slots)."""
+    slot_start[t] + (k - tile_start[t]) for pair k of tile t. Only pairs up to the last index
+    the tile composited (in any image of raster_forward's ``last`` [L, tiles]) get a slot (less
+    than half of all pairs on a head). Returns slot_start [T + 1] (its last entry: the number of
+    slots)."""
     n_tiles = tile_start.shape[0] - 1
     slot_start = np.empty(n_tiles + 1, np.int64)
     n_slots = 0
     for t in range(n_tiles):
-        x0, y0, x1, y1 = _tile_bounds(t, tiles_x, width, height)
         k_last = tile_start[t] - 1
         for im in range(last.shape[0]):
-            for j in range(y0, y1):
-                for i in range(x0, x1):
-                    k_last = max(k_last, last[im, j, i])
+            k_last = max(k_last, last[im, t])
         slot_start[t] = n_slots
         n_slots += k_last + 1 - tile_start[t]
     slot_start[n_tiles] = n_slots

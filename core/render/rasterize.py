@@ -361,7 +361,7 @@ def _cpu_backward(
     tiles_x, _ = _tiles(camera)
     if state["rec"] is None:
         raise RuntimeError("rasteriser backward: the forward kept no record (a second backward through one render?)")
-    slot_start = rk.backward_slots(state["tile_start"], state["last"], camera.width, camera.height, tiles_x)
+    slot_start = rk.backward_slots(state["tile_start"], state["last"])
     scratch = _scratch.take(rk.scratch_entries(slot_start, state["n_ch"]))
     grads, g_bg = rk.raster_backward(
         state["tile_start"],
