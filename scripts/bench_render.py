@@ -126,7 +126,7 @@ def bench_scene(width, height, n, repeats=3, threads=None):
 
     def forward(grad):
         ps = [p.clone().requires_grad_(grad) for p in params]
-        return ps, render(*ps, cam)
+        return ps, render(*ps, cam, compute_contrib=False)  # as training and evaluation call it
 
     def fwd_bwd():
         ps, out = forward(True)
@@ -222,8 +222,9 @@ def run(quick: bool = False) -> str:
         f"{numba.get_num_threads()} threads "
         f"({numba.threading_layer()}), torch {torch.__version__}",
         "- scene: Gaussians on an ellipsoid (semi-axes 85/110/95 mm) at ~1 m, scales 1-3 mm (one axis "
-        "x0.2), opacity U(0.2, 0.98), float32 tensors; times are the best of several runs after a warm-up "
-        f"(OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')})",
+        "x0.2), opacity U(0.2, 0.98), float32 tensors; render(compute_contrib=False), as training and evaluation "
+        "call it (from 2026-11-27; before, every render summed alpha*T per Gaussian); times are the best of several "
+        f"runs after a warm-up (OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')})",
         f"- memory: {mem_note}; the baseline is the RSS before that call",
         f"- load average when the section was written: {', '.join(f'{x:.1f}' for x in os.getloadavg())} "
         f"(the machine is shared; more than {os.cpu_count()} means other processes competed for the cores)",
@@ -366,8 +367,10 @@ def kernel_pipeline(rk, arrays, cam, grad_image, grad_alpha, near=0.01, eps2d=0.
             else:  # kernels before the shared record of nested images took no image bits
                 run_bufs = bufs if "rec_img" in record_args else bufs[:2]
             levels = (upto,) if packed else (glevel, upto)
+            # training's forward takes no contrib (kernels since 2026-11-27 can leave it out)
+            no_contrib = {"contrib": False} if "contrib" in record_args else {}
             image, t_final, last, _, (rec_start, rec_n, used) = rk.raster_forward(
-                tile_start, ids, *gaussians_fwd, bg, W, H, tiles_x, *levels, chunks, *run_bufs
+                tile_start, ids, *gaussians_fwd, bg, W, H, tiles_x, *levels, chunks, *run_bufs, **no_contrib
             )
             if pool.learn(used, len(bufs[0]), W * H, len(upto)):
                 break

@@ -296,13 +296,17 @@ def bench_trained(run, supervision, reps):
 
 def _raster_pair(old_render, old_cam, reps):
     """802x550, 170k head-scene Gaussians (float32 tensors), forward + backward: ``old_render``
-    (a render function of another tree, with its own Camera ``old_cam``) against this tree's,
-    interleaved; times, CPU times, visible count, and whether image, alpha and every gradient
-    are bit-identical."""
+    (a render function of another tree, with its own Camera ``old_cam``) against this tree's as
+    training calls it (no contrib: the trainer reads none, and since 2026-11-27 the forward can
+    leave it out; the older trees always computed it), interleaved; times, CPU times, visible
+    count, and whether image, alpha and every gradient are bit-identical."""
     import torch
 
     from bench_render import head_camera, head_scene
-    from progressive_avatars.core.render.rasterize import render as new_render
+    from progressive_avatars.core.render.rasterize import render
+
+    def new_render(*a):
+        return render(*a, compute_contrib=False)
 
     cam = head_camera(802, 550)
     params = [torch.from_numpy(x) for x in head_scene(170_000)]
@@ -699,7 +703,8 @@ def run(quick: bool = False, data: str | None = None) -> str:
         )
     speed = np.median(raster["old"]) / np.median(raster["new"])
     lines += [
-        f"| raster only: 802x550, 170k Gaussians ({raster['visible']:,} visible), forward + backward | 802x550 "
+        f"| raster only: 802x550, 170k Gaussians ({raster['visible']:,} visible), forward + backward (new: as "
+        "training calls it, no contrib) | 802x550 "
         f"| - | 1 | {_fmt(raster['old'])} | {_fmt(raster['new'])} | x{speed:.2f} "
         f"| {min(raster['cpu_old']) * 1e3:.0f} / {min(raster['cpu_new']) * 1e3:.0f} "
         f"| x{min(raster['cpu_old']) / min(raster['cpu_new']):.2f} | - | - |",

@@ -477,6 +477,35 @@ def test_render_levels_equal_separate_renders_and_reference(opaque):
     assert rel_err(outs[-1].means2d.grad, one.means2d.grad) <= 1e-12
 
 
+def test_without_contrib_images_and_gradients_are_unchanged():
+    # compute_contrib=False (training, evaluation renders) skips the per-pair alpha*T sums: every
+    # other output and every gradient bit for bit the same, contrib None; render_numpy likewise.
+    cam, params = make_scene(7, n=200, special=True)
+    rng = np.random.default_rng(7)
+    level = rng.integers(0, 3, len(params[0]))
+    wi, wa = loss_weights(31)
+    runs = []
+    for want in (True, False):
+        ps = leaves(params)
+        outs = render_levels(*ps[:5], cam, ps[5], level=level, upto=[0, 2], compute_contrib=want)
+        one = render(*leaves(params)[:5], cam, compute_contrib=want)
+        sum((o.image * wi).sum() + (o.alpha * wa).sum() for o in outs).backward()
+        runs.append((outs, one, [p.grad for p in ps], outs[-1].means2d.grad))
+    (outs_c, one_c, grads_c, m2d_c), (outs_n, one_n, grads_n, m2d_n) = runs
+    assert outs_c[-1].contrib is not None and one_c.contrib is not None and float(one_c.contrib.sum()) > 0
+    assert outs_n[-1].contrib is None and outs_n[0].contrib is None and one_n.contrib is None
+    for a, b in zip(outs_c, outs_n):
+        assert torch.equal(a.image, b.image) and torch.equal(a.alpha, b.alpha) and torch.equal(a.radii, b.radii)
+    assert torch.equal(one_c.image, one_n.image)
+    for a, b in zip(grads_c + [m2d_c], grads_n + [m2d_n]):
+        assert torch.equal(a, b)
+    arrays = [p.detach().numpy() for p in params[:5]]
+    img_c, alpha_c, contrib = render_numpy(*arrays, cam)
+    img_n, alpha_n, none = render_numpy(*arrays, cam, compute_contrib=False)
+    assert none is None and contrib.shape == (len(arrays[0]),)
+    assert np.array_equal(img_c, img_n) and np.array_equal(alpha_c, alpha_n)
+
+
 def test_backward_of_the_last_images_gaussians_alone_equals_the_general_replay():
     """raster_backward replays the Gaussians that only the last image shows on that image's state
     alone when it knows ``upto``; without it every pair takes the general per-image replay. Both

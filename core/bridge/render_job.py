@@ -22,7 +22,14 @@ def render_job(job_path: str, out_path: str) -> None:
         # 3DGS clamps SH colours at 0 (PLY splats keep their exact, possibly negative, DC for export).
         colors = np.maximum(d["colors"], 0)
         out = render_numpy(
-            d["means"], d["quats"], d["scales"], d["opacities"], colors, cam, np.zeros(colors.shape[1], np.float32)
+            d["means"],
+            d["quats"],
+            d["scales"],
+            d["opacities"],
+            colors,
+            cam,
+            np.zeros(colors.shape[1], np.float32),
+            compute_contrib=False,
         )
     image, alpha = out[0], out[1]
     rgba = np.concatenate([np.asarray(image, np.float32), np.asarray(alpha, np.float32)[..., None]], -1)

@@ -55,7 +55,9 @@ class SplitRenderer:
         geo = evaluate(av.forest, verts, ids=ids, weights=self.weights)
         means, quats, scales = compose(geo.t, geo.r, geo.s, av.d_mu[ids], av.d_log_scale[ids], av.d_rot[ids])
         t0 = time.perf_counter()
-        image, alpha, _ = render_numpy(means, quats, scales, self.opac[ids], self.rgb[ids], info.camera, self.bg)
+        image, alpha, _ = render_numpy(
+            means, quats, scales, self.opac[ids], self.rgb[ids], info.camera, self.bg, compute_contrib=False
+        )
         seconds = time.perf_counter() - t0
         return (image, seconds, alpha) if with_alpha else (image, seconds)
 

@@ -270,6 +270,7 @@ def _cpu_forward(
     record=False,
     pixel_weight=None,
     dtype=np.float64,
+    with_contrib=True,
 ):
     """Forward (float32 or float64 arrays, float64 arithmetic) of one image per entry of
     ``upto`` (image l: Gaussians with glevel <= upto[l]; default one image of all); returns
@@ -321,6 +322,7 @@ def _cpu_forward(
             *bufs,
             *(() if pixel_weight is None else (pixel_weight,)),
             image=image,
+            contrib=with_contrib,
         )
         if not record or _record_buffers.learn(used, len(bufs[0]), W * H, len(upto)):
             break
@@ -427,6 +429,7 @@ class _RasterizeCPU(torch.autograd.Function):
         glevel,
         upto,
         record,
+        with_contrib,
     ):
         arrays = _kernel_arrays(means, quats, scales, opacities, colors)
         dtype, device = means.dtype, means.device
@@ -441,6 +444,7 @@ class _RasterizeCPU(torch.autograd.Function):
             upto=upto,
             record=record,
             dtype=np.float32 if dtype == torch.float32 else np.float64,
+            with_contrib=with_contrib,
         )
         ctx.camera, ctx.eps2d, ctx.with_depth = camera, eps2d, with_depth
         ctx.state = state
@@ -503,15 +507,27 @@ class _RasterizeCPU(torch.autograd.Function):
             None,
             None,
             None,
+            None,
         )
 
 
 def render_numpy(
-    means, quats, scales, opacities, colors, camera, background=None, *, near=0.01, eps2d=0.3, pixel_weight=None
+    means,
+    quats,
+    scales,
+    opacities,
+    colors,
+    camera,
+    background=None,
+    *,
+    near=0.01,
+    eps2d=0.3,
+    pixel_weight=None,
+    compute_contrib=True,
 ):
     """Forward only, numpy in and out: (image [H,W,C] float32, alpha [H,W] float32, contrib [N]).
     contrib[g] = sum over pixels of alpha*T of Gaussian g, times ``pixel_weight`` [H, W] per
-    pixel when given."""
+    pixel when given; None with ``compute_contrib`` False (a faster forward)."""
     means, quats, scales, opacities, colors = (np.asarray(x) for x in (means, quats, scales, opacities, colors))
     background = None if background is None else np.asarray(background)
     _validate(means, quats, scales, opacities, colors, background, camera, near, eps2d)
@@ -525,9 +541,9 @@ def render_numpy(
                 f"got {list(pixel_weight.shape)}"
             )
     image, alpha, contrib, _, _ = _cpu_forward(
-        *arrays, bg, camera, near, eps2d, pixel_weight=pixel_weight, dtype=np.float32
+        *arrays, bg, camera, near, eps2d, pixel_weight=pixel_weight, dtype=np.float32, with_contrib=compute_contrib
     )
-    return image[0], alpha[0], contrib
+    return image[0], alpha[0], contrib if compute_contrib else None
 
 
 # ----------------------------------------------------------------------------- gsplat (CUDA)
@@ -631,9 +647,9 @@ def render(
     means [N,3], quats [N,4] wxyz (normalised here), scales [N,3] > 0 (std-devs, metres),
     opacities [N] in [0,1], colors [N,C], background [C] (default zeros); torch float32 or
     float64. Gradients reach every input that requires grad. ``backend``: "auto" (gsplat for
-    CUDA tensors when it imports, else CPU), "cpu" or "gsplat". ``compute_contrib`` only
-    matters for gsplat, where contrib costs one more forward+backward pass (None when False);
-    on the CPU it is free.
+    CUDA tensors when it imports, else CPU), "cpu" or "gsplat". ``compute_contrib`` False
+    leaves ``contrib`` None: on gsplat it costs one more forward+backward pass, on the CPU
+    ~7 % of the forward (per-pair sums and their gather).
     """
     if backend not in ("auto", "cpu", "gsplat"):
         raise ValueError(f"render: backend must be 'auto', 'cpu' or 'gsplat', got {backend!r}")
@@ -665,8 +681,10 @@ def render(
         None,
         None,
         _will_backward(means, quats, scales, opacities, colors, background, means2d),
+        bool(compute_contrib),
     )
     image, alpha = image[0], alpha[0]
+    contrib = contrib if compute_contrib else None
     depth = None
     if return_depth:
         n_ch = colors.shape[1]
@@ -691,6 +709,7 @@ def render_levels(
     near=0.01,
     eps2d=0.3,
     backend="auto",
+    compute_contrib=True,
 ) -> list:
     """Several images of nested subsets in one pass: image k shows the Gaussians whose
     ``level`` [N] (ints, e.g. the forest level of each face) is <= ``upto[k]``, as ``render``
@@ -702,7 +721,7 @@ def render_levels(
     Returns one RenderOutput per entry of ``upto``. They share ``means2d`` (all N Gaussians),
     whose .grad after backward is the screen-space gradient of the image with the largest
     ``upto`` alone (the one densification reads), and ``radii``; ``contrib`` is that image's
-    and None on the others.
+    (None with ``compute_contrib`` False, as in render) and None on the others.
     """
     upto = [int(u) for u in upto]
     if not upto:
@@ -733,6 +752,7 @@ def render_levels(
                     near=near,
                     eps2d=eps2d,
                     backend=backend,
+                    compute_contrib=compute_contrib and u == upto[-1],
                 )
             )
         return outs
@@ -753,8 +773,10 @@ def render_levels(
         np.ascontiguousarray(lv, np.int64),
         np.asarray(upto, np.int64),
         _will_backward(means, quats, scales, opacities, colors, background, means2d),
+        bool(compute_contrib),
     )
     last = len(upto) - 1
+    contrib = contrib if compute_contrib else None
     # unbind, not images[k]: the backward of k selects is k zero-filled copies of the whole stack
     # (7 levels at 550x802: ~37 MB each) summed; unbind's backward stacks the k gradients once.
     images, alphas = images.unbind(0), alphas.unbind(0)
