@@ -548,6 +548,8 @@ def kernels_section(results, command) -> str:
         "- old = core/render/kernels.py at that commit (`git show`), imported as its own module in the same process",
         "- pack_splats: splat_rows and pack_splats, the packed per-Gaussian rows the tile kernels read since c0bb2c0; "
         "kernels before that have no such stage (0 ms) and read the per-Gaussian arrays of project_forward",
+        "- raster_forward: without the per-Gaussian alpha*T sums (contrib) where the kernels can leave them out "
+        "(since 2026-11-27), as training calls them; older kernels always summed them",
     ]
     for r in results:
 
