@@ -277,7 +277,8 @@ def _cpu_forward(
     images [L,H,W,C] and alphas [L,H,W] in ``dtype``, the last image's contrib, radii and the
     state the backward needs (``record``: with the composited pairs, so that the backward
     replays them). The contrib weighs each pixel by ``pixel_weight`` [H, W] when given."""
-    if glevel is None:
+    every = glevel is None  # one image of all the Gaussians
+    if every:
         glevel, upto = np.zeros(len(means), np.int64), np.zeros(1, np.int64)
     Rc, tc, fx, fy, cx, cy = _camera_args(camera)
     W, H = camera.width, camera.height
@@ -285,7 +286,7 @@ def _cpu_forward(
     xy, conic, depth, rect, radii, cut = rk.project_forward(
         means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, lim, W, H, float(near), float(eps2d)
     )
-    keep = (radii != 0) & (glevel <= upto.max())
+    keep = radii != 0 if every else (radii != 0) & (glevel <= upto.max())
     order = rk.depth_order(depth, keep, rk.sort_parts(len(keep), numba.get_num_threads()))
     if with_depth:  # float64 like depth, and opacities with them (pack_splats takes one dtype)
         colors = np.concatenate([colors, depth[:, None]], axis=1, dtype=np.float64)
