@@ -324,7 +324,7 @@ def _raster_pair(old_render, old_cam, reps):
     _, a = run(old, None)
     _, b = run(new_render, cam)
     identical = all(torch.equal(x, y) for x, y in zip(a, b))
-    image_diff = max(float((x.double() - y.double()).abs().max()) for x, y in zip(a[:2], b[:2]))
+    image_diff = max(float((x.detach().double() - y.detach().double()).abs().max()) for x, y in zip(a[:2], b[:2]))
     grad_diff = max(
         float((x.double() - y.double()).norm() / y.double().norm().clamp_min(1e-30)) for x, y in zip(a[2:], b[2:])
     )
