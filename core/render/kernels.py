@@ -911,7 +911,7 @@ def _forward_tile(
         n_done[im] = 0
         k_last[im] = tile_start[t] - 1
     n_live = n_img  # images with a pixel still compositing
-    # The last image's own state (contiguous rows of T, acc, lst, active) for the Gaussians that
+    # The last image's own state (contiguous rows of T, acc, active) for the Gaussians that
     # only it shows: most of an avatar (its finer levels), and every Gaussian of a single image.
     # Those walk as for one image, without per-image loops and masks.
     top = n_img - 1
