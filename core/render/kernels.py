@@ -80,6 +80,10 @@ CHORD_RHO2 = 0.5
 # Box-walked splats with at least this many rows in a tile follow exp(power) down the rows by
 # products (5 exps a tile instead of 2 a row; _forward_tile).
 RECUR_ROWS = 4
+# The glue passes (input check, depth sort, splat-row grouping) run in parallel only from this
+# many items: each parallel step wakes the threads, which costs more than it saves below about
+# this size (measured at the cpu preset's and the bench head's sizes).
+PARALLEL_MIN = 65536
 MAX_IMAGES = 16  # images of one raster_forward: the record keeps each pair's images as uint16 bits
 # Only explicit prange loops run in parallel: numba would otherwise turn every np.zeros and
 # array expression into its own parallel region, and each launch is costly on a busy machine.
@@ -195,7 +199,7 @@ def _camera_factor(q, s, Rc, R, Mc):
     q3 = np.float64(q[3])
     qn = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
     # One division and four products, not four divisions: a division is the slowest operation
-    # here (within an ulp of q/|q|; the projection kernels took 3-5 % less time).
+    # here (within an ulp of q/|q|).
     inv = 1.0 / qn
     w = q0 * inv
     x = q1 * inv
@@ -319,10 +323,10 @@ BAD_MEANS, BAD_QUATS, ZERO_QUATS, BAD_SCALES, BAD_OPACITIES, BAD_COLORS = 1, 2, 
 def check_gaussians(means, quats, scales, opacities, colors):
     """One pass over the render inputs: the bits of the tests that fail (non-finite means, quats,
     scales or colours; a quaternion whose squared norm, in float64, is <= 1e-24; scales <= 0;
-    opacities outside [0, 1], NaN included). From 64k Gaussians on, blocks in parallel, their bits
-    or-ed."""
+    opacities outside [0, 1], NaN included). From PARALLEL_MIN Gaussians on, blocks in
+    parallel, their bits or-ed."""
     n = means.shape[0]
-    if n < 65536:  # a parallel pass wakes the threads, which costs more than it saves here
+    if n < PARALLEL_MIN:
         return _check_block(means, quats, scales, opacities, colors, 0, n)
     nb = (n + BLOCK - 1) // BLOCK
     block_flags = np.zeros(nb, np.int64)
@@ -475,8 +479,8 @@ def depth_order(depth, keep, parts=1):
     With ``parts`` > 1 each step runs on that many contiguous parts at once: every part counts
     its digits and scatters its keys after the parts before it within each digit, which keeps
     the sort stable, so the result is the same for any number of parts. Each parallel step is
-    a wake-up of the threads, which costs more than it saves below some 60k keys (callers pass
-    1 there: sort_parts); with one part nothing runs in parallel."""
+    a wake-up of the threads, which costs more than it saves on small inputs (callers pass 1
+    there: sort_parts); with one part nothing runs in parallel."""
     n = keep.shape[0]
     parts = max(1, min(parts, n))
     span = (n + parts - 1) // parts
@@ -551,9 +555,8 @@ def depth_order(depth, keep, parts=1):
 
 def sort_parts(m: int, threads: int) -> int:
     """How many parts depth_order and splat_rows should sort m keys in: the thread count from
-    about 64k keys on, else 1 (below, waking the threads for each step costs more than the
-    parts save; measured on the bench head's depths, scratch A/B 2026-11-27)."""
-    return threads if m >= 65536 else 1
+    PARALLEL_MIN keys on, else 1."""
+    return threads if m >= PARALLEL_MIN else 1
 
 
 @njit(cache=True)
@@ -1197,9 +1200,9 @@ def raster_forward(
     ``ids``) of the last pair each tile composited at any of its pixels [L, tiles] (its first
     pair's index - 1: none; the backward starts there),
     the per-Gaussian contribution sum_pixels alpha*T of the last image (each pixel weighted by
-    ``pix_weight`` [H, W] when given; with ``contrib`` False an empty array: its per-pair sums
-    and their gather were ~7 % of the forward on the bench head, and training never reads
-    them), and the record.
+    ``pix_weight`` [H, W] when given; with ``contrib`` False an empty array: training never
+    reads it, and its per-pair sums and their gather are a measurable part of the forward),
+    and the record.
 
     The record (when rec_keep, rec_pix and rec_img, the caller's buffers, are not empty) lists
     every composited (pair, pixel) once for all images, for raster_backward: 1 - alpha, the

@@ -650,7 +650,7 @@ def render(
     float64. Gradients reach every input that requires grad. ``backend``: "auto" (gsplat for
     CUDA tensors when it imports, else CPU), "cpu" or "gsplat". ``compute_contrib`` False
     leaves ``contrib`` None: on gsplat it costs one more forward+backward pass, on the CPU
-    ~7 % of the forward (per-pair sums and their gather).
+    per-pair sums and their gather in the forward.
     """
     if backend not in ("auto", "cpu", "gsplat"):
         raise ValueError(f"render: backend must be 'auto', 'cpu' or 'gsplat', got {backend!r}")
