@@ -224,7 +224,11 @@ def _train(args, cfg, dist, t0):
             )
             print(f"\nstopped (Ctrl-C) at iteration {trainer.iteration}; {kept}", file=sys.stderr)
             return 130
-        except _Stopped:
+        except Exception as exc:
+            # The handler's _Stopped raised while a compiled kernel ran reaches us wrapped
+            # (SystemError: "returned a result with an exception set", _Stopped as its context).
+            if not _is_stop(exc):
+                raise
             print(
                 f"error: {who}stopped by the launcher (SIGTERM: torchrun stops every process of the job when one "
                 f"fails, its report names the root cause, or when it is stopped itself); training stopped at iteration {trainer.iteration}, the last "
@@ -246,6 +250,17 @@ class _Stopped(Exception):
 
 def _stopped_by_launcher(signum, frame):
     raise _Stopped()
+
+
+def _is_stop(exc: BaseException) -> bool:
+    """Whether ``exc`` is _Stopped or was raised while handling one (its cause or context chain)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, _Stopped):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
 
 
 def _lost_peer(exc: RuntimeError, out: str, checkpoint: int | None = None) -> str | None:
