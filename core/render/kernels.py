@@ -1307,9 +1307,8 @@ def _replay_tile(
     height,
     tiles_x,
     T,
-    behind,
     gimg,
-    galpha,
+    g_rest,
     gcol,
     geo_isect,
     col_isect,
@@ -1325,7 +1324,7 @@ def _replay_tile(
     """The backward of one tile from the forward's record: the pairs the forward composited, back
     to front per pixel, a Gaussian's pixels row by row (each row summed before it is added), every
     image at once. A pair's alpha (hence its 1/(1 - alpha) and its pixel offset) is shared by its
-    images; transmittance, the colour behind and the incoming gradients are each image's own.
+    images; transmittance, the incoming gradients and g_rest (raster_backward) are each image's own.
     Gaussians above level ``split`` show in the last image only (with one image: all of them)
     and replay on its state alone, without per-image loops."""
     n_img = t_final.shape[0]
@@ -1340,15 +1339,16 @@ def _replay_tile(
                 p = (j - y0) * tw + i - x0
                 tn = t_final[im, j, i]
                 T[im, p] = tn
-                galpha[im, p] = grad_alpha[im, j, i] * tn
+                d = grad_alpha[im, j, i] * tn
                 for ch in range(n_ch):
-                    behind[im, p, ch] = tn * background[ch]
-                    gimg[im, p, ch] = grad_image[im, j, i, ch]
-                    gbg[ch] += grad_image[im, j, i, ch] * tn
+                    gi = grad_image[im, j, i, ch]
+                    d -= gi * (tn * background[ch])
+                    gimg[im, p, ch] = gi
+                    gbg[ch] += gi * tn
+                g_rest[im, p] = d
     T_top = T[top]
-    behind_top = behind[top]
     gimg_top = gimg[top]
-    galpha_top = galpha[top]
+    g_rest_top = g_rest[top]
     k_first = tile_start[t]
     for k in range(k_max, k_first - 1, -1):
         _prefetch_splat(splats, ids, k - PREFETCH, k_first, k_max + 1)
@@ -1387,7 +1387,6 @@ def _replay_tile(
                 inv = 1.0 / keep
                 T_before = T_top[p] * inv
                 w = alpha * T_before
-                g_a = galpha_top[p] * inv
                 if n_ch == 3:
                     gi0 = gimg_top[p, 0]
                     gi1 = gimg_top[p, 1]
@@ -1395,17 +1394,15 @@ def _replay_tile(
                     gc0 += w * gi0
                     gc1 += w * gi1
                     gc2 += w * gi2
-                    g_a += gi0 * (c0 * T_before - behind_top[p, 0] * inv)
-                    g_a += gi1 * (c1 * T_before - behind_top[p, 1] * inv)
-                    g_a += gi2 * (c2 * T_before - behind_top[p, 2] * inv)
-                    behind_top[p, 0] += c0 * w
-                    behind_top[p, 1] += c1 * w
-                    behind_top[p, 2] += c2 * w
+                    cg = c0 * gi0 + c1 * gi1 + c2 * gi2
                 else:
+                    cg = 0.0
                     for ch in range(n_ch):
                         gcol[ch] += w * gimg_top[p, ch]
-                        g_a += gimg_top[p, ch] * (splats[g, S_COLOR + ch] * T_before - behind_top[p, ch] * inv)
-                        behind_top[p, ch] += splats[g, S_COLOR + ch] * w
+                        cg += splats[g, S_COLOR + ch] * gimg_top[p, ch]
+                d = g_rest_top[p]
+                g_a = d * inv + cg * T_before
+                g_rest_top[p] = d - cg * w
                 T_top[p] = T_before
                 if clamped:
                     continue
@@ -1437,7 +1434,6 @@ def _replay_tile(
                 imgs &= imgs - 1
                 T_before = T[im, p] * inv
                 w = alpha * T_before
-                g_a = galpha[im, p] * inv
                 if n_ch == 3:
                     gi0 = gimg[im, p, 0]
                     gi1 = gimg[im, p, 1]
@@ -1445,17 +1441,15 @@ def _replay_tile(
                     gc0 += w * gi0
                     gc1 += w * gi1
                     gc2 += w * gi2
-                    g_a += gi0 * (c0 * T_before - behind[im, p, 0] * inv)
-                    g_a += gi1 * (c1 * T_before - behind[im, p, 1] * inv)
-                    g_a += gi2 * (c2 * T_before - behind[im, p, 2] * inv)
-                    behind[im, p, 0] += c0 * w
-                    behind[im, p, 1] += c1 * w
-                    behind[im, p, 2] += c2 * w
+                    cg = c0 * gi0 + c1 * gi1 + c2 * gi2
                 else:
+                    cg = 0.0
                     for ch in range(n_ch):
                         gcol[ch] += w * gimg[im, p, ch]
-                        g_a += gimg[im, p, ch] * (splats[g, S_COLOR + ch] * T_before - behind[im, p, ch] * inv)
-                        behind[im, p, ch] += splats[g, S_COLOR + ch] * w
+                        cg += splats[g, S_COLOR + ch] * gimg[im, p, ch]
+                d = g_rest[im, p]
+                g_a = d * inv + cg * T_before
+                g_rest[im, p] = d - cg * w
                 T[im, p] = T_before
                 g_all += g_a
                 if im == top:
@@ -1551,6 +1545,11 @@ def raster_backward(
       dC/da_i = c_i T_i - (colour behind i, background included) / (1 - a_i)
       dA/da_i = T_N / (1 - a_i)
 
+    With incoming gradients gC, gA of the pixel, dL/da_i = (gC . c_i) T_i + g_rest / (1 - a_i),
+    g_rest = gA T_N - gC . (colour behind i): one number per pixel, updated Gaussian by Gaussian,
+    instead of the colour behind in every channel (a load and a store per channel and record
+    entry fewer; docs/BENCHMARKS.md, 'Rasteriser kernels').
+
     then a = o * exp(power) (no gradient where clamped to 0.99) and
     power = -(ca dx^2 + cc dy^2)/2 - cb dx dy, dx = px - u, dy = py - v.
     Images are those of raster_forward (t_final, last, grad_image and grad_alpha carry a
@@ -1581,9 +1580,8 @@ def raster_backward(
     n_chunks = min(n_tiles, REPLAY_CHUNKS)
     for c in prange(n_chunks):  # runs of the (spread) tiles, each with its own tile state
         T = np.empty((n_img, TILE * TILE))
-        behind = np.empty((n_img, TILE * TILE, n_ch))
         gimg = np.empty((n_img, TILE * TILE, n_ch))
-        galpha = np.empty((n_img, TILE * TILE))
+        g_rest = np.empty((n_img, TILE * TILE))
         gcol = np.empty(n_ch)
         for it in range(n_tiles * c // n_chunks, n_tiles * (c + 1) // n_chunks):
             t = spread[it]
@@ -1604,9 +1602,8 @@ def raster_backward(
                 height,
                 tiles_x,
                 T,
-                behind,
                 gimg,
-                galpha,
+                g_rest,
                 gcol,
                 geo_isect,
                 col_isect,
