@@ -68,6 +68,9 @@ from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 from numba.extending import intrinsic, overload
 
 TILE = 16
+TILE_SHIFT = 4  # the replay splits record pixels by shifts (a // in numba is Python's floor division,
+# a few instructions more per record entry)
+assert TILE == 1 << TILE_SHIFT
 BLOCK = 1024  # Gaussians per parallel work item in the projection kernels
 BIN_CHUNKS = 16  # slices of the depth order binned in parallel
 SPREAD = 4  # tile rows interleaved between the threads' static shares (see _spread_tiles)
@@ -939,8 +942,8 @@ def _forward_tile(
         wsum = 0.0
         first = pos
         c0 = splats[g, S_COLOR]
-        c1 = splats[g, S_COLOR + 1 % n_ch]
-        c2 = splats[g, S_COLOR + 2 % n_ch]
+        c1 = splats[g, S_COLOR + min(1, n_ch - 1)]
+        c2 = splats[g, S_COLOR + min(2, n_ch - 1)]
         box = ((1 << (i1 + 1 - x0)) - 1) ^ ((1 << (i0 - x0)) - 1) if i0 <= i1 else 0
         chord = cb * cb > CHORD_RHO2 * ca * cc
         if im0 == top:
@@ -1330,13 +1333,12 @@ def _replay_tile(
     n_img = t_final.shape[0]
     top = n_img - 1
     x0, y0, x1, y1 = _tile_bounds(t, tiles_x, width, height)
-    tw = x1 - x0
     k_max = -1
     for im in range(n_img):
         k_max = max(k_max, last[im, t])
         for j in range(y0, y1):
             for i in range(x0, x1):
-                p = (j - y0) * tw + i - x0
+                p = (j - y0) * TILE + i - x0
                 tn = t_final[im, j, i]
                 T[im, p] = tn
                 d = grad_alpha[im, j, i] * tn
@@ -1364,8 +1366,8 @@ def _replay_tile(
         gc1 = 0.0
         gc2 = 0.0
         c0 = splats[g, S_COLOR]
-        c1 = splats[g, S_COLOR + 1 % n_ch]
-        c2 = splats[g, S_COLOR + 2 % n_ch]
+        c1 = splats[g, S_COLOR + min(1, n_ch - 1)]
+        c2 = splats[g, S_COLOR + min(2, n_ch - 1)]
         # Moments of g = d/dpower over the pair's pixels (see _moment_grads); each entry adds to
         # them directly, so the loop has no branch at row ends.
         sx = 0.0
@@ -1377,10 +1379,9 @@ def _replay_tile(
         fv = (y0 + 0.5) - v
         if splats[g, S_LEVEL] > split:
             for e in range(rec_start[k], rec_start[k] + m):
-                q = np.int64(rec_pix[e])
-                r = q // TILE
-                col = q - r * TILE
-                p = r * tw + col
+                p = np.int64(rec_pix[e])  # the tile state is indexed as the record (row * TILE + column)
+                r = p >> TILE_SHIFT
+                col = p & (TILE - 1)
                 alpha, keep, clamped = _record_alpha(rec_keep[e])
                 dx = col + fu
                 dy = r + fv
@@ -1420,10 +1421,9 @@ def _replay_tile(
         tx = 0.0  # the same moments for the last image alone (its screen-space gradient)
         ty = 0.0
         for e in range(rec_start[k], rec_start[k] + m):
-            q = np.int64(rec_pix[e])
-            r = q // TILE
-            col = q - r * TILE
-            p = r * tw + col
+            p = np.int64(rec_pix[e])
+            r = p >> TILE_SHIFT
+            col = p & (TILE - 1)
             alpha, keep, clamped = _record_alpha(rec_keep[e])
             inv = 1.0 / keep
             g_all = 0.0  # d/dalpha summed over the pair's images
