@@ -65,6 +65,12 @@ def main(argv=None):
         help="coarse levels as stand-ins that make way for the template faces of their region (docs/FORMAT.md "
         "2.4) instead of staying in every prefix and in the finished avatar",
     )
+    ap.add_argument(
+        "--coarse-backdrop",
+        action="store_true",
+        help="coarse stand-ins that, once the template faces of their region have arrived, stay behind every "
+        "other Gaussian instead of leaving (docs/FORMAT.md 2.4)",
+    )
     ap.add_argument("--coarse-weight", type=float, help="factor on the coarse levels' loss weights (default 0.5)")
     ap.add_argument(
         "--prefix-cuts",
@@ -135,6 +141,7 @@ def main(argv=None):
             coarse_levels=() if args.no_coarse else args.coarse_levels,
             coarse_weight=args.coarse_weight,
             coarse_stand_ins=args.coarse_stand_ins or None,
+            coarse_backdrop=args.coarse_backdrop or None,
             prefix_cuts=args.prefix_cuts,
             prefix_cut_weight=args.prefix_cut_weight,
             refine_flame=args.refine_flame or None,

@@ -257,3 +257,37 @@ def test_stand_ins_make_way_for_the_template_and_persist(tmp_path):
     leaf = fr.splittable()[:1]
     fr.split(leaf)
     assert fr.retire is None and fr.stand_ins
+
+
+def test_backdrop_stand_ins_stay_behind_and_persist(tmp_path):
+    """Backdrop stand-ins (Forest.render_set): every face of a set renders, and exactly the
+    stand-ins drawn() would drop composite behind the rest: in a stream prefix of n records
+    those whose region is complete, in the finished avatar all of them; the flag needs
+    stand-ins, survives prefix() and save/load (forest version 5), and a forest without it
+    renders drawn() with nothing behind."""
+    rng = np.random.default_rng(3)
+    v, f = sphere_mesh(8, 10)
+    si = random_forest(f, rng, depth=2, frac=0.5, coarse_from=v, stand_ins=True)
+    bd = si._like(si.parent, si.slot, si.split_logits, si.root_ref)
+    bd._set_stand_ins(True, None, backdrop=True)
+    K, N = bd.num_coarse_levels, bd.num_faces
+    assert bd.backdrop and not si.backdrop
+    ids, behind = bd.render_set()
+    np.testing.assert_array_equal(ids, np.arange(N))
+    np.testing.assert_array_equal(behind, bd.level < K)  # the finished avatar: every stand-in behind
+    seen_some = False
+    for n in range(1, N + 1):
+        pre = bd.stream_ids(n)
+        got, beh = bd.render_set(pre)
+        np.testing.assert_array_equal(got, pre)
+        gone = ~np.isin(pre, si.drawn(pre, records=n))
+        np.testing.assert_array_equal(np.zeros(n, bool) if beh is None else beh, gone)
+        seen_some |= beh is None and np.any(bd.level[pre] < K)
+        d, none = si.render_set(pre)
+        assert none is None and np.array_equal(d, si.drawn(pre, records=n))
+    assert seen_some  # short prefixes keep their stand-ins in front
+    bd.save(tmp_path / "bd.npz")
+    back = Forest.load(tmp_path / "bd.npz")
+    assert back.backdrop and back.stand_ins and int(np.load(tmp_path / "bd.npz")["forest_version"]) == 5
+    assert bd.prefix(N // 2).backdrop
+    assert not Forest(f, backdrop=True).backdrop  # no stand-ins, no backdrop

@@ -883,3 +883,47 @@ def test_compiled_input_checks_agree_with_the_tensor_checks():
         assert expected != 0
         for dtype in (torch.float32, torch.float64):
             assert rz._value_flags(*[p.to(dtype) for p in ps]) == expected, (which, changes, dtype)
+
+
+def test_behind_gaussians_composite_after_all_the_others():
+    """``behind`` (retired backdrop stand-ins): the one-pass CPU render, which sorts those
+    Gaussians last, equals the two-render composite the gsplat path takes (the others over
+    nothing, then the behind ones over the background through what the first left), in image,
+    alpha, depth, contrib and every gradient; render_numpy and render_levels agree with it; and
+    the result is not the depth-ordered render (the rule changes what is seen)."""
+    from progressive_avatars.core.render.rasterize import _render_backdrop
+
+    cam, params = make_scene(3)
+    n = params[0].shape[0]
+    behind = np.random.default_rng(1).uniform(size=n) < 0.3
+    wi, wa = loss_weights(0)
+    outs, grads = [], []
+    for two in (False, True):
+        p = leaves(params)
+        if two:
+            o = _render_backdrop(
+                *p[:5], cam, p[5], behind, near=0.01, eps2d=0.3, return_depth=True, compute_contrib=True, backend="cpu"
+            )
+        else:
+            o = render(*p[:5], cam, p[5], behind=behind, return_depth=True)
+        ((o.image * wi).sum() + (o.alpha * wa).sum()).backward()
+        outs.append(o), grads.append([x.grad for x in p])
+    one, two = outs
+    for name in ("image", "alpha", "depth"):
+        assert rel_err(getattr(one, name).detach(), getattr(two, name).detach()) < 1e-12, name
+    assert rel_err(one.contrib, two.contrib) < 1e-6
+    for name, a, b in zip(NAMES, *grads):
+        assert rel_err(a, b) < 1e-6, name
+    plain = render(*leaves(params)[:5], cam, params[5])
+    assert rel_err(plain.image.detach(), one.image.detach()) > 1e-3
+    image, alpha, contrib = render_numpy(*(x.numpy() for x in params[:5]), cam, params[5].numpy(), behind=behind)
+    assert np.abs(image - one.image.detach().numpy()).max() < 1e-5
+    assert rel_err(torch.from_numpy(contrib).double(), one.contrib) < 1e-5
+    level = np.random.default_rng(2).integers(0, 3, n)
+    outs = render_levels(*leaves(params)[:5], cam, params[5], level=level, upto=[1, 2], behind=behind)
+    sub = np.flatnonzero(level <= 1)
+    alone = render(*(x[sub] for x in leaves(params)[:5]), cam, params[5], behind=behind[sub])
+    assert rel_err(outs[0].image.detach(), alone.image.detach()) < 1e-12
+    assert rel_err(outs[1].image.detach(), one.image.detach()) < 1e-12
+    with pytest.raises(ValueError, match="behind must be"):
+        render(*params[:5], cam, params[5], behind=np.ones(n - 1, bool))

@@ -242,6 +242,48 @@ def test_coarse_stand_ins_retire_by_region_in_every_prefix(tmp_path, monkeypatch
         read_stream(path)
 
 
+def test_backdrop_stand_ins_retire_with_their_region_last_template_face(tmp_path):
+    """Flag bit 3 (FORMAT.md 2.4): a backdrop forest's stream sets bits 2 and 3, and each
+    stand-in's retire position is the stream index of its region's last template record
+    (brute force here); the reader's forest is a backdrop one, and a prefix renders every
+    record it holds, the stand-ins of complete regions behind the rest (Forest.render_set). A
+    forest without the flag writes neither bit 3 nor reads back as backdrop."""
+    from progressive_avatars.core.stream.format import FLAG_BACKDROP, FLAG_STAND_INS
+
+    verts, av, imp = make_avatar(seed=4, n_lat=6, n_lon=9, depth=2, coarse=True, stand_ins=True)
+    f = av.forest
+    plain = write_stream(str(tmp_path / "si.pavs"), av, imp, vertices=verts)
+    assert not plain.flags & FLAG_BACKDROP and not read_stream(str(tmp_path / "si.pavs")).forest.backdrop
+    f._set_stand_ins(True, None, backdrop=True)
+    K, N = f.num_coarse_levels, f.num_faces
+    cen = verts[f.root_table].mean(1)
+    tmpl = np.flatnonzero(f.level == K)
+    starts = np.concatenate([[0], np.cumsum(f.coarse_counts)])
+    path = str(tmp_path / "bd.pavs")
+    info = write_stream(path, av, imp, vertices=verts)
+    assert info.flags & FLAG_STAND_INS and info.flags & FLAG_BACKDROP
+    pos = np.empty(N, np.int64)
+    pos[info.stream_order] = np.arange(N)
+    last = {}
+    for k in range(K):
+        rows = np.arange(starts[k], starts[k + 1])
+        d = ((cen[f.root_ref[tmpl]][:, None] - cen[rows][None]) ** 2).sum(-1)
+        near = rows[np.argmin(d, 1)]
+        for r in rows:
+            mine = tmpl[near == r]
+            last[tuple(sorted(f.coarse_faces[r]))] = int(pos[mine].max() if len(mine) else pos[tmpl].max())
+    got = read_stream(path)
+    fo = got.forest
+    assert fo.backdrop and {tuple(sorted(t)): int(r) for t, r in zip(fo.coarse_faces, fo.retire)} == last
+    for n in range(1, N + 1, 5):
+        part = read_stream(path, max_gaussians=n).forest
+        ids, behind = part.render_set()
+        assert len(ids) == n
+        tri = [tuple(sorted(part.root_table[part.root_ref[i]])) for i in ids[behind]] if behind is not None else []
+        held = [tuple(sorted(part.root_table[part.root_ref[i]])) for i in np.flatnonzero(part.level < K)]
+        assert sorted(tri) == sorted(t for t in held if last[t] < n), n
+
+
 # -- order --------------------------------------------------------------------------------
 def test_stream_order_levels_then_importance():
     _, av, imp = make_avatar(3)

@@ -706,6 +706,51 @@ def test_coarse_stand_ins_train_apart_and_leave_the_finished_avatar(tiny_dataset
     config_for("tiny", prefix_cuts=1, coarse_stand_ins=True, coarse_levels=())
 
 
+def test_coarse_backdrop_trains_with_the_stand_ins_behind(tiny_dataset, tmp_path, monkeypatch):
+    """Backdrop stand-ins (coarse_backdrop=True): the coarse levels' images render the coarse
+    Gaussians alone, as stand-ins do; every image of the template level and finer keeps them at
+    their own opacity, composited behind the rest (render's ``behind`` is exactly the coarse
+    faces), and so does the validation render of the finished avatar, which a loud stand-in
+    therefore changes only where the rest leaves light through. The avatar, the checkpoint and a
+    resume keep the kind; in-level prefix cuts are refused as with stand-ins."""
+    from progressive_avatars.core.train import trainer as trainer_mod
+
+    cfg = dict(eval_every=10**6, checkpoint_every=10**6)
+    tr = Trainer(tiny_dataset, str(tmp_path / "bd"), config_for("tiny", coarse_backdrop=True, **cfg))
+    f = tr.model.forest
+    K, coarse = f.num_coarse_levels, np.flatnonzero(f.level < f.num_coarse_levels)
+    assert f.stand_ins and f.backdrop and K == 2
+    calls = []
+    real = trainer_mod.render_levels
+
+    def spy(means, quats, scales, opacities, colors, *args, level, upto, behind=None, **kw):
+        calls.append((len(means), opacities.detach().numpy().copy(), list(upto), behind))
+        return real(means, quats, scales, opacities, colors, *args, level=level, upto=upto, behind=behind, **kw)
+
+    monkeypatch.setattr(trainer_mod, "render_levels", spy)
+    tr.step()
+    (n0, _, up0, b0), (n1, op1, up1, b1) = calls
+    assert n0 == len(coarse) and up0 == [0, 1] and b0 is None
+    assert n1 == f.num_faces and up1 == [2] and np.all(op1[coarse] > 0)
+    np.testing.assert_array_equal(np.flatnonzero(b1), coarse)
+    monkeypatch.setattr(trainer_mod, "render_levels", real)
+    assert tr.model.to_avatar().forest.backdrop
+    with torch.no_grad():  # the rest made clear: the validation render shows the stand-ins
+        tr.model.params["opacity_logit"][f.level >= K] = -30.0
+        a = tr.evaluate(2)["val_psnr"]
+        tr.model.params["f_dc"][coarse] += 1.0
+    assert tr.evaluate(2)["val_psnr"] != a  # (stand-ins that leave would not be seen at all)
+    old = config_for("tiny", iterations=4, checkpoint_every=2, eval_every=10**6, coarse_backdrop=True)
+    Trainer(tiny_dataset, str(tmp_path / "old"), old).run(progress=False)
+    assert Avatar.load(str(tmp_path / "old" / "avatar.npz")).forest.backdrop
+    again = Trainer(
+        tiny_dataset, str(tmp_path / "old"), config_for("tiny", iterations=6, eval_every=10**6), resume=True
+    )
+    assert again.model.forest.backdrop and again.cfg.coarse_backdrop and again.cfg.coarse_stand_ins
+    with pytest.raises(ValueError, match="cumulative coarse"):
+        config_for("tiny", prefix_cuts=1, coarse_backdrop=True)
+
+
 def test_coarse_weight_scales_the_coarse_levels_loss(tiny_dataset, tmp_path):
     cfg = dict(eval_every=10**6, checkpoint_every=10**6)
     full = Trainer(tiny_dataset, str(tmp_path / "w1"), config_for("tiny", **cfg))

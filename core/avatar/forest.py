@@ -17,7 +17,8 @@ import numpy as np
 
 from ..io.atomic import atomic_savez
 
-FORMAT_VERSION = 4  # 3: root_rank (a stream that interleaves roots with other faces); 4: stand-ins
+# 3: root_rank (a stream that interleaves roots with other faces); 4: stand-ins; 5: backdrop stand-ins
+FORMAT_VERSION = 5
 
 
 def softmax(logits: np.ndarray) -> np.ndarray:
@@ -60,6 +61,8 @@ class Forest:
     table row, is the stream position at which the stand-in makes way (docs/FORMAT.md 2.4; a
     stream's forest; None for a trained one): it renders in a prefix of n records while
     n <= retire. Without stand-ins coarse faces stay in every prefix (cumulative levels).
+    With ``backdrop`` (stand-ins only) a retired stand-in stays, composited behind every other
+    Gaussian (see ``render_set``), so a prefix only ever gains what it draws.
     """
 
     def __init__(
@@ -75,6 +78,7 @@ class Forest:
         root_rank=None,
         stand_ins=False,
         retire=None,
+        backdrop=False,
     ):
         faces = np.ascontiguousarray(template_faces, dtype=np.int32)
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
@@ -107,10 +111,11 @@ class Forest:
         self.split_logits = np.asarray(split_logits, np.float32).reshape(N, 3).copy()
         self._derive()
         self.root_rank = self._check_root_rank(root_rank)
-        self._set_stand_ins(stand_ins, retire)
+        self._set_stand_ins(stand_ins, retire, backdrop)
 
-    def _set_stand_ins(self, stand_ins, retire):
+    def _set_stand_ins(self, stand_ins, retire, backdrop=False):
         self.stand_ins = bool(stand_ins) and self.num_coarse > 0
+        self.backdrop = bool(backdrop) and self.stand_ins
         self.retire = None
         if self.stand_ins and retire is not None:
             retire = np.asarray(retire, np.int64).reshape(-1)
@@ -155,6 +160,20 @@ class Forest:
         if np.count_nonzero(self.level[ids] == K) < len(self.template_faces):
             return ids
         return ids[self.level[ids] >= K]
+
+    def render_set(self, ids=None, records=None) -> tuple[np.ndarray, np.ndarray | None]:
+        """(faces, behind): the faces that render when faces ``ids`` have arrived and, for a
+        backdrop forest, which of them composite behind all the others (the retired stand-ins;
+        None when none are). Otherwise ``(drawn(ids, records), None)``. ``records`` as in
+        ``drawn``; ids that are this forest's first n stream records count as n records."""
+        if not self.backdrop:
+            return self.drawn(ids, records), None
+        whole = ids is None
+        ids = np.arange(self.num_faces, dtype=np.int64) if whole else np.asarray(ids, np.int64)
+        if records is None and (whole or np.array_equal(ids, self.stream_ids(len(ids)))):
+            records = len(ids)
+        behind = ~np.isin(ids, self.drawn(ids, records))
+        return ids, (behind if behind.any() else None)
 
     # -- structure ------------------------------------------------------------------------
     @property
@@ -399,6 +418,7 @@ class Forest:
             root_rank=root_rank,
             stand_ins=self.stand_ins,
             retire=self.retire if isinstance(retire, str) else retire,
+            backdrop=self.backdrop,
         )
 
     def prefix(self, n: int) -> "Forest":
@@ -443,7 +463,9 @@ class Forest:
         # lowest version that reads it, so plain forests stay readable by version 1 readers
         interleaved = not np.array_equal(self.root_rank, np.arange(self.num_roots))
         version = (
-            4
+            5
+            if self.backdrop
+            else 4
             if self.stand_ins
             else 3
             if interleaved
@@ -467,6 +489,8 @@ class Forest:
             out[prefix + "stand_ins"] = np.array(True)
             if self.retire is not None:
                 out[prefix + "retire"] = self.retire
+            if self.backdrop:
+                out[prefix + "backdrop"] = np.array(True)
         return out
 
     @classmethod
@@ -486,6 +510,7 @@ class Forest:
         root_rank=None,
         stand_ins=False,
         retire=None,
+        backdrop=False,
     ) -> "Forest":
         """A Forest from arrays already checked against every rule ``_derive`` enforces (roots
         first, parents precede children in the previous level, slots 0..2 and unique), with
@@ -503,7 +528,7 @@ class Forest:
         f.parent, f.slot, f.split_logits = parent, slot, split_logits
         f.children, f.level, f.root = children, level, root
         f.root_rank = np.arange(n_roots, dtype=np.int64) if root_rank is None else root_rank
-        f._set_stand_ins(stand_ins, retire)
+        f._set_stand_ins(stand_ins, retire, backdrop)
         return f
 
     @classmethod
@@ -528,6 +553,8 @@ class Forest:
                     extra["stand_ins"] = bool(data[prefix + "stand_ins"])
                     if prefix + "retire" in data:
                         extra["retire"] = data[prefix + "retire"]
+                    if prefix + "backdrop" in data:
+                        extra["backdrop"] = bool(data[prefix + "backdrop"])
             return cls(
                 data[prefix + "template_faces"],
                 data[prefix + "parent"],

@@ -160,7 +160,7 @@ def depth_picture(path, avatar, dataset, views=(0,)):
             info.camera,
             np.ones(3, np.float32),
         )
-        shown = avatar.forest.drawn()  # the finished avatar (no coarse stand-in)
+        shown, behind = avatar.forest.render_set()  # the finished avatar (retired stand-ins gone or behind)
         full = evaluate(avatar.forest, verts, ids=shown)
         m2, q2, s2 = compose(full.t, full.r, full.s, avatar.d_mu[shown], avatar.d_log_scale[shown], avatar.d_rot[shown])
         from ..avatar.avatar import sh_to_rgb, sigmoid
@@ -173,6 +173,7 @@ def depth_picture(path, avatar, dataset, views=(0,)):
             sh_to_rgb(avatar.f_dc[shown]),
             info.camera,
             np.asarray(dataset.background, np.float32),
+            behind=behind,
         )
         axes[0, col].imshow(np.clip(ref, 0, 1))
         axes[1, col].imshow(np.clip(img, 0, 1))

@@ -68,9 +68,10 @@ def _shown(path: str) -> str:
 
 def _levels_prefixes(avatar):
     """Cumulative level sets: level l shows the faces of level <= l (how many are drawn: coarse
-    stand-ins make way once the template level is whole, Forest.drawn)."""
+    stand-ins make way once the template level is whole, unless they stay behind:
+    Forest.render_set)."""
     f = avatar.forest
-    return {int(lvl): len(f.drawn(np.flatnonzero(f.level <= lvl))) for lvl in range(int(f.level.max()) + 1)}
+    return {int(lvl): len(f.render_set(np.flatnonzero(f.level <= lvl))[0]) for lvl in range(int(f.level.max()) + 1)}
 
 
 def _score_levels(renderer):

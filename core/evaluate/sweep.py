@@ -35,16 +35,19 @@ class SplitRenderer:
         interleaved roots with deeper faces, docs/FORMAT.md version 5, or holds coarse
         stand-ins whose regions are complete, Forest.drawn)."""
         f = self.avatar.forest
+        if f.backdrop:  # every record renders (retired stand-ins behind the rest: render)
+            return f.stream_ids(n)
         return f.drawn(f.stream_ids(n), records=n)
 
     def render(self, view: int, ids: np.ndarray, with_alpha: bool = False):
         """(image, seconds) of faces `ids` on a view, plus the alpha [H,W] with `with_alpha`:
-        those of them that render (Forest.drawn: coarse stand-ins make way once every template
-        face is among them). No faces (a budget inside the header): the background, alpha 0."""
+        those of them that render (Forest.render_set: coarse stand-ins make way, or go behind
+        the rest, once every template face is among them, or, for a prefix of the stream, their
+        region's). No faces (a budget inside the header): the background, alpha 0."""
         from ..render.rasterize import render_numpy
 
         info = self.dataset.frame_info(int(view))
-        ids = self.avatar.forest.drawn(ids)
+        ids, behind = self.avatar.forest.render_set(ids)
         if len(ids) == 0:
             cam = info.camera
             image = np.broadcast_to(self.bg, (cam.height, cam.width, len(self.bg))).astype(np.float32)
@@ -56,8 +59,9 @@ class SplitRenderer:
         means, quats, scales = compose(geo.t, geo.r, geo.s, av.d_mu[ids], av.d_log_scale[ids], av.d_rot[ids])
         t0 = time.perf_counter()
         image, alpha, _ = render_numpy(
-            means, quats, scales, self.opac[ids], self.rgb[ids], info.camera, self.bg, compute_contrib=False
-        )
+            means, quats, scales, self.opac[ids], self.rgb[ids], info.camera, self.bg, compute_contrib=False,
+            behind=behind,
+        )  # fmt: skip
         seconds = time.perf_counter() - t0
         return (image, seconds, alpha) if with_alpha else (image, seconds)
 

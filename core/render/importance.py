@@ -69,23 +69,24 @@ def face_importance(
     # (Leaving them out of the subdivision levels' renders measured no better: 5 % of the
     # coarse-template head's stream 21.49 against 21.53 dB, seed 0, 16 views, stand-ins retired
     # with their region's last template face.) The whole avatar, the paper's importance, leaves
-    # them out as the finished avatar does.
+    # them out as the finished avatar does, or keeps them behind the rest (Forest.render_set).
     if per_level and avatar.num_gaussians:
-        renders = [(np.flatnonzero(level <= lv), level[level <= lv] == lv) for lv in np.unique(level)]
+        renders = [(np.flatnonzero(level <= lv), level[level <= lv] == lv, None) for lv in np.unique(level)]
     else:
-        faces = avatar.forest.drawn()
-        renders = [(faces, np.ones(len(faces), bool))]
+        faces, behind = avatar.forest.render_set()
+        renders = [(faces, np.ones(len(faces), bool), behind)]
     for i in tqdm(view_subset(len(dataset), max_views), desc="importance", disable=not progress):
         info = dataset.frame_info(int(i))
         means, quats, scales = evaluator(dataset.vertices_at(info.timestep_index))
         if residual:
             target = np.asarray(dataset[int(i)].image, np.float64)
             below = np.broadcast_to(bg.astype(np.float64), target.shape)  # nothing rendered yet
-        for faces, scored in renders:
+        for faces, scored, behind in renders:
             weight = np.abs(target - below).mean(-1) if residual else None
             image, _, contrib = render_numpy(
-                means[faces], quats[faces], scales[faces], opac[faces], rgb[faces], info.camera, bg, pixel_weight=weight
-            )
+                means[faces], quats[faces], scales[faces], opac[faces], rgb[faces], info.camera, bg, pixel_weight=weight,
+                behind=behind,
+            )  # fmt: skip
             W[faces[scored]] += contrib[scored]
             if residual:
                 below = image.astype(np.float64)

@@ -254,6 +254,16 @@ class _Scratch:
 _scratch = _Scratch()
 
 
+def _sort_key(depth, keep, behind):
+    """The depths the sort reads: those of the ``behind`` Gaussians moved past every kept
+    depth, so that they composite last and keep their order among themselves."""
+    if behind is None:
+        return depth
+    key = depth.copy()
+    key[behind] += (float(depth[keep].max()) if keep.any() else 0.0) + 1.0
+    return key
+
+
 def _cpu_forward(
     means,
     quats,
@@ -271,12 +281,14 @@ def _cpu_forward(
     pixel_weight=None,
     dtype=np.float64,
     with_contrib=True,
+    behind=None,
 ):
     """Forward (float32 or float64 arrays, float64 arithmetic) of one image per entry of
     ``upto`` (image l: Gaussians with glevel <= upto[l]; default one image of all); returns
     images [L,H,W,C] and alphas [L,H,W] in ``dtype``, the last image's contrib, radii and the
     state the backward needs (``record``: with the composited pairs, so that the backward
-    replays them). The contrib weighs each pixel by ``pixel_weight`` [H, W] when given."""
+    replays them). The contrib weighs each pixel by ``pixel_weight`` [H, W] when given.
+    ``behind`` [N] bool or None: those Gaussians composite after all the others."""
     every = glevel is None  # one image of all the Gaussians
     if every:
         glevel, upto = np.zeros(len(means), np.int64), np.zeros(1, np.int64)
@@ -287,7 +299,7 @@ def _cpu_forward(
         means, quats, scales, opacities, Rc, tc, fx, fy, cx, cy, lim, W, H, float(near), float(eps2d)
     )
     keep = radii != 0 if every else (radii != 0) & (glevel <= upto.max())
-    order = rk.depth_order(depth, keep, rk.sort_parts(len(keep), numba.get_num_threads()))
+    order = rk.depth_order(_sort_key(depth, keep, behind), keep, rk.sort_parts(len(keep), numba.get_num_threads()))
     if with_depth:  # float64 like depth, and opacities with them (pack_splats takes one dtype)
         colors = np.concatenate([colors, depth[:, None]], axis=1, dtype=np.float64)
         opacities = np.asarray(opacities, np.float64)
@@ -431,6 +443,7 @@ class _RasterizeCPU(torch.autograd.Function):
         upto,
         record,
         with_contrib,
+        behind,
     ):
         arrays = _kernel_arrays(means, quats, scales, opacities, colors)
         dtype, device = means.dtype, means.device
@@ -446,6 +459,7 @@ class _RasterizeCPU(torch.autograd.Function):
             record=record,
             dtype=np.float32 if dtype == torch.float32 else np.float64,
             with_contrib=with_contrib,
+            behind=behind,
         )
         ctx.camera, ctx.eps2d, ctx.with_depth = camera, eps2d, with_depth
         ctx.state = state
@@ -509,6 +523,7 @@ class _RasterizeCPU(torch.autograd.Function):
             None,
             None,
             None,
+            None,
         )
 
 
@@ -525,10 +540,12 @@ def render_numpy(
     eps2d=0.3,
     pixel_weight=None,
     compute_contrib=True,
+    behind=None,
 ):
     """Forward only, numpy in and out: (image [H,W,C] float32, alpha [H,W] float32, contrib [N]).
     contrib[g] = sum over pixels of alpha*T of Gaussian g, times ``pixel_weight`` [H, W] per
-    pixel when given; None with ``compute_contrib`` False (a faster forward)."""
+    pixel when given; None with ``compute_contrib`` False (a faster forward). ``behind``: as in
+    ``render``."""
     means, quats, scales, opacities, colors = (np.asarray(x) for x in (means, quats, scales, opacities, colors))
     background = None if background is None else np.asarray(background)
     _validate(means, quats, scales, opacities, colors, background, camera, near, eps2d)
@@ -542,7 +559,15 @@ def render_numpy(
                 f"got {list(pixel_weight.shape)}"
             )
     image, alpha, contrib, _, _ = _cpu_forward(
-        *arrays, bg, camera, near, eps2d, pixel_weight=pixel_weight, dtype=np.float32, with_contrib=compute_contrib
+        *arrays,
+        bg,
+        camera,
+        near,
+        eps2d,
+        pixel_weight=pixel_weight,
+        dtype=np.float32,
+        with_contrib=compute_contrib,
+        behind=_behind_mask(behind, len(means), "render_numpy"),
     )
     return image[0], alpha[0], contrib if compute_contrib else None
 
@@ -561,8 +586,21 @@ def gsplat_available() -> bool:
 
 
 def _render_gsplat(
-    means, quats, scales, opacities, colors, background, camera, near, eps2d, return_depth, compute_contrib
+    means,
+    quats,
+    scales,
+    opacities,
+    colors,
+    background,
+    camera,
+    near,
+    eps2d,
+    return_depth,
+    compute_contrib,
+    grad_sink=None,
 ):
+    """``grad_sink`` (leaf [M, 2], rows [N]): the screen-space gradient goes to those rows of
+    that leaf (a part of a larger render, _render_backdrop) instead of a leaf of its own."""
     from gsplat import rasterization
 
     dev, dtype = means.device, means.dtype
@@ -598,6 +636,12 @@ def _render_gsplat(
 
         def _mirror(grad):
             g = grad.reshape(-1, n, 2)[0].detach().to(dtype)
+            if grad_sink is not None:
+                leaf, rows = grad_sink
+                if leaf.grad is None:
+                    leaf.grad = torch.zeros_like(leaf)
+                leaf.grad[rows] += g
+                return
             means2d.grad = g.clone() if means2d.grad is None else means2d.grad + g
 
         m2d.register_hook(_mirror)
@@ -617,6 +661,63 @@ def _render_gsplat(
 
 
 # ----------------------------------------------------------------------------- public API
+
+
+def _behind_mask(behind, n: int, caller: str):
+    """``behind`` as a contiguous bool array [n], or None when it selects nothing."""
+    if behind is None:
+        return None
+    b = np.asarray(behind.detach().cpu().numpy() if isinstance(behind, torch.Tensor) else behind)
+    if b.shape != (n,) or b.dtype != np.bool_:
+        raise ValueError(f"{caller}: behind must be [N={n}] booleans, got {b.dtype} {list(b.shape)}")
+    return np.ascontiguousarray(b) if b.any() else None
+
+
+def _render_backdrop(
+    means, quats, scales, opacities, colors, camera, background, behind, *, near, eps2d, return_depth, compute_contrib,
+    backend,
+) -> RenderOutput:  # fmt: skip
+    """``render`` with the ``behind`` Gaussians composited after all the others, as two
+    renders: the others over nothing (premultiplied colour C_f, alpha A_f), then the ``behind``
+    ones over the background, seen through what the first leaves: C = C_f + (1 - A_f) C_b,
+    A = A_f + (1 - A_f) A_b. The CPU path sorts them last in one pass instead (the same image,
+    tests/test_render.py); gsplat orders by depth alone, so its path takes this one. (With
+    ``backend`` "cpu", for that test, ``means2d`` gets no gradient.)"""
+    dev = means.device
+    n = means.shape[0]
+    rows = [torch.as_tensor(np.flatnonzero(m), device=dev) for m in (~behind, behind)]
+    means2d = torch.zeros(n, 2, device=dev, dtype=means.dtype, requires_grad=True)
+
+    def part(sel, cols, bg, depth, probe=False):
+        xs = tuple(x[sel].detach() if probe else x[sel] for x in (means, quats, scales, opacities)) + (cols,)
+        if backend == "gsplat":
+            return _render_gsplat(
+                *xs, bg, camera, near, eps2d, depth, False, grad_sink=None if probe else (means2d, sel)
+            )
+        return render(*xs, camera, bg, near=near, eps2d=eps2d, return_depth=depth, backend="cpu", compute_contrib=False)
+
+    front = part(rows[0], colors[rows[0]], None, return_depth)
+    back = part(rows[1], colors[rows[1]], background, return_depth)
+    through = 1.0 - front.alpha
+    image = front.image + through[..., None] * back.image
+    alpha = front.alpha + through * back.alpha
+    depth = None
+    if return_depth:
+        acc = front.depth * front.alpha + through * back.depth * back.alpha
+        depth = torch.where(alpha > 1e-10, acc / alpha.clamp_min(1e-10), torch.zeros_like(acc))
+    contrib = None
+    if compute_contrib:
+        # sum over pixels of alpha*T: the gradient of the composite's sum w.r.t. a constant colour
+        contrib = torch.zeros(n, device=dev, dtype=means.dtype)
+        with torch.enable_grad():
+            for sel, weight in ((rows[0], None), (rows[1], through.detach())):
+                probe = torch.zeros(len(sel), 1, device=dev, dtype=means.dtype, requires_grad=True)
+                img = part(sel, probe, None, False, probe=True).image[..., 0]
+                total = img.sum() if weight is None else (img * weight).sum()
+                contrib[sel] = torch.autograd.grad(total, probe)[0][:, 0].to(contrib.dtype)
+    radii = torch.zeros(n, dtype=front.radii.dtype, device=dev)
+    radii[rows[0]], radii[rows[1]] = front.radii, back.radii
+    return RenderOutput(image=image, alpha=alpha, means2d=means2d, contrib=contrib, radii=radii, depth=depth)
 
 
 def _cpu_inputs(means, colors, background, tensors):
@@ -642,6 +743,7 @@ def render(
     return_depth=False,
     backend="auto",
     compute_contrib=True,
+    behind=None,
 ) -> RenderOutput:
     """Rasterise activated Gaussians seen by ``camera``.
 
@@ -650,7 +752,9 @@ def render(
     float64. Gradients reach every input that requires grad. ``backend``: "auto" (gsplat for
     CUDA tensors when it imports, else CPU), "cpu" or "gsplat". ``compute_contrib`` False
     leaves ``contrib`` None: on gsplat it costs one more forward+backward pass, on the CPU
-    per-pair sums and their gather in the forward.
+    per-pair sums and their gather in the forward. ``behind`` [N] bool (default none): those
+    Gaussians composite after all the others, in depth order among themselves: a backdrop, as
+    retired coarse stand-ins are (core/avatar/forest.py, Forest.behind).
     """
     if backend not in ("auto", "cpu", "gsplat"):
         raise ValueError(f"render: backend must be 'auto', 'cpu' or 'gsplat', got {backend!r}")
@@ -658,10 +762,16 @@ def render(
     if not all(isinstance(x, torch.Tensor) for x in tensors):
         raise ValueError("render: Gaussian parameters must be torch tensors (use render_numpy for numpy)")
     _validate(means, quats, scales, opacities, colors, background, camera, near, eps2d)
+    behind = _behind_mask(behind, means.shape[0], "render")
     use_gsplat = backend == "gsplat" or (backend == "auto" and means.is_cuda and gsplat_available())
     if use_gsplat:
         if not (means.is_cuda and gsplat_available()):
             raise ValueError("render: backend='gsplat' needs CUDA tensors and an importable gsplat")
+        if behind is not None:
+            return _render_backdrop(
+                means, quats, scales, opacities, colors, camera, background, behind, near=near, eps2d=eps2d,
+                return_depth=return_depth, compute_contrib=compute_contrib, backend="gsplat",
+            )  # fmt: skip
         return _render_gsplat(
             means, quats, scales, opacities, colors, background, camera, near, eps2d, return_depth, compute_contrib
         )
@@ -683,6 +793,7 @@ def render(
         None,
         _will_backward(means, quats, scales, opacities, colors, background, means2d),
         bool(compute_contrib),
+        behind,
     )
     image, alpha = image[0], alpha[0]
     contrib = contrib if compute_contrib else None
@@ -711,6 +822,7 @@ def render_levels(
     eps2d=0.3,
     backend="auto",
     compute_contrib=True,
+    behind=None,
 ) -> list:
     """Several images of nested subsets in one pass: image k shows the Gaussians whose
     ``level`` [N] (ints, e.g. the forest level of each face) is <= ``upto[k]``, as ``render``
@@ -723,6 +835,7 @@ def render_levels(
     whose .grad after backward is the screen-space gradient of the image with the largest
     ``upto`` alone (the one densification reads), and ``radii``; ``contrib`` is that image's
     (None with ``compute_contrib`` False, as in render) and None on the others.
+    ``behind``: as in render.
     """
     upto = [int(u) for u in upto]
     if not upto:
@@ -737,10 +850,12 @@ def render_levels(
     tensors = (means, quats, scales, opacities, colors) + ((background,) if background is not None else ())
     if not all(isinstance(x, torch.Tensor) for x in tensors):
         raise ValueError("render_levels: Gaussian parameters must be torch tensors")
+    behind = _behind_mask(behind, means.shape[0], "render_levels")
     if backend == "gsplat" or (backend == "auto" and means.is_cuda and gsplat_available()):
         outs = []
         for u in upto:  # gsplat renders each subset on its own
-            ids = torch.as_tensor(np.flatnonzero(lv <= u), device=means.device)
+            sel = np.flatnonzero(lv <= u)
+            ids = torch.as_tensor(sel, device=means.device)
             outs.append(
                 render(
                     means[ids],
@@ -754,6 +869,7 @@ def render_levels(
                     eps2d=eps2d,
                     backend=backend,
                     compute_contrib=compute_contrib and u == upto[-1],
+                    behind=None if behind is None else behind[sel],
                 )
             )
         return outs
@@ -775,6 +891,7 @@ def render_levels(
         np.asarray(upto, np.int64),
         _will_backward(means, quats, scales, opacities, colors, background, means2d),
         bool(compute_contrib),
+        behind,
     )
     last = len(upto) - 1
     contrib = contrib if compute_contrib else None

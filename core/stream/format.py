@@ -42,7 +42,8 @@ READ_VERSIONS = (1, 2, 3, 4, 5)
 FLAG_LOSSLESS = 1
 FLAG_TEMPLATE = 2
 FLAG_STAND_INS = 4  # the coarse faces are stand-ins; the coarse table adds their retire positions (FORMAT.md 2.4)
-KNOWN_FLAGS = FLAG_LOSSLESS | FLAG_TEMPLATE | FLAG_STAND_INS
+FLAG_BACKDROP = 8  # with bit 2: a retired stand-in stays, composited behind every other Gaussian (FORMAT.md 2.4)
+KNOWN_FLAGS = FLAG_LOSSLESS | FLAG_TEMPLATE | FLAG_STAND_INS | FLAG_BACKDROP
 FIXED_HEADER = struct.Struct("<8sHHIIIHHHH16sII")
 FIXED_SIZE = FIXED_HEADER.size  # 56: versions 1 and 2; version 3 adds u32 coarse_length
 FIXED_SIZE_V3 = FIXED_SIZE + 4
@@ -320,6 +321,10 @@ class StreamInfo:
         return bool(self.flags & FLAG_TEMPLATE)
 
     @property
+    def backdrop(self) -> bool:
+        return bool(self.flags & FLAG_BACKDROP)
+
+    @property
     def block_bytes(self) -> int:
         return self.records_per_block * self.record_size + 4
 
@@ -542,6 +547,8 @@ def _parse_fixed(buf, source: str):
         problems.append(f"coarse levels {K} with {L} levels and a coarse table of {CL} bytes")
     if flags & FLAG_STAND_INS and not K:
         problems.append("flag bit 2 (coarse stand-ins) without coarse levels")
+    if flags & FLAG_BACKDROP and not flags & FLAG_STAND_INS:
+        problems.append("flag bit 3 (stand-ins stay as a backdrop) without flag bit 2 (coarse stand-ins)")
     if E and (lossless or E > max_exceptions(N)):
         problems.append(f"{E} exceptions (at most {max_exceptions(N)} for N={N}, none in a lossless stream)")
     fixed = FIXED_SIZE_V4 if version >= 4 else FIXED_SIZE_V3 if version == 3 else FIXED_SIZE

@@ -777,6 +777,7 @@ class StreamReader:
             root_rank=rpos,
             stand_ins=h.coarse_retire is not None,
             retire=h.coarse_retire,
+            backdrop=h.backdrop,
         )
         return forest, [out[name] for name in PARAM_NAMES]
 
@@ -818,6 +819,7 @@ class StreamReader:
             root_ref=root_ref,
             stand_ins=h.coarse_retire is not None,
             retire=h.coarse_retire,
+            backdrop=h.backdrop,
         )
 
 

@@ -17,6 +17,7 @@ from ..io.atomic import atomic_open
 from .format import (
     DEFAULT_BLOCK,
     FLAG_LOSSLESS,
+    FLAG_BACKDROP,
     FLAG_STAND_INS,
     FLAG_TEMPLATE,
     LOG_SCALE_LIMIT,
@@ -376,11 +377,16 @@ def build_stream(
     retire = None
     if stand_ins:
         retire = np.empty(C, np.int64)
-        retire[row_of[:C]] = stand_in_retire(forest, s, vertices, importance)  # in the stored rows' order
+        # A backdrop stand-in goes behind with its region's last template face: it never leaves
+        # (coverage cannot drop), and earlier it hid template faces its region still needed
+        # (docs/BENCHMARKS.md, issue 16, "backdrop stand-ins").
+        rule = None if forest.backdrop else importance
+        retire[row_of[:C]] = stand_in_retire(forest, s, vertices, rule)  # in the stored rows' order
     flags = (
         (0 if quantize else FLAG_LOSSLESS)
         | (FLAG_TEMPLATE if embed_template else 0)
         | (FLAG_STAND_INS if stand_ins else 0)
+        | (FLAG_BACKDROP if stand_ins and forest.backdrop else 0)
     )
     level_counts = tuple(int(c) for c in forest.level_counts())
     if quantize:

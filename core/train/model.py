@@ -39,15 +39,19 @@ class TorchAvatar:
         sh_degree: int = 0,
         coarse=None,
         stand_ins: bool = False,
+        backdrop: bool = False,
     ) -> "TorchAvatar":
         """`coarse`: None, or (coarse_faces, coarse_counts, root_ref or None), the table and
         counts from core.coarse.build_coarse; `stand_ins`: the coarse faces are stand-ins
-        (Forest.drawn) rather than cumulative levels."""
+        (Forest.drawn) rather than cumulative levels; `backdrop`: retired stand-ins stay behind
+        every other Gaussian (Forest.render_set)."""
         if coarse is None:
             forest = Forest(faces)
         else:
             cf, counts, ref = coarse
-            forest = Forest(faces, coarse_faces=cf, coarse_counts=counts, root_ref=ref, stand_ins=stand_ins)
+            forest = Forest(
+                faces, coarse_faces=cf, coarse_counts=counts, root_ref=ref, stand_ins=stand_ins, backdrop=backdrop
+            )
         av = Avatar.initial(forest, color=color, opacity=opacity)
         av.d_log_scale[:] = np.asarray(log_scale, np.float32)
         av.f_rest = np.zeros((forest.num_faces, sh.num_rest(sh_degree), 3), np.float32)
@@ -63,6 +67,7 @@ class TorchAvatar:
         finer = self.forest.level >= self.forest.num_coarse_levels
         self._finer = torch.as_tensor(finer, dtype=torch.float32)
         self.stand_in_ids = torch.as_tensor(np.flatnonzero(~finer), device=self.device)
+        self._coarse = ~finer
         self.level_ids = [
             torch.as_tensor(self.forest.cumulative(lvl), device=self.device) for lvl in range(self.forest.max_level + 1)
         ]
@@ -74,6 +79,14 @@ class TorchAvatar:
         if not self.forest.stand_ins:
             return opacities
         return opacities * self._finer.to(device=opacities.device, dtype=opacities.dtype)
+
+    def finer_inputs(self, opacities: torch.Tensor):
+        """(opacities, behind) for the images of the template level and finer, the whole avatar
+        included: the stand-ins at zero opacity (without_stand_ins), or, with a backdrop forest,
+        as they are and composited behind every other Gaussian (render's ``behind``)."""
+        if self.forest.backdrop:
+            return opacities, self._coarse
+        return self.without_stand_ins(opacities), None
 
     @property
     def num_faces(self) -> int:

@@ -76,6 +76,10 @@ class TrainConfig:
     # retiring stand-in can leave the prefix slightly worse than the one before (coverage -0.004,
     # PSNR -0.05..-0.12 dB in 1 % steps), which cumulative levels never do.
     coarse_stand_ins: bool = False
+    # Stand-ins that, once retired, stay behind every other Gaussian instead of leaving
+    # (Forest.render_set): the images of the template level and finer show them as a backdrop,
+    # and a stream retires each with its region's last template face (docs/FORMAT.md 2.4).
+    coarse_backdrop: bool = False
     # Extra images per step whose prefix ends *inside* a level: the levels below it plus the
     # first k faces of a random level (k uniform), in the order the stream will send them (each
     # level by importance measured on the levels up to its own, as core/render/importance.py).
@@ -209,6 +213,8 @@ def config_for(preset: str, **overrides) -> TrainConfig:
         raise ValueError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
     cfg = replace(TrainConfig(), **PRESETS[preset])
     cfg = replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
+    if cfg.coarse_backdrop:  # backdrop stand-ins are stand-ins
+        cfg = replace(cfg, coarse_stand_ins=True)
     if not (math.isfinite(cfg.coarse_weight) and cfg.coarse_weight >= 0):
         raise ValueError(f"coarse weight must be finite and >= 0, got {cfg.coarse_weight}")
     if int(cfg.views_per_step) < 1:
@@ -465,8 +471,10 @@ class Trainer:
                 raise ValueError(
                     f"{out_dir}: this run's coarse faces are stand-ins; in-level prefix cuts need cumulative ones"
                 )
-            if f.num_coarse and f.stand_ins != config.coarse_stand_ins:  # the run keeps its kind
-                config = self.cfg = replace(config, coarse_stand_ins=f.stand_ins)
+            if f.num_coarse and (f.stand_ins, f.backdrop) != (config.coarse_stand_ins, config.coarse_backdrop):
+                config = self.cfg = replace(
+                    config, coarse_stand_ins=f.stand_ins, coarse_backdrop=f.backdrop
+                )  # its kind
             self.settings = run_settings(config)
             _check_same_settings(self.ckpt_path, self.run_settings, self.settings)
         else:
@@ -477,7 +485,11 @@ class Trainer:
                 cf, counts = build_coarse(self.train.canonical_vertices, self.train.faces, config.coarse_levels)
                 coarse = (cf, counts, None) if counts else None
             self.model = TorchAvatar.from_template(
-                self.train.faces, sh_degree=config.sh_degree, coarse=coarse, stand_ins=config.coarse_stand_ins
+                self.train.faces,
+                sh_degree=config.sh_degree,
+                coarse=coarse,
+                stand_ins=config.coarse_stand_ins,
+                backdrop=config.coarse_backdrop,
             )
             self.opt = Adam(self.model.params, config.lr)
             self.rng = np.random.default_rng(config.seed)
@@ -650,17 +662,19 @@ class Trainer:
                     upto=coarse_up,
                     compute_contrib=False,
                 )
+            opacities, behind = self.model.finer_inputs(g["opacities"])
             outs += render_levels(
                 g["means"],
                 g["quats"],
                 g["scales"],
-                self.model.without_stand_ins(g["opacities"]),
+                opacities,
                 g["colors"],
                 sample.camera,
                 self.background,
                 level=order_key,
                 upto=finer_up,
                 compute_contrib=False,  # training reads no contrib (a faster forward)
+                behind=behind,
             )
             for lvl, out, cut in zip(image_levels, outs, is_cut):
                 ids = self.model.level_ids[top]  # every level's output covers all faces (means2d, radii)
@@ -754,10 +768,10 @@ class Trainer:
         for i in pick:
             s = self.val[int(i)]
             g = self.model.gaussians(self._vertices(s), s.camera.center)
-            opacities = self.model.without_stand_ins(g["opacities"])  # the whole avatar: Forest.drawn()
+            opacities, behind = self.model.finer_inputs(g["opacities"])  # the whole avatar: Forest.render_set()
             out = render(
                 g["means"], g["quats"], g["scales"], opacities, g["colors"], s.camera, self.background,
-                compute_contrib=False,
+                compute_contrib=False, behind=behind,
             )  # fmt: skip
             values.append(psnr(out.image.numpy(), s.image, s.mask))
         return {"val_psnr": float(np.mean(values))}
