@@ -25,6 +25,9 @@ import sys as _sys
 _sys.path.insert(0, _os.path.dirname(_os.path.abspath(__file__)))
 import _bootstrap
 
+# --coarse-mode: (coarse_stand_ins, coarse_backdrop) of the training config
+COARSE_MODES = {"cumulative": (False, False), "stand-ins": (True, False), "backdrop": (True, True)}
+
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -60,17 +63,16 @@ def main(argv=None):
     )
     ap.add_argument("--no-coarse", action="store_true", help="no coarse levels (the paper's levels; ablation)")
     ap.add_argument(
-        "--coarse-stand-ins",
-        action="store_true",
-        help="coarse levels as stand-ins that make way for the template faces of their region (docs/FORMAT.md "
-        "2.4) instead of staying in every prefix and in the finished avatar",
+        "--coarse-mode",
+        choices=sorted(COARSE_MODES),
+        help="how the coarse levels render (docs/FORMAT.md 2.4): cumulative (in every prefix and in the finished "
+        "avatar, as the paper's levels), stand-ins (each makes way once the template faces of its region have "
+        "arrived) or backdrop (stand-ins that then stay behind every other Gaussian); default cumulative",
     )
-    ap.add_argument(
-        "--coarse-backdrop",
-        action="store_true",
-        help="coarse stand-ins that, once the template faces of their region have arrived, stay behind every "
-        "other Gaussian instead of leaving (docs/FORMAT.md 2.4)",
-    )
+    for mode in ("stand-ins", "backdrop"):
+        ap.add_argument(
+            f"--coarse-{mode}", dest="coarse_mode", action="store_const", const=mode, help=f"--coarse-mode {mode}"
+        )
     ap.add_argument("--coarse-weight", type=float, help="factor on the coarse levels' loss weights (default 0.5)")
     ap.add_argument(
         "--prefix-cuts",
@@ -140,8 +142,7 @@ def main(argv=None):
             sh_degree=args.sh_degree,
             coarse_levels=() if args.no_coarse else args.coarse_levels,
             coarse_weight=args.coarse_weight,
-            coarse_stand_ins=args.coarse_stand_ins or None,
-            coarse_backdrop=args.coarse_backdrop or None,
+            **dict(zip(("coarse_stand_ins", "coarse_backdrop"), COARSE_MODES.get(args.coarse_mode, (None, None)))),
             prefix_cuts=args.prefix_cuts,
             prefix_cut_weight=args.prefix_cut_weight,
             refine_flame=args.refine_flame or None,

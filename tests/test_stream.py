@@ -242,13 +242,16 @@ def test_coarse_stand_ins_retire_by_region_in_every_prefix(tmp_path, monkeypatch
         read_stream(path)
 
 
-def test_backdrop_stand_ins_retire_with_their_region_last_template_face(tmp_path):
+def test_backdrop_stand_ins_retire_by_their_region_importance(tmp_path):
     """Flag bit 3 (FORMAT.md 2.4): a backdrop forest's stream sets bits 2 and 3, and each
-    stand-in's retire position is the stream index of its region's last template record
-    (brute force here); the reader's forest is a backdrop one, and a prefix renders every
+    stand-in's retire position is the stream index of the template record with which its
+    region's records hold BACKDROP_RETIRE_IMPORTANCE of the region's importance, whatever their
+    area (brute force here; some retire before their region's last face, as the rule for
+    stand-ins that leave would not); the reader's forest is a backdrop one, and a prefix renders every
     record it holds, the stand-ins of complete regions behind the rest (Forest.render_set). A
     forest without the flag writes neither bit 3 nor reads back as backdrop."""
     from progressive_avatars.core.stream.format import FLAG_BACKDROP, FLAG_STAND_INS
+    from progressive_avatars.core.stream.writer import BACKDROP_RETIRE_IMPORTANCE
 
     verts, av, imp = make_avatar(seed=4, n_lat=6, n_lon=9, depth=2, coarse=True, stand_ins=True)
     f = av.forest
@@ -264,14 +267,21 @@ def test_backdrop_stand_ins_retire_with_their_region_last_template_face(tmp_path
     assert info.flags & FLAG_STAND_INS and info.flags & FLAG_BACKDROP
     pos = np.empty(N, np.int64)
     pos[info.stream_order] = np.arange(N)
-    last = {}
+    last, early = {}, 0
     for k in range(K):
         rows = np.arange(starts[k], starts[k + 1])
         d = ((cen[f.root_ref[tmpl]][:, None] - cen[rows][None]) ** 2).sum(-1)
         near = rows[np.argmin(d, 1)]
         for r in rows:
             mine = tmpl[near == r]
-            last[tuple(sorted(f.coarse_faces[r]))] = int(pos[mine].max() if len(mine) else pos[tmpl].max())
+            at = pos[tmpl].max()
+            if len(mine):
+                mine = mine[np.argsort(pos[mine])]
+                seen = np.cumsum(imp[mine])
+                at = pos[mine][np.flatnonzero(seen >= BACKDROP_RETIRE_IMPORTANCE * seen[-1] * (1 - 1e-12))[0]]
+                early += at < pos[mine].max()
+            last[tuple(sorted(f.coarse_faces[r]))] = int(at)
+    assert early
     got = read_stream(path)
     fo = got.forest
     assert fo.backdrop and {tuple(sorted(t)): int(r) for t, r in zip(fo.coarse_faces, fo.retire)} == last

@@ -749,6 +749,8 @@ def test_coarse_backdrop_trains_with_the_stand_ins_behind(tiny_dataset, tmp_path
     assert again.model.forest.backdrop and again.cfg.coarse_backdrop and again.cfg.coarse_stand_ins
     with pytest.raises(ValueError, match="cumulative coarse"):
         config_for("tiny", prefix_cuts=1, coarse_backdrop=True)
+    with pytest.raises(ValueError, match="--coarse-mode cumulative"):
+        config_for("cpu", prefix_cuts=1, coarse_backdrop=True)
 
 
 def test_coarse_weight_scales_the_coarse_levels_loss(tiny_dataset, tmp_path):

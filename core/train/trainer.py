@@ -69,16 +69,20 @@ class TrainConfig:
     coarse_weight: float = 0.5
     # Coarse faces as stand-ins (Forest.drawn): images of the template level and finer leave
     # them out, and a stream reader drops each once the template faces of its region have
-    # arrived (docs/FORMAT.md 2.4), so they fill short prefixes and cost nothing at 100 %. Off
-    # by default (cumulative coarse levels, in every prefix, as the paper's levels): measured on
-    # both heads (docs/BENCHMARKS.md, issue 16, "coarse stand-ins"), stand-ins bring the
-    # 1,280-face head's 5 % budget within 3 dB of its 100 % and cost nothing there, but a
-    # retiring stand-in can leave the prefix slightly worse than the one before (coverage -0.004,
-    # PSNR -0.05..-0.12 dB in 1 % steps), which cumulative levels never do.
+    # arrived (docs/FORMAT.md 2.4), so they fill short prefixes and cost nothing at 100 %.
+    # Measured on both heads (docs/BENCHMARKS.md, issue 16, "coarse stand-ins"), stand-ins that
+    # leave bring the 1,280-face head's 5 % budget within 3 dB of its 100 % and cost nothing
+    # there, but a retiring stand-in can leave the prefix slightly worse than the one before
+    # (coverage -0.004, PSNR -0.05..-0.12 dB in 1 % steps), which cumulative levels never do.
+    # Off (with coarse_backdrop) means cumulative coarse levels, in every prefix, as the paper's.
     coarse_stand_ins: bool = False
     # Stand-ins that, once retired, stay behind every other Gaussian instead of leaving
     # (Forest.render_set): the images of the template level and finer show them as a backdrop,
-    # and a stream retires each with its region's last template face (docs/FORMAT.md 2.4).
+    # and a stream retires each with its region's last template face (docs/FORMAT.md 2.4), so a
+    # prefix never loses what it drew. Implies coarse_stand_ins. Off by default: measured on both
+    # heads (docs/BENCHMARKS.md, issue 16, "backdrop stand-ins") it meets every issue-16 bound on
+    # both, but on the 5,120-face head its 10-25 % budgets lose 0.6-1.2 dB against cumulative
+    # levels (stand-ins of regions still missing faces stay in front of finished ones).
     coarse_backdrop: bool = False
     # Extra images per step whose prefix ends *inside* a level: the levels below it plus the
     # first k faces of a random level (k uniform), in the order the stream will send them (each
@@ -233,7 +237,7 @@ def config_for(preset: str, **overrides) -> TrainConfig:
     if cfg.prefix_cuts and cfg.coarse_levels and cfg.coarse_stand_ins:
         raise ValueError(
             "in-level prefix cuts supervise cumulative coarse levels only: with coarse stand-ins a cut would "
-            "need each stand-in's region; drop --coarse-stand-ins or --prefix-cuts"
+            "need each stand-in's region; use --coarse-mode cumulative or drop --prefix-cuts"
         )
     images = len(cfg.coarse_levels) + 1 + int(cfg.max_depth) + int(cfg.prefix_cuts)
     if images > MAX_IMAGES:  # render_levels composites at most MAX_IMAGES nested images a pass
