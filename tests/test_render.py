@@ -927,3 +927,12 @@ def test_behind_gaussians_composite_after_all_the_others():
     assert rel_err(outs[1].image.detach(), one.image.detach()) < 1e-12
     with pytest.raises(ValueError, match="behind must be"):
         render(*params[:5], cam, params[5], behind=np.ones(n - 1, bool))
+
+
+def test_behind_everything_or_nothing_is_the_plain_render():
+    """A backdrop of every Gaussian, or of none, composites in plain depth order."""
+    cam, params = make_scene(5)
+    n = params[0].shape[0]
+    plain = render(*params[:5], cam, params[5]).image
+    for mask in (np.ones(n, bool), np.zeros(n, bool)):
+        assert torch.equal(render(*params[:5], cam, params[5], behind=mask).image, plain)

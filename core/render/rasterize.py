@@ -664,13 +664,14 @@ def _render_gsplat(
 
 
 def _behind_mask(behind, n: int, caller: str):
-    """``behind`` as a contiguous bool array [n], or None when it selects nothing."""
+    """``behind`` as a contiguous bool array [n], or None when it selects none or all of them
+    (then the plain depth order is the same)."""
     if behind is None:
         return None
     b = np.asarray(behind.detach().cpu().numpy() if isinstance(behind, torch.Tensor) else behind)
     if b.shape != (n,) or b.dtype != np.bool_:
         raise ValueError(f"{caller}: behind must be [N={n}] booleans, got {b.dtype} {list(b.shape)}")
-    return np.ascontiguousarray(b) if b.any() else None
+    return np.ascontiguousarray(b) if b.any() and not b.all() else None
 
 
 def _render_backdrop(
@@ -754,7 +755,7 @@ def render(
     leaves ``contrib`` None: on gsplat it costs one more forward+backward pass, on the CPU
     per-pair sums and their gather in the forward. ``behind`` [N] bool (default none): those
     Gaussians composite after all the others, in depth order among themselves: a backdrop, as
-    retired coarse stand-ins are (core/avatar/forest.py, Forest.behind).
+    retired coarse stand-ins are (core/avatar/forest.py, Forest.render_set).
     """
     if backend not in ("auto", "cpu", "gsplat"):
         raise ValueError(f"render: backend must be 'auto', 'cpu' or 'gsplat', got {backend!r}")
