@@ -13,26 +13,10 @@
 # docs/BENCHMARKS.md); REPORTS=DIR writes the reports there instead of docs/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/setup_env.sh
-PY=.venv/bin/python
-DATA=${DATA:-runs/synthetic}
-DATA_COARSE=${DATA_COARSE:-runs/synth_coarse}
 OUT=runs/backdrop16
-BENCHMARKS=${BENCHMARKS:-docs/BENCHMARKS.md}
-REPORTS=${REPORTS:-docs}
+# shellcheck source=scripts/_two_heads.sh
+source scripts/_two_heads.sh
 SEEDS="0 1 2"
-mkdir -p "$OUT/default" "$OUT/coarse"
-[ -f "$DATA/transforms_train.json" ] || $PY scripts/make_synthetic.py --out "$DATA" --quiet
-[ -f "$DATA_COARSE/transforms_train.json" ] ||
-  $PY scripts/make_synthetic.py --out "$DATA_COARSE" --template-subdivisions 3 --quiet
-
-train() {  # data, run folder, extra args...
-  local data=$1 run=$2; shift 2
-  [ -f "$run/avatar.npz" ] || $PY scripts/train.py --data "$data" --out "$run" --resume --no-progress "$@" > "$run.log" 2>&1
-}
-name() {  # base name, seed: NAME for seed 0, NAME_seed<k> otherwise (evaluate.py's grouping)
-  if [ "$2" = 0 ]; then echo "$1"; else echo "$1_seed$2"; fi
-}
 for dir_data in "coarse:$DATA_COARSE" "default:$DATA"; do
   dir=${dir_data%%:*} data=${dir_data#*:}
   for s in $SEEDS; do

@@ -172,6 +172,19 @@ def test_header_layout_is_the_documented_one(small):
     np.testing.assert_array_equal(full.forest.root_faces, rows[refs])
 
 
+def region_faces(verts, f):
+    """(coarse row, the template faces of its region) for every coarse row of forest ``f``, by
+    brute force: the template faces whose centroid is nearest that row's among its level's."""
+    cen = verts[f.root_table].mean(1)
+    tmpl = np.flatnonzero(f.level == f.num_coarse_levels)
+    starts = np.concatenate([[0], np.cumsum(f.coarse_counts)])
+    for k in range(f.num_coarse_levels):
+        rows = np.arange(starts[k], starts[k + 1])
+        near = rows[np.argmin(((cen[f.root_ref[tmpl]][:, None] - cen[rows][None]) ** 2).sum(-1), 1)]
+        for r in rows:
+            yield r, tmpl[near == r]
+
+
 def test_coarse_stand_ins_retire_by_region_in_every_prefix(tmp_path, monkeypatch):
     """Flag bit 2 (FORMAT.md 2.4): the coarse table's fourth column holds, per stored row, the
     stream index of the template record with which its region's records received hold
@@ -187,9 +200,7 @@ def test_coarse_stand_ins_retire_by_region_in_every_prefix(tmp_path, monkeypatch
     verts, av, imp = make_avatar(seed=4, n_lat=6, n_lon=9, depth=2, coarse=True, stand_ins=True)
     f = av.forest
     K, C, N = f.num_coarse_levels, f.num_coarse, f.num_faces
-    cen = verts[f.root_table].mean(1)
     tmpl = np.flatnonzero(f.level == K)
-    starts = np.concatenate([[0], np.cumsum(f.coarse_counts)])
     path = str(tmp_path / "s.pavs")
     for version, quantize in ((5, True), (5, False), (4, True)):
         info = write_stream(path, av, imp, vertices=verts, version=version, quantize=quantize)
@@ -199,26 +210,19 @@ def test_coarse_stand_ins_retire_by_region_in_every_prefix(tmp_path, monkeypatch
         pos = np.empty(N, np.int64)
         pos[info.stream_order] = np.arange(N)
         last, early = {}, 0  # coarse triangle (corners sorted) -> its retire position
-        for k in range(K):
-            rows = np.arange(starts[k], starts[k + 1])
-            d = ((cen[f.root_ref[tmpl]][:, None] - cen[rows][None]) ** 2).sum(-1)
-            near = rows[np.argmin(d, 1)]
-            for r in rows:
-                mine = tmpl[near == r]
-                at = pos[tmpl].max()  # an empty region waits for the whole template level
-                if len(mine):
-                    mine = mine[np.argsort(pos[mine])]
-                    tri = verts[f.root_table[f.root_ref[mine]]]
-                    area = np.cumsum(
-                        0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-                    )
-                    seen = np.cumsum(imp[mine])
-                    ok = (seen >= RETIRE_IMPORTANCE * seen[-1] * (1 - 1e-12)) & (
-                        area >= RETIRE_AREA * area[-1] * (1 - 1e-12)
-                    )
-                    at = pos[mine][np.flatnonzero(ok)[0]]
-                last[tuple(sorted(f.coarse_faces[r]))] = int(at)
-                early += len(mine) and at < pos[mine].max()
+        for r, mine in region_faces(verts, f):
+            at = pos[tmpl].max()  # an empty region waits for the whole template level
+            if len(mine):
+                mine = mine[np.argsort(pos[mine])]
+                tri = verts[f.root_table[f.root_ref[mine]]]
+                area = np.cumsum(0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1))
+                seen = np.cumsum(imp[mine])
+                ok = (seen >= RETIRE_IMPORTANCE * seen[-1] * (1 - 1e-12)) & (
+                    area >= RETIRE_AREA * area[-1] * (1 - 1e-12)
+                )
+                at = pos[mine][np.flatnonzero(ok)[0]]
+            last[tuple(sorted(f.coarse_faces[r]))] = int(at)
+            early += len(mine) and at < pos[mine].max()
         assert early  # some stand-ins make way before their region's last template face
         fo = read_stream(data).forest
         assert fo.stand_ins and {tuple(sorted(t)): int(r) for t, r in zip(fo.coarse_faces, fo.retire)} == last
@@ -259,28 +263,21 @@ def test_backdrop_stand_ins_retire_by_their_region_importance(tmp_path):
     assert not plain.flags & FLAG_BACKDROP and not read_stream(str(tmp_path / "si.pavs")).forest.backdrop
     f._set_stand_ins(True, None, backdrop=True)
     K, N = f.num_coarse_levels, f.num_faces
-    cen = verts[f.root_table].mean(1)
     tmpl = np.flatnonzero(f.level == K)
-    starts = np.concatenate([[0], np.cumsum(f.coarse_counts)])
     path = str(tmp_path / "bd.pavs")
     info = write_stream(path, av, imp, vertices=verts)
     assert info.flags & FLAG_STAND_INS and info.flags & FLAG_BACKDROP
     pos = np.empty(N, np.int64)
     pos[info.stream_order] = np.arange(N)
     last, early = {}, 0
-    for k in range(K):
-        rows = np.arange(starts[k], starts[k + 1])
-        d = ((cen[f.root_ref[tmpl]][:, None] - cen[rows][None]) ** 2).sum(-1)
-        near = rows[np.argmin(d, 1)]
-        for r in rows:
-            mine = tmpl[near == r]
-            at = pos[tmpl].max()
-            if len(mine):
-                mine = mine[np.argsort(pos[mine])]
-                seen = np.cumsum(imp[mine])
-                at = pos[mine][np.flatnonzero(seen >= BACKDROP_RETIRE_IMPORTANCE * seen[-1] * (1 - 1e-12))[0]]
-                early += at < pos[mine].max()
-            last[tuple(sorted(f.coarse_faces[r]))] = int(at)
+    for r, mine in region_faces(verts, f):
+        at = pos[tmpl].max()
+        if len(mine):
+            mine = mine[np.argsort(pos[mine])]
+            seen = np.cumsum(imp[mine])
+            at = pos[mine][np.flatnonzero(seen >= BACKDROP_RETIRE_IMPORTANCE * seen[-1] * (1 - 1e-12))[0]]
+            early += at < pos[mine].max()
+        last[tuple(sorted(f.coarse_faces[r]))] = int(at)
     assert early
     got = read_stream(path)
     fo = got.forest

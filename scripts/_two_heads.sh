@@ -1,0 +1,20 @@
+# Sourced by the issue-16 studies (run_prefix_study.sh, run_backdrop_study.sh) after they set
+# OUT: the environment, both synthetic heads, and the run helpers they share.
+bash scripts/setup_env.sh
+PY=.venv/bin/python
+DATA=${DATA:-runs/synthetic}
+DATA_COARSE=${DATA_COARSE:-runs/synth_coarse}
+BENCHMARKS=${BENCHMARKS:-docs/BENCHMARKS.md}
+REPORTS=${REPORTS:-docs}
+mkdir -p "$OUT/default" "$OUT/coarse"
+[ -f "$DATA/transforms_train.json" ] || $PY scripts/make_synthetic.py --out "$DATA" --quiet
+[ -f "$DATA_COARSE/transforms_train.json" ] ||
+  $PY scripts/make_synthetic.py --out "$DATA_COARSE" --template-subdivisions 3 --quiet
+
+train() {  # data, run folder, extra args...
+  local data=$1 run=$2; shift 2
+  [ -f "$run/avatar.npz" ] || $PY scripts/train.py --data "$data" --out "$run" --resume --no-progress "$@" > "$run.log" 2>&1
+}
+name() {  # base name, seed: NAME for seed 0, NAME_seed<k> otherwise (evaluate.py's grouping)
+  if [ "$2" = 0 ]; then echo "$1"; else echo "$1_seed$2"; fi
+}
