@@ -80,9 +80,9 @@ class TrainConfig:
     # (Forest.render_set): the images of the template level and finer show them as a backdrop,
     # and a stream retires each with its region's last template face (docs/FORMAT.md 2.4), so a
     # prefix never loses what it drew. Implies coarse_stand_ins. Off by default: measured on both
-    # heads (docs/BENCHMARKS.md, issue 16, "backdrop stand-ins") it meets every issue-16 bound on
-    # both, but on the 5,120-face head its 10-25 % budgets lose 0.6-1.2 dB against cumulative
-    # levels (stand-ins of regions still missing faces stay in front of finished ones).
+    # heads (docs/BENCHMARKS.md, issue 16, "backdrop stand-ins", three seeds) it meets every
+    # issue-16 bound on both, but on the 5,120-face head its 10 % and 25 % budgets lose 0.6-1.1 dB
+    # against cumulative levels (stand-ins of regions still missing faces stay in front).
     coarse_backdrop: bool = False
     # Extra images per step whose prefix ends *inside* a level: the levels below it plus the
     # first k faces of a random level (k uniform), in the order the stream will send them (each
