@@ -172,6 +172,14 @@ def main(argv=None):
             }
         else:
             g = part.gaussians(ds.vertices_at(args.frame), ids=shown)
+            behind = part.forest.render_set()[1]
+            if behind is not None:  # backdrop stand-ins (docs/FORMAT.md 2.4)
+                print(
+                    f"note: {int(behind.sum()):,} retired coarse stand-ins left out of the PLY: this avatar draws "
+                    "them behind every other Gaussian, which a depth-sorted 3DGS viewer cannot; the PLY "
+                    "shows less where they would show through",
+                    file=sys.stderr,
+                )
         if avatar.sh_degree:  # every band, from the trained avatar's faces of this prefix
             # the prefix holds r roots, then the other faces: in the whole stream's decoded
             # avatar (info.order's faces) those are faces 0..r-1 and R..R+(held-r)-1

@@ -495,3 +495,25 @@ def test_done_when_checks_the_budget_table_and_names_the_curve_it_had():
     d = done_when(r)["psnr_non_decreasing"]
     assert not d["met"] and abs(d["worst_drop"] - 1.0) < 1e-9 and d["curve_points"] == 1
     assert _steps(d) == "the curve's 1 point(s)"
+
+
+@pytest.mark.slow  # a training run and a subprocess
+def test_export_of_a_backdrop_avatar_says_what_the_ply_leaves_out(tiny_dataset, tmp_path):
+    """A PLY of a backdrop-stand-in avatar at 100 % holds every Gaussian but the retired
+    stand-ins (a depth-sorted viewer cannot draw them behind the rest), and export says so; the
+    stream it writes carries them all, flagged (docs/FORMAT.md 2.4)."""
+    from plyfile import PlyData
+
+    from progressive_avatars.core.stream.reader import read_stream
+    from progressive_avatars.core.train.trainer import Trainer, config_for
+
+    run = str(tmp_path / "bd")
+    Trainer(tiny_dataset, run, config_for("tiny", iterations=20, coarse_backdrop=True)).run(progress=False)
+    out = run_export(run, "--stream", tmp_path / "a.pavs", "--ply", tmp_path / "f.ply", "--max-views", 4)
+    assert out.returncode == 0, out.stderr[-2000:]
+    res = json.loads(out.stdout.strip().splitlines()[-1])
+    decoded = read_stream(str(tmp_path / "a.pavs"))
+    coarse = decoded.forest.num_coarse
+    assert decoded.forest.backdrop and coarse > 0 and decoded.num_gaussians == res["gaussians"]
+    assert PlyData.read(str(tmp_path / "f.ply"))["vertex"].count == res["ply_gaussians"] == res["gaussians"] - coarse
+    assert f"{coarse:,} retired coarse stand-ins left out of the PLY" in out.stderr
