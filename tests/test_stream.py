@@ -254,7 +254,7 @@ def test_backdrop_stand_ins_retire_by_their_region_importance(tmp_path):
     stand-ins that leave would not); the reader's forest is a backdrop one, and a prefix renders every
     record it holds, the stand-ins of complete regions behind the rest (Forest.render_set). A
     forest without the flag writes neither bit 3 nor reads back as backdrop."""
-    from progressive_avatars.core.stream.format import FLAG_BACKDROP, FLAG_STAND_INS
+    from progressive_avatars.core.stream.format import FLAG_BACKDROP, FLAG_STAND_INS, StreamError
     from progressive_avatars.core.stream.writer import BACKDROP_RETIRE_IMPORTANCE
 
     verts, av, imp = make_avatar(seed=4, n_lat=6, n_lon=9, depth=2, coarse=True, stand_ins=True)
@@ -289,6 +289,13 @@ def test_backdrop_stand_ins_retire_by_their_region_importance(tmp_path):
         tri = [tuple(sorted(part.root_table[part.root_ref[i]])) for i in ids[behind]] if behind is not None else []
         held = [tuple(sorted(part.root_table[part.root_ref[i]])) for i in np.flatnonzero(part.level < K)]
         assert sorted(tri) == sorted(t for t in held if last[t] < n), n
+    # bit 3 without bit 2 (the header CRC made to match) is refused by name
+    data = bytearray(open(path, "rb").read())
+    struct.pack_into("<H", data, 10, struct.unpack_from("<H", data, 10)[0] & ~FLAG_STAND_INS)
+    h = struct.unpack_from("<I", data, 12)[0]
+    struct.pack_into("<I", data, h - 4, zlib.crc32(bytes(data[: h - 4])))
+    with pytest.raises(StreamError, match="flag bit 3"):
+        read_stream(bytes(data))
 
 
 # -- order --------------------------------------------------------------------------------
