@@ -78,8 +78,8 @@ class TrainConfig:
     coarse_stand_ins: bool = False
     # Stand-ins that, once retired, stay behind every other Gaussian instead of leaving
     # (Forest.render_set): the images of the template level and finer show them as a backdrop,
-    # and a stream retires each with its region's last template face (docs/FORMAT.md 2.4), so a
-    # prefix never loses what it drew. Implies coarse_stand_ins. Off by default: measured on both
+    # and a stream sends each behind once its region's template faces hold 99.9 % of the region's
+    # importance (docs/FORMAT.md 2.4), so a prefix never loses what it drew. Implies coarse_stand_ins. Off by default: measured on both
     # heads (docs/BENCHMARKS.md, issue 16, "backdrop stand-ins", three seeds) it meets every
     # issue-16 bound on both, but on the 5,120-face head its 10 % and 25 % budgets lose 0.6-1.1 dB
     # against cumulative levels (stand-ins of regions still missing faces stay in front).
