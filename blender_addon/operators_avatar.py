@@ -11,7 +11,7 @@ from bpy_extras.io_utils import ExportHelper, ImportHelper
 
 from ..core.bridge.budget import check_mesh, load_avatar
 from ..core.bridge.depth import depth_per_face
-from ..core.bridge.splats import preview_order, static_attributes
+from ..core.bridge.splats import preview_order, static_attributes, without_behind
 from ..core.bridge.transforms import camera_from_blender, transform_gaussians
 from ..core.avatar.avatar import sh_to_rgb, sigmoid
 from . import ADDON_PACKAGE, depth, prefs, preview, runtime, splat_look
@@ -296,8 +296,9 @@ def current_gaussians(context, obj, world=True):
     if not runtime.refresh(obj, context.evaluated_depsgraph_get(), count):
         raise RuntimeError(obj.pa_avatar.status)
     ev = e.evaluator
-    # the faces of stream positions 0..count-1, less coarse stand-ins whose region has arrived
-    faces = e.avatar.forest.drawn(e.face_at[:count], records=count)
+    # the faces of stream positions 0..count-1, less coarse stand-ins whose region has arrived,
+    # or, for backdrop stand-ins, with those behind the rest (Forest.render_set)
+    faces, behind = e.avatar.forest.render_set(e.face_at[:count], records=count)
     points = e.point_of_face[faces]
     means, quats, scales = ev.means[points], ev.quats[points], ev.scales[points]
     if world:
@@ -305,13 +306,16 @@ def current_gaussians(context, obj, world=True):
     # The model's own colours (sRGB-encoded, what it was trained on), not the preview's linear
     # display colours: export and rendering must reproduce the trained avatar.
     av = e.avatar
-    return {
+    g = {
         "means": np.array(means),
         "quats": np.array(quats),
         "scales": np.array(scales),
         "opacities": sigmoid(av.opacity_logit[faces]).astype(np.float32),
         "colors": sh_to_rgb(av.f_dc[faces]).astype(np.float32),
     }
+    if behind is not None:  # the core rasteriser draws them behind; a PLY cannot (without_behind)
+        g["behind"] = np.asarray(behind, bool)
+    return g
 
 
 class PA_OT_export_ply(bpy.types.Operator, ExportHelper):
@@ -344,12 +348,17 @@ class PA_OT_export_ply(bpy.types.Operator, ExportHelper):
             )
             return {"CANCELLED"}
         try:
-            g = current_gaussians(context, pv, world=self.world_space)
+            g, left = without_behind(current_gaussians(context, pv, world=self.world_space))
             ply.write_ply(bpy.path.abspath(self.filepath), g)
         except Exception as exc:
             self.report({"ERROR"}, f"PLY export failed: {exc}")
             return {"CANCELLED"}
-        self.report({"INFO"}, f"Wrote {len(g['means'])} Gaussians to {self.filepath}")
+        note = (
+            f" (left out {left} retired backdrop stand-ins: a 3DGS PLY cannot draw them behind the rest)"
+            if left
+            else ""
+        )
+        self.report({"INFO"}, f"Wrote {len(g['means'])} Gaussians to {self.filepath}{note}")
         return {"FINISHED"}
 
 

@@ -1,14 +1,17 @@
 #!/usr/bin/env bash
-# Issue 16, backdrop stand-ins (train.py --coarse-mode backdrop, an option): on the default
-# synthetic head (5,120-face template) and on the same head tracked by a coarser 1,280-face
-# template (make_synthetic.py --template-subdivisions 3), three seeds each of the cpu preset
-# with backdrop stand-ins, without coarse levels (--no-coarse) and with the default cumulative
-# coarse levels. Then evaluate.py writes the two BENCHMARKS.md sections "Every prefix: backdrop
-# stand-ins (option), ... (issue 16)" and their reports under docs/.
+# Issue 16, backdrop stand-ins (train.py's default coarse mode): on the default synthetic head
+# (5,120-face template) and on the same head tracked by a coarser 1,280-face template
+# (make_synthetic.py --template-subdivisions 3), three seeds each of the cpu preset as it is
+# (backdrop stand-ins with one template-level cut per step, the whole avatar's image without
+# them), with backdrop stand-ins as first trained (--backdrop-cuts 0 --whole-with-backdrop),
+# without coarse levels (--no-coarse) and with cumulative coarse
+# levels (--coarse-mode cumulative, the default before). Then evaluate.py writes the two
+# BENCHMARKS.md sections "Every prefix: backdrop stand-ins, ... (issue 16)" and their reports
+# under docs/.
 #
-# The runs train one after another with the default threads (2 on the project's VM): about 2 min
-# per run on the coarse-template head and 3.5 on the default one, 18 runs, 50 min plus 20 min of
-# evaluation. Outputs under runs/backdrop16/; a finished run is skipped, an interrupted one
+# The runs train one after another with the default threads (2 on the project's VM): about 2-3.5
+# min per run on the coarse-template head and 3-4 on the default one, 24 runs, 80 min plus 20 min
+# of evaluation. Outputs under runs/backdrop16/; a finished run is skipped, an interrupted one
 # resumes. BENCHMARKS=... writes the sections into another Markdown file (default
 # docs/BENCHMARKS.md); REPORTS=DIR writes the reports there instead of docs/.
 set -euo pipefail
@@ -20,36 +23,38 @@ SEEDS="0 1 2"
 for dir_data in "coarse:$DATA_COARSE" "default:$DATA"; do
   dir=${dir_data%%:*} data=${dir_data#*:}
   for s in $SEEDS; do
-    train "$data" "$OUT/$dir/$(name backdrop $s)" --seed "$s" --coarse-mode backdrop
+    train "$data" "$OUT/$dir/$(name backdrop_cuts $s)" --seed "$s"
+    train "$data" "$OUT/$dir/$(name backdrop $s)" --seed "$s" --coarse-mode backdrop --backdrop-cuts 0 --whole-with-backdrop
     train "$data" "$OUT/$dir/$(name no_coarse $s)" --seed "$s" --no-coarse
-    train "$data" "$OUT/$dir/$(name cumulative $s)" --seed "$s"
+    train "$data" "$OUT/$dir/$(name cumulative $s)" --seed "$s" --coarse-mode cumulative
   done
 done
 
 compare() {  # folder: --compare every run but this one, --budget-compare the other seeds and comparators
   local dir=$1
-  for n in backdrop no_coarse cumulative; do
+  for n in backdrop_cuts backdrop no_coarse cumulative; do
     for s in $SEEDS; do
       local r; r=$(name "$n" "$s")
-      [ "$r" = backdrop ] || echo --compare "$r=$dir/$r"
-      if [ "$n" = backdrop ] && [ "$s" != 0 ]; then echo --budget-compare "$r=$dir/$r"; fi
+      [ "$r" = backdrop_cuts ] || echo --compare "$r=$dir/$r"
+      if [ "$n" = backdrop_cuts ] && [ "$s" != 0 ]; then echo --budget-compare "$r=$dir/$r"; fi
     done
   done
-  echo --budget-compare "cumulative=$dir/cumulative" --budget-compare "no_coarse=$dir/no_coarse"
+  echo --budget-compare "backdrop=$dir/backdrop" --budget-compare "cumulative=$dir/cumulative" \
+    --budget-compare "no_coarse=$dir/no_coarse"
 }
-ABOUT="the cpu preset (4,000 iterations) with its coarse levels (1/32 and 1/16 of the template's faces, loss weight 0.5) as backdrop stand-ins (--coarse-mode backdrop, an option: the coarse levels' images render them alone, every image of the template level and finer with them behind every other Gaussian; in a stream each renders in depth order with the faces around it until its region's template faces hold 99.9 % of the region's importance, then behind the rest, docs/FORMAT.md 2.4), against the same training without coarse levels (--no-coarse) and with the default cumulative coarse levels (cumulative), three seeds each (0, 1, 2; this run is seed 0). Stream version 5 without the embedded template (the receiver has the tracked mesh). The seed tables give mean ± sd at 100 % and the per-seed differences (the coarse levels' cost per seed is backdrop minus no_coarse); the criteria list scores seed 0, then every seed (scripts/run_backdrop_study.sh)."
+ABOUT="the cpu preset (4,000 iterations) as it is: its coarse levels (1/32 and 1/16 of the template's faces, loss weight 0.5) as backdrop stand-ins (the coarse levels' images render them alone, every image of the template level and finer with them behind every other Gaussian; in a stream each renders in depth order with the faces around it until its region's template faces hold 99.9 % of the region's importance, then behind the rest, docs/FORMAT.md 2.4) and one more image per step whose prefix ends inside the template level, the stand-ins of regions not yet complete in depth order among the faces (--backdrop-cuts 1), while the whole avatar's image leaves them out, so the finished avatar stands on its own (a PLY shows it as the stream does). Against backdrop stand-ins as first trained (backdrop: no cuts, the whole avatar's image with them behind, --backdrop-cuts 0 --whole-with-backdrop), without coarse levels (no_coarse: --no-coarse) and with cumulative coarse levels (cumulative: --coarse-mode cumulative), three seeds each (0, 1, 2; this run is seed 0). Stream version 5 without the embedded template (the receiver has the tracked mesh). The seed tables give mean ± sd at 100 % and the per-seed differences (the coarse levels' cost per seed is backdrop_cuts minus no_coarse); the criteria list scores seed 0, then every seed (scripts/run_backdrop_study.sh)."
 
 # shellcheck disable=SC2046  # compare's words are meant to split
-$PY scripts/evaluate.py --run "$OUT/coarse/backdrop" --name backdrop --data "$DATA_COARSE" \
+$PY scripts/evaluate.py --run "$OUT/coarse/backdrop_cuts" --name backdrop_cuts --data "$DATA_COARSE" \
   --out "$REPORTS/report_prefix_backdrop_coarse" --no-coarse-run "$OUT/coarse/no_coarse" --views 16 --curve-views 8 \
   $(compare "$OUT/coarse") --benchmarks "$BENCHMARKS" --no-progress \
-  --section 'Every prefix: backdrop stand-ins (option), coarse-template head (issue 16)' \
+  --section 'Every prefix: backdrop stand-ins, coarse-template head (issue 16)' \
   --about "The synthetic head tracked by a coarser 1,280-face template (make_synthetic.py --template-subdivisions 3), $ABOUT"
 
 # shellcheck disable=SC2046
-$PY scripts/evaluate.py --run "$OUT/default/backdrop" --name backdrop --data "$DATA" \
+$PY scripts/evaluate.py --run "$OUT/default/backdrop_cuts" --name backdrop_cuts --data "$DATA" \
   --out "$REPORTS/report_prefix_backdrop" --no-coarse-run "$OUT/default/no_coarse" --views 16 --curve-views 8 \
   $(compare "$OUT/default") --benchmarks "$BENCHMARKS" --no-progress \
-  --section 'Every prefix: backdrop stand-ins (option), default synthetic head (issue 16)' \
+  --section 'Every prefix: backdrop stand-ins, default synthetic head (issue 16)' \
   --about "Default synthetic head (5,120-face template), $ABOUT"
 echo "sections written to $BENCHMARKS; reports: $REPORTS/report_prefix_backdrop_coarse, $REPORTS/report_prefix_backdrop"

@@ -67,7 +67,8 @@ def main(argv=None):
         choices=sorted(COARSE_MODES),
         help="how the coarse levels render (docs/FORMAT.md 2.4): cumulative (in every prefix and in the finished "
         "avatar, as the paper's levels), stand-ins (each makes way once the template faces of its region have "
-        "arrived) or backdrop (stand-ins that then stay behind every other Gaussian); default cumulative",
+        "arrived) or backdrop (stand-ins that then stay behind every other Gaussian); default backdrop (cumulative in "
+        "the paper presets)",
     )
     for mode in ("stand-ins", "backdrop"):
         ap.add_argument(
@@ -81,6 +82,18 @@ def main(argv=None):
         help="N more images per step whose prefix ends inside a random level, in stream order (default 0)",
     )
     ap.add_argument("--prefix-cut-weight", type=float, help="factor on the in-level prefixes' loss weights (default 1)")
+    ap.add_argument(
+        "--whole-with-backdrop",
+        action="store_true",
+        help="with --coarse-mode backdrop, train the whole avatar's image with the stand-ins behind it too "
+        "(default: without them, so a PLY of the finished avatar shows what the stream does)",
+    )
+    ap.add_argument(
+        "--backdrop-cuts",
+        type=int,
+        metavar="N",
+        help="with --coarse-mode backdrop, N more images per step whose prefix ends inside the template level (default 1)",
+    )
     ap.add_argument("--grad-threshold", type=float)
     ap.add_argument("--max-faces", type=int)
     ap.add_argument(
@@ -145,6 +158,8 @@ def main(argv=None):
             **dict(zip(("coarse_stand_ins", "coarse_backdrop"), COARSE_MODES.get(args.coarse_mode, (None, None)))),
             prefix_cuts=args.prefix_cuts,
             prefix_cut_weight=args.prefix_cut_weight,
+            backdrop_cuts=args.backdrop_cuts,
+            whole_without_backdrop=False if args.whole_with_backdrop else None,
             refine_flame=args.refine_flame or None,
             image_cache_mb=args.image_cache_mb,
             flame_model=_os.path.abspath(args.flame_model) if args.flame_model else None,

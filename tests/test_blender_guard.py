@@ -79,9 +79,9 @@ def cut_session(tiny_run, tiny_dataset, tmp_path_factory):
     np.savez(seq_path, vertices=seq.vertices, faces=seq.faces)
     imp = np.random.default_rng(0).random(av.num_gaussians)
     full = os.path.join(out, "full.pavs")
-    # Its coarse levels as stand-ins (train.py --coarse-stand-ins; the Gaussians as trained):
-    # Blender must hide each once its region has arrived. Their regions need the rest pose.
-    av.forest._set_stand_ins(True, None)
+    # Its coarse levels as trained by default, backdrop stand-ins: Blender's preview hides each
+    # once its region has arrived, Render Splats draws it behind. Their regions need the rest pose.
+    assert av.forest.backdrop
     rest = train.canonical_vertices
     write_stream(full, av, imp, vertices=rest)
     bare = os.path.join(out, "bare.pavs")  # no embedded template: the mesh in Blender is it
@@ -120,6 +120,8 @@ def cut_session(tiny_run, tiny_dataset, tmp_path_factory):
         "url_streams": [bare, full],
         "url_cuts": url_cuts,
         "url_same_tail": hf.total_bytes // 2,
+        "backdrop": bare,
+        "python": sys.executable,
     }
     rep, arrays = run_scenario(tmp, CUT_SCENARIO, args)
     return {
@@ -132,6 +134,7 @@ def cut_session(tiny_run, tiny_dataset, tmp_path_factory):
         "url_cuts": url_cuts,
         "url_same_tail": args["url_same_tail"],
         "header": hb,
+        "backdrop": bare,
     }
 
 
@@ -193,6 +196,43 @@ def test_cut_streams_load_and_preview_what_arrived(cut_session):
     assert loaded >= len(h.level_counts) and sum(h.level_counts[:K]) < rep["cuts"][f"level{K}"]["total"] < sum(
         h.level_counts[: K + 1]
     )
+
+
+@pytest.mark.slow
+def test_backdrop_stream_renders_retired_stand_ins_behind_and_exports_without_them(cut_session):
+    """A backdrop-stand-in stream (the default training's) in Blender: the preview shows what
+    the forest draws, Render Splats the core rasteriser's image with the retired stand-ins
+    behind the rest (as the stream's own renderer), and the PLY export the drawn ones only."""
+    import plyfile
+
+    from progressive_avatars.core.bridge.splats import srgb_to_linear
+    from progressive_avatars.core.bridge.transforms import camera_from_blender, transform_gaussians
+    from progressive_avatars.core.render.rasterize import render_numpy
+
+    rep, seq = cut_session["rep"], cut_session["seq"]
+    _no_error(rep, "backdrop")
+    r = rep["backdrop"]
+    assert r["load"] == r["render"] == r["ply"] == ["FINISHED"], r
+    av = _expected(cut_session["backdrop"], seq.faces)
+    f = av.forest
+    n = r["count"]
+    assert f.backdrop and n == av.num_gaussians
+    faces, behind = f.render_set(f.stream_ids(n), records=n)
+    assert behind is not None and behind.sum() == f.num_coarse  # the whole stream: every stand-in retired
+    assert r["instances"] == len(faces) - behind.sum()  # the preview: the drawn ones
+    g = av.gaussians(seq.vertices[r["frame"]].astype(np.float32), ids=faces)
+    means, quats, scales = transform_gaussians(np.array(r["preview_matrix"]), g["means"], g["quats"], g["scales"])
+    w, h = r["size"]
+    cam = camera_from_blender(np.array(r["camera_matrix"]), r["lens"], r["sensor"], *r["shift"], w, h, z_up=False)
+    args = (means, quats, scales, g["opacities"], g["colors"], cam, np.zeros(3, np.float32))
+    image, alpha = render_numpy(*args, behind=behind)[:2]
+    got = cut_session["arrays"]["backdrop_image"]
+    assert (alpha > 0.5).mean() > 0.1  # the head fills the frame
+    straight = image / np.where(alpha > 0, alpha, 1)[..., None]
+    np.testing.assert_allclose(got[..., :3], srgb_to_linear(straight) * alpha[..., None], atol=1e-4)
+    np.testing.assert_allclose(got[..., 3], alpha, atol=1e-4)
+    ply = plyfile.PlyData.read(r["ply_path"])
+    assert ply["vertex"].count == len(faces) - behind.sum()
 
 
 @pytest.mark.slow
@@ -472,8 +512,11 @@ def test_train_from_installed_zip_loads_onto_starting_mesh(train_session, kind):
     h = read_header(r["loaded"])
     from progressive_avatars.core.stream.reader import read_stream
 
-    shown = len(read_stream(r["loaded"]).forest.drawn())  # (all: trained without coarse stand-ins)
-    assert r["total"] == h.num_records == shown == r["instances"] > 0 and not r["status"]
+    f = read_stream(r["loaded"]).forest
+    shown = len(f.drawn())  # the preview draws what the forest draws
+    assert r["total"] == h.num_records and shown == r["instances"] > 0 and not r["status"]
+    # trained as by default (backdrop stand-ins): in the whole stream every stand-in has retired
+    assert f.backdrop and shown == h.num_records - f.num_coarse
     assert len(r["previews"]) == 1  # replaced the seed preview on the starting mesh
     cfg = json.load(open(os.path.join(run, "config.json")))
     if kind == "flame":

@@ -282,6 +282,34 @@ def test_worker_renders_once_warm_returns_at_once_and_cancels(tmp_path, no_worke
     np.testing.assert_array_equal(again.rgba, second.rgba)
 
 
+def test_job_draws_retired_backdrop_stand_ins_behind_and_a_ply_leaves_them_out(tmp_path):
+    """A job carrying a ``behind`` mask (current_gaussians of a backdrop avatar) renders those
+    Gaussians behind every other, as the stream's own renderer does; without_behind (the PLY
+    export) leaves them out and says how many."""
+    from progressive_avatars.core.bridge.render_job import render_job as run_job
+    from progressive_avatars.core.bridge.splats import without_behind
+    from progressive_avatars.core.render.rasterize import render_numpy
+
+    cam, arrays = _job_arrays(n=1500, seed=5)
+    behind = np.zeros(1500, bool)
+    behind[::7] = True
+    keys = ("means", "quats", "scales", "opacities", "colors")
+    np.savez(tmp_path / "job.npz", behind=behind, **arrays)
+    run_job(str(tmp_path / "job.npz"), str(tmp_path / "out.npy"))
+    got = np.load(tmp_path / "out.npy")
+    image, alpha, _ = render_numpy(*(arrays[k] for k in keys), cam, np.zeros(3, np.float32), behind=behind)
+    plain = render_numpy(*(arrays[k] for k in keys), cam, np.zeros(3, np.float32))[0]
+    np.testing.assert_allclose(got[..., :3], image, atol=1e-6)
+    np.testing.assert_allclose(got[..., 3], alpha, atol=1e-6)
+    assert np.abs(plain - image).max() > 0.05  # the mask mattered
+    g = {k: arrays[k] for k in keys}
+    kept, left = without_behind(dict(g, behind=behind))
+    assert left == behind.sum() and "behind" not in kept
+    for k in keys:
+        np.testing.assert_array_equal(kept[k], g[k][~behind])
+    assert without_behind(g) == (g, 0)
+
+
 _CALL_KERNEL = """import importlib, importlib.util, sys
 import numpy as np
 root, name = sys.argv[1], sys.argv[2]

@@ -754,16 +754,18 @@ def test_importance_per_level_is_measured_where_prefixes_show_it(tiny_run, tiny_
     ds = Dataset(tiny_dataset, "train")
     level = av.forest.level
     assert len(np.unique(level)) >= 4  # coarse levels, template, grown levels
+    assert av.forest.backdrop  # trained by default; read here as cumulative levels (every face in every render)
+    av.forest._set_stand_ins(False, None)
     per_level = face_importance(av, ds, max_views=3, progress=False, weighting="alpha")
     # With coarse stand-ins the finished avatar, whose render the whole-avatar importance
     # measures, has none; per level they stay (as in the early prefixes they show in).
     stand_ins = level < av.forest.num_coarse_levels
-    assert not av.forest.stand_ins and stand_ins.any()
+    assert stand_ins.any()
     av.forest._set_stand_ins(True, None)
     whole = face_importance(av, ds, max_views=3, progress=False, per_level=False)
     assert np.all(whole[stand_ins] == 0) and whole.sum() > 0
     np.testing.assert_array_equal(face_importance(av, ds, max_views=3, progress=False, weighting="alpha"), per_level)
-    av.forest._set_stand_ins(False, None)  # cumulative again (as trained): every face in every render
+    av.forest._set_stand_ins(False, None)  # cumulative again: every face in every render
     whole = face_importance(av, ds, max_views=3, progress=False, per_level=False)
     finest = level == level.max()
     np.testing.assert_array_equal(per_level[finest], whole[finest])  # its render is the whole avatar

@@ -109,7 +109,16 @@ def test_stream_takes_the_dc_colour_only_when_told(tmp_path):
 def test_training_with_sh_bands(tiny_dataset, tmp_path):
     from progressive_avatars.core.train.trainer import Trainer, config_for
 
-    cfg = config_for("tiny", iterations=30, sh_degree=2, sh_every=10, checkpoint_every=15, eval_every=1000)
+    cfg = config_for(  # cumulative coarse levels: every trained face is in the PLY (backdrop: test_pipeline)
+        "tiny",
+        iterations=30,
+        sh_degree=2,
+        sh_every=10,
+        checkpoint_every=15,
+        eval_every=1000,
+        coarse_stand_ins=False,
+        coarse_backdrop=False,
+    )
     tr = Trainer(tiny_dataset, str(tmp_path / "run"), cfg)
     tr.run(progress=False, stop_after=15)
     assert tr.model.active_sh_degree == 1

@@ -433,7 +433,8 @@ def test_flame_mode_dataset_trains_and_exports(tiny_dataset, tmp_path):
         env=env,
     )
     assert out.returncode == 0, out.stderr[-2000:]
-    assert json.loads(out.stdout.splitlines()[-1])["ply_gaussians"] == av.num_gaussians
+    # trained as by default (backdrop stand-ins): the finished avatar's PLY leaves them out
+    assert json.loads(out.stdout.splitlines()[-1])["ply_gaussians"] == len(av.forest.drawn()) < av.num_gaussians
 
 
 def test_flame_refinement_learns_resumes_and_is_saved(tiny_dataset, tmp_path):
@@ -646,12 +647,14 @@ def test_coarse_stand_ins_train_apart_and_leave_the_finished_avatar(tiny_dataset
     """Coarse stand-ins (coarse_stand_ins=True): the coarse levels' images render the coarse
     Gaussians alone; every image of the template level and finer, and the validation render of
     the finished avatar, leave them out (opacity 0), so they learn from their own levels only.
-    Cumulative coarse levels (the default) stay in every image. In-level prefix cuts need
-    cumulative ones: refused by name."""
+    Cumulative coarse levels stay in every image. In-level prefix cuts need cumulative or
+    backdrop ones: refused by name."""
     from progressive_avatars.core.train import trainer as trainer_mod
 
     cfg = dict(eval_every=10**6, checkpoint_every=10**6)
-    tr = Trainer(tiny_dataset, str(tmp_path / "si"), config_for("tiny", coarse_stand_ins=True, **cfg))
+    SI = dict(coarse_stand_ins=True, coarse_backdrop=False)  # stand-ins that leave
+    CUM = dict(coarse_stand_ins=False, coarse_backdrop=False)
+    tr = Trainer(tiny_dataset, str(tmp_path / "si"), config_for("tiny", **SI, **cfg))
     f = tr.model.forest
     K, coarse = f.num_coarse_levels, np.flatnonzero(f.level < f.num_coarse_levels)
     assert f.stand_ins and K == 2 and len(coarse) == f.num_coarse
@@ -677,7 +680,7 @@ def test_coarse_stand_ins_train_apart_and_leave_the_finished_avatar(tiny_dataset
         t.step()
         return not np.array_equal(t.model.params["f_dc"].detach().numpy()[coarse], before)
 
-    assert not coarse_colour_moved("si0", coarse_stand_ins=True) and coarse_colour_moved("cum0")
+    assert not coarse_colour_moved("si0", **SI) and coarse_colour_moved("cum0", **CUM)
 
     # The validation score of the finished avatar does not see the stand-ins at all.
     def val_with_loud_coarse(t):
@@ -687,39 +690,36 @@ def test_coarse_stand_ins_train_apart_and_leave_the_finished_avatar(tiny_dataset
             t.model.params["f_dc"][coarse] = 5.0
         return a, t.evaluate(2)["val_psnr"]
 
-    si = config_for("tiny", coarse_stand_ins=True, **cfg)
+    si = config_for("tiny", **SI, **cfg)
     a, b = val_with_loud_coarse(Trainer(tiny_dataset, str(tmp_path / "v1"), si))
     assert a == b
-    a, b = val_with_loud_coarse(Trainer(tiny_dataset, str(tmp_path / "v2"), config_for("tiny", **cfg)))
+    a, b = val_with_loud_coarse(Trainer(tiny_dataset, str(tmp_path / "v2"), config_for("tiny", **CUM, **cfg)))
     assert b < a - 0.1
     # A run keeps its kind when resumed without the option.
-    old = config_for("tiny", iterations=4, checkpoint_every=2, eval_every=10**6, coarse_stand_ins=True)
+    old = config_for("tiny", iterations=4, checkpoint_every=2, eval_every=10**6, **SI)
     Trainer(tiny_dataset, str(tmp_path / "old"), old).run(progress=False)
     again = Trainer(
         tiny_dataset, str(tmp_path / "old"), config_for("tiny", iterations=6, eval_every=10**6), resume=True
     )
-    assert again.model.forest.stand_ins and again.cfg.coarse_stand_ins
+    assert again.model.forest.stand_ins and again.cfg.coarse_stand_ins and not again.cfg.coarse_backdrop
     assert json.load(open(tmp_path / "old" / "config.json"))["coarse_stand_ins"] is True
-    with pytest.raises(ValueError, match="cumulative coarse"):
-        config_for("tiny", prefix_cuts=1, coarse_stand_ins=True)
+    with pytest.raises(ValueError, match="stand-ins that leave"):
+        config_for("tiny", prefix_cuts=1, **SI)
     config_for("tiny", prefix_cuts=1)
-    config_for("tiny", prefix_cuts=1, coarse_stand_ins=True, coarse_levels=())
+    config_for("tiny", prefix_cuts=1, **SI, coarse_levels=())
 
 
 def test_coarse_backdrop_trains_with_the_stand_ins_behind(tiny_dataset, tmp_path, monkeypatch):
     """Backdrop stand-ins (coarse_backdrop=True): the coarse levels' images render the coarse
-    Gaussians alone, as stand-ins do; every image of the template level and finer keeps them at
-    their own opacity, composited behind the rest (render's ``behind`` is exactly the coarse
-    faces), and so does the validation render of the finished avatar, which a loud stand-in
-    therefore changes only where the rest leaves light through. The avatar, the checkpoint and a
-    resume keep the kind; in-level prefix cuts are refused as with stand-ins."""
+    Gaussians alone, as stand-ins do; every image of the template level and finer but the whole
+    avatar's keeps them at their own opacity, composited behind the rest (render's ``behind`` is
+    exactly the coarse faces); the whole avatar's image leaves them out (whole_without_backdrop;
+    with it off, that image too has them behind). The validation render of the finished avatar
+    draws them behind, as a stream does, so a loud stand-in changes it only where the rest leaves
+    light through. The avatar, the checkpoint and a resume keep the kind."""
     from progressive_avatars.core.train import trainer as trainer_mod
 
-    cfg = dict(eval_every=10**6, checkpoint_every=10**6)
-    tr = Trainer(tiny_dataset, str(tmp_path / "bd"), config_for("tiny", coarse_backdrop=True, **cfg))
-    f = tr.model.forest
-    K, coarse = f.num_coarse_levels, np.flatnonzero(f.level < f.num_coarse_levels)
-    assert f.stand_ins and f.backdrop and K == 2
+    cfg = dict(eval_every=10**6, checkpoint_every=10**6, backdrop_cuts=0)  # (the cuts: the next test)
     calls = []
     real = trainer_mod.render_levels
 
@@ -727,13 +727,32 @@ def test_coarse_backdrop_trains_with_the_stand_ins_behind(tiny_dataset, tmp_path
         calls.append((len(means), opacities.detach().numpy().copy(), list(upto), behind))
         return real(means, quats, scales, opacities, colors, *args, level=level, upto=upto, behind=behind, **kw)
 
-    monkeypatch.setattr(trainer_mod, "render_levels", spy)
-    tr.step()
-    (n0, _, up0, b0), (n1, op1, up1, b1) = calls
-    assert n0 == len(coarse) and up0 == [0, 1] and b0 is None
-    assert n1 == f.num_faces and up1 == [2] and np.all(op1[coarse] > 0)
-    np.testing.assert_array_equal(np.flatnonzero(b1), coarse)
-    monkeypatch.setattr(trainer_mod, "render_levels", real)
+    for whole_alone in (True, False):
+        tr = Trainer(
+            tiny_dataset,
+            str(tmp_path / f"bd{whole_alone}"),
+            config_for("tiny", coarse_backdrop=True, whole_without_backdrop=whole_alone, **cfg),
+        )
+        tr.grad_sum[:] = 1.0  # split every template face: a level below the template, the whole avatar's
+        tr.grad_count[:] = 1.0
+        tr._grow(tr.cfg.grow_start)
+        f = tr.model.forest
+        K, coarse = f.num_coarse_levels, np.flatnonzero(f.level < f.num_coarse_levels)
+        assert f.stand_ins and f.backdrop and K == 2 and f.max_level == 3
+        calls.clear()
+        monkeypatch.setattr(trainer_mod, "render_levels", spy)
+        tr.step()
+        monkeypatch.setattr(trainer_mod, "render_levels", real)
+        (n0, _, up0, b0), (n1, op1, up1, b1) = calls[:2]
+        assert n0 == len(coarse) and up0 == [0, 1] and b0 is None
+        assert n1 == f.num_faces and np.all(op1[coarse] > 0)
+        np.testing.assert_array_equal(np.flatnonzero(b1), coarse)
+        if whole_alone:
+            ((n2, op2, up2, b2),) = calls[2:]
+            assert up1 == [2] and n2 == f.num_faces and up2 == [3] and b2 is None
+            assert np.all(op2[coarse] == 0) and np.all(op2[f.level >= K] > 0)
+        else:
+            assert len(calls) == 2 and up1 == [2, 3]
     assert tr.model.to_avatar().forest.backdrop
     with torch.no_grad():  # the rest made clear: the validation render shows the stand-ins
         tr.model.params["opacity_logit"][f.level >= K] = -30.0
@@ -747,10 +766,66 @@ def test_coarse_backdrop_trains_with_the_stand_ins_behind(tiny_dataset, tmp_path
         tiny_dataset, str(tmp_path / "old"), config_for("tiny", iterations=6, eval_every=10**6), resume=True
     )
     assert again.model.forest.backdrop and again.cfg.coarse_backdrop and again.cfg.coarse_stand_ins
-    with pytest.raises(ValueError, match="cumulative coarse"):
-        config_for("tiny", prefix_cuts=1, coarse_backdrop=True)
-    with pytest.raises(ValueError, match="--coarse-mode cumulative"):
-        config_for("cpu", prefix_cuts=1, coarse_backdrop=True)
+
+
+def test_backdrop_prefix_cuts_render_what_the_stream_shows(tiny_dataset, tmp_path, monkeypatch):
+    """In-level prefix cuts with backdrop stand-ins (backdrop_cuts: inside the template level): each cut is
+    its own render of every stand-in and the template level's first faces in stream order, the
+    stand-ins of complete regions behind the rest: the very faces and mask a reader of the
+    stream (version 4, the same importance and rest pose) renders at that many records."""
+    from progressive_avatars.core.stream.reader import read_stream
+    from progressive_avatars.core.stream.writer import write_stream
+    from progressive_avatars.core.train import trainer as trainer_mod
+
+    cfg = dict(eval_every=10**6, checkpoint_every=10**6, rank_views=3)
+    tr = Trainer(
+        tiny_dataset,
+        str(tmp_path / "bdc"),
+        config_for("tiny", coarse_backdrop=True, backdrop_cuts=3, **cfg),
+    )
+    f = tr.model.forest
+    K, N, C = f.num_coarse_levels, f.num_faces, int(np.count_nonzero(f.level < f.num_coarse_levels))
+    calls = []
+    real = trainer_mod.render_levels
+
+    def spy(means, *args, level, upto, behind=None, **kw):
+        calls.append((len(means), list(upto), None if behind is None else np.asarray(behind).copy()))
+        return real(means, *args, level=level, upto=upto, behind=behind, **kw)
+
+    monkeypatch.setattr(trainer_mod, "render_levels", spy)
+    assert np.isfinite(tr.step()["loss"])
+    cuts = [(up[0], b) for n, up, b in calls if n == N and len(up) == 1 and C <= up[0] < C + len(f.template_faces) - 1]
+    assert len(cuts) >= 2  # three draws inside the template level (two may coincide)
+    assert calls[-1][1][-1] == N - 1  # the finest image still renders last
+    key = tr.stream_key
+    info = write_stream(
+        tmp_path / "s.pavs",
+        tr.model.to_avatar(),
+        tr.rank_importance,
+        quantize=False,
+        version=4,
+        vertices=tr.train.canonical_vertices,
+    )
+    np.testing.assert_array_equal(key[info.order], np.arange(N))
+    fo = read_stream(str(tmp_path / "s.pavs")).forest
+    for u, behind in cuts:  # the renders used the mask
+        b = tr._cut_behind(u)
+        assert (behind is None) == (b is None) and (b is None or np.array_equal(behind, b))
+    some_behind = False
+    for u in range(C, C + len(f.template_faces)):  # every prefix ending in the template level
+        ids, back = fo.render_set(fo.stream_ids(u + 1))
+        shown = np.sort(info.order[ids])
+        np.testing.assert_array_equal(shown, np.flatnonzero(key <= u))  # every stand-in + the first faces
+        want = np.zeros(N, bool)
+        if back is not None:
+            want[info.order[ids[back]]] = True
+        got = tr._cut_behind(u)
+        np.testing.assert_array_equal(np.zeros(N, bool) if got is None else got, want, err_msg=str(u))
+        assert np.all(f.level[want] < K)
+        some_behind |= bool(want.any())
+    assert some_behind and want[f.level < K].all()  # the last: every stand-in behind
+    with pytest.raises(ValueError, match="backdrop cuts"):
+        config_for("tiny", backdrop_cuts=-1)
 
 
 def test_coarse_weight_scales_the_coarse_levels_loss(tiny_dataset, tmp_path):
@@ -791,7 +866,16 @@ def test_finest_tail_trains_the_finest_alone_and_keeps_the_base(tiny_dataset, tm
         config_for("tiny", finest_tail=0.5)  # the tiny preset grows until 80 %
     from progressive_avatars.core.train import trainer as trainer_mod
 
-    cfg = config_for("tiny", finest_tail=0.2, prefix_cuts=2, rank_views=2, eval_every=10**6, checkpoint_every=10**6)
+    cfg = config_for(  # cumulative coarse levels: every image of a step in one render (images[-1] counts them)
+        "tiny",
+        finest_tail=0.2,
+        prefix_cuts=2,
+        rank_views=2,
+        eval_every=10**6,
+        checkpoint_every=10**6,
+        coarse_stand_ins=False,
+        coarse_backdrop=False,
+    )
     tr = Trainer(tiny_dataset, str(tmp_path / "tail"), cfg)
     images = []
     real = trainer_mod.render_levels
@@ -826,7 +910,15 @@ def test_prefix_cuts_supervise_the_streams_prefixes_inside_levels(tiny_dataset, 
     from progressive_avatars.core.stream.writer import write_stream
     from progressive_avatars.core.train import trainer as trainer_mod
 
-    cfg = config_for("tiny", prefix_cuts=3, rank_views=3, eval_every=10**6, checkpoint_every=10**6)
+    cfg = config_for(  # cumulative coarse levels (backdrop ones: test_backdrop_prefix_cuts_...)
+        "tiny",
+        prefix_cuts=3,
+        rank_views=3,
+        eval_every=10**6,
+        checkpoint_every=10**6,
+        coarse_stand_ins=False,
+        coarse_backdrop=False,
+    )
     tr = Trainer(tiny_dataset, str(tmp_path / "cuts"), cfg)
     tr.grad_sum[:] = 1.0  # split every template face: four levels, the finest not yet ranked
     tr.grad_count[:] = 1.0
@@ -872,7 +964,8 @@ def test_prefix_cuts_supervise_the_streams_prefixes_inside_levels(tiny_dataset, 
     # The first step sees the same view with or without cuts: weighted 0 the cut images add
     # nothing to the loss; weighted 1 they add their photometric terms.
     def first_loss(name, **kw):
-        t = Trainer(tiny_dataset, str(tmp_path / name), config_for("tiny", eval_every=10**6, **kw))
+        cum = dict(coarse_stand_ins=False, coarse_backdrop=False)  # (backdrop cuts are in-level prefixes too)
+        t = Trainer(tiny_dataset, str(tmp_path / name), config_for("tiny", eval_every=10**6, **cum, **kw))
         return t.step()["loss"]
 
     base = first_loss("none")

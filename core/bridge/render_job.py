@@ -21,6 +21,7 @@ def render_job(job_path: str, out_path: str) -> None:
         cam = Camera(d["R"], d["t"], *[float(x) for x in d["intr"]], int(d["size"][0]), int(d["size"][1]))
         # 3DGS clamps SH colours at 0 (PLY splats keep their exact, possibly negative, DC for export).
         colors = np.maximum(d["colors"], 0)
+        behind = d["behind"] if "behind" in d.files else None  # retired backdrop stand-ins
         out = render_numpy(
             d["means"],
             d["quats"],
@@ -30,6 +31,7 @@ def render_job(job_path: str, out_path: str) -> None:
             cam,
             np.zeros(colors.shape[1], np.float32),
             compute_contrib=False,
+            behind=behind,
         )
     image, alpha = out[0], out[1]
     rgba = np.concatenate([np.asarray(image, np.float32), np.asarray(alpha, np.float32)[..., None]], -1)

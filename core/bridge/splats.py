@@ -17,6 +17,17 @@ def srgb_to_linear(c: np.ndarray) -> np.ndarray:
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
 
 
+def without_behind(g: dict) -> tuple[dict, int]:
+    """(Gaussians, how many left out): the arrays of ``g`` less the Gaussians its ``behind``
+    mask draws behind every other (retired backdrop stand-ins, docs/FORMAT.md 2.4), which a
+    depth-sorted 3DGS PLY cannot express; ``g`` itself when it has no mask."""
+    behind = g.get("behind")
+    if behind is None:
+        return g, 0
+    behind = np.asarray(behind, bool)
+    return {k: v[~behind] for k, v in g.items() if k != "behind"}, int(behind.sum())
+
+
 def preview_order(avatar: Avatar) -> np.ndarray:
     """The face of each preview point, point by point: Gaussians grouped by root face, the
     layout the per-frame evaluator fills without scattering (2.6x faster per frame than

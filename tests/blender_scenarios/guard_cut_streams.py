@@ -277,5 +277,52 @@ def _():
     R["slips"] = out
 
 
+@section("backdrop")
+def _():
+    # A stream of backdrop stand-ins (the default training): Render Splats draws the retired
+    # ones behind the rest, as the stream's renderer does; a PLY export leaves them out.
+    for ob in list(bpy.data.objects):  # a scene of its own: the sequence imported again
+        bpy.data.objects.remove(ob)
+    _, mesh = import_mesh(ARGS["seq"])
+    bpy.context.view_layer.objects.active = mesh
+    res = run_op(bpy.ops.object.progressive_avatars_load, filepath=ARGS["backdrop"], budget=100.0)
+    pv = preview_of(mesh)
+    sc.frame_set(sc.frame_start + 1)
+    bpy.context.preferences.addons[PKG].preferences.python_path = ARGS["python"]  # has numba
+    corners = np.array([mesh.matrix_world @ v.co for v in mesh.data.vertices])
+    center, radius = corners.mean(0), np.ptp(corners, 0).max()
+    camd = bpy.data.cameras.new("bd_cam")
+    cam = bpy.data.objects.new("bd_cam", camd)
+    sc.collection.objects.link(cam)
+    sc.camera = cam
+    cam.location = (center[0], center[1] - 2.5 * radius, center[2])
+    cam.rotation_euler = (np.pi / 2, 0.0, 0.0)  # looking along +Y at the head
+    sc.render.resolution_x, sc.render.resolution_y, sc.render.resolution_percentage = 64, 80, 100
+    sc.render.film_transparent = True
+    bpy.context.view_layer.objects.active = pv
+    bpy.context.view_layer.update()
+    render = run_op(bpy.ops.render.progressive_avatars_splats, wait=True)
+    img = bpy.data.images["PA Splats"]
+    px = np.empty(img.size[0] * img.size[1] * 4, np.float32)
+    img.pixels.foreach_get(px)
+    arrays["backdrop_image"] = px.reshape(img.size[1], img.size[0], 4)[::-1]  # rows top-down
+    ply_path = os.path.join(ARGS["out"], "backdrop.ply")
+    R["backdrop"] = {
+        "load": res,
+        "render": render,
+        "count": pv.pa_avatar.count,
+        "instances": instances(pv),
+        "preview_matrix": [list(r) for r in pv.matrix_world],
+        "camera_matrix": [list(r) for r in cam.matrix_world],
+        "lens": camd.lens,
+        "sensor": camd.sensor_width,
+        "shift": [camd.shift_x, camd.shift_y],
+        "size": list(img.size),
+        "frame": sc.frame_current - sc.frame_start,
+        "ply": run_op(bpy.ops.export_scene.progressive_avatars_ply, filepath=ply_path),
+        "ply_path": ply_path,
+    }
+
+
 np.savez(os.path.join(ARGS["out"], "arrays.npz"), **arrays)
 print("PA_REPORT " + json.dumps(R, default=str))
