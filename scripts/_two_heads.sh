@@ -18,3 +18,14 @@ train() {  # data, run folder, extra args...
 name() {  # base name, seed: NAME for seed 0, NAME_seed<k> otherwise (evaluate.py's grouping)
   if [ "$2" = 0 ]; then echo "$1"; else echo "$1_seed$2"; fi
 }
+seed_args() {  # folder, main name, names...: --compare every seed of each name but the main run (seed 0),
+  # --budget-compare the main name's other seeds (evaluate.py groups NAME_seed<k> with NAME)
+  local dir=$1 main=$2; shift 2
+  for n in "$@"; do
+    for s in $SEEDS; do
+      local r; r=$(name "$n" "$s")
+      [ "$r" = "$main" ] || echo --compare "$r=$dir/$r"
+      if [ "$n" = "$main" ] && [ "$s" != 0 ]; then echo --budget-compare "$r=$dir/$r"; fi
+    done
+  done
+}

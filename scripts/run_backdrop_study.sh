@@ -30,17 +30,10 @@ for dir_data in "coarse:$DATA_COARSE" "default:$DATA"; do
   done
 done
 
-compare() {  # folder: --compare every run but this one, --budget-compare the other seeds and comparators
-  local dir=$1
-  for n in backdrop_cuts backdrop no_coarse cumulative; do
-    for s in $SEEDS; do
-      local r; r=$(name "$n" "$s")
-      [ "$r" = backdrop_cuts ] || echo --compare "$r=$dir/$r"
-      if [ "$n" = backdrop_cuts ] && [ "$s" != 0 ]; then echo --budget-compare "$r=$dir/$r"; fi
-    done
-  done
-  echo --budget-compare "backdrop=$dir/backdrop" --budget-compare "cumulative=$dir/cumulative" \
-    --budget-compare "no_coarse=$dir/no_coarse"
+compare() {  # folder: every seed of every kind, the seeds of backdrop_cuts, and the comparators' seed 0 at budgets
+  seed_args "$1" backdrop_cuts backdrop_cuts backdrop no_coarse cumulative
+  echo --budget-compare "backdrop=$1/backdrop" --budget-compare "cumulative=$1/cumulative" \
+    --budget-compare "no_coarse=$1/no_coarse"
 }
 ABOUT="the cpu preset (4,000 iterations) as it is: its coarse levels (1/32 and 1/16 of the template's faces, loss weight 0.5) as backdrop stand-ins (the coarse levels' images render them alone, every image of the template level and finer with them behind every other Gaussian; in a stream each renders in depth order with the faces around it until its region's template faces hold 99.9 % of the region's importance, then behind the rest, docs/FORMAT.md 2.4) and one more image per step whose prefix ends inside the template level, the stand-ins of regions not yet complete in depth order among the faces (--backdrop-cuts 1), while the whole avatar's image leaves them out, so the finished avatar stands on its own (a PLY shows it as the stream does). Against backdrop stand-ins as first trained (backdrop: no cuts, the whole avatar's image with them behind, --backdrop-cuts 0 --whole-with-backdrop), without coarse levels (no_coarse: --no-coarse) and with cumulative coarse levels (cumulative: --coarse-mode cumulative), three seeds each (0, 1, 2; this run is seed 0). Stream version 5 without the embedded template (the receiver has the tracked mesh). The seed tables give mean ± sd at 100 % and the per-seed differences (the coarse levels' cost per seed is backdrop_cuts minus no_coarse); the criteria list scores seed 0, then every seed (scripts/run_backdrop_study.sh)."
 

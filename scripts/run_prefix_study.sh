@@ -27,29 +27,19 @@ for s in $SEEDS; do
   train "$DATA_COARSE" "$OUT/coarse/$(name no_coarse_tail $s)" --seed "$s" --no-coarse --finest-tail 0.25
 done
 
-compare() {  # folder, names...: --compare for every seed of each name, --budget-compare for default's seeds
-  local dir=$1; shift
-  for n in "$@"; do
-    for s in $SEEDS; do
-      local r; r=$(name "$n" "$s")
-      [ "$r" = default ] || echo --compare "$r=$dir/$r"
-      if [ "$n" = default ] && [ "$s" != 0 ]; then echo --budget-compare "$r=$dir/$r"; fi
-    done
-  done
-}
 SHARED="stream version 5 without the embedded template (the receiver has the tracked mesh): after the coarse levels, any face as soon as its parent has arrived, by importance measured on the levels up to its own, each pixel weighted by the error of the levels below (the ablation line \"every root first\" scores version 4's level-by-level order on the same faces). The seed tables give mean ± sd at 100 % and the per-seed differences (the coarse levels' cost per seed is default minus no_coarse); the criteria list scores seed 0, then every seed (scripts/run_prefix_study.sh)."
 
-# shellcheck disable=SC2046  # compare's words are meant to split
+# shellcheck disable=SC2046  # seed_args' words are meant to split
 $PY scripts/evaluate.py --run "$OUT/default/default" --name default --data "$DATA" --out "$REPORTS/report_prefix" \
   --no-coarse-run "$OUT/default/no_coarse" --views 16 --curve-views 8 \
-  $(compare "$OUT/default" default no_coarse) --budget-compare no_coarse="$OUT/default/no_coarse" \
+  $(seed_args "$OUT/default" default default no_coarse) --budget-compare no_coarse="$OUT/default/no_coarse" \
   --benchmarks "$BENCHMARKS" --section 'Every prefix a whole head: default synthetic head (issue 16)' --no-progress \
   --about "Default synthetic head (5,120-face template), the cpu preset (4,000 iterations) with the default coarse levels (1/32 and 1/16 of the template's faces, loss weight 0.5) against the same training without them (--no-coarse), six seeds each (0-5; this run is seed 0); $SHARED"
 
 # shellcheck disable=SC2046
 $PY scripts/evaluate.py --run "$OUT/coarse/default" --name default --data "$DATA_COARSE" --out "$REPORTS/report_prefix_coarse" \
   --no-coarse-run "$OUT/coarse/no_coarse" --views 16 --curve-views 8 \
-  $(compare "$OUT/coarse" default no_coarse tail_cw075 no_coarse_tail) \
+  $(seed_args "$OUT/coarse" default default no_coarse tail_cw075 no_coarse_tail) \
   --budget-compare tail_cw075="$OUT/coarse/tail_cw075" --budget-compare no_coarse="$OUT/coarse/no_coarse" \
   --benchmarks "$BENCHMARKS" --section 'Every prefix a whole head: coarse-template head (issue 16)' --no-progress \
   --about "The synthetic head tracked by a coarser 1,280-face template (make_synthetic.py --template-subdivisions 3), the cpu preset (4,000 iterations) with the default coarse levels (1/32 and 1/16 of the template's faces, loss weight 0.5) against the same training without them (--no-coarse), six seeds each (0-5; this run is seed 0). Also six seeds each of the coarse levels at loss weight 0.75 with a finest-level tail (--coarse-weight 0.75 --finest-tail 0.25: the last quarter supervises the finest image alone, coarse and template Gaussians frozen) and of its proper comparator, the same tail without coarse levels (--no-coarse --finest-tail 0.25), to see whether the tail pays for the coarse levels; $SHARED"
