@@ -719,13 +719,19 @@ def test_coarse_backdrop_trains_with_the_stand_ins_behind(tiny_dataset, tmp_path
     light through. The avatar, the checkpoint and a resume keep the kind."""
     from progressive_avatars.core.train import trainer as trainer_mod
 
+    from progressive_avatars.core.render.rasterize import render
+
     cfg = dict(eval_every=10**6, checkpoint_every=10**6, backdrop_cuts=0)  # (the cuts: the next test)
     calls = []
     real = trainer_mod.render_levels
 
-    def spy(means, quats, scales, opacities, colors, *args, level, upto, behind=None, **kw):
-        calls.append((len(means), opacities.detach().numpy().copy(), list(upto), behind))
-        return real(means, quats, scales, opacities, colors, *args, level=level, upto=upto, behind=behind, **kw)
+    def spy(*args, level, upto, behind=None, last_from=None, **kw):
+        outs = real(*args, level=level, upto=upto, behind=behind, last_from=last_from, **kw)
+        g = [a.detach().clone() for a in args[:5]]
+        calls.append(
+            (g, args[5], np.asarray(level).copy(), list(upto), behind, last_from, [o.image.detach() for o in outs])
+        )
+        return outs
 
     for whole_alone in (True, False):
         tr = Trainer(
@@ -743,16 +749,22 @@ def test_coarse_backdrop_trains_with_the_stand_ins_behind(tiny_dataset, tmp_path
         monkeypatch.setattr(trainer_mod, "render_levels", spy)
         tr.step()
         monkeypatch.setattr(trainer_mod, "render_levels", real)
-        (n0, _, up0, b0), (n1, op1, up1, b1) = calls[:2]
-        assert n0 == len(coarse) and up0 == [0, 1] and b0 is None
-        assert n1 == f.num_faces and np.all(op1[coarse] > 0)
-        np.testing.assert_array_equal(np.flatnonzero(b1), coarse)
-        if whole_alone:
-            ((n2, op2, up2, b2),) = calls[2:]
-            assert up1 == [2] and n2 == f.num_faces and up2 == [3] and b2 is None
-            assert np.all(op2[coarse] == 0) and np.all(op2[f.level >= K] > 0)
-        else:
-            assert len(calls) == 2 and up1 == [2, 3]
+        # one pass shares projection and sort: every level, the stand-ins behind the rest
+        ((g, camera, level, upto, behind, last_from, images),) = calls
+        assert upto == [0, 1, 2, 3] and np.array_equal(level, f.level) and bool((g[3][coarse] > 0).all())
+        np.testing.assert_array_equal(np.flatnonzero(behind), coarse)
+        assert last_from == (K if whole_alone else None)
+        for lv, image in zip(upto, images):
+            # what each image must show: a coarse level its stand-ins alone; the template level and
+            # finer with every stand-in behind them; the whole avatar, with whole_without_backdrop,
+            # without the stand-ins
+            shown = f.level <= lv
+            if lv == f.max_level and whole_alone:
+                shown &= f.level >= K
+            ids = torch.as_tensor(np.flatnonzero(shown))
+            back = None if lv < K else np.isin(ids.numpy(), coarse)
+            want = render(*(x[ids] for x in g), camera, tr.background, behind=back).image
+            assert (want - image).abs().max() < 1e-5, (whole_alone, lv)
     assert tr.model.to_avatar().forest.backdrop
     with torch.no_grad():  # the rest made clear: the validation render shows the stand-ins
         tr.model.params["opacity_logit"][f.level >= K] = -30.0

@@ -87,6 +87,7 @@ RECUR_ROWS = 4
 # many items: each parallel step wakes the threads, which costs more than it saves below about
 # this size (measured at the cpu preset's and the bench head's sizes).
 PARALLEL_MIN = 65536
+LEVEL_NONE = -(1 << 62)  # raster_forward's last_from when the last image leaves no level out
 MAX_IMAGES = 16  # images of one raster_forward: the record keeps each pair's images as uint16 bits
 # Only explicit prange loops run in parallel: numba would otherwise turn every np.zeros and
 # array expression into its own parallel region, and each launch is costly on a busy machine.
@@ -884,10 +885,11 @@ def _forward_tile(
     pos,
     cap_end,
     pix_weight,
+    last_from,
 ):
     """Composite one tile front to back for every image at once: image l takes the Gaussians
     with glevel <= upto[l] (upto strictly increasing, so a Gaussian's images are a suffix of
-    them). Each Gaussian walks the chords of its ellipse once, skipping rows whose pixels have
+    them), the last image only those with glevel >= ``last_from`` too. Each Gaussian walks the chords of its ellipse once, skipping rows whose pixels have
     stopped in all of its images (bit masks per image in ``active`` [L, TILE], per pixel in
     ``pmask``); its alpha at a pixel is computed once and composited into each of its images
     where that pixel still runs. The exp recurrence of a row starts at the first pixel still
@@ -936,6 +938,11 @@ def _forward_tile(
             im0 += 1
         if im0 == n_img:
             continue
+        im_end = n_img  # one past the Gaussian's last image
+        if gl < last_from:
+            if im0 == top:
+                continue
+            im_end = top
         i0, i1, j0, j1, u, v, ca, cb, cc, half_u, inv_ca, d_conic, e_cut = _splat(g, splats, x0, x1, y0, y1)
         o = splats[g, S_OPAC]
         e_ca = -1.0  # exp(-ca), computed on the first row walked
@@ -1047,12 +1054,12 @@ def _forward_tile(
             if n_live == 0:
                 break
             continue
-        img_mask = all_img ^ ((np.int64(1) << im0) - 1)
+        img_mask = ((np.int64(1) << im_end) - 1) ^ ((np.int64(1) << im0) - 1)
         took_any = 0
         for j in range(j0, j1 + 1):
             r = j - y0
             union = 0
-            for im in range(im0, n_img):
+            for im in range(im0, im_end):
                 union |= active[im, r]
             if union == 0:
                 continue
@@ -1191,10 +1198,12 @@ def raster_forward(
     pix_weight=None,
     image=None,
     contrib=True,
+    last_from=LEVEL_NONE,
 ):
     """Front-to-back compositing, parallel over tiles, of one image per entry of ``upto``:
     image l composites the Gaussians g with glevel[g] <= upto[l] (levels of a forest share
-    the projection, depth order and tile lists; a level only skips entries). The Gaussians
+    the projection, depth order and tile lists; a level only skips entries), and the last image
+    only those with glevel[g] >= ``last_from`` too (a whole avatar without the levels below). The Gaussians
     come as pack_splats' rows (``splats``, glevel and n_ch colours included; row k is Gaussian
     order[k] of n) and bin_tiles' lists of rows.
 
@@ -1277,6 +1286,7 @@ def raster_forward(
                 pos,
                 cap_end,
                 pw,
+                last_from,
             )
             if pos >= 0:
                 used[c] = nxt - c * chunk_cap if nxt >= 0 else chunk_cap + 1

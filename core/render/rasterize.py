@@ -228,7 +228,10 @@ class _RecordBuffers:
         if used.max() > size // len(used):
             self.per_pixel *= 2.0
             return False
-        self.per_pixel = max(1.0, 1.25 * float(used.max()) * len(used) / (pixels * n_img))
+        # Shrinking only slowly: a training step alternates large passes (every Gaussian) with
+        # small ones (the coarse stand-ins, a cut inside the template level), and sizing each
+        # from the last would run every large one twice.
+        self.per_pixel = max(1.0, 1.25 * float(used.max()) * len(used) / (pixels * n_img), 0.95 * self.per_pixel)
         return True
 
     def give(self, bufs):
@@ -282,9 +285,11 @@ def _cpu_forward(
     dtype=np.float64,
     with_contrib=True,
     behind=None,
+    last_from=None,
 ):
     """Forward (float32 or float64 arrays, float64 arithmetic) of one image per entry of
-    ``upto`` (image l: Gaussians with glevel <= upto[l]; default one image of all); returns
+    ``upto`` (image l: Gaussians with glevel <= upto[l], the last only those with glevel >=
+    ``last_from`` too when given; default one image of all); returns
     images [L,H,W,C] and alphas [L,H,W] in ``dtype``, the last image's contrib, radii and the
     state the backward needs (``record``: with the composited pairs, so that the backward
     replays them). The contrib weighs each pixel by ``pixel_weight`` [H, W] when given.
@@ -336,6 +341,7 @@ def _cpu_forward(
             *(() if pixel_weight is None else (pixel_weight,)),
             image=image,
             contrib=with_contrib,
+            last_from=rk.LEVEL_NONE if last_from is None else int(last_from),
         )
         if not record or _record_buffers.learn(used, len(bufs[0]), W * H, len(upto)):
             break
@@ -444,6 +450,7 @@ class _RasterizeCPU(torch.autograd.Function):
         record,
         with_contrib,
         behind,
+        last_from,
     ):
         arrays = _kernel_arrays(means, quats, scales, opacities, colors)
         dtype, device = means.dtype, means.device
@@ -460,6 +467,7 @@ class _RasterizeCPU(torch.autograd.Function):
             dtype=np.float32 if dtype == torch.float32 else np.float64,
             with_contrib=with_contrib,
             behind=behind,
+            last_from=last_from,
         )
         ctx.camera, ctx.eps2d, ctx.with_depth = camera, eps2d, with_depth
         ctx.state = state
@@ -515,6 +523,7 @@ class _RasterizeCPU(torch.autograd.Function):
             out(g_colors, 4),
             out(g_bg, 5),
             out(g_uv, 6),
+            None,
             None,
             None,
             None,
@@ -795,6 +804,7 @@ def render(
         _will_backward(means, quats, scales, opacities, colors, background, means2d),
         bool(compute_contrib),
         behind,
+        None,
     )
     image, alpha = image[0], alpha[0]
     contrib = contrib if compute_contrib else None
@@ -824,10 +834,12 @@ def render_levels(
     backend="auto",
     compute_contrib=True,
     behind=None,
+    last_from=None,
 ) -> list:
     """Several images of nested subsets in one pass: image k shows the Gaussians whose
-    ``level`` [N] (ints, e.g. the forest level of each face) is <= ``upto[k]``, as ``render``
-    of that subset would (same order, same pixels; values equal up to float64 rounding: a row's
+    ``level`` [N] (ints, e.g. the forest level of each face) is <= ``upto[k]``, and the last
+    image only those whose level is >= ``last_from`` too when given (the whole avatar without
+    its coarse stand-ins beside prefixes with them), as ``render`` of that subset would (same order, same pixels; values equal up to float64 rounding: a row's
     exp recurrence starts where any of the images still composites). On the CPU the subsets
     share projection, depth sort, tile lists and each pair's alpha; only compositing runs per
     image, in one pass (at most rk.MAX_IMAGES images).
@@ -851,11 +863,16 @@ def render_levels(
     tensors = (means, quats, scales, opacities, colors) + ((background,) if background is not None else ())
     if not all(isinstance(x, torch.Tensor) for x in tensors):
         raise ValueError("render_levels: Gaussian parameters must be torch tensors")
+    if last_from is not None and not (isinstance(last_from, (int, np.integer)) and last_from <= upto[-1]):
+        raise ValueError(f"render_levels: last_from must be an integer <= upto[-1]={upto[-1]}, got {last_from!r}")
     behind = _behind_mask(behind, means.shape[0], "render_levels")
     if backend == "gsplat" or (backend == "auto" and means.is_cuda and gsplat_available()):
         outs = []
         for u in upto:  # gsplat renders each subset on its own
-            sel = np.flatnonzero(lv <= u)
+            shown = lv <= u
+            if last_from is not None and u == upto[-1]:
+                shown &= lv >= last_from
+            sel = np.flatnonzero(shown)
             ids = torch.as_tensor(sel, device=means.device)
             outs.append(
                 render(
@@ -893,6 +910,7 @@ def render_levels(
         _will_backward(means, quats, scales, opacities, colors, background, means2d),
         bool(compute_contrib),
         behind,
+        last_from,
     )
     last = len(upto) - 1
     contrib = contrib if compute_contrib else None

@@ -655,6 +655,88 @@ class Trainer:
         behind[coarse[retire <= u]] = True
         return behind if behind.any() else None
 
+    def _render_images(self, g, camera, upto, image_levels, is_cut, order_key, in_stream_order) -> list:
+        """The step's images, one per entry of ``upto`` (ascending prefixes of ``order_key``), as a
+        stream shows them. One projection, sort and tile binning is shared by every image it can
+        be: without stand-ins, all of them. Plain stand-ins: the coarse levels render apart (their
+        Gaussians only) and the template level and finer leave them out. Backdrop stand-ins: the
+        coarse levels, the template level and finer (stand-ins behind the rest) and the whole
+        avatar without them (whole_without_backdrop: the last image leaves their keys out) share
+        one pass, since stand-ins behind everything keep their depth order among themselves; each
+        cut inside the template level is its own render (the stand-ins of regions not yet complete
+        composite in depth order with the faces there)."""
+        c, model = self.cfg, self.model
+        forest = model.forest
+        K = forest.num_coarse_levels if forest.stand_ins else 0
+        names = ("means", "quats", "scales", "opacities", "colors")
+        kinds = [
+            "coarse" if lv < K else "cut" if cut and lv == K and forest.backdrop else "finer"
+            for lv, cut in zip(image_levels, is_cut)
+        ]
+        by_upto = {}
+        for u, kind in zip(upto, kinds):
+            if kind == "cut":
+                (by_upto[u],) = render_levels(
+                    *(g[k] for k in names),
+                    camera,
+                    self.background,
+                    level=order_key,
+                    upto=[u],
+                    compute_contrib=False,
+                    behind=self._cut_behind(u),
+                )
+        coarse_up = [u for u, kind in zip(upto, kinds) if kind == "coarse"]
+        finer_up = [u for u, kind in zip(upto, kinds) if kind == "finer"]
+        opacities, behind = model.finer_inputs(g["opacities"])
+        whole = self.model.num_faces - 1 if in_stream_order else forest.max_level
+        alone = bool(behind is not None and c.whole_without_backdrop and finer_up and finer_up[-1] == whole)
+        shared = coarse_up + finer_up if forest.backdrop else []  # (training reads no contrib: a faster forward)
+        if shared:
+            last_from = None
+            if alone:  # the stand-ins' keys come first, in level and in stream order alike
+                key, finer = np.asarray(order_key), forest.level >= forest.num_coarse_levels
+                last_from = int(key[finer].min())
+                if key[~finer].max() >= last_from:
+                    raise RuntimeError("trainer: a stand-in's key follows a finer face's (the order is broken)")
+            outs = render_levels(
+                *(g[k] for k in names[:3]),
+                opacities,
+                g["colors"],
+                camera,
+                self.background,
+                level=order_key,
+                upto=shared,
+                compute_contrib=False,
+                behind=behind,
+                last_from=last_from,
+            )
+            by_upto.update(zip(shared, outs))
+        elif coarse_up:
+            sub = model.stand_in_ids
+            outs = render_levels(
+                *(g[k][sub] for k in names),
+                camera,
+                self.background,
+                level=np.asarray(order_key)[sub.numpy()],
+                upto=coarse_up,
+                compute_contrib=False,
+            )
+            by_upto.update(zip(coarse_up, outs))
+        if finer_up and not shared:
+            outs = render_levels(
+                *(g[k] for k in names[:3]),
+                opacities,
+                g["colors"],
+                camera,
+                self.background,
+                level=order_key,
+                upto=finer_up,
+                compute_contrib=False,
+                behind=behind,
+            )
+            by_upto.update(zip(finer_up, outs))
+        return [by_upto[u] for u in upto]
+
     def _views(self) -> list[int]:
         """This rank's training views of the iteration: one draw of the whole batch (world size
         x views per step) from the generator every rank shares, sliced by rank, so ranks see
@@ -703,82 +785,7 @@ class Trainer:
             _check_gaussians(it, g)
             loss = torch.zeros(())
             finest = None
-            # One projection, sort and tile binning shared by every supervised level; with
-            # stand-ins the coarse levels render apart (their Gaussians only), and the
-            # template level and finer leave them out. The finest image comes last either way.
-            K = self.model.forest.num_coarse_levels if self.model.forest.stand_ins else 0
-            # in-level prefixes of the template level with backdrop stand-ins: each its own
-            # render, the stand-ins of regions not yet complete in depth order with the faces
-            kinds = [
-                "coarse" if lv < K else "cut" if cut and lv == K and self.model.forest.backdrop else "finer"
-                for lv, cut in zip(image_levels, is_cut)
-            ]
-            coarse_up = [u for u, k in zip(upto, kinds) if k == "coarse"]
-            finer_up = [u for u, k in zip(upto, kinds) if k == "finer"]
-            outs, cut_outs = [], []
-            for u, k in zip(upto, kinds):
-                if k != "cut":
-                    continue
-                behind = self._cut_behind(u)
-                cut_outs += render_levels(
-                    *(g[k2] for k2 in ("means", "quats", "scales", "opacities", "colors")),
-                    sample.camera,
-                    self.background,
-                    level=order_key,
-                    upto=[u],
-                    compute_contrib=False,
-                    behind=behind,
-                )
-            if coarse_up:
-                sub = self.model.stand_in_ids
-                outs += render_levels(
-                    *(g[k][sub] for k in ("means", "quats", "scales", "opacities", "colors")),
-                    sample.camera,
-                    self.background,
-                    level=np.asarray(order_key)[sub.numpy()],
-                    upto=coarse_up,
-                    compute_contrib=False,
-                )
-            outs += cut_outs  # positions between the coarse levels' and the template level's end
-            opacities, behind = self.model.finer_inputs(g["opacities"])
-            # the whole avatar's image without backdrop stand-ins (whole_without_backdrop)
-            alone = bool(
-                behind is not None
-                and c.whole_without_backdrop
-                and finer_up
-                and finer_up[-1] == (self.model.num_faces - 1 if cuts else top)
-            )
-            whole_up, finer_up = (finer_up[-1:], finer_up[:-1]) if alone else ([], finer_up)
-            outs += (
-                []
-                if not finer_up
-                else render_levels(
-                    g["means"],
-                    g["quats"],
-                    g["scales"],
-                    opacities,
-                    g["colors"],
-                    sample.camera,
-                    self.background,
-                    level=order_key,
-                    upto=finer_up,
-                    compute_contrib=False,  # training reads no contrib (a faster forward)
-                    behind=behind,
-                )
-            )
-            if whole_up:
-                outs += render_levels(
-                    g["means"],
-                    g["quats"],
-                    g["scales"],
-                    self.model.without_stand_ins(g["opacities"]),
-                    g["colors"],
-                    sample.camera,
-                    self.background,
-                    level=order_key,
-                    upto=whole_up,
-                    compute_contrib=False,
-                )
+            outs = self._render_images(g, sample.camera, upto, image_levels, is_cut, order_key, bool(cuts))
             for lvl, out, cut in zip(image_levels, outs, is_cut):
                 ids = self.model.level_ids[top]  # every level's output covers all faces (means2d, radii)
                 w = level_weight(c, lvl) * (c.coarse_weight if lvl < self.model.forest.num_coarse_levels else 1.0)
