@@ -111,8 +111,8 @@ class TrainConfig:
     # draw a Gaussian behind the rest and so leave retired stand-ins out, show it as the stream
     # does. With them behind (False, as first measured) the 5,120-face head's finished avatar
     # leaned on them: 23.87 dB without them against 24.84 with (seed 0, 16 views, a scratch
-    # script, 2026-11-28); trained without them, 24.81 against 24.80. One more render per step
-    # (the whole avatar apart from the other finer images).
+    # script, 2026-11-28); trained without them, 24.81 against 24.80. It shares the other
+    # images' render pass (render_levels' last_from).
     whole_without_backdrop: bool = True
     # How often the training re-measures that order (and after every growth step), on
     # rank_views spread training views.
@@ -690,28 +690,7 @@ class Trainer:
         opacities, behind = model.finer_inputs(g["opacities"])
         whole = self.model.num_faces - 1 if in_stream_order else forest.max_level
         alone = bool(behind is not None and c.whole_without_backdrop and finer_up and finer_up[-1] == whole)
-        shared = coarse_up + finer_up if forest.backdrop else []  # (training reads no contrib: a faster forward)
-        if shared:
-            last_from = None
-            if alone:  # the stand-ins' keys come first, in level and in stream order alike
-                key, finer = np.asarray(order_key), forest.level >= forest.num_coarse_levels
-                last_from = int(key[finer].min())
-                if key[~finer].max() >= last_from:
-                    raise RuntimeError("trainer: a stand-in's key follows a finer face's (the order is broken)")
-            outs = render_levels(
-                *(g[k] for k in names[:3]),
-                opacities,
-                g["colors"],
-                camera,
-                self.background,
-                level=order_key,
-                upto=shared,
-                compute_contrib=False,
-                behind=behind,
-                last_from=last_from,
-            )
-            by_upto.update(zip(shared, outs))
-        elif coarse_up:
+        if coarse_up and not forest.backdrop:
             sub = model.stand_in_ids
             outs = render_levels(
                 *(g[k][sub] for k in names),
@@ -722,7 +701,14 @@ class Trainer:
                 compute_contrib=False,
             )
             by_upto.update(zip(coarse_up, outs))
-        if finer_up and not shared:
+        shared = coarse_up + finer_up if forest.backdrop else finer_up
+        last_from = None
+        if alone:  # the stand-ins' keys come first, in level and in stream order alike
+            key, finer = np.asarray(order_key), forest.level >= forest.num_coarse_levels
+            last_from = int(key[finer].min())
+            if key[~finer].max() >= last_from:
+                raise RuntimeError("trainer: a stand-in's key follows a finer face's (the order is broken)")
+        if shared:
             outs = render_levels(
                 *(g[k] for k in names[:3]),
                 opacities,
@@ -730,11 +716,12 @@ class Trainer:
                 camera,
                 self.background,
                 level=order_key,
-                upto=finer_up,
-                compute_contrib=False,
+                upto=shared,
+                compute_contrib=False,  # training reads no contrib (a faster forward)
                 behind=behind,
+                last_from=last_from,
             )
-            by_upto.update(zip(finer_up, outs))
+            by_upto.update(zip(shared, outs))
         return [by_upto[u] for u in upto]
 
     def _views(self) -> list[int]:
