@@ -10,6 +10,10 @@ prefixes"). The old tree is ``--old``'s core/, extracted with `git archive` unde
 imported as its own package. A third row steps the cumulative-levels run of the same study
 (scripts/run_backdrop_study.sh) with this tree, for the price of the mode itself.
 
+--whole OLD_DIR NEW_DIR adds the training seconds of whole runs (every finished run found in both,
+from their metrics logs): the study's default-mode runs trained by the old tree and again by this
+one (their quality: the issue 16 sections).
+
 Accuracy kept: the first step of old and new starts from the same state (same checkpoint,
 same generator: the same view, levels and cut); the section gives the relative difference of
 the loss and of the whole parameter gradient. --write puts the section into docs/BENCHMARKS.md.
@@ -44,6 +48,33 @@ def _capture(trainer) -> dict:
 
     trainer.opt.step = capture
     return got
+
+
+def whole_runs(old_dir: str, new_dir: str, old_commit: str) -> list[str]:
+    """Table rows: training seconds of the runs under both folders (same relative paths)."""
+    from progressive_avatars.core.evaluate.plots import run_resources
+
+    found = []
+    for root, _dirs, files in os.walk(new_dir):
+        if "avatar.npz" in files:  # finished
+            rel = os.path.relpath(root, new_dir)
+            if os.path.isfile(os.path.join(old_dir, rel, "avatar.npz")):
+                found.append(rel)
+    if not found:
+        raise SystemExit(f"--whole: no finished run (avatar.npz) under both {old_dir} and {new_dir}")
+    lines = [
+        "",
+        f"Whole runs (4,000 iterations each, cpu preset): `{os.path.relpath(old_dir, ROOT)}` trained by {old_commit}, "
+        f"`{os.path.relpath(new_dir, ROOT)}` by this tree (the same commands); training seconds from the runs' metrics logs (what else "
+        "ran on the machine differs between them):",
+        "",
+        "| run | old s | new s | old / new |",
+        "|---|---|---|---|",
+    ]
+    for rel in sorted(found):
+        o, n = (run_resources(os.path.join(d, rel))["train_seconds"] for d in (old_dir, new_dir))
+        lines.append(f"| {rel} | {o:.0f} | {n:.0f} | x{o / n:.2f} |")
+    return lines
 
 
 def run(run_dir: str, cumulative: str | None, old_commit: str, reps: int) -> str:
@@ -125,12 +156,17 @@ def main(argv=None):
     ap.add_argument("--cumulative", default=os.path.join(ROOT, "runs", "backdrop16", "default", "cumulative"))
     ap.add_argument("--old", default="8724d3f")
     ap.add_argument("--reps", type=int, default=30)
+    ap.add_argument("--whole", nargs=2, metavar=("OLD_DIR", "NEW_DIR"))
     ap.add_argument("--write", action="store_true")
     args = ap.parse_args(argv)
     for d in (args.run, args.cumulative):
         if d and not os.path.isfile(os.path.join(d, "checkpoint.npz")):
             raise SystemExit(f"{d}: no checkpoint.npz (train it: scripts/run_backdrop_study.sh)")
     text = run(os.path.abspath(args.run), args.cumulative and os.path.abspath(args.cumulative), args.old, args.reps)
+    if args.whole:
+        old_dir, new_dir = (os.path.abspath(d) for d in args.whole)
+        text = text.replace(" --reps ", f" --whole {' '.join(args.whole)} --reps ", 1)
+        text += "\n" + "\n".join(whole_runs(old_dir, new_dir, args.old))
     print(text)
     if args.write:
         replace_section(os.path.join(ROOT, "docs", "BENCHMARKS.md"), "backdrop_step", text)

@@ -567,7 +567,7 @@ def test_backward_of_the_last_images_gaussians_alone_equals_the_general_replay()
     assert np.array_equal(grads[0][0], grads[1][0]) and np.array_equal(grads[0][1], grads[1][1])
 
 
-def test_render_levels_refuses_more_images_than_the_record_holds():
+def test_render_levels_refuses_more_images_than_the_record_holds_and_a_bad_last_from():
     from progressive_avatars.core.render import kernels as rk
     from progressive_avatars.core.render.rasterize import render_levels
 
@@ -575,6 +575,9 @@ def test_render_levels_refuses_more_images_than_the_record_holds():
     level = np.arange(20) % (rk.MAX_IMAGES + 1)
     with pytest.raises(ValueError, match="at most 16 images"):
         render_levels(*params[:5], cam, params[5], level=level, upto=list(range(rk.MAX_IMAGES + 1)))
+    for bad in (3, 1.5):  # above the last image's level (it would show nothing), not an integer
+        with pytest.raises(ValueError, match="last_from must be an integer <= upto"):
+            render_levels(*params[:5], cam, params[5], level=level, upto=[0, 2], last_from=bad)
 
 
 def test_depth_order_is_numpys_stable_argsort():
