@@ -9,9 +9,9 @@
 # BENCHMARKS.md sections "Every prefix: backdrop stand-ins, ... (issue 16)" and their reports
 # under docs/.
 #
-# The runs train one after another with the default threads (2 on the project's VM): 1.5-4.5 min
-# per run on the coarse-template head and 2.5-5 on the default one (the default mode is the
-# slowest), 24 runs, about 90 min plus 15 min of evaluation. Outputs under runs/backdrop16/; a finished run is skipped, an interrupted one
+# The runs train one after another with the default threads (2 on the project's VM): 1.5-3 min
+# per run on the coarse-template head and 2.5-4 on the default one (the default mode is the
+# slowest: 2.5 and 3.5-3.7 min), 24 runs, about 70 min plus 15 min of evaluation. Outputs under runs/backdrop16/; a finished run is skipped, an interrupted one
 # resumes. BENCHMARKS=... writes the sections into another Markdown file (default
 # docs/BENCHMARKS.md); REPORTS=DIR writes the reports there instead of docs/.
 set -euo pipefail
