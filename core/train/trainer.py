@@ -411,6 +411,13 @@ def _check_same_data(out_dir: str, data_dir: str) -> None:
         )
 
 
+def _cut_generator(seed: int) -> np.random.Generator:
+    """The in-level prefix cuts' own generator: drawn from the views' generator, cuts shifted
+    every later view, so runs with and without cuts of one seed saw different view sequences
+    and their paired-by-seed comparisons were not paired (docs/BENCHMARKS.md, issue 16)."""
+    return np.random.default_rng([seed, 1])
+
+
 def _check_gaussians(it: int, g: dict):
     """The activated Gaussians before they reach the rasteriser (which would refuse them with
     a ValueError): a scale that overflowed to inf, or a NaN, stops training cleanly."""
@@ -528,6 +535,7 @@ class Trainer:
             )
             self.opt = Adam(self.model.params, config.lr)
             self.rng = np.random.default_rng(config.seed)
+            self.cut_rng = _cut_generator(config.seed)
             self.iteration = 0
             self.elapsed = 0.0
             self._reset_accumulators()
@@ -614,9 +622,9 @@ class Trainer:
         counts = forest.level_counts()
         out = []
         for i in range(self.cfg.prefix_cuts + extra):
-            lv = int(self.rng.integers(0, len(counts))) if i < self.cfg.prefix_cuts else forest.num_coarse_levels
+            lv = int(self.cut_rng.integers(0, len(counts))) if i < self.cfg.prefix_cuts else forest.num_coarse_levels
             if counts[lv] >= 2:
-                out.append((lv, int(self.rng.integers(1, counts[lv]))))
+                out.append((lv, int(self.cut_rng.integers(1, counts[lv]))))
         return out
 
     def _rank(self, measure: bool):
@@ -893,6 +901,7 @@ class Trainer:
                     "iteration": self.iteration,
                     "elapsed": self.elapsed,
                     "rng": self.rng.bit_generator.state,
+                    "cut_rng": self.cut_rng.bit_generator.state,
                     "world_size": self.dist.world_size,
                     "settings": self.settings,
                 }
@@ -946,6 +955,9 @@ class Trainer:
         self.checkpoint_iteration = self.iteration
         self.rng = np.random.default_rng()
         self.rng.bit_generator.state = state["rng"]
+        self.cut_rng = _cut_generator(self.cfg.seed)  # (checkpoints before it drew cuts from rng)
+        if "cut_rng" in state:
+            self.cut_rng.bit_generator.state = state["cut_rng"]
         # Drop log lines written after the checkpoint: they will be written again.
         if self.dist.is_main and os.path.exists(self.log_path):
             with open(self.log_path) as fh:
