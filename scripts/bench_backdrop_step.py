@@ -90,7 +90,13 @@ def run(run_dir: str, cumulative: str | None, old_commit: str, reps: int) -> str
             "new (this tree)": stack.enter_context(resumed_trainer(run_dir, **hold)),
         }
         caps = {k: _capture(tr) for k, tr in rows.items()}
+        new = rows["new (this tree)"]
+        own = getattr(new, "cut_rng", None)
+        if own is not None:  # trees before 5fd8e50 drew the cut from the views' generator: so does this step
+            new.cut_rng = new.rng
         first = {k: tr.step() for k, tr in rows.items()}  # the same state: view, levels, cut
+        if own is not None:
+            new.cut_rng = own
         (lo, go), (ln, gn) = ((first[k]["loss"], caps[k]) for k in rows)
         names = sorted(set(go) & set(gn))
         g_old, g_new = (np.concatenate([g[n] for n in names]) for g in (go, gn))
@@ -109,7 +115,6 @@ def run(run_dir: str, cumulative: str | None, old_commit: str, reps: int) -> str
                 w, c = time.perf_counter(), time.process_time()
                 tr.step()
                 times[k].append(((time.perf_counter() - w) * 1e3, (time.process_time() - c) * 1e3))
-        new = rows["new (this tree)"]
         f = new.model.forest
         faces = {k: tr.model.num_faces for k, tr in rows.items()}
     rel = lambda p: os.path.relpath(p, ROOT)  # noqa: E731

@@ -11,7 +11,9 @@
 #
 # The runs train one after another with the default threads (2 on the project's VM): 1.5-3 min
 # per run on the coarse-template head and 2.5-4 on the default one (the default mode is the
-# slowest: 2.5 and 3.5-3.7 min), 24 runs, about 70 min plus 15 min of evaluation. Outputs under runs/backdrop16/; a finished run is skipped, an interrupted one
+# slowest: 2.5 and 3.5-3.7 min), 24 runs, about 70 min plus 15 min of evaluation. Runs of one seed
+# see the same training views in the same order (the cuts draw from their own generator since
+# 5fd8e50; before, the default mode's comparisons "paired by seed" were not paired). Outputs under runs/backdrop16/; a finished run is skipped, an interrupted one
 # resumes. BENCHMARKS=... writes the sections into another Markdown file (default
 # docs/BENCHMARKS.md); REPORTS=DIR writes the reports there instead of docs/.
 set -euo pipefail
