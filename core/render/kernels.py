@@ -889,10 +889,11 @@ def _forward_tile(
 ):
     """Composite one tile front to back for every image at once: image l takes the Gaussians
     with glevel <= upto[l] (upto strictly increasing, so a Gaussian's images are a suffix of
-    them), the last image only those with glevel >= ``last_from`` too. Each Gaussian walks the chords of its ellipse once, skipping rows whose pixels have
-    stopped in all of its images (bit masks per image in ``active`` [L, TILE], per pixel in
-    ``pmask``); its alpha at a pixel is computed once and composited into each of its images
-    where that pixel still runs. The exp recurrence of a row starts at the first pixel still
+    them), the last image only those with glevel >= ``last_from`` too. Each Gaussian walks
+    the chords of its ellipse once, skipping rows whose pixels have stopped in all of its
+    images (bit masks per image in ``active`` [L, TILE], per pixel in ``pmask``); its alpha
+    at a pixel is computed once and composited into each of its images where that pixel still
+    runs. The exp recurrence of a row starts at the first pixel still
     running in any of those images, so an image can differ from a render of its subset alone
     by a few ulps (never more: the recurrence drifts by ulps over a tile row). A Gaussian that
     only the last image shows (every Gaussian of a single image) walks that image's state alone.
@@ -1203,8 +1204,8 @@ def raster_forward(
     """Front-to-back compositing, parallel over tiles, of one image per entry of ``upto``:
     image l composites the Gaussians g with glevel[g] <= upto[l] (levels of a forest share
     the projection, depth order and tile lists; a level only skips entries), and the last image
-    only those with glevel[g] >= ``last_from`` too (a whole avatar without the levels below). The Gaussians
-    come as pack_splats' rows (``splats``, glevel and n_ch colours included; row k is Gaussian
+    only those with glevel[g] >= ``last_from`` too (a whole avatar without the levels below).
+    The Gaussians come as pack_splats' rows (``splats``, glevel and n_ch colours included; row k is Gaussian
     order[k] of n) and bin_tiles' lists of rows.
 
     Returns images [L,H,W,C] (background included; written into ``image`` when given, float32

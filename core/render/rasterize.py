@@ -839,8 +839,9 @@ def render_levels(
     """Several images of nested subsets in one pass: image k shows the Gaussians whose
     ``level`` [N] (ints, e.g. the forest level of each face) is <= ``upto[k]``, and the last
     image only those whose level is >= ``last_from`` too when given (the whole avatar without
-    its coarse stand-ins beside prefixes with them), as ``render`` of that subset would (same order, same pixels; values equal up to float64 rounding: a row's
-    exp recurrence starts where any of the images still composites). On the CPU the subsets
+    its coarse stand-ins beside prefixes with them), as ``render`` of that subset would (same
+    order, same pixels; values equal up to float64 rounding: a row's exp recurrence starts
+    where any of the images still composites). On the CPU the subsets
     share projection, depth sort, tile lists and each pair's alpha; only compositing runs per
     image, in one pass (at most rk.MAX_IMAGES images).
 

@@ -412,9 +412,9 @@ def _check_same_data(out_dir: str, data_dir: str) -> None:
 
 
 def _cut_generator(seed: int) -> np.random.Generator:
-    """The in-level prefix cuts' own generator: drawn from the views' generator, cuts shifted
-    every later view, so runs with and without cuts of one seed saw different view sequences
-    and their paired-by-seed comparisons were not paired (docs/BENCHMARKS.md, issue 16)."""
+    """The in-level prefix cuts' own generator. Cuts drawn from the views' generator shifted
+    every later view draw, so runs of one seed with and without cuts saw different views and
+    the studies' paired-by-seed comparisons were not paired (docs/BENCHMARKS.md, issue 16)."""
     return np.random.default_rng([seed, 1])
 
 
