@@ -83,9 +83,10 @@ class TrainConfig:
     # importance (docs/FORMAT.md 2.4), so a prefix never loses what it drew. Implies
     # coarse_stand_ins. The default, with backdrop_cuts and whole_without_backdrop: measured on
     # both heads (docs/BENCHMARKS.md, issue 16, "backdrop stand-ins", three seeds each) 5 % is
-    # within 1.6-2.2 dB of 100 % (cumulative levels: 2.8-3.2 on the 1,280-face head), coverage
+    # within 1.7-2.3 dB of 100 % (cumulative levels: 2.8-3.2 on the 1,280-face head), coverage
     # >= 0.97 from 2 %, no 1 % step down beyond 0.05 dB; the coarse cost at 100 % is +0.07 dB
-    # (1,280-face) and +0.105 dB (5,120-face) mean over seeds, per seed -0.19..+0.34.
+    # (1,280-face) and +0.05 dB (5,120-face) mean over seeds, per seed -0.06..+0.15 (over the
+    # nine runs of this training so far: +0.06 and +0.095).
     coarse_backdrop: bool = True
     # Extra images per step whose prefix ends *inside* a level: the levels below it plus the
     # first k faces of a random level (k uniform), in the order the stream will send them (each
