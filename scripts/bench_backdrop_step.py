@@ -91,12 +91,10 @@ def run(run_dir: str, cumulative: str | None, old_commit: str, reps: int) -> str
         }
         caps = {k: _capture(tr) for k, tr in rows.items()}
         new = rows["new (this tree)"]
-        own = getattr(new, "cut_rng", None)
-        if own is not None:  # trees before 5fd8e50 drew the cut from the views' generator: so does this step
-            new.cut_rng = new.rng
+        own = new.cut_rng  # trees before 5fd8e50 drew the cut from the views' generator: so does this step
+        new.cut_rng = new.rng
         first = {k: tr.step() for k, tr in rows.items()}  # the same state: view, levels, cut
-        if own is not None:
-            new.cut_rng = own
+        new.cut_rng = own
         (lo, go), (ln, gn) = ((first[k]["loss"], caps[k]) for k in rows)
         names = sorted(set(go) & set(gn))
         g_old, g_new = (np.concatenate([g[n] for n in names]) for g in (go, gn))

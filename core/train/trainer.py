@@ -674,7 +674,7 @@ class Trainer:
         one pass, since stand-ins behind everything keep their depth order among themselves; each
         cut inside the template level is its own render (the stand-ins of regions not yet complete
         composite in depth order with the faces there)."""
-        c, model = self.cfg, self.model
+        model = self.model
         forest = model.forest
         K = forest.num_coarse_levels if forest.stand_ins else 0
         names = ("means", "quats", "scales", "opacities", "colors")
@@ -697,8 +697,8 @@ class Trainer:
         coarse_up = [u for u, kind in zip(upto, kinds) if kind == "coarse"]
         finer_up = [u for u, kind in zip(upto, kinds) if kind == "finer"]
         opacities, behind = model.finer_inputs(g["opacities"])
-        whole = self.model.num_faces - 1 if in_stream_order else forest.max_level
-        alone = bool(behind is not None and c.whole_without_backdrop and finer_up and finer_up[-1] == whole)
+        whole = model.num_faces - 1 if in_stream_order else forest.max_level
+        alone = bool(behind is not None and self.cfg.whole_without_backdrop and finer_up and finer_up[-1] == whole)
         if coarse_up and not forest.backdrop:
             sub = model.stand_in_ids
             outs = render_levels(
