@@ -102,6 +102,12 @@ def main(argv=None):
         metavar="X",
         help="grow by a budget to X times the base faces (largest gradients above the threshold); 0: threshold only",
     )
+    ap.add_argument(
+        "--split-min-px",
+        type=float,
+        metavar="PX",
+        help="split only leaves whose Gaussian reaches PX pixels (largest sigma) in some training view; 0: any size",
+    )
     ap.add_argument("--seed", type=int)
     ap.add_argument(
         "--flame-model",
@@ -151,6 +157,7 @@ def main(argv=None):
             grad_threshold=args.grad_threshold,
             max_faces=args.max_faces,
             grow_to=args.grow_to,
+            split_min_px=args.split_min_px,
             seed=args.seed,
             sh_degree=args.sh_degree,
             coarse_levels=() if args.no_coarse else args.coarse_levels,

@@ -31,7 +31,8 @@ def _lines(run):
 
 @pytest.mark.slow  # two training processes and a single-process reference
 def test_two_ranks_equal_one_process_with_the_same_batch(tiny_dataset, tmp_path):
-    """2 ranks x 1 view against 1 process x 2 views (the same effective batch): every rank holds
+    """2 ranks x 1 view against 1 process x 2 views (the same effective batch), growth under a size
+    floor (split_min_px, the ranks' sizes folded by their maximum): every rank holds
     the same forest after every growth step, and the results agree. Tolerance: forests identical,
     parameters and optimiser moments within 1e-6 absolute. With two ranks every reduction has two
     operands (a + b = b + a, halving is exact) and the per-view losses are scaled by powers of two,
@@ -40,7 +41,10 @@ def test_two_ranks_equal_one_process_with_the_same_batch(tiny_dataset, tmp_path)
     run2 = tmp_path / "ranks2"
     # 40 of the tiny preset's 60 iterations (growth at 15 and 30, checkpoints at 20 and 40): test time
     done = subprocess.run(
-        _torchrun(tiny_dataset, run2, "--iterations", "40"), capture_output=True, text=True, timeout=600
+        _torchrun(tiny_dataset, run2, "--iterations", "40", "--split-min-px", "0.45"),
+        capture_output=True,
+        text=True,
+        timeout=600,
     )
     assert done.returncode == 0, done.stderr[-3000:]
     # One thread, as each rank has: the results do not depend on it (the kernels sum in fixed
@@ -49,7 +53,9 @@ def test_two_ranks_equal_one_process_with_the_same_batch(tiny_dataset, tmp_path)
     numba.set_num_threads(1)
     torch.set_num_threads(1)
     try:
-        one = Trainer(tiny_dataset, str(tmp_path / "one"), config_for("tiny", iterations=40, views_per_step=2))
+        one = Trainer(
+            tiny_dataset, str(tmp_path / "one"), config_for("tiny", iterations=40, views_per_step=2, split_min_px=0.45)
+        )
         one.run(progress=False)
     finally:
         numba.set_num_threads(numba_threads)
@@ -76,6 +82,8 @@ def test_two_ranks_equal_one_process_with_the_same_batch(tiny_dataset, tmp_path)
             np.testing.assert_allclose(a[key], b[key], rtol=0, atol=1e-6, err_msg=key)
     np.testing.assert_allclose(a["grad_sum"], b["grad_sum"], rtol=1e-9)  # the ranks' statistics, summed
     np.testing.assert_array_equal(a["grad_count"], b["grad_count"])
+    # the projected sizes, the ranks' largest (a floor near the tiny head's median size, so it holds back faces)
+    np.testing.assert_array_equal(a["size_px"], b["size_px"])
     ref = {r["iteration"]: r for r in _lines(tmp_path / "one")}
     for r in rows:
         if "loss" in r:

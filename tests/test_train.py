@@ -1069,6 +1069,69 @@ def test_growth_by_budget_follows_its_schedule():
             Growth(**kw, max_faces=100, grow_to=bad)
 
 
+def test_growth_leaves_out_faces_below_the_size_floor():
+    """split_min_px: only leaves whose projected size reaches the floor may split (the rest of
+    the budget goes to the next largest gradients); uniform growth ignores it; a floor without
+    sizes, or a negative or NaN one, is an error."""
+    from progressive_avatars.core.avatar.forest import Forest
+    from progressive_avatars.core.train.policies import Growth
+
+    rng = np.random.default_rng(5)
+    forest = Forest(rng.integers(0, 50, size=(100, 3)))
+    kw = dict(iterations=1000, max_depth=3, grow_every=100, grow_start=100, grow_stop=0.5, grad_threshold=1e-3)
+    grad, count = rng.random(100) * 2e-3, np.ones(100)
+    size = np.where(np.arange(100) % 2 == 0, 3.0, 1.0)  # even faces 3 px, odd 1 px
+    free = Growth(**kw, max_faces=10_000, grow_to=4.0).pick(forest, grad, count, 100, size)
+    held = Growth(**kw, max_faces=10_000, grow_to=4.0, min_px=2.0).pick(forest, grad, count, 100, size)
+    assert len(held) == len(free) == (131 - 100) // 3  # the budget is filled either way
+    assert np.all(held % 2 == 0) and np.any(free % 2 == 1)
+    even = np.flatnonzero((np.arange(100) % 2 == 0) & (grad > 1e-3))
+    assert set(held) == set(even[np.argsort(-grad[even], kind="stable")][: len(held)])  # largest gradients
+    uniform = Growth(**kw, max_faces=10_000, uniform=True, min_px=2.0).pick(forest, grad, count, 100, size)
+    assert len(uniform) == 100
+    with pytest.raises(ValueError, match="projected sizes"):
+        Growth(**kw, max_faces=10_000, min_px=2.0).pick(forest, grad, count, 100)
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(ValueError, match="split_min_px"):
+            config_for("tiny", split_min_px=bad)
+
+
+def test_trainer_measures_projected_sizes_and_growth_respects_the_floor(tiny_dataset, tmp_path):
+    """The trainer's size record is each face's largest projected sigma (pixels) over the steps'
+    views, from the Gaussians it rendered; a floor above every face stops growth, none lets it
+    grow; the record survives a checkpoint."""
+    import torch
+
+    from progressive_avatars.core.train.trainer import Trainer
+
+    cfg = config_for("tiny", split_min_px=1e-6, iterations=4, grow_start=100, grow_every=100)
+    tr = Trainer(tiny_dataset, str(tmp_path / "sizes"), cfg)
+    expected = np.zeros(tr.model.num_faces)
+    for view in (0, 3):
+        sample = tr.train[view]
+        with torch.no_grad():
+            g = tr.model.gaussians(tr._vertices(sample), sample.camera.center)
+        means, scales = g["means"].double().numpy(), g["scales"].double().numpy()
+        cam = sample.camera
+        z = (means @ np.asarray(cam.R).T + cam.t)[:, 2]
+        expected = np.maximum(expected, scales.max(1) * cam.fx / z)
+        tr._views = lambda view=view: [view]
+        tr.step()
+        tr.iteration += 1
+    assert np.all(expected > 0)
+    np.testing.assert_allclose(tr.size_px, expected, rtol=1e-5)
+    tr._save_checkpoint()
+    again = Trainer(tiny_dataset, str(tmp_path / "sizes"), cfg, resume=True)
+    np.testing.assert_array_equal(again.size_px, tr.size_px)
+
+    grown = {}
+    for floor in (0.0, 1e6):
+        run = Trainer(tiny_dataset, str(tmp_path / f"floor{floor:g}"), config_for("tiny", split_min_px=floor))
+        run.run(progress=False)
+        grown[floor] = run.model.num_faces - run.model.forest.num_roots
+    assert grown[0.0] > 0 and grown[1e6] == 0
+
+
 def test_blender_train_job_refuses_a_finished_run(tiny_dataset, tiny_run, tmp_path, capsys):
     """Blender's Train (core/train/jobs.py) into a Run folder that holds a trained run: refused
     with the UI's words, the run untouched."""

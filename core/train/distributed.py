@@ -119,6 +119,20 @@ class Dist:
             a.reshape(-1)[:] = flat[o : o + a.size].numpy()
             o += a.size
 
+    def max_arrays_(self, *arrays: np.ndarray) -> None:
+        """Element-wise maximum of float64 numpy arrays over the ranks, in place (one collective)."""
+        if self.world_size == 1:
+            return
+        import torch
+        import torch.distributed as td
+
+        flat = torch.from_numpy(np.concatenate([np.ravel(a) for a in arrays]).astype(np.float64))
+        td.all_reduce(flat, op=td.ReduceOp.MAX)
+        o = 0
+        for a in arrays:
+            a.reshape(-1)[:] = flat[o : o + a.size].numpy()
+            o += a.size
+
     def broadcast_ints(self, values: np.ndarray | None) -> np.ndarray:
         """Rank 0's int64 array on every rank (others pass None)."""
         if self.world_size == 1:

@@ -61,6 +61,7 @@ class Growth:
         max_faces: int,
         uniform: bool = False,
         grow_to: float = 0.0,
+        min_px: float = 0.0,
     ):
         if grow_every < 1 or max_depth < 0 or max_faces < 0 or not 0 <= grow_stop <= 1:
             raise ValueError(
@@ -72,6 +73,9 @@ class Growth:
         if not np.isfinite(grow_to) or not (grow_to == 0 or grow_to >= 1):
             raise ValueError(f"growth: grow_to must be 0 (off) or a factor >= 1, got {grow_to}")
         self.grow_to = float(grow_to)
+        if not np.isfinite(min_px) or min_px < 0:
+            raise ValueError(f"growth: split_min_px must be finite and >= 0, got {min_px}")
+        self.min_px = float(min_px)
         self.iterations, self.max_depth, self.grow_every = int(iterations), int(max_depth), int(grow_every)
         self.grow_start, self.grow_stop = int(grow_start), float(grow_stop)
         self.grad_threshold, self.max_faces, self.uniform = float(grad_threshold), int(max_faces), bool(uniform)
@@ -88,6 +92,7 @@ class Growth:
             max_faces=cfg.max_faces,
             uniform=cfg.uniform,
             grow_to=cfg.grow_to,
+            min_px=cfg.split_min_px,
         )
 
     def due(self, it: int) -> bool:
@@ -102,10 +107,15 @@ class Growth:
         span = max(1, int(self.grow_stop * self.iterations) - self.grow_start)
         return int(min(self.max_depth, 1 + (max(0, it - self.grow_start) * self.max_depth) // span))
 
-    def pick(self, forest, grad_sum: np.ndarray, grad_count: np.ndarray, it: int) -> np.ndarray:
-        """Sorted ids of the leaves to split after iteration ``it``."""
+    def pick(self, forest, grad_sum: np.ndarray, grad_count: np.ndarray, it: int, size_px=None) -> np.ndarray:
+        """Sorted ids of the leaves to split after iteration ``it``; with ``min_px`` only those
+        whose ``size_px`` (projected sigma in pixels) reaches it (adaptive growth only)."""
         leaves = forest.splittable()  # never coarse faces
         leaves = leaves[forest.depth[leaves] < self.depth_cap(it)]
+        if self.min_px > 0 and not self.uniform:
+            if size_px is None:
+                raise ValueError("growth: split_min_px needs the faces' projected sizes")
+            leaves = leaves[np.asarray(size_px)[leaves] >= self.min_px]
         if self.uniform:
             pick = leaves
         else:

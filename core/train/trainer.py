@@ -45,6 +45,13 @@ class TrainConfig:
     # > 0: split by a budget, up to this factor times the base faces at the last growth step
     # (a geometric schedule; policies.Growth); 0: the gradient threshold alone decides.
     grow_to: float = 0.0
+    # > 0: a leaf splits only if its Gaussian's projected size (largest standard deviation in
+    # pixels, the most over the views since the last growth step) reaches this. Children
+    # start a third of their parent's area, so below ~2 px they are sub-pixel, and measured on
+    # the paper-scale head (docs/BENCHMARKS.md, "Where the image comes from, level by level")
+    # the depth-3 and -4 Gaussians that unlimited growth made (57 % of the stream, median
+    # sigma 0.6-1.2 px, two thirds nearly transparent) carry 10 % of the image. 0: off.
+    split_min_px: float = 0.0
     supervision: str = "all"  # all | sampled | base | finest (policies.Supervision)
     # The last fraction of the iterations (after growth) supervises the finest level alone and
     # keeps the base faces' Gaussians (coarse and template levels, the roots) as they are, so
@@ -564,6 +571,7 @@ class Trainer:
         n = self.model.num_faces
         self.grad_sum = np.zeros(n)
         self.grad_count = np.zeros(n)
+        self.size_px = np.zeros(n)  # the largest projected sigma seen (split_min_px)
 
     def depth_cap(self, it: int) -> int:
         return Growth.from_config(self.cfg).depth_cap(it)
@@ -572,7 +580,9 @@ class Trainer:
         d = self.dist
         self._fold_accumulators()
         # Decided once, on rank 0 (it holds the summed statistics), and broadcast.
-        pick = self.growth.pick(self.model.forest, self.grad_sum, self.grad_count, it) if d.is_main else None
+        pick = (
+            self.growth.pick(self.model.forest, self.grad_sum, self.grad_count, it, self.size_px) if d.is_main else None
+        )
         pick = d.broadcast_ints(pick)
         if len(pick):
             self.model.split(pick)
@@ -588,9 +598,11 @@ class Trainer:
         sums are the job's at a growth step and in a checkpoint, whatever the world size."""
         if self.dist.world_size > 1:
             self.dist.sum_arrays_(self.grad_sum, self.grad_count)
+            self.dist.max_arrays_(self.size_px)
             if not self.dist.is_main:
                 self.grad_sum[:] = 0
                 self.grad_count[:] = 0
+                self.size_px[:] = 0
 
     def _state_digest(self) -> int:
         f, o = self.model.forest, self.opt
@@ -813,6 +825,12 @@ class Trainer:
                 n = len(self.grad_sum)
                 self.grad_sum += np.bincount(idx, norm[seen], minlength=n)
                 self.grad_count += np.bincount(idx, minlength=n)
+                if c.split_min_px > 0:  # one Gaussian per face: idx has no repeats
+                    cam = sample.camera
+                    seen_t = torch.from_numpy(seen)
+                    z = g["means"].detach()[seen_t].double().numpy() @ cam.R[2] + cam.t[2]
+                    sigma = g["scales"].detach()[seen_t].amax(-1).double().numpy() * cam.fx / np.maximum(z, 1e-9)
+                    self.size_px[idx] = np.maximum(self.size_px[idx], sigma)
             loss_sum += float(loss.item())
             mse = torch.mean((out.image.detach() - target) ** 2).item()
             psnr_sum += 10 * math.log10(1 / max(mse, 1e-12))
@@ -894,6 +912,7 @@ class Trainer:
             arrays.update(self.refiner.state())
         arrays["grad_sum"] = self.grad_sum
         arrays["grad_count"] = self.grad_count
+        arrays["size_px"] = self.size_px
         if self.rank_importance is not None:
             arrays["rank_importance"] = self.rank_importance
         arrays["state_json"] = np.array(
@@ -943,11 +962,14 @@ class Trainer:
                 self.opt.v[name] = torch.from_numpy(d["adam_v_" + name].copy())
             self.opt.steps = torch.from_numpy(d["adam_steps"].copy())
             self.grad_sum, self.grad_count = d["grad_sum"].copy(), d["grad_count"].copy()
+            # (checkpoints before split_min_px: no face is held back until the next growth step)
+            self.size_px = d["size_px"].copy() if "size_px" in d else np.full(len(self.grad_sum), np.inf)
             if "rank_importance" in d:
                 self.rank_importance = d["rank_importance"].copy()
             if not self.dist.is_main:  # the job's sums live on rank 0 (whatever world size wrote them)
                 self.grad_sum[:] = 0
                 self.grad_count[:] = 0
+                self.size_px[:] = 0
             if self.refiner is not None:
                 self.refiner.load_state(d, self.ckpt_path)
             state = json.loads(str(d["state_json"]))
