@@ -61,8 +61,11 @@ def score(run: str, data: str, views: int) -> dict:
         cfg = json.load(fh)
     row = {"iterations": int(cfg["iterations"]), "supervision": cfg["supervision"], "gaussians": avatar.num_gaussians}
     row["seconds"] = _training_seconds(run)
+    row["mode"] = cfg["supervision"]
     if cfg.get("finest_tail"):
         row["supervision"] += f", finest tail {cfg['finest_tail']:g}"
+    if cfg.get("split_min_px"):
+        row["supervision"] += f", size floor {cfg['split_min_px']:g} px"
     with tempfile.TemporaryDirectory() as tmp:
         for version in (5, 4):
             path = os.path.join(tmp, f"v{version}.pavs")
@@ -79,10 +82,27 @@ def score(run: str, data: str, views: int) -> dict:
     return row
 
 
-def section(rows: dict, command: str, views: int, about: str = "") -> str:
+def score_at_counts(run: str, data: str, views: int, counts) -> dict:
+    """NVS PSNR (in the mask) of the run's version 5 stream cut to each of ``counts`` Gaussians."""
+    from progressive_avatars.core.evaluate.sweep import SplitRenderer
+    from progressive_avatars.core.io import run as runs
+    from progressive_avatars.core.io.dataset import Dataset
+    from progressive_avatars.core.stream.reader import read_stream
+    from progressive_avatars.core.stream.writer import write_stream
+
+    avatar = runs.load_run_avatar(run)
+    W = runs.run_importance(run, avatar, data, progress=False)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = os.path.join(tmp, "v5.pavs")
+        write_stream(path, avatar, W, quantize=True, drop_sh=True, version=5)
+        r = SplitRenderer(read_stream(path), Dataset(data, "val"), views)
+        return {int(n): r.score(r.first(int(n)), ssim=False)["psnr"] for n in counts}
+
+
+def section(rows: dict, command: str, views: int, about: str = "", title: str = SECTION) -> str:
     names = list(rows)
     lines = [
-        header(SECTION, command),
+        header(title, command),
         *([about, ""] if about else []),
         f"NVS PSNR in the mask ({views} views) at a budget of each run's own stream (version 5, the order "
         "evaluate.py writes), and at 35 % in the paper's order (version 4: every level whole before the next). "
@@ -121,8 +141,21 @@ def section(rows: dict, command: str, views: int, about: str = "") -> str:
                 + f"; 35 % version 4 {r['v4_35'] - ref['v4_35']:+.2f}; NES "
                 + ", ".join(f"{b} % {r[f'nes_{b}'] - ref[f'nes_{b}']:+.2f}" for b in BUDGETS)
             )
-    multi = [n for n in names if rows[n]["supervision"] != "finest"]
-    if multi and any(rows[n]["supervision"] == "finest" for n in names):
+    matched = {n: r for n, r in rows.items() if "first_at_own_count" in r}
+    if matched:
+        lines += [
+            "",
+            f"Runs smaller than {names[0]}, against its stream cut to their Gaussian count (NVS, 100 % of theirs):",
+            "",
+        ]
+        for name, r in matched.items():
+            own, first = r["v5_100"], r["first_at_own_count"]
+            lines.append(
+                f"- {name}: {r['gaussians']:,} Gaussians, {own:.2f} dB against {names[0]} at as many {first:.2f} dB "
+                f"({own - first:+.2f})"
+            )
+    multi = [n for n in names if rows[n]["mode"] != "finest"]
+    if multi and any(rows[n]["mode"] == "finest" for n in names):
         m = rows[multi[0]]
         lines += [
             "",
@@ -131,7 +164,7 @@ def section(rows: dict, command: str, views: int, about: str = "") -> str:
         ]
         for name in names:
             r = rows[name]
-            if r["supervision"] == "finest":
+            if r["mode"] == "finest":
                 lines.append(
                     f"- {name}: {m['v5_35'] - r['v5_35']:+.2f} dB (version 5), "
                     f"{m['v4_35'] - r['v4_35']:+.2f} dB (version 4)"
@@ -154,6 +187,7 @@ def main():
     ap.add_argument("--run", action="append", required=True, metavar="NAME=RUN")
     ap.add_argument("--views", type=int, default=16)
     ap.add_argument("--write", action="store_true")
+    ap.add_argument("--title", default=SECTION, help="the section's heading (another section than the default's)")
     ap.add_argument("--about", default="", help="a sentence on how the runs were trained (goes into the section)")
     a = ap.parse_args(_bootstrap.script_args())
     rows = {}
@@ -163,12 +197,20 @@ def main():
             raise SystemExit(f"bench_supervision: --run wants NAME=RUN with a trained run folder, got {spec!r}")
         rows[name] = score(run, a.data, a.views)
         print(name, json.dumps(rows[name]), flush=True)
+    first_run = a.run[0].partition("=")[2]
+    first = rows[next(iter(rows))]
+    smaller = {n: r["gaussians"] for n, r in rows.items() if r["gaussians"] < first["gaussians"]}
+    if smaller:
+        at = score_at_counts(first_run, a.data, a.views, sorted(set(smaller.values())))
+        for name, count in smaller.items():
+            rows[name]["first_at_own_count"] = at[count]
     command = "python scripts/bench_supervision.py --data " + a.data + "".join(f" --run '{s}'" for s in a.run)
+    command += f" --title '{a.title}'" if a.title != SECTION else ""
     command += " --about ..." if a.about else ""
-    text = section(rows, command, a.views, a.about)
+    text = section(rows, command, a.views, a.about, a.title)
     print(text)
     if a.write:
-        replace_section(os.path.join(ROOT, "docs", "BENCHMARKS.md"), SECTION, text)
+        replace_section(os.path.join(ROOT, "docs", "BENCHMARKS.md"), a.title, text)
 
 
 if __name__ == "__main__":

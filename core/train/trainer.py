@@ -50,7 +50,9 @@ class TrainConfig:
     # start a third of their parent's area, so below ~2 px they are sub-pixel, and measured on
     # the paper-scale head (docs/BENCHMARKS.md, "Where the image comes from, level by level")
     # the depth-3 and -4 Gaussians that unlimited growth made (57 % of the stream, median
-    # sigma 0.6-1.2 px, two thirds nearly transparent) carry 10 % of the image. 0: off.
+    # sigma 0.6-1.2 px, two thirds nearly transparent) carry 10 % of the image. Yet 2 px there
+    # lost at every budget (-0.12 dB against the unlimited run at the same Gaussian count, growth
+    # 15.4x as the budget could not be filled; "Supervision and the growth size floor"): off (0).
     split_min_px: float = 0.0
     supervision: str = "all"  # all | sampled | base | finest (policies.Supervision)
     # The last fraction of the iterations (after growth) supervises the finest level alone and
