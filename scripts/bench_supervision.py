@@ -44,6 +44,15 @@ def _training_seconds(run: str):
     return secs[-1] if secs else None
 
 
+def _stream(avatar, W, tmp: str, version: int):
+    """The quantised stream of ``version`` written into ``tmp``: the writer's info and the stream read back."""
+    from progressive_avatars.core.stream.reader import read_stream
+    from progressive_avatars.core.stream.writer import write_stream
+
+    path = os.path.join(tmp, f"v{version}.pavs")
+    return write_stream(path, avatar, W, quantize=True, drop_sh=True, version=version), read_stream(path)
+
+
 def score(run: str, data: str, views: int) -> dict:
     """NVS PSNR (in the mask) at BUDGETS % of the run's version 5 stream and at 35 % of its
     version 4 stream, NES PSNR (the held-out sequence) at BUDGETS % of the version 5 stream, with
@@ -51,8 +60,6 @@ def score(run: str, data: str, views: int) -> dict:
     from progressive_avatars.core.evaluate.sweep import SplitRenderer
     from progressive_avatars.core.io import run as runs
     from progressive_avatars.core.io.dataset import Dataset
-    from progressive_avatars.core.stream.reader import read_stream
-    from progressive_avatars.core.stream.writer import write_stream
 
     nvs, nes = Dataset(data, "val"), Dataset(data, "test")
     avatar = runs.load_run_avatar(run)
@@ -68,9 +75,7 @@ def score(run: str, data: str, views: int) -> dict:
         row["supervision"] += f", size floor {cfg['split_min_px']:g} px"
     with tempfile.TemporaryDirectory() as tmp:
         for version in (5, 4):
-            path = os.path.join(tmp, f"v{version}.pavs")
-            info = write_stream(path, avatar, W, quantize=True, drop_sh=True, version=version)
-            stream = read_stream(path)
+            info, stream = _stream(avatar, W, tmp, version)
             r = SplitRenderer(stream, nvs, views)
             for b in BUDGETS if version == 5 else (35,):
                 s = r.score(r.first(int(info.count_for_percent(b))), ssim=False)
@@ -87,15 +92,11 @@ def score_at_counts(run: str, data: str, views: int, counts) -> dict:
     from progressive_avatars.core.evaluate.sweep import SplitRenderer
     from progressive_avatars.core.io import run as runs
     from progressive_avatars.core.io.dataset import Dataset
-    from progressive_avatars.core.stream.reader import read_stream
-    from progressive_avatars.core.stream.writer import write_stream
 
     avatar = runs.load_run_avatar(run)
     W = runs.run_importance(run, avatar, data, progress=False)
     with tempfile.TemporaryDirectory() as tmp:
-        path = os.path.join(tmp, "v5.pavs")
-        write_stream(path, avatar, W, quantize=True, drop_sh=True, version=5)
-        r = SplitRenderer(read_stream(path), Dataset(data, "val"), views)
+        r = SplitRenderer(_stream(avatar, W, tmp, 5)[1], Dataset(data, "val"), views)
         return {int(n): r.score(r.first(int(n)), ssim=False)["psnr"] for n in counts}
 
 

@@ -108,26 +108,20 @@ class Dist:
 
     def sum_arrays_(self, *arrays: np.ndarray) -> None:
         """Sum float64 numpy arrays over the ranks in place (one collective)."""
-        if self.world_size == 1:
-            return
-        import torch
-
-        flat = torch.from_numpy(np.concatenate([np.ravel(a) for a in arrays]).astype(np.float64))
-        self.all_reduce_sum_(flat)
-        o = 0
-        for a in arrays:
-            a.reshape(-1)[:] = flat[o : o + a.size].numpy()
-            o += a.size
+        self._reduce_arrays_("SUM", arrays)
 
     def max_arrays_(self, *arrays: np.ndarray) -> None:
         """Element-wise maximum of float64 numpy arrays over the ranks, in place (one collective)."""
+        self._reduce_arrays_("MAX", arrays)
+
+    def _reduce_arrays_(self, op: str, arrays) -> None:
         if self.world_size == 1:
             return
         import torch
         import torch.distributed as td
 
         flat = torch.from_numpy(np.concatenate([np.ravel(a) for a in arrays]).astype(np.float64))
-        td.all_reduce(flat, op=td.ReduceOp.MAX)
+        td.all_reduce(flat, op=getattr(td.ReduceOp, op))
         o = 0
         for a in arrays:
             a.reshape(-1)[:] = flat[o : o + a.size].numpy()
