@@ -73,6 +73,9 @@ def score(run: str, data: str, views: int) -> dict:
         row["supervision"] += f", finest tail {cfg['finest_tail']:g}"
     if cfg.get("split_min_px"):
         row["supervision"] += f", size floor {cfg['split_min_px']:g} px"
+    row["reset"] = int(cfg.get("opacity_reset_every") or 0)
+    if row["reset"]:
+        row["supervision"] += f", opacity reset every {row['reset']:,}"
     with tempfile.TemporaryDirectory() as tmp:
         for version in (5, 4):
             info, stream = _stream(avatar, W, tmp, version)
@@ -157,17 +160,19 @@ def section(rows: dict, command: str, views: int, about: str = "", title: str = 
             )
     multi = [n for n in names if rows[n]["mode"] != "finest"]
     if multi and any(rows[n]["mode"] == "finest" for n in names):
-        m = rows[multi[0]]
         lines += [
             "",
-            f"Multi-level ({multi[0]}) minus each finest-only run at 35 % (issue 17's criterion: >= 5 dB):",
+            "Multi-level minus each finest-only run at 35 % (issue 17's criterion: >= 5 dB), against the first "
+            "multi-level run trained with the same opacity reset:",
             "",
         ]
         for name in names:
             r = rows[name]
             if r["mode"] == "finest":
+                pair = next((n for n in multi if rows[n].get("reset", 0) == r.get("reset", 0)), multi[0])
+                m = rows[pair]
                 lines.append(
-                    f"- {name}: {m['v5_35'] - r['v5_35']:+.2f} dB (version 5), "
+                    f"- {name} (against {pair}): {m['v5_35'] - r['v5_35']:+.2f} dB (version 5), "
                     f"{m['v4_35'] - r['v4_35']:+.2f} dB (version 4)"
                 )
     finest = sorted((n for n in names if rows[n]["supervision"] == "finest"), key=lambda n: rows[n]["iterations"])

@@ -108,6 +108,13 @@ def main(argv=None):
         metavar="PX",
         help="split only leaves whose Gaussian reaches PX pixels (largest sigma) in some training view; 0: any size",
     )
+    ap.add_argument(
+        "--opacity-reset-every",
+        type=int,
+        metavar="N",
+        help="every N iterations while the forest grows, cut every opacity to 0.01 (as 3DGS and "
+        "GaussianAvatars train); 0: never (default)",
+    )
     ap.add_argument("--seed", type=int)
     ap.add_argument(
         "--flame-model",
@@ -158,6 +165,7 @@ def main(argv=None):
             max_faces=args.max_faces,
             grow_to=args.grow_to,
             split_min_px=args.split_min_px,
+            opacity_reset_every=args.opacity_reset_every,
             seed=args.seed,
             sh_degree=args.sh_degree,
             coarse_levels=() if args.no_coarse else args.coarse_levels,

@@ -1132,6 +1132,39 @@ def test_trainer_measures_projected_sizes_and_growth_respects_the_floor(tiny_dat
     assert grown[0.0] > 0 and grown[1e6] == 0
 
 
+def test_opacity_reset_cuts_every_opacity_while_the_forest_grows(tiny_dataset, tmp_path):
+    """--opacity-reset-every N (3DGS and GaussianAvatars' reset): after iterations N, 2N, ... up
+    to the last growth step every Gaussian's opacity is at most 0.01 and its Adam moments are
+    clear while the other parameters' are not; training brings the opacities back; the log
+    marks each reset; bad settings fail at configuration."""
+    import torch
+
+    from progressive_avatars.core.train.trainer import Trainer
+
+    cfg = config_for("tiny", opacity_reset_every=25)  # 60 iterations, growth until 48: resets at 25 only
+    tr = Trainer(tiny_dataset, str(tmp_path / "reset"), cfg)
+    tr.run(progress=False, stop_after=24)
+    before = torch.sigmoid(tr.model.params["opacity_logit"]).detach().numpy().copy()
+    assert before.max() > 0.5
+    tr.run(progress=False, stop_after=1)
+    op = torch.sigmoid(tr.model.params["opacity_logit"]).detach().numpy()
+    assert len(op) == len(before) and op.max() <= 0.01 * (1 + 1e-5)
+    high = before > 0.05  # the last step moved these by far less than their distance to the cap
+    assert high.mean() > 0.5
+    np.testing.assert_allclose(op[high], 0.01, rtol=1e-5)
+    assert not tr.opt.m["opacity_logit"].any() and not tr.opt.v["opacity_logit"].any()
+    assert tr.opt.m["f_dc"].abs().sum() > 0 and tr.opt.v["d_log_scale"].abs().sum() > 0
+    tr.run(progress=False)
+    op = torch.sigmoid(tr.model.params["opacity_logit"]).detach().numpy()
+    assert np.median(op) > 0.03  # 35 steps after the cut the image has brought most of them back
+    log = [json.loads(ln) for ln in open(tmp_path / "reset" / "metrics.jsonl")]
+    assert [r["iteration"] for r in log if "opacity_reset" in r] == [25]  # not at 50: growth ended at 48
+
+    for bad in (dict(opacity_reset_every=-1), dict(opacity_reset_to=0.0), dict(opacity_reset_to=1.0)):
+        with pytest.raises(ValueError, match="opacity reset"):
+            config_for("tiny", **bad)
+
+
 def test_blender_train_job_refuses_a_finished_run(tiny_dataset, tiny_run, tmp_path, capsys):
     """Blender's Train (core/train/jobs.py) into a Run folder that holds a trained run: refused
     with the UI's words, the run untouched."""

@@ -54,6 +54,16 @@ class TrainConfig:
     # lost at every budget (-0.12 dB against the unlimited run at the same Gaussian count, growth
     # 15.4x as the budget could not be filled; "Supervision and the growth size floor"): off (0).
     split_min_px: float = 0.0
+    # > 0: every this many iterations while the forest grows, every Gaussian's opacity is cut to
+    # at most opacity_reset_to and its Adam moments cleared, as the training GaussianAvatars (and
+    # so the paper) inherits from 3DGS does (its opacity_reset_interval: 60k of 600k iterations,
+    # growth every 2k). After a reset parents and children regrow together and share the image,
+    # which is what makes the paper's finest-only prefixes collapse; measured at the paper's scale
+    # (docs/BENCHMARKS.md, "The opacity reset and finest-only supervision") it does that here too
+    # (finest-only -5 dB at 25-50 % of the stream), but it costs multi-level training 2.7-3.3 dB
+    # there and 0.2-0.35 dB at 100 %, and the multi-level gain it exposes stays near 2 dB. Off (0).
+    opacity_reset_every: int = 0
+    opacity_reset_to: float = 0.01
     supervision: str = "all"  # all | sampled | base | finest (policies.Supervision)
     # The last fraction of the iterations (after growth) supervises the finest level alone and
     # keeps the base faces' Gaussians (coarse and template levels, the roots) as they are, so
@@ -289,6 +299,11 @@ def config_for(preset: str, **overrides) -> TrainConfig:
         raise ValueError(
             f"finest tail must be in [0, 1 - grow_stop] (it starts after the last growth step), got "
             f"{cfg.finest_tail} with grow_stop {cfg.grow_stop}"
+        )
+    if int(cfg.opacity_reset_every) < 0 or not (0 < cfg.opacity_reset_to < 1):
+        raise ValueError(
+            f"opacity reset: every must be >= 0 iterations (0: off) and the opacity in (0, 1), got "
+            f"{cfg.opacity_reset_every} and {cfg.opacity_reset_to}"
         )
     Supervision(cfg.supervision)  # unknown modes and growth settings fail here, before any work
     Growth.from_config(cfg)
@@ -594,6 +609,27 @@ class Trainer:
             f = self.model.forest
             self.forest_digests = self._check_ranks_agree("forests after growth", digest(f.parent, f.slot), it)
         return len(pick)
+
+    def _reset_due(self, it: int) -> bool:
+        """Whether every opacity is cut after iteration ``it``: on the schedule, while the forest
+        grows (as 3DGS resets only while it densifies), never at the last iteration."""
+        every = int(self.cfg.opacity_reset_every)
+        return (
+            every > 0
+            and it % every == 0
+            and it <= self.growth.grow_stop * self.cfg.iterations
+            and it < self.cfg.iterations
+        )
+
+    @torch.no_grad()
+    def reset_opacity(self):
+        """Cut every Gaussian's opacity to at most ``opacity_reset_to`` and clear its Adam moments
+        (the steps stay, as 3DGS keeps them), so the optimiser brings back what the images need."""
+        p = self.cfg.opacity_reset_to
+        logit = self.model.params["opacity_logit"]
+        logit.clamp_(max=math.log(p / (1 - p)))
+        self.opt.m["opacity_logit"].zero_()
+        self.opt.v["opacity_logit"].zero_()
 
     def _fold_accumulators(self):
         """Sum the ranks' growth statistics into rank 0's (the others restart from zero), so the
@@ -1053,6 +1089,11 @@ class Trainer:
             if growth:
                 record = record or {"iteration": it, "seconds": round(self.elapsed, 3)}
                 record["growth"] = growth
+            reset = self._reset_due(it)
+            if reset:  # after the evaluation, which shows what the iterations made; before the checkpoint
+                self.reset_opacity()
+                record = record or {"iteration": it, "seconds": round(self.elapsed, 3)}
+                record["opacity_reset"] = self.cfg.opacity_reset_to
             if record and main:
                 self._log(record)
                 bar.set_postfix(
