@@ -109,6 +109,13 @@ def main(argv=None):
         help="split only leaves whose Gaussian reaches PX pixels (largest sigma) in some training view; 0: any size",
     )
     ap.add_argument(
+        "--grow-stop",
+        type=float,
+        metavar="F",
+        help="fraction of the iterations after which the forest stops growing (the depth cap reaches "
+        "--max-depth there; the rest trains the grown forest)",
+    )
+    ap.add_argument(
         "--opacity-reset-every",
         type=int,
         metavar="N",
@@ -165,6 +172,7 @@ def main(argv=None):
             max_faces=args.max_faces,
             grow_to=args.grow_to,
             split_min_px=args.split_min_px,
+            grow_stop=args.grow_stop,
             opacity_reset_every=args.opacity_reset_every,
             seed=args.seed,
             sh_degree=args.sh_degree,

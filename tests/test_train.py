@@ -26,8 +26,10 @@ def test_tiny_preset_trains_end_to_end(tiny_run):
         assert np.all(np.isfinite(getattr(avatar, name)))
 
 
-@pytest.mark.parametrize("prefix_cuts", [0, 1])
-def test_kill_and_resume_matches_uninterrupted_run(tiny_dataset, tmp_path, prefix_cuts):
+# With a reset every 5 iterations (growth until 19) the stop at 15 falls on a reset: the
+# checkpoint must hold the reset state and the resumed run must not cut the opacities again.
+@pytest.mark.parametrize("prefix_cuts,opacity_reset_every", [(0, 0), (1, 0), (0, 5)])
+def test_kill_and_resume_matches_uninterrupted_run(tiny_dataset, tmp_path, prefix_cuts, opacity_reset_every):
     cfg = config_for(
         "tiny",
         iterations=24,
@@ -36,6 +38,7 @@ def test_kill_and_resume_matches_uninterrupted_run(tiny_dataset, tmp_path, prefi
         checkpoint_every=10,
         eval_every=1000,
         prefix_cuts=prefix_cuts,
+        opacity_reset_every=opacity_reset_every,
         rank_every=6,
         rank_views=2,
     )
@@ -56,6 +59,11 @@ def test_kill_and_resume_matches_uninterrupted_run(tiny_dataset, tmp_path, prefi
         np.testing.assert_allclose(getattr(a, name), getattr(b, name), atol=1e-5, err_msg=name)
     rows = [json.loads(line)["iteration"] for line in open(tmp_path / "part" / "metrics.jsonl")]
     assert rows == sorted(set(rows)), "no duplicated log lines after resume"
+    resets = [
+        [r["iteration"] for r in map(json.loads, open(tmp_path / run / "metrics.jsonl")) if "opacity_reset" in r]
+        for run in ("full", "part")
+    ]
+    assert resets == [[5, 10, 15]] * 2 if opacity_reset_every else resets == [[], []]
 
 
 @pytest.mark.slow  # a training run or a subprocess
@@ -1163,6 +1171,18 @@ def test_opacity_reset_cuts_every_opacity_while_the_forest_grows(tiny_dataset, t
     for bad in (dict(opacity_reset_every=-1), dict(opacity_reset_to=0.0), dict(opacity_reset_to=1.0)):
         with pytest.raises(ValueError, match="opacity reset"):
             config_for("tiny", **bad)
+
+    # From the command line, with growth stopped earlier (--grow-stop): 30 iterations, growth until
+    # 15, so one reset (at 10) and 15 iterations that train the grown forest without one.
+    cmd = [sys.executable, os.path.join(ROOT, "scripts", "train.py"), "--data", tiny_dataset, "--preset", "tiny"]
+    cmd += ["--iterations", "30", "--opacity-reset-every", "10", "--no-progress"]
+    out = subprocess.run(cmd + ["--out", str(tmp_path / "cli"), "--grow-stop", "0.5"], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert json.loads((tmp_path / "cli" / "config.json").read_text())["grow_stop"] == 0.5
+    log = [json.loads(ln) for ln in open(tmp_path / "cli" / "metrics.jsonl")]
+    assert [r["iteration"] for r in log if "opacity_reset" in r] == [10]
+    out = subprocess.run(cmd + ["--out", str(tmp_path / "bad"), "--grow-stop", "1.5"], capture_output=True, text=True)
+    assert out.returncode == 2 and "grow stop must be a fraction" in out.stderr and not (tmp_path / "bad").exists()
 
 
 def test_blender_train_job_refuses_a_finished_run(tiny_dataset, tiny_run, tmp_path, capsys):

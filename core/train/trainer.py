@@ -295,6 +295,8 @@ def config_for(preset: str, **overrides) -> TrainConfig:
             f"a step may render {images} images (coarse levels {len(cfg.coarse_levels)} + template + depth "
             f"{cfg.max_depth} + prefix cuts {cfg.prefix_cuts}); at most {MAX_IMAGES}: lower the depth or the cuts"
         )
+    if not 0 <= cfg.grow_stop <= 1:  # before the finest tail, whose bound it sets
+        raise ValueError(f"grow stop must be a fraction of the iterations in [0, 1], got {cfg.grow_stop}")
     if not (math.isfinite(cfg.finest_tail) and 0 <= cfg.finest_tail < 1 - cfg.grow_stop + 1e-12):
         raise ValueError(
             f"finest tail must be in [0, 1 - grow_stop] (it starts after the last growth step), got "
