@@ -71,6 +71,8 @@ def score(run: str, data: str, views: int) -> dict:
     row["mode"] = cfg["supervision"]
     if cfg.get("finest_tail"):
         row["supervision"] += f", finest tail {cfg['finest_tail']:g}"
+    if cfg.get("prefix_cuts"):
+        row["supervision"] += f", prefix cuts {cfg['prefix_cuts']}"
     if cfg.get("split_min_px"):
         row["supervision"] += f", size floor {cfg['split_min_px']:g} px"
     row["reset"] = int(cfg.get("opacity_reset_every") or 0)
