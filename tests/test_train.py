@@ -1182,7 +1182,7 @@ def test_opacity_reset_cuts_every_opacity_while_the_forest_grows(tiny_dataset, t
     log = [json.loads(ln) for ln in open(tmp_path / "cli" / "metrics.jsonl")]
     assert [r["iteration"] for r in log if "opacity_reset" in r] == [10]
     out = subprocess.run(cmd + ["--out", str(tmp_path / "bad"), "--grow-stop", "1.5"], capture_output=True, text=True)
-    assert out.returncode == 2 and "grow stop must be a fraction" in out.stderr and not (tmp_path / "bad").exists()
+    assert out.returncode == 2 and "grow_stop in [0, 1]" in out.stderr and not (tmp_path / "bad").exists()
 
 
 def test_blender_train_job_refuses_a_finished_run(tiny_dataset, tiny_run, tmp_path, capsys):

@@ -78,6 +78,7 @@ class Growth:
         self.min_px = float(min_px)
         self.iterations, self.max_depth, self.grow_every = int(iterations), int(max_depth), int(grow_every)
         self.grow_start, self.grow_stop = int(grow_start), float(grow_stop)
+        self.last = int(self.grow_stop * self.iterations)  # the last iteration after which the forest may grow
         self.grad_threshold, self.max_faces, self.uniform = float(grad_threshold), int(max_faces), bool(uniform)
 
     @classmethod
@@ -97,14 +98,10 @@ class Growth:
 
     def due(self, it: int) -> bool:
         """Whether the forest grows after iteration ``it`` (uniform growth starts at once)."""
-        return (
-            (self.uniform or it >= self.grow_start)
-            and it % self.grow_every == 0
-            and it <= self.grow_stop * self.iterations
-        )
+        return (self.uniform or it >= self.grow_start) and it % self.grow_every == 0 and it <= self.last
 
     def depth_cap(self, it: int) -> int:
-        span = max(1, int(self.grow_stop * self.iterations) - self.grow_start)
+        span = max(1, self.last - self.grow_start)
         return int(min(self.max_depth, 1 + (max(0, it - self.grow_start) * self.max_depth) // span))
 
     def pick(self, forest, grad_sum: np.ndarray, grad_count: np.ndarray, it: int, size_px=None) -> np.ndarray:
@@ -131,8 +128,7 @@ class Growth:
         if self.uniform or self.grow_to == 0:
             return self.max_faces
         first = -(-self.grow_start // self.grow_every) * self.grow_every  # the first due() iteration
-        last = int(self.grow_stop * self.iterations)
-        steps = max(1, (last - first) // self.grow_every + 1)
+        steps = max(1, (self.last - first) // self.grow_every + 1)
         step = min(steps, max(1, (it - first) // self.grow_every + 1))
         # The schedule aims at the capped total, so a cap below base * grow_to is reached at the
         # last growth step, not early: reached early, the depth cap (which rises over the same

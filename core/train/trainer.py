@@ -295,8 +295,8 @@ def config_for(preset: str, **overrides) -> TrainConfig:
             f"a step may render {images} images (coarse levels {len(cfg.coarse_levels)} + template + depth "
             f"{cfg.max_depth} + prefix cuts {cfg.prefix_cuts}); at most {MAX_IMAGES}: lower the depth or the cuts"
         )
-    if not 0 <= cfg.grow_stop <= 1:  # before the finest tail, whose bound it sets
-        raise ValueError(f"grow stop must be a fraction of the iterations in [0, 1], got {cfg.grow_stop}")
+    Supervision(cfg.supervision)  # unknown modes and growth settings fail here, before any work
+    Growth.from_config(cfg)  # before the finest tail, whose bound grow_stop sets
     if not (math.isfinite(cfg.finest_tail) and 0 <= cfg.finest_tail < 1 - cfg.grow_stop + 1e-12):
         raise ValueError(
             f"finest tail must be in [0, 1 - grow_stop] (it starts after the last growth step), got "
@@ -307,8 +307,6 @@ def config_for(preset: str, **overrides) -> TrainConfig:
             f"opacity reset: every must be >= 0 iterations (0: off) and the opacity in (0, 1), got "
             f"{cfg.opacity_reset_every} and {cfg.opacity_reset_to}"
         )
-    Supervision(cfg.supervision)  # unknown modes and growth settings fail here, before any work
-    Growth.from_config(cfg)
     w = tuple(float(x) for x in cfg.level_weights)
     if any(not math.isfinite(x) or x < 0 for x in w) or (w and max(w) == 0):
         raise ValueError(f"level weights must be finite, >= 0 and not all 0, got {list(w)}")
@@ -616,12 +614,7 @@ class Trainer:
         """Whether every opacity is cut after iteration ``it``: on the schedule, while the forest
         grows (as 3DGS resets only while it densifies), never at the last iteration."""
         every = int(self.cfg.opacity_reset_every)
-        return (
-            every > 0
-            and it % every == 0
-            and it <= self.growth.grow_stop * self.cfg.iterations
-            and it < self.cfg.iterations
-        )
+        return every > 0 and it % every == 0 and it <= self.growth.last and it < self.cfg.iterations
 
     @torch.no_grad()
     def reset_opacity(self):
