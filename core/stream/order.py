@@ -82,19 +82,61 @@ def stream_order(forest: Forest, importance=None, root_key=None) -> np.ndarray:
 def interleaved_order(forest: Forest, importance, root_key=None) -> np.ndarray:
     """Permutation (new position -> face) that opens with the coarse levels (the template
     level when there are none), level by level by ascending `root_key` as stream_order, and
-    then sends every other face, template faces included, by descending importance as soon as
-    its parent has been sent: the greedy order under "parent before child", i.e. descending
-    ``min(importance, the parent's key)`` (ties: lower level, then face index). The coarse
-    levels keep every prefix a whole head, so unimportant template faces can wait behind the
-    important faces of the levels below them. The stream order of version 5 (docs/FORMAT.md)."""
+    then sends every other face, template faces included, as soon as its parent has been sent,
+    in the order that brings the most importance per record under "parent before child". The
+    stream order of version 5 (docs/FORMAT.md).
+
+    A face's worth is its importance, but a face worth nothing can open a subtree worth much:
+    after training, a parent whose children took over its region is nearly transparent (with
+    the opacity reset most inner faces end so), and ranking it by its own importance (as the
+    first version 5 writer did, by ``min(importance, the parent's key)``) held its whole subtree
+    to the end of the stream. So faces are sent in *units* (Horn's rule for sequencing under a
+    tree precedence): bottom-up, a face's unit takes its children's units in descending ratio
+    (importance per record) while each one's ratio beats the unit's so far; units then go by
+    descending ratio, a unit never before the one that holds its parent (its ratio capped by
+    that one's; ties: the shallower unit first), and inside a unit the face first, then its
+    merged children's units in the order they were taken, depth first. Levels are few, so the
+    loops here run per level, vectorised over its faces."""
     key = _importance(importance, forest.num_faces, "interleaved_order")
+    N = forest.num_faces
     lead = max(forest.num_coarse_levels, 1)
     level = forest.level.astype(np.int64)
+    parent = forest.parent
     head = stream_order(forest, key, root_key)[: int(np.count_nonzero(level < lead))]  # they lead it too
-    eff = key.copy()
-    for lv in range(lead + 1, int(level.max(initial=lead)) + 1):  # parents' keys are final before their children's
+    top = int(level.max(initial=lead))
+    w = np.maximum(key, 0.0)  # a unit's importance and records
+    n = np.ones(N)
+    merged = np.zeros(N, bool)  # taken into its parent's unit
+    rank = np.zeros(N, np.int64)  # the order it was taken in
+    for lv in range(top, lead, -1):  # children's units are final before their parents'
         ids = np.flatnonzero(level == lv)
-        eff[ids] = np.minimum(key[ids], eff[forest.parent[ids]])
+        par = parent[ids]
+        o = np.lexsort((ids, -(w[ids] / n[ids]), par))  # per parent, by descending ratio
+        ids, par = ids[o], par[o]
+        start = np.r_[True, par[1:] != par[:-1]] if len(ids) else np.zeros(0, bool)
+        first = np.flatnonzero(start)
+        group = np.cumsum(start) - 1
+        cw, cn = np.cumsum(w[ids]), np.cumsum(n[ids])
+        before_w = cw - w[ids] - np.r_[0.0, cw][first][group]  # the earlier siblings' sums
+        before_n = cn - n[ids] - np.r_[0.0, cn][first][group]
+        beats = w[ids] * (n[par] + before_n) > (w[par] + before_w) * n[ids]
+        fails = np.cumsum(~beats)
+        take = fails == np.r_[0, fails][first][group]  # until the first sibling that does not beat it
+        merged[ids] = take
+        rank[ids] = np.arange(len(ids)) - first[group]
+        np.add.at(w, par[take], w[ids[take]])
+        np.add.at(n, par[take], n[ids[take]])
+    unit = np.arange(N)  # the face heading each face's unit
+    path = np.zeros(N, np.int64)  # depth-first position inside the unit (at most 3 children: base 4)
+    ratio = w / n
+    for lv in range(lead + 1, top + 1):
+        ids = np.flatnonzero(level == lv)
+        m = ids[merged[ids]]
+        unit[m] = unit[parent[m]]
+        path[m] = path[parent[m]] + (rank[m] + 1) * 4 ** (top - lv)
+        h = ids[~merged[ids]]
+        ratio[h] = np.minimum(ratio[h], ratio[unit[parent[h]]])
     rest = np.flatnonzero(level >= lead)
-    rest = rest[np.lexsort((rest, level[rest], -eff[rest]))]
+    u = unit[rest]
+    rest = rest[np.lexsort((path[rest], u, level[u], -ratio[u]))]
     return np.concatenate([head, rest]).astype(np.int64)

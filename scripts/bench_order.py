@@ -1,0 +1,146 @@
+"""Stream order by units: the version 5 writer's order (core/stream/order.py: interleaved_order,
+faces in units of most importance per record) against the order it replaced (each face ranked by
+the lesser of its importance and its parent's key) and the paper's level order (version 4), on
+trained runs: NVS PSNR in the mask at many budgets of each, and how much of the least
+important tenth of the inner faces' importance is left (nearly transparent parents).
+
+    python scripts/bench_order.py --data runs/synthetic_paper --run NAME=RUN [--run ...] [--write]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _bootstrap  # noqa: E402,F401
+from bench_common import header, replace_section  # noqa: E402
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+BUDGETS = (5, 10, 15, 20, 25, 35, 50, 65, 80, 100)
+SECTION = "Stream order by units (version 5)"
+ORDERS = ("units", "capped", "levels")
+LABELS = {
+    "units": "units (version 5, this tree)",
+    "capped": "capped (version 5 before 2026-11-28)",
+    "levels": "levels (version 4)",
+}
+
+
+def capped_order(forest, importance, root_key=None) -> np.ndarray:
+    """The version 5 writer's order before 2026-11-28: the lead as stream_order, then every other
+    face by descending ``min(importance, the parent's key)`` (ties: level, face)."""
+    from progressive_avatars.core.stream import order as orders
+
+    key = np.asarray(importance, np.float64)
+    lead = max(forest.num_coarse_levels, 1)
+    level = forest.level.astype(np.int64)
+    head = orders.stream_order(forest, key, root_key)[: int(np.count_nonzero(level < lead))]
+    eff = key.copy()
+    for lv in range(lead + 1, int(level.max(initial=lead)) + 1):
+        ids = np.flatnonzero(level == lv)
+        eff[ids] = np.minimum(key[ids], eff[forest.parent[ids]])
+    rest = np.flatnonzero(level >= lead)
+    rest = rest[np.lexsort((rest, level[rest], -eff[rest]))]
+    return np.concatenate([head, rest]).astype(np.int64)
+
+
+def score(run: str, data: str, views: int) -> dict:
+    from progressive_avatars.core.avatar.avatar import sigmoid
+    from progressive_avatars.core.evaluate.sweep import SplitRenderer
+    from progressive_avatars.core.io import run as runs
+    from progressive_avatars.core.io.dataset import Dataset
+    from progressive_avatars.core.stream import writer
+    from progressive_avatars.core.stream.reader import read_stream
+
+    nvs = Dataset(data, "val")
+    avatar = runs.load_run_avatar(run)
+    W = runs.run_importance(run, avatar, data, progress=False)
+    forest = avatar.forest
+    inner = ~forest.is_leaf() & (forest.level >= max(forest.num_coarse_levels, 1))
+    opacity = sigmoid(avatar.opacity_logit).reshape(-1)
+    row = {
+        "gaussians": avatar.num_gaussians,
+        "inner": int(inner.sum()),
+        "faint_inner": float(np.mean(opacity[inner] < 0.01)) if inner.any() else 0.0,
+    }
+    units = writer.interleaved_order
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in ORDERS:
+            path = os.path.join(tmp, name + ".pavs")
+            try:
+                if name == "capped":
+                    writer.interleaved_order = capped_order  # the writer, with the former order
+                info = writer.write_stream(
+                    path, avatar, W, quantize=True, drop_sh=True, version=4 if name == "levels" else 5
+                )
+            finally:
+                writer.interleaved_order = units
+            r = SplitRenderer(read_stream(path), nvs, views)
+            row[name] = {b: r.score(r.first(int(info.count_for_percent(b))), ssim=False)["psnr"] for b in BUDGETS}
+    return row
+
+
+def section(rows: dict, command: str, views: int, about: str) -> str:
+    lines = [header(SECTION, command), ""]
+    if about:
+        lines += [about, ""]
+    lines += [
+        f"NVS PSNR in the mask ({views} views) at a budget of each run's stream in three orders. Faint inner: the "
+        "share of inner faces below the template's coarse lead (parents) whose Gaussian has opacity below 0.01.",
+        "",
+        "| run | Gaussians | faint inner | order | " + " | ".join(f"{b} %" for b in BUDGETS) + " |",
+        "|---|---|---|---|" + "---|" * len(BUDGETS),
+    ]
+    for name, r in rows.items():
+        for k in ORDERS:
+            lines.append(
+                f"| {name} | {r['gaussians']:,} | {r['faint_inner']:.2f} | {LABELS[k]} | "
+                + " | ".join(f"{r[k][b]:.2f}" for b in BUDGETS)
+                + " |"
+            )
+    lines += ["", "Units minus capped, and units minus levels (dB), per budget:", ""]
+    for name, r in rows.items():
+        for k in ("capped", "levels"):
+            diff = ", ".join(f"{b} % {r['units'][b] - r[k][b]:+.2f}" for b in BUDGETS)
+            lines.append(f"- {name}, units minus {k}: {diff}")
+    for name, r in rows.items():
+        drops = [
+            (a, b, r["units"][b] - r["units"][a]) for a, b in zip(BUDGETS, BUDGETS[1:]) if r["units"][b] < r["units"][a]
+        ]
+        text = ", ".join(f"{a} -> {b} % {d:+.2f}" for a, b, d in drops) if drops else "none"
+        lines.append(f"- {name}: steps down in the units order: {text}")
+    return "\n".join(lines) + "\n"
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", required=True)
+    ap.add_argument("--run", action="append", required=True, metavar="NAME=RUN")
+    ap.add_argument("--views", type=int, default=16)
+    ap.add_argument("--about", default="", help="a sentence on how the runs were trained (goes into the section)")
+    ap.add_argument("--write", action="store_true", help="replace the section in docs/BENCHMARKS.md")
+    a = ap.parse_args(_bootstrap.script_args())
+    rows = {}
+    for spec in a.run:
+        name, sep, run = spec.partition("=")
+        if not sep or not os.path.isfile(os.path.join(run, "avatar.npz")):
+            raise SystemExit(f"bench_order: --run wants NAME=RUN with a trained run folder, got {spec!r}")
+        rows[name] = score(run, a.data, a.views)
+        print(name, json.dumps(rows[name]), flush=True)
+    command = "python scripts/bench_order.py --data " + a.data + "".join(f" --run '{s}'" for s in a.run)
+    command += f" --views {a.views}" if a.views != 16 else ""
+    command += " --about ..." if a.about else ""
+    text = section(rows, command, a.views, a.about)
+    print(text)
+    if a.write:
+        replace_section(os.path.join(ROOT, "docs", "BENCHMARKS.md"), SECTION, text)
+
+
+if __name__ == "__main__":
+    main()
