@@ -303,8 +303,8 @@ def build_stream(
     dropped).
 
     Version 5 (default), given the faces' importance: the coarse levels open the stream, level
-    by level in `root_order`, then every other face, the template's included, by descending
-    importance as soon as its parent has been sent (order.interleaved_order). Without
+    by level in `root_order`, then every other face, the template's included, once its parent
+    has been sent, in units of most importance per record (order.interleaved_order). Without
     importance, and in versions 2-4: level by level, roots in `root_order` (root_keys:
     default "auto", importance, else spatial on the rest-pose `vertices`, when either is given,
     else the forest's order), the other levels by descending importance. The avatar's
