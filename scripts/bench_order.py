@@ -92,7 +92,7 @@ def section(rows: dict, command: str, views: int, about: str) -> str:
         lines += [about, ""]
     lines += [
         f"NVS PSNR in the mask ({views} views) at a budget of each run's stream in three orders. Faint inner: the "
-        "share of inner faces below the template's coarse lead (parents) whose Gaussian has opacity below 0.01.",
+        "share of inner faces (parents, of the template level and below) whose Gaussian has opacity below 0.01.",
         "",
         "| run | Gaussians | faint inner | order | " + " | ".join(f"{b} %" for b in BUDGETS) + " |",
         "|---|---|---|---|" + "---|" * len(BUDGETS),
