@@ -77,7 +77,13 @@ def score(run: str, data: str, views: int) -> dict:
                 if name == "capped":
                     writer.interleaved_order = capped_order  # the writer, with the former order
                 info = writer.write_stream(
-                    path, avatar, W, quantize=True, drop_sh=True, version=4 if name == "levels" else 5
+                    path,
+                    avatar,
+                    W,
+                    quantize=True,
+                    drop_sh=True,
+                    version=4 if name == "levels" else 5,
+                    vertices=nvs.canonical_vertices,
                 )
             finally:
                 writer.interleaved_order = units

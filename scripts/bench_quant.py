@@ -98,11 +98,12 @@ def main(argv=None) -> int:
 
     avatar = runs.load_run_avatar(args.run)
     N = avatar.num_gaussians
+    val = Dataset(runs.run_data_dir(args.run, args.data), "val")
     scratch = tempfile.mkdtemp(prefix="pa_quant_")
 
     def stream(av, version, quantize=True):
         p = os.path.join(scratch, f"v{version}{'q' if quantize else 'l'}.pavs")
-        info = write_stream(p, av, quantize=quantize, version=version, drop_sh=True)
+        info = write_stream(p, av, quantize=quantize, version=version, drop_sh=True, vertices=val.canonical_vertices)
         return info, read_stream(p), os.path.getsize(p)
 
     rows = []
@@ -138,7 +139,6 @@ def main(argv=None) -> int:
     worst3 = max(max(ratios[k]) for k in ratios if k[0].startswith("one ") and k[1] == 3)
 
     # rendering loss on the trained avatar: version 3 and 4 quantised against lossless, same views
-    val = Dataset(runs.run_data_dir(args.run, args.data), "val")
     scores = {}
     for label, (version, quantize) in {"lossless": (4, False), "v3": (3, True), "v4": (4, True)}.items():
         info, out, size = stream(avatar, version, quantize)

@@ -44,13 +44,15 @@ def _training_seconds(run: str):
     return secs[-1] if secs else None
 
 
-def _stream(avatar, W, tmp: str, version: int):
-    """The quantised stream of ``version`` written into ``tmp``: the writer's info and the stream read back."""
+def _stream(avatar, W, tmp: str, version: int, rest):
+    """The quantised stream of ``version`` written into ``tmp`` (``rest``: the template's rest-pose
+    vertices): the writer's info and the stream read back."""
     from progressive_avatars.core.stream.reader import read_stream
     from progressive_avatars.core.stream.writer import write_stream
 
     path = os.path.join(tmp, f"v{version}.pavs")
-    return write_stream(path, avatar, W, quantize=True, drop_sh=True, version=version), read_stream(path)
+    info = write_stream(path, avatar, W, quantize=True, drop_sh=True, version=version, vertices=rest)
+    return info, read_stream(path)
 
 
 def score(run: str, data: str, views: int) -> dict:
@@ -81,7 +83,7 @@ def score(run: str, data: str, views: int) -> dict:
         row["supervision"] += f", opacity reset every {row['reset']:,}"
     with tempfile.TemporaryDirectory() as tmp:
         for version in (5, 4):
-            info, stream = _stream(avatar, W, tmp, version)
+            info, stream = _stream(avatar, W, tmp, version, nvs.canonical_vertices)
             r = SplitRenderer(stream, nvs, views)
             for b in BUDGETS if version == 5 else (35,):
                 s = r.score(r.first(int(info.count_for_percent(b))), ssim=False)
@@ -102,7 +104,8 @@ def score_at_counts(run: str, data: str, views: int, counts) -> dict:
     avatar = runs.load_run_avatar(run)
     W = runs.run_importance(run, avatar, data, progress=False)
     with tempfile.TemporaryDirectory() as tmp:
-        r = SplitRenderer(_stream(avatar, W, tmp, 5)[1], Dataset(data, "val"), views)
+        nvs = Dataset(data, "val")
+        r = SplitRenderer(_stream(avatar, W, tmp, 5, nvs.canonical_vertices)[1], nvs, views)
         return {int(n): r.score(r.first(int(n)), ssim=False)["psnr"] for n in counts}
 
 
@@ -128,7 +131,7 @@ def strip(runs_: dict, data: str, views: int, view: int, path: str):
         tiles = []
         with tempfile.TemporaryDirectory() as tmp:
             for version, budget in ((5, 10), (5, 35), (4, 35), (5, 100)):
-                info, stream = _stream(avatar, W, tmp, version)
+                info, stream = _stream(avatar, W, tmp, version, nvs.canonical_vertices)
                 r = SplitRenderer(stream, nvs, views)
                 image, _, alpha = r.render(r.views[view], r.first(int(info.count_for_percent(budget))), True)
                 ys, xs = np.nonzero(alpha > 0.5)

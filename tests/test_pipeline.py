@@ -204,18 +204,20 @@ def _run_copy(tiny_run, tmp_path):
 
 
 @pytest.mark.slow  # subprocesses
-def test_export_writes_only_what_it_is_given_and_a_failed_one_changes_nothing(tiny_run, tmp_path):
+def test_export_writes_only_what_it_is_given_and_a_failed_one_changes_nothing(tiny_run, tiny_dataset, tmp_path):
     """--ply alone writes the PLY and nothing else: the run's own stream (here a lossless one)
     is kept, also when the PLY cannot be written (it used to be replaced by a quantised one
     first); the PLY is the prefix of the stream the same command with --stream writes; every
     output path is checked before any work."""
     from progressive_avatars.core.avatar.avatar import Avatar
+    from progressive_avatars.core.io.dataset import Dataset
     from progressive_avatars.core.stream.format import read_header
     from progressive_avatars.core.stream.writer import write_stream
 
     run = _run_copy(tiny_run, tmp_path)
     own = run / "avatar.pavs"
-    write_stream(own, Avatar.load(run / "avatar.npz"), quantize=False)
+    rest = Dataset(tiny_dataset, None).canonical_vertices
+    write_stream(own, Avatar.load(run / "avatar.npz"), quantize=False, vertices=rest)
     before = own.read_bytes()
     assert read_header(before).lossless
     adir = tmp_path / "adir"

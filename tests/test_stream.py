@@ -298,6 +298,24 @@ def test_backdrop_stand_ins_retire_by_their_region_importance(tmp_path):
         read_stream(bytes(data))
 
 
+def test_stand_ins_without_the_rest_pose_are_refused_and_the_old_file_kept(tmp_path):
+    """Stand-ins place their retirement on the rest-pose vertices (their regions). Without them
+    the writer used to retire every stand-in at the last template face: on the demo avatar every
+    stand-in stayed in front until 95 % of the stream (NVS 23.7 dB from 15 to 95 %, 25.3 at
+    100 %). Now that is an error naming the missing argument, and the file there stays."""
+    verts, av, imp = make_avatar(seed=4, n_lat=6, n_lon=9, depth=2, coarse=True, stand_ins=True)
+    path = tmp_path / "s.pavs"
+    path.write_bytes(b"previous")
+    for backdrop in (False, True):
+        av.forest._set_stand_ins(True, None, backdrop=backdrop)
+        with pytest.raises(ValueError, match="stand-ins; pass the template's rest-pose vertices"):
+            write_stream(str(path), av, imp)
+        assert path.read_bytes() == b"previous"
+    # cumulative coarse levels need no regions: written without the rest pose as before
+    av.forest._set_stand_ins(False, None)
+    assert write_stream(str(path), av, imp).coarse_retire is None
+
+
 # -- order --------------------------------------------------------------------------------
 def test_stream_order_levels_then_importance():
     _, av, imp = make_avatar(3)

@@ -1207,6 +1207,29 @@ def test_blender_train_job_refuses_a_finished_run(tiny_dataset, tiny_run, tmp_pa
     assert [json.loads(ln)["iteration"] for ln in open(run / "metrics.jsonl")][-1] == 2
 
 
+def test_blender_train_job_stream_retires_stand_ins_by_region(tiny_dataset, tmp_path):
+    """The stream Blender's Train writes (core/train/jobs.py) places each stand-in's retirement on
+    the dataset's rest pose, as export.py and evaluate.py do: it used to be written without the
+    rest pose, every stand-in in front until the last template face (the writer now refuses that)."""
+    from progressive_avatars.core.io import run as runs
+    from progressive_avatars.core.io.dataset import Dataset
+    from progressive_avatars.core.stream.reader import read_stream
+    from progressive_avatars.core.stream.writer import build_stream
+    from progressive_avatars.core.train import jobs
+
+    run = tmp_path / "run"
+    assert jobs.main(["train", "--data", tiny_dataset, "--out", str(run), "--preset", "tiny", "--iterations", "4"]) == 0
+    got = read_stream(str(run / "avatar.pavs")).forest
+    assert got.stand_ins and got.retire is not None
+    av = Avatar.load(run / "avatar.npz")
+    W = runs.run_importance(str(run), av, tiny_dataset, progress=False)  # the job's, cached in the run
+    _, info = build_stream(av, W, drop_sh=True, vertices=Dataset(tiny_dataset, None).canonical_vertices)
+    np.testing.assert_array_equal(got.retire, info.coarse_retire)
+    K = got.num_coarse_levels
+    last = int(np.flatnonzero(got.level[got.stream_order()] == K).max())
+    assert np.count_nonzero(got.retire < last) > len(got.retire) // 2  # most retire before the last template face
+
+
 def test_config_refuses_negative_counts_and_caches():
     """Negative iterations used to train 0 iterations silently; a negative seed failed deep in
     numpy without naming the option; a negative or NaN image cache was taken as is."""

@@ -212,15 +212,18 @@ def _data_summary(data) -> dict | None:
     return {k: s[k] for k in ("width", "height", "faces", "vertices", "cameras", "timesteps") if k in s}
 
 
-def _run_stream(run, data, progress):
+def _run_stream(run, data, progress, rest):
     """(stream-ordered quantised avatar, StreamInfo) of a trained run: importance (cached in the
-    run), then RUN/avatar.pavs."""
+    run), then RUN/avatar.pavs (``rest``: the template's rest-pose vertices, which place coarse
+    stand-ins' retirement)."""
     from ..io import run as runs
 
     avatar = runs.load_run_avatar(run)
     W = runs.run_importance(run, avatar, data, progress=progress)
     path = os.path.join(run, "avatar.pavs")
-    info = write_stream(path, avatar, W, quantize=True, metadata={"run": os.path.abspath(run)}, drop_sh=True)
+    info = write_stream(
+        path, avatar, W, quantize=True, metadata={"run": os.path.abspath(run)}, drop_sh=True, vertices=rest
+    )
     return read_stream(path), info
 
 
@@ -243,7 +246,7 @@ def _level_order_score(run, data, nvs_split, views, percent, path, progress) -> 
 
     avatar = runs.load_run_avatar(run)
     W = runs.run_importance(run, avatar, data, progress=progress)
-    info = write_stream(path, avatar, W, quantize=True, drop_sh=True, version=4)
+    info = write_stream(path, avatar, W, quantize=True, drop_sh=True, version=4, vertices=nvs_split.canonical_vertices)
     r = SplitRenderer(read_stream(path), nvs_split, views)
     n = int(info.count_for_percent(percent))
     return {**r.score(r.first(n)), "gaussians": n}
@@ -261,7 +264,7 @@ def _paper_extras(args, report, streamed, info, rend, splits, data, progress, sc
     report["base_bytes"] = int(info.base_bytes)  # through the template level (coarse levels included)
     report["header_bytes"] = int(info.header_size)
     if args.finest_only:
-        other, oinfo = _run_stream(args.finest_only, data, progress)
+        other, oinfo = _run_stream(args.finest_only, data, progress, splits["nvs"].canonical_vertices)
         other_nvs = SplitRenderer(other, splits["nvs"], args.views)
 
         def both(percent):
@@ -296,7 +299,11 @@ def _paper_extras(args, report, streamed, info, rend, splits, data, progress, sc
     streams = {}
     for group, members in (("adaptive", adaptive), ("uniform", uniform)):
         for seed, (name, run) in sorted(members.items()):
-            av, inf = (streamed, info) if run == args.run else _run_stream(run, data, progress)
+            av, inf = (
+                (streamed, info)
+                if run == args.run
+                else _run_stream(run, data, progress, splits["nvs"].canonical_vertices)
+            )
             streams[(group, seed)] = (av, inf)
             r = SplitRenderer(av, splits["nvs"], curve_views)
             counts = np.unique(np.geomspace(int(av.forest.level_counts()[0]), av.num_gaussians, 6).astype(int))

@@ -310,7 +310,9 @@ def build_stream(
     else the forest's order), the other levels by descending importance. The avatar's
     training settings (meta "config") stay out of the header (they are in the run folder):
     time to the first whole head counts. The run and data folders are named by their last
-    component only: local paths do not travel with a shared file.
+    component only: local paths do not travel with a shared file. An avatar whose coarse faces
+    are stand-ins needs `vertices`: each stand-in's retire position is its region's there
+    (stand_in_retire).
     ``version=4`` writes the previous format (every root first, level by level), ``version=3``
     the one before (min..max quantisation ranges, no exceptions table), ``version=2`` the one
     before that (no coarse levels, roots in template order)."""
@@ -386,6 +388,15 @@ def build_stream(
         raise ValueError(f"write_stream: version {version} cannot carry coarse stand-ins (version 3 or later can)")
     retire = None
     if stand_ins:
+        if vertices is None:
+            # Without the rest pose no stand-in knows its region: every one would stay in front
+            # until the last template face, over faces long arrived (a plateau across most of
+            # the stream), and nothing would say so.
+            raise ValueError(
+                "write_stream: the avatar's coarse faces are stand-ins; pass the template's rest-pose "
+                "vertices (vertices=, e.g. Dataset(data).canonical_vertices) so that each one makes way "
+                "when its region's template faces have arrived"
+            )
         retire = np.empty(C, np.int64)
         bounds = (BACKDROP_RETIRE_IMPORTANCE, 0.0) if forest.backdrop else (RETIRE_IMPORTANCE, RETIRE_AREA)
         retire[row_of[:C]] = stand_in_retire(forest, s, vertices, importance, bounds)  # in the stored rows' order

@@ -57,12 +57,15 @@ def _train(args) -> int:
         from ..io import run as runs
         from ..stream.writer import write_stream
 
+        from ..io.dataset import Dataset
+
         avatar = runs.load_run_avatar(args.out)
         print("importance and stream", flush=True)
         W = runs.run_importance(args.out, avatar, args.data, progress=True)
         result = os.path.join(args.out, "avatar.pavs")
         try:
-            write_stream(result, avatar, W, metadata={"run": os.path.abspath(args.out)}, drop_sh=True)
+            rest = Dataset(args.data, None, flame_model=flame).canonical_vertices  # places the stand-ins' retirement
+            write_stream(result, avatar, W, metadata={"run": os.path.abspath(args.out)}, drop_sh=True, vertices=rest)
         except ValueError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
