@@ -61,6 +61,32 @@ def best_of(fn, repeat=5, warmup=1):
     return times[0], times[len(times) // 2]
 
 
+def runs_parser(doc: str):
+    """An argument parser for a benchmark over trained runs: --data, --run NAME=RUN (repeated),
+    --views, --write and --about."""
+    import argparse
+
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
+    ap.add_argument("--data", required=True)
+    ap.add_argument("--run", action="append", required=True, metavar="NAME=RUN")
+    ap.add_argument("--views", type=int, default=16)
+    ap.add_argument("--write", action="store_true", help="replace the section in docs/BENCHMARKS.md")
+    ap.add_argument("--about", default="", help="a sentence on how the runs were trained (goes into the section)")
+    return ap
+
+
+def named_runs(specs, script: str, needs: str) -> dict:
+    """{NAME: RUN} from --run NAME=RUN specs, in their order; a spec without "=" or whose RUN
+    folder lacks `needs` (a file of a trained run) stops the script, naming it."""
+    out = {}
+    for spec in specs:
+        name, sep, run = spec.partition("=")
+        if not sep or not os.path.isfile(os.path.join(run, needs)):
+            raise SystemExit(f"{script}: --run wants NAME=RUN with a trained run folder, got {spec!r}")
+        out[name] = run
+    return out
+
+
 def replace_section(path: str, name: str, text: str) -> None:
     """Put `text` between the markers of section `name` in the Markdown file at `path`
     (appended with its markers when absent), leaving the rest of the file as it is."""

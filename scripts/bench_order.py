@@ -9,7 +9,6 @@ important tenth of the inner faces' importance is left (nearly transparent paren
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
@@ -19,7 +18,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import _bootstrap  # noqa: E402,F401
-from bench_common import header, replace_section  # noqa: E402
+from bench_common import header, named_runs, replace_section, runs_parser  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 BUDGETS = (5, 10, 15, 20, 25, 35, 50, 65, 80, 100)
@@ -125,18 +124,9 @@ def section(rows: dict, command: str, views: int, about: str) -> str:
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", required=True)
-    ap.add_argument("--run", action="append", required=True, metavar="NAME=RUN")
-    ap.add_argument("--views", type=int, default=16)
-    ap.add_argument("--about", default="", help="a sentence on how the runs were trained (goes into the section)")
-    ap.add_argument("--write", action="store_true", help="replace the section in docs/BENCHMARKS.md")
-    a = ap.parse_args(_bootstrap.script_args())
+    a = runs_parser(__doc__).parse_args(_bootstrap.script_args())
     rows = {}
-    for spec in a.run:
-        name, sep, run = spec.partition("=")
-        if not sep or not os.path.isfile(os.path.join(run, "avatar.npz")):
-            raise SystemExit(f"bench_order: --run wants NAME=RUN with a trained run folder, got {spec!r}")
+    for name, run in named_runs(a.run, "bench_order", "avatar.npz").items():
         rows[name] = score(run, a.data, a.views)
         print(name, json.dumps(rows[name]), flush=True)
     command = "python scripts/bench_order.py --data " + a.data + "".join(f" --run '{s}'" for s in a.run)

@@ -19,7 +19,6 @@ into docs/BENCHMARKS.md.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
@@ -27,7 +26,7 @@ import tempfile
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import _bootstrap  # noqa: E402,F401
-from bench_common import header, replace_section  # noqa: E402
+from bench_common import header, named_runs, replace_section, runs_parser  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 BUDGETS = (5, 10, 25, 35, 50, 100)
@@ -232,24 +231,16 @@ def section(rows: dict, command: str, views: int, about: str = "", title: str = 
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", required=True)
-    ap.add_argument("--run", action="append", required=True, metavar="NAME=RUN")
-    ap.add_argument("--views", type=int, default=16)
-    ap.add_argument("--write", action="store_true")
+    ap = runs_parser(__doc__)
     ap.add_argument(
         "--strip", metavar="PNG", help="also a picture: per run, one NVS view at 10/35 %% (v5), 35 %% (v4), 100 %%"
     )
     ap.add_argument("--strip-view", type=int, default=3, help="which of the --views NVS views (default 3)")
     ap.add_argument("--title", default=SECTION, help="the section's heading (another section than the default's)")
-    ap.add_argument("--about", default="", help="a sentence on how the runs were trained (goes into the section)")
     a = ap.parse_args(_bootstrap.script_args())
-    rows, paths = {}, {}
-    for spec in a.run:
-        name, sep, run = spec.partition("=")
-        if not sep or not os.path.isfile(os.path.join(run, "config.json")):
-            raise SystemExit(f"bench_supervision: --run wants NAME=RUN with a trained run folder, got {spec!r}")
-        rows[name], paths[name] = score(run, a.data, a.views), run
+    rows, paths = {}, named_runs(a.run, "bench_supervision", "config.json")
+    for name, run in paths.items():
+        rows[name] = score(run, a.data, a.views)
         print(name, json.dumps(rows[name]), flush=True)
     first_run = a.run[0].partition("=")[2]
     first = rows[next(iter(rows))]
