@@ -338,6 +338,15 @@ def build_stream(
             f"write_stream: the avatar holds {forest.num_roots} of its {C + len(forest.template_faces)} "
             "roots (a prefix); streams start from every root"
         )
+    if forest.stand_ins and K and version >= 3 and vertices is None:
+        # Without the rest pose no stand-in knows its region: every one would stay in front
+        # until the last template face, over faces long arrived (a plateau across most of the
+        # stream), and nothing would say so.
+        raise ValueError(
+            "write_stream: the avatar's coarse faces are stand-ins; pass the template's rest-pose "
+            "vertices (vertices=, e.g. Dataset(data).canonical_vertices) so that each one makes way "
+            "when its region's template faces have arrived"
+        )
     if root_order is None:
         known = vertices is not None or importance is not None
         root_order = "auto" if known and version != 2 else "forest"
@@ -388,15 +397,6 @@ def build_stream(
         raise ValueError(f"write_stream: version {version} cannot carry coarse stand-ins (version 3 or later can)")
     retire = None
     if stand_ins:
-        if vertices is None:
-            # Without the rest pose no stand-in knows its region: every one would stay in front
-            # until the last template face, over faces long arrived (a plateau across most of
-            # the stream), and nothing would say so.
-            raise ValueError(
-                "write_stream: the avatar's coarse faces are stand-ins; pass the template's rest-pose "
-                "vertices (vertices=, e.g. Dataset(data).canonical_vertices) so that each one makes way "
-                "when its region's template faces have arrived"
-            )
         retire = np.empty(C, np.int64)
         bounds = (BACKDROP_RETIRE_IMPORTANCE, 0.0) if forest.backdrop else (RETIRE_IMPORTANCE, RETIRE_AREA)
         retire[row_of[:C]] = stand_in_retire(forest, s, vertices, importance, bounds)  # in the stored rows' order

@@ -55,9 +55,8 @@ def _train(args) -> int:
     result = os.path.join(args.out, "avatar.npz")
     if not args.no_export:
         from ..io import run as runs
-        from ..stream.writer import write_stream
-
         from ..io.dataset import Dataset
+        from ..stream.writer import write_stream
 
         avatar = runs.load_run_avatar(args.out)
         print("importance and stream", flush=True)
