@@ -212,17 +212,22 @@ def _data_summary(data) -> dict | None:
     return {k: s[k] for k in ("width", "height", "faces", "vertices", "cameras", "timesteps") if k in s}
 
 
-def _run_stream(run, data, progress, rest):
+def _run_stream(run, data, progress, nvs_split):
     """(stream-ordered quantised avatar, StreamInfo) of a trained run: importance (cached in the
-    run), then RUN/avatar.pavs (``rest``: the template's rest-pose vertices, which place coarse
-    stand-ins' retirement)."""
+    run), then RUN/avatar.pavs (coarse stand-ins retire on ``nvs_split``'s rest pose)."""
     from ..io import run as runs
 
     avatar = runs.load_run_avatar(run)
     W = runs.run_importance(run, avatar, data, progress=progress)
     path = os.path.join(run, "avatar.pavs")
     info = write_stream(
-        path, avatar, W, quantize=True, metadata={"run": os.path.abspath(run)}, drop_sh=True, vertices=rest
+        path,
+        avatar,
+        W,
+        quantize=True,
+        metadata={"run": os.path.abspath(run)},
+        drop_sh=True,
+        vertices=nvs_split.canonical_vertices,
     )
     return read_stream(path), info
 
@@ -264,7 +269,7 @@ def _paper_extras(args, report, streamed, info, rend, splits, data, progress, sc
     report["base_bytes"] = int(info.base_bytes)  # through the template level (coarse levels included)
     report["header_bytes"] = int(info.header_size)
     if args.finest_only:
-        other, oinfo = _run_stream(args.finest_only, data, progress, splits["nvs"].canonical_vertices)
+        other, oinfo = _run_stream(args.finest_only, data, progress, splits["nvs"])
         other_nvs = SplitRenderer(other, splits["nvs"], args.views)
 
         def both(percent):
@@ -299,11 +304,7 @@ def _paper_extras(args, report, streamed, info, rend, splits, data, progress, sc
     streams = {}
     for group, members in (("adaptive", adaptive), ("uniform", uniform)):
         for seed, (name, run) in sorted(members.items()):
-            av, inf = (
-                (streamed, info)
-                if run == args.run
-                else _run_stream(run, data, progress, splits["nvs"].canonical_vertices)
-            )
+            av, inf = (streamed, info) if run == args.run else _run_stream(run, data, progress, splits["nvs"])
             streams[(group, seed)] = (av, inf)
             r = SplitRenderer(av, splits["nvs"], curve_views)
             counts = np.unique(np.geomspace(int(av.forest.level_counts()[0]), av.num_gaussians, 6).astype(int))
