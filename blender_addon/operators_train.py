@@ -48,6 +48,18 @@ def _extension_root():
     return os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
+def _options(st):
+    """The Training panel's choices as train.py arguments (both commands take the same)."""
+    args = ["--preset", st.preset] if st.preset else []
+    if st.iterations:
+        args += ["--iterations", str(st.iterations)]
+    if st.overwrite:
+        args += ["--overwrite"]
+    if st.resume:
+        args += ["--resume"]
+    return args
+
+
 def _command(context):
     st = context.scene.pa_train
     problem = prefs.python_problem(context, "torch and numba")
@@ -71,15 +83,7 @@ def _command(context):
     if script:
         if not os.path.isfile(script):
             raise RuntimeError(f"Train script not found: {script} (Preferences > Add-ons > Progressive Avatars)")
-        cmd = [python, "-u", script, "--data", data, "--out", out]
-        if st.preset:
-            cmd += ["--preset", st.preset]
-        if st.iterations:
-            cmd += ["--iterations", str(st.iterations)]
-        if st.overwrite:
-            cmd += ["--overwrite"]
-        if st.resume:
-            cmd += ["--resume"]
+        cmd = [python, "-u", script, "--data", data, "--out", out] + _options(st)
         cmds = [cmd + flame]
         # Training writes RUN/avatar.npz in creation order; the importance-ordered stream that
         # the budget slider needs comes from scripts/export.py, run next when it is there.
@@ -94,15 +98,8 @@ def _command(context):
         tier = training_tier.folder(_extension_root())
     except OSError as exc:
         raise RuntimeError(str(exc)) from exc
-    cmd = [python, "-u", "-c", _RUNNER, _extension_root(), tier, "train", "--data", data, "--out", out] + flame
-    if st.preset:
-        cmd += ["--preset", st.preset]
-    if st.iterations:
-        cmd += ["--iterations", str(st.iterations)]
-    if st.overwrite:
-        cmd += ["--overwrite"]
-    if st.resume:
-        cmd += ["--resume"]
+    cmd = [python, "-u", "-c", _RUNNER, _extension_root(), tier, "train", "--data", data, "--out", out]
+    cmd += flame + _options(st)
     # Its own numba cache: in a checkout, entries compiled as pa_ext in the sources' __pycache__
     # broke every later command-line run there (training_tier.numba_cache_dir).
     return [cmd], out, training_tier.runner_env()
