@@ -15,8 +15,8 @@ levels, and with --no-coarse-run the same model trained without coarse levels at
 
 The report scores the stream it writes as RUN/avatar.pavs (replacing the run's stream: the same
 bytes when export.py wrote it with the same options) and caches the importance ranking in RUN
-(importance*.npy, keyed on the avatar and the data); runs named by --finest-only, --adaptive and
---uniform get theirs likewise. Evaluate a copy of a run you want left untouched.
+(importance*.npy, keyed on the avatar and the data); runs named by --finest-only, --multi-level,
+--adaptive and --uniform get theirs likewise. Evaluate a copy of a run you want left untouched.
 """
 
 import argparse
@@ -85,6 +85,12 @@ def main(argv=None):
         help="paper table: a finest-level-only run, scored at 35 %% of its stream against this run's 35 %%",
     )
     ap.add_argument(
+        "--multi-level",
+        metavar="RUN",
+        help="paper table: the finest-only run's multi-level partner, trained with the same settings but "
+        "the supervision (default: this run); the multi-level / finest-only rows then compare the two",
+    )
+    ap.add_argument(
         "--uniform",
         action="append",
         default=[],
@@ -136,6 +142,7 @@ def main(argv=None):
             about=args.about,
             paper_table=args.paper_table,
             finest_only=args.finest_only,
+            multi_level=args.multi_level,
             uniform=tuple(args.uniform),
             adaptive=tuple(args.adaptive),
             progress=not args.no_progress,

@@ -6,7 +6,10 @@
 #   uniform   uniform subdivision to depth 2 (107,254 Gaussians with the coarse levels, the
 #             uniform count nearest the adaptive run's ~161k; the report cuts both streams to the
 #             smaller count), supervised as the adaptive run
-#   finest    finest-level-only supervision (Table 3: 35 %)
+#   finest    finest-level-only supervision (Table 3: 35 %), compared with adaptive; or, with
+#             SUPERVISION_ARGS, sup_finest against sup_multi_level: both trained with those
+#             options (e.g. the paper's opacity reset and a longer recovery), differing only in
+#             the supervision
 #   adaptive_seed<k>, uniform_seed<k>   the same two with each seed k of SEEDS (default 1;
 #             adaptive vs uniform over seeds, seed 0 being the two runs above)
 #   report    scripts/evaluate.py --paper-table (Table 1, Table 3, adaptive vs uniform at matched
@@ -24,7 +27,9 @@
 #   options, e.g. "--resolution-scale 0.25 --sequences 3"), EVAL_ARGS (extra evaluate.py
 #   options; default "--views 16 --curve-points 12"), UNIFORM_DEPTH (2), ABOUT (text added to the
 #   report's description: how the runs were made, when that differs from this script's defaults),
-#   SEEDS (the further seeds of adaptive and uniform, default "1"; e.g. "1 2"),
+#   SUPERVISION_ARGS (train.py options of the supervision ablation's own pair, e.g.
+#   "--opacity-reset-every 1000 --iterations 20000 --grow-stop 0.28"; empty: finest-only is
+#   trained like adaptive, with ABL_ITERS, and compared with it), SEEDS (the further seeds of adaptive and uniform, default "1"; e.g. "1 2"),
 #   BENCH=0 to skip writing docs/BENCHMARKS.md.
 # Time on 2 cores: data ~15-21 min (scripts/bench_data_gen_paper.py); the adaptive run ~1 h
 # (0.4 s per iteration at 9k faces, ~0.8 s at 161k: docs/BENCHMARKS.md gives the measured run);
@@ -76,7 +81,20 @@ train() {  # name, iterations (may be empty), extra args...
 UNIFORM="--uniform --max-depth ${UNIFORM_DEPTH:-2} --max-faces 1000000"
 if [ "$REPORT_ONLY" = 0 ]; then
   train adaptive "$ITERS"
-  train finest "$ABL_ITERS" --supervision finest  # one run answers its criterion: before uniform
+  # One run (or pair) answers its criterion: before uniform.
+  if [ -n "${SUPERVISION_ARGS:-}" ]; then
+    # A finished pair from other options would be reported as this one's: refused.
+    was=$(cat "$OUT/supervision_args" 2>/dev/null || true)
+    if [ -n "$was" ] && [ "$was" != "$SUPERVISION_ARGS" ]; then
+      echo "$OUT/sup_*: trained with SUPERVISION_ARGS=\"$was\", not \"$SUPERVISION_ARGS\": set it back, or remove $OUT/sup_multi_level and $OUT/sup_finest" >&2
+      exit 2
+    fi
+    echo "$SUPERVISION_ARGS" > "$OUT/supervision_args"
+    train sup_multi_level "" $SUPERVISION_ARGS
+    train sup_finest "" $SUPERVISION_ARGS --supervision finest
+  else
+    train finest "$ABL_ITERS" --supervision finest
+  fi
   train uniform "$ITERS" $UNIFORM
   for s in ${SEEDS:-1}; do
     train "adaptive_seed$s" "$ABL_ITERS" --seed "$s"
@@ -86,7 +104,12 @@ fi
 
 [ -f "$OUT/adaptive/avatar.npz" ] || { echo "no finished adaptive run in $OUT: nothing to report" >&2; exit 1; }
 args=()
-[ -f "$OUT/finest/avatar.npz" ] && args+=(--finest-only "$OUT/finest")
+if [ -n "${SUPERVISION_ARGS:-}" ]; then
+  [ -f "$OUT/sup_finest/avatar.npz" ] && [ -f "$OUT/sup_multi_level/avatar.npz" ] &&
+    args+=(--finest-only "$OUT/sup_finest" --multi-level "$OUT/sup_multi_level")
+else
+  [ -f "$OUT/finest/avatar.npz" ] && args+=(--finest-only "$OUT/finest")
+fi
 [ -f "$OUT/uniform/avatar.npz" ] && args+=(--uniform "uniform=$OUT/uniform" --compare "uniform=$OUT/uniform")
 for s in ${SEEDS:-1}; do
   [ -f "$OUT/adaptive_seed$s/avatar.npz" ] && args+=(--adaptive "adaptive_seed$s=$OUT/adaptive_seed$s")

@@ -14,7 +14,7 @@ from PIL import Image
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-def _run(tmp, *args):
+def _run(tmp, *args, **extra_env):
     env = dict(
         os.environ,
         DATA=str(tmp / "data"),
@@ -30,6 +30,7 @@ def _run(tmp, *args):
         DATA_ARGS="--resolution-scale 0.08 --sequences 3 --frames 1 --cameras 4 --surface-levels 1",
         NUMBA_NUM_THREADS="1",
         OMP_NUM_THREADS="1",
+        **extra_env,
     )
     return subprocess.run(
         ["bash", os.path.join(ROOT, "scripts", "run_paper_table.sh"), *args],
@@ -83,6 +84,13 @@ def test_run_paper_table_small(tmp_path):
     assert set(res) == {"this run", "finest only", "adaptive seed 1", "uniform seed 0", "uniform seed 1"}
     assert res["this run"]["iterations"] == 24 and res["finest only"]["iterations"] == 20
     assert all(v["peak_rss_mb"] > 50 and v["wall_seconds"] > 0 for v in res.values())
+    assert res["this run"]["recipe"] == "this run's" and res["finest only"]["recipe"] == 'supervision "finest"'
+    assert res["uniform seed 1"]["recipe"].split("; ") == [
+        "max_depth 1",
+        "max_faces 1000000",
+        "seed 1",
+        "uniform true",
+    ]
     checks = pt["checks"]
     assert all(c["ok"] in (True, False) for c in checks.values())
     assert any("growth" in k for k in checks) and any("35 %" in k for k in checks)
@@ -114,3 +122,23 @@ def test_run_paper_table_small(tmp_path):
     for name in ("adaptive", "uniform", "finest", "adaptive_seed1", "uniform_seed1"):
         assert f"{name}: done" in log, name
     assert os.path.getmtime(tmp_path / "runs" / "adaptive" / "avatar.npz") == stamp
+    assert "sup_finest" not in log  # no SUPERVISION_ARGS: finest-only is trained like adaptive
+    # SUPERVISION_ARGS: the ablation trains its own multi-level run with the finest-only run's
+    # options, and the multi-level / finest-only rows compare that pair, not the main run.
+    pair = "--opacity-reset-every 8 --iterations 16"
+    p = _run(tmp_path, "--resume", SUPERVISION_ARGS=pair)
+    assert p.returncode == 0, p.stdout + p.stderr
+    with open(report_dir / "report.json") as fh:
+        r = json.load(fh)
+    f = r["ablations"]["finest_only_35"]
+    assert f["run"].endswith("sup_finest") and f["multi_level_run"].endswith("sup_multi_level")
+    res = r["resources"]
+    partner = res["multi-level, finest-only's recipe"]
+    assert partner["iterations"] == 16 and res["finest only"]["iterations"] == 16
+    assert partner["recipe"] == "opacity_reset_every 8"
+    assert res["finest only"]["recipe"] == 'opacity_reset_every 8; supervision "finest"'
+    md = (report_dir / "paper_table.md").read_text()
+    assert "two runs trained alike but for the supervision" in md and "sup_multi_level" in md
+    # A finished pair from other options is not reported as this one's.
+    p = _run(tmp_path, "--resume", SUPERVISION_ARGS="--opacity-reset-every 4 --iterations 16")
+    assert p.returncode == 2 and "SUPERVISION_ARGS" in p.stderr and "sup_multi_level" in p.stderr

@@ -944,10 +944,16 @@ def paper_table_markdown(r: dict) -> str:
         "",
         "## Table 3: ablations (NVS PSNR)",
         "",
-        "| ablation | ours | paper |",
-        "|---|---|---|",
     ]
     t3 = pt["table3"]
+    partner = t3.get("finest_only_35", {}).get("partner")
+    if partner:  # every multi-level / finest-only row below compares these two runs
+        lines += [
+            f"The multi-level / finest-only rows compare {partner} with {t3['finest_only_35']['finest_run']}, "
+            "two runs trained alike but for the supervision (their settings: the Training table), not this run.",
+            "",
+        ]
+    lines += ["| ablation | ours | paper |", "|---|---|---|"]
     if "finest_only_35" in t3:
         f = t3["finest_only_35"]
         lines.append(
@@ -999,13 +1005,14 @@ def paper_table_markdown(r: dict) -> str:
         "",
         "## Training",
         "",
-        "| run | iterations | training s (steps) | wall s (all invocations) | peak RSS MB |",
-        "|---|---|---|---|---|",
+        "| run | iterations | training s (steps) | wall s (all invocations) | peak RSS MB | settings unlike this run's |",
+        "|---|---|---|---|---|---|",
     ]
     for name, res in r.get("resources", {}).items():
         lines.append(
             f"| {name} | {_fmt(res['iterations'], 'd')} | {_fmt(res['train_seconds'], '.0f')} | "
-            f"{_fmt(res['wall_seconds'], '.0f')} | {_fmt(res['peak_rss_mb'], '.0f')} |"
+            f"{_fmt(res['wall_seconds'], '.0f')} | {_fmt(res['peak_rss_mb'], '.0f')} | "
+            f"{_fmt(res.get('recipe'), 's', 'unknown (no config.json)')} |"
         )
     lines += [
         "",

@@ -52,6 +52,7 @@ class ReportOptions:
     about: str = ""
     paper_table: bool = False
     finest_only: str | None = None
+    multi_level: str | None = None  # the finest-only run's multi-level partner (default: this run)
     uniform: tuple = ()
     adaptive: tuple = ()
     progress: bool = True
@@ -232,6 +233,47 @@ def _run_stream(run, data, progress, nvs_split):
     return read_stream(path), info
 
 
+# Settings that say how a run is logged and batched, not what it learns (the iterations have
+# their own column).
+_NOT_RECIPE = {
+    "data",
+    "iterations",
+    "log_every",
+    "eval_every",
+    "eval_views",
+    "checkpoint_every",
+    "image_cache_mb",
+    "views_per_step",
+    "world_size",
+    "effective_batch",
+}
+
+
+def run_recipe(run: str, reference: str) -> str | None:
+    """How ``run`` was trained differently from ``reference``: the settings in their config.json
+    that differ, as ``name value`` (``same`` when none do; None when either file is unreadable)."""
+
+    def settings(folder):
+        try:
+            with open(os.path.join(folder, "config.json"), encoding="utf-8") as fh:
+                cfg = json.load(fh)
+        except (OSError, ValueError):
+            return None
+        return cfg if isinstance(cfg, dict) else None
+
+    ours, ref = settings(run), settings(reference)
+    if ours is None or ref is None:
+        return None
+    if os.path.samefile(run, reference):
+        return "this run's"
+    diff = [
+        f"{k} {json.dumps(ours.get(k))}"
+        for k in sorted((set(ours) | set(ref)) - _NOT_RECIPE)
+        if ours.get(k) != ref.get(k)
+    ]
+    return "; ".join(diff) if diff else "the same"
+
+
 def _seeded(specs, first=None):
     """{seed: (name, run)} from NAME=RUN / NAME_seed<k>=RUN specs (plus `first` as seed 0)."""
     from . import plots
@@ -271,16 +313,28 @@ def _paper_extras(args, report, streamed, info, rend, splits, data, progress, sc
     if args.finest_only:
         other, oinfo = _run_stream(args.finest_only, data, progress, splits["nvs"])
         other_nvs = SplitRenderer(other, splits["nvs"], args.views)
+        # The multi-level side: this run, or a partner trained with the finest-only run's recipe
+        # (its iterations, its opacity reset), so that the two differ in the supervision alone.
+        partner = args.multi_level or args.run
+        if partner == args.run:
+            mls_nvs, minfo = nvs, info
+        else:
+            mls, minfo = _run_stream(partner, data, progress, splits["nvs"])
+            mls_nvs = SplitRenderer(mls, splits["nvs"], args.views)
 
         def both(percent):
-            """This run and the finest-only run at ``percent`` of their own streams."""
-            n_ours, n_other = int(info.count_for_percent(percent)), int(oinfo.count_for_percent(percent))
+            """The multi-level and the finest-only run at ``percent`` of their own streams."""
+            n_ours, n_other = int(minfo.count_for_percent(percent)), int(oinfo.count_for_percent(percent))
             return {
-                "multi_level": {**nvs.score(nvs.first(n_ours)), "gaussians": n_ours},
+                "multi_level": {**mls_nvs.score(mls_nvs.first(n_ours)), "gaussians": n_ours},
                 "finest_only": {**other_nvs.score(other_nvs.first(n_other)), "gaussians": n_other},
             }
 
-        report["ablations"]["finest_only_35"] = {"run": _shown(args.finest_only), **both(35)}
+        report["ablations"]["finest_only_35"] = {
+            "run": _shown(args.finest_only),
+            "multi_level_run": _shown(partner),
+            **both(35),
+        }
         # The paper's ablation is at 35 %; shorter budgets show where the prefixes' supervision
         # matters once the stream is ordered by importance (not a criterion).
         report["ablations"]["finest_only_short"] = {f"{b:g}": both(b) for b in (5, 10, 25)}
@@ -289,7 +343,7 @@ def _paper_extras(args, report, streamed, info, rend, splits, data, progress, sc
         # Both runs in the paper's order too, so that the row compares with the paper's.
         report["ablations"]["finest_only_35_level_order"] = {
             "multi_level": _level_order_score(
-                args.run, data, splits["nvs"], args.views, 35, os.path.join(scratch, "mls_v4.pavs"), progress
+                partner, data, splits["nvs"], args.views, 35, os.path.join(scratch, "mls_v4.pavs"), progress
             ),
             "finest_only": _level_order_score(
                 args.finest_only, data, splits["nvs"], args.views, 35, os.path.join(scratch, "finest_v4.pavs"), progress
@@ -343,9 +397,13 @@ def _paper_extras(args, report, streamed, info, rend, splits, data, progress, sc
         )
     # Training wall time and peak memory of every run (metrics log; scripts/train.py's resources.jsonl).
     runs_used = {"this run": args.run, **({"finest only": args.finest_only} if args.finest_only else {})}
+    if args.finest_only and args.multi_level and args.multi_level != args.run:
+        runs_used["multi-level, finest-only's recipe"] = args.multi_level
     runs_used.update({f"adaptive seed {k}": r for k, (_, r) in adaptive.items() if r != args.run})
     runs_used.update({f"uniform seed {k}": r for k, (_, r) in uniform.items()})
     report["resources"] = {name: plots.run_resources(run) for name, run in runs_used.items()}
+    for name, run in runs_used.items():  # how each run was trained, beside its time and memory
+        report["resources"][name]["recipe"] = run_recipe(run, args.run)
     budgets = [float(k) for k in report["budgets"] if k in ("5", "25", "50", "100")] or [
         float(k) for k in report["budgets"]
     ]  # the paper's columns when the report has them
@@ -384,7 +442,9 @@ def _read_logs(args: ReportOptions) -> dict:
         if os.path.exists(path):
             rows[name] = plots.read_log(path)
     if args.paper_table:
-        others = [args.run, args.finest_only] + [spec.partition("=")[2] for spec in (*args.adaptive, *args.uniform)]
+        others = [args.run, args.finest_only, args.multi_level] + [
+            spec.partition("=")[2] for spec in (*args.adaptive, *args.uniform)
+        ]
         for run in filter(None, others):
             for log in ("metrics.jsonl", "resources.jsonl"):
                 if os.path.exists(os.path.join(run, log)):
@@ -435,6 +495,11 @@ def build_report(args: ReportOptions) -> dict:
         raise ValueError(
             f"views, curve points and curve views must be >= 1, got {args.views}, {args.curve_points} and "
             f"{args.curve_views}"
+        )
+    if args.multi_level and not (args.paper_table and args.finest_only):
+        raise ValueError(
+            f"--multi-level {args.multi_level}: it names the finest-only ablation's multi-level run; "
+            "give it with --paper-table and --finest-only"
         )
     avatar = runs.load_run_avatar(args.run)
     data = runs.run_data_dir(args.run, args.data)

@@ -193,6 +193,11 @@ def paper_table(report: dict) -> dict:
             "multi_level": f["multi_level"]["psnr"],
             "finest_only": f["finest_only"]["psnr"],
             "paper": (PAPER_TABLE3["mls_35"], PAPER_TABLE3["finest_only_35"]),
+            # None: this run is the multi-level side; else the partner trained as the finest-only run
+            "partner": None
+            if f.get("multi_level_run", report.get("run")) == report.get("run")
+            else f["multi_level_run"],
+            "finest_run": f.get("run"),
         }
     if "finest_only_35_level_order" in a:
         f = a["finest_only_35_level_order"]
