@@ -439,6 +439,7 @@ def test_scripts_report_bad_input(tmp_path):
         (["--curve-points", "0"], "views, curve points and curve views must be >= 1"),
         (["--strips", "101"], "strip budgets must be percentages in [0, 100]"),
         (["--strips", "abc"], "--strips takes comma-separated percentages"),
+        (["--multi-level", str(tmp_path)], "give it with --paper-table and --finest-only"),
     ):
         out = subprocess.run(
             [sys.executable, os.path.join(ROOT, "scripts", "evaluate.py"), "--run", str(tmp_path)]
