@@ -26,6 +26,7 @@ from ..io.dataset import Dataset
 from ..stream.order import ROOT_ORDERS, root_keys, stream_order
 from ..stream.reader import read_stream
 from ..stream.writer import write_stream
+from ..train.policies import RESUMABLE
 from . import plots
 from .sweep import SplitRenderer, importance_only, random_within_levels
 
@@ -233,20 +234,9 @@ def _run_stream(run, data, progress, nvs_split):
     return read_stream(path), info
 
 
-# Settings that say how a run is logged and batched, not what it learns (the iterations have
-# their own column).
-_NOT_RECIPE = {
-    "data",
-    "iterations",
-    "log_every",
-    "eval_every",
-    "eval_views",
-    "checkpoint_every",
-    "image_cache_mb",
-    "views_per_step",
-    "world_size",
-    "effective_batch",
-}
+# What says how a run was trained, not only how long, logged or batched (the iterations have
+# their own column): its settings but those a resume may change and the data's place.
+_NOT_RECIPE = frozenset(RESUMABLE) | {"data", "world_size", "effective_batch"}
 
 
 def run_recipe(run: str, reference: str) -> str | None:

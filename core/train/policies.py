@@ -3,12 +3,27 @@
 The trainer asks a ``Supervision`` which levels one step renders and supervises, and a
 ``Growth`` when to split and which leaves. Both are built from ``TrainConfig`` fields (kept
 as plain strings and numbers so run folders' config.json stay readable), and an unknown
-value is an error at construction, before any work, not a silent fallback.
+value is an error at construction, before any work, not a silent fallback. RESUMABLE names
+the settings a resumed run may change (the others define the run).
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+# What a run may change when it is resumed: how long it trains, how it logs and checkpoints, its
+# memory and batch (a resume may use any number of processes). Everything else defines the run
+# (the model, the losses, the schedule's shape, the seed's random stream); changed on a resume,
+# it would silently mix two trainings, or fail mid-run where the fresh start refuses it at once.
+RESUMABLE = (
+    "iterations",
+    "log_every",
+    "eval_every",
+    "eval_views",
+    "checkpoint_every",
+    "image_cache_mb",
+    "views_per_step",
+)
 
 SUPERVISION_MODES = ("all", "sampled", "base", "finest")
 

@@ -28,7 +28,7 @@ from ..io.atomic import atomic_open, atomic_savez
 from ..avatar.forest import Forest
 from .distributed import Dist, check_same, digest
 from .model import TorchAvatar
-from .policies import Growth, Supervision
+from .policies import RESUMABLE, Growth, Supervision
 from ..render.kernels import MAX_IMAGES
 from ..render.rasterize import all_finite, render, render_levels
 
@@ -334,19 +334,6 @@ def _log_iteration(line: str) -> float:
         return math.inf
 
 
-# What a run may change when it is resumed: how long it trains, how it logs and checkpoints, its
-# memory and batch (a resume may use any number of processes). Everything else defines the run
-# (the model, the losses, the schedule's shape, the seed's random stream); changed on a resume,
-# it would silently mix two trainings, or fail mid-run where the fresh start refuses it at once.
-RESUMABLE = (
-    "iterations",
-    "log_every",
-    "eval_every",
-    "eval_views",
-    "checkpoint_every",
-    "image_cache_mb",
-    "views_per_step",
-)
 _RUN_OUTPUTS = ("checkpoint.npz", "avatar.npz", "avatar.pavs", "flame_refined.npz")
 
 
