@@ -61,7 +61,9 @@ class TrainConfig:
     # which is what makes the paper's finest-only prefixes collapse; measured at the paper's scale
     # (docs/BENCHMARKS.md, "The opacity reset and finest-only supervision") it does that here too
     # (finest-only -5 dB at 25-50 % of the stream), but it costs multi-level training 2.7-3.3 dB
-    # there and 0.2-0.35 dB at 100 %, and the multi-level gain it exposes stays near 2 dB. Off (0).
+    # there and 0.2-0.35 dB at 100 %. The multi-level gain it exposes at 35 % in the paper's level
+    # order grows with the recovery after the last reset and levels off near 4.5 dB (6k to 20k
+    # iterations: "The opacity reset with a 20k recovery"); in our stream order it is ~0. Off (0).
     opacity_reset_every: int = 0
     opacity_reset_to: float = 0.01
     supervision: str = "all"  # all | sampled | base | finest (policies.Supervision)
