@@ -241,7 +241,8 @@ _NOT_RECIPE = frozenset(RESUMABLE) | {"data", "world_size", "effective_batch"}
 
 def run_recipe(run: str, reference: str) -> str | None:
     """How ``run`` was trained differently from ``reference``: the settings in their config.json
-    that differ, as ``name value`` (``same`` when none do; None when either file is unreadable)."""
+    that differ, as ``name value`` ("the same" when none do, "this run's" for ``reference`` itself;
+    None when either file is unreadable)."""
 
     def settings(folder):
         try:
