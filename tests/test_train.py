@@ -114,7 +114,7 @@ def test_killed_process_resumes(tiny_dataset, tmp_path):
     assert len(rows) == 1 and rows[0]["iterations"] == 4
 
 
-def test_resume_keeps_the_runs_settings_and_overwrite_clears_the_old_run(tiny_dataset, tmp_path):
+def test_resume_keeps_the_runs_settings_and_overwrite_clears_the_old_run(tiny_dataset, tmp_path, capsys):
     """--resume continues the run that is there, as it was set up: other run-defining settings
     are refused at once (they mixed two trainings, or crashed mid-run), a finished run without
     its checkpoint is not silently started over, and --overwrite clears the replaced run's
@@ -130,8 +130,12 @@ def test_resume_keeps_the_runs_settings_and_overwrite_clears_the_old_run(tiny_da
         Trainer(tiny_dataset, str(run), config_for("tiny", iterations=4, prefix_cuts=2), resume=True)
     # What may change: the length, logging, checkpoints, memory and batch.
     more = config_for("tiny", iterations=6, checkpoint_every=3, eval_every=5, image_cache_mb=64.0)
+    capsys.readouterr()
     again = Trainer(tiny_dataset, str(run), more, resume=True)
     assert again.iteration == 4
+    # A longer run's schedules (fractions of its length) differ from here on: said, not refused.
+    err = capsys.readouterr().err
+    assert "resumed at iteration 4 with 6 iterations instead of 4" in err and "position learning rate" in err
     again.run(progress=False)
     assert again.iteration == 6
     # A checkpoint from before the settings travelled in it: config.json's are checked.
@@ -142,6 +146,9 @@ def test_resume_keeps_the_runs_settings_and_overwrite_clears_the_old_run(tiny_da
     np.savez(run / "checkpoint.npz", **ck)
     with pytest.raises(ValueError, match=r"seed 0 -> 3"):
         Trainer(tiny_dataset, str(run), config_for("tiny", iterations=6, seed=3), resume=True)
+    capsys.readouterr()
+    Trainer(tiny_dataset, str(run), config_for("tiny", iterations=6), resume=True)
+    assert "instead of" not in capsys.readouterr().err  # the same length: no note
     # A finished run whose checkpoint is gone is refused, not trained again from scratch.
     os.remove(run / "checkpoint.npz")
     avatar = (run / "avatar.npz").read_bytes()

@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import sys
 import time
 from dataclasses import asdict, dataclass, field, replace
 
@@ -375,6 +376,32 @@ def _config_json_settings(out_dir: str) -> dict | None:
     return {k: v for k, v in cfg.items() if k in known}
 
 
+def _lengthened(out_dir: str, cfg: TrainConfig, iteration: int) -> str | None:
+    """A note when a resume changes the run's length: the schedules are fractions of it (the
+    position learning rate's decay, growth's end and depth cap, the resets while it grows), so
+    the rest of the run follows the new length's schedule from ``iteration`` on and the whole is
+    not the run a fresh start with that length would make."""
+    try:
+        with open(os.path.join(out_dir, "config.json"), encoding="utf-8") as fh:
+            was = int(json.load(fh)["iterations"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    if was == cfg.iterations:
+        return None
+    old, new = Growth.from_config(replace(cfg, iterations=was)).last, Growth.from_config(cfg).last
+    growth = (
+        f"growth may go on until iteration {new}, not {old}"
+        if iteration < max(old, new)
+        else "growth had ended and does not restart"
+    )
+    decay = cfg.lr_final_ratio ** (iteration / max(1, cfg.iterations)) / cfg.lr_final_ratio ** (iteration / max(1, was))
+    return (
+        f"note: {out_dir}: resumed at iteration {iteration} with {cfg.iterations} iterations instead of {was}: "
+        f"the schedules follow the new length from here ({growth}; the position learning rate steps by "
+        f"{decay:.2g}x), so the run is not what a fresh {cfg.iterations}-iteration run would be"
+    )
+
+
 def _check_same_settings(source: str, was: dict | None, now: dict) -> None:
     if not was:
         return
@@ -533,6 +560,10 @@ class Trainer:
                 )  # its kind
             self.settings = run_settings(config)
             _check_same_settings(self.ckpt_path, self.run_settings, self.settings)
+            if main:
+                note = _lengthened(out_dir, config, self.iteration)
+                if note:
+                    print(note, file=sys.stderr)
         else:
             coarse = None
             if config.coarse_levels:
