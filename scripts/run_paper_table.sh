@@ -28,8 +28,9 @@
 #   options; default "--views 16 --curve-points 12"), UNIFORM_DEPTH (2), ABOUT (text added to the
 #   report's description: how the runs were made, when that differs from this script's defaults),
 #   SUPERVISION_ARGS (train.py options of the supervision ablation's own pair, e.g.
-#   "--opacity-reset-every 1000 --iterations 20000 --grow-stop 0.28"; empty: finest-only is
-#   trained like adaptive, with ABL_ITERS, and compared with it), SEEDS (the further seeds of adaptive and uniform, default "1"; e.g. "1 2"),
+#   "--opacity-reset-every 1000 --iterations 20000 --grow-stop 0.21"; empty: finest-only is
+#   trained like adaptive, with ABL_ITERS, and compared with it), SEEDS (the further seeds of
+#   adaptive and uniform, default "1"; e.g. "1 2"),
 #   BENCH=0 to skip writing docs/BENCHMARKS.md.
 # Time on 2 cores: data ~15-21 min (scripts/bench_data_gen_paper.py); the adaptive run ~1 h
 # (0.4 s per iteration at 9k faces, ~0.8 s at 161k: docs/BENCHMARKS.md gives the measured run);
@@ -60,6 +61,14 @@ if [ "$RESUME" = 0 ] && [ "$REPORT_ONLY" = 0 ] && [ -n "$(ls -A "$OUT" 2>/dev/nu
   echo "$OUT already holds runs: pass --resume to continue them (or remove $OUT)" >&2; exit 2
 fi
 mkdir -p "$OUT"
+if [ -n "${SUPERVISION_ARGS:-}" ]; then
+  # A finished pair from other options would be reported as this one's: refused (--report too).
+  was=$(cat "$OUT/supervision_args" 2>/dev/null || true)
+  if [ -n "$was" ] && [ "$was" != "$SUPERVISION_ARGS" ]; then
+    echo "$OUT/sup_*: trained with SUPERVISION_ARGS=\"$was\", not \"$SUPERVISION_ARGS\": set it back, or remove $OUT/sup_multi_level and $OUT/sup_finest" >&2
+    exit 2
+  fi
+fi
 log() { echo "[$(date -u +%H:%M:%S)] $*" | tee -a "$OUT/progress.log"; }
 
 if [ ! -f "$DATA/transforms_train.json" ]; then
@@ -83,12 +92,6 @@ if [ "$REPORT_ONLY" = 0 ]; then
   train adaptive "$ITERS"
   # One run (or pair) answers its criterion: before uniform.
   if [ -n "${SUPERVISION_ARGS:-}" ]; then
-    # A finished pair from other options would be reported as this one's: refused.
-    was=$(cat "$OUT/supervision_args" 2>/dev/null || true)
-    if [ -n "$was" ] && [ "$was" != "$SUPERVISION_ARGS" ]; then
-      echo "$OUT/sup_*: trained with SUPERVISION_ARGS=\"$was\", not \"$SUPERVISION_ARGS\": set it back, or remove $OUT/sup_multi_level and $OUT/sup_finest" >&2
-      exit 2
-    fi
     echo "$SUPERVISION_ARGS" > "$OUT/supervision_args"
     train sup_multi_level "" $SUPERVISION_ARGS
     train sup_finest "" $SUPERVISION_ARGS --supervision finest

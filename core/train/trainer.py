@@ -376,6 +376,11 @@ def _config_json_settings(out_dir: str) -> dict | None:
     return {k: v for k, v in cfg.items() if k in known}
 
 
+def _position_decay(cfg: TrainConfig, it: int) -> float:
+    """The position learning rate's factor at iteration ``it``: exponential to lr_final_ratio."""
+    return cfg.lr_final_ratio ** (it / max(1, cfg.iterations))
+
+
 def _lengthened(out_dir: str, cfg: TrainConfig, iteration: int) -> str | None:
     """A note when a resume changes the run's length: the schedules are fractions of it (the
     position learning rate's decay, growth's end and depth cap, the resets while it grows), so
@@ -394,7 +399,7 @@ def _lengthened(out_dir: str, cfg: TrainConfig, iteration: int) -> str | None:
         if iteration < max(old, new)
         else "growth had ended and does not restart"
     )
-    decay = cfg.lr_final_ratio ** (iteration / max(1, cfg.iterations)) / cfg.lr_final_ratio ** (iteration / max(1, was))
+    decay = _position_decay(cfg, iteration) / _position_decay(replace(cfg, iterations=was), iteration)
     return (
         f"note: {out_dir}: resumed at iteration {iteration} with {cfg.iterations} iterations instead of {was}: "
         f"the schedules follow the new length from here ({growth}; the position learning rate steps by "
@@ -896,7 +901,7 @@ class Trainer:
             _check_finite(it, **self.refiner.gradients())
             self.refiner.step()
             _check_finite(it, **self.refiner.corrections())
-        decay = c.lr_final_ratio ** (it / max(1, c.iterations))
+        decay = _position_decay(c, it)
         # In the finest tail the roots' Gaussians are put back after the step (their split points
         # still move: they place the children, not the roots' own Gaussians).
         R = self.model.forest.num_roots if self._in_tail(it) else 0
