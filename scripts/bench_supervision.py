@@ -244,12 +244,21 @@ def section(rows: dict, command: str, views: int, about: str = "", title: str = 
                     f"- {name} (against {pair}): {m['v5_35'] - r['v5_35']:+.2f} dB (version 5), "
                     f"{m['v4_35'] - r['v4_35']:+.2f} dB (version 4)"
                 )
-    finest = sorted((n for n in names if rows[n]["supervision"] == "finest"), key=lambda n: rows[n]["iterations"])
-    if len(finest) > 1:
-        short, long = rows[finest[0]], rows[finest[-1]]
+    # The same finest-only recipe trained for different lengths: what the extra iterations did. The
+    # "supervision" text names the recipe's options (reset, tail, ...), so it groups like with like.
+    groups: dict = {}
+    for n in names:
+        if rows[n]["mode"] == "finest":
+            groups.setdefault((rows[n]["supervision"], rows[n].get("grown_until")), []).append(n)
+    for group in groups.values():
+        if len({rows[n]["iterations"] for n in group}) < 2:
+            continue
+        group.sort(key=lambda n: rows[n]["iterations"])
+        short, long = rows[group[0]], rows[group[-1]]
         lines += [
             "",
-            f"Finest-only at {long['iterations']:,} minus at {short['iterations']:,} iterations: "
+            f"Finest-only ({short['supervision']}) at {long['iterations']:,} minus at {short['iterations']:,} "
+            "iterations: "
             + ", ".join(f"{b} % {long[f'v5_{b}'] - short[f'v5_{b}']:+.2f}" for b in BUDGETS)
             + f"; 35 % version 4 {long['v4_35'] - short['v4_35']:+.2f} dB.",
         ]

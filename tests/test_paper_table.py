@@ -142,3 +142,33 @@ def test_run_paper_table_small(tmp_path):
     # A finished pair from other options is not reported as this one's.
     p = _run(tmp_path, "--resume", SUPERVISION_ARGS="--opacity-reset-every 4 --iterations 16")
     assert p.returncode == 2 and "SUPERVISION_ARGS" in p.stderr and "sup_multi_level" in p.stderr
+
+
+def test_bench_supervision_pairs_like_recipes():
+    """bench_supervision's section compares finest-only runs of one recipe across lengths, and never
+    a reset run with a run without resets (the line went missing once the recipe joined the text)."""
+    sys.path.insert(0, os.path.join(ROOT, "scripts"))
+    import bench_supervision as bs
+
+    def row(mode, iters, reset, v5, v4):
+        r = {"mode": mode, "iterations": iters, "reset": reset, "grown_until": 4000, "gaussians": 10}
+        r["supervision"] = mode + (f", opacity reset every {reset:,}" if reset else "")
+        r.update({f"v5_{b}": v5 for b in bs.BUDGETS}, v4_35=v4)
+        r.update({f"nes_{b}": v5 for b in bs.BUDGETS})
+        return r
+
+    rows = {
+        "mls 20k": row("multi-level", 20000, 1000, 27.0, 26.5),
+        "fin 20k": row("finest", 20000, 1000, 26.0, 22.0),
+        "fin 15k": row("finest", 15000, 1000, 25.5, 22.25),
+        "fin 6k plain": row("finest", 6000, 0, 20.0, 10.0),
+    }
+    text = bs.section(rows, "cmd", 2)
+    lengths = [line for line in text.splitlines() if line.startswith("Finest-only (")]
+    assert lengths == [
+        "Finest-only (finest, opacity reset every 1,000) at 20,000 minus at 15,000 iterations: "
+        + ", ".join(f"{b} % +0.50" for b in bs.BUDGETS)
+        + "; 35 % version 4 -0.25 dB."
+    ]
+    assert "- fin 20k (against mls 20k): +1.00 dB (version 5), +4.50 dB (version 4)" in text
+    assert "- fin 6k plain: no multi-level run of its recipe" in text
