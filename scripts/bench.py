@@ -99,6 +99,13 @@ def main(argv=None):
         metavar="NAME=FILE",
         help="a section measured elsewhere (e.g. gpu=DIR/gpu.md from scripts/bench_gpu.py on a CUDA machine)",
     )
+    ap.add_argument(
+        "--drop",
+        action="append",
+        default=[],
+        metavar="REPORT",
+        help="remove a report folder's section (one superseded by another report)",
+    )
     ap.add_argument("--out", default=os.path.join(_bootstrap.ROOT, "docs", "BENCHMARKS.md"))
     args = ap.parse_args(_bootstrap.script_args() if argv is None else argv)
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -116,6 +123,9 @@ def main(argv=None):
         print(f"{name}: {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     for rep in args.report:
         parts["report:" + rep] = report_section(rep)
+    for rep in args.drop:
+        if parts.pop("report:" + rep, None) is None:
+            ap.error(f"--drop {rep}: {args.out} has no section from {rep}/report.json")
     for spec in args.section:
         name, _, path = spec.partition("=")
         with open(path) as fh:

@@ -172,3 +172,26 @@ def test_bench_supervision_pairs_like_recipes():
     ]
     assert "- fin 20k (against mls 20k): +1.00 dB (version 5), +4.50 dB (version 4)" in text
     assert "- fin 6k plain: no multi-level run of its recipe" in text
+
+
+def test_bench_drops_a_superseded_report(tmp_path):
+    """bench.py --drop removes one report's section and keeps the rest of the page; a folder with
+    no section is refused, leaving the page as it was."""
+    sys.path.insert(0, os.path.join(ROOT, "scripts"))
+    import bench
+
+    page = tmp_path / "B.md"
+    page.write_text(
+        "# Benchmarks\n\nintro\n\n"
+        "## Training and evaluation (from `docs/old/report.json`)\nold body\n## Figures\nold figs\n\n"
+        "## Training and evaluation (from `docs/new/report.json`)\nnew body\n\n"
+        "<!-- section:extra -->\n## Extra\nkept\n<!-- /section:extra -->\n"
+    )
+    assert bench.main(["--only", "none", "--drop", "docs/old", "--out", str(page)]) == 0
+    text = page.read_text()
+    assert "old body" not in text and "old figs" not in text
+    assert "new body" in text and "kept" in text and "<!-- /section:extra -->" in text
+    before = page.read_text()
+    with pytest.raises(SystemExit):
+        bench.main(["--only", "none", "--drop", "docs/missing", "--out", str(page)])
+    assert page.read_text() == before
