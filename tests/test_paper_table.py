@@ -144,10 +144,10 @@ def test_run_paper_table_small(tmp_path):
     assert p.returncode == 2 and "SUPERVISION_ARGS" in p.stderr and "sup_multi_level" in p.stderr
 
 
-def test_bench_supervision_pairs_like_recipes():
+def test_bench_supervision_pairs_like_recipes(monkeypatch):
     """bench_supervision's section compares finest-only runs of one recipe across lengths, and never
     a reset run with a run without resets (the line went missing once the recipe joined the text)."""
-    sys.path.insert(0, os.path.join(ROOT, "scripts"))
+    monkeypatch.syspath_prepend(os.path.join(ROOT, "scripts"))
     import bench_supervision as bs
 
     def row(mode, iters, reset, v5, v4):
@@ -174,10 +174,10 @@ def test_bench_supervision_pairs_like_recipes():
     assert "- fin 6k plain: no multi-level run of its recipe" in text
 
 
-def test_bench_drops_a_superseded_report(tmp_path):
+def test_bench_drops_a_superseded_report(tmp_path, monkeypatch):
     """bench.py --drop removes one report's section and keeps the rest of the page; a folder with
     no section is refused, leaving the page as it was."""
-    sys.path.insert(0, os.path.join(ROOT, "scripts"))
+    monkeypatch.syspath_prepend(os.path.join(ROOT, "scripts"))
     import bench
 
     page = tmp_path / "B.md"
