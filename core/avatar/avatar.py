@@ -18,7 +18,7 @@ from ..geometry import sh
 from ..io.atomic import atomic_savez
 from .forest import Forest
 from ..geometry.sh import SH_C0
-from ..io.safe_io import check_npz, loads_json
+from ..io.safe_io import check_npz, loads_json, npz_read_errors
 
 PARAM_NAMES = ("d_mu", "d_log_scale", "d_rot", "opacity_logit", "f_dc")
 PARAM_WIDTH = {"d_mu": 3, "d_log_scale": 3, "d_rot": 4, "opacity_logit": None, "f_dc": 3}
@@ -156,7 +156,7 @@ class Avatar:
     @classmethod
     def load(cls, path) -> "Avatar":
         check_npz(path, allow_text=("meta_json",))  # bounded before numpy allocates
-        with np.load(path, allow_pickle=False) as data:
+        with npz_read_errors(path), np.load(path, allow_pickle=False) as data:
             forest = Forest.from_state(data, source=str(path))
             missing = [n for n in PARAM_NAMES if n not in data]
             if missing:

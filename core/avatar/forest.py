@@ -240,6 +240,8 @@ class Forest:
             if np.array_equal(new_level, level) and np.array_equal(new_root, root):
                 break
             level, root = new_level, new_root
+        if np.any(level[R:] <= level[p]):  # int8 wrapped past 127
+            raise ValueError("Forest: faces deeper than level 127 (the deepest a forest holds)")
         if K and np.any(level[p] < K):
             raise ValueError("Forest: coarse faces cannot have children")
         self.level = level
@@ -342,6 +344,8 @@ class Forest:
             raise IndexError("Forest.split: face index out of range")
         if not np.all(self.is_leaf()[ids]):
             raise ValueError("Forest.split: only leaf faces can be split")
+        if np.any(self.level[ids] >= np.iinfo(np.int8).max):  # (levels are int8: 127 + 1 would wrap)
+            raise ValueError(f"Forest.split: faces at level {np.iinfo(np.int8).max} do not split (the deepest level)")
         if np.any(self.level[ids] < self.num_coarse_levels):
             raise ValueError("Forest.split: coarse faces do not split")
         N, k = self.num_faces, len(ids)
@@ -562,6 +566,8 @@ class Forest:
                 data[prefix + "split_logits"],
                 **extra,
             )
+        except KeyError as exc:  # root_ref without the coarse arrays that go with it
+            raise ValueError(f"{source}: incomplete forest: {exc.args[0] if exc.args else exc}") from None
         except ValueError as exc:
             raise ValueError(f"{source}: {exc}") from None
 

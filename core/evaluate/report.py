@@ -496,6 +496,8 @@ def build_report(args: ReportOptions) -> dict:
     data = runs.run_data_dir(args.run, args.data)
     fm = runs.run_flame_model(args.run, args.flame_model)
     splits = {"nvs": Dataset(data, "val", flame_model=fm), "nes": Dataset(data, "test", flame_model=fm)}
+    for ds in splits.values():
+        ds.check_same_mesh(avatar.forest.template_faces, f"the template of {args.run}'s avatar")
     strips = [float(b) for b in args.strips]
     progress = args.progress
     # Everything read later is checked now, before minutes of rendering: every image, mask, mesh

@@ -316,6 +316,20 @@ class Dataset:
         except ValueError as exc:
             raise DataError(f"{where}: {exc}") from exc
 
+    def check_same_mesh(self, faces, what: str) -> None:
+        """Refuse this split when its tracked mesh is not ``faces`` (another split's, or an
+        avatar's template), named ``what``: each split may name its own canonical_mesh_path, and
+        an avatar bound to one mesh cannot follow another (it would fail at the first render)."""
+        if self.faces is None:
+            return
+        faces = np.asarray(faces)
+        if faces.shape != self.faces.shape or not np.array_equal(faces, self.faces):
+            how = f"{len(faces)} faces" if len(faces) != len(self.faces) else "as many faces, other vertex indices"
+            raise DataError(
+                f"{self.json_path}: its mesh ({self.n_vertices} vertices, {len(self.faces)} faces) is not "
+                f"{what} ({how}); every split must track the same mesh"
+            )
+
     def __len__(self) -> int:
         return len(self.frames)
 

@@ -78,6 +78,7 @@ _OBJ_TRI_QUAD = re.compile(
 
 
 _OBJ_V_LINE = re.compile(rb"^[ \t]*v[ \t]", re.M)
+_OBJ_V_OR_F = re.compile(rb"^[ \t]*([vf])[ \t]", re.M)
 
 
 def read_obj_bytes(data: bytes, path: str = "<obj>"):
@@ -113,9 +114,17 @@ def read_obj_bytes(data: bytes, path: str = "<obj>"):
     idx = cells.astype(np.int64)
     if np.any(idx == 0):
         raise MeshFormatError(f"{path}: a face names vertex 0 (OBJ indices start at 1; negative ones count back)")
-    idx = np.where(idx < 0, idx + len(v), idx - 1)  # OBJ is 1-based; negatives count back
+    # OBJ is 1-based; a negative index counts back from the last vertex defined before its face
+    # line (not from the file's last: a file of several objects differs)
+    back = len(v)
+    if (idx < 0).any():
+        is_v = np.array(_OBJ_V_OR_F.findall(data)) == b"v"  # the v and f lines in file order
+        back = np.cumsum(is_v)[~is_v][:, None]
+    idx = np.where(idx < 0, idx + back, idx - 1)
     if idx.min() < 0 or idx.max() >= len(v):
-        raise MeshFormatError(f"{path}: face vertex indices outside 1..{len(v)} (or -{len(v)}..-1)")
+        raise MeshFormatError(
+            f"{path}: face vertex indices outside 1..{len(v)} (or a negative one before the first vertex line)"
+        )
     return v, _triangles(idx, sizes, path)
 
 
@@ -208,6 +217,7 @@ def read_ply_bytes(data: bytes, path: str = "<ply>"):
         if pos + np.dtype(count_t).itemsize > len(data):
             raise MeshFormatError(f"{path}: the face element is cut short")
         k = int(np.frombuffer(data, end + count_t, count=1, offset=pos)[0])
+        _check_corners(k, path)
         dt = np.dtype([("n", end + count_t), ("i", end + index_t, (k,))])
         if pos + dt.itemsize * n > len(data):
             raise MeshFormatError(
@@ -225,6 +235,13 @@ def read_ply_bytes(data: bytes, path: str = "<ply>"):
     return v, (np.zeros((0, 3), np.int64) if f is None else f)
 
 
+def _check_corners(k: int, path: str) -> None:
+    """Refuse a first polygon that is not a triangle or a quad before its size shapes an array
+    (a forged count would otherwise ask numpy for billions of columns)."""
+    if k not in (3, 4):
+        raise MeshFormatError(f"{path}: face 0 has {k} corners; only triangles and quads are read")
+
+
 def _ply_ascii(text: bytes, elements, path):
     lines = text.split(b"\n")
     at = 0
@@ -236,6 +253,8 @@ def _ply_ascii(text: bytes, elements, path):
             raise MeshFormatError(f"{path}: element '{name}' is cut short ({len(block)} of {n} rows)")
         if name == "vertex":
             cols = [p for p, _t in props]
+            if not {"x", "y", "z"} <= set(cols):
+                raise MeshFormatError(f"{path}: vertex element lacks x, y, z")
             width = len(cols)
             try:
                 arr = np.array(b" ".join(block).split(), dtype=np.float64).reshape(n, width)
@@ -243,10 +262,16 @@ def _ply_ascii(text: bytes, elements, path):
                 raise MeshFormatError(f"{path}: vertex rows do not all hold {width} numbers") from None
             v = arr[:, [cols.index(c) for c in ("x", "y", "z")]]
         elif name == "face":
+            if len(props) != 1 or not isinstance(props[0][1], tuple):
+                raise MeshFormatError(f"{path}: face element with properties besides its index list")
             if n == 0:
                 f = np.zeros((0, 3), np.int64)
                 continue
-            k = int(block[0].split()[0])
+            try:
+                k = int(block[0].split()[0])
+            except (ValueError, IndexError):
+                raise MeshFormatError(f"{path}: the first face row does not start with its corner count") from None
+            _check_corners(k, path)
             try:
                 arr = np.array(b" ".join(block).split(), dtype=np.int64).reshape(n, k + 1)
             except ValueError:

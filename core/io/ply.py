@@ -215,13 +215,15 @@ def _read_vertices(path: str) -> np.ndarray:
             if parts[0] == "format":
                 fmt = parts[1]
             elif parts[0] == "element":
-                if element == "vertex":
+                # The vertex data are read from the end of the header on: any other element,
+                # before or after it, would be read as vertices or left unread.
+                if len(parts) < 3 or parts[1] != "vertex" or element is not None:
                     raise ValueError(
-                        f"{path}: only files whose vertex element comes last are supported without plyfile"
+                        f"{path}: element {' '.join(parts[1:2]) or '(unnamed)'} besides the vertex element: "
+                        "without plyfile only vertex-only PLY files are read"
                     )
                 element = parts[1]
-                if element == "vertex":
-                    count = int(parts[2])
+                count = int(parts[2])
             elif parts[0] == "property" and element == "vertex":
                 if parts[1] == "list" or parts[1] not in types:
                     raise ValueError(f"{path}: unsupported vertex property type {parts[1]!r}")

@@ -11,6 +11,8 @@ from __future__ import annotations
 import json
 import re
 import zipfile
+import zlib
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -20,6 +22,7 @@ __all__ = [
     "MAX_TEXT_LINE",
     "check_line_lengths",
     "check_npz",
+    "npz_read_errors",
     "json_depth",
     "loads_json",
     "read_bounded",
@@ -90,20 +93,55 @@ def check_npz(
                     f"archive stores {info.file_size}: truncated or forged"
                 )
             out[name] = (tuple(shape), dtype)
+        # The headers alone leave a damaged member to fail when numpy reads it, with zipfile's
+        # error and no file name; reading each member through checks its CRC now (in chunks).
+        try:
+            bad = zf.testzip()
+        except (zipfile.BadZipFile, zlib.error, EOFError, OSError) as exc:
+            raise ValueError(f"{path}: damaged npz archive ({exc})") from None
+        if bad is not None:
+            name = bad[:-4] if bad.endswith(".npy") else bad
+            raise ValueError(f"{path}: member '{name}' is damaged (its CRC does not match)")
     return out
 
 
+@contextmanager
+def npz_read_errors(path):
+    """Around reading a checked npz (check_npz): a member that is missing, or JSON text in it
+    that does not parse, becomes a ValueError naming the file, as check_npz's own refusals."""
+    try:
+        yield
+    except KeyError as exc:
+        what = str(exc.args[0]) if exc.args else ""
+        # numpy's own message says which member is missing; a bare key is an entry of a JSON member
+        raise ValueError(f"{path}: incomplete: {what if ' ' in what else f'no entry {what!r}'}") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: a text member is not valid JSON ({exc})") from None
+
+
 _JSON_STRING = re.compile(rb'"(?:[^"\\]|\\.)*"', re.S)
+# Depth change per byte value: +1 for [ {, -1 for ] }.
+_BRACKET_STEP = np.zeros(256, np.int8)
+_BRACKET_STEP[[ord("["), ord("{")]] = 1
+_BRACKET_STEP[[ord("]"), ord("}")]] = -1
+# Bytes per vectorised pass of json_depth: its temporaries stay a few MiB whatever the text's
+# size (a stream's metadata may be up to 256 MiB; whole-text int64 arrays cost ~24 bytes per byte).
+_DEPTH_CHUNK = 1 << 18
 
 
 def json_depth(data) -> int:
     """Nesting depth of the JSON text ``data`` (str or bytes), without recursion: strings are
-    blanked out, then brackets are counted with one cumulative sum."""
+    blanked out, then brackets are counted with a cumulative sum, chunk by chunk, each
+    chunk's sum starting from the depth the previous one ended at."""
     raw = data.encode("utf-8", "surrogatepass") if isinstance(data, str) else bytes(data)
     raw = _JSON_STRING.sub(b'""', raw)
     b = np.frombuffer(raw, np.uint8)
-    step = np.isin(b, (ord("["), ord("{"))).astype(np.int64) - np.isin(b, (ord("]"), ord("}")))
-    return int(np.cumsum(step).max(initial=0))
+    depth = best = 0
+    for c0 in range(0, len(b), _DEPTH_CHUNK):
+        run = np.cumsum(_BRACKET_STEP[b[c0 : c0 + _DEPTH_CHUNK]], dtype=np.int64)
+        best = max(best, depth + int(run.max()))
+        depth += int(run[-1])
+    return best
 
 
 def loads_json(data, source: str = "<json>", max_depth: int = MAX_JSON_DEPTH):

@@ -71,6 +71,12 @@ def max_exceptions(num_records: int) -> int:
 
 
 MAX_HEADER = 256 << 20
+# Most template faces (F0) and most coarse triangles (C) a header may claim, refused before the
+# embedded template or coarse table is inflated: a few kilobytes of zlib can claim gigabytes.
+# FLAME has ~10k faces; 2^24 faces is a 192 MiB template (FORMAT.md 2.1, 2.3).
+MAX_ROOT_FACES = 1 << 24
+# Most levels: Forest.level is int8, so levels 0..127 (FORMAT.md 2.1).
+MAX_LEVELS = 128
 DEFAULT_BLOCK = 256
 QUANT_RECORD = 23
 LOSSLESS_RECORD = 73
@@ -231,6 +237,22 @@ def quant_steps(quant) -> dict:
         lo, hi = r["rot"]
         out["rot"] = (lo.astype(f32), ((hi - lo) / 255.0).astype(f32))
     return out
+
+
+_CODE_MAX = {"mu": 4095, "ls": 255, "fdc": 255, "rot": 255}
+
+
+def _decodes_finite(quant) -> bool:
+    """Whether every code of every range decodes (FORMAT.md 3.1, float32) to a finite value.
+    Steps are >= 0 (lo <= hi), so the decode is monotone in the code and its extremes are codes
+    0 and max. Version 4 bounds every range far below overflow; a version 3 range near
+    float32's limits (c_hi = 3e38: f_dc = c/C0) would decode to infinity after every record
+    had verified, in an Avatar that cannot name the file."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        for key, (lo, step) in quant_steps(quant).items():
+            if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(lo + np.float32(_CODE_MAX[key]) * step))):
+                return False
+    return True
 
 
 def percent_bytes(p, total) -> int:
@@ -535,12 +557,14 @@ def _parse_fixed(buf, source: str):
         problems.append(f"record size {R} (expected {want_R})")
     if N < 1 or F0 < 1 or F0 > N:
         problems.append(f"counts N={N}, F0={F0}")
+    if F0 > MAX_ROOT_FACES:
+        problems.append(f"{F0} template faces (at most {MAX_ROOT_FACES})")
     if not lossless and N > QUANT_ROOT:
         problems.append(f"N={N} exceeds the quantised record's 24-bit parent index")
     if lossless and N > LOSSLESS_ROOT:
         problems.append(f"N={N} exceeds the lossless record's 30-bit parent index")
-    if B < 1 or L < 1 or reserved != 0:
-        problems.append(f"records_per_block={B}, num_levels={L}, reserved={reserved}")
+    if B < 1 or L < 1 or L > MAX_LEVELS or reserved != 0:
+        problems.append(f"records_per_block={B}, num_levels={L} (at most {MAX_LEVELS}), reserved={reserved}")
     if bool(T) != bool(flags & FLAG_TEMPLATE):
         problems.append(f"template length {T} disagrees with flag bit 1")
     if K >= L or bool(K) != bool(CL):
@@ -607,11 +631,12 @@ def _parse_header(buf, source: str) -> StreamInfo:
             or any(np.any(lo > hi) for lo, hi in ranges.values())
             or np.any(np.abs(np.concatenate(ranges["ls"])) > LOG_SCALE_LIMIT)
             or (f["version"] >= 4 and np.any(np.abs(quant) > RANGE_LIMIT))
+            or not _decodes_finite(quant)
         ):
             raise StreamError(
                 f"{source}: invalid quantisation ranges in the header (lo > hi, not finite, a "
-                f"log-scale beyond +-{LOG_SCALE_LIMIT:g}, or from version 4 a value beyond +-{RANGE_LIMIT:g}): "
-                f"{quant.tolist()}"
+                f"log-scale beyond +-{LOG_SCALE_LIMIT:g}, from version 4 a value beyond +-{RANGE_LIMIT:g}, "
+                f"or a range whose codes decode beyond float32): {quant.tolist()}"
             )
     exceptions = None
     if f["E"]:
@@ -619,6 +644,10 @@ def _parse_header(buf, source: str) -> StreamInfo:
         pos += EXCEPTION_SIZE * f["E"]
     coarse, retire = None, None
     if K:
+        if counts[:K].sum() > MAX_ROOT_FACES:
+            raise StreamError(
+                f"{source}: {int(counts[:K].sum())} coarse triangles (at most {MAX_ROOT_FACES}); refused before inflating"
+            )
         stand_ins = bool(f["flags"] & FLAG_STAND_INS)
         coarse, retire = _decode_coarse(bytes(buf[pos : pos + f["CL"]]), int(counts[:K].sum()), source, stand_ins)
         pos += f["CL"]
@@ -643,6 +672,8 @@ def _parse_header(buf, source: str) -> StreamInfo:
         template = np.frombuffer(raw, "<i4").reshape(-1, 3).astype(np.int32)
         if template_hash(template) != f["template_hash"]:
             raise StreamError(f"{source}: embedded template does not match the header's template hash")
+        if template.min() < 0:
+            raise StreamError(f"{source}: embedded template holds a negative vertex index ({template.min()})")
     meta = {}
     if f["M"]:
         try:

@@ -478,7 +478,9 @@ def fetch_stream(
                         break
                     total_seen = size
                 res.used_ranges = True
-                want = last - start + 1
+                # A server may send more than asked (a CDN rounding ranges up to its blocks):
+                # only the requested bytes are fed, so a budget holds; the rest stays unread.
+                want = min(last, end) - start + 1
                 got = 0
                 while got < want:
                     # read1: whatever arrived (one recv), so a stall loses nothing already received
@@ -495,6 +497,10 @@ def fetch_stream(
                     # Cannot happen with the checks above; a guard against a hot loop of requests.
                     res.status, res.message = HTTP_ERROR, f"no progress from Content-Range {cr!r}"
                     break
+                if last > end:  # the unread rest of an overlong range: drop the connection, not read it
+                    conn.close()
+                    conn = None
+                    continue
                 resp.read()  # nothing left; marks the response done so the connection is reusable
                 if resp.will_close:
                     conn.close()

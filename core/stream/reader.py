@@ -887,7 +887,12 @@ def read_stream(source, *, percent=None, max_bytes=None, max_gaussians=None, tem
         if is_bytes:
             body = data[H:end] if n < h.num_records else data[H:]
         else:
-            body = fh.read(end - H) if n < h.num_records else fh.read()
+            # One byte past the stream tells that trailing bytes exist: a file far longer than
+            # its stream is never read whole.
+            body = fh.read(end - H + (n == h.num_records))
+        if not is_bytes and len(body) > end - H:
+            reader.feed(body[: end - H])  # (a corrupt record is the first thing to report)
+            raise StreamError(f"{name}: unexpected bytes after the end of the stream (offset {h.total_bytes})")
         if len(body):
             reader.feed(body)
     finally:

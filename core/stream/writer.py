@@ -30,6 +30,7 @@ from .format import (
     QUANT_ROOT,
     QUANT_ROOT_BIT,
     LOSSLESS_ROOT_SLOT,
+    MAX_ROOT_FACES,
     StreamInfo,
     VERSION,
     _encode_coarse,
@@ -330,6 +331,11 @@ def build_stream(
     limit = QUANT_ROOT if quantize else LOSSLESS_ROOT
     if N > limit:
         raise ValueError(f"write_stream: {N} Gaussians exceed this record type's limit of {limit}")
+    if max(len(forest.template_faces), forest.num_coarse) > MAX_ROOT_FACES:  # what readers refuse
+        raise ValueError(
+            f"write_stream: {len(forest.template_faces)} template faces and {forest.num_coarse} coarse faces: "
+            f"a stream holds at most {MAX_ROOT_FACES} of each"
+        )
     if version not in (2, 3, 4, VERSION):
         raise ValueError(f"write_stream: can write versions 2, 3, 4 and {VERSION}, not {version}")
     C, K = forest.num_coarse, forest.num_coarse_levels
@@ -357,7 +363,11 @@ def build_stream(
     if version >= 5 and importance is not None:  # each face as soon as its parent is sent
         s = interleaved_order(forest, importance, keys)
     elif version >= 5 and keys is None and forest.root_rank[-1] != forest.num_roots - 1:
-        s = forest.stream_order()  # an avatar read from a version 5 stream keeps its order
+        # An avatar read from a version 5 stream in which a root arrived after a non-root keeps
+        # its order. Only coarse levels allow that: without them every root is in the lead, so
+        # root_rank cannot tell a read stream from a trained forest, and the else branch below
+        # sends the faces level by level (the read order of the non-roots is not kept).
+        s = forest.stream_order()
     else:
         s = stream_order(forest, importance, keys)
     # The reader's faces: the roots in stream order, then the others in stream order.

@@ -527,6 +527,7 @@ class Trainer:
             self.val = Dataset(
                 data_dir, "val", downscale=config.downscale, cache_images=64, flame_model=config.flame_model
             )
+            self.val.check_same_mesh(self.train.faces, f"{self.train.json_path}'s")
         else:
             self.val = None
         if check_data and main:  # once per job; the others wait at the first collective
@@ -988,49 +989,72 @@ class Trainer:
         atomic_savez(self.ckpt_path, **arrays)
 
     def _load_checkpoint(self):
-        from ..io.safe_io import check_npz
+        from ..io.safe_io import check_npz, npz_read_errors
 
         check_npz(self.ckpt_path, allow_text=("state_json",))
-        with np.load(self.ckpt_path, allow_pickle=False) as d:
-            forest = Forest.from_state(d, source=self.ckpt_path)
-            from ..avatar.avatar import Avatar
+        with npz_read_errors(self.ckpt_path), np.load(self.ckpt_path, allow_pickle=False) as d:
+            self._load_checkpoint_from(d)
 
-            if not np.array_equal(forest.template_faces, np.asarray(self.train.faces)):
+    def _load_checkpoint_from(self, d):
+        from ..avatar.avatar import Avatar
+
+        def rows(name: str, shape: tuple, dtype) -> np.ndarray:
+            # The compiled Adam pass writes rows without bounds checks: a member of the wrong
+            # shape would corrupt memory, not fail.
+            a = d[name]
+            if a.shape != shape or a.dtype.kind != "f":
                 raise ValueError(
-                    f"{self.ckpt_path}: the checkpoint's template mesh ({len(forest.template_faces)} "
-                    f"faces) is not {self.data_dir}'s ({len(self.train.faces)} faces); resume with the "
-                    "--data it was trained on, or train into a new --out folder"
+                    f"{self.ckpt_path}: member '{name}' is {a.dtype}{list(a.shape)}, expected a float array "
+                    f"{list(shape)}; the checkpoint is damaged: train into a new --out folder"
                 )
+            return a.astype(dtype, copy=True)
+
+        forest = Forest.from_state(d, source=self.ckpt_path)
+        if not np.array_equal(forest.template_faces, np.asarray(self.train.faces)):
+            raise ValueError(
+                f"{self.ckpt_path}: the checkpoint's template mesh ({len(forest.template_faces)} "
+                f"faces) is not {self.data_dir}'s ({len(self.train.faces)} faces); resume with the "
+                "--data it was trained on, or train into a new --out folder"
+            )
+        try:
             av = Avatar(
                 forest,
                 *(d["param_" + n] for n in PARAM_NAMES),
                 f_rest=d["param_f_rest"] if "param_f_rest" in d else None,
             )
-            if av.sh_degree != self.cfg.sh_degree:
-                raise ValueError(
-                    f"{self.ckpt_path}: checkpoint has SH degree {av.sh_degree}, the configuration "
-                    f"{self.cfg.sh_degree}; resume with the same --sh-degree"
-                )
-            self.model = TorchAvatar(av)
-            with torch.no_grad():
-                self.model.params["split_logits"].copy_(torch.from_numpy(d["param_split_logits"]))
-            self.opt = Adam(self.model.params, self.cfg.lr)
-            for name in self.model.params:
-                self.opt.m[name] = torch.from_numpy(d["adam_m_" + name].copy())
-                self.opt.v[name] = torch.from_numpy(d["adam_v_" + name].copy())
-            self.opt.steps = torch.from_numpy(d["adam_steps"].copy())
-            self.grad_sum, self.grad_count = d["grad_sum"].copy(), d["grad_count"].copy()
-            # (checkpoints before split_min_px: no face is held back until the next growth step)
-            self.size_px = d["size_px"].copy() if "size_px" in d else np.full(len(self.grad_sum), np.inf)
-            if "rank_importance" in d:
-                self.rank_importance = d["rank_importance"].copy()
-            if not self.dist.is_main:  # the job's sums live on rank 0 (whatever world size wrote them)
-                self.grad_sum[:] = 0
-                self.grad_count[:] = 0
-                self.size_px[:] = 0
-            if self.refiner is not None:
-                self.refiner.load_state(d, self.ckpt_path)
-            state = json.loads(str(d["state_json"]))
+        except ValueError as exc:
+            raise ValueError(f"{self.ckpt_path}: {exc}") from None
+        if av.sh_degree != self.cfg.sh_degree:
+            raise ValueError(
+                f"{self.ckpt_path}: checkpoint has SH degree {av.sh_degree}, the configuration "
+                f"{self.cfg.sh_degree}; resume with the same --sh-degree"
+            )
+        self.model = TorchAvatar(av)
+        params = self.model.params
+        n = forest.num_faces
+        with torch.no_grad():
+            logits = params["split_logits"]
+            logits.copy_(
+                torch.from_numpy(rows("param_split_logits", tuple(logits.shape), logits.detach().numpy().dtype))
+            )
+        self.opt = Adam(params, self.cfg.lr)
+        for name, p in params.items():
+            shape, dtype = tuple(p.shape), p.detach().numpy().dtype
+            self.opt.m[name] = torch.from_numpy(rows("adam_m_" + name, shape, dtype))
+            self.opt.v[name] = torch.from_numpy(rows("adam_v_" + name, shape, dtype))
+        self.opt.steps = torch.from_numpy(rows("adam_steps", (n,), np.float64))
+        self.grad_sum, self.grad_count = rows("grad_sum", (n,), np.float64), rows("grad_count", (n,), np.float64)
+        # (checkpoints before split_min_px: no face is held back until the next growth step)
+        self.size_px = rows("size_px", (n,), np.float64) if "size_px" in d else np.full(n, np.inf)
+        if "rank_importance" in d:  # (measured before the last growth it may be shorter: step() measures again)
+            self.rank_importance = rows("rank_importance", d["rank_importance"].shape[:1], np.float64)
+        if not self.dist.is_main:  # the job's sums live on rank 0 (whatever world size wrote them)
+            self.grad_sum[:] = 0
+            self.grad_count[:] = 0
+            self.size_px[:] = 0
+        if self.refiner is not None:
+            self.refiner.load_state(d, self.ckpt_path)
+        state = json.loads(str(d["state_json"]))
         self.run_settings = state.get("settings") or _config_json_settings(self.out_dir)
         self.iteration, self.elapsed = state["iteration"], state["elapsed"]
         self.checkpoint_iteration = self.iteration
