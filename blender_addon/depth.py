@@ -20,14 +20,25 @@ LEVEL_MODIFIER = "PA Level"
 LEVEL_GROUP = "PA Level Filter"
 
 
+def require_object_mode(obj):
+    """Raise ValueError naming ``obj`` when its mesh is in Edit Mode: the edit mesh then holds
+    the attributes, and theirs have no rows to read or write."""
+    if obj.type == "MESH" and obj.data.is_editmode:
+        raise ValueError(f"{obj.name}: leave Edit Mode first")
+
+
 def apply_depth(obj, forest, count=None, max_level=None):
     """Write the depth of each face of ``obj`` over the first ``count`` Gaussians (all if
     None): the attribute, the legend and, while they are shown, the colours. ``max_level``:
     the whole avatar's deepest subdivision depth below the template (the colour scale; default
-    the forest's)."""
+    the forest's). Raises ValueError naming ``obj`` before changing anything when it cannot."""
+    require_object_mode(obj)
     me = obj.data
     top = forest.max_depth if max_level is None else max(int(max_level), forest.max_depth)
-    depth = depth_per_face(forest, len(me.polygons), count)
+    try:
+        depth = depth_per_face(forest, len(me.polygons), count)
+    except ValueError as exc:
+        raise ValueError(f"{obj.name}: {exc}") from None
     attr = me.attributes.get(DEPTH_ATTR)
     if attr is not None and (attr.domain != "FACE" or attr.data_type != "INT"):
         me.attributes.remove(attr)
@@ -73,17 +84,24 @@ def show_colors(context, obj, forest, count=None, max_level=None):
     mode, then show the depth colours of the first ``count`` Gaussians there (Solid mode,
     Attribute colour)."""
     state, me = obj.pa_mesh, obj.data
-    if not state.depth_shown:
+    was_shown = state.depth_shown
+    if not was_shown:
         ca = me.color_attributes
-        state.depth_saved = json.dumps(
+        saved = json.dumps(
             {
                 "active": ca.active_color_name or "",
                 "default": getattr(ca, "default_color_name", "") or "",
                 "shading": {key: sp.shading.color_type for key, sp in _view_spaces(context)},
             }
         )
-    state.depth_shown = True
-    apply_depth(obj, forest, count, max_level)
+    # The depth first: when it cannot be computed (an edited mesh), the toggle and the saved
+    # colours and shading must stay as they were.
+    depth = apply_depth(obj, forest, count, max_level)
+    if not was_shown:
+        state.depth_saved = saved
+        state.depth_shown = True
+        _write_colors(me, depth, state.depth_max_level)
+        me.update()
     for _key, sp in _view_spaces(context):
         sp.shading.color_type = "VERTEX"
 

@@ -126,6 +126,7 @@ def load_avatar_onto(context, mesh_obj, path, budget=100.0):
 
     Everything that can fail on the file runs before the scene is touched; should building
     the preview fail anyway, whatever it made is removed and the previous preview stays."""
+    depth.require_object_mode(mesh_obj)
     abspath = runtime.resolve(path)
     faces = mesh_faces(mesh_obj.data)
     avatar, budget_info = load_avatar(abspath, faces)
@@ -226,6 +227,7 @@ class PA_OT_load_avatar(bpy.types.Operator, ImportHelper):
             return {"CANCELLED"}
         try:
             note = ""
+            depth.require_object_mode(mesh_obj)  # before a download it could not use
             if self.url:
                 path, note = _fetch(self.url, mesh_faces(mesh_obj.data))
             obj = load_avatar_onto(context, mesh_obj, path, self.budget)
@@ -258,15 +260,18 @@ class PA_OT_depth_colors(bpy.types.Operator):
         from . import ply_import
 
         obj = preview_of(context)
-        if obj is None:  # the preview was deleted while the colours were shown: they can still go
-            depth.hide_colors(context, orphan_depth_mesh(context))
-            return {"FINISHED"}
-        if ply_import.is_splat_ply(obj):
+        if obj is not None and ply_import.is_splat_ply(obj):
             self.report({"ERROR"}, f"{obj.name}: PLY splats carry no subdivision depth; load an avatar onto a mesh")
             return {"CANCELLED"}
-        src = obj.pa_avatar.source
+        # No preview: it was deleted while the colours were shown, and they can still go.
+        src = obj.pa_avatar.source if obj is not None else orphan_depth_mesh(context)
         if src is None or src.type != "MESH":
             self.report({"ERROR"}, f"{obj.name}: its mesh was deleted; load the avatar onto a mesh again")
+            return {"CANCELLED"}
+        try:  # hiding writes the mesh's attributes too
+            depth.require_object_mode(src)
+        except ValueError as exc:
+            self.report({"ERROR"}, f"Colour by Depth: {exc}")
             return {"CANCELLED"}
         if src.pa_mesh.depth_shown:
             depth.hide_colors(context, src)
@@ -278,7 +283,7 @@ class PA_OT_depth_colors(bpy.types.Operator):
         try:
             depth.show_colors(context, src, e.avatar.forest, obj.pa_avatar.count, e.budget.max_depth(e.avatar.forest))
         except ValueError as exc:
-            self.report({"ERROR"}, str(exc))
+            self.report({"ERROR"}, f"Colour by Depth: {exc}")
             return {"CANCELLED"}
         return {"FINISHED"}
 

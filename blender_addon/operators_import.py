@@ -87,12 +87,15 @@ class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
         scene = context.scene
         kept_range = (scene.frame_start, scene.frame_end)
         name = os.path.splitext(os.path.basename(path.rstrip("/\\")))[0] or "sequence"
-        for ob in context.selected_objects:
-            ob.select_set(False)
+        selected = list(context.selected_objects)
         if rig is not None:
             from . import rig as rig_builder
 
-            obj, _ = rig_builder.build_rig_objects(context, rig, name, context.scene.frame_start, self.z_up)
+            try:
+                obj, _ = rig_builder.build_rig_objects(context, rig, name, context.scene.frame_start, self.z_up)
+            except Exception as exc:  # Blender's own operators run inside (mode switch, weight conversion)
+                self.report({"ERROR"}, f"Cannot import {path} as a FLAME rig: {exc}")
+                return {"CANCELLED"}
             if rig.ignored:
                 self.report(
                     {"WARNING"},
@@ -101,6 +104,8 @@ class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
                 )
         else:
             obj = sequence.build_sequence_object(context, seq, name, context.scene.frame_start, self.z_up)
+        for ob in selected:
+            ob.select_set(False)
         if not self.set_frame_range:  # the builders set it; put the scene's back
             scene.frame_start, scene.frame_end = kept_range
         if self.fps:

@@ -105,6 +105,21 @@ def _command(context):
     return [cmd], out, training_tier.runner_env()
 
 
+def _popen(cmd, env):
+    # The trainer's log is read as UTF-8 whatever the locale, and a byte that is not (a Latin-1
+    # path in a warning) becomes U+FFFD: a decode error would kill the reader mid-run.
+    return subprocess.Popen(
+        cmd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        encoding="utf-8",
+        errors="replace",
+        bufsize=1,
+        env=env,
+    )
+
+
 def _start(context):
     """Remember the mesh training is for (the active mesh, or the active preview's mesh)."""
     st = context.scene.pa_train
@@ -166,21 +181,26 @@ class PA_OT_train(bpy.types.Operator):
             return {"CANCELLED"}
         _start(context)
         st.running = True
-        rc = 0
-        for cmd in cmds:
-            try:
-                proc = subprocess.Popen(
-                    cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1, env=env
-                )
-            except OSError as exc:
-                st.running = False
-                self.report({"ERROR"}, f"Cannot start training with {cmd[0]}: {exc}")
-                return {"CANCELLED"}
-            for line in proc.stdout:
-                self._progress(st, line)
-            rc = proc.wait()
-            if rc != 0:
-                break
+        rc, proc = 0, None
+        try:
+            for cmd in cmds:
+                try:
+                    proc = _popen(cmd, env)
+                except OSError as exc:
+                    self.report({"ERROR"}, f"Cannot start training with {cmd[0]}: {exc}")
+                    return {"CANCELLED"}
+                for line in proc.stdout:
+                    self._progress(st, line)
+                rc = proc.wait()
+                if rc != 0:
+                    break
+        finally:
+            # Whatever went wrong, a stuck flag would refuse every later Train in this scene,
+            # and a trainer nobody reads any more would block on its full pipe.
+            st.running = False
+            if proc is not None and proc.poll() is None:
+                proc.kill()
+                proc.wait()
         return _finish(self, context, rc, out)
 
     def invoke(self, context, event):
@@ -208,9 +228,7 @@ class PA_OT_train(bpy.types.Operator):
         return {"RUNNING_MODAL"}
 
     def _next_process(self):
-        self._proc = subprocess.Popen(
-            self._cmds[0], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1, env=self._env
-        )
+        self._proc = _popen(self._cmds[0], self._env)
         self._cmds.pop(0)
         threading.Thread(target=self._pump, args=(self._proc.stdout, self._lines), daemon=True).start()
 

@@ -136,8 +136,37 @@ def _drive_pose_keys(key, arm_obj, rig):
                 i += 1
 
 
+_DATA_KINDS = ("objects", "meshes", "armatures", "actions")
+
+
 def build_rig_objects(context, rig, name, frame_start, z_up=True):
-    """Mesh and armature objects for ``rig``; returns (mesh object, armature object)."""
+    """Mesh and armature objects for ``rig``; returns (mesh object, armature object).
+
+    Leaves Edit Mode (or any other) first: Blender turns weights into vertex groups in Object
+    Mode only. Should the build fail, whatever it made is removed and the mode restored."""
+    view_layer = context.view_layer
+    active = view_layer.objects.active
+    mode = active.mode if active is not None else "OBJECT"
+    if mode != "OBJECT":
+        bpy.ops.object.mode_set(mode="OBJECT")
+    before = {kind: set(getattr(bpy.data, kind)) for kind in _DATA_KINDS}
+    try:
+        return _build(context, rig, name, frame_start, z_up)
+    except BaseException:
+        for kind in _DATA_KINDS:  # objects first: they use the rest (a mesh takes its shape keys along)
+            coll = getattr(bpy.data, kind)
+            for idb in [x for x in coll if x not in before[kind]]:
+                try:
+                    coll.remove(idb)
+                except (ReferenceError, RuntimeError):  # gone with what used it: the original error matters
+                    pass
+        view_layer.objects.active = active
+        if mode != "OBJECT":
+            bpy.ops.object.mode_set(mode=mode)
+        raise
+
+
+def _build(context, rig, name, frame_start, z_up):
     me = sequence.build_mesh(name, rig.basis, rig.faces)
     obj = bpy.data.objects.new(name, me)
     context.collection.objects.link(obj)

@@ -145,6 +145,8 @@ def topology_problem(obj, depsgraph):
     me = src.evaluated_get(depsgraph).data
     nv, nf = len(me.vertices), len(me.polygons)
     if (nv, nf) != (tv, tf):
+        if src.data.is_editmode:  # its evaluated mesh is the edit mesh's, not one modifiers made
+            return f"{src.name} is in Edit Mode: its Gaussians show again once you leave it"
         mods = _modifier_names(src, depsgraph)
         by = f" (modifiers: {', '.join(mods)})" if mods else ""
         return (
@@ -220,6 +222,10 @@ def refresh(obj, depsgraph, count=None):
         preview.set_count(obj, 0)
         e.valid = 0
         return False
+    if obj.data.is_editmode:  # its points live in the edit mesh then, which has no attributes to write
+        state.status = f"{obj.name} is in Edit Mode: its Gaussians follow the mesh again once you leave it"
+        preview.set_count(obj, min(count, e.valid))  # never points it has not placed
+        return False
     preview.set_count(obj, count)
     means, quats, scales = e.evaluator_for(count)(verts)
     me = obj.data
@@ -261,5 +267,5 @@ def apply_budget(obj, context=None, depsgraph=None):
 
         try:
             depth.apply_depth(src, e.avatar.forest, count, b.max_depth(e.avatar.forest))
-        except ValueError as exc:  # the mesh was edited to another face count
+        except ValueError as exc:  # the mesh was edited to another face count, or is in Edit Mode
             state.status = f"Depth not shown: {exc}"

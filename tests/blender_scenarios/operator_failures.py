@@ -1,0 +1,249 @@
+"""Blender session run by test_blender_failures.py (a real file so it can be read, linted and run by hand).
+
+Operators driven into their failure paths (a trainer's non-UTF-8 log, Edit Mode, an edited
+mesh): each step records what the operator reported and what it left in the scene; a step
+that raises records its traceback and the next one still runs.
+"""
+
+import importlib, importlib.util, json, os, queue, subprocess, sys, traceback, types
+
+root, out, blocked = sys.argv[1], sys.argv[2], sys.argv[3].split(",")
+
+
+class Block:
+    """A stock Blender has none of these: importing one must fail, as it would there."""
+
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in blocked:
+            raise ImportError(f"{name} is blocked (not in a stock Blender)")
+        return None
+
+
+sys.meta_path.insert(0, Block())
+import bpy
+import bmesh
+import numpy as np
+
+spec = importlib.util.spec_from_file_location(
+    "pa_fail", os.path.join(root, "__init__.py"), submodule_search_locations=[root]
+)
+pkg = importlib.util.module_from_spec(spec)
+sys.modules["pa_fail"] = pkg
+spec.loader.exec_module(pkg)
+pkg.register()
+prefs = importlib.import_module("pa_fail.blender_addon.prefs")
+runtime = importlib.import_module("pa_fail.blender_addon.runtime")
+rig_builder = importlib.import_module("pa_fail.blender_addon.rig")
+PA_OT_train = importlib.import_module("pa_fail.blender_addon.operators_train").PA_OT_train
+
+SEQ, STREAM = os.path.join(out, "seq.npz"), os.path.join(out, "avatar.pavs")
+MODEL, PARAMS = os.path.join(out, "flame_model.npz"), os.path.join(out, "tracked_flame_params.npz")
+KINDS = ("objects", "meshes", "armatures", "actions", "shape_keys", "node_groups", "materials", "images")
+R = {}
+
+
+def inventory():
+    return {k: sorted(x.name for x in getattr(bpy.data, k)) for k in KINDS}
+
+
+def added(before):
+    now = inventory()
+    return {k: sorted(set(now[k]) ^ set(before[k])) for k in KINDS if now[k] != before[k]}
+
+
+def call(op, **kw):
+    """The operator's result, or the message it reported (background Blender raises it)."""
+    try:
+        return sorted(op(**kw))
+    except RuntimeError as exc:
+        return str(exc)
+
+
+def shading():
+    return [sp.shading.color_type for s in bpy.data.screens for a in s.areas for sp in a.spaces if sp.type == "VIEW_3D"]
+
+
+def step(fn):
+    r = R[fn.__name__] = {}
+    try:
+        fn(r)
+    except Exception:
+        r["error"] = traceback.format_exc()
+    if bpy.context.mode != "OBJECT" and bpy.context.active_object is not None:
+        bpy.ops.object.mode_set(mode="OBJECT")
+    return fn
+
+
+def activate(obj, mode="OBJECT"):
+    if bpy.context.mode != "OBJECT":
+        bpy.ops.object.mode_set(mode="OBJECT")
+    for o in bpy.context.selected_objects:
+        o.select_set(False)
+    obj.select_set(True)
+    bpy.context.view_layer.objects.active = obj
+    if mode != "OBJECT":
+        bpy.ops.object.mode_set(mode=mode)
+
+
+for ob in list(bpy.data.objects):
+    bpy.data.objects.remove(ob)
+bpy.ops.import_scene.progressive_avatars_sequence(filepath=SEQ)
+MESH = bpy.context.active_object
+prefs.python_path = lambda context=None: sys.executable
+prefs.user_train_script = lambda context=None: os.path.join(out, "latin1_train.py")
+st = bpy.context.scene.pa_train
+st.data_dir, st.out_dir = out, os.path.join(out, "run")
+
+
+@step
+def train_non_utf8(r):
+    r["first"] = call(bpy.ops.progressive_avatars.train)
+    r["running"], r["message"] = st.running, st.message
+    r["second"] = call(bpy.ops.progressive_avatars.train)
+
+
+@step
+def train_reader_fails(r):
+    def boom(state, line):
+        raise RuntimeError("reader failed")
+
+    st.running = False  # what Cancel does: whatever an earlier step left, this one starts free
+    kept = PA_OT_train._progress
+    PA_OT_train._progress = staticmethod(boom)
+    try:
+        r["result"] = call(bpy.ops.progressive_avatars.train)
+    finally:
+        PA_OT_train._progress = kept
+    r["running"] = st.running
+
+
+@step
+def train_modal_reader(r):
+    # The modal path starts each process with _next_process and drains it with _pump in a
+    # thread; timers never fire headless, so the process is awaited here.
+    op = types.SimpleNamespace(
+        _cmds=[[sys.executable, os.path.join(out, "latin1_chatty.py")]], _env=None, _lines=queue.Queue()
+    )
+    op._pump = PA_OT_train._pump
+    PA_OT_train._next_process(op)
+    try:
+        r["exit"] = op._proc.wait(timeout=20)
+    except subprocess.TimeoutExpired:  # nobody reads its output any more: it blocks on the full pipe
+        r["exit"] = "blocked"
+        op._proc.kill()
+        op._proc.wait()
+    lines = []
+    while not (lines and lines[-1].startswith("done")):
+        try:  # the reader thread may still be draining what the pipe buffered
+            lines.append(op._lines.get(timeout=2))
+        except queue.Empty:
+            break
+    r["lines"], r["first"] = len(lines), lines[0] if lines else ""
+
+
+@step
+def rig_in_edit_mode(r):
+    bpy.ops.mesh.primitive_cube_add()
+    cube = bpy.context.active_object
+    activate(cube, "EDIT")
+    r["result"] = call(
+        bpy.ops.import_scene.progressive_avatars_sequence, filepath=PARAMS, as_rig=True, flame_model=MODEL
+    )
+    obj = bpy.context.active_object
+    r["groups"] = len(obj.vertex_groups) if obj is not None and obj is not cube else 0
+
+    # A build that fails late (here: the pose-corrective drivers) takes everything back.
+    activate(cube, "EDIT")
+    before = inventory()
+
+    def boom(*args):
+        raise RuntimeError("injected failure")
+
+    kept = rig_builder._drive_pose_keys
+    rig_builder._drive_pose_keys = boom
+    try:
+        r["failed"] = call(
+            bpy.ops.import_scene.progressive_avatars_sequence, filepath=PARAMS, as_rig=True, flame_model=MODEL
+        )
+    finally:
+        rig_builder._drive_pose_keys = kept
+    r["failed_added"] = added(before)
+    r["failed_mode"] = bpy.context.mode
+    r["failed_active"] = bpy.context.active_object.name if bpy.context.active_object else None
+    r["failed_selected"] = [o.name for o in bpy.context.selected_objects]
+    r["cube"] = cube.name
+
+
+@step
+def load_in_edit_mode(r):
+    activate(MESH, "EDIT")
+    before, attributes = inventory(), sorted(a.name for a in MESH.data.attributes)
+    r["result"] = call(bpy.ops.object.progressive_avatars_load, filepath=STREAM)
+    r["added"] = added(before)
+    r["attributes_kept"] = sorted(a.name for a in MESH.data.attributes) == attributes
+
+
+@step
+def bound_mesh_in_edit_mode(r):
+    activate(MESH)
+    r["load"] = call(bpy.ops.object.progressive_avatars_load, filepath=STREAM, budget=100.0)
+    pv = next(c for c in MESH.children if c.pa_avatar.is_preview)
+    activate(MESH, "EDIT")
+    pv.pa_avatar.budget = 40.0  # the update callback prints what it raises; the direct call shows it
+    r["status_slider"] = pv.pa_avatar.status
+    try:
+        runtime.apply_budget(pv, bpy.context)
+        r["apply_budget"] = "ok"
+    except Exception as exc:
+        r["apply_budget"] = f"{type(exc).__name__}: {exc}"
+    r["status"] = pv.pa_avatar.status
+    pv.pa_avatar.budget = 90.0  # more than evaluated: the frame is evaluated on the edited mesh
+    r["status_grow"] = pv.pa_avatar.status
+    shade = shading()
+    r["depth"] = call(bpy.ops.object.progressive_avatars_depth_colors)
+    r["depth_shown"] = MESH.pa_mesh.depth_shown
+    r["depth_saved"] = MESH.pa_mesh.depth_saved
+    r["shading_kept"] = shading() == shade
+    r["mesh"] = MESH.name
+
+
+@step
+def preview_in_edit_mode(r):
+    pv = next(c for c in MESH.children if c.pa_avatar.is_preview)
+    activate(pv)
+    pv.pa_avatar.budget = 20.0
+    activate(pv, "EDIT")
+    r["mesh_edit"], r["preview_edit"] = MESH.data.is_editmode, pv.data.is_editmode
+    pv.pa_avatar.budget = 95.0
+    try:
+        runtime.apply_budget(pv, bpy.context)
+        r["apply_budget"] = "ok"
+    except Exception as exc:
+        r["apply_budget"] = f"{type(exc).__name__}: {exc}"
+    r["status"], r["preview"] = pv.pa_avatar.status, pv.name
+
+
+@step
+def depth_on_edited_mesh(r):
+    pv = next(c for c in MESH.children if c.pa_avatar.is_preview)
+    MESH.pa_mesh.depth_shown, MESH.pa_mesh.depth_saved = False, ""  # whatever an earlier step left
+    bm = bmesh.new()
+    bm.from_mesh(MESH.data)
+    bm.faces.ensure_lookup_table()
+    bmesh.ops.delete(bm, geom=[bm.faces[0]], context="FACES_ONLY")
+    bm.to_mesh(MESH.data)
+    bm.free()
+    MESH.data.update()
+    activate(pv)
+    shade = shading()
+    r["result"] = call(bpy.ops.object.progressive_avatars_depth_colors)
+    r["depth_shown"] = MESH.pa_mesh.depth_shown
+    r["depth_saved"] = MESH.pa_mesh.depth_saved
+    r["colour_attributes"] = [a.name for a in MESH.data.color_attributes]
+    r["shading_kept"] = shading() == shade
+    r["again"] = call(bpy.ops.object.progressive_avatars_depth_colors)
+    r["mesh"] = MESH.name
+
+
+R["blocked_loaded"] = sorted(m for m in sys.modules if m.split(".")[0] in blocked)
+print("PA_FAILURES " + json.dumps(R))

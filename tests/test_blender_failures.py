@@ -1,0 +1,160 @@
+"""Operators on their failure paths, in a Blender that has nothing but Blender.
+
+One bpy session (tests/blender_scenarios/operator_failures.py, own BLENDER_USER_* folders as in
+test_blender_extension, plyfile/trimesh/PIL/scipy/torch/numba unimportable) drives them: a
+trainer whose log holds a byte that is not UTF-8, imports and avatars in Edit Mode, Colour by
+Depth on a mesh edited to another face count. A failed operator must say what went wrong,
+naming the object, and leave the scene as it was.
+"""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from tests.test_blender_extension import _bpy_dir, _clean_env, make_inputs, make_rig_inputs
+
+pytestmark = pytest.mark.blender
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+BLOCKED = ("plyfile", "trimesh", "PIL", "scipy", "torch", "numba")
+LATIN1 = b"warning: cannot open /data/caf\xe9/img.png\n"  # a Latin-1 path in a log line
+
+
+def _scenario(name):
+    with open(os.path.join(os.path.dirname(os.path.abspath(__file__)), "blender_scenarios", name)) as fh:
+        return fh.read()
+
+
+def _write_trainers(out, stream):
+    with open(os.path.join(out, "latin1_train.py"), "w") as fh:
+        fh.write(
+            textwrap.dedent(f"""
+            import argparse, os, shutil, sys
+            p = argparse.ArgumentParser(); p.add_argument('--data'); p.add_argument('--out'); p.add_argument('--preset')
+            a = p.parse_args(); os.makedirs(a.out, exist_ok=True)
+            print('it 1/2 loss 0.1', flush=True)
+            sys.stdout.buffer.write({LATIN1!r}); sys.stdout.flush()
+            print('it 2/2 loss 0.05', flush=True)
+            shutil.copy({stream!r}, os.path.join(a.out, 'avatar.pavs'))
+        """)
+        )
+    with open(os.path.join(out, "latin1_chatty.py"), "w") as fh:  # far more than a pipe holds
+        fh.write(
+            textwrap.dedent(f"""
+            import sys
+            sys.stdout.buffer.write({LATIN1!r}); sys.stdout.flush()
+            for i in range(1, 5001):
+                print(f'it {{i}}/5000 loss 0.1 ' + 'x' * 60, flush=True)
+            print('done', flush=True)
+        """)
+        )
+
+
+@pytest.fixture(scope="module")
+def rep(tmp_path_factory):
+    _bpy_dir()
+    tmp = str(tmp_path_factory.mktemp("blender_failures"))
+    out = os.path.join(tmp, "out")
+    os.makedirs(out)
+    _, stream, _, _ = make_inputs(out)
+    make_rig_inputs(out)
+    _write_trainers(out, stream)
+    script = os.path.join(tmp, "child.py")
+    with open(script, "w") as fh:
+        fh.write(_scenario("operator_failures.py"))
+    proc = subprocess.run(
+        [sys.executable, script, ROOT, out, ",".join(BLOCKED)],
+        capture_output=True,
+        text=True,
+        env=_clean_env(tmp),
+        timeout=300,
+    )
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("PA_FAILURES ")]
+    if not lines:
+        pytest.fail("Blender session produced no report:\n" + proc.stdout[-3000:] + proc.stderr[-3000:])
+    r = json.loads(lines[-1][len("PA_FAILURES ") :])
+    assert not r["blocked_loaded"], r["blocked_loaded"]
+    return r
+
+
+def _step(rep, name):
+    r = rep[name]
+    assert "error" not in r, r["error"]
+    return r
+
+
+def test_train_survives_a_log_line_that_is_not_utf8(rep):
+    r = _step(rep, "train_non_utf8")
+    assert r["first"] == ["FINISHED"], r["first"]
+    assert not r["running"]
+    assert r["message"] == "it 2/2 loss 0.05"
+    assert r["second"] == ["FINISHED"], r["second"]  # not refused as "already running"
+
+
+def test_train_is_not_left_running_when_reading_its_output_fails(rep):
+    r = _step(rep, "train_reader_fails")
+    assert not r["running"]
+    assert "reader failed" in r["result"]
+
+
+def test_modal_train_reader_survives_a_log_line_that_is_not_utf8(rep):
+    r = _step(rep, "train_modal_reader")
+    assert r["exit"] == 0, "the trainer blocked on a pipe nobody read"
+    assert r["lines"] == 5002
+    assert "caf\ufffd" in r["first"]
+
+
+def test_rig_import_from_edit_mode(rep):
+    r = _step(rep, "rig_in_edit_mode")
+    assert r["result"] == ["FINISHED"], r["result"]
+    assert r["groups"] > 0
+
+
+def test_failed_rig_import_leaves_the_scene_as_it_was(rep):
+    r = _step(rep, "rig_in_edit_mode")
+    assert "Cannot import" in r["failed"] and "tracked_flame_params.npz" in r["failed"], r["failed"]
+    assert "injected failure" in r["failed"] and "Traceback" not in r["failed"], r["failed"]
+    assert r["failed_added"] == {}
+    assert r["failed_mode"] == "EDIT_MESH"
+    assert r["failed_active"] == r["cube"] and r["failed_selected"] == [r["cube"]]
+
+
+def test_load_avatar_refuses_a_mesh_in_edit_mode(rep):
+    r = _step(rep, "load_in_edit_mode")
+    assert "seq: leave Edit Mode first" in r["result"], r["result"]
+    assert r["added"] == {} and r["attributes_kept"]
+
+
+def test_budget_slider_on_a_mesh_in_edit_mode(rep):
+    r = _step(rep, "bound_mesh_in_edit_mode")
+    assert r["load"] == ["FINISHED"], r["load"]
+    assert r["apply_budget"] == "ok", r["apply_budget"]
+    for key in ("status_slider", "status", "status_grow"):
+        assert "Edit Mode" in r[key] and "modifiers" not in r[key], (key, r[key])
+
+
+def test_depth_colours_refuse_a_mesh_in_edit_mode(rep):
+    r = _step(rep, "bound_mesh_in_edit_mode")
+    assert "Colour by Depth: seq: leave Edit Mode first" in r["depth"], r["depth"]
+    assert "Traceback" not in r["depth"]
+    assert not r["depth_shown"] and r["depth_saved"] == "" and r["shading_kept"]
+
+
+def test_budget_slider_on_a_preview_in_edit_mode(rep):
+    r = _step(rep, "preview_in_edit_mode")
+    assert r["preview_edit"] and not r["mesh_edit"]
+    assert r["apply_budget"] == "ok", r["apply_budget"]
+    assert r["status"].startswith(r["preview"] + " is in Edit Mode"), r["status"]
+
+
+def test_failed_depth_colours_change_nothing(rep):
+    r = _step(rep, "depth_on_edited_mesh")
+    assert not r["depth_shown"] and r["depth_saved"] == ""
+    assert r["colour_attributes"] == [] and r["shading_kept"]
+    assert r["result"].startswith("Error: Colour by Depth: seq: "), r["result"]
+    assert "252" in r["result"] and "251" in r["result"]
+    assert r["again"] == r["result"]  # still refused, not toggled "off"
