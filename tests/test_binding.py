@@ -396,6 +396,40 @@ def test_training_and_inference_agree_on_a_collapsing_float32_root(height):
     assert np.abs(np.abs((qa * qb).sum(1)) - 1).max() < 1e-5  # the same rotations (up to sign)
 
 
+@pytest.mark.parametrize("gap", [20.0, 30.0, 60.0])
+@pytest.mark.parametrize("root_edge", [0.02, 1e-18])
+def test_training_and_inference_agree_on_faces_with_a_vanishing_first_edge(gap, root_edge):
+    """Split logits ``gap`` apart put a split point within ~e^-gap of a vertex, so a child's
+    first edge is tiny (1e-19 m) or exactly 0 in float32; a root with two vertices 1e-18 m
+    apart has one too. Training treats edges <= MIN_EDGE as having no direction; inference
+    used to only below 0, building the frame on rounding noise: the viewer showed a
+    millimetre splat where training had learned a sub-pixel one."""
+    from progressive_avatars.core.avatar.avatar import Avatar
+    from progressive_avatars.core.train.binding_kernels import FaceBinding
+
+    V = np.array([[0, 0, 0], [root_edge, 0, 0], [0.005, 0.018, 0.003]], np.float32)
+    forest = Forest(np.array([[0, 1, 2]], np.int32))
+    forest.split(forest.split([0]).ravel())
+    N = forest.num_faces
+    rng = np.random.default_rng(0)
+    forest.split_logits[:] = rng.normal(0, 0.5, (N, 3))
+    forest.split_logits[0] = [-gap / 2, gap / 2, -gap / 2]
+    av = Avatar.initial(forest)
+    av.d_mu[:] = rng.normal(0, 0.3, (N, 3))
+    av.d_rot[:] = rng.normal(0, 1, (N, 4))
+    inf = binding.GaussianEvaluator(forest, av.d_mu, av.d_log_scale, av.d_rot)(V)
+    t = torch.tensor
+    tr = FaceBinding(forest).gaussians(t(V), t(forest.split_logits), t(av.d_mu), t(av.d_log_scale), t(av.d_rot))
+    s_inf, s_tr = inf.scales[:N].astype(np.float64), tr.scales.numpy().astype(np.float64)
+    big = np.maximum(s_inf, s_tr).max(1)
+    # sub-micrometre splats are invisible whatever their exact size (MIN_SCALE's float32 exp)
+    assert np.all((np.abs(s_inf - s_tr).max(1) <= 1e-4 * big) | (big < 1e-9)), (s_inf.max(1), s_tr.max(1))
+    ref = big.max()
+    assert np.abs(inf.means[:N] - tr.means.numpy()).max() < 1e-4 * ref
+    qa, qb = inf.quats[:N].astype(np.float64), tr.quats.numpy().astype(np.float64)
+    assert np.abs(np.abs((qa * qb).sum(1)) - 1).max() < 1e-4
+
+
 def test_zero_and_tiny_rotation_residuals_match_inference():
     """d_rot of 0 (the face's own frame) or of norm ~1e-30 (its direction): the training kernel
     gives inference's unit quaternions and finite gradients (it used to give a zero or ~1e-18

@@ -400,7 +400,9 @@ def _bad(**changes):
         (lambda kw: {"scales": -kw["scales"]}, "scales must be"),
         (lambda kw: {"opacities": kw["opacities"] + 1.0}, "opacities must be"),
         (lambda kw: {"opacities": -kw["opacities"]}, "opacities must be"),
-        (lambda kw: {"quats": torch.zeros_like(kw["quats"])}, "quats must have non-zero norm"),
+        (lambda kw: {"quats": torch.zeros_like(kw["quats"])}, "quats must have a non-zero norm"),
+        # |q|^2 overflows float64: q / |q| came out 0 and the splat silently unrotated
+        (lambda kw: {"quats": kw["quats"] * 1e160}, "quats must have a non-zero norm whose square is finite"),
         (lambda kw: {"quats": kw["quats"][:-1]}, "quats must have shape"),
         (lambda kw: {"colors": kw["colors"][:-1]}, "colors must have shape"),
         (lambda kw: {"means": kw["means"][:, :2]}, "means must have shape"),

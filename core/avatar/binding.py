@@ -163,7 +163,6 @@ class _PlaneEvaluator:
         self._coef = np.ascontiguousarray(
             np.stack([Wd[:, 1, 1], Wd[:, 1, 2], Wd[:, 2, 1], Wd[:, 2, 2], centroid[:, 0], centroid[:, 1]]), self.dtype
         )
-        self._degenerate = np.zeros(n, bool)
         self._tri = np.ascontiguousarray(np.asarray(forest.root_faces, np.int64).T)  # [3,R]: coarse and template roots
         self._pack = None
         chunk = int(chunk or self.CHUNK)
@@ -212,7 +211,8 @@ class _PlaneEvaluator:
         _scaled_norm_rows(E2, t2, scr)  # |E2|
         t2 *= eps
         # |normal| > eps |E1| |E2|, divided through by |E1| so the product cannot overflow.
-        good = (L > 0) & (t1 / np.where(L > 0, L, 1) > t2)
+        # (the thresholds of training's binding_kernels._root_frame, so both bind the same roots)
+        good = (L > MIN_EDGE) & (t1 > MIN_EDGE * MIN_EDGE) & (t1 / np.where(L > 0, L, 1) > t2)
         L_safe = L
         if not good.all():
             L_safe = np.where(good, L, 1)
@@ -237,7 +237,10 @@ class _PlaneEvaluator:
     def _plane(self, g, sl, scratch, s):
         """From gathered root rows g: cos, sin of the face's first edge against the root's x
         axis, the centroid's plane coordinates (cx along x, cz along z), and s (written into
-        s). Flags faces whose first edge vanishes. Uses scratch rows 0-7."""
+        s). A first edge too short to have a direction (<= MIN_EDGE) takes its second edge's,
+        in the root's plane (or the root's x axis), as training does (binding_kernels.
+        _plane_face): in inference's general 3D path it took one from rounding noise, so the
+        viewer showed a face scale training never had. Uses scratch rows 0-7."""
         p1, q1, p2, q2, u, v, cx, cz = scratch[:8]
         L, a, b = g[12], g[13], g[14]
         c11, c12, c21, c22, cc1, cc2 = (c[sl] for c in self._coef)
@@ -255,11 +258,18 @@ class _PlaneEvaluator:
         np.multiply(q1, q1, out=v)
         np.add(u, v, out=length)
         np.sqrt(length, out=length)
-        degenerate = self._degenerate[sl]
-        np.less_equal(length, 0, out=degenerate)
-        safe = np.where(degenerate, 1, length) if degenerate.any() else length
-        np.divide(p1, safe, out=u)  # cos
-        np.divide(q1, safe, out=v)  # sin
+        degenerate = length <= MIN_EDGE
+        if degenerate.any():
+            l2 = np.hypot(p2[degenerate], q2[degenerate])
+            has2 = l2 > MIN_EDGE
+            p1[degenerate] = np.where(has2, p2[degenerate], 1)
+            q1[degenerate] = np.where(has2, q2[degenerate], 0)
+            norm = length.copy()
+            norm[degenerate] = np.where(has2, l2, 1)
+        else:
+            norm = length
+        np.divide(p1, norm, out=u)  # cos
+        np.divide(q1, norm, out=v)  # sin
         # s = (length + |cos·q2 - sin·p2|) / 2
         np.multiply(u, q2, out=p1)
         np.multiply(v, p2, out=q1)
@@ -277,7 +287,7 @@ class _PlaneEvaluator:
     def _general(self, good, rv0, E1, E2, with_vertices=False):
         """Rows needing the general 3D path (None if none) and, for those or for all rows when
         with_vertices, each face's v0, e1, e2."""
-        bad = None if good.all() and not self._degenerate.any() else np.flatnonzero(~good[self.root] | self._degenerate)
+        bad = None if good.all() else np.flatnonzero(~good[self.root])
         if bad is None and not with_vertices:
             return None, None
         sel = slice(None) if with_vertices else bad

@@ -358,7 +358,7 @@ def _check_block(means, quats, scales, opacities, colors, lo, hi):
             if not math.isfinite(q):
                 flags |= BAD_QUATS
             qq += q * q
-        if not qq > 1e-24:
+        if not (qq > 1e-24 and qq < math.inf):  # |q|^2 overflowing: q / |q| would be 0, the identity
             flags |= ZERO_QUATS
         if not (opacities[g] >= 0.0 and opacities[g] <= 1.0):
             flags |= BAD_OPACITIES

@@ -69,7 +69,7 @@ def all_finite(x) -> bool:
 _VALUE_ERRORS = (
     (rk.BAD_MEANS, "render: means contain NaN or inf"),
     (rk.BAD_QUATS, "render: quats contain NaN or inf"),
-    (rk.ZERO_QUATS, "render: quats must have non-zero norm"),
+    (rk.ZERO_QUATS, "render: quats must have a non-zero norm whose square is finite"),
     (rk.BAD_SCALES, "render: scales must be finite and > 0 (activated standard deviations)"),
     (rk.BAD_OPACITIES, "render: opacities must be finite and in [0, 1] (activated, not logits)"),
     (rk.BAD_COLORS, "render: colors contain NaN or inf"),
@@ -88,8 +88,10 @@ def _value_flags(means, quats, scales, opacities, colors) -> int:
         flags |= rk.BAD_MEANS
     if not all_finite(quats):
         flags |= rk.BAD_QUATS
-    if len(quats) and not bool(((quats * quats).sum(-1) > 1e-24).all()):  # a NaN row fails too
-        flags |= rk.ZERO_QUATS
+    if len(quats):
+        qq = (quats * quats).sum(-1)
+        if not bool(((qq > 1e-24) & (qq < math.inf)).all()):  # a NaN row fails too
+            flags |= rk.ZERO_QUATS
     if not all_finite(scales) or (len(scales) and not bool((scales > 0).all())):
         flags |= rk.BAD_SCALES
     if not all_finite(opacities) or (len(opacities) and not bool(((opacities >= 0) & (opacities <= 1)).all())):
