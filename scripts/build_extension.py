@@ -40,10 +40,19 @@ def main(argv=None):
     ap.add_argument("--out", required=True, help="output folder for the zip")
     ap.add_argument("--blender-ext", help="Blender's blender_ext.py (default: the installed bpy module's)")
     args = ap.parse_args(argv)
+    # The zip is made after the payload is staged: an --out that cannot be a folder is refused now.
+    folder = os.path.abspath(args.out)
+    while not os.path.isdir(folder):
+        if os.path.lexists(folder):
+            ap.error(f"--out {args.out}: {folder} is a file, not a folder")
+        folder = os.path.dirname(folder)
     tool = args.blender_ext or bpy_blender_ext()
     if not tool or not os.path.isfile(tool):
         raise SystemExit("blender_ext.py not found: pass --blender-ext (Blender's scripts/addons_core/bl_pkg/cli/)")
-    print(build_extension(_bootstrap.ROOT, args.out, tool))
+    try:
+        print(build_extension(_bootstrap.ROOT, args.out, tool))
+    except OSError as exc:  # e.g. a full disk or no permission: a message, not a traceback
+        raise SystemExit(f"error: cannot write {exc.filename or args.out}: {exc.strerror or exc}") from None
 
 
 if __name__ == "__main__":

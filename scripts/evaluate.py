@@ -13,10 +13,13 @@ Also: bytes and time to the first whole head at 1/10/100 Mbit/s, the order of th
 their levels (forest / spatial / importance / both) at cuts inside the coarse and template
 levels, and with --no-coarse-run the same model trained without coarse levels at 2/5/100 %.
 
-The report scores the stream it writes as RUN/avatar.pavs (replacing the run's stream: the same
-bytes when export.py wrote it with the same options) and caches the importance ranking in RUN
-(importance*.npy, keyed on the avatar and the data); runs named by --finest-only, --multi-level,
---adaptive and --uniform get theirs likewise. Evaluate a copy of a run you want left untouched.
+The report scores the stream it writes as RUN/avatar.pavs, replacing the run's stream. That stream
+leaves out the template (the receiver has it, as it has the tracked mesh that drives the avatar;
+docs/FORMAT.md 2), so its budgets count what such a receiver is sent; export.py embeds the
+template by default (a file readable without the mesh), so the two write the same bytes only
+with --embed-template here. The report caches the importance ranking in RUN (importance*.npy,
+keyed on the avatar and the data); runs named by --finest-only, --multi-level, --adaptive and
+--uniform get theirs likewise. Evaluate a copy of a run you want left untouched.
 """
 
 import argparse
@@ -53,8 +56,9 @@ def main(argv=None):
     ap.add_argument(
         "--embed-template",
         action="store_true",
-        help="embed the template in the evaluated stream (default: the receiver has it, as it has the "
-        "tracked mesh that drives the avatar; FORMAT.md 2)",
+        help="embed the template in the evaluated stream, as export.py does by default (the same bytes as its "
+        "stream; the budgets then count the template's bytes too). Default: left out, the receiver has it, "
+        "as it has the tracked mesh that drives the avatar (FORMAT.md 2)",
     )
     ap.add_argument("--no-coarse-run", help="the same model trained without coarse levels (scored at 2/5/100 %%)")
     ap.add_argument("--compare", action="append", default=[], help="NAME=RUN: another run scored at 100 %%")
@@ -112,6 +116,12 @@ def main(argv=None):
     ap.add_argument("--section", default="", help="section name and title for --benchmarks")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(_bootstrap.script_args() if argv is None else argv)
+    if args.benchmarks:  # written after the whole evaluation: a path that cannot be is refused now
+        folder = os.path.dirname(os.path.abspath(args.benchmarks))
+        if os.path.isdir(args.benchmarks):
+            ap.error(f"--benchmarks {args.benchmarks}: a folder, not a Markdown file")
+        if not os.path.isdir(folder):
+            ap.error(f"--benchmarks {args.benchmarks}: no folder {folder} to write it in")
 
     from progressive_avatars.core.evaluate import plots
     from progressive_avatars.core.evaluate.report import ReportOptions, build_report
@@ -148,7 +158,6 @@ def main(argv=None):
             progress=not args.no_progress,
             command=shlex.join(["python", "scripts/evaluate.py"] + (sys.argv[1:] if argv is None else argv)),
         )
-        os.makedirs(args.out, exist_ok=True)
         report = build_report(opts)
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -24,6 +24,15 @@ whole, then renamed over the old one), the PLY before the stream's rename, so a 
 be written leaves the stream as it was. An avatar trained with SH degree > 0: a PLY keeps every
 band of it (no flag needed); stream records carry the DC colour only, so --stream needs
 --drop-sh to say that is meant.
+
+The stream embeds the template (docs/FORMAT.md 2): a reader needs no tracked mesh to decode it.
+scripts/evaluate.py scores, and writes as RUN/avatar.pavs over this one, a stream without it
+(its budgets count what a receiver that has the mesh is sent); its --embed-template writes the
+very bytes this command does.
+
+An output path that is one of the run's own files (avatar.npz, checkpoint.npz, config.json,
+metrics.jsonl, importance*, ...: any file in the run folder but a stream or a PLY) or a file
+of the dataset is refused.
 """
 
 import argparse
@@ -63,12 +72,30 @@ def _unwritable(path) -> OSError | None:
     return None
 
 
+def _input_file(path, run, data) -> str | None:
+    """What writing ``path`` would destroy that the run or the dataset reads ("a file of the
+    run RUN", "a file of the dataset DATA"), or None. In the run folder only earlier exports (a
+    stream, a PLY) may be replaced: everything else there (avatar.npz, checkpoint.npz,
+    config.json, the logs, the importance caches) is the trained run itself."""
+    if not os.path.isfile(path):
+        return None
+    real = os.path.realpath(path)
+    if os.path.dirname(real) == os.path.realpath(run):
+        return None if os.path.splitext(real)[1].lower() in (".pavs", ".ply") else f"a file of the run {run}"
+    folder = os.path.realpath(data)
+    return f"a file of the dataset {data}" if os.path.commonpath([real, folder]) == folder else None
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run", required=True)
     ap.add_argument("--data", help="dataset folder (default: the one the run trained on)")
     ap.add_argument("--flame-model", help="FLAME model for FLAME-mode datasets (default: the run's)")
-    ap.add_argument("--stream", help="write the progressive stream here (without it, no stream is written)")
+    ap.add_argument(
+        "--stream",
+        help="write the progressive stream here, its template embedded (readable without the mesh; "
+        "evaluate.py's stream leaves it out unless --embed-template); without it, no stream is written",
+    )
     ap.add_argument(
         "--lossless",
         action="store_true",
@@ -114,6 +141,14 @@ def main(argv=None):
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    for option, path in (("--stream", args.stream), ("--ply", args.ply)):
+        what = path and _input_file(path, args.run, data)
+        if what:
+            print(
+                f"error: {option} {path}: {what}, which an export must not overwrite: choose another path",
+                file=sys.stderr,
+            )
+            return 2
     # A frame the dataset lacks, or a stream that would drop SH bands unasked, is refused before
     # the importance pass (minutes on a large run) and before any file is written.
     if args.ply and args.frame not in set(int(t) for t in ds.timesteps):

@@ -16,8 +16,8 @@ transforms.json, detail.npz, summary.json and contact_sheet.png into --out.
 """
 
 import argparse
+import math
 import os
-import shutil
 import sys
 
 import os as _os
@@ -27,7 +27,19 @@ import sys as _sys
 _sys.path.insert(0, _os.path.dirname(_os.path.abspath(__file__)))
 import _bootstrap
 
+from progressive_avatars.core.evaluate.plots import image_format, save_image
 from progressive_avatars.core.synthetic import dataset
+
+
+def _cannot_hold(path) -> str | None:
+    """Why ``path`` cannot be made (missing folders are made when it is written): its nearest
+    existing ancestor is a file, or a folder this process may not write in; None when it can."""
+    folder = os.path.dirname(os.path.abspath(path))
+    while not os.path.lexists(folder):
+        folder = os.path.dirname(folder)
+    if not os.path.isdir(folder):
+        return f"under {folder}, which is not a folder"
+    return None if os.access(folder, os.W_OK | os.X_OK) else f"no permission to write in {folder}"
 
 
 PRESETS = {
@@ -99,13 +111,26 @@ def main(argv=None):
     ):
         if getattr(args, key) is not None:
             kw[key] = getattr(args, key)
-    if not args.resolution_scale > 0:
-        ap.error("--resolution-scale must be positive")
+    if not (args.resolution_scale > 0 and math.isfinite(args.resolution_scale)):
+        ap.error(f"--resolution-scale must be a positive number, got {args.resolution_scale}")
     if args.resolution is not None and args.resolution < 8:
         ap.error(f"--resolution is the image height in pixels, at least 8, got {args.resolution}")
     kw["resolution"] = max(8, int(round(kw["resolution"] * args.resolution_scale)))
     if args.closeup and args.closeup_height < 8:
         ap.error(f"--closeup-height must be at least 8 px, got {args.closeup_height}")
+    # The pictures are written after the whole dataset: a path that cannot take one is refused now.
+    for option, path in (("--contact-sheet", args.contact_sheet), ("--closeup", args.closeup)):
+        if path:
+            why = "a folder" if os.path.isdir(path) else _cannot_hold(path)
+            if why is None and image_format(path) is None:
+                why = "not an image extension PIL can write (.png, .jpg, ...)"
+            if why:
+                ap.error(f"{option} {path}: {why}")
+    if os.path.lexists(args.out) and not os.path.isdir(args.out):
+        ap.error(f"--out {args.out}: a file, not a dataset folder")
+    why = None if os.path.isdir(args.out) else _cannot_hold(args.out)
+    if why:
+        ap.error(f"--out {args.out}: {why}")
 
     try:
         summary = dataset.make_dataset(
@@ -116,8 +141,11 @@ def main(argv=None):
         return 2
     sheet = dataset.contact_sheet(args.out, os.path.join(args.out, "contact_sheet.png"))
     if args.contact_sheet:
+        from PIL import Image
+
         os.makedirs(os.path.dirname(os.path.abspath(args.contact_sheet)), exist_ok=True)
-        shutil.copyfile(sheet, args.contact_sheet)
+        with Image.open(sheet) as im:  # in the format its extension names, not always PNG bytes
+            save_image(im, args.contact_sheet)
     if args.closeup:
         dataset.render_closeup(args.closeup, height=args.closeup_height, detail=kw.get("detail", "default"))
     s = summary

@@ -27,6 +27,7 @@ import json  # noqa: E402
 import os  # noqa: E402
 import platform  # noqa: E402
 import shlex  # noqa: E402
+import shutil  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
@@ -226,16 +227,19 @@ def _blender_render(root, payload, out):
     os.makedirs(out, exist_ok=True)
     payload = dict(payload, root=os.path.abspath(root), out=out)
     tmp = tempfile.mkdtemp(prefix="pa_look_user_")
-    env = dict(
-        os.environ,
-        BLENDER_USER_RESOURCES=tmp,
-        BLENDER_USER_CONFIG=os.path.join(tmp, "config"),
-        BLENDER_USER_SCRIPTS=os.path.join(tmp, "scripts"),
-    )
-    script = os.path.join(tmp, "look_child.py")
-    with open(script, "w") as fh:
-        fh.write(CHILD)
-    proc = subprocess.run([sys.executable, script, json.dumps(payload)], capture_output=True, text=True, env=env)
+    try:
+        env = dict(
+            os.environ,
+            BLENDER_USER_RESOURCES=tmp,
+            BLENDER_USER_CONFIG=os.path.join(tmp, "config"),
+            BLENDER_USER_SCRIPTS=os.path.join(tmp, "scripts"),
+        )
+        script = os.path.join(tmp, "look_child.py")
+        with open(script, "w") as fh:
+            fh.write(CHILD)
+        proc = subprocess.run([sys.executable, script, json.dumps(payload)], capture_output=True, text=True, env=env)
+    finally:  # Blender's user folder is only for this child
+        shutil.rmtree(tmp, ignore_errors=True)
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("PA_LOOK ")]
     if proc.returncode != 0 or not lines:
         raise RuntimeError(f"Blender child failed for {root}:\n" + proc.stdout[-3000:] + proc.stderr[-3000:])
@@ -293,8 +297,12 @@ def main(argv=None):
     ap.add_argument("--side-by-side", help="write the side-by-side PNG here (default OUT/side_by_side.png)")
     ap.add_argument("--doc", help="write the results into this markdown file's splat-look section")
     args = ap.parse_args(_own_args() if argv is None else argv)
+    if args.size < 1:
+        ap.error(f"--size is the longer image side in pixels, at least 1, got {args.size}")
     from PIL import Image
 
+    from progressive_avatars.core.evaluate.plots import save_image
+    from progressive_avatars.core.io.atomic import atomic_open
     from progressive_avatars.core.io.dataset import Dataset
     from progressive_avatars.core.geometry.camera import Camera
     from progressive_avatars.core.render.rasterize import render_numpy
@@ -362,13 +370,13 @@ def main(argv=None):
     raster_s = time.perf_counter() - t0
     ref = np.clip(image, 0, 1)
     mask = alpha > 0.5
-    Image.fromarray((ref * 255 + 0.5).astype(np.uint8)).save(os.path.join(out, "rasteriser.png"))
+    save_image(Image.fromarray((ref * 255 + 0.5).astype(np.uint8)), os.path.join(out, "rasteriser.png"))
     shown = [r for r in renders if r[2] in ("default", "as_trained")]
     default = next(r[3] for r in renders if r[1] == args.root and r[2] == "default")
     panels = [r[3] for r in shown] + [ref, np.clip(np.abs(default - ref) * 4, 0, 1)]
     side_png = os.path.abspath(args.side_by_side or os.path.join(out, "side_by_side.png"))
     os.makedirs(os.path.dirname(side_png), exist_ok=True)
-    Image.fromarray((np.concatenate(panels, axis=1) * 255 + 0.5).astype(np.uint8)).save(side_png)
+    save_image(Image.fromarray((np.concatenate(panels, axis=1) * 255 + 0.5).astype(np.uint8)), side_png)
     result = {
         "rows": [
             {
@@ -398,7 +406,7 @@ def main(argv=None):
     result["machine"] = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores (shared with other jobs)"
     result["date"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     result["command"] = "python scripts/splat_look.py " + shlex.join(_own_args() if argv is None else argv)
-    with open(os.path.join(out, "look.json"), "w") as fh:
+    with atomic_open(os.path.join(out, "look.json"), "w") as fh:
         json.dump(result, fh, indent=1)
     print(json.dumps(result, indent=1))
     if args.doc:

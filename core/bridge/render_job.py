@@ -15,6 +15,7 @@ def render_job(job_path: str, out_path: str) -> None:
     colours premultiplied by the coverage A. A ``background`` in the job is not used: the
     add-on's store_image puts the scene's background behind the splats, in scene-linear."""
     from ..geometry.camera import Camera
+    from ..io.atomic import atomic_open
     from ..render.rasterize import render_numpy
 
     with np.load(job_path, allow_pickle=False) as d:
@@ -35,4 +36,6 @@ def render_job(job_path: str, out_path: str) -> None:
         )
     image, alpha = out[0], out[1]
     rgba = np.concatenate([np.asarray(image, np.float32), np.asarray(alpha, np.float32)[..., None]], -1)
-    np.save(out_path, rgba)
+    # A worker killed mid-write must not leave a truncated array where the add-on loads its image.
+    with atomic_open(out_path) as fh:
+        np.save(fh, rgba)

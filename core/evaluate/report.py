@@ -471,12 +471,50 @@ def _naming(path: str):
         raise
 
 
+def _check_other_runs(args: ReportOptions) -> None:
+    """Every other run the options name is a folder with a readable avatar.npz, and every
+    NAME=RUN option has both: checked before any rendering (each is used only after minutes of
+    scoring this run, and a spec without NAME= would load ./avatar.npz)."""
+    named = {
+        "--compare": args.compare,
+        "--budget-compare": args.budget_compare,
+        "--uniform": args.uniform,
+        "--adaptive": args.adaptive,
+    }
+    given = [(option, spec) for option, specs in named.items() for spec in specs]
+    for option, spec in given:
+        name, eq, run = spec.partition("=")
+        if not (eq and name and run):
+            raise ValueError(f"{option} {spec}: expected NAME=RUN (a name for the report, then the run folder)")
+    runs_named = [(option, spec.partition("=")[2]) for option, spec in given]
+    runs_named += [
+        (option, run)
+        for option, run in (
+            ("--no-coarse-run", args.no_coarse_run),
+            ("--finest-only", args.finest_only),
+            ("--multi-level", args.multi_level),
+        )
+        if run is not None
+    ]
+    for option, run in runs_named:
+        path = os.path.join(run, "avatar.npz")
+        if not os.path.isdir(run):
+            raise ValueError(f"{option} {run}: not a run folder")
+        try:
+            with open(path, "rb"):
+                pass
+        except OSError as exc:
+            why = "no trained avatar in this run folder" if not os.path.exists(path) else exc.strerror or exc
+            raise ValueError(f"{option} {run}: {path}: {why}") from None
+
+
 def build_report(args: ReportOptions) -> dict:
     """Evaluate ``args.run`` and write the report into ``args.out``; returns the report dict.
-    Bad input (budgets, a missing run or dataset) raises ValueError / FileNotFoundError."""
+    Bad input (budgets, a missing run or dataset, another run an option names) raises
+    ValueError / FileNotFoundError, before ``args.out`` is made when it is about the options
+    or the runs."""
 
     t_start = time.perf_counter()
-    os.makedirs(args.out, exist_ok=True)
     budgets = [float(b) for b in args.budgets]
     if not budgets or any(not 0 < b <= 100 for b in budgets):
         raise ValueError(f"budgets must be percentages in (0, 100], got {budgets}")
@@ -492,12 +530,14 @@ def build_report(args: ReportOptions) -> dict:
             f"--multi-level {args.multi_level}: it names the finest-only ablation's multi-level run; "
             "give it with --paper-table and --finest-only"
         )
+    _check_other_runs(args)
     avatar = runs.load_run_avatar(args.run)
     data = runs.run_data_dir(args.run, args.data)
     fm = runs.run_flame_model(args.run, args.flame_model)
     splits = {"nvs": Dataset(data, "val", flame_model=fm), "nes": Dataset(data, "test", flame_model=fm)}
     for ds in splits.values():
         ds.check_same_mesh(avatar.forest.template_faces, f"the template of {args.run}'s avatar")
+    os.makedirs(args.out, exist_ok=True)  # only for a run that loads: a mistyped --run leaves no folder
     strips = [float(b) for b in args.strips]
     progress = args.progress
     # Everything read later is checked now, before minutes of rendering: every image, mask, mesh
