@@ -93,7 +93,9 @@ class Growth:
         self.min_px = float(min_px)
         self.iterations, self.max_depth, self.grow_every = int(iterations), int(max_depth), int(grow_every)
         self.grow_start, self.grow_stop = int(grow_start), float(grow_stop)
-        self.last = int(self.grow_stop * self.iterations)  # the last iteration after which the forest may grow
+        # the last iteration after which the forest may grow (floored with a little slack: 0.58 * 750
+        # is 434.99999999999994 in floating point, and the growth step at 435 was lost)
+        self.last = int(np.floor(self.grow_stop * self.iterations + 1e-9))
         self.grad_threshold, self.max_faces, self.uniform = float(grad_threshold), int(max_faces), bool(uniform)
 
     @classmethod
@@ -113,7 +115,22 @@ class Growth:
 
     def due(self, it: int) -> bool:
         """Whether the forest grows after iteration ``it`` (uniform growth starts at once)."""
-        return (self.uniform or it >= self.grow_start) and it % self.grow_every == 0 and it <= self.last
+        # (never after the last iteration: its faces would never be trained)
+        return (
+            (self.uniform or it >= self.grow_start)
+            and it % self.grow_every == 0
+            and it <= self.last
+            and it < self.iterations
+        )
+
+    @property
+    def last_step(self) -> int:
+        """The last iteration due() holds for (-1 when none does): what the growth schedule
+        really ends at, below ``last`` unless it falls on a multiple of grow_every."""
+        end = min(self.last, self.iterations - 1)
+        start = 0 if self.uniform else self.grow_start
+        step = end - end % self.grow_every
+        return step if step >= max(start, self.grow_every) else -1
 
     def depth_cap(self, it: int) -> int:
         span = max(1, self.last - self.grow_start)
@@ -142,8 +159,9 @@ class Growth:
         """The most faces the forest may hold after the growth step at iteration ``it``."""
         if self.uniform or self.grow_to == 0:
             return self.max_faces
-        first = -(-self.grow_start // self.grow_every) * self.grow_every  # the first due() iteration
-        steps = max(1, (self.last - first) // self.grow_every + 1)
+        # the first due() iteration (the trainer asks after iteration 1 on, never after 0)
+        first = max(self.grow_every, -(-self.grow_start // self.grow_every) * self.grow_every)
+        steps = max(1, (min(self.last, self.iterations - 1) - first) // self.grow_every + 1)
         step = min(steps, max(1, (it - first) // self.grow_every + 1))
         # The schedule aims at the capped total, so a cap below base * grow_to is reached at the
         # last growth step, not early: reached early, the depth cap (which rises over the same

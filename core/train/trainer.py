@@ -551,9 +551,16 @@ class Trainer:
         self.rank_importance = None  # the order of the in-level prefixes (prefix_cuts)
         self.stream_key = None
         self.checkpoint_iteration = None  # the iteration of the last checkpoint written or loaded
+        self.recent_psnr = []  # training PSNRs since the last log row
         self.on_checkpoint = None  # called with the iteration after each checkpoint (rank 0)
         if resume and os.path.exists(self.ckpt_path):
             self._load_checkpoint()
+            if self.iteration > config.iterations:  # before config.json is rewritten below
+                raise ValueError(
+                    f"{self.ckpt_path}: the checkpoint is at iteration {self.iteration}, past --iterations "
+                    f"{config.iterations}; resume with at least {self.iteration} (the avatar of iteration "
+                    f"{self.iteration} is in {out_dir}/avatar.npz once the run has finished)"
+                )
             f = self.model.forest
             if f.stand_ins and not f.backdrop and config.prefix_cuts:
                 raise ValueError(
@@ -640,7 +647,7 @@ class Trainer:
         """Whether every opacity is cut after iteration ``it``: on the schedule, while the forest
         grows (as 3DGS resets only while it densifies), never at the last iteration."""
         every = int(self.cfg.opacity_reset_every)
-        return every > 0 and it % every == 0 and it <= self.growth.last and it < self.cfg.iterations
+        return every > 0 and it % every == 0 and it <= self.growth.last_step and it < self.cfg.iterations
 
     @torch.no_grad()
     def reset_opacity(self):
@@ -981,6 +988,7 @@ class Trainer:
                     "elapsed": self.elapsed,
                     "rng": self.rng.bit_generator.state,
                     "cut_rng": self.cut_rng.bit_generator.state,
+                    "recent_psnr": list(self.recent_psnr),
                     "world_size": self.dist.world_size,
                     "settings": self.settings,
                 }
@@ -1063,6 +1071,7 @@ class Trainer:
         self.cut_rng = _cut_generator(self.cfg.seed)  # (checkpoints before it drew cuts from rng)
         if "cut_rng" in state:
             self.cut_rng.bit_generator.state = state["cut_rng"]
+        self.recent_psnr = [float(x) for x in state.get("recent_psnr", [])]
         # Drop log lines written after the checkpoint: they will be written again.
         if self.dist.is_main and os.path.exists(self.log_path):
             with open(self.log_path) as fh:
@@ -1102,7 +1111,7 @@ class Trainer:
             dynamic_ncols=True,
             desc="train",
         )
-        recent = []
+        recent = self.recent_psnr  # (restored on resume: the next log row averages the same steps)
         while self.iteration < end:
             t0 = time.perf_counter()
             stats = self.step()
@@ -1126,7 +1135,7 @@ class Trainer:
                     "faces": int(sum(counts)),
                     "level_counts": counts,
                 }
-                recent = []
+                recent.clear()
             if main and (it % c.eval_every == 0 or it == c.iterations):
                 record = record or {"iteration": it, "seconds": round(self.elapsed, 3)}
                 record.update(self.evaluate(c.eval_views))
