@@ -27,7 +27,7 @@ import sys as _sys
 _sys.path.insert(0, _os.path.dirname(_os.path.abspath(__file__)))
 import _bootstrap
 
-from progressive_avatars.core.evaluate.plots import image_format, save_image
+from progressive_avatars.core.io.atomic import atomic_save_image, image_format
 from progressive_avatars.core.synthetic import dataset
 
 
@@ -145,7 +145,7 @@ def main(argv=None):
 
         os.makedirs(os.path.dirname(os.path.abspath(args.contact_sheet)), exist_ok=True)
         with Image.open(sheet) as im:  # in the format its extension names, not always PNG bytes
-            save_image(im, args.contact_sheet)
+            atomic_save_image(im, args.contact_sheet)
     if args.closeup:
         dataset.render_closeup(args.closeup, height=args.closeup_height, detail=kw.get("detail", "default"))
     s = summary

@@ -301,7 +301,7 @@ def main(argv=None):
         ap.error(f"--size is the longer image side in pixels, at least 1, got {args.size}")
     from PIL import Image
 
-    from progressive_avatars.core.evaluate.plots import save_image
+    from progressive_avatars.core.io.atomic import atomic_save_image
     from progressive_avatars.core.io.atomic import atomic_open
     from progressive_avatars.core.io.dataset import Dataset
     from progressive_avatars.core.geometry.camera import Camera
@@ -370,13 +370,13 @@ def main(argv=None):
     raster_s = time.perf_counter() - t0
     ref = np.clip(image, 0, 1)
     mask = alpha > 0.5
-    save_image(Image.fromarray((ref * 255 + 0.5).astype(np.uint8)), os.path.join(out, "rasteriser.png"))
+    atomic_save_image(Image.fromarray((ref * 255 + 0.5).astype(np.uint8)), os.path.join(out, "rasteriser.png"))
     shown = [r for r in renders if r[2] in ("default", "as_trained")]
     default = next(r[3] for r in renders if r[1] == args.root and r[2] == "default")
     panels = [r[3] for r in shown] + [ref, np.clip(np.abs(default - ref) * 4, 0, 1)]
     side_png = os.path.abspath(args.side_by_side or os.path.join(out, "side_by_side.png"))
     os.makedirs(os.path.dirname(side_png), exist_ok=True)
-    save_image(Image.fromarray((np.concatenate(panels, axis=1) * 255 + 0.5).astype(np.uint8)), side_png)
+    atomic_save_image(Image.fromarray((np.concatenate(panels, axis=1) * 255 + 0.5).astype(np.uint8)), side_png)
     result = {
         "rows": [
             {

@@ -33,30 +33,6 @@ def _save(fig, path):
     return path
 
 
-def image_format(path) -> str | None:
-    """The PIL format that ``path``'s extension names, when PIL can write it (else None)."""
-    import os
-
-    from PIL import Image
-
-    Image.init()
-    fmt = Image.registered_extensions().get(os.path.splitext(os.fspath(path))[1].lower())
-    return fmt if fmt in Image.SAVE else None
-
-
-def save_image(image, path):
-    """Save a PIL ``image`` atomically, in the format ``path``'s extension names (as
-    ``Image.save(path)`` picks it): an interrupted write leaves an earlier picture intact."""
-    from ..io.atomic import atomic_open
-
-    fmt = image_format(path)
-    if fmt is None:  # refused before the temporary is made, as Image.save(path) would refuse it
-        raise ValueError(f"{path}: not an image extension PIL can write")
-    with atomic_open(path, "wb") as fh:
-        image.save(fh, format=fmt)
-    return path
-
-
 def psnr_vs_bytes(path, curve, budgets, curve_views=None):
     """The curve and the budgets are scored on different numbers of views (the curve on fewer),
     so their levels differ by the views' own spread: the labels say how many."""
@@ -842,7 +818,9 @@ def full_resolution_strip(path, renderer, info, budgets, view_index=0):
     for k, (im, label) in enumerate(zip(panels, labels)):
         sheet.paste(Image.fromarray(np.clip(np.round(np.asarray(im) * 255), 0, 255).astype(np.uint8)), (k * w, bar))
         draw.text((k * w + 3, 2), label, fill=(0, 0, 0))
-    return save_image(sheet, path)
+    from ..io.atomic import atomic_save_image
+
+    return atomic_save_image(sheet, path)
 
 
 def seed_curves_vs_gaussians(path, curves: dict):

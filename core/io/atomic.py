@@ -67,3 +67,23 @@ def atomic_savez(path, **arrays) -> None:
 
     with atomic_open(path) as fh:
         np.savez(fh, **arrays)
+
+
+def image_format(path) -> str | None:
+    """The PIL format that ``path``'s extension names, when PIL can write it (else None)."""
+    from PIL import Image
+
+    Image.init()
+    fmt = Image.registered_extensions().get(os.path.splitext(os.fspath(path))[1].lower())
+    return fmt if fmt in Image.SAVE else None
+
+
+def atomic_save_image(image, path):
+    """Save a PIL ``image`` atomically, in the format ``path``'s extension names (as
+    ``Image.save(path)`` picks it): an interrupted write leaves an earlier picture intact."""
+    fmt = image_format(path)
+    if fmt is None:  # refused before the temporary is made, as Image.save(path) would refuse it
+        raise ValueError(f"{path}: not an image extension PIL can write")
+    with atomic_open(path, "wb") as fh:
+        image.save(fh, format=fmt)
+    return path

@@ -338,9 +338,9 @@ def contact_sheet(dataset_dir, path, rows: int = 4) -> str:
             tile = Image.open(os.path.join(dataset_dir, rec["file_path"])).convert("RGB")
             sheet.paste(tile, (left + ci * w, top + ri * h))
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    from ..evaluate.plots import save_image
+    from ..io.atomic import atomic_save_image
 
-    return save_image(sheet, path)
+    return atomic_save_image(sheet, path)
 
 
 def _activity(p):
@@ -371,6 +371,6 @@ def render_closeup(path, height: int = 384, supersample: int = 3, detail: str = 
         img, _ = render_views(pose_head(tv, p), tf, [cam], canonical=tv, supersample=supersample, albedo_fn=albedo_fn)
         tiles.append(_to_u8(img[0]))
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    from ..evaluate.plots import save_image
+    from ..io.atomic import atomic_save_image
 
-    return save_image(Image.fromarray(np.concatenate(tiles, axis=1), "RGB"), path)
+    return atomic_save_image(Image.fromarray(np.concatenate(tiles, axis=1), "RGB"), path)
