@@ -299,6 +299,11 @@ def main(argv=None):
     args = ap.parse_args(_own_args() if argv is None else argv)
     if args.size < 1:
         ap.error(f"--size is the longer image side in pixels, at least 1, got {args.size}")
+    if args.side_by_side:  # written after the Blender renders: a path that cannot take it is refused now
+        from progressive_avatars.core.io.atomic import image_format
+
+        if os.path.isdir(args.side_by_side) or image_format(args.side_by_side) is None:
+            ap.error(f"--side-by-side {args.side_by_side}: not a picture file name PIL can write (.png, .jpg, ...)")
     from PIL import Image
 
     from progressive_avatars.core.io.atomic import atomic_save_image

@@ -241,6 +241,13 @@ def test_splat_look_refuses_size_below_1_and_removes_blenders_user_folder(tmp_pa
         lambda: g["main"](["--run", str(tmp_path), "--data", str(tmp_path), "--out", str(out), "--size", "0"])
     )
     assert rc == 2 and "error: --size" in capsys.readouterr().err and not out.exists()
+    for bad in (str(tmp_path), str(tmp_path / "look.txt")):  # a folder; an extension PIL cannot write
+        rc = _exit_code(
+            lambda: g["main"](
+                ["--run", str(tmp_path), "--data", str(tmp_path), "--out", str(out), "--side-by-side", bad]
+            )
+        )
+        assert rc == 2 and "error: --side-by-side" in capsys.readouterr().err and not out.exists()
 
     def blender_fails(cmd, **kw):
         return subprocess.CompletedProcess(cmd, 1, "", "no bpy here")
