@@ -161,7 +161,7 @@ class Growth:
             return self.max_faces
         # the first due() iteration (the trainer asks after iteration 1 on, never after 0)
         first = max(self.grow_every, -(-self.grow_start // self.grow_every) * self.grow_every)
-        steps = max(1, (min(self.last, self.iterations - 1) - first) // self.grow_every + 1)
+        steps = max(1, (self.last_step - first) // self.grow_every + 1)
         step = min(steps, max(1, (it - first) // self.grow_every + 1))
         # The schedule aims at the capped total, so a cap below base * grow_to is reached at the
         # last growth step, not early: reached early, the depth cap (which rises over the same
