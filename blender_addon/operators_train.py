@@ -129,8 +129,8 @@ def _start(context):
     st.target = obj if obj is not None and obj.type == "MESH" else None
 
 
-def _finish(op, context, rc, out):
-    st = context.scene.pa_train
+def _finish(op, context, rc, out, scene=None):
+    st = (scene or context.scene).pa_train
     st.running = False
     if rc != 0:
         op.report({"ERROR"}, f"Training failed (exit {rc}): {st.message}")
@@ -167,6 +167,8 @@ class PA_OT_train(bpy.types.Operator):
     _proc = None
     _timer = None
     _lines = None
+    _reader = None
+    _scene = None
 
     def execute(self, context):
         # Blocking path: background mode, where timers (and so the modal path) never run.
@@ -223,6 +225,9 @@ class PA_OT_train(bpy.types.Operator):
             return {"CANCELLED"}
         _start(context)
         st.running, st.progress, st.message = True, 0.0, "starting"
+        # The scene that trains: the user may switch scenes while it runs, and another scene's
+        # state (running unset) would read as Cancel.
+        self._scene = context.scene
         self._timer = context.window_manager.event_timer_add(0.25, window=context.window)
         context.window_manager.modal_handler_add(self)
         return {"RUNNING_MODAL"}
@@ -230,7 +235,8 @@ class PA_OT_train(bpy.types.Operator):
     def _next_process(self):
         self._proc = _popen(self._cmds[0], self._env)
         self._cmds.pop(0)
-        threading.Thread(target=self._pump, args=(self._proc.stdout, self._lines), daemon=True).start()
+        self._reader = threading.Thread(target=self._pump, args=(self._proc.stdout, self._lines), daemon=True)
+        self._reader.start()
 
     @staticmethod
     def _pump(stream, q):
@@ -249,21 +255,36 @@ class PA_OT_train(bpy.types.Operator):
     def modal(self, context, event):
         if event.type != "TIMER":
             return {"PASS_THROUGH"}
-        st = context.scene.pa_train
-        while not self._lines.empty():
-            self._progress(st, self._lines.get_nowait())
+        try:
+            return self._tick(context)
+        except Exception as exc:
+            # Whatever failed here, the trainer must not run on unread (it would block on its
+            # full pipe) and the scene must not stay "running" (every later Train refused).
+            self._kill()
+            self._stop(context)
+            self.report({"ERROR"}, f"Training stopped: {type(exc).__name__}: {exc}")
+            return {"CANCELLED"}
+
+    def _tick(self, context):
+        scene = self._scene or context.scene
+        st = scene.pa_train
+        self._drain(st)
         for area in context.screen.areas if context.screen else ():
             if area.type == "VIEW_3D":
                 area.tag_redraw()
         if not st.running:  # the Cancel button clears it
-            self._proc.terminate()
-            self._proc.wait()
+            self._kill()
             self._stop(context)
             self.report({"WARNING"}, "Training cancelled")
             return {"CANCELLED"}
         rc = self._proc.poll()
         if rc is None:
             return {"PASS_THROUGH"}
+        # The process has ended, its last lines (the error, on a failure) may still be on their
+        # way through the reader thread: all of them are in the panel before the report.
+        if self._reader is not None:
+            self._reader.join(timeout=5)
+        self._drain(st)
         if rc == 0 and self._cmds:
             try:
                 self._next_process()
@@ -273,11 +294,29 @@ class PA_OT_train(bpy.types.Operator):
                 self.report({"ERROR"}, f"Trained, but cannot start the export: {exc}")
                 return {"CANCELLED"}
         self._stop(context)
-        return _finish(self, context, rc, self._out)
+        return _finish(self, context, rc, self._out, scene)
+
+    def _drain(self, st):
+        while not self._lines.empty():
+            self._progress(st, self._lines.get_nowait())
+
+    def _kill(self):
+        if self._proc is not None and self._proc.poll() is None:
+            self._proc.terminate()
+            try:
+                self._proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()
+                self._proc.wait()
 
     def _stop(self, context):
-        context.window_manager.event_timer_remove(self._timer)
-        context.scene.pa_train.running = False
+        if self._timer is not None:
+            context.window_manager.event_timer_remove(self._timer)
+            self._timer = None
+        try:
+            (self._scene or context.scene).pa_train.running = False
+        except ReferenceError:  # the training scene was deleted meanwhile
+            pass
 
 
 class PA_OT_train_cancel(bpy.types.Operator):

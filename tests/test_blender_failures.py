@@ -52,6 +52,25 @@ def _write_trainers(out, stream):
             print('done', flush=True)
         """)
         )
+    with open(os.path.join(out, "fails_loudly.py"), "w") as fh:  # its error comes after ~350 KB of log
+        fh.write(
+            textwrap.dedent("""
+            import sys
+            for i in range(1, 5001):
+                print(f'it {i}/5000 loss 0.1 ' + 'x' * 60)
+            print('ValueError: the last line says why', flush=True)
+            sys.exit(3)
+        """)
+        )
+    with open(os.path.join(out, "slow_train.py"), "w") as fh:
+        fh.write(
+            textwrap.dedent("""
+            import time
+            for i in range(1, 11):
+                print(f'it {i}/10 loss 0.1', flush=True)
+                time.sleep(0.1)
+        """)
+        )
 
 
 @pytest.fixture(scope="module")
@@ -106,6 +125,32 @@ def test_modal_train_reader_survives_a_log_line_that_is_not_utf8(rep):
     assert r["exit"] == 0, "the trainer blocked on a pipe nobody read"
     assert r["lines"] == 5002
     assert "caf\ufffd" in r["first"]
+
+
+def test_modal_train_reports_the_trainers_last_line(rep):
+    r = _step(rep, "train_modal_last_lines")
+    assert r["result"] == ["CANCELLED"]
+    assert r["reports"] == [["ERROR", "Training failed (exit 3): ValueError: the last line says why"]], r["reports"]
+    assert not r["running"] and r["timers"] == ["timer"]
+
+
+def test_modal_train_runs_on_while_another_scene_is_shown(rep):
+    r = _step(rep, "train_modal_other_scene")
+    assert r["exit"] == 0, "the training was stopped"
+    assert all(kind != "WARNING" or "cancelled" not in msg for kind, msg in r["reports"]), r["reports"]
+    assert r["last"] == ["CANCELLED"] and r["ticks"] > 1, r
+    # it ran to its end: the stand-in trainer writes no avatar, the one error
+    assert len(r["reports"]) == 1 and r["reports"][0][1].startswith("Training finished but wrote no avatar"), r
+    assert r["message"] == "it 10/10 loss 0.1"
+    assert not r["running"] and not r["other_running"]
+
+
+def test_modal_train_failing_inside_modal_stops_cleanly(rep):
+    r = _step(rep, "train_modal_raises")
+    assert r["result"] == ["CANCELLED"], r["result"]
+    assert r["reports"] == [["ERROR", "Training stopped: RuntimeError: reader failed"]], r["reports"]
+    assert not r["running"] and r["timers"] == ["timer"]
+    assert r["trainer_stopped"]
 
 
 def test_rig_import_from_edit_mode(rep):

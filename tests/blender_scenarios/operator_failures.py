@@ -5,7 +5,7 @@ mesh): each step records what the operator reported and what it left in the scen
 that raises records its traceback and the next one still runs.
 """
 
-import importlib, importlib.util, json, os, queue, subprocess, sys, traceback, types
+import importlib, importlib.util, json, os, queue, subprocess, sys, time, traceback, types
 
 root, out, blocked = sys.argv[1], sys.argv[2], sys.argv[3].split(",")
 
@@ -139,6 +139,96 @@ def train_modal_reader(r):
         except queue.Empty:
             break
     r["lines"], r["first"] = len(lines), lines[0] if lines else ""
+
+
+class ModalTrain:
+    """PA_OT_train's modal path on a stand-in (timers never fire headless, so the test calls
+    modal() as the window manager would on each tick)."""
+
+    def __init__(self, script, scene):
+        self._cmds, self._env = [[sys.executable, os.path.join(out, script)]], None
+        self._out = os.path.join(out, "modal_run")  # the stand-in trainers write no avatar
+        self._lines, self._timer, self._scene, self.reports = queue.Queue(), "timer", scene, []
+        self.removed_timers = []
+
+    def report(self, kind, message):
+        self.reports.append((sorted(kind)[0], message))
+
+
+for _name in ("modal", "_tick", "_drain", "_kill", "_stop", "_next_process"):
+    if _name in PA_OT_train.__dict__:  # (the old code had fewer)
+        setattr(ModalTrain, _name, PA_OT_train.__dict__[_name])
+ModalTrain._pump, ModalTrain._progress = staticmethod(PA_OT_train._pump), staticmethod(PA_OT_train._progress)
+
+
+def modal_context(op, scene):
+    wm = types.SimpleNamespace(event_timer_remove=op.removed_timers.append)
+    return types.SimpleNamespace(scene=scene, screen=None, window_manager=wm)
+
+
+TIMER = types.SimpleNamespace(type="TIMER")
+
+
+@step
+def train_modal_last_lines(r):
+    # A trainer that fails after much output: its last line (the error) must reach the report,
+    # though the process ends before the reader thread has drained the pipe.
+    scene = bpy.context.scene
+    op = ModalTrain("fails_loudly.py", scene)
+
+    def slow_pump(stream, q):  # a busy Blender: the reader lags behind the trainer
+        for line in stream:
+            time.sleep(0.0002)
+            q.put(line)
+
+    op._pump = slow_pump
+    scene.pa_train.running = True
+    op._next_process()
+    op._proc.wait(timeout=30)
+    r["result"] = sorted(op.modal(modal_context(op, scene), TIMER))
+    r["reports"], r["running"], r["timers"] = op.reports, scene.pa_train.running, op.removed_timers
+
+
+@step
+def train_modal_other_scene(r):
+    # Training started in one scene; the user is looking at another (its running is unset).
+    scene = bpy.context.scene
+    other = bpy.data.scenes.get("Other") or bpy.data.scenes.new("Other")
+    op = ModalTrain("slow_train.py", scene)
+    scene.pa_train.running = True
+    op._next_process()
+    ticks = []
+    for _ in range(400):
+        ticks.append(sorted(op.modal(modal_context(op, other), TIMER)))
+        if ticks[-1] != ["PASS_THROUGH"]:
+            break
+        time.sleep(0.05)
+    r["last"], r["ticks"], r["reports"] = ticks[-1], len(ticks), op.reports
+    r["exit"] = op._proc.poll()
+    r["running"], r["other_running"] = scene.pa_train.running, other.pa_train.running
+    r["message"] = scene.pa_train.message
+
+
+@step
+def train_modal_raises(r):
+    def boom(state, line):
+        raise RuntimeError("reader failed")
+
+    scene = bpy.context.scene
+    op = ModalTrain("slow_train.py", scene)
+    op._progress = boom
+    scene.pa_train.running = True
+    op._next_process()
+    op._lines.put("it 1/2\n")
+    try:
+        r["result"] = sorted(op.modal(modal_context(op, scene), TIMER))
+    except RuntimeError as exc:
+        r["result"] = f"raised: {exc}"
+    r["reports"], r["running"], r["timers"] = op.reports, scene.pa_train.running, op.removed_timers
+    r["trainer_stopped"] = op._proc.poll() is not None
+    if not r["trainer_stopped"]:
+        op._proc.kill()
+        op._proc.wait()
 
 
 @step
