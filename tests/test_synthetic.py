@@ -262,3 +262,30 @@ def test_generation_checks_its_arguments_first_and_does_not_mix_datasets(tmp_pat
     assert not any(n.startswith("transforms") for n in os.listdir(out))  # nothing that loads as a dataset
     dataset.make_dataset(out, overwrite=True, **kw)
     assert (out / "transforms_train.json").exists()
+
+
+def test_a_transforms_json_is_whole_or_absent(tmp_path):
+    """Interrupted while the transforms JSONs are written (the last step), the folder holds no
+    half-written JSON: each one there parses and no temporary is left behind."""
+    import unittest.mock
+
+    kw = dict(resolution=16, cameras=2, sequences=2, frames=1, progress=False, template_subdivisions=1)
+    out = tmp_path / "ds"
+    real_dump, calls = json.dump, []
+
+    def dump_then_fail(obj, fh, **k):
+        calls.append(1)
+        if len(calls) == 2:  # transforms_val.json: half of it written, then the interrupt
+            fh.write(json.dumps(obj)[:100])
+            raise KeyboardInterrupt
+        return real_dump(obj, fh, **k)
+
+    with unittest.mock.patch.object(dataset.json, "dump", dump_then_fail), pytest.raises(KeyboardInterrupt):
+        dataset.make_dataset(out, **kw)
+    names = os.listdir(out)
+    assert "transforms_train.json" in names and "transforms_val.json" not in names, names
+    assert not [n for n in names if n.endswith(".tmp")], names
+    for n in names:
+        if n.endswith(".json"):
+            with open(out / n) as fh:
+                json.load(fh)

@@ -28,6 +28,7 @@ import time
 import numpy as np
 
 from ..geometry.camera import Camera
+from ..io.atomic import atomic_open
 
 from .raycast import held_out_camera, image_size, make_cameras, render_views
 from .rig import neutral_params, pose_head, sequence_name, sequence_params
@@ -265,7 +266,9 @@ def make_dataset(
             "camera_indices": sorted({r["camera_index"] for r in recs}),
             "frames": recs,
         }
-        with open(os.path.join(out, name), "w") as fh:
+        # Atomic: a half-written JSON would make the folder look like a dataset. The per-frame
+        # files are not (an fsync each): until these JSONs exist nothing loads them.
+        with atomic_open(os.path.join(out, name), "w") as fh:
             json.dump(doc, fh, indent=1)
 
     train_seqs = list(range(sequences - 1))
@@ -299,7 +302,7 @@ def make_dataset(
         "seconds": seconds,
         "rays_per_second": stats.get("rays", 0) / max(seconds, 1e-9),
     }
-    with open(os.path.join(out, "summary.json"), "w") as fh:
+    with atomic_open(os.path.join(out, "summary.json"), "w") as fh:
         json.dump(summary, fh, indent=1)
     return summary
 
