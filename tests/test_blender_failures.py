@@ -24,9 +24,9 @@ BLOCKED = ("plyfile", "trimesh", "PIL", "scipy", "torch", "numba")
 LATIN1 = b"warning: cannot open /data/caf\xe9/img.png\n"  # a Latin-1 path in a log line
 
 
-def _scenario(name):
-    with open(os.path.join(os.path.dirname(os.path.abspath(__file__)), "blender_scenarios", name)) as fh:
-        return fh.read()
+SCENARIO = os.path.join(
+    ROOT, "tests", "blender_scenarios", "operator_failures.py"
+)  # run in place: it imports stock_blender
 
 
 def _write_trainers(out, stream):
@@ -82,11 +82,8 @@ def rep(tmp_path_factory):
     _, stream, _, _ = make_inputs(out)
     make_rig_inputs(out)
     _write_trainers(out, stream)
-    script = os.path.join(tmp, "child.py")
-    with open(script, "w") as fh:
-        fh.write(_scenario("operator_failures.py"))
     proc = subprocess.run(
-        [sys.executable, script, ROOT, out, ",".join(BLOCKED)],
+        [sys.executable, SCENARIO, ROOT, out, ",".join(BLOCKED)],
         capture_output=True,
         text=True,
         env=_clean_env(tmp),

@@ -23,12 +23,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 BLOCKED = ("plyfile", "trimesh", "PIL", "scipy", "torch", "numba")
 
 
-def _scenario(name):
-    with open(os.path.join(os.path.dirname(os.path.abspath(__file__)), "blender_scenarios", name)) as fh:
-        return fh.read()
-
-
-CHILD = _scenario("ply_import.py")
+SCENARIO = os.path.join(ROOT, "tests", "blender_scenarios", "ply_import.py")  # run in place: it imports stock_blender
 
 
 def _gaussians(n, rng):
@@ -63,11 +58,8 @@ def ply_session(tmp_path_factory):
     g = _gaussians(3000, np.random.default_rng(5))
     src = os.path.join(out, "splats.ply")
     write_ply(src, g)
-    script = os.path.join(tmp, "child.py")
-    with open(script, "w") as fh:
-        fh.write(CHILD)
     proc = subprocess.run(
-        [sys.executable, script, ROOT, src, out, ",".join(BLOCKED)],
+        [sys.executable, SCENARIO, ROOT, src, out, ",".join(BLOCKED)],
         capture_output=True,
         text=True,
         env=_clean_env(tmp),

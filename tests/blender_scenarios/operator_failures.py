@@ -5,32 +5,17 @@ mesh): each step records what the operator reported and what it left in the scen
 that raises records its traceback and the next one still runs.
 """
 
-import importlib, importlib.util, json, os, queue, subprocess, sys, time, traceback, types
+import importlib, json, os, queue, subprocess, sys, time, traceback, types
+
+import stock_blender
 
 root, out, blocked = sys.argv[1], sys.argv[2], sys.argv[3].split(",")
-
-
-class Block:
-    """A stock Blender has none of these: importing one must fail, as it would there."""
-
-    def find_spec(self, name, path=None, target=None):
-        if name.split(".")[0] in blocked:
-            raise ImportError(f"{name} is blocked (not in a stock Blender)")
-        return None
-
-
-sys.meta_path.insert(0, Block())
+stock_blender.block(blocked)
 import bpy
 import bmesh
 import numpy as np
 
-spec = importlib.util.spec_from_file_location(
-    "pa_fail", os.path.join(root, "__init__.py"), submodule_search_locations=[root]
-)
-pkg = importlib.util.module_from_spec(spec)
-sys.modules["pa_fail"] = pkg
-spec.loader.exec_module(pkg)
-pkg.register()
+stock_blender.load_extension(root, "pa_fail")
 prefs = importlib.import_module("pa_fail.blender_addon.prefs")
 runtime = importlib.import_module("pa_fail.blender_addon.runtime")
 rig_builder = importlib.import_module("pa_fail.blender_addon.rig")
@@ -335,5 +320,5 @@ def depth_on_edited_mesh(r):
     r["mesh"] = MESH.name
 
 
-R["blocked_loaded"] = sorted(m for m in sys.modules if m.split(".")[0] in blocked)
+R["blocked_loaded"] = stock_blender.loaded(blocked)
 print("PA_FAILURES " + json.dumps(R))

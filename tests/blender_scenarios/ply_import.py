@@ -1,30 +1,15 @@
 """Blender session run by test_blender_ply.py (a real file so it can be read, linted and run by hand)."""
 
-import importlib.util, json, os, sys, traceback
+import json, os, sys, traceback
+
+import stock_blender
 
 root, ply_path, out, blocked = sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[4].split(",")
-
-
-class Block:
-    """A stock Blender has none of these: importing one must fail, as it would there."""
-
-    def find_spec(self, name, path=None, target=None):
-        if name.split(".")[0] in blocked:
-            raise ImportError(f"{name} is blocked (not in a stock Blender)")
-        return None
-
-
-sys.meta_path.insert(0, Block())
+stock_blender.block(blocked)
 import bpy
 import numpy as np
 
-spec = importlib.util.spec_from_file_location(
-    "pa_blk", os.path.join(root, "__init__.py"), submodule_search_locations=[root]
-)
-pkg = importlib.util.module_from_spec(spec)
-sys.modules["pa_blk"] = pkg
-spec.loader.exec_module(pkg)
-pkg.register()
+stock_blender.load_extension(root, "pa_blk")
 R = {"errors": []}
 A = {}
 try:
@@ -80,7 +65,7 @@ try:
     except RuntimeError as exc:
         R["bad_message"] = str(exc)
     R["bad_left_scene"] = (len(bpy.data.objects), len(bpy.data.meshes)) == n_before
-    R["blocked_loaded"] = sorted(m for m in sys.modules if m.split(".")[0] in blocked)
+    R["blocked_loaded"] = stock_blender.loaded(blocked)
 except Exception:
     R["errors"].append(traceback.format_exc())
 np.savez(os.path.join(out, "arrays.npz"), **A)

@@ -1,0 +1,37 @@
+"""What a Blender scenario starts with: a Blender that has nothing but Blender (numpy and bpy),
+and the extension loaded from its folder under a package name of the scenario's choosing.
+
+The scenarios run as files from this folder (so Python finds this module beside them)."""
+
+import importlib.util
+import os
+import sys
+
+
+def block(names):
+    """Importing any of ``names`` fails from now on, as it would in a stock Blender."""
+
+    class Block:
+        def find_spec(self, name, path=None, target=None):
+            if name.split(".")[0] in names:
+                raise ImportError(f"{name} is blocked (not in a stock Blender)")
+            return None
+
+    sys.meta_path.insert(0, Block())
+
+
+def load_extension(root, package):
+    """Import the extension at ``root`` as ``package`` and register it."""
+    spec = importlib.util.spec_from_file_location(
+        package, os.path.join(root, "__init__.py"), submodule_search_locations=[root]
+    )
+    pkg = importlib.util.module_from_spec(spec)
+    sys.modules[package] = pkg
+    spec.loader.exec_module(pkg)
+    pkg.register()
+    return pkg
+
+
+def loaded(names):
+    """The blocked modules that got imported anyway (must be none)."""
+    return sorted(m for m in sys.modules if m.split(".")[0] in names)
