@@ -11,6 +11,10 @@ from . import prefs, sequence
 class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
     """Import a tracked FLAME or mesh sequence as one mesh with a shape key per frame"""
 
+    # One key per scene frame, in the file's frame order: the tracked timestep ids are not used
+    # as frame numbers (a sequence tracked every 3rd video frame plays contiguously; set the
+    # frame rate to match).
+
     bl_idname = "import_scene.progressive_avatars_sequence"
     bl_label = "Import FLAME Sequence"
     bl_options = {"REGISTER", "UNDO", "PRESET"}
@@ -44,7 +48,7 @@ class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
         min=0,
         max=1000,
         description="Frames per second of the sequence, set as the scene's frame rate (0: keep the scene's; "
-        "tracked sequences do not store one)",
+        "tracked sequences do not store one). Each tracked frame takes one scene frame, whatever its timestep id",
     )
 
     def execute(self, context):
@@ -94,6 +98,7 @@ class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
             try:
                 obj, _ = rig_builder.build_rig_objects(context, rig, name, context.scene.frame_start, self.z_up)
             except Exception as exc:  # Blender's own operators run inside (mode switch, weight conversion)
+                scene.frame_start, scene.frame_end = kept_range
                 self.report({"ERROR"}, f"Cannot import {path} as a FLAME rig: {exc}")
                 return {"CANCELLED"}
             if rig.ignored:
@@ -103,7 +108,13 @@ class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
                     "(import without 'As FLAME rig' to keep them)",
                 )
         else:
-            obj = sequence.build_sequence_object(context, seq, name, context.scene.frame_start, self.z_up)
+            try:
+                with sequence.removed_on_failure():
+                    obj = sequence.build_sequence_object(context, seq, name, context.scene.frame_start, self.z_up)
+            except Exception as exc:
+                scene.frame_start, scene.frame_end = kept_range
+                self.report({"ERROR"}, f"Cannot import {path}: {exc}")
+                return {"CANCELLED"}
         for ob in selected:
             ob.select_set(False)
         if not self.set_frame_range:  # the builders set it; put the scene's back

@@ -149,17 +149,10 @@ def build_rig_objects(context, rig, name, frame_start, z_up=True):
     mode = active.mode if active is not None else "OBJECT"
     if mode != "OBJECT":
         bpy.ops.object.mode_set(mode="OBJECT")
-    before = {kind: set(getattr(bpy.data, kind)) for kind in _DATA_KINDS}
     try:
-        return _build(context, rig, name, frame_start, z_up)
+        with sequence.removed_on_failure(_DATA_KINDS):
+            return _build(context, rig, name, frame_start, z_up)
     except BaseException:
-        for kind in _DATA_KINDS:  # objects first: they use the rest (a mesh takes its shape keys along)
-            coll = getattr(bpy.data, kind)
-            for idb in [x for x in coll if x not in before[kind]]:
-                try:
-                    coll.remove(idb)
-                except (ReferenceError, RuntimeError):  # gone with what used it: the original error matters
-                    pass
         view_layer.objects.active = active
         if mode != "OBJECT":
             bpy.ops.object.mode_set(mode=mode)

@@ -1,5 +1,7 @@
 """Build Blender data for a mesh sequence: one mesh, one shape key per frame, cameras."""
 
+from contextlib import contextmanager
+
 import bpy
 import numpy as np
 
@@ -84,6 +86,24 @@ def add_sequence_keys(obj, vertices, frame_start):
         fc.keyframe_points.foreach_set("interpolation", [lin] * (len(co) // 2))
         fc.update()
     return key
+
+
+@contextmanager
+def removed_on_failure(kinds=("objects", "meshes", "armatures", "actions")):
+    """Should the block raise, every datablock of ``kinds`` it made is removed (objects first:
+    they use the rest; a mesh takes its shape keys along), so a failed import adds nothing."""
+    before = {kind: set(getattr(bpy.data, kind)) for kind in kinds}
+    try:
+        yield
+    except BaseException:
+        for kind in kinds:
+            coll = getattr(bpy.data, kind)
+            for idb in [x for x in coll if x not in before[kind]]:
+                try:
+                    coll.remove(idb)
+                except (ReferenceError, RuntimeError):  # gone with what used it: the original error matters
+                    pass
+        raise
 
 
 def build_sequence_object(context, seq, name, frame_start, z_up=True):

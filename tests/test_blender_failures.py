@@ -165,6 +165,12 @@ def test_failed_rig_import_leaves_the_scene_as_it_was(rep):
     assert r["failed_active"] == r["cube"] and r["failed_selected"] == [r["cube"]]
 
 
+def test_failed_sequence_import_leaves_the_scene_as_it_was(rep):
+    r = _step(rep, "sequence_import_fails_late")
+    assert "Cannot import" in r["result"] and "seq.npz" in r["result"] and "injected failure" in r["result"], r
+    assert r["added"] == {} and r["range"] == [5, 9], r
+
+
 def test_load_avatar_refuses_a_mesh_in_edit_mode(rep):
     r = _step(rep, "load_in_edit_mode")
     assert "seq: leave Edit Mode first" in r["result"], r["result"]

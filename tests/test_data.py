@@ -679,3 +679,95 @@ def test_cameras_read_without_geometry(tiny_dataset, tmp_path):
     for k, cam in full.items():
         np.testing.assert_array_equal(bare.cameras[k].R, cam.R)
         assert (bare.cameras[k].fx, bare.cameras[k].width) == (cam.fx, cam.width)
+
+
+# ------------------------------------------------------------ tracked parameters, checked
+
+
+def _nersemble(prm, **over):
+    d = dict(
+        shape=prm["shape"][None],
+        expression=prm["expr"],
+        jaw=prm["jaw_pose"],
+        neck=prm["neck_pose"],
+        eyes=prm["eyes_pose"],
+        translation=prm["translation"],
+        scale=np.array([[1.0]]),
+        frames=np.arange(len(prm["expr"])),
+    )
+    d.update(over)
+    return d
+
+
+def test_vhap_any_key_may_be_one_shared_row(tmp_path, flame_model):
+    """The frame count is the longest key's, whichever comes first: a shared global rotation
+    (1,3) beside per-frame expressions loads, as a shared translation does."""
+    prm = random_params(4, seed=3)
+    for key in ("rotation", "translation"):
+        path = tmp_path / f"tracked_flame_params_{key}.npz"
+        np.savez(path, **dict(prm, **{key: prm[key][:1]}))
+        seq = read_vhap_tracked(path, flame_model=flame_model)
+        want = flame_forward(flame_model, **dict(prm, **{key: np.repeat(prm[key][:1], 4, 0)}))
+        assert seq.n_frames == 4
+        np.testing.assert_allclose(seq.vertices, want, atol=1e-6)
+
+
+def test_flame_param_folder_files_must_agree(tmp_path, flame_model):
+    """Every frame's file holds the same widths and the same subject (shape, static offset):
+    a file that does not is refused by name, not read as another frame of this subject."""
+    prm = random_params(3, seed=4)
+    for case in ("width", "shape"):
+        folder = tmp_path / case / "flame_param"
+        folder.mkdir(parents=True)
+        for t in range(3):
+            f = ga_frame(prm, t)
+            if t == 2 and case == "width":
+                f["expr"] = f["expr"][:, :2]
+            if t == 2 and case == "shape":
+                f["shape"] = f["shape"] + 1.0
+            np.savez(folder / f"{t:05d}.npz", **f)
+        match = (
+            r"00002\.npz: 'expr' has 2 values" if case == "width" else r"00002\.npz: 'shape' differs from 00000\.npz"
+        )
+        with pytest.raises(DataError, match=match):
+            read_flame_param_folder(tmp_path / case, flame_model=flame_model)
+
+
+def test_nersemble_placement_and_frames_are_checked(tmp_path, flame_model):
+    """One scale per sequence, positive; rotations that are rotations; a 1-D expression is one
+    frame; whole-number float ids are ids; a frame-id list of another length is refused; a
+    pose of the wrong width is refused, not re-cut into other frames."""
+    prm = random_params(3, seed=5)
+    shear = np.eye(3)
+    shear[0, 1] = 0.2
+    for name, over, match in (
+        ("scales", dict(scale=np.array([1.0, 2.0, 3.0])), "'scale' must be one value"),
+        ("zero", dict(scale=np.array([0.0])), "'scale' must be positive"),
+        ("shear", dict(rotation_matrices=np.repeat(shear[None], 3, 0)), "must be rotations"),
+        ("mirror", dict(rotation_matrices=np.repeat(np.diag([-1.0, 1, 1])[None], 3, 0)), "must be rotations"),
+        ("ids", dict(frames=np.array([100, 101])), "'frames' holds 2 frame ids for 3 frames"),
+        ("eyes", dict(eyes=prm["eyes_pose"][:, :3]), "'eyes' must have 6 values per frame"),
+    ):
+        np.savez(tmp_path / f"{name}.npz", **_nersemble(prm, **over))
+        with pytest.raises(DataError, match=match):
+            read_nersemble_tracking(tmp_path / f"{name}.npz", evaluate=False)
+    p1 = random_params(1, seed=7)
+    np.savez(tmp_path / "one.npz", **_nersemble(p1, expression=p1["expr"][0], frames=np.array([4])))
+    one = read_nersemble_tracking(tmp_path / "one.npz", flame_model=flame_model)
+    assert one.n_frames == 1 and list(one.frame_ids) == [4]
+    np.savez(tmp_path / "float_ids.npz", **_nersemble(prm, frames=np.array([7.0, 8.0, 9.0])))
+    assert list(read_nersemble_tracking(tmp_path / "float_ids.npz", evaluate=False).frame_ids) == [7, 8, 9]
+    np.savez(tmp_path / "tracked_flame_params.npz", timestep_id=np.array([1, 2]), **prm)
+    with pytest.raises(DataError, match="'timestep_id' holds 2 frame ids for 3 frames"):
+        read_vhap_tracked(tmp_path / "tracked_flame_params.npz", evaluate=False)
+
+
+def test_flame_pose_rows_are_frames(flame_model):
+    """An eyes pose of two rows of 3 for two frames is the wrong width, not one frame of 6."""
+    prm = random_params(2, seed=6)
+    with pytest.raises(ValueError, match="eyes_pose: expected 6 values per frame"):
+        flame_forward(flame_model, **dict(prm, eyes_pose=prm["eyes_pose"][:, :3]))
+    both = np.concatenate([prm["eyes_pose"][:, :3], prm["eyes_pose"][:, 3:]], 1).reshape(2, 2, 3)
+    np.testing.assert_allclose(
+        flame_forward(flame_model, **dict(prm, eyes_pose=both)), flame_forward(flame_model, **prm)
+    )

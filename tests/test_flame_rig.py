@@ -96,3 +96,13 @@ def test_rig_matches_flame_for_any_pose(seed, pose_scale, expr_scale, T):
     want = flame_forward(MODEL, **prm, dtype=np.float64)
     assert np.all(np.isfinite(rig.quaternions)) and np.abs(rig.expr_values).max(initial=0) <= SLIDER_LIMIT
     np.testing.assert_allclose(rig.vertices(), want, atol=1e-9 * max(1.0, np.abs(want).max()))
+
+
+@pytest.mark.parametrize("key, value", [("translation", 1e39), ("jaw_pose", 1e200), ("expr", 1e300)])
+def test_rig_refuses_what_blender_cannot_hold(key, value):
+    """A translation beyond float32, or a pose or expression so large its keys overflow, is
+    refused: Blender would store it as inf/NaN keyframes and the import would 'succeed'."""
+    prm = random_params(3, seed=8)
+    prm[key] = np.full_like(prm[key], value)
+    with np.errstate(all="ignore"), pytest.raises(ValueError, match="not finite numbers a rig can hold"):
+        build_flame_rig(MODEL, prm)

@@ -639,7 +639,18 @@ def _coeffs(x, n_model: int, T: int, what: str) -> np.ndarray:
 def _pose(x, T: int, width: int, what: str) -> np.ndarray:
     if x is None:
         return np.zeros((T, width))
-    x = np.asarray(x, np.float64).reshape(-1, width) if np.size(x) else np.zeros((1, width))
+    x = np.asarray(x, np.float64)
+    if not np.size(x):
+        x = np.zeros((1, width))
+    # Rows are frames: [T,6] or [T,2,3] eyes; one frame may be [6], [2,3] or [J,3] (its first
+    # axis then is not the frame count). Never rows re-cut from other rows: with two frames a
+    # [2,3] eyes_pose is two frames of the wrong width, not one frame for both.
+    if x.ndim <= 1 or (x.size == width and x.shape[0] != T):
+        x = x.reshape(1, -1)
+    else:
+        x = x.reshape(x.shape[0], -1)
+    if x.shape[1] != width:
+        raise ValueError(f"{what}: expected {width} values per frame, got shape {x.shape}")
     if x.shape[0] not in (1, T):
         raise ValueError(f"{what}: expected 1 or {T} rows of {width}, got {x.shape}")
     return np.broadcast_to(x, (T, width))

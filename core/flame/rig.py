@@ -209,6 +209,18 @@ def build_flame_rig(model: FlameModel, params: dict, bone_names=None) -> FlameRi
     # Neighbouring frames on the same hemisphere, so interpolated keys turn the short way.
     flip = np.cumprod(np.where(np.sum(quats[1:] * quats[:-1], axis=-1) < 0, -1.0, 1.0), axis=0)
     quats[1:] *= flip[..., None]
+    # The rig's keys are stored as float32 in Blender: anything that is not a finite float32
+    # there (a pose of 1e200, a translation of 1e39) would import "successfully" as NaN/inf.
+    f32 = float(np.finfo(np.float32).max) / 2
+    for what, values in (
+        ("bone locations", L[:, :, :3, 3]),
+        ("bone rotations", quats),
+        ("bone scales", scales),
+        ("expression keys", expr / expr_scale),
+        ("expression shapes", expr_deltas * expr_scale[:, None, None]),
+    ):
+        if not (np.all(np.isfinite(values)) and np.abs(values).max(initial=0.0) <= f32):
+            raise ValueError(f"the parameters give {what} that are not finite numbers a rig can hold")
     names = (
         tuple(bone_names)
         if bone_names is not None

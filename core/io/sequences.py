@@ -157,15 +157,20 @@ def _need_model(flame_model, source: str) -> FlameModel:
     return load_flame_model(flame_model)
 
 
-def _ids_from(values, n: int) -> np.ndarray:
-    """Integer frame ids from stored ids (ints or strings with digits), else 0..n-1."""
+def _ids_from(values, n: int, source: str = "", key: str = "") -> np.ndarray:
+    """Integer frame ids from stored ids (ints, whole floats, or strings with digits), else 0..n-1.
+    Stored ids whose count is not the frame count are refused (they belong to other frames)."""
     if values is None:
         return np.arange(n)
     vals = np.asarray(values).reshape(-1)
     if vals.shape[0] != n:
-        return np.arange(n)
+        raise DataError(f"{source}: '{key}' holds {vals.shape[0]} frame ids for {n} frames")
     if np.issubdtype(vals.dtype, np.integer):
         return vals.astype(np.int64)
+    if np.issubdtype(vals.dtype, np.floating):
+        if np.all(np.isfinite(vals)) and np.all(vals == np.round(vals)) and np.abs(vals).max(initial=0) < 2**53:
+            return vals.astype(np.int64)
+        return np.arange(n)
     digits = [re.findall(r"\d+", str(v)) for v in vals.tolist()]
     if all(digits):
         return np.array([int(d[-1]) for d in digits], dtype=np.int64)
@@ -227,6 +232,7 @@ def read_flame_param_folder(path, frames=None, flame_model=None, evaluate=True):
             raise DataError(f"{fp}: no FLAME parameters (expected keys {', '.join(_ALIASES)})")
         for k in _ALIASES:
             params[k].append(d.get(k))
+    names = [files[i] for i in sel.tolist()]
     stacked = {}
     for k, vals in params.items():
         present = [v for v in vals if v is not None]
@@ -234,13 +240,24 @@ def read_flame_param_folder(path, frames=None, flame_model=None, evaluate=True):
             continue
         if len(present) != len(vals):
             raise DataError(f"{folder}: '{k}' is present in some parameter files but not all")
+        for name, v in zip(names[1:], present[1:]):
+            if np.size(v) != np.size(present[0]):
+                raise DataError(
+                    f"{os.path.join(folder, name)}: '{k}' has {np.size(v)} values, "
+                    f"{names[0]} has {np.size(present[0])} (every frame's file must hold the same)"
+                )
+            if k in ("shape", "static_offset") and not np.array_equal(v, present[0]):
+                raise DataError(
+                    f"{os.path.join(folder, name)}: '{k}' differs from {names[0]}'s; it describes the "
+                    "subject and must be the same in every frame's file"
+                )
         if k in ("shape", "static_offset"):
-            stacked[k] = np.asarray(present[0])  # per subject, identical across frames
+            stacked[k] = np.asarray(present[0])  # per subject, identical across frames (checked)
         elif k == "dynamic_offset":
             stacked[k] = np.concatenate([v.reshape((-1,) + v.shape[-2:])[:1] for v in present])
         else:
             stacked[k] = np.concatenate([v.reshape(1, -1) for v in present])
-    ids = _ids_from([files[i] for i in sel.tolist()], len(sel))
+    ids = _ids_from(names, len(sel))
     if not evaluate:
         return FlameTrack(stacked, ids, folder)
     verts = _evaluate_flame(stacked, model, folder) if len(sel) else np.zeros((0, model.n_vertices, 3), np.float32)
@@ -252,16 +269,18 @@ def _read_flame_stacked(path: str, d: dict, frames, flame_model, frame_key: str 
     per_frame = [k for k in _PER_FRAME if k in p and p[k].ndim >= 2]
     if not per_frame:
         raise DataError(f"{path}: no per-frame FLAME parameters (expected some of {', '.join(_PER_FRAME)})")
-    T = p[per_frame[0]].shape[0]
+    # The frame count is the longest key's: any key may be one row shared by every frame.
+    longest = max(per_frame, key=lambda k: p[k].shape[0])
+    T = p[longest].shape[0]
     for k in per_frame:
         if p[k].shape[0] not in (1, T):
-            raise DataError(f"{path}: '{k}' has {p[k].shape[0]} frames, '{per_frame[0]}' has {T}")
+            raise DataError(f"{path}: '{k}' has {p[k].shape[0]} frames, '{longest}' has {T}")
     model = _need_model(flame_model, path) if evaluate else None
     sel = _select(T, frames, path)
     params = {}
     for k, v in p.items():
         params[k] = v[sel] if k in per_frame and v.shape[0] == T else v
-    ids = _ids_from(d.get(frame_key) if frame_key else None, T)[sel]
+    ids = _ids_from(d.get(frame_key) if frame_key else None, T, path, frame_key)[sel]
     if not evaluate:
         return FlameTrack(params, ids, path)
     verts = _evaluate_flame(params, model, path) if len(sel) else np.zeros((0, model.n_vertices, 3), np.float32)
@@ -295,6 +314,10 @@ def read_nersemble_tracking(path, frames=None, flame_model=None, evaluate=True):
     d = _npz(path)
     if "expression" not in d:
         raise DataError(f"{path}: not a NeRSemble FLAME tracking file (no 'expression' key; has {sorted(d)})")
+    if d["expression"].ndim not in (1, 2):
+        raise DataError(f"{path}: 'expression' must be [T,E] (or [E], one frame), got {d['expression'].shape}")
+    if d["expression"].ndim == 1:
+        d["expression"] = d["expression"][None]
     T = d["expression"].shape[0]
     sel = _select(T, frames, path)
     model = _need_model(flame_model, path) if evaluate else None
@@ -302,7 +325,10 @@ def read_nersemble_tracking(path, frames=None, flame_model=None, evaluate=True):
     def rows(key, width):
         if key not in d:
             return None
-        v = np.asarray(d[key], np.float64).reshape(-1, width)
+        v = np.asarray(d[key], np.float64)
+        v = v.reshape(1, -1) if v.ndim <= 1 else v.reshape(v.shape[0], -1)
+        if v.shape[1] != width:
+            raise DataError(f"{path}: '{key}' must have {width} values per frame, got shape {d[key].shape}")
         if v.shape[0] not in (1, T):
             raise DataError(f"{path}: '{key}' has {v.shape[0]} rows, expected 1 or {T}")
         return v[sel] if v.shape[0] == T else np.broadcast_to(v, (len(sel), width))
@@ -326,13 +352,30 @@ def read_nersemble_tracking(path, frames=None, flame_model=None, evaluate=True):
         R = np.broadcast_to(np.eye(3), (len(sel), 3, 3))
     t = rows("translation", 3)
     t = np.zeros((len(sel), 3)) if t is None else t
-    scale = float(np.asarray(d["scale"]).reshape(-1)[0]) if "scale" in d else 1.0
+    scale = 1.0
+    if "scale" in d:
+        sv = np.asarray(d["scale"], np.float64).reshape(-1)
+        if sv.size < 1:
+            raise DataError(f"{path}: 'scale' is empty")
+        if np.all(np.isfinite(sv)) and np.any(sv != sv[0]):  # non-finite: the placement check below
+            raise DataError(f"{path}: 'scale' must be one value for the sequence, got {sv.size} values that differ")
+        scale = float(sv[0]) if np.all(np.isfinite(sv)) else float("nan")
     # The placement is checked here, not only through the evaluated vertices: a FLAME rig keeps
     # it as keyframes and would carry NaN (or float32 overflow) into Blender unseen.
     for key, v in (("rotation", R), ("translation", t), ("scale", np.float64(scale))):
         if not (np.all(np.isfinite(v)) and np.abs(v).max(initial=0.0) <= 1e30):
             raise DataError(f"{path}: '{key}' placement values must be finite numbers within ±1e30")
-    ids = _ids_from(d.get("frames"), T)[sel]
+    if not scale > 0:
+        raise DataError(f"{path}: 'scale' must be positive (it sizes the head in the world), got {scale}")
+    # A rotation, not any matrix: the rig keeps R as a bone's rotation and would part from the
+    # mesh (which applies the matrix as it is) on a sheared or mirrored one.
+    off = np.abs(np.einsum("tba,tbc->tac", R, R) - np.eye(3)).max(initial=0.0)
+    if off > 1e-4 or (len(R) and np.linalg.det(R).min() <= 0):
+        raise DataError(
+            f"{path}: 'rotation_matrices' must be rotations (orthonormal, determinant +1); "
+            f"worst |R^T R - I| entry {off:.2g}"
+        )
+    ids = _ids_from(d.get("frames"), T, path, "frames")[sel]
     if not evaluate:
         return FlameTrack(dict(params, rotation_matrices=R, translation=t, scale=scale), ids, path)
     local = _evaluate_flame(params, model, path).astype(np.float64) if len(sel) else np.zeros((0, model.n_vertices, 3))
@@ -353,7 +396,8 @@ def read_mesh_npz(path, frames=None) -> MeshSequence:
     if v.ndim != 3:
         raise DataError(f"{path}: 'vertices' must be [T,V,3] or [V,3], got {d['vertices'].shape}")
     sel = _select(v.shape[0], frames, path)
-    ids = _ids_from(d.get("frame_ids", d.get("frames")), v.shape[0])[sel]
+    key = "frame_ids" if "frame_ids" in d else "frames"
+    ids = _ids_from(d.get(key), v.shape[0], path, key)[sel]
     return MeshSequence(d["faces"], _check_vertices(v[sel], path), ids, None, path)
 
 

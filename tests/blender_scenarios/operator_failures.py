@@ -19,6 +19,7 @@ stock_blender.load_extension(root, "pa_fail")
 prefs = importlib.import_module("pa_fail.blender_addon.prefs")
 runtime = importlib.import_module("pa_fail.blender_addon.runtime")
 rig_builder = importlib.import_module("pa_fail.blender_addon.rig")
+sequence_builder = importlib.import_module("pa_fail.blender_addon.sequence")
 PA_OT_train = importlib.import_module("pa_fail.blender_addon.operators_train").PA_OT_train
 
 SEQ, STREAM = os.path.join(out, "seq.npz"), os.path.join(out, "avatar.pavs")
@@ -247,6 +248,25 @@ def rig_in_edit_mode(r):
     r["failed_active"] = bpy.context.active_object.name if bpy.context.active_object else None
     r["failed_selected"] = [o.name for o in bpy.context.selected_objects]
     r["cube"] = cube.name
+
+
+@step
+def sequence_import_fails_late(r):
+    # A plain (shape-key) import whose build fails after the mesh exists takes it all back.
+    def boom(*args, **kw):
+        raise RuntimeError("injected failure")
+
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = 5, 9
+    before = inventory()
+    kept = sequence_builder.add_sequence_keys
+    sequence_builder.add_sequence_keys = boom
+    try:
+        r["result"] = call(bpy.ops.import_scene.progressive_avatars_sequence, filepath=SEQ)
+    finally:
+        sequence_builder.add_sequence_keys = kept
+    r["added"] = added(before)
+    r["range"] = [scene.frame_start, scene.frame_end]
 
 
 @step
