@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from progressive_avatars.core.evaluate.sweep import paper_table
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
@@ -91,8 +93,26 @@ def test_run_paper_table_small(tmp_path):
         "seed 1",
         "uniform true",
     ]
+    # Random against ranked like for like: both level by level (the stream's own order, which
+    # mixes levels, is reported beside them, not subtracted)
+    ro = r["ablations"]["random_order_25"]
+
+    def scores(d):  # (not the render time)
+        return {k: v for k, v in d.items() if k != "render_ms"}
+
+    assert scores(ro["ranked"]) == scores(r["ablations"]["interleaved_order"]["25"]["levels_first"])
+    assert scores(ro["stream"]) == scores(r["budgets"]["25"]["nvs"])
+    assert pt["table3"]["random_order_25"]["ranked"] == ro["ranked"]["psnr"]
     checks = pt["checks"]
     assert all(c["ok"] in (True, False) for c in checks.values())
+    assert "no template embedded" in " ".join(checks) and "embedded template" not in " ".join(checks)
+    # Without the 100 % budget the criteria that need it are listed unscored, not dropped
+    partial = json.loads(json.dumps(r))
+    del partial["budgets"]["100"]
+    unscored = paper_table(partial)["checks"]
+    assert len(unscored) == len(checks), set(checks) - set(unscored)
+    for name in ("detail: NVS 100 % minus the base level alone (dB)", "NVS gap to 100 % at 25 % (dB)"):
+        assert unscored[name]["ok"] is None and unscored[name]["ours"] == "not run", name
     assert any("growth" in k for k in checks) and any("35 %" in k for k in checks)
     # full-resolution strips: 4 budgets and the ground truth at the dataset's pixel size
     for split in ("nvs", "nes"):

@@ -532,7 +532,12 @@ def report_markdown(r: dict) -> str:
     if own.get("seconds") is not None:
         lines.append(
             f"- training (from the run's metrics log): {own['iterations']} iterations, "
-            f"{own['seconds']:.0f} s wall time ({own['seconds'] / 60:.1f} min)"
+            f"{own['seconds']:.0f} s of training steps ({own['seconds'] / 60:.1f} min)"
+            + (
+                f", {wall:.0f} s wall time with evaluations and checkpoints"
+                if (wall := r.get("resources", {}).get("this run", {}).get("wall_seconds"))
+                else ""
+            )
         )
     cov = all("coverage" in e["nvs"] for e in r["budgets"].values())
     lines += [
@@ -605,9 +610,16 @@ def report_markdown(r: dict) -> str:
     a = r["ablations"]
     lines += ["", "## Ablations (NVS PSNR in mask)", ""]
     ro = a["random_order_25"]
-    lines.append(
-        f"- 25 %: importance-ranked {ro['ranked']['psnr']:.2f} dB vs random order within levels {ro['random']['psnr']:.2f} dB"
-    )
+    if "stream" in ro:
+        lines.append(
+            f"- 25 %, level by level: importance-ranked {ro['ranked']['psnr']:.2f} dB vs random order within levels "
+            f"{ro['random']['psnr']:.2f} dB (the stream's own order: {ro['stream']['psnr']:.2f} dB)"
+        )
+    else:  # reports before 2026-11-29 ranked with the stream's own order, which mixes levels
+        lines.append(
+            f"- 25 %: the stream's order {ro['ranked']['psnr']:.2f} dB vs random order within levels "
+            f"{ro['random']['psnr']:.2f} dB"
+        )
     io = a["importance_only_50"]
     lines.append(
         f"- 50 %: the stream's order (parents first, by importance) {io['levels_then_importance']['psnr']:.2f} dB vs "
@@ -977,12 +989,14 @@ def paper_table_markdown(r: dict) -> str:
         )
     ro = t3["random_order_25"]
     lines.append(
-        f"| 25 %: importance-ranked / random within levels | {ro['ranked']:.2f} / {ro['random']:.2f} | "
+        f"| 25 %, level by level: importance-ranked / random within levels | {ro['ranked']:.2f} / {ro['random']:.2f} | "
         f"{ro['paper'][0]:.2f} / {ro['paper'][1]:.2f} |"
     )
+    if ro.get("stream") is not None:
+        lines.append(f"| 25 %: the stream's own order (levels interleaved) | {ro['stream']:.2f} | no number |")
     io = t3["importance_only_50"]
     lines.append(
-        f"| 50 %: levels then importance / importance only | {io['levels']:.2f} / "
+        f"| 50 %: the stream's order (parents first) / importance only | {io['levels']:.2f} / "
         f"{io['importance_only']:.2f} | holes (no number) |"
     )
     vs = r.get("adaptive_vs_uniform")
