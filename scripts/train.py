@@ -197,7 +197,11 @@ def main(argv=None):
     from progressive_avatars.core.train.memory import retain_freed_memory
 
     retain_freed_memory()  # this process trains: freed arrays are reused by the next step
-    dist = Dist.from_env(threads=args.threads)  # world size 1 without torchrun
+    try:
+        dist = Dist.from_env(threads=args.threads)  # world size 1 without torchrun
+    except ValueError as exc:  # a bad PA_DIST_TIMEOUT: before joining the job
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     rc = _train(args, cfg, dist, t0)
     if rc == 0:  # after a failure the group is left to the process exit (a dead peer cannot say goodbye)
         dist.close()
@@ -262,12 +266,7 @@ def _train(args, cfg, dist, t0):
             print(f"error: {who}{_lost_peer(exc, args.out, trainer.checkpoint_iteration) or exc}", file=sys.stderr)
             return 4
         except KeyboardInterrupt:
-            ck = trainer.checkpoint_iteration
-            kept = (
-                "no checkpoint was written yet"
-                if ck is None
-                else f"the last checkpoint in {args.out} (iteration {ck}) is kept; --resume continues from it"
-            )
+            kept = _kept(args.out, trainer.checkpoint_iteration, dist.world_size > 1)
             print(f"\nstopped (Ctrl-C) at iteration {trainer.iteration}; {kept}", file=sys.stderr)
             return 130
         except Exception as exc:
@@ -275,10 +274,11 @@ def _train(args, cfg, dist, t0):
             # (SystemError: "returned a result with an exception set", _Stopped as its context).
             if not _is_stop(exc):
                 raise
+            kept = _kept(args.out, trainer.checkpoint_iteration, True)
             print(
                 f"error: {who}stopped by the launcher (SIGTERM: torchrun stops every process of the job when one "
-                f"fails, its report names the root cause, or when it is stopped itself); training stopped at iteration {trainer.iteration}, the last "
-                f"checkpoint in {args.out} (iteration {trainer.checkpoint_iteration}) is kept; --resume continues from it, with any number of processes",
+                f"fails, its report names the root cause, or when it is stopped itself); training stopped at "
+                f"iteration {trainer.iteration}, {kept}",
                 file=sys.stderr,
             )
             return 143
@@ -319,10 +319,16 @@ def _lost_peer(exc: RuntimeError, out: str, checkpoint: int | None = None) -> st
     if not (isinstance(exc, getattr(td, "DistError", ())) or any(w in text for w in peer)):
         return None
     first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-    return (
-        f"another process of this torchrun job died or stopped answering ({first}); training stopped, the last "
-        f"checkpoint in {out}{'' if checkpoint is None else f' (iteration {checkpoint})'} is kept; --resume continues from it, with any number of processes"
-    )
+    kept = _kept(out, checkpoint, True)
+    return f"another process of this torchrun job died or stopped answering ({first}); training stopped, {kept}"
+
+
+def _kept(out, checkpoint, any_processes: bool) -> str:
+    """What a stopped run leaves to resume from."""
+    if checkpoint is None:
+        return "no checkpoint was written yet"
+    more = ", with any number of processes" if any_processes else ""
+    return f"the last checkpoint in {out} (iteration {checkpoint}) is kept; --resume continues from it{more}"
 
 
 def _os_error(exc: OSError) -> str:

@@ -472,6 +472,12 @@ def test_dataset_missing_files_listed_with_every_problem(tmp_path):
     assert f"{cut}: image: cannot be decoded" in text
     with pytest.raises(MissingFileError, match=r"00001_01\.png: image listed in"):
         ds[3]
+    # Split between processes (each rank of a training job checks its share): the shares
+    # together find exactly the whole check's problems, each once.
+    shares = [dataset_problems(ds, progress=False, share=(k, 3)) for k in range(3)]
+    assert sorted(sum(shares, [])) == sorted(problems) and all(len(s) < len(problems) for s in shares)
+    with pytest.raises(ValueError, match="share"):
+        dataset_problems(ds, progress=False, share=(3, 3))
 
 
 def _set(i, key, value):

@@ -81,24 +81,29 @@ def _image_problems(path: str, what: str, full: tuple, target: tuple, json_path:
     return out
 
 
-def dataset_problems(ds: Dataset, progress: bool = True) -> list:
-    """Every problem found in split ``ds`` as 'file: field: problem' strings (empty: fine)."""
+def dataset_problems(ds: Dataset, progress: bool = True, share: tuple[int, int] = (0, 1)) -> list:
+    """Every problem found in split ``ds`` as 'file: field: problem' strings (empty: fine).
+    ``share`` (k, n): only every n-th timestep and frame from the k-th, so n processes check a
+    split together in 1/n of the time (the JSON's index fields are checked by share 0)."""
     from tqdm import tqdm
 
+    k, n = int(share[0]), int(share[1])
+    if not 0 <= k < n:
+        raise ValueError(f"dataset_problems: share must be (k, n) with 0 <= k < n, got {share}")
     problems = []
-    rows = _frame_rows(ds)
+    rows = _frame_rows(ds) if k == 0 else []
     for i, fr in enumerate(rows):
         for key in ("timestep_index", "camera_index"):
             if key in fr and not _whole(fr[key]):
                 problems.append(f"{ds.json_path}: frames[{i}].{key} is {fr[key]!r}, not a whole number")
     for ts in tqdm(
-        ds.timesteps.tolist(), desc=f"checking {ds.split or 'all'} meshes", disable=not progress, leave=False
+        ds.timesteps.tolist()[k::n], desc=f"checking {ds.split or 'all'} meshes", disable=not progress, leave=False
     ):
         try:
             ds.vertices_at(ts)
         except (DataError, OSError, ValueError, KeyError) as exc:
             problems.append(f"{exc}" if os.sep in str(exc) else f"timestep {ts}: {exc}")
-    for info in tqdm(ds.frames, desc=f"checking {ds.split or 'all'} images", disable=not progress, leave=False):
+    for info in tqdm(ds.frames[k::n], desc=f"checking {ds.split or 'all'} images", disable=not progress, leave=False):
         problems.extend(camera_problems(info.camera, f"{ds.json_path}: frames[{info.index}]"))
         target = (info.camera.width, info.camera.height)
         problems.extend(_image_problems(info.image_path, "image", info.full_size, target, ds.json_path))
@@ -107,9 +112,10 @@ def dataset_problems(ds: Dataset, progress: bool = True) -> list:
     return problems
 
 
-def validate_dataset(ds: Dataset, progress: bool = True) -> None:
-    """Raise one DataError listing every problem of split ``ds`` (see module doc)."""
-    problems = dataset_problems(ds, progress)
+def validate_dataset(ds: Dataset, progress: bool = True, share: tuple[int, int] = (0, 1)) -> None:
+    """Raise one DataError listing every problem of split ``ds`` (see module doc; ``share``:
+    :func:`dataset_problems`'s)."""
+    problems = dataset_problems(ds, progress, share)
     if problems:
         raise DataError(
             f"{ds.root}: the '{ds.split}' split has {len(problems)} problem(s); fix them before "

@@ -53,6 +53,19 @@ def check_same(what: str, values: list, iteration: int) -> None:
         )
 
 
+def collective_timeout() -> float:
+    """PA_DIST_TIMEOUT in seconds (900 when unset); anything but a positive number is an error
+    (0 or a word made every rank fail in its first collective with a C++ traceback)."""
+    text = os.environ.get(_TIMEOUT_ENV, "900")
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (np.isfinite(value) and value > 0):
+        raise ValueError(f"{_TIMEOUT_ENV}={text!r}: must be a positive number of seconds (default 900)")
+    return value
+
+
 class Dist:
     """The process's place in a data-parallel job; world size 1 is a single process (no-ops)."""
 
@@ -86,7 +99,7 @@ class Dist:
         # The trainer's tensors are CPU tensors (the rasteriser is numba): gloo moves them. On a
         # CUDA build NCCL takes any CUDA tensors a later device path hands it.
         backend = "cpu:gloo,cuda:nccl" if torch.cuda.is_available() and td.is_nccl_available() else "gloo"
-        timeout = datetime.timedelta(seconds=float(os.environ.get(_TIMEOUT_ENV, "900")))
+        timeout = datetime.timedelta(seconds=collective_timeout())
         if not td.is_initialized():
             td.init_process_group(backend=backend, init_method="env://", timeout=timeout)
         return cls(td.get_rank(), td.get_world_size(), local_world)

@@ -530,12 +530,14 @@ class Trainer:
             self.val.check_same_mesh(self.train.faces, f"{self.train.json_path}'s")
         else:
             self.val = None
-        if check_data and main:  # once per job; the others wait at the first collective
+        if check_data:
+            # Every rank checks its share: one rank checking a large dataset alone would keep the
+            # others waiting at the first collective past its timeout (PA_DIST_TIMEOUT).
             from ..io.validate import validate_dataset
 
             for ds in (self.train, self.val):
                 if ds is not None:
-                    validate_dataset(ds, progress=progress)
+                    validate_dataset(ds, progress=progress and main, share=(self.dist.rank, self.dist.world_size))
         self.background = torch.tensor(np.asarray(self.train.background, np.float32))
         self.refiner = None
         if config.refine_flame:
@@ -601,7 +603,15 @@ class Trainer:
             if main:  # --overwrite: the replaced run's files; else a log left by a kill before any checkpoint
                 _remove_run_outputs(out_dir, everything=overwrite)
         if self.dist.world_size > 1:
-            # Same start on every rank (template init or checkpoint), or stop before any step.
+            # Same settings and start on every rank (template init or checkpoint), or stop before
+            # any step: a rank started with another seed or batch would train something else.
+            values = self.dist.gather_digest(self._settings_digest(data_dir))
+            if len(set(values)) > 1:
+                odd = [r for r, v in enumerate(values) if v != values[0]]
+                raise RuntimeError(
+                    f"rank(s) {', '.join(map(str, odd))} were started with other training options or data than "
+                    "rank 0 (seed, iterations, views per step, ...): start every process of the job with the same command"
+                )
             self._check_ranks_agree("parameters and optimiser state", self._state_digest())
         if main:
             with atomic_open(os.path.join(out_dir, "config.json"), "w") as fh:
@@ -676,6 +686,10 @@ class Trainer:
         for name, t in sorted(self.model.params.items()):
             arrays += [t.detach().numpy(), o.m[name].numpy(), o.v[name].numpy()]
         return digest(*arrays)
+
+    def _settings_digest(self, data_dir: str) -> int:
+        text = json.dumps({**asdict(self.cfg), "data": os.path.abspath(data_dir)}, sort_keys=True, default=str)
+        return digest(np.frombuffer(text.encode(), np.uint8))
 
     def _check_ranks_agree(self, what: str, value: int, it: int | None = None) -> list:
         values = self.dist.gather_digest(value)
@@ -1167,6 +1181,8 @@ class Trainer:
                     self._check_ranks_agree("parameters and optimiser state", self._state_digest())
                 if main:
                     self._save_checkpoint()
+                if self.dist.world_size > 1:  # the others learn that rank 0's save went through
+                    self.dist.broadcast_ints(np.array([it]) if main else None)
                 self.checkpoint_iteration = it
                 if main and self.on_checkpoint is not None:
                     self.on_checkpoint(it)
