@@ -106,6 +106,10 @@ class PA_AvatarState(bpy.types.PropertyGroup):
     )
     template_vertices: bpy.props.IntProperty(description="Vertex count of the mesh the avatar was bound to")
     template_faces: bpy.props.IntProperty(description="Face count of the mesh the avatar was bound to")
+    file_signature: bpy.props.StringProperty(
+        description="Size and hash of the avatar file when it was loaded: the preview's saved per-point "
+        "attributes are that file's"
+    )
 
 
 class PA_TrainState(bpy.types.PropertyGroup):

@@ -4,12 +4,13 @@ Nothing here is saved: the .blend holds the attributes and properties, this modu
 the decoded avatar and the evaluators (rebuilt after a file load, on first use).
 """
 
+import hashlib
 import os
 
 import bpy
 import numpy as np
 
-from ..core.bridge.budget import load_avatar
+from ..core.bridge.budget import load_avatar, typed_percent
 from ..core.bridge.splats import preview_order, splat_evaluator
 from . import preview
 
@@ -47,6 +48,15 @@ class _Entry:
 _cache: dict = {}
 
 
+def file_signature(path) -> str:
+    """Size and BLAKE2 hash of a file: what the preview's saved attributes were made from."""
+    h = hashlib.blake2b(digest_size=16)
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return f"{os.path.getsize(path)}:{h.hexdigest()}"
+
+
 def resolve(path) -> str:
     return os.path.normpath(bpy.path.abspath(path)) if path else ""
 
@@ -71,6 +81,14 @@ def entry(obj):
         faces = None
     _drop_dead()
     try:
+        # The preview's ranks, colours and opacities are saved in the .blend from the file it was
+        # loaded from: another file at that path (a re-export, a retrained run) would be mixed
+        # with them point by point.
+        if state.file_signature and file_signature(path) != state.file_signature:
+            state.status = f"{path} changed since this preview was loaded: load the avatar again (Load Avatar)"
+            state.count = 0
+            preview.set_count(obj, 0)
+            return None
         e = _cache[key] = _Entry(path, template_faces=faces)
     except (ValueError, OSError) as exc:
         state.status = f"Cannot read the avatar: {exc}"
@@ -206,9 +224,11 @@ def refresh(obj, depsgraph, count=None):
         if src is None:
             state.status = "No mesh bound"
         if e is not None:  # show only what was placed on the mesh before it went, never unplaced points
-            preview.set_count(obj, min(e.budget.count_for_percent(state.budget) if count is None else count, e.valid))
+            preview.set_count(
+                obj, min(e.budget.count_for_percent(typed_percent(state.budget)) if count is None else count, e.valid)
+            )
         return False
-    count = e.budget.count_for_percent(state.budget) if count is None else count
+    count = e.budget.count_for_percent(typed_percent(state.budget)) if count is None else count
     if state.bind_mode == "SHAPE_KEYS":
         verts, problem = shape_key_vertices(src, depsgraph)
     else:
@@ -226,12 +246,14 @@ def refresh(obj, depsgraph, count=None):
         state.status = f"{obj.name} is in Edit Mode: its Gaussians follow the mesh again once you leave it"
         preview.set_count(obj, min(count, e.valid))  # never points it has not placed
         return False
+    me = obj.data
+    if len(me.vertices) != e.avatar.num_gaussians:  # hidden, not left standing where they were
+        state.status = "Preview point count does not match the avatar file: reload the avatar"
+        preview.set_count(obj, 0)
+        e.valid = 0
+        return False
     preview.set_count(obj, count)
     means, quats, scales = e.evaluator_for(count)(verts)
-    me = obj.data
-    if len(me.vertices) != e.avatar.num_gaussians:
-        state.status = "Preview point count does not match the avatar file: reload the avatar"
-        return False
     me.attributes["position"].data.foreach_set("vector", means.ravel())
     me.attributes["rotation"].data.foreach_set("value", quats.ravel())
     me.attributes["scale"].data.foreach_set("vector", scales.ravel())
@@ -252,7 +274,7 @@ def apply_budget(obj, context=None, depsgraph=None):
     if e is None:
         return
     b = e.budget
-    count = b.count_for_percent(state.budget)
+    count = b.count_for_percent(typed_percent(state.budget))
     state.count = count
     state.total = b.total
     state.megabytes = b.bytes_for_count(count) / 1e6

@@ -73,6 +73,22 @@ def _write_trainers(out, stream):
         )
 
 
+def _other_streams(stream, out):
+    """The same Gaussians in another order (reordered.pavs), and the first 60 % (shorter.pavs)."""
+    import numpy as np
+
+    from progressive_avatars.core.stream.reader import read_stream
+    from progressive_avatars.core.stream.writer import write_stream
+
+    av = read_stream(stream)
+    n = av.num_gaussians
+    write_stream(os.path.join(out, "reordered.pavs"), av, importance=np.linspace(0, 1, n), quantize=False)
+    short = read_stream(stream, percent=60.0)
+    write_stream(
+        os.path.join(out, "shorter.pavs"), short, importance=np.linspace(1, 0, short.num_gaussians), quantize=False
+    )
+
+
 @pytest.fixture(scope="module")
 def rep(tmp_path_factory):
     _bpy_dir()
@@ -80,6 +96,7 @@ def rep(tmp_path_factory):
     out = os.path.join(tmp, "out")
     os.makedirs(out)
     _, stream, _, _ = make_inputs(out)
+    _other_streams(stream, out)
     make_rig_inputs(out)
     _write_trainers(out, stream)
     proc = subprocess.run(
@@ -169,6 +186,22 @@ def test_failed_sequence_import_leaves_the_scene_as_it_was(rep):
     r = _step(rep, "sequence_import_fails_late")
     assert "Cannot import" in r["result"] and "seq.npz" in r["result"] and "injected failure" in r["result"], r
     assert r["added"] == {} and r["range"] == [5, 9], r
+
+
+def test_budget_shows_what_a_viewer_of_the_typed_percent_sees(rep):
+    r = _step(rep, "budget_and_replaced_file")
+    assert r["load"] == ["FINISHED"], r["load"]
+    assert r["crossing"] > 0  # percents whose 32-bit value would cross a record boundary exist
+    for p, count, shown, want in r["budget_counts"]:
+        assert count == want and shown == want, (p, count, shown, want)
+
+
+def test_a_replaced_avatar_file_is_not_mixed_with_the_preview(rep):
+    r = _step(rep, "budget_and_replaced_file")
+    assert "live.pavs changed since this preview was loaded" in r["changed_status"], r["changed_status"]
+    assert r["changed_count"] == 0 and r["changed_shown"] == 0
+    assert "point count does not match" in r["shorter_status"] and r["shorter_shown"] == 0, r
+    assert r["reload"] == ["FINISHED"] and r["reload_status"] == "" and r["reload_shown"] > 0, r
 
 
 def test_load_avatar_refuses_a_mesh_in_edit_mode(rep):

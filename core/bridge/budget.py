@@ -22,6 +22,14 @@ def _stream_module():
     return stream
 
 
+def typed_percent(value: float) -> float:
+    """The percent as typed, from a value Blender kept in 32 bits (a FloatProperty: 16.1 reads
+    back as 16.100000381...): the shortest decimal that float32 holds. The stream's budget rule
+    floors p/100 of the bytes exactly, so the stored value could show one Gaussian more or fewer
+    than a viewer given the same percent."""
+    return float(str(np.float32(value)))
+
+
 @dataclass
 class Budget:
     """How much of an avatar a budget percent includes.

@@ -19,10 +19,12 @@ stock_blender.load_extension(root, "pa_fail")
 prefs = importlib.import_module("pa_fail.blender_addon.prefs")
 runtime = importlib.import_module("pa_fail.blender_addon.runtime")
 rig_builder = importlib.import_module("pa_fail.blender_addon.rig")
+preview = importlib.import_module("pa_fail.blender_addon.preview")
 sequence_builder = importlib.import_module("pa_fail.blender_addon.sequence")
 PA_OT_train = importlib.import_module("pa_fail.blender_addon.operators_train").PA_OT_train
 
 SEQ, STREAM = os.path.join(out, "seq.npz"), os.path.join(out, "avatar.pavs")
+OTHER, SHORTER = os.path.join(out, "reordered.pavs"), os.path.join(out, "shorter.pavs")
 MODEL, PARAMS = os.path.join(out, "flame_model.npz"), os.path.join(out, "tracked_flame_params.npz")
 KINDS = ("objects", "meshes", "armatures", "actions", "shape_keys", "node_groups", "materials", "images")
 R = {}
@@ -215,6 +217,55 @@ def train_modal_raises(r):
     if not r["trainer_stopped"]:
         op._proc.kill()
         op._proc.wait()
+
+
+def count_input(obj):
+    mod = obj.modifiers.get(preview.MODIFIER_NAME)
+    return mod[preview.input_identifier(mod.node_group, "Count")]
+
+
+@step
+def budget_and_replaced_file(r):
+    import shutil
+
+    live = os.path.join(out, "live.pavs")
+    shutil.copy(STREAM, live)
+    activate(MESH)
+    r["load"] = call(bpy.ops.object.progressive_avatars_load, filepath=live, budget=100.0)
+    pv = next(c for c in MESH.children if c.pa_avatar.is_preview)
+    # Percents that Blender's 32-bit property stores off their decimal by enough to cross a
+    # record boundary: the preview must show what a viewer given the typed percent shows.
+    b = runtime.entry(pv).budget
+    typed = np.round(np.arange(1, 100000) * 0.001, 3)  # every percent with three decimals
+    size = os.path.getsize(live)
+    near = typed[np.floor(typed * size / 100) != np.floor(typed.astype(np.float32).astype(np.float64) * size / 100)]
+    crossing = [float(p) for p in near if b.count_for_percent(float(p)) != b.count_for_percent(float(np.float32(p)))]
+    r["crossing"] = len(crossing)
+    r["budget_counts"] = []
+    for p in crossing[:5]:
+        pv.pa_avatar.budget = p
+        r["budget_counts"].append([p, pv.pa_avatar.count, count_input(pv), b.count_for_percent(p)])
+    # The file replaced by another stream of the same Gaussians (the .blend reopened: the
+    # decoded cache is gone): not mixed with the preview's saved attributes, hidden instead.
+    pv.pa_avatar.budget = 30.0
+    shutil.copy(OTHER, live)
+    runtime.forget(pv)
+    runtime.apply_budget(pv, bpy.context)
+    r["changed_status"], r["changed_count"], r["changed_shown"] = (
+        pv.pa_avatar.status,
+        pv.pa_avatar.count,
+        count_input(pv),
+    )
+    # A preview saved before the signature existed, its file replaced by a shorter stream
+    shutil.copy(SHORTER, live)
+    pv.pa_avatar.file_signature = ""
+    runtime.forget(pv)
+    runtime.apply_budget(pv, bpy.context)
+    r["shorter_status"], r["shorter_shown"] = pv.pa_avatar.status, count_input(pv)
+    # Loading it again is the remedy
+    r["reload"] = call(bpy.ops.object.progressive_avatars_load, filepath=live, budget=30.0)
+    pv = next(c for c in MESH.children if c.pa_avatar.is_preview)
+    r["reload_status"], r["reload_shown"] = pv.pa_avatar.status, count_input(pv)
 
 
 @step
