@@ -253,5 +253,13 @@ def _own_args():
     return sys.argv[sys.argv.index("--") + 1 :] if "--" in sys.argv else sys.argv[1:]
 
 
+def _arguments(argv):
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="fewer repetitions (a quick look, not for the record)")
+    return ap.parse_args(argv)
+
+
 if __name__ == "__main__":
-    print(run(quick="--quick" in _own_args()))
+    print(run(quick=_arguments(_own_args()).quick))

@@ -223,6 +223,13 @@ def run(quick: bool = False) -> str:
     return "\n".join(lines)
 
 
+def _arguments(argv):
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="fewer repetitions (a quick look, not for the record)")
+    return ap.parse_args(argv)
+
+
 if __name__ == "__main__":
-    args = _bootstrap.script_args()
-    print(run(quick="--quick" in args))
+    print(run(quick=_arguments(_bootstrap.script_args()).quick))

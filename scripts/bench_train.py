@@ -799,9 +799,18 @@ def write_section(text: str, path: str = os.path.join(ROOT, "docs", "BENCHMARKS.
     os.replace(path + ".tmp", path)
 
 
+def _arguments(argv):
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="fewer repetitions (a quick look, not for the record)")
+    ap.add_argument("--write", action="store_true", help="put the section into docs/BENCHMARKS.md")
+    return ap.parse_args(argv)
+
+
 if __name__ == "__main__":
-    args = _bootstrap.script_args()
-    section = run(quick="--quick" in args)
+    args = _arguments(_bootstrap.script_args())
+    section = run(quick=args.quick)
     print(section)
-    if "--write" in args:
+    if args.write:
         write_section(section)

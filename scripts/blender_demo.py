@@ -1,7 +1,7 @@
 """Build a demo .blend: the sequence as a shape-keyed mesh, the avatar's splat preview with its
 budget slider, depth colours, and Cycles preview PNGs at a few budgets.
 
-    python scripts/blender_demo.py [--run RUN] [--data DIR] --out DIR [--frames N] [--size PX]
+    python scripts/blender_demo.py [--run RUN --data DIR] --out DIR [--size PX] [--samples N] [--budgets 5,25,100]
 
 With --run (a training run folder holding a .pavs stream) and --data (its dataset: the
 sequence comes from its test split, cameras from it too) the real avatar is shown; without
@@ -140,9 +140,13 @@ def main(argv=None):
     ap.add_argument("--samples", type=int, default=16)
     ap.add_argument("--budgets", default="5,25,100")
     args = ap.parse_args(_own_args() if argv is None else argv)
+    if bool(args.run) != bool(args.data):  # a run alone once fell back to the built-in avatar
+        ap.error("--run and --data go together (the run's stream and the dataset whose sequence and camera it shows)")
+    stream = find_stream(args.run) if args.run else None
+    if args.run and not stream:
+        ap.error(f"--run {args.run}: no .pavs stream in that run folder (scripts/export.py --stream writes one)")
     out = os.path.abspath(args.out)
     os.makedirs(out, exist_ok=True)
-    stream = find_stream(args.run) if args.run else None
     camera = None
     if stream and args.data:
         from progressive_avatars.core.io.dataset import Dataset
@@ -159,10 +163,6 @@ def main(argv=None):
         camera = {"R": c.R.tolist(), "t": c.t.tolist(), "intr": [c.fx, c.fy, c.cx, c.cy, c.width, c.height]}
         source = f"run {args.run}, data {args.data}"
     else:
-        if args.run and not stream:
-            print(f"no .pavs stream under {args.run}: using the built-in avatar", file=sys.stderr)
-        elif stream and not args.data:
-            print("a run needs --data for its sequence: using the built-in avatar", file=sys.stderr)
         sequence, stream = builtin_inputs(out)
         source = "built-in synthetic head avatar"
     payload = {

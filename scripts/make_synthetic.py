@@ -1,4 +1,4 @@
-"""Generate the embedded synthetic head dataset (mesh mode, GaussianAvatars/VHAP layout).
+r"""Generate the embedded synthetic head dataset (mesh mode, GaussianAvatars/VHAP layout).
 
     python scripts/make_synthetic.py --out runs/synthetic
     python scripts/make_synthetic.py --out runs/synthetic --contact-sheet docs/images/synthetic_contact_sheet.png \
@@ -58,7 +58,7 @@ PRESETS = {
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", required=True, help="dataset directory (created)")
     ap.add_argument(
         "--preset",
