@@ -8,6 +8,11 @@ import re
 import numpy as np
 
 
+def _percent(p: float) -> str:
+    """A budget percent for a label: 12.5, 8.33, 25 (two decimals at most, none when whole)."""
+    return f"{p:.2f}".rstrip("0").rstrip(".")
+
+
 def _plt():
     import matplotlib
 
@@ -581,7 +586,7 @@ def report_markdown(r: dict) -> str:
             "",
             "<details><summary>all points</summary>",
             "",
-            ", ".join(f"{c['percent']:g}: {c['psnr']:.2f} / {c['coverage']:.3f}" for c in curve),
+            ", ".join(f"{_percent(c['percent'])}: {c['psnr']:.2f} / {c['coverage']:.3f}" for c in curve),
             "",
             "</details>",
         ]
