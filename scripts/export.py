@@ -5,7 +5,7 @@
 
 The stream (version 5, docs/FORMAT.md) opens with the coarse levels, then sends any face once its
 parent has, by descending importance, computed over the training views on the levels up to each
-face's own (pixels weighted by the error of the levels below) and cached in RUN/importance.npy.
+face's own (pixels weighted by the error of the levels below) and cached in RUN/importance.npz.
 An export writes the files it is given and no other: --ply alone writes the PLY only, and leaves
 any stream of the run (RUN/avatar.pavs, perhaps a lossless one) as it is: one frame's PLY is no
 reason to replace a stream the user did not name. The PLY holds a prefix of the stream this
@@ -163,7 +163,7 @@ def main(argv=None):
         )
         return 2
     try:
-        W = runs.run_importance(args.run, avatar, data, max_views=args.max_views)
+        W = runs.run_importance(args.run, avatar, data, max_views=args.max_views, flame_model=args.flame_model)
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -220,11 +220,13 @@ def test_export_budget_refused_clearly(tiny_run, tmp_path, budget):
 
 def test_importance_cache_keyed_on_max_views(tiny_run, tiny_dataset, tmp_path, monkeypatch):
     from progressive_avatars.core.render import importance
+    from progressive_avatars.core.io import dataset as runs_dataset
     from progressive_avatars.core.io import run as runs
+    from progressive_avatars.core.io.dataset import Dataset as RealDataset
 
     run = tmp_path / "run"
     shutil.copytree(tiny_run, run)
-    for n in [f"importance{k}.{e}" for k in ("", "_alpha", "_whole") for e in ("npy", "json")]:
+    for n in [f"importance{k}.{e}" for k in ("", "_alpha", "_whole") for e in ("npz", "npy", "json")]:
         if (run / n).exists():
             os.remove(run / n)
     av = runs.load_run_avatar(str(run))
@@ -238,11 +240,41 @@ def test_importance_cache_keyed_on_max_views(tiny_run, tiny_dataset, tmp_path, m
     w2_alpha = runs.run_importance(str(run), av, tiny_dataset, max_views=2, progress=False, weighting="alpha")
     w_all_again = runs.run_importance(str(run), av, tiny_dataset, max_views=None, progress=False)
     assert calls == [2, None, 2, 2]  # cached for the same views and kind, recomputed for others
-    assert (run / "importance_alpha.npy").exists() and not np.array_equal(w2, w2_alpha)
+    assert (run / "importance_alpha.npz").exists() and not np.array_equal(w2, w2_alpha)
     np.testing.assert_array_equal(w2, w2b)
     assert not np.array_equal(w2, w_all)
-    assert not np.array_equal(w2, w2_whole) and (run / "importance_whole.npy").exists()
+    assert not np.array_equal(w2, w2_whole) and (run / "importance_whole.npz").exists()
     np.testing.assert_array_equal(w_all_again, w_all)  # the whole-avatar kind has its own cache file
+
+    # Another avatar of the same size copied in with an older file time (cp -p, a restore): the
+    # cache is keyed on the avatar's contents, not on file times, so it is measured again.
+    calls.clear()
+    other = tmp_path / "other.npz"
+    av2 = runs.load_run_avatar(str(run))
+    av2.opacity_logit[:] = av2.opacity_logit[::-1]
+    av2.save(str(other))
+    old = os.path.getmtime(run / "importance.npz") - 100
+    os.utime(other, (old, old))
+    shutil.copy2(other, run / "avatar.npz")
+    w_other = runs.run_importance(str(run), av2, tiny_dataset, max_views=None, progress=False)
+    assert calls == [None] and not np.array_equal(w_other, w_all)
+    # The training split edited in place (frames dropped): measured again as well.
+    data = tmp_path / "data"
+    shutil.copytree(tiny_dataset, data)
+    runs.run_importance(str(run), av2, str(data), max_views=None, progress=False)
+    calls.clear()
+    meta = json.loads((data / "transforms_train.json").read_text())
+    meta["frames"] = meta["frames"][: len(meta["frames"]) // 2]
+    (data / "transforms_train.json").write_text(json.dumps(meta))
+    runs.run_importance(str(run), av2, str(data), max_views=None, progress=False)
+    assert calls == [None]
+    # A FLAME model given on the command line is the one the importance pass reads with (and keys)
+    seen = []
+    monkeypatch.setattr(runs_dataset, "Dataset", lambda *a, **k: seen.append(k["flame_model"]) or RealDataset(*a, **k))
+    runs.run_importance(str(run), av2, str(data), max_views=None, progress=False, flame_model="given.pkl")
+    assert seen == ["given.pkl"] and calls == [None, None]
+    with np.load(run / "importance.npz") as z:
+        assert json.loads(str(z["key"]))["flame_model"] == os.path.abspath("given.pkl")
 
 
 # -- numerical --------------------------------------------------------------------------
@@ -392,15 +424,18 @@ def test_run_config_errors_name_the_file_and_damaged_importance_cache_is_recompu
     monkeypatch.setattr(importance, "face_importance", lambda *a, **k: calls.append(1) or real(*a, **k))
     w = runs.run_importance(str(run_copy), av, tiny_dataset, max_views=2, progress=False)
     calls.clear()
-    npy = run_copy / "importance.npy"
-    good = npy.read_bytes()
-    for damaged in (good[:200], b"x\n", b"", np.lib.format.magic(1, 0) + b"garbage"):
-        npy.write_bytes(damaged)  # newer than the avatar, same key: only its contents are wrong
+    cache = run_copy / "importance.npz"
+    good = cache.read_bytes()
+    for damaged in (good[:200], b"x\n", b"", b"PK\x03\x04garbage"):
+        cache.write_bytes(damaged)  # only its contents are wrong
         np.testing.assert_array_equal(
             runs.run_importance(str(run_copy), av, tiny_dataset, max_views=2, progress=False), w
         )
-        np.testing.assert_array_equal(np.load(npy), w)  # the cache was rewritten
-    np.save(npy, np.zeros(3))  # a cache of another avatar
+        with np.load(cache) as z:
+            np.testing.assert_array_equal(z["W"], w)  # the cache was rewritten
+    with np.load(cache) as z:
+        key = z["key"]
+    np.savez(cache, W=np.zeros(3), key=key)  # the right key beside an array of another avatar
     np.testing.assert_array_equal(runs.run_importance(str(run_copy), av, tiny_dataset, max_views=2, progress=False), w)
     assert len(calls) == 5
 

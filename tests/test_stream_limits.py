@@ -288,3 +288,30 @@ def test_json_depth_memory_does_not_grow_with_the_text():
     # The string-blanking regex builds its copy from pieces (2 bytes per byte at its peak), the
     # chunks take a few MiB; whole-text int64 arrays took over 24 bytes per byte.
     assert peak < 4 * len(text), peak / len(text)
+
+
+def test_a_deep_chain_keeps_every_parent_first():
+    """40 levels below the template (a chain of splits through the last child): the order
+    inside a unit once used a base-4 number in int64, which overflowed from 33 levels and put a
+    child before its parent (or raised OverflowError); the stream now writes and reads back."""
+    from progressive_avatars.core.stream.order import interleaved_order
+
+    f = Forest(np.array([[0, 1, 2], [0, 2, 3]], np.int32))
+    cur = [0]
+    for _ in range(40):
+        cur = f.split(cur)[:, 2]
+    N = f.num_faces
+    imp = np.zeros(N)
+    leaf = f.children[:, 0] < 0
+    imp[leaf & (f.slot == 0)], imp[leaf & (f.slot == 1)] = 1.0, 0.9
+    imp[np.flatnonzero(f.level == f.level.max())] = 0.8
+    imp[:2] = 1.0  # every child merges into its parent's unit: the path runs all 40 levels
+    o = interleaved_order(f, imp)
+    pos = np.empty(N, np.int64)
+    pos[o] = np.arange(N)
+    kids = np.flatnonzero(f.parent >= 0)
+    assert sorted(o.tolist()) == list(range(N)) and np.all(pos[f.parent[kids]] < pos[kids])
+    from progressive_avatars.core.avatar.avatar import Avatar
+
+    data, _ = build_stream(Avatar.initial(f), imp)
+    assert read_stream(data).num_gaussians == N

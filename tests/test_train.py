@@ -158,7 +158,7 @@ def test_resume_keeps_the_runs_settings_and_overwrite_clears_the_old_run(tiny_da
     # --overwrite: once the new data passed its checks, the old run's files are gone, so a kill
     # before the new run's first checkpoint leaves nothing a --resume could continue wrongly.
     (run / "avatar.pavs").write_bytes(b"old stream")
-    (run / "importance.npy").write_bytes(b"old cache")
+    (run / "importance.npz").write_bytes(b"old cache")
     fresh = Trainer(tiny_dataset, str(run), config_for("tiny", iterations=4, seed=1), overwrite=True)
     assert sorted(os.listdir(run)) == ["config.json"]
     assert fresh.iteration == 0

@@ -544,7 +544,7 @@ def build_report(args: ReportOptions) -> dict:
     # and camera of the splits scored, and the training logs (a bad line is refused here).
     _validate_splits(splits, progress)
     log_rows = _read_logs(args)
-    W = runs.run_importance(args.run, avatar, data, progress=progress)
+    W = runs.run_importance(args.run, avatar, data, progress=progress, flame_model=args.flame_model)
     stream_path = os.path.join(args.run, "avatar.pavs")
     if avatar.sh_degree:
         print(
@@ -643,9 +643,13 @@ def build_report(args: ReportOptions) -> dict:
         n25, n50 = int(info.count_for_percent(25)), int(info.count_for_percent(50))
         # The paper's importance-only ablation ranks by importance measured on the whole avatar (per
         # level, the stream's own ranking, coarse faces would simply come first).
-        W_whole = runs.run_importance(args.run, avatar, data, progress=progress, per_level=False)
+        W_whole = runs.run_importance(
+            args.run, avatar, data, progress=progress, per_level=False, flame_model=args.flame_model
+        )
         imp = importance_only(W_whole[order])[:n50]
-        W_alpha = runs.run_importance(args.run, avatar, data, progress=progress, weighting="alpha")
+        W_alpha = runs.run_importance(
+            args.run, avatar, data, progress=progress, weighting="alpha", flame_model=args.flame_model
+        )
         abl["importance_kind"] = importance_kind_ablation(
             avatar,
             {"alpha": W_alpha, "whole": W_whole},

@@ -1,13 +1,14 @@
 """A training run folder and what is derived from it (importance, stream order, stream file).
 
 RUN/avatar.npz      the trained avatar (creation order)
-RUN/importance.npy  face importance over the training views (cached, same order; per level)
-RUN/importance_whole.npy  the same measured on the whole avatar (the importance-only ablation)
+RUN/importance.npz  face importance over the training views (cached with its key, same order; per level)
+RUN/importance_whole.npz  the same measured on the whole avatar (the importance-only ablation)
 RUN/avatar.pavs     the progressive stream (docs/FORMAT.md)
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 
@@ -68,6 +69,15 @@ def run_flame_model(run: str, flame_model: str | None = None) -> str | None:
     return fm or None
 
 
+def _file_digest(path: str) -> str:
+    """BLAKE2 of a file's bytes (what a cached result was computed from)."""
+    h = hashlib.blake2b(digest_size=16)
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
 def run_importance(
     run: str,
     avatar: Avatar,
@@ -76,48 +86,51 @@ def run_importance(
     progress=True,
     per_level: bool = True,
     weighting: str = "residual",
+    flame_model: str | None = None,
 ) -> np.ndarray:
     """Importance per face (core/render/importance.py; ``per_level`` False: measured on the whole
     avatar, the paper's, plain alpha*T), computed once per trained avatar, kind and view count and
-    cached in the run folder (importance.npy; importance_alpha.npy for per-level plain alpha*T;
-    importance_whole.npy; each with a .json saying which avatar, data and max_views)."""
+    cached in the run folder (importance.npz; importance_alpha.npz for per-level plain alpha*T;
+    importance_whole.npz). Each cache holds its key with it: the avatar file's and the training
+    split's content hashes, the data folder, the FLAME model, max_views and the kind, so a copied
+    or restored avatar, an edited dataset or an interrupted write never hands back another
+    avatar's importance. ``flame_model``: the run's own (config.json) when not given."""
     if not per_level:
         weighting = "alpha"
     name = "importance_whole" if not per_level else "importance" if weighting == "residual" else "importance_alpha"
-    path = os.path.join(run, name + ".npy")
-    key_path = os.path.join(run, name + ".json")
-    stamp = os.path.getmtime(os.path.join(run, "avatar.npz"))
-    key = {"max_views": max_views, "data": os.path.abspath(data), "per_level": per_level, "weighting": weighting}
-    if os.path.exists(path) and os.path.getmtime(path) >= stamp:
-        try:
-            with open(key_path, encoding="utf-8") as fh:
-                cached = json.load(fh)
-        except (OSError, ValueError):
-            cached = None
-        if cached == key:
-            try:  # a cache: one that is damaged (truncated, garbage) or does not fit is recomputed
-                W = np.load(path, allow_pickle=False)
-            except (OSError, ValueError, EOFError):
-                W = None
-            if isinstance(W, np.ndarray) and W.shape == (avatar.num_gaussians,) and W.dtype.kind == "f":
-                return W
+    path = os.path.join(run, name + ".npz")
+    model = run_flame_model(run, flame_model)
+    key = {
+        "max_views": max_views,
+        "data": os.path.abspath(data),
+        "per_level": per_level,
+        "weighting": weighting,
+        "avatar": _file_digest(os.path.join(run, "avatar.npz")),
+        "train_split": _file_digest(os.path.join(data, "transforms_train.json")),
+        "flame_model": os.path.abspath(model) if model else None,
+    }
+    if os.path.exists(path):
+        try:  # a cache: one that is damaged (truncated, garbage) or does not fit is recomputed
+            with np.load(path, allow_pickle=False) as z:
+                cached, W = json.loads(str(z["key"])), z["W"]
+        except Exception:
+            cached, W = None, None
+        if cached == key and isinstance(W, np.ndarray) and W.shape == (avatar.num_gaussians,) and W.dtype.kind == "f":
+            return W
     from .dataset import Dataset
     from ..render.importance import face_importance
 
     W = face_importance(
         avatar,
-        Dataset(data, "train", flame_model=run_flame_model(run), cache_images=0),  # each image is read once
+        Dataset(data, "train", flame_model=model, cache_images=0),  # each image is read once
         max_views=max_views,
         progress=progress,
         per_level=per_level,
         weighting=weighting,
     )
-    from .atomic import atomic_open
+    from .atomic import atomic_savez
 
-    with atomic_open(path) as fh:
-        np.save(fh, W)
-    with atomic_open(key_path, "w") as fh:
-        json.dump(key, fh)
+    atomic_savez(path, W=W, key=np.array(json.dumps(key, sort_keys=True)))
     return W
 
 

@@ -127,16 +127,21 @@ def interleaved_order(forest: Forest, importance, root_key=None) -> np.ndarray:
         np.add.at(w, par[take], w[ids[take]])
         np.add.at(n, par[take], n[ids[take]])
     unit = np.arange(N)  # the face heading each face's unit
-    path = np.zeros(N, np.int64)  # depth-first position inside the unit (at most 3 children: base 4)
+    # Depth-first position inside the unit: one digit per level below the lead (0: not on the
+    # path, else the rank among the merged siblings + 1), compared shallow first. (A base-4
+    # number in int64 overflowed 33 levels down and put a child before its parent.)
+    path = np.zeros((N, max(top - lead, 0)), np.int8)
     ratio = w / n
     for lv in range(lead + 1, top + 1):
         ids = np.flatnonzero(level == lv)
         m = ids[merged[ids]]
         unit[m] = unit[parent[m]]
-        path[m] = path[parent[m]] + (rank[m] + 1) * 4 ** (top - lv)
+        path[m] = path[parent[m]]
+        path[m, lv - lead - 1] = rank[m] + 1
         h = ids[~merged[ids]]
         ratio[h] = np.minimum(ratio[h], ratio[unit[parent[h]]])
     rest = np.flatnonzero(level >= lead)
     u = unit[rest]
-    rest = rest[np.lexsort((path[rest], u, level[u], -ratio[u]))]
+    digits = [path[rest, c] for c in range(path.shape[1] - 1, -1, -1)]  # lexsort: last key first
+    rest = rest[np.lexsort((*digits, u, level[u], -ratio[u]))]
     return np.concatenate([head, rest]).astype(np.int64)

@@ -60,7 +60,7 @@ def _train(args) -> int:
 
         avatar = runs.load_run_avatar(args.out)
         print("importance and stream", flush=True)
-        W = runs.run_importance(args.out, avatar, args.data, progress=True)
+        W = runs.run_importance(args.out, avatar, args.data, progress=True, flame_model=flame)
         result = os.path.join(args.out, "avatar.pavs")
         try:
             rest = Dataset(args.data, None, flame_model=flame).canonical_vertices  # places the stand-ins' retirement

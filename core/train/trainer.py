@@ -428,7 +428,9 @@ def _remove_run_outputs(out_dir: str, everything: bool) -> None:
     if everything:
         names += _RUN_OUTPUTS
         try:
-            names += [n for n in os.listdir(out_dir) if n.startswith("importance") and n.endswith((".npy", ".json"))]
+            names += [
+                n for n in os.listdir(out_dir) if n.startswith("importance") and n.endswith((".npz", ".npy", ".json"))
+            ]
         except OSError:
             pass
     for name in names:
