@@ -168,7 +168,9 @@ def test_connection_cut_keeps_what_was_verified(stream, serve, mode):
     srv2 = serve(data)
     res2 = H.fetch_stream(srv2.url, reader=res.reader, chunk_size=4096, timeout=2)
     assert res2.status == H.COMPLETE, str(res2)
-    assert srv2.httpd.log[0] == f"bytes={at}-{at + 4095}"
+    # resumed without a strong ETag: the header's CRC is read again first (a file replaced since
+    # would pass each record's own check), then the rest from where the reader stopped
+    assert srv2.httpd.log[:2] == [f"bytes={info.header_size - 4}-{info.header_size - 1}", f"bytes={at}-{at + 4095}"]
     assert_prefix(res2.avatar(), full, info.num_records)
 
 

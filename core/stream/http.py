@@ -20,6 +20,7 @@ import numbers
 import operator
 import re
 import socket
+import struct
 import threading
 import time
 from dataclasses import dataclass, field
@@ -162,46 +163,61 @@ class _Watchdog:
     the response headers) never trips them. On a violation it shuts the socket down, which
     wakes the blocked read; the fetch loop then reports the reason."""
 
-    def __init__(self, reader, deadline, min_rate, rate_window):
-        self.reader, self.deadline, self.min_rate, self.window = reader, deadline, min_rate, rate_window
+    def __init__(self, received, deadline, min_rate, rate_window):
+        # received(): bytes read from the network so far, re-read ones included (a resume from a
+        # server that ignores Range re-downloads the held prefix: that is progress too)
+        self.received, self.deadline, self.min_rate, self.window = received, deadline, min_rate, rate_window
         self.reason = None
         self.message = ""
         self.conn = None
         self._stop = threading.Event()
         self._thread = None
+        self.t_start = time.monotonic()
         if deadline is not None or min_rate is not None:
             self._thread = threading.Thread(target=self._run, name="fetch_stream-watchdog", daemon=True)
             self._thread.start()
 
     def _run(self):
         t0 = time.monotonic()
-        w0, b0 = t0, self.reader.bytes_received
+        w0, b0 = t0, self.received()
         while not self._stop.wait(0.05):
             now = time.monotonic()
-            if self.deadline is not None and now - t0 >= self.deadline:
+            if self.reason:
+                pass
+            elif self.deadline is not None and now - t0 >= self.deadline:
                 self.reason, self.message = DEADLINE, f"total deadline of {self.deadline} s passed"
             elif self.min_rate is not None and now - w0 >= self.window:
-                got = self.reader.bytes_received - b0
+                got = self.received() - b0
                 if got < self.min_rate * (now - w0):
                     self.reason = TOO_SLOW
                     self.message = (
                         f"{got} bytes in {now - w0:.1f} s, under the minimum rate of {self.min_rate:g} bytes/s"
                     )
-                w0, b0 = now, self.reader.bytes_received
+                w0, b0 = now, self.received()
             if self.reason:
-                conn = self.conn
-                sock = getattr(conn, "sock", None)
+                # Until stopped: a socket still connecting (none yet) is shut down once it exists.
+                sock = getattr(self.conn, "sock", None)
                 if sock is not None:
                     try:
                         sock.shutdown(socket.SHUT_RDWR)
                     except OSError:
                         pass
-                return
+
+    def remaining(self, timeout: float) -> float:
+        """The longest a blocking step may wait: `timeout`, or less when the deadline is nearer."""
+        if self.deadline is None:
+            return timeout
+        return max(0.001, min(timeout, self.deadline - (time.monotonic() - self.t_start)))
 
     def stop(self):
         self._stop.set()
         if self._thread is not None:
             self._thread.join(1.0)
+
+
+def _strong(validator: str | None) -> bool:
+    """A strong ETag (quoted, not W/): the one validator that names the file's exact bytes."""
+    return bool(validator) and validator.startswith('"')
 
 
 def _validator(resp) -> str | None:
@@ -242,6 +258,10 @@ def fetch_stream(
     that lacks its header rather than overshoot). Range requests carry If-Range with the file's
     ETag or Last-Modified (`validator` to resume an earlier fetch): if the file changes on the
     server the result is "changed" and the bytes received belong to the old file: discard them.
+    A resumed reader without a strong ETag (none, or a Last-Modified, which has one-second
+    resolution) first re-reads the 4 bytes of the header's CRC-32: another file there is
+    "changed" too. A body sent with a Content-Encoding other than identity is an "http_error"
+    naming it. The minimum rate counts every byte read, a held prefix re-read included.
     A file on the server shorter than its header announces ends "truncated" (its verified
     prefix kept; resuming cannot help). A URL, or a redirect's, without a host, with a bad port
     or a scheme other than http(s) is an "http_error" naming it. Bad arguments raise ValueError
@@ -264,6 +284,14 @@ def fetch_stream(
     # ours to read, so with a percent budget they are requested again (see need_head).
     head = bytearray()
     fixed_total = [None]  # stream size implied by the fixed part (before the whole header)
+    wire = [0]  # body bytes read from the network, re-read ones included (the watchdog's rate)
+    # A resumed reader's records were decoded with its header: without a strong ETag (none, or a
+    # Last-Modified of one-second resolution) a file replaced since would pass each record's own
+    # CRC-8, so the first request re-reads the header's CRC-32 and compares it.
+    h0 = reader.header
+    verify = h0 is not None and reader.bytes_received >= h0.header_size and not _strong(validator)
+    crc_at = h0.header_size - 4 if verify else 0
+    crc_want = struct.pack("<I", h0.header_crc) if verify else b""
     bad_url = "bad URL"  # how an unusable target is named: the caller's URL, or a redirect's
 
     def limit() -> int | None:
@@ -316,10 +344,24 @@ def fetch_stream(
                 + 4 * -(-f["num_records"] // f["records_per_block"])
             )
 
+    def header_replaced(data, at) -> bool:
+        """Set CHANGED when `data` (at stream offset `at`) shows another header CRC than the one
+        the resumed reader decoded its records with."""
+        got = bytes(data[max(crc_at - at, 0) : max(crc_at + 4 - at, 0)])
+        if len(got) < 4 or got == crc_want:
+            return False
+        res.status = CHANGED
+        res.message = (
+            f"the file on the server changed since the earlier fetch (its header CRC differs); the "
+            f"{reader.bytes_received} bytes received belong to the old file: discard them"
+        )
+        return True
+
     def feed(data, at) -> bool:
         """Take the bytes at stream offset `at`: note the fixed part, feed the reader what it
         lacks (bytes it holds were only re-read for the fixed part), call back. False: stop
         (cancelled by the callback, or refused by the reader; res says which)."""
+        wire[0] += len(data)
         take_head(data, at)
         skip = reader.bytes_received - at
         if skip >= len(data):
@@ -384,7 +426,7 @@ def fetch_stream(
                 "announces (truncated on the server, e.g. an interrupted upload); the verified prefix is kept"
             )
 
-    dog = _Watchdog(reader, deadline, min_rate, rate_window)
+    dog = _Watchdog(lambda: wire[0], deadline, min_rate, rate_window)
     target = url
     caller_error = None
     try:
@@ -400,7 +442,7 @@ def fetch_stream(
                 res.status, res.message = HTTP_ERROR, f"{bad_url} {target!r}: {problem}"
                 break
             path = (parts.path or "/") + (f"?{parts.query}" if parts.query else "")
-            start = len(head) if need_head() else reader.bytes_received
+            start = crc_at if verify else len(head) if need_head() else reader.bytes_received
             if use_ranges and total_seen is not None and start >= total_seen:
                 # Content-Range gave the file's size and every byte of it arrived: asking for
                 # more only gets a 416.
@@ -413,6 +455,8 @@ def fetch_stream(
                 end = start + chunk_size - 1
                 if lim is not None:
                     end = min(end, lim - 1)
+                if verify:
+                    end = crc_at + 3
                 hdrs["Range"] = f"bytes={start}-{end}"
                 if res.validator is not None:
                     hdrs["If-Range"] = res.validator
@@ -421,6 +465,13 @@ def fetch_stream(
                     cls = http.client.HTTPSConnection if parts.scheme == "https" else http.client.HTTPConnection
                     conn = cls(parts.hostname, parts.port, timeout=timeout)
                     dog.conn = conn
+                    # Connecting waits no longer than the deadline leaves (the watchdog has no
+                    # socket to shut down until it exists); reads then wait up to `timeout`.
+                    conn.timeout = dog.remaining(timeout)
+                    conn.connect()
+                    conn.sock.settimeout(timeout)
+                    if dog.reason:
+                        break
                 conn.request("GET", path, headers=hdrs)
             except (http.client.InvalidURL, UnicodeError) as exc:
                 # Characters http.client will not send (or a host name IDNA cannot encode).
@@ -437,7 +488,8 @@ def fetch_stream(
             res.http_status = resp.status
             if resp.status in (301, 302, 303, 307, 308):
                 loc = resp.getheader("Location")
-                resp.read()
+                res.status, res.message = HTTP_ERROR, f"HTTP {resp.status} from {target}: its body did not arrive"
+                resp.read(1 << 16)  # a redirect's body is short; a stalled one ends as this error
                 redirects += 1
                 if not loc or redirects > max_redirects:
                     res.status, res.message = HTTP_ERROR, f"HTTP {resp.status}: bad or too many redirects"
@@ -451,6 +503,15 @@ def fetch_stream(
                 conn.close()
                 conn = None
                 continue
+            encoding = (resp.getheader("Content-Encoding") or "identity").strip().lower()
+            if resp.status in (200, 206) and encoding != "identity":
+                # Asked for identity; a gzip body fed as stream bytes would read as corruption.
+                resp.close()
+                res.status = HTTP_ERROR
+                res.message = (
+                    f"HTTP {resp.status} from {target}: the body is {encoding}-encoded (identity was asked for)"
+                )
+                break
             if resp.status == 416 and reader.complete:
                 res.status = COMPLETE
                 break
@@ -487,13 +548,17 @@ def fetch_stream(
                     piece = resp.read1(min(read_size, want - got))
                     if not piece:
                         break
+                    if verify and header_replaced(piece, start + got):
+                        return _done(res, conn, t0, dog)
                     if not feed(piece, start + got):
                         return _done(res, conn, t0, dog)
                     got += len(piece)
                 if got < want:
                     res.status, res.message = CUT, f"range response ended after {got} of {want} bytes"
                     break
-                if (len(head), reader.bytes_received) == progress:
+                if verify:  # the header CRC matched: go on from where the reader is
+                    verify = False
+                elif (len(head), reader.bytes_received) == progress:
                     # Cannot happen with the checks above; a guard against a hot loop of requests.
                     res.status, res.message = HTTP_ERROR, f"no progress from Content-Range {cr!r}"
                     break
@@ -519,11 +584,15 @@ def fetch_stream(
                 use_ranges = False
                 pos = 0
                 while pos < reader.bytes_received:
-                    dropped = resp.read(min(read_size, reader.bytes_received - pos))
+                    dropped = resp.read1(min(read_size, reader.bytes_received - pos))  # counted as it arrives
                     if not dropped:
                         break
+                    wire[0] += len(dropped)
+                    if verify and header_replaced(dropped, pos):
+                        return _done(res, conn, t0, dog)
                     take_head(dropped, pos)
                     pos += len(dropped)
+                verify = False
                 while pos >= reader.bytes_received:
                     if finished():
                         break
@@ -538,13 +607,14 @@ def fetch_stream(
                 done = finished()
                 if done:
                     res.status = done
-                elif resp.length == 0:  # the whole body (Content-Length) arrived: the file is short
-                    truncated(pos)
+                elif resp.length == 0 or (resp.chunked and resp.isclosed()):
+                    truncated(pos)  # the whole body (Content-Length, or the last chunk) arrived: the file is short
                 else:
                     res.status, res.message = CUT, f"response body ended after {pos} bytes"
                 break
-            body = resp.read(2048).decode("utf-8", "replace")
-            res.status, res.message = HTTP_ERROR, f"HTTP {resp.status} {resp.reason}: {body[:200]}"
+            res.status, res.message = HTTP_ERROR, f"HTTP {resp.status} {resp.reason} from {target}"
+            body = resp.read1(2048).decode("utf-8", "replace")  # what arrived: a stalled body keeps the status
+            res.message += f": {body[:200]}"
             break
     except _CallerError as exc:
         caller_error = exc.error
