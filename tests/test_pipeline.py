@@ -185,7 +185,7 @@ def test_export_and_evaluate(tiny_run, tiny_dataset, tmp_path):
     own = rep["training"]["this run"]
     assert own["iterations"] == 60 and own["seconds"] > 0
     assert rep["training"]["again"] == own
-    assert "| `again` |" in md and "| `tiny` (this run) |" in md and "wall time" in md
+    assert "| `again` |" in md and "| `tiny` (this run) |" in md and "s of training steps" in md
     # --name puts this run (scored from its float32 avatar) in a group with "tiny_seed1" (the
     # same run again): two identical scores, so the mean is that score and the spread 0.
     g = rep["seed_groups"]["tiny"]
