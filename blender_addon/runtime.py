@@ -4,7 +4,6 @@ Nothing here is saved: the .blend holds the attributes and properties, this modu
 the decoded avatar and the evaluators (rebuilt after a file load, on first use).
 """
 
-import hashlib
 import os
 
 import bpy
@@ -12,6 +11,7 @@ import numpy as np
 
 from ..core.bridge.budget import load_avatar, typed_percent
 from ..core.bridge.splats import preview_order, splat_evaluator
+from ..core.io.safe_io import file_digest
 from . import preview
 
 
@@ -49,12 +49,8 @@ _cache: dict = {}
 
 
 def file_signature(path) -> str:
-    """Size and BLAKE2 hash of a file: what the preview's saved attributes were made from."""
-    h = hashlib.blake2b(digest_size=16)
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return f"{os.path.getsize(path)}:{h.hexdigest()}"
+    """Size and hash of a file: what the preview's saved attributes were made from."""
+    return f"{os.path.getsize(path)}:{file_digest(path)}"
 
 
 def resolve(path) -> str:

@@ -8,13 +8,13 @@ RUN/avatar.pavs     the progressive stream (docs/FORMAT.md)
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 
 import numpy as np
 
 from ..avatar.avatar import PARAM_NAMES, Avatar
+from .safe_io import file_digest
 
 
 def load_run_avatar(run: str) -> Avatar:
@@ -69,15 +69,6 @@ def run_flame_model(run: str, flame_model: str | None = None) -> str | None:
     return fm or None
 
 
-def _file_digest(path: str) -> str:
-    """BLAKE2 of a file's bytes (what a cached result was computed from)."""
-    h = hashlib.blake2b(digest_size=16)
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def run_importance(
     run: str,
     avatar: Avatar,
@@ -105,8 +96,8 @@ def run_importance(
         "data": os.path.abspath(data),
         "per_level": per_level,
         "weighting": weighting,
-        "avatar": _file_digest(os.path.join(run, "avatar.npz")),
-        "train_split": _file_digest(os.path.join(data, "transforms_train.json")),
+        "avatar": file_digest(os.path.join(run, "avatar.npz")),
+        "train_split": file_digest(os.path.join(data, "transforms_train.json")),
         "flame_model": os.path.abspath(model) if model else None,
     }
     if os.path.exists(path):

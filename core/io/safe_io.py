@@ -179,3 +179,14 @@ def check_line_lengths(data: bytes, source: str, max_line: int = MAX_TEXT_LINE) 
         raise ValueError(
             f"{source}: line {k + 1} is {int(lengths[k])} bytes long, over the bound of {max_line}; refused before parsing"
         )
+
+
+def file_digest(path) -> str:
+    """ "sha256:<hex>" of a file's bytes: what a result derived from the file was made from."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return "sha256:" + h.hexdigest()

@@ -350,16 +350,12 @@ def run_settings(cfg: TrainConfig) -> dict:
 
 
 def _file_digest(path: str) -> str:
-    import hashlib
+    from ..io.safe_io import file_digest
 
-    h = hashlib.sha256()
     try:
-        with open(path, "rb") as fh:
-            for block in iter(lambda: fh.read(1 << 20), b""):
-                h.update(block)
+        return file_digest(path)
     except OSError:
         return os.path.abspath(path)  # unreadable: the dataset load reports it
-    return "sha256:" + h.hexdigest()
 
 
 def _config_json_settings(out_dir: str) -> dict | None:
