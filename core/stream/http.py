@@ -469,6 +469,7 @@ def fetch_stream(
                     # socket to shut down until it exists); reads then wait up to `timeout`.
                     conn.timeout = dog.remaining(timeout)
                     conn.connect()
+                    conn.timeout = timeout  # (a reconnect http.client makes by itself waits as long)
                     conn.sock.settimeout(timeout)
                     if dog.reason:
                         break
