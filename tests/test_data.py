@@ -777,3 +777,32 @@ def test_flame_pose_rows_are_frames(flame_model):
     np.testing.assert_allclose(
         flame_forward(flame_model, **dict(prm, eyes_pose=both)), flame_forward(flame_model, **prm)
     )
+
+
+def test_rgba_downscale_composites_before_shrinking(tmp_path):
+    """An RGBA image (transparent pixels black, as most exporters store them) downscaled: the
+    outline is the average of the composited full-size pixels, not darkened by the black of the
+    transparent ones (it was composited after shrinking colour and alpha apart: 50/255 off)."""
+    from PIL import Image
+
+    root = tmp_path / "rgba"
+    (root / "images").mkdir(parents=True)
+    (root / "meshes").mkdir()
+    verts = np.array([[-0.1, -0.1, -1.0], [0.1, -0.1, -1.0], [0.0, 0.1, -1.0]], np.float32)
+    np.savez(root / "canonical_mesh.npz", vertices=verts, faces=np.array([[0, 1, 2]], np.int32))
+    np.savez(root / "meshes" / "00000.npz", vertices=verts)
+    W, H = 8, 4
+    px = np.zeros((H, W, 4), np.uint8)
+    px[:, :3] = (200, 40, 40, 255)  # three opaque columns; the edge falls inside a 2x2 block
+    Image.fromarray(px, "RGBA").save(root / "images" / "00000_00.png")
+    frame = {"file_path": "images/00000_00.png", "transform_matrix": np.eye(4).tolist(), "fl_x": 10.0}
+    frame.update(w=W, h=H, timestep_index=0, camera_index=0, mesh_path="meshes/00000.npz")
+    (root / "transforms_train.json").write_text(json.dumps({"frames": [frame], "background": [1, 1, 1]}))
+    full = Dataset(root, "train")[0].image
+    half = Dataset(root, "train", downscale=2.0)[0].image
+    np.testing.assert_allclose(half, full.reshape(H // 2, 2, W // 2, 2, 3).mean((1, 3)), atol=1e-6)
+    # the same frame under a negative index is one cache entry, not a second decode
+    ds = Dataset(root, "train")
+    assert ds.images(-1)[0] is ds.images(0)[0] and ds.cached_bytes == full.nbytes + H * W * 4
+    with pytest.raises(IndexError, match="frame 1 out of range"):
+        ds.images(1)

@@ -289,3 +289,19 @@ def test_a_transforms_json_is_whole_or_absent(tmp_path):
         if n.endswith(".json"):
             with open(out / n) as fh:
                 json.load(fh)
+
+
+def test_contact_sheet_picks_frames_of_the_datasets_own_seed(tmp_path, monkeypatch):
+    """The sheet shows each chosen sequence at its strongest expression: posed with the seed the
+    dataset was made with (summary.json keeps it), not seed 0."""
+    kw = dict(resolution=16, cameras=2, sequences=4, frames=6, progress=False, template_subdivisions=1)
+    out = tmp_path / "ds"
+    summary = dataset.make_dataset(out, seed=7, **kw)
+    assert summary["seed"] == 7 and json.loads((out / "summary.json").read_text())["seed"] == 7
+    seen = []
+    real = dataset.sequence_params
+    monkeypatch.setattr(
+        dataset, "sequence_params", lambda *a, **k: seen.append(a[4:] + tuple(k.values())) or real(*a, **k)
+    )
+    dataset.contact_sheet(str(out), str(tmp_path / "sheet.png"))
+    assert seen and all(s == (7,) for s in seen), set(seen)

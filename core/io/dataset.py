@@ -410,9 +410,29 @@ class Dataset:
             im = im.convert("RGBA")
             alpha = im.getchannel("A")
         rgb = im.convert("RGB")
-        if rgb.size != target:
-            rgb = rgb.resize(target, Image.Resampling.BOX)
-        image = np.asarray(rgb, dtype=np.float32) / 255.0
+        if alpha is not None:
+            # Transparent pixels take the dataset background, as the renderer's will: composited
+            # at full size, so a transparent pixel's own colour (often black) never blurs into
+            # the outline when the image is downscaled.
+            a = np.asarray(alpha, dtype=np.float32)[..., None] / 255.0
+            full_rgb = np.asarray(rgb, dtype=np.float32) / 255.0 * a + self.background * (1.0 - a)
+            if rgb.size != target:
+                full_rgb = np.stack(
+                    [
+                        np.asarray(
+                            Image.fromarray(np.ascontiguousarray(full_rgb[..., c]), "F").resize(
+                                target, Image.Resampling.BOX
+                            )
+                        )
+                        for c in range(3)
+                    ],
+                    axis=-1,
+                )
+            image = full_rgb.astype(np.float32)
+        else:
+            if rgb.size != target:
+                rgb = rgb.resize(target, Image.Resampling.BOX)
+            image = np.asarray(rgb, dtype=np.float32) / 255.0
         if info.mask_path is not None:
             m = read(info.mask_path, "mask")
             m = m.convert("L")
@@ -424,19 +444,14 @@ class Dataset:
             mask = np.asarray(m, dtype=np.float32) / 255.0
         else:
             mask = np.ones(image.shape[:2], np.float32)
-        if alpha is not None:
-            # Transparent pixels take the dataset background, as the renderer's will.
-            a = (
-                np.asarray(
-                    alpha.resize(target, Image.Resampling.BOX) if alpha.size != target else alpha, dtype=np.float32
-                )[..., None]
-                / 255.0
-            )
-            image = image * a + self.background * (1.0 - a)
         return image, mask
 
     def images(self, i: int):
         """(image float32 [H,W,3], mask float32 [H,W]) of frame i, through the LRU cache."""
+        n = len(self.frames)
+        if not -n <= int(i) < n:
+            raise IndexError(f"{self.json_path}: frame {i} out of range (0..{n - 1})")
+        i = int(i) % n  # one cache entry per frame, whichever way it is named
         hit = self._images.get(i)
         if hit is not None:
             self._images.move_to_end(i)

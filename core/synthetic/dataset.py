@@ -299,6 +299,7 @@ def make_dataset(
         "detail": detail,
         "imaged_faces": int(len(rf)),
         "intersector": stats.get("intersector", "none"),
+        "seed": int(seed),
         "seconds": seconds,
         "rays_per_second": stats.get("rays", 0) / max(seconds, 1e-9),
     }
@@ -315,6 +316,11 @@ def contact_sheet(dataset_dir, path, rows: int = 4) -> str:
         doc = json.load(fh)
     seqs = doc["sequences"]
     n_seq = len(seqs)
+    try:  # the seed the frames were posed with (summary.json; datasets made before it was kept: 0)
+        with open(os.path.join(dataset_dir, "summary.json")) as fh:
+            seed = int(json.load(fh).get("seed", 0))
+    except (OSError, ValueError, TypeError):
+        seed = 0
     picks = sorted({int(round(k * (n_seq - 1) / max(rows - 1, 1))) for k in range(rows)})
     by_key = {(r["timestep_index"], r["camera_index"]): r for r in doc["frames"]}
     cams = sorted({r["camera_index"] for r in doc["frames"]})
@@ -323,7 +329,7 @@ def contact_sheet(dataset_dir, path, rows: int = 4) -> str:
         info = seqs[si]
         n = info["num_timesteps"]
         # the frame of strongest expression, so rows differ visibly
-        best = max(range(n), key=lambda f: _activity(sequence_params(si, f, n, n_seq)))
+        best = max(range(n), key=lambda f: _activity(sequence_params(si, f, n, n_seq, seed)))
         chosen.append((info, info["timestep_start"] + best))
     first = by_key[(chosen[0][1], cams[0])]
     w, h = first["w"], first["h"]
