@@ -8,7 +8,9 @@ volume, core.ply.importance_order). The SH DC coefficients are kept exactly and 
 bands as "pa_sh_rest_k" vectors, so export writes back what was read; the preview draws the
 DC colour (the view-independent part, which is all the splat material shows).
 
-numpy only: core.io.ply reads binary little-endian files without plyfile. The object is
+numpy only: core.io.ply reads vertex-only PLYs (binary either endian, or ASCII) without plyfile.
+The file is taken as Y up (the frame the PLYs of this project are in) and stood up in Blender's
+Z-up world by the object's transform, unless the importer's "Y up to Z up" is off. The object is
 marked with the custom property "pa_splat_ply"; it has no bound mesh and no frames.
 """
 
@@ -21,9 +23,9 @@ from bpy_extras.io_utils import ImportHelper
 from ..core.io import ply as core_ply
 from ..core.bridge.budget import typed_percent
 from ..core.bridge.splats import srgb_to_linear
-from ..core.bridge.transforms import transform_gaussians
+from ..core.bridge.transforms import Y_UP_TO_Z_UP, transform_gaussians
 from ..core.avatar.avatar import SH_C0
-from . import preview
+from . import preview, sequence
 
 MARK = "pa_splat_ply"
 _F_DC = "pa_f_dc"
@@ -149,7 +151,8 @@ def current_gaussians(obj, world=True):
         "quats": np.asarray(quats, np.float32),
         "scales": np.asarray(scales, np.float32),
         "opacities": _read(me, "opacity", 1)[sel],
-        "colors": (0.5 + SH_C0 * f_dc).astype(np.float32),
+        "colors": np.maximum(0.5 + SH_C0 * f_dc, 0.0).astype(np.float32),
+        "f_dc": f_dc.astype(np.float32),
         "sh_rest": rest,
     }
 
@@ -171,6 +174,13 @@ class PA_OT_import_splat_ply(bpy.types.Operator, ImportHelper):
         ),
         default="IMPORTANCE",
     )
+    z_up: bpy.props.BoolProperty(
+        name="Y up to Z up",
+        default=True,
+        description="The file is Y up, as the PLYs this extension and scripts/export.py write (the dataset's "
+        "world frame): stand it up in Blender's Z-up world, as the sequence importer does. Off: the file's "
+        "axes as they are (e.g. for a scene already Z up)",
+    )
 
     def execute(self, context):
         if not self.filepath.strip():
@@ -181,6 +191,8 @@ class PA_OT_import_splat_ply(bpy.types.Operator, ImportHelper):
             g = core_ply.read_ply(path)
             name = os.path.splitext(os.path.basename(path))[0] or "splats"
             obj = create_splat_object(context, name, g, self.order, self.filepath)
+            if self.z_up:  # the object's transform, not the points: export writes the file's frame back
+                obj.matrix_world = sequence._matrix(Y_UP_TO_Z_UP)
         except Exception as exc:  # nothing was added: read_ply and the checks run before any datablock
             msg = str(exc)  # the readers' messages mostly name the file already
             self.report({"ERROR"}, f"Cannot import splats: {msg}" if path in msg else f"Cannot import {path}: {msg}")

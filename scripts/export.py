@@ -14,7 +14,9 @@ the same command with --stream writes that very stream). --budget is a percentag
 stream's bytes (header included; any value in [0, 100]: a budget inside the coarse or template
 level exports what it holds, a budget with no whole record an empty but valid PLY, with a
 note); --frame a timestep index of the dataset (its mesh drives the Gaussians; one it lacks is
-refused before any work).
+refused before any work). The PLY is in the dataset's world frame (Y up for the synthetic data and
+GaussianAvatars/VHAP datasets); the SH DC coefficients are written as trained (not clamped), so
+higher bands add to them as in 3DGS.
 
 A failed export changes nothing: every output path (an existing folder there, a folder that
 cannot be made, --stream and --ply naming one file) and every refusal (a missing frame, an
@@ -223,6 +225,7 @@ def main(argv=None):
             mine = info.order[np.where(k < r, k, k - r + info.num_roots)][shown]
             g["sh_rest"] = avatar.f_rest[mine]
             g["colors"] = sh_to_rgb(avatar.f_dc[mine])
+            g["f_dc"] = avatar.f_dc[mine]  # as trained: the bands add to it before any clamp
         result.update(
             ply=args.ply,
             ply_gaussians=n,

@@ -47,6 +47,17 @@ def _gaussians(n, rng):
     }
 
 
+def _foreign_copies(src, out):
+    """The same splats as ASCII and as big-endian PLYs (other tools write them)."""
+    plyfile = pytest.importorskip("plyfile")
+    v = plyfile.PlyData.read(src)["vertex"].data
+    plyfile.PlyData([plyfile.PlyElement.describe(v, "vertex")], text=True).write(os.path.join(out, "splats_ascii.ply"))
+    big = v.astype(v.dtype.newbyteorder(">"))
+    plyfile.PlyData([plyfile.PlyElement.describe(big, "vertex")], byte_order=">").write(
+        os.path.join(out, "splats_big_endian.ply")
+    )
+
+
 @pytest.fixture(scope="module")
 def ply_session(tmp_path_factory):
     _bpy_dir()
@@ -56,8 +67,12 @@ def ply_session(tmp_path_factory):
     out = os.path.join(tmp, "out")
     os.makedirs(out)
     g = _gaussians(3000, np.random.default_rng(5))
+    # Dark DC coefficients below -0.5/C0 (a colour clamped at 0 before the bands add): kept as such
+    g["f_dc"] = (np.asarray(g["colors"]) - 0.5) / 0.28209479177387814
+    g["f_dc"][::7] = -2.8
     src = os.path.join(out, "splats.ply")
     write_ply(src, g)
+    _foreign_copies(src, out)
     proc = subprocess.run(
         [sys.executable, SCENARIO, ROOT, src, out, ",".join(BLOCKED)],
         capture_output=True,
@@ -124,12 +139,23 @@ def test_export_writes_the_budget_in_rank_order_readable_by_plyfile(ply_session)
             continue
         tol = 2e-4 if name == "opacity" else 1e-5  # logit through float32 sigmoid
         np.testing.assert_allclose(got[name], src[name][keep], atol=tol, rtol=1e-5, err_msg=name)
+    # World space: the importer stood the Y-up file up in Z-up Blender (x, y, z) -> (x, -z, y),
+    # then the object was moved by (1, 2, 3)
     world = _plyfile(os.path.join(out, "export_40_world.ply"))
     np.testing.assert_allclose(world["x"] - 1.0, got["x"], atol=1e-6)
-    np.testing.assert_allclose(world["z"] - 3.0, got["z"], atol=1e-6)
+    np.testing.assert_allclose(world["y"] - 2.0, -got["z"], atol=1e-6)
+    np.testing.assert_allclose(world["z"] - 3.0, got["y"], atol=1e-6)
+
+
+def test_ascii_and_big_endian_plys_import_in_a_stock_blender(ply_session):
+    rep, arr = ply_session["rep"], ply_session["arrays"]
+    for name in ("splats_ascii", "splats_big_endian"):
+        assert rep[f"import_{name}"] == ["FINISHED"], rep[f"import_{name}"]
+        np.testing.assert_allclose(arr[f"position_{name}"], arr["position"], atol=1e-6)
+    assert rep["z_up"] and rep["z_up_off_identity"]
 
 
 def test_broken_file_is_named_and_leaves_the_scene_as_it_was(ply_session):
     rep = ply_session["rep"]
-    assert "bad.ply" in rep["bad_message"] and "binary little-endian" in rep["bad_message"]
+    assert "bad.ply" in rep["bad_message"] and "missing vertex properties" in rep["bad_message"]
     assert rep["bad_left_scene"]

@@ -156,3 +156,28 @@ def test_blender_importer_accepts_it(tmp_path, gaussians):
     parts = line[0].split()
     assert int(parts[3]) == len(gaussians["means"]), line[0]
     assert "opacity" in line[0] and "f_dc_0" in line[0]
+
+
+def test_dark_dc_coefficients_survive_a_round_trip(tmp_path):
+    """3DGS clamps a colour at 0 after the SH bands add to the DC term: a DC coefficient below
+    -0.5/C0 must be written and read as it is (it came back clamped to -1.77, and with bands the
+    colour changed: up to 0.29 along one axis on a review's file)."""
+    from progressive_avatars.core.io.ply import read_ply, write_ply
+
+    rng = np.random.default_rng(3)
+    n = 50
+    g = {
+        "means": rng.normal(size=(n, 3)),
+        "quats": np.tile([1.0, 0, 0, 0], (n, 1)),
+        "scales": np.full((n, 3), 0.01),
+        "opacities": np.full(n, 0.5),
+        "colors": np.zeros((n, 3)),
+        "f_dc": np.full((n, 3), -2.8),
+        "sh_rest": rng.normal(0, 0.3, (n, 3, 3)),
+    }
+    write_ply(tmp_path / "a.ply", g)
+    back = read_ply(tmp_path / "a.ply")
+    np.testing.assert_allclose(back["f_dc"], -2.8, rtol=1e-6)
+    np.testing.assert_array_equal(back["colors"], 0.0)  # the DC colour alone, clamped
+    write_ply(tmp_path / "b.ply", back)
+    np.testing.assert_array_equal(read_ply(tmp_path / "b.ply")["f_dc"], back["f_dc"])

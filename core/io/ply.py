@@ -62,6 +62,10 @@ def _rows(gaussians: dict) -> np.ndarray:
     colors = colors.reshape(n, -1) if n else colors.reshape(0, colors.shape[-1] if colors.ndim == 2 else 3)
     if colors.shape[1] != 3:
         raise ValueError(f"write_ply: colors must be RGB [N,3], got {colors.shape}")
+    # The SH DC coefficients themselves when given: from colours, a DC below -0.5/C0 would come
+    # back clamped (colours are clamped at 0), which changes the colour once higher bands add in.
+    f_dc = gaussians.get("f_dc")
+    f_dc = (colors - 0.5) / SH_C0 if f_dc is None else np.asarray(f_dc, np.float64).reshape(n, 3)
     rest = np.asarray(gaussians.get("sh_rest", np.zeros((n, 0, 3))), np.float64)
     if rest.ndim != 3 or rest.shape[0] != n or rest.shape[2] != 3:
         raise ValueError(f"write_ply: sh_rest must be [N,K,3], got {rest.shape}")
@@ -71,6 +75,7 @@ def _rows(gaussians: dict) -> np.ndarray:
         ("scales", scales),
         ("opacities", opac),
         ("colors", colors),
+        ("f_dc", f_dc),
         ("sh_rest", rest),
     ):
         if not np.all(np.isfinite(arr)):
@@ -86,7 +91,7 @@ def _rows(gaussians: dict) -> np.ndarray:
     for k, c in enumerate("xyz"):
         rows[c] = means[:, k]
         rows[f"scale_{k}"] = np.log(np.maximum(scales[:, k], 1e-30))
-        rows[f"f_dc_{k}"] = (colors[:, k] - 0.5) / SH_C0
+        rows[f"f_dc_{k}"] = f_dc[:, k]
     rows["opacity"] = np.log(a / (1 - a))
     for k in range(4):
         rows[f"rot_{k}"] = quats[:, k]
@@ -169,7 +174,8 @@ def _check_ply_header(path: str) -> None:
 
 def _read_vertices(path: str) -> np.ndarray:
     """The vertex element as a structured array: plyfile when available (any PLY flavour),
-    else a numpy parser for binary little-endian files with scalar vertex properties."""
+    else a numpy parser for vertex-only files (binary either endian, or ascii) with scalar
+    vertex properties."""
     _check_ply_header(path)
     try:
         from plyfile import PlyData
@@ -184,23 +190,24 @@ def _read_vertices(path: str) -> np.ndarray:
             raise ValueError(f"{path}: PLY file has no vertex element")
         return ply["vertex"].data
     types = {
-        "float": "<f4",
-        "float32": "<f4",
-        "double": "<f8",
-        "float64": "<f8",
+        "float": "f4",
+        "float32": "f4",
+        "double": "f8",
+        "float64": "f8",
         "uchar": "u1",
         "uint8": "u1",
         "char": "i1",
         "int8": "i1",
-        "short": "<i2",
-        "int16": "<i2",
-        "ushort": "<u2",
-        "uint16": "<u2",
-        "int": "<i4",
-        "int32": "<i4",
-        "uint": "<u4",
-        "uint32": "<u4",
+        "short": "i2",
+        "int16": "i2",
+        "ushort": "u2",
+        "uint16": "u2",
+        "int": "i4",
+        "int32": "i4",
+        "uint": "u4",
+        "uint32": "u4",
     }
+    formats = {"binary_little_endian": "<", "binary_big_endian": ">", "ascii": None}
     with open(path, "rb") as fh:
         if fh.readline().strip() != b"ply":
             raise ValueError(f"{path}: not a PLY file (bad magic)")
@@ -213,7 +220,7 @@ def _read_vertices(path: str) -> np.ndarray:
             if not parts or parts[0] in ("comment", "obj_info"):
                 continue
             if parts[0] == "format":
-                fmt = parts[1]
+                fmt = parts[1] if len(parts) > 1 else None
             elif parts[0] == "element":
                 # The vertex data are read from the end of the header on: any other element,
                 # before or after it, would be read as vertices or left unread.
@@ -230,13 +237,29 @@ def _read_vertices(path: str) -> np.ndarray:
                 props.append((parts[2], types[parts[1]]))
             elif parts[0] == "end_header":
                 break
-        if fmt != "binary_little_endian" or element != "vertex":
-            raise ValueError(f"{path}: without plyfile only binary little-endian vertex-only PLYs are read")
-        dt = np.dtype(props)
-        buf = fh.read(count * dt.itemsize)
-        if len(buf) < count * dt.itemsize:
-            raise ValueError(f"{path}: truncated: {count} vertices declared, {len(buf) // dt.itemsize} present")
-        return np.frombuffer(buf, dt)
+        if fmt not in formats or element != "vertex":
+            raise ValueError(
+                f"{path}: without plyfile only vertex-only PLYs (binary or ascii) are read, got format {fmt!r}"
+            )
+        order = formats[fmt]
+        if order is not None:  # binary: the records as they lie
+            dt = np.dtype([(name, order + t) for name, t in props])
+            buf = fh.read(count * dt.itemsize)
+            if len(buf) < count * dt.itemsize:
+                raise ValueError(f"{path}: truncated: {count} vertices declared, {len(buf) // dt.itemsize} present")
+            return np.frombuffer(buf, dt)
+        # ascii: one line of numbers per vertex
+        try:
+            vals = np.array(fh.read().split(), dtype=np.float64)
+        except ValueError as exc:
+            raise ValueError(f"{path}: ascii PLY body holds something that is not a number ({exc})") from None
+        if vals.size < count * len(props):
+            raise ValueError(f"{path}: truncated: {count} vertices declared, {vals.size // max(len(props), 1)} present")
+        vals = vals[: count * len(props)].reshape(count, len(props))
+        out = np.empty(count, np.dtype([(name, "<" + t) for name, t in props]))
+        for i, (name, _) in enumerate(props):
+            out[name] = vals[:, i]
+        return out
 
 
 # exp() of a log-scale above this overflows float32: the scale would be inf.
@@ -267,7 +290,8 @@ def _check_finite(path, v, names):
 
 def read_ply(path) -> dict:
     """A 3DGS PLY back as activated Gaussians: means, quats (wxyz, unit), scales, opacities,
-    colors (RGB = max(0.5 + C0·f_dc, 0)) and sh_rest [N,K,3] (K = 0 without f_rest_* fields)."""
+    colors (RGB = max(0.5 + C0·f_dc, 0)), f_dc as stored (what write_ply writes back) and
+    sh_rest [N,K,3] (K = 0 without f_rest_* fields)."""
     path = os.fspath(path)
     v = _read_vertices(path)
     names = v.dtype.names or ()
@@ -298,6 +322,7 @@ def read_ply(path) -> dict:
         "scales": np.exp(col("scale_0", "scale_1", "scale_2")).astype(np.float32),
         "opacities": (1.0 / (1.0 + np.exp(-np.asarray(v["opacity"], np.float64)))).astype(np.float32),
         "colors": np.maximum(0.5 + SH_C0 * col("f_dc_0", "f_dc_1", "f_dc_2"), 0.0).astype(np.float32),
+        "f_dc": col("f_dc_0", "f_dc_1", "f_dc_2").astype(np.float32),
     }
 
 

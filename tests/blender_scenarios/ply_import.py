@@ -55,6 +55,25 @@ try:
     A["rank_file"] = rk
     o2.pa_avatar.budget = 0.0
     R["count_0"] = o2.pa_avatar.count
+    # The same splats from other tools: ASCII and big-endian (no plyfile here); the file is Y up
+    # and stood up by the object's transform unless told otherwise
+    R["z_up"] = [round(v, 6) for v in obj.matrix_world.to_euler()] == [round(1.5707963267948966, 6), 0.0, 0.0]
+    for name in ("splats_ascii", "splats_big_endian"):
+        try:
+            R[f"import_{name}"] = list(
+                bpy.ops.import_scene.progressive_avatars_splat_ply(
+                    filepath=os.path.join(out, name + ".ply"), order="FILE"
+                )
+            )
+        except RuntimeError as exc:
+            R[f"import_{name}"] = str(exc)
+            continue
+        o3 = bpy.context.active_object
+        p3 = np.empty(len(o3.data.vertices) * 3, np.float32)
+        o3.data.attributes["position"].data.foreach_get("vector", p3)
+        A[f"position_{name}"] = p3.reshape(-1, 3)
+    bpy.ops.import_scene.progressive_avatars_splat_ply(filepath=ply_path, order="FILE", z_up=False)
+    R["z_up_off_identity"] = bpy.context.active_object.matrix_world.is_identity
     # A broken file: a clear message naming it, and nothing added to the scene.
     bad = os.path.join(out, "bad.ply")
     with open(bad, "wb") as fh:
