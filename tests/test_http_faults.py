@@ -497,3 +497,22 @@ def test_the_deadline_holds_while_connecting():
         srv.close()
     assert took < 2.5, (took, str(res))
     assert res.status in (H.DEADLINE, H.UNREACHABLE, H.STALLED), str(res)
+
+
+@pytest.mark.parametrize("status", [503, 302])
+def test_an_error_or_redirect_whose_body_stalls_says_its_status(scripted, status):
+    """The status line arrived, the body never did: an http_error naming the status (it was
+    'stalled', which hid the 503 or the redirect behind a timeout)."""
+
+    def script(h):
+        h.send_response(status)
+        if status == 302:
+            h.send_header("Location", "/elsewhere.pavs")
+        h.send_header("Content-Length", "100")
+        h.end_headers()
+        h.wfile.flush()
+        time.sleep(1.5)
+
+    _, url = scripted(script)
+    res = H.fetch_stream(url, timeout=0.5)
+    assert res.status == H.HTTP_ERROR and f"HTTP {status}" in res.message and "stalled" in res.message, str(res)

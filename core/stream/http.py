@@ -427,6 +427,7 @@ def fetch_stream(
             )
 
     dog = _Watchdog(lambda: wire[0], deadline, min_rate, rate_window)
+    stalled_body = None  # set while the body of a redirect or an error response is read
     target = url
     caller_error = None
     try:
@@ -489,8 +490,9 @@ def fetch_stream(
             res.http_status = resp.status
             if resp.status in (301, 302, 303, 307, 308):
                 loc = resp.getheader("Location")
-                res.status, res.message = HTTP_ERROR, f"HTTP {resp.status} from {target}: its body did not arrive"
-                resp.read(1 << 16)  # a redirect's body is short; a stalled one ends as this error
+                stalled_body = f"HTTP {resp.status} from {target}"
+                resp.read(1 << 16)  # a redirect's body is short; a stalled one ends as an http_error
+                stalled_body = None
                 redirects += 1
                 if not loc or redirects > max_redirects:
                     res.status, res.message = HTTP_ERROR, f"HTTP {resp.status}: bad or too many redirects"
@@ -613,14 +615,17 @@ def fetch_stream(
                 else:
                     res.status, res.message = CUT, f"response body ended after {pos} bytes"
                 break
-            res.status, res.message = HTTP_ERROR, f"HTTP {resp.status} {resp.reason} from {target}"
-            body = resp.read1(2048).decode("utf-8", "replace")  # what arrived: a stalled body keeps the status
-            res.message += f": {body[:200]}"
+            stalled_body = f"HTTP {resp.status} {resp.reason} from {target}"
+            body = resp.read1(2048).decode("utf-8", "replace")  # what arrived
+            res.status, res.message = HTTP_ERROR, f"{stalled_body}: {body[:200]}"
             break
     except _CallerError as exc:
         caller_error = exc.error
     except (socket.timeout, TimeoutError):
-        res.status, res.message = STALLED, f"no data for {timeout} s"
+        if stalled_body:  # the status line said what went wrong; its body never came
+            res.status, res.message = HTTP_ERROR, f"{stalled_body} (its body stalled for {timeout} s)"
+        else:
+            res.status, res.message = STALLED, f"no data for {timeout} s"
     except (http.client.IncompleteRead, http.client.RemoteDisconnected, ConnectionError) as exc:
         res.status, res.message = CUT, f"{type(exc).__name__}: {exc}"
     except http.client.HTTPException as exc:
