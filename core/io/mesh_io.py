@@ -129,7 +129,7 @@ def read_obj_bytes(data: bytes, path: str = "<obj>"):
 
 
 # -- PLY -----------------------------------------------------------------------------------
-_PLY_TYPES = {
+PLY_TYPES = {  # PLY scalar type -> numpy type without byte order (core/io/ply.py reads with it too)
     "char": "i1",
     "int8": "i1",
     "uchar": "u1",
@@ -169,9 +169,9 @@ def _ply_header(data: bytes, path: str):
             elements.append((w[1], int(w[2]), []))
         elif w[0] == "property" and elements:
             if w[1] == "list":
-                elements[-1][2].append((w[4], ("list", _PLY_TYPES.get(w[2]), _PLY_TYPES.get(w[3]))))
+                elements[-1][2].append((w[4], ("list", PLY_TYPES.get(w[2]), PLY_TYPES.get(w[3]))))
             else:
-                elements[-1][2].append((w[2], _PLY_TYPES.get(w[1])))
+                elements[-1][2].append((w[2], PLY_TYPES.get(w[1])))
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
         raise MeshFormatError(f"{path}: unsupported PLY format {fmt!r}")
     for name, _n, props in elements:

@@ -16,6 +16,7 @@ import os
 import numpy as np
 
 from .atomic import atomic_open
+from .mesh_io import PLY_TYPES
 from ..avatar.avatar import SH_C0
 
 PROPERTIES = (
@@ -189,24 +190,7 @@ def _read_vertices(path: str) -> np.ndarray:
         if "vertex" not in ply:
             raise ValueError(f"{path}: PLY file has no vertex element")
         return ply["vertex"].data
-    types = {
-        "float": "f4",
-        "float32": "f4",
-        "double": "f8",
-        "float64": "f8",
-        "uchar": "u1",
-        "uint8": "u1",
-        "char": "i1",
-        "int8": "i1",
-        "short": "i2",
-        "int16": "i2",
-        "ushort": "u2",
-        "uint16": "u2",
-        "int": "i4",
-        "int32": "i4",
-        "uint": "u4",
-        "uint32": "u4",
-    }
+    types = PLY_TYPES
     formats = {"binary_little_endian": "<", "binary_big_endian": ">", "ascii": None}
     with open(path, "rb") as fh:
         if fh.readline().strip() != b"ply":
