@@ -4,7 +4,6 @@ import bpy
 from bpy.app.handlers import persistent
 
 from . import runtime
-from ..core.bridge.budget import typed_percent
 
 _busy = False  # our own writes to preview meshes re-enter depsgraph_update_post
 
@@ -23,7 +22,7 @@ def _update_scene(scene, depsgraph, only_sources=None):
                 e = runtime.entry(obj)
                 if e is None:
                     continue
-                count = e.budget.count_for_percent(typed_percent(obj.pa_avatar.budget))
+                count = e.budget.count_for_slider(obj.pa_avatar.budget)
                 if count != obj.pa_avatar.count:  # an animated budget moves without the update callback
                     runtime.apply_budget(obj, depsgraph=depsgraph)
                 runtime.refresh(obj, depsgraph, count)

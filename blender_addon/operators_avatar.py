@@ -9,7 +9,7 @@ import bpy
 import numpy as np
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
-from ..core.bridge.budget import check_mesh, load_avatar, typed_percent
+from ..core.bridge.budget import check_mesh, load_avatar
 from ..core.bridge.depth import depth_per_face
 from ..core.bridge.splats import preview_order, static_attributes, without_behind
 from ..core.bridge.transforms import camera_from_blender, transform_gaussians
@@ -135,7 +135,7 @@ def load_avatar_onto(context, mesh_obj, path, budget=100.0):
         check_mesh(avatar, budget_info, faces)
     except ValueError as exc:
         raise ValueError(f"{abspath}: not made for {mesh_obj.name}: {exc}") from None
-    count = budget_info.count_for_percent(typed_percent(budget))
+    count = budget_info.count_for_slider(budget)
     depth_per_face(avatar.forest, len(faces), count)  # raises before any change
     static = static_attributes(avatar, preview_order(avatar))
     old = [c for c in mesh_obj.children if c.pa_avatar.is_preview]
@@ -299,7 +299,7 @@ def current_gaussians(context, obj, world=True):
     e = runtime.entry(obj)
     if e is None:
         raise RuntimeError(obj.pa_avatar.status or "avatar not available")
-    count = e.budget.count_for_percent(typed_percent(obj.pa_avatar.budget))
+    count = e.budget.count_for_slider(obj.pa_avatar.budget)
     if not runtime.refresh(obj, context.evaluated_depsgraph_get(), count):
         raise RuntimeError(obj.pa_avatar.status)
     ev = e.evaluator

@@ -21,7 +21,7 @@ import numpy as np
 from bpy_extras.io_utils import ImportHelper
 
 from ..core.io import ply as core_ply
-from ..core.bridge.budget import typed_percent
+from ..core.bridge.budget import fraction_count, typed_percent
 from ..core.bridge.splats import srgb_to_linear
 from ..core.bridge.transforms import Y_UP_TO_Z_UP, transform_gaussians
 from ..core.avatar.avatar import SH_C0
@@ -111,7 +111,7 @@ def apply_budget(obj):
     """Budget slider → the modifier's Count (the first ``count`` ranks) and the readouts."""
     st = obj.pa_avatar
     total = len(obj.data.vertices)
-    count = int(min(total, np.floor(total * min(max(typed_percent(st.budget), 0.0), 100.0) / 100.0 + 0.5)))
+    count = fraction_count(total, typed_percent(st.budget))
     st.count, st.total = count, total
     st.megabytes = core_ply.splat_ply_bytes(count, int(obj.get("pa_sh_bands", 0))) / 1e6
     st.level_reached = 0 if count else -1

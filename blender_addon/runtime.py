@@ -9,7 +9,7 @@ import os
 import bpy
 import numpy as np
 
-from ..core.bridge.budget import load_avatar, typed_percent
+from ..core.bridge.budget import load_avatar
 from ..core.bridge.splats import preview_order, splat_evaluator
 from ..core.io.safe_io import file_digest
 from . import preview
@@ -220,11 +220,9 @@ def refresh(obj, depsgraph, count=None):
         if src is None:
             state.status = "No mesh bound"
         if e is not None:  # show only what was placed on the mesh before it went, never unplaced points
-            preview.set_count(
-                obj, min(e.budget.count_for_percent(typed_percent(state.budget)) if count is None else count, e.valid)
-            )
+            preview.set_count(obj, min(e.budget.count_for_slider(state.budget) if count is None else count, e.valid))
         return False
-    count = e.budget.count_for_percent(typed_percent(state.budget)) if count is None else count
+    count = e.budget.count_for_slider(state.budget) if count is None else count
     if state.bind_mode == "SHAPE_KEYS":
         verts, problem = shape_key_vertices(src, depsgraph)
     else:
@@ -270,7 +268,7 @@ def apply_budget(obj, context=None, depsgraph=None):
     if e is None:
         return
     b = e.budget
-    count = b.count_for_percent(typed_percent(state.budget))
+    count = b.count_for_slider(state.budget)
     state.count = count
     state.total = b.total
     state.megabytes = b.bytes_for_count(count) / 1e6

@@ -148,18 +148,7 @@ def test_nersemble_tracking(tmp_path, flame_model):
     prm = random_params(T, seed=5)
     euler = 0.4 * rng.normal(size=(T, 3))
     R = Rotation.from_euler("XYZ", euler).as_matrix()
-    d = dict(
-        shape=prm["shape"][None],
-        expression=prm["expr"],
-        jaw=prm["jaw_pose"],
-        neck=prm["neck_pose"],
-        eyes=prm["eyes_pose"],
-        rotation=euler,
-        rotation_matrices=R,
-        translation=prm["translation"],
-        scale=np.array([[1.7]]),
-        frames=np.array([7, 8, 9]),
-    )
+    d = _nersemble(prm, rotation=euler, rotation_matrices=R, scale=np.array([[1.7]]), frames=np.array([7, 8, 9]))
     np.savez(tmp_path / "tracking.npz", **d)
     local = flame_forward(
         flame_model,

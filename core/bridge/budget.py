@@ -30,6 +30,12 @@ def typed_percent(value: float) -> float:
     return float(str(np.float32(value)))
 
 
+def fraction_count(total: int, percent: float) -> int:
+    """The same fraction of ``total`` Gaussians, rounded (files without a byte layout to follow)."""
+    p = float(min(max(percent, 0.0), 100.0))
+    return int(min(total, math.floor(total * p / 100.0 + 0.5)))
+
+
 @dataclass
 class Budget:
     """How much of an avatar a budget percent includes.
@@ -57,7 +63,11 @@ class Budget:
         p = float(min(max(percent, 0.0), 100.0))
         if self.info is not None and hasattr(self.info, "count_for_percent"):
             return int(min(max(int(self.info.count_for_percent(p)), 0), self.total))
-        return int(min(self.total, math.floor(self.total * p / 100.0 + 0.5)))
+        return fraction_count(self.total, p)
+
+    def count_for_slider(self, value: float) -> int:
+        """``count_for_percent`` of a budget slider's value, read back as typed (typed_percent)."""
+        return self.count_for_percent(typed_percent(value))
 
     def bytes_for_count(self, count: int) -> int:
         info = self.info

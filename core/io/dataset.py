@@ -448,10 +448,7 @@ class Dataset:
 
     def images(self, i: int):
         """(image float32 [H,W,3], mask float32 [H,W]) of frame i, through the LRU cache."""
-        n = len(self.frames)
-        if not -n <= int(i) < n:
-            raise IndexError(f"{self.json_path}: frame {i} out of range (0..{n - 1})")
-        i = int(i) % n  # one cache entry per frame, whichever way it is named
+        i = self._frame_index(i)  # one cache entry per frame, whichever way it is named
         hit = self._images.get(i)
         if hit is not None:
             self._images.move_to_end(i)
@@ -468,11 +465,14 @@ class Dataset:
                 self.cached_bytes -= im.nbytes + m.nbytes
         return pair
 
-    def __getitem__(self, i: int) -> Sample:
+    def _frame_index(self, i) -> int:
         n = len(self.frames)
         if not -n <= int(i) < n:
             raise IndexError(f"{self.json_path}: frame {i} out of range (0..{n - 1})")
-        i = int(i) % n
+        return int(i) % n
+
+    def __getitem__(self, i: int) -> Sample:
+        i = self._frame_index(i)
         info = self.frames[i]
         image, mask = self.images(i)
         return Sample(
