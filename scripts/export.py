@@ -124,7 +124,6 @@ def main(argv=None):
     from progressive_avatars.core.io import run as runs
     from progressive_avatars.core.io.atomic import atomic_open
     from progressive_avatars.core.stream.reader import read_stream
-    from progressive_avatars.core.io.dataset import Dataset
     from progressive_avatars.core.stream.writer import build_stream
 
     # Every output path is checked before any work (and before anything is written or made).
@@ -139,7 +138,7 @@ def main(argv=None):
     try:
         avatar = runs.load_run_avatar(args.run)
         data = runs.run_data_dir(args.run, args.data)
-        ds = Dataset(data, None, flame_model=runs.run_flame_model(args.run, args.flame_model))
+        ds = runs.run_dataset(args.run, data, None, runs.run_flame_model(args.run, args.flame_model))
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -368,8 +368,9 @@ def test_train_script_runs_as_blender_would(tiny_dataset, tmp_path):
     assert Avatar.load(run / "avatar.npz").num_gaussians > 0
 
 
-def _flame_mode_dataset(tiny_dataset, tmp_path):
-    """A FLAME-mode copy of the tiny dataset (its images, a small FLAME-format model's geometry)."""
+def _flame_mode_dataset(tiny_dataset, tmp_path, dynamic_offset=False):
+    """A FLAME-mode copy of the tiny dataset (its images, a small FLAME-format model's geometry);
+    ``dynamic_offset``: every frame's file also holds VHAP's per-frame vertex offsets."""
     import shutil
 
     from tests.test_flame import N_SHAPE, make_flame_arrays, random_params
@@ -396,8 +397,12 @@ def _flame_mode_dataset(tiny_dataset, tmp_path):
             fr["flame_param_path"] = f"flame_param/{ts:05d}.npz"
             timesteps.add(ts)
         js.write_text(json.dumps(meta))
+    rng = np.random.default_rng(7)
     for ts in timesteps:
-        np.savez(root / "flame_param" / f"{ts:05d}.npz", **one(ts % 64))
+        p = one(ts % 64)
+        if dynamic_offset:
+            p["dynamic_offset"] = 0.01 * rng.normal(size=(1, model.n_vertices, 3))
+        np.savez(root / "flame_param" / f"{ts:05d}.npz", **p)
     return root, model, model_path, sorted(timesteps), one
 
 
@@ -482,6 +487,35 @@ def test_flame_refinement_learns_resumes_and_is_saved(tiny_dataset, tmp_path):
     np.testing.assert_allclose(a["expr"][0], one(t0 % 64)["expr"][0] + a["correction_expr"][0], atol=1e-6)
     with pytest.raises(ValueError, match="FLAME-mode dataset"):
         Trainer(tiny_dataset, str(tmp_path / "mesh"), config_for("tiny", refine_flame=True))
+    # What comes after training poses the run's data as it was trained: the novel views
+    # (training timesteps) on the refined meshes, the novel expressions as tracked.
+    from progressive_avatars.core.io.dataset import Dataset
+    from progressive_avatars.core.io.run import run_dataset
+
+    for split in ("val", "test"):
+        posed = run_dataset(str(tmp_path / "full"), str(root), split, model_path)
+        tracked = Dataset(str(root), split, flame_model=model_path)
+        for t in posed.timesteps.tolist():
+            if full.refiner.has(t):
+                refined = full.refiner.vertices(t).detach().numpy()
+                assert np.abs(refined - tracked.vertices_at(t)).max() > 1e-5  # corrections moved it
+                np.testing.assert_allclose(posed.vertices_at(t), refined, atol=2e-6)
+            else:
+                np.testing.assert_array_equal(posed.vertices_at(t), tracked.vertices_at(t))
+    assert set(full.val.timesteps.tolist()) <= train_ts and not set(posed.timesteps.tolist()) & train_ts
+
+
+def test_flame_refiner_starts_at_the_tracked_meshes(tiny_dataset, tmp_path):
+    """Zero corrections give the dataset's own meshes, per-frame dynamic offsets (VHAP) included:
+    --refine-flame must not move the training geometry before it has learnt anything."""
+    from progressive_avatars.core.io.dataset import Dataset
+    from progressive_avatars.core.train.flame_refine import FlameRefiner
+
+    root, model, model_path, timesteps, _ = _flame_mode_dataset(tiny_dataset, tmp_path, dynamic_offset=True)
+    ds = Dataset(str(root), "train", flame_model=model_path)
+    refiner = FlameRefiner(ds, {})
+    for t in ds.timesteps.tolist():
+        np.testing.assert_allclose(refiner.vertices(t).detach().numpy(), ds.vertices_at(t), atol=2e-6)
 
 
 def test_paper_cpu_preset_schedule_and_bounded_cache():

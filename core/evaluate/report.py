@@ -22,7 +22,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..io import run as runs
-from ..io.dataset import Dataset
 from ..stream.order import ROOT_ORDERS, root_keys, stream_order
 from ..stream.reader import read_stream
 from ..stream.writer import write_stream
@@ -534,7 +533,7 @@ def build_report(args: ReportOptions) -> dict:
     avatar = runs.load_run_avatar(args.run)
     data = runs.run_data_dir(args.run, args.data)
     fm = runs.run_flame_model(args.run, args.flame_model)
-    splits = {"nvs": Dataset(data, "val", flame_model=fm), "nes": Dataset(data, "test", flame_model=fm)}
+    splits = {"nvs": runs.run_dataset(args.run, data, "val", fm), "nes": runs.run_dataset(args.run, data, "test", fm)}
     for ds in splits.values():
         ds.check_same_mesh(avatar.forest.template_faces, f"the template of {args.run}'s avatar")
     os.makedirs(args.out, exist_ok=True)  # only for a run that loads: a mistyped --run leaves no folder

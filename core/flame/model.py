@@ -38,6 +38,7 @@ __all__ = [
     "axis_angle_to_matrix",
     "flame_forward",
     "FLAME_PARAM_KEYS",
+    "POSE_WIDTHS",
 ]
 
 # Shape components come first in FLAME's shapedirs; 300 in every released model.
@@ -57,6 +58,9 @@ FLAME_PARAM_KEYS = (
     "static_offset",
     "dynamic_offset",
 )
+
+# The joint poses' keys and widths, in FLAME's joint order (global, neck, jaw, both eyes).
+POSE_WIDTHS = (("rotation", 3), ("neck_pose", 3), ("jaw_pose", 3), ("eyes_pose", 6))
 
 
 class FlameModelError(ValueError):

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry.camera import Camera
-from ..flame.model import load_flame_model
+from ..flame.model import POSE_WIDTHS, load_flame_model
 from .safe_io import loads_json
 from .sequences import (
     _ALIASES,
@@ -170,6 +170,7 @@ class Dataset:
         self.cached_bytes = 0  # bytes of the arrays in the image cache now
         self._images: OrderedDict[int, tuple] = OrderedDict()
         self._verts: dict[int, np.ndarray] = {}
+        self._refined: dict[int, dict] = {}  # timestep -> refined FLAME rows (use_refined_flame)
         # split=None reads transforms.json (VHAP's export of every frame).
         json_path = os.path.join(self.root, "transforms.json" if split is None else f"transforms_{split}.json")
         if not os.path.isdir(self.root):
@@ -338,14 +339,47 @@ class Dataset:
 
     # -- geometry ----------------------------------------------------------------------
 
-    def _flame_vertices(self, path: str) -> np.ndarray:
+    def _flame_vertices(self, path: str, ts: int | None = None) -> np.ndarray:
         d = _flame_keys(_npz(path))
         if not d:
             raise DataError(f"{path}: no FLAME parameters (expected keys {', '.join(_ALIASES)})")
+        refined = self._refined.get(ts)
+        if refined is not None:
+            d.update(refined)
+            path = f"{path} with {refined['source']}"
+            del d["source"]
         v = _evaluate_flame(d, self.flame_model, path)
         if v.shape[0] != 1:
             raise DataError(f"{path}: expected parameters of one frame, got {v.shape[0]}")
         return _check_vertices(v[0], path)
+
+    def use_refined_flame(self, path: str) -> int:
+        """Pose the timesteps that ``path`` (a run's flame_refined.npz, from ``--refine-flame``)
+        covers with its refined expression, joint poses and translation, as training rendered
+        them; the files' other keys (shape, offsets) and the other timesteps stay as tracked.
+        Returns how many of this split's timesteps it covers."""
+        if self.mode != "flame":
+            raise DataError(f"{path}: refined FLAME parameters need a FLAME-mode dataset ({self.json_path} is not)")
+        keys = ("expr", "translation") + tuple(k for k, _ in POSE_WIDTHS)
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                missing = [k for k in ("timesteps",) + keys if k not in z.files]
+                if missing:
+                    raise DataError(f"{path}: not a refined-FLAME file (no {', '.join(missing)})")
+                d = {k: np.asarray(z[k], np.float64) for k in keys}
+                ts = np.asarray(z["timesteps"]).reshape(-1)
+        except (OSError, ValueError) as exc:
+            raise DataError(f"{path}: cannot read refined FLAME parameters ({exc})") from exc
+        for k, v in d.items():
+            if v.ndim != 2 or len(v) != len(ts) or not np.all(np.isfinite(v)):
+                raise DataError(f"{path}: '{k}' must be finite with one row per timestep ({len(ts)}), got {v.shape}")
+        covered = 0
+        for i, t in enumerate(ts.tolist()):
+            if int(t) in self._geometry:
+                self._refined[int(t)] = {k: v[i : i + 1] for k, v in d.items()} | {"source": os.path.basename(path)}
+                self._verts.pop(int(t), None)
+                covered += 1
+        return covered
 
     def flame_params_at(self, timestep_index: int) -> dict:
         """The tracked FLAME parameters of a timestep (FLAME mode), as stored."""
@@ -376,7 +410,7 @@ class Dataset:
             if v.ndim != 2:
                 raise DataError(f"{path}: 'vertices' must be [V,3], got {v.shape}")
         else:
-            v = self._flame_vertices(path)
+            v = self._flame_vertices(path, ts)
             if v.shape[0] != self.n_vertices:
                 raise DataError(f"{path}: {v.shape[0]} vertices, canonical has {self.n_vertices}")
         self._verts[ts] = v

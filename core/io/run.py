@@ -4,6 +4,7 @@ RUN/avatar.npz      the trained avatar (creation order)
 RUN/importance.npz  face importance over the training views (cached with its key, same order; per level)
 RUN/importance_whole.npz  the same measured on the whole avatar (the importance-only ablation)
 RUN/avatar.pavs     the progressive stream (docs/FORMAT.md)
+RUN/flame_refined.npz  the refined FLAME parameters of the training timesteps (--refine-flame)
 """
 
 from __future__ import annotations
@@ -69,6 +70,19 @@ def run_flame_model(run: str, flame_model: str | None = None) -> str | None:
     return fm or None
 
 
+def run_dataset(run: str, data: str, split: str | None, flame_model: str | None = None, **options):
+    """A split of the run's data posed as the run was trained: after ``--refine-flame`` the
+    timesteps it refined (the training ones, so the novel views too) take the refined FLAME
+    parameters of RUN/flame_refined.npz; the others (novel expressions) stay as tracked."""
+    from .dataset import Dataset
+
+    ds = Dataset(data, split, flame_model=flame_model, **options)
+    path = os.path.join(run, "flame_refined.npz")
+    if os.path.exists(path) and ds.mode == "flame":
+        ds.use_refined_flame(path)
+    return ds
+
+
 def run_importance(
     run: str,
     avatar: Avatar,
@@ -100,6 +114,9 @@ def run_importance(
         "train_split": file_digest(os.path.join(data, "transforms_train.json")),
         "flame_model": os.path.abspath(model) if model else None,
     }
+    refined = os.path.join(run, "flame_refined.npz")
+    if os.path.exists(refined):  # the training meshes it measures on
+        key["flame_refined"] = file_digest(refined)
     if os.path.exists(path):
         try:  # a cache: one that is damaged (truncated, garbage) or does not fit is recomputed
             with np.load(path, allow_pickle=False) as z:
@@ -108,12 +125,11 @@ def run_importance(
             cached, W = None, None
         if cached == key and isinstance(W, np.ndarray) and W.shape == (avatar.num_gaussians,) and W.dtype.kind == "f":
             return W
-    from .dataset import Dataset
     from ..render.importance import face_importance
 
     W = face_importance(
         avatar,
-        Dataset(data, "train", flame_model=model, cache_images=0),  # each image is read once
+        run_dataset(run, data, "train", model, cache_images=0),  # each image is read once
         max_views=max_views,
         progress=progress,
         per_level=per_level,

@@ -14,9 +14,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ..flame.model import POSE_WIDTHS
 from .flame_torch import FlameTorch
 
-POSE_WIDTHS = (("rotation", 3), ("neck_pose", 3), ("jaw_pose", 3), ("eyes_pose", 6))
 _DELTAS = ("expr", "pose", "translation")
 
 
@@ -30,17 +30,38 @@ def _row(d: dict, key: str, width: int) -> np.ndarray:
     return out
 
 
+def _offsets(per: list, key: str, n_vertices: int):
+    """Per-vertex offsets [1|T,V,3] of the timesteps (one row when every file holds the same;
+    zeros for a file without them), or None when no file has them."""
+    rows = [None if p.get(key) is None else np.asarray(p[key], np.float32).reshape(-1, n_vertices, 3)[:1] for p in per]
+    given = [r for r in rows if r is not None]
+    if not given:
+        return None
+    if len(given) == len(rows) and all(np.array_equal(r, given[0]) for r in given[1:]):
+        return torch.from_numpy(given[0].copy())
+    zero = np.zeros((1, n_vertices, 3), np.float32)
+    return torch.from_numpy(np.concatenate([zero if r is None else r for r in rows]))
+
+
+def _rows_of(offsets, rows):
+    if offsets is None or offsets.shape[0] == 1:
+        return offsets
+    return offsets[rows]
+
+
 class FlameRefiner:
     def __init__(self, dataset, lrs: dict):
         self.flame = FlameTorch(dataset.flame_model)
         self.timesteps = np.asarray(dataset.timesteps, np.int64)
         self.row = {int(t): i for i, t in enumerate(self.timesteps)}
         per = [dataset.flame_params_at(t) for t in self.timesteps.tolist()]
-        E = self.flame.n_expr
-        first = per[0]
-        self.shape = torch.tensor(_row(first, "shape", self.flame.n_shape), dtype=torch.float32)
-        so = first.get("static_offset")
-        self.static_offset = None if so is None else torch.tensor(np.asarray(so, np.float32))
+        E, V = self.flame.n_expr, self.flame.n_vertices
+        # Everything the dataset's own evaluation reads (Dataset.vertices_at), row by row, so that
+        # zero corrections give the tracked meshes exactly: the shape and static offsets as each
+        # timestep's file holds them, the per-frame dynamic offsets (VHAP) as a fixed base.
+        self.shape = torch.tensor(np.stack([_row(p, "shape", self.flame.n_shape) for p in per]), dtype=torch.float32)
+        self.static_offset = _offsets(per, "static_offset", V)
+        self.dynamic_offset = _offsets(per, "dynamic_offset", V)
         self.base = {
             "expr": torch.tensor(np.stack([_row(p, "expr", E) for p in per]), dtype=torch.float32),
             "pose": torch.tensor(
@@ -64,10 +85,11 @@ class FlameRefiner:
         p = {k: self.base[k][rows] + self.delta[k][rows] for k in _DELTAS}
         pose = p["pose"]
         out = {
-            "shape": self.shape,
+            "shape": self.shape[rows],
             "expr": p["expr"],
             "translation": p["translation"],
-            "static_offset": self.static_offset,
+            "static_offset": _rows_of(self.static_offset, rows),
+            "dynamic_offset": _rows_of(self.dynamic_offset, rows),
         }
         o = 0
         for key, w in POSE_WIDTHS:
@@ -132,8 +154,6 @@ class FlameRefiner:
         for key in ("expr", "translation") + tuple(k for k, _ in POSE_WIDTHS):
             out[key] = p[key].numpy().astype(np.float32)
         out["shape"] = self.shape.numpy()
-        if self.static_offset is not None:
-            out["static_offset"] = self.static_offset.numpy()
         for k in _DELTAS:
             out[f"correction_{k}"] = self.delta[k].detach().numpy().copy()
         return out
