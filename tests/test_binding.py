@@ -396,6 +396,43 @@ def test_training_and_inference_agree_on_a_collapsing_float32_root(height):
     assert np.abs(np.abs((qa * qb).sum(1)) - 1).max() < 1e-5  # the same rotations (up to sign)
 
 
+@pytest.mark.parametrize("kind", ["v1 == v2", "v0 == v1", "collinear"])
+def test_training_and_inference_agree_deep_under_a_degenerate_root(kind):
+    """Five levels under a zero-area root: the deep faces' edges come from near-cancelling
+    weights, so in float32 their rounding alone passed the flatness test and inference framed
+    16 of 364 faces from noise (up to 5 % of the triangle away, rotations ~100 degrees off)
+    where training's float64 kernel took the fallback frame."""
+    from progressive_avatars.core.avatar.avatar import Avatar
+    from progressive_avatars.core.train.binding_kernels import FaceBinding
+
+    forest = Forest(np.array([[0, 1, 2]], np.int32))
+    for _ in range(5):
+        forest.split(np.flatnonzero(forest.level == forest.level.max()))
+    rng = np.random.default_rng(1)
+    N = forest.num_faces
+    av = Avatar.initial(forest)
+    av.d_mu[:] = rng.normal(0, 0.3, av.d_mu.shape)
+    av.d_rot[:] = rng.normal(0, 1, av.d_rot.shape)
+    forest.split_logits[:] = rng.normal(0, 0.5, forest.split_logits.shape)
+    P = np.array([-0.0300916, 0.08229133, 0.00285548], np.float32)
+    Q = np.array([0.1187, -0.0113, 0.0542], np.float32)
+    V = np.stack({"v1 == v2": [P, Q, Q], "v0 == v1": [P, P, Q], "collinear": [P, Q, 2 * Q - P]}[kind]).astype(
+        np.float32
+    )
+    t = torch.tensor
+    tr = FaceBinding(forest).gaussians(t(V), t(forest.split_logits), t(av.d_mu), t(av.d_log_scale), t(av.d_rot))
+    inf = binding.GaussianEvaluator(forest, av.d_mu, av.d_log_scale, av.d_rot)(V)
+    size = float(np.linalg.norm(Q - P))
+    assert np.abs(inf.means[:N] - tr.means.numpy()).max() < 1e-6 * size
+    qa, qb = inf.quats[:N].astype(np.float64), tr.quats.numpy().astype(np.float64)
+    assert np.abs(np.abs((qa * qb).sum(1)) - 1).max() < 1e-5
+    np.testing.assert_allclose(inf.scales[:N], tr.scales.numpy(), rtol=1e-5)
+    # The face frames (FaceEvaluator: the exports' and the reference path) are training's too.
+    f = binding.FaceEvaluator(forest)(V)
+    g = binding.compose(f.t, f.r, f.s, av.d_mu, av.d_log_scale, av.d_rot)
+    assert np.abs(g.means[:N] - tr.means.numpy()).max() < 1e-6 * size
+
+
 @pytest.mark.parametrize("gap", [20.0, 30.0, 60.0])
 @pytest.mark.parametrize("root_edge", [0.02, 1e-18])
 def test_training_and_inference_agree_on_faces_with_a_vanishing_first_edge(gap, root_edge):

@@ -42,15 +42,17 @@ def _unit_norm(v: np.ndarray):
     return _unit(u, n), n * m
 
 
-def frames_from_edges(e1: np.ndarray, e2: np.ndarray, normal: np.ndarray | None = None):
+def frames_from_edges(e1: np.ndarray, e2: np.ndarray, normal: np.ndarray | None = None, eps: float | None = None):
     """Face frames r [...,3,3] and scales s [...] from edges e1 = v1 - v0, e2 = v2 - v0.
 
     `normal` (unnormalised) may be supplied when it is known more precisely than x × e2:
     every descendant of a root face is coplanar with it and has the root's normal, which
-    stays well conditioned when the small face is a sliver.
+    stays well conditioned when the small face is a sliver. `eps`: the flatness bound
+    (default 8 eps of the edges' precision).
     """
     dtype = e1.dtype
-    eps = 8 * np.finfo(dtype).eps
+    if eps is None:
+        eps = 8 * np.finfo(dtype).eps
     u1, n1 = _unit_norm(e1)
     u2, n2 = _unit_norm(e2)
     axis_x = np.zeros_like(e1)
@@ -155,6 +157,8 @@ class _PlaneEvaluator:
             W, root = W[ids], root[ids]
         self.root = np.ascontiguousarray(root)
         self.W = W.astype(self.dtype)
+        self._W64 = np.asarray(W, np.float64)  # faces under degenerate roots (_exact)
+        self._vt = None  # the last frame's vertices [3,V] (_roots)
         n = len(self.root)
         self.n = n
         # Per face, in units of its root's edges E1, E2: the two edges and the centroid.
@@ -193,7 +197,7 @@ class _PlaneEvaluator:
             self._root_scr = np.empty((3, F0), self.dtype)
         pack, (t0, t1, t2), scr = self._pack, self._root_tmp, self._root_scr
         eps = 8 * np.finfo(self.dtype).eps
-        vt = np.ascontiguousarray(verts.T)  # [3,V]: rows are contiguous, so are the gathers below
+        vt = self._vt = np.ascontiguousarray(verts.T)  # [3,V]: rows are contiguous, so are the gathers below
         v0, xr, nh, zr = pack[0:3], pack[3:6], pack[6:9], pack[9:12]
         L, a, b = pack[12], pack[13], pack[14]
         for k in range(3):
@@ -284,19 +288,30 @@ class _PlaneEvaluator:
         np.multiply(cc2, b, out=cz)
         return u, v, cx, cz
 
-    def _general(self, good, rv0, E1, E2, with_vertices=False):
-        """Rows needing the general 3D path (None if none) and, for those or for all rows when
-        with_vertices, each face's v0, e1, e2."""
-        bad = None if good.all() else np.flatnonzero(~good[self.root])
-        if bad is None and not with_vertices:
-            return None, None
-        sel = slice(None) if with_vertices else bad
-        W, root = self.W[sel], self.root[sel]
+    def _bad_rows(self, good):
+        """Rows under degenerate roots, which take the general 3D path (None if none)."""
+        return None if good.all() else np.flatnonzero(~good[self.root])
+
+    def _face_vertices(self, rv0, E1, E2):
+        """Every row's v0, e1, e2 (the evaluator's precision)."""
+        W, root = self.W, self.root
         gE1, gE2 = E1[root], E2[root]
         e1 = W[:, 1, 1:2] * gE1 + W[:, 1, 2:3] * gE2
         e2 = W[:, 2, 1:2] * gE1 + W[:, 2, 2:3] * gE2
-        base = rv0[root] + W[:, 0, 1:2] * gE1 + W[:, 0, 2:3] * gE2
-        return bad, (base, e1, e2)
+        return rv0[root] + W[:, 0, 1:2] * gE1 + W[:, 0, 2:3] * gE2, e1, e2
+
+    def _exact(self, bad):
+        """v0, e1, e2 and the flatness bound of the rows ``bad``, in float64 from the vertices as
+        given: training's kernel (binding_kernels._general_frame) frames these faces in float64,
+        and deep faces' edges come from near-cancelling weights, so in float32 the rounding alone
+        could pass the flatness test and give a frame training never had."""
+        W, tri, vt = self._W64[bad], self._tri[:, self.root[bad]], self._vt
+        v0 = vt[:, tri[0]].T.astype(np.float64)
+        E1 = vt[:, tri[1]].T.astype(np.float64) - v0
+        E2 = vt[:, tri[2]].T.astype(np.float64) - v0
+        e1 = W[:, 1, 1:2] * E1 + W[:, 1, 2:3] * E2
+        e2 = W[:, 2, 1:2] * E1 + W[:, 2, 2:3] * E2
+        return v0 + W[:, 0, 1:2] * E1 + W[:, 0, 2:3] * E2, e1, e2, 8 * np.finfo(self.dtype).eps
 
 
 class FaceEvaluator(_PlaneEvaluator):
@@ -337,18 +352,17 @@ class FaceEvaluator(_PlaneEvaluator):
             t += tmp3
         rv = np.moveaxis(self._r, 2, 0)  # [n,3,3] view
         tv, sv = self._t.T, self._s
-        bad, parts = self._general(good, rv0, E1, E2, with_vertices)
+        bad = self._bad_rows(good)
+        if bad is not None:
+            b_base, b_e1, b_e2, eps = self._exact(bad)
+            r_bad, s_bad = frames_from_edges(b_e1, b_e2, eps=eps)
+            rv[bad], sv[bad] = r_bad, s_bad
+            tv[bad] = b_base + (b_e1 + b_e2) / 3
         fv = fe = None
-        if parts is not None:
-            base, e1, e2 = parts
-            if bad is not None:
-                b_base, b_e1, b_e2 = (x[bad] for x in parts) if with_vertices else parts
-                r_bad, s_bad = frames_from_edges(b_e1, b_e2)
-                rv[bad], sv[bad] = r_bad, s_bad
-                tv[bad] = b_base + (b_e1 + b_e2) / 3
-            if with_vertices:
-                fv = np.stack([base, base + e1, base + e2], axis=1)
-                fe = np.stack([e1, e2], axis=1)
+        if with_vertices:
+            base, e1, e2 = self._face_vertices(rv0, E1, E2)
+            fv = np.stack([base, base + e1, base + e2], axis=1)
+            fe = np.stack([e1, e2], axis=1)
         return FaceGeometry(tv, rv, sv, fv, fe)
 
 
@@ -428,10 +442,10 @@ class GaussianEvaluator(_PlaneEvaluator):
                     np.take(src, perm, axis=0, out=out[dest])
                 else:
                     out[dest] = src[perm]
-        bad, parts = self._general(good, rv0, E1, E2)
+        bad = self._bad_rows(good)
         if bad is not None:
-            base, e1, e2 = parts
-            r_bad, s_bad = frames_from_edges(e1, e2)
+            base, e1, e2, eps = self._exact(bad)
+            r_bad, s_bad = frames_from_edges(e1, e2, eps=eps)
             m, q, sc = compose(
                 base + (e1 + e2) / 3,
                 r_bad,
