@@ -523,3 +523,32 @@ def test_export_of_a_backdrop_avatar_says_what_the_ply_leaves_out(tiny_dataset, 
     assert decoded.forest.backdrop and coarse > 0 and decoded.num_gaussians == res["gaussians"]
     assert PlyData.read(str(tmp_path / "f.ply"))["vertex"].count == res["ply_gaussians"] == res["gaussians"] - coarse
     assert f"{coarse:,} retired coarse stand-ins left out of the PLY" in out.stderr
+
+
+def test_scores_have_their_known_values():
+    """The report's headline numbers on hand-made images: PSNR in the mask and on the whole
+    image, and mask coverage (rendered alpha >= 0.5 where the mask is >= 0.5)."""
+    from types import SimpleNamespace
+
+    from progressive_avatars.core.evaluate.sweep import SplitRenderer
+    from progressive_avatars.core.train import metrics
+
+    H, W = 16, 12
+    mask = np.zeros((H, W), np.float32)
+    mask[:, : W // 2] = 1.0
+    truth = np.where(mask[..., None] > 0, 0.1, 0.5).astype(np.float32) * np.ones(3, np.float32)
+    rendered = np.zeros((H, W, 3), np.float32)
+    assert metrics.psnr(rendered, truth, mask) == pytest.approx(20.0, abs=1e-5)  # MSE 0.01 inside
+    assert metrics.psnr(rendered, truth) == pytest.approx(10 * np.log10(1 / 0.13), abs=1e-5)  # 8.8606 dB
+
+    for alpha_inside, coverage in ((0.3, 0.0), (0.6, 1.0), (0.5, 1.0)):
+        alpha = np.where(mask > 0, alpha_inside, 0.0).astype(np.float32)
+        alpha[0, 0] = 0.0  # one hole in the mask: 1 of 96 mask pixels
+        sr = SplitRenderer.__new__(SplitRenderer)
+        sr.views = [0, 1]
+        sr.dataset = [SimpleNamespace(image=truth, mask=mask)] * 2
+        sr.render = lambda view, ids, with_alpha=False, a=alpha: (rendered, 0.001, a)
+        out = sr.score(np.arange(3))
+        assert out["coverage"] == pytest.approx(max(coverage - 1 / 96, 0.0))
+        assert out["psnr"] == pytest.approx(20.0) and out["psnr_full_image"] == pytest.approx(8.8606, abs=1e-4)
+        assert out["views"] == 2 and out["render_ms"] == pytest.approx(1.0)

@@ -47,6 +47,15 @@ def test_plyfile_reads_exact_properties(tmp_path, gaussians):
     f_dc = np.stack([v[f"f_dc_{k}"] for k in range(3)], 1)
     np.testing.assert_allclose(f_dc, (gaussians["colors"] - 0.5) / P.SH_C0, atol=1e-5)
     assert np.all(np.stack([v["nx"], v["ny"], v["nz"]]) == 0)
+    # rot_0..3 hold the unit quaternion as w, x, y, z (3DGS's order), every splat's own
+    q = np.stack([v[f"rot_{k}"] for k in range(4)], 1).astype(np.float64)
+    q0 = gaussians["quats"] / np.linalg.norm(gaussians["quats"], axis=1, keepdims=True)
+    np.testing.assert_allclose(np.abs(np.sum(q * q0, axis=1)), 1.0, atol=1e-6)
+    one = {k: x[:1] for k, x in gaussians.items()}
+    one["quats"] = np.array([[np.cos(np.pi / 8), np.sin(np.pi / 8), 0.0, 0.0]])  # 45 degrees about x
+    P.write_ply(tmp_path / "one.ply", one)
+    w = PlyData.read(str(tmp_path / "one.ply"))["vertex"]
+    np.testing.assert_allclose([float(w[f"rot_{k}"][0]) for k in range(4)], one["quats"][0], atol=1e-6)
 
 
 def test_read_ply_roundtrip(tmp_path, gaussians, monkeypatch):

@@ -1487,6 +1487,15 @@ def test_root_orders():
                 assert np.array_equal(got, ids[coarse.spread_order(cen[ids])])
             elif how in ("importance", "auto"):
                 assert np.all(np.diff(imp[got]) <= 0)
+            else:  # both: the spatial order's dyadic blocks (1, 2, 4, 8, ... roots), each by importance
+                spatial = ids[coarse.spread_order(cen[ids])]
+                a = 0
+                while a < len(ids):
+                    b = min(len(ids), 2 * a + 1)
+                    assert set(got[a:b]) == set(spatial[a:b]), (level, a, b)
+                    assert np.all(np.diff(imp[got[a:b]]) <= 0)
+                    a = b
+                assert len(ids) < 8 or not np.array_equal(got, spatial)  # importance moved some
         if how == "spatial":  # auto without importance
             assert np.array_equal(stream_order(f, imp, root_keys(f, "auto", None, verts))[:R], o[:R])
     assert np.array_equal(stream_order(f, imp)[:R], np.arange(R))

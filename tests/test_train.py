@@ -292,6 +292,17 @@ def test_bad_preset_and_data_errors(tmp_path):
     assert out.returncode == 2 and "error:" in out.stderr and "nope" in out.stderr
 
 
+def test_regularisers_have_the_papers_values():
+    """GaussianAvatars' regularisers (DESIGN.md): position relu(|dmu| - 1), scale
+    relu(exp(dS_log) - 0.6), in face-local units, averaged over the Gaussians."""
+    from progressive_avatars.core.train import losses
+
+    d_mu = torch.tensor([[1.5, 0.0, 0.0], [0.0, 0.6, 0.8], [0.0, 0.0, 0.5]], dtype=torch.float64)
+    assert float(losses.position_reg(d_mu)) == pytest.approx(0.5 / 3)  # 0.5, 0 (|dmu| = 1), 0
+    d_log_scale = torch.log(torch.tensor([[0.8, 0.5, 0.6]], dtype=torch.float64))
+    assert float(losses.scale_reg(d_log_scale)) == pytest.approx(0.2 / 3)  # 0.2, 0, 0 (at the bound)
+
+
 def test_level_weights_scale_each_level_loss(tiny_dataset, tmp_path):
     from progressive_avatars.core.train import losses
     from progressive_avatars.core.train.trainer import level_weight

@@ -18,7 +18,7 @@ def root_keys(forest: Forest, how: str = "forest", importance=None, vertices=Non
     forest: as the forest holds them (trained avatars: spread-out, core/avatar/coarse.py; older ones:
     template order). spatial: spread-out order of the roots' centroids on `vertices` (a rest
     pose). importance: descending importance. both: the spatial order's dyadic blocks (the
-    first 1, 1, 2, 4, 8, ... roots: each block spread over the head) with every block sorted by
+    first 1, 2, 4, 8, ... roots: each block spread over the head) with every block sorted by
     descending importance. auto: importance in every root level when it is given, else
     spatial. Measured in docs/BENCHMARKS.md (issue 16, "Order of the roots"): with importance
     measured per level (core/render/importance.py: level 0's on level 0 alone) it beats the
