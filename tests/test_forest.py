@@ -127,6 +127,22 @@ def test_invalid_structures_are_refused():
         Forest(np.zeros((0, 3)))
 
 
+def test_coarse_levels_of_tiny_templates_do_not_repeat():
+    """On a template too small for two distinct coarse levels both fractions round to the
+    same triangles (80 faces: 4 and 4) and a one-face template's only coarse level is itself:
+    such levels are left out, so no Gaussian is a copy of another."""
+    from progressive_avatars.core.avatar import coarse
+
+    verts, faces = sphere_mesh(4, 6)
+    cf, counts = coarse.build_coarse(verts, faces)
+    assert 1 <= len(counts) < 2 and len(cf) < len(faces)
+    assert len(np.unique(np.sort(cf, axis=1), axis=0)) == len(cf)
+    cf, counts = coarse.build_coarse(verts[:3], np.array([[0, 1, 2]]))
+    assert counts == () and len(cf) == 0
+    big_v, big_f = sphere_mesh(20, 32)
+    assert len(coarse.build_coarse(big_v, big_f)[1]) == 2  # a head-sized template keeps both
+
+
 def test_coarse_roots_bind_like_template_faces_and_survive_reorder_prefix_and_save(tmp_path):
     """Coarse faces (three template vertices each) are roots of the root table: they bind
     exactly like a template face over the same vertices, never split, and the forest keeps

@@ -120,6 +120,11 @@ def centroids(vertices, tris) -> np.ndarray:
     return v[np.asarray(tris, np.int64)].mean(axis=1)
 
 
+def _same_triangles(a, b) -> bool:
+    key = lambda t: np.unique(np.sort(np.asarray(t, np.int64), axis=1), axis=0)  # noqa: E731
+    return len(a) == len(b) and np.array_equal(key(a), key(b))
+
+
 def build_coarse(vertices, faces, fractions=DEFAULT_FRACTIONS):
     """(coarse_faces [C,3], counts per coarse level) for a template, coarsest level first;
     each level's rows in spread-out order. Empty fractions: no coarse levels."""
@@ -129,7 +134,9 @@ def build_coarse(vertices, faces, fractions=DEFAULT_FRACTIONS):
         if not 0 < fr < 1:
             raise ValueError(f"coarse level fractions must be in (0, 1), got {fr}")
         t = decimate(vertices, faces, max(4, int(round(fr * len(faces)))))
-        if len(t) == 0:
+        # A level no coarser than the template, or the same triangles as the level before (tiny
+        # templates: both fractions round to the minimum), would only repeat Gaussians.
+        if len(t) == 0 or len(t) >= len(faces) or (tris and _same_triangles(t, tris[-1])):
             continue
         t = t[spread_order(centroids(vertices, t))]
         tris.append(t)
