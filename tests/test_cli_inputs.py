@@ -156,7 +156,12 @@ def test_report_checks_every_other_run_up_front(tiny_run, tmp_path, no_rendering
     empty.mkdir()
     missing = str(tmp_path / "missing")
     out = tmp_path / "out"
+    refined = tmp_path / "refined"  # a run trained with --refine-flame: scored on other meshes
+    refined.mkdir()
+    shutil.copy(os.path.join(tiny_run, "avatar.npz"), refined / "avatar.npz")
+    np.savez(refined / "flame_refined.npz", timesteps=np.arange(2))
     for kw, says in (
+        (dict(compare=(f"r={refined}",)), f"--compare {refined}: trained with other FLAME refinement"),
         (dict(compare=("runs/x",)), "--compare runs/x: expected NAME=RUN"),
         (dict(compare=(f"a={tiny_run}", "=" + tiny_run)), f"--compare ={tiny_run}: expected NAME=RUN"),
         (dict(compare=(f"a={empty}",)), f"--compare {empty}: {empty / 'avatar.npz'}: no trained avatar"),

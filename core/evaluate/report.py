@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..io import run as runs
+from ..io.safe_io import file_digest
 from ..stream.order import ROOT_ORDERS, root_keys, stream_order
 from ..stream.reader import read_stream
 from ..stream.writer import write_stream
@@ -505,6 +506,18 @@ def _check_other_runs(args: ReportOptions) -> None:
         except OSError as exc:
             why = "no trained avatar in this run folder" if not os.path.exists(path) else exc.strerror or exc
             raise ValueError(f"{option} {run}: {path}: {why}") from None
+    # Every run is scored on this run's meshes (run_dataset): another run's own refined FLAME
+    # parameters would be ignored, so the comparison would not be like for like.
+    mine = os.path.join(args.run, "flame_refined.npz")
+    mine = file_digest(mine) if os.path.exists(mine) else None
+    for option, run in runs_named:
+        theirs = os.path.join(run, "flame_refined.npz")
+        if (file_digest(theirs) if os.path.exists(theirs) else None) != mine:
+            raise ValueError(
+                f"{option} {run}: trained with other FLAME refinement (flame_refined.npz) than {args.run}; "
+                "every run is scored on the meshes of the run evaluated, so compare runs refined alike "
+                "(or none refined)"
+            )
 
 
 def build_report(args: ReportOptions) -> dict:
