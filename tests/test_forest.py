@@ -1,3 +1,5 @@
+import warnings
+
 import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
@@ -138,6 +140,10 @@ def test_coarse_levels_of_tiny_templates_do_not_repeat():
     assert 1 <= len(counts) < 2 and len(cf) < len(faces)
     assert len(np.unique(np.sort(cf, axis=1), axis=0)) == len(cf)
     cf, counts = coarse.build_coarse(verts[:3], np.array([[0, 1, 2]]))
+    assert counts == () and len(cf) == 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a mesh collapsed to one point: no NaN on the way
+        cf, counts = coarse.build_coarse(np.zeros_like(verts), faces)
     assert counts == () and len(cf) == 0
     big_v, big_f = sphere_mesh(20, 32)
     assert len(coarse.build_coarse(big_v, big_f)[1]) == 2  # a head-sized template keeps both

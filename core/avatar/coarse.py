@@ -61,6 +61,8 @@ def _voxel_seeds(vertices, used, cell):
 def _seeds_for(vertices, used, count):
     """About `count` seed vertices spread evenly in space (voxel size by bisection)."""
     ext = np.ptp(vertices[used], axis=0).max()
+    if not ext > 0:  # every vertex in one point: one seed, so no coarse triangle
+        return used[:1]
     lo, hi = ext / 4096, ext
     best = None
     for _ in range(40):
