@@ -315,3 +315,25 @@ def test_a_deep_chain_keeps_every_parent_first():
 
     data, _ = build_stream(Avatar.initial(f), imp)
     assert read_stream(data).num_gaussians == N
+
+
+def test_zlib_tables_must_be_complete_and_fill_their_bytes(tmp_path):
+    """FORMAT.md 2.2: the embedded template's and the coarse table's zlib streams end where
+    their bytes end, Adler-32 included; a strict RFC 1950 reader (zlib.decompress) refuses
+    junk after the end or a stream cut before its checksum, and so does ours."""
+    _, av, imp = make_avatar(26, coarse=True)
+    data, info = build_stream(av, imp, quantize=True, records_per_block=8)
+    assert info.num_coarse_levels > 0
+    tmpl = zlib.compress(np.ascontiguousarray(info.template_faces, "<i4").tobytes())
+    coarse = F._encode_coarse(info.coarse_faces, getattr(info, "coarse_retire", None))
+    read_header(F._encode_header(info, tmpl, b"", coarse))  # as written: accepted
+    p = tmp_path / "z.pavs"
+    for what, t, c in (
+        ("embedded template: 2 bytes after", tmpl + b"\x00\x01", coarse),
+        ("embedded template: its zlib stream is cut short", tmpl[:-4], coarse),
+        ("coarse triangle table: 1 bytes after", tmpl, coarse + b"\x00"),
+        ("coarse triangle table: its zlib stream is cut short", tmpl, coarse[:-2]),
+    ):
+        p.write_bytes(F._encode_header(info, t, b"", c))
+        with pytest.raises(StreamError, match=re.escape(f"{p}: {what}")):
+            read_stream(p)

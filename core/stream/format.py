@@ -661,14 +661,7 @@ def _parse_header(buf, source: str) -> StreamInfo:
     if f["T"]:
         blob = bytes(buf[pos : pos + f["T"]])
         pos += f["T"]
-        want = 12 * f["num_template_faces"]
-        try:
-            d = zlib.decompressobj()
-            raw = d.decompress(blob, want + 1)  # bounded: a hostile blob cannot inflate past the template
-        except zlib.error as exc:
-            raise StreamError(f"{source}: embedded template does not decompress: {exc}") from None
-        if len(raw) != want:
-            raise StreamError(f"{source}: embedded template holds {len(raw)} bytes, expected {want}")
+        raw = _inflate_exact(blob, 12 * f["num_template_faces"], f"{source}: embedded template")
         template = np.frombuffer(raw, "<i4").reshape(-1, 3).astype(np.int32)
         if template_hash(template) != f["template_hash"]:
             raise StreamError(f"{source}: embedded template does not match the header's template hash")
@@ -744,15 +737,27 @@ def _encode_coarse(tris, retire=None) -> bytes:
     return zlib.compress(np.concatenate(cols).astype("<i4").tobytes(), 9)
 
 
+def _inflate_exact(blob: bytes, want: int, what: str, counted: str = "") -> bytes:
+    """The ``want`` bytes a zlib stream (RFC 1950) holds, refused unless the stream is complete
+    (its Adler-32 present and right) and fills ``blob`` exactly (FORMAT.md 2.2). Bounded: a
+    hostile blob cannot inflate past ``want`` + 1 bytes."""
+    d = zlib.decompressobj()
+    try:
+        raw = d.decompress(blob, want + 1)
+    except zlib.error as exc:
+        raise StreamError(f"{what} does not decompress: {exc}") from None
+    if len(raw) != want:
+        raise StreamError(f"{what} holds {len(raw)} bytes, expected {want}{counted}")
+    if not d.eof:
+        raise StreamError(f"{what}: its zlib stream is cut short (no end or Adler-32 checksum)")
+    if d.unused_data:
+        raise StreamError(f"{what}: {len(d.unused_data)} bytes after the end of its zlib stream")
+    return raw
+
+
 def _decode_coarse(blob: bytes, C: int, source: str, stand_ins: bool = False):
     """(triangles [C,3] int32, retire positions [C] int64 with stand-ins else None)."""
-    want = (16 if stand_ins else 12) * C
-    try:
-        raw = zlib.decompressobj().decompress(blob, want + 1)  # bounded, as the template
-    except zlib.error as exc:
-        raise StreamError(f"{source}: coarse triangle table does not decompress: {exc}") from None
-    if len(raw) != want:
-        raise StreamError(f"{source}: coarse triangle table holds {len(raw)} bytes, expected {want} ({C} triangles)")
+    raw = _inflate_exact(blob, (16 if stand_ins else 12) * C, f"{source}: coarse triangle table", f" ({C} triangles)")
     cols = np.frombuffer(raw, "<i4").astype(np.int64).reshape(-1, C)
     a = np.cumsum(cols[0])
     t = np.stack([a, a + cols[1], a + cols[2]], axis=1)
