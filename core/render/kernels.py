@@ -11,9 +11,9 @@ reference (core/render/reference.py), which must stay in step with this file:
   compensation for the dilation.
 - Culled (radius 0): camera z < near, opacity < 1/255, non-positive det, or no pixel centre
   where alpha can reach 1/255.
-- Pixel (i, j) is sampled at its centre (i + 0.5, j + 0.5). alpha = min(0.99, o*exp(power));
-  alpha < 1/255 is skipped; a pixel stops *before* the Gaussian that would take its
-  transmittance below 1e-4 (as 3DGS/gsplat do).
+- Pixel (i, j) is sampled at its centre (i + 0.5, j + 0.5). alpha = min(0.99, o*exp(power))
+  (INRIA's 3DGS; gsplat clamps at 0.999); alpha < 1/255 is skipped; a pixel stops *before* the
+  Gaussian that would take its transmittance below 1e-4 (as 3DGS/gsplat do).
 - Per tile, Gaussians are composited in ascending camera z (stable: ties keep index order).
 
 Pixel boxes are exact, not 3-sigma guesses: alpha >= 1/255 needs power >= -ln(255 o), i.e.
