@@ -57,7 +57,8 @@ def unregister():
     properties.unregister_props()
     for cls in reversed(_classes()):
         bpy.utils.unregister_class(cls)
-    from . import render_job, runtime
+    from . import operators_train, render_job, runtime
 
     runtime.forget()
     render_job.stop_all()
+    operators_train.stop_all("the extension was disabled")

@@ -79,6 +79,55 @@ def _view_spaces(context):
                     yield f"{screen.name}|{ai}|{si}", space
 
 
+# The 3D views' colour mode is UI data: undo does not take it back, while it takes back the
+# mesh's depth_shown and depth_saved. What the views showed before depth colours went on is
+# kept here too (by the mesh's session id), where undo leaves it, and sync_views puts the views
+# in step with the toggles an undo, a redo or a file load left.
+_views_before = {}
+
+
+def _set_views(color_type):
+    for _key, sp in _view_spaces(None):
+        sp.shading.color_type = color_type
+
+
+def _put_back(shading):
+    """The views' saved colour modes, where they still show depth colours (Attribute)."""
+    for key, sp in _view_spaces(None):
+        if key in shading and sp.shading.color_type == "VERTEX":
+            sp.shading.color_type = shading[key]
+
+
+def sync_views():
+    """After undo/redo: views follow the meshes' depth toggles. A toggle undone puts back the
+    colour modes its mesh's depth colours replaced; one redone shows them again."""
+    shown = {o.session_uid: o for o in bpy.data.objects if o.type == "MESH" and o.pa_mesh.depth_shown}
+    for key in reversed(list(_views_before)):  # the earliest saved modes are put back last
+        if key not in shown:
+            _put_back(_views_before.pop(key))
+    for key, obj in shown.items():
+        if key not in _views_before:
+            try:
+                saved = json.loads(obj.pa_mesh.depth_saved or "{}").get("shading", {})
+            except (ValueError, AttributeError):
+                saved = {}
+            saved = saved if isinstance(saved, dict) else {}
+            # What the views show now is what depth colours replace; where they show them
+            # already (a file's own UI), what the mesh saved. (A file opened without its UI
+            # has other views than it saved.)
+            _views_before[key] = {
+                k: saved.get(k, mode) if mode == "VERTEX" else mode
+                for k, mode in ((k, sp.shading.color_type) for k, sp in _view_spaces(None))
+            }
+            _set_views("VERTEX")
+
+
+def after_load():
+    """A loaded file: the records were the previous file's; its own toggles decide."""
+    _views_before.clear()
+    sync_views()
+
+
 def show_colors(context, obj, forest, count=None, max_level=None):
     """Depth colours on: remember the mesh's active/render colours and every 3D view's colour
     mode, then show the depth colours of the first ``count`` Gaussians there (Solid mode,
@@ -100,6 +149,7 @@ def show_colors(context, obj, forest, count=None, max_level=None):
     if not was_shown:
         state.depth_saved = saved
         state.depth_shown = True
+        _views_before[obj.session_uid] = json.loads(saved)["shading"]
         _write_colors(me, depth, state.depth_max_level)
         me.update()
     for _key, sp in _view_spaces(context):
@@ -121,7 +171,8 @@ def hide_colors(context, obj):
                 ca.active_color = ca[name]
             elif hasattr(ca, "default_color_name"):
                 ca.default_color_name = name
-    shading = saved.get("shading", {})
+    # This session's record first: after a file load it names the views there are now.
+    shading = _views_before.pop(obj.session_uid, None) or saved.get("shading", {})
     for key, sp in _view_spaces(context):
         if key in shading:
             sp.shading.color_type = shading[key]

@@ -53,9 +53,21 @@ def on_depsgraph_update(scene, depsgraph):
 
 
 @persistent
+def on_load_pre(*_args):
+    # No training carries over into another file: its trainer would run on unread.
+    from . import operators_train
+
+    operators_train.stop_all()
+
+
+@persistent
 def on_load_post(*_args):
     # Caches describe objects of the previous file; they reload lazily from stored paths.
     runtime.forget()
+    from . import depth, operators_train
+
+    operators_train.clear_after_load()  # a file saved mid-training stored "running"
+    depth.after_load()
 
 
 _relocated = []  # (object, previous path) while a save is under way
@@ -105,13 +117,34 @@ def on_undo_redo(*_args):
     # Undo restores preview attributes as they were at that step; points the cache counted
     # as evaluated since may hold another frame's positions, so nothing is trusted past it.
     runtime.invalidate()
+    # Undo takes back properties but not what lives outside the file's data: a training in
+    # progress, the 3D views' colour mode that depth colours set.
+    from . import depth, operators_train
+
+    operators_train.restore_runs()
+    depth.sync_views()
+
+
+@persistent
+def on_render_pre(scene, *_args):
+    """The splats' dilation needs the focal length of the camera and resolution rendered now."""
+    from . import splat_look
+
+    try:
+        warning = splat_look.focal_warning(scene)
+    except Exception as exc:  # a handler must never stop a render
+        warning = f"Splat focal length not set: {exc}"
+    if warning:
+        print(f"Progressive Avatars: {warning}")
 
 
 _HANDLERS = (
     (bpy.app.handlers.undo_post, on_undo_redo),
     (bpy.app.handlers.redo_post, on_undo_redo),
     (bpy.app.handlers.frame_change_post, on_frame_change),
+    (bpy.app.handlers.render_pre, on_render_pre),
     (bpy.app.handlers.depsgraph_update_post, on_depsgraph_update),
+    (bpy.app.handlers.load_pre, on_load_pre),
     (bpy.app.handlers.load_post, on_load_post),
     (bpy.app.handlers.save_pre, on_save_pre),
     (bpy.app.handlers.save_post, on_save_post),

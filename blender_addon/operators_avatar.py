@@ -151,6 +151,7 @@ def load_avatar_onto(context, mesh_obj, path, budget=100.0):
         state.file_signature = signature
         state.source = mesh_obj
         state.max_level = budget_info.max_level()
+        state.coarse_levels = budget_info.max_level() - budget_info.max_depth(avatar.forest)
         state.template_vertices = len(mesh_obj.data.vertices)
         state.template_faces = len(mesh_obj.data.polygons)
         runtime.prime(obj, abspath, avatar, budget_info)
@@ -174,6 +175,7 @@ def load_avatar_onto(context, mesh_obj, path, budget=100.0):
                 bpy.data.node_groups.remove(ng)
     obj.name = name
     obj.data.name = name
+    splat_look.set_focal(context.scene)  # the dilation's focal length, from the scene camera
     return obj
 
 
@@ -241,6 +243,9 @@ class PA_OT_load_avatar(bpy.types.Operator, ImportHelper):
         problem = runtime.topology_problem(obj, context.evaluated_depsgraph_get())
         if problem:
             self.report({"WARNING"}, problem)
+        focal = splat_look.focal_warning(context.scene)
+        if focal:
+            self.report({"WARNING"}, f"{obj.name}: {focal}")
         self.report({"INFO"}, f"Loaded {obj.pa_avatar.total} Gaussians onto {mesh_obj.name}")
         return {"FINISHED"}
 

@@ -84,7 +84,15 @@ class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
         if seq.n_frames == 0:
             self.report({"ERROR"}, f"{path}: no frames")
             return {"CANCELLED"}
-        problem = sequence.face_problem(rig.faces if rig is not None else seq.faces)
+        faces = rig.faces if rig is not None else seq.faces
+        if len(faces) == 0:  # e.g. a 3DGS splat PLY: its points read as vertices
+            self.report(
+                {"ERROR"},
+                f"Cannot import {path}: it has points but no faces, so it is no mesh sequence "
+                "(a 3DGS splat PLY? Import it with File > Import > 3DGS Splats (.ply))",
+            )
+            return {"CANCELLED"}
+        problem = sequence.face_problem(faces)
         if problem:
             self.report({"ERROR"}, f"Cannot read sequence: {path}: {problem}; Blender cannot hold such a mesh")
             return {"CANCELLED"}
@@ -108,11 +116,21 @@ class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
                     "(import without 'As FLAME rig' to keep them)",
                 )
         else:
+            # Leave Edit Mode (or any other) first, as the rig builder does: the new mesh
+            # becomes the active object, and another one left in Edit Mode would stay there.
+            view_layer = context.view_layer
+            active = view_layer.objects.active
+            mode = active.mode if active is not None else "OBJECT"
+            if mode != "OBJECT":
+                bpy.ops.object.mode_set(mode="OBJECT")
             try:
                 with sequence.removed_on_failure():
                     obj = sequence.build_sequence_object(context, seq, name, context.scene.frame_start, self.z_up)
             except Exception as exc:
                 scene.frame_start, scene.frame_end = kept_range
+                view_layer.objects.active = active
+                if mode != "OBJECT":
+                    bpy.ops.object.mode_set(mode=mode)
                 self.report({"ERROR"}, f"Cannot import {path}: {exc}")
                 return {"CANCELLED"}
         for ob in selected:

@@ -5,6 +5,13 @@ name, so no checkout and no other installed copy is involved; in an installed ex
 training tier comes from its inner archive, unpacked by training_tier.py); a train script set in the
 preferences (a checkout's scripts/train.py) is run instead when given. The result is loaded
 onto the mesh that started training (stored on the scene, so it survives undo).
+
+A training in progress lives on the Python side (``_RUNS``, keyed by the scene's session id):
+undo puts the scene's properties back as they were at an undo step (``running`` unset, an old
+progress) and invalidates Scene references, so the modal operator looks its scene up on each
+tick and ``restore_runs`` (an undo/redo handler) writes the live state back. Nothing of a run
+survives a file load: ``stop_all`` (load_pre) ends the trainers, ``clear_after_load``
+(load_post) clears what a file saved mid-run stored.
 """
 
 import glob
@@ -129,6 +136,77 @@ def _start(context):
     st.target = obj if obj is not None and obj.type == "MESH" else None
 
 
+class _Run:
+    """A training in progress: what undo must not take back."""
+
+    def __init__(self, key):
+        self.key = key
+        self.proc = None
+        self.progress, self.message = 0.0, "starting"
+        self.stopped = ""  # why it must stop (Cancel, a file load), "" while it runs on
+
+
+_RUNS = {}  # scene session_uid -> _Run
+
+
+def _scene_by_key(key):
+    """The scene of this session id, or None (deleted); Scene objects held across an undo are
+    invalid, the id is not."""
+    for scene in bpy.data.scenes:
+        if scene.session_uid == key:
+            return scene
+    return None
+
+
+def is_running(scene):
+    """Whether a training of this Blender session runs in ``scene`` (its ``running`` property
+    only mirrors this: undo and files saved mid-run restore stale values)."""
+    return scene.session_uid in _RUNS
+
+
+def _show(run, st):
+    """The live run's state on the scene's properties (what the panel draws)."""
+    if not st.running:
+        st.running = True
+    if st.progress != run.progress:
+        st.progress = run.progress
+    if st.message != run.message:
+        st.message = run.message
+
+
+def restore_runs():
+    """After undo/redo: the scenes that train show it again (running, progress, message)."""
+    for run in _RUNS.values():
+        scene = _scene_by_key(run.key)
+        if scene is not None and not run.stopped:
+            _show(run, scene.pa_train)
+
+
+def stop_all(reason="another file was opened"):
+    """End every trainer (before a file load: no run carries over into another file)."""
+    for run in list(_RUNS.values()):
+        run.stopped = run.stopped or reason
+        proc = run.proc
+        if proc is not None and proc.poll() is None:
+            proc.terminate()
+            try:
+                proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+    _RUNS.clear()
+
+
+def clear_after_load():
+    """After a file load: no training runs in it, whatever it was saved with."""
+    for scene in bpy.data.scenes:
+        st = scene.pa_train
+        if st.running:
+            st.running = False
+            st.progress = 0.0
+            st.message = "Not running: this file was saved while a training ran (Resume continues it)"
+
+
 def _finish(op, context, rc, out, scene=None):
     st = (scene or context.scene).pa_train
     st.running = False
@@ -168,7 +246,7 @@ class PA_OT_train(bpy.types.Operator):
     _timer = None
     _lines = None
     _reader = None
-    _scene = None
+    _key = None
 
     def execute(self, context):
         # Blocking path: background mode, where timers (and so the modal path) never run.
@@ -178,11 +256,13 @@ class PA_OT_train(bpy.types.Operator):
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         st = context.scene.pa_train
-        if st.running:
+        if is_running(context.scene):
             self.report({"ERROR"}, "A training is already running in this scene: wait for it, or cancel it")
             return {"CANCELLED"}
         _start(context)
         st.running = True
+        key = context.scene.session_uid
+        _RUNS[key] = _Run(key)
         rc, proc = 0, None
         try:
             for cmd in cmds:
@@ -200,6 +280,7 @@ class PA_OT_train(bpy.types.Operator):
             # Whatever went wrong, a stuck flag would refuse every later Train in this scene,
             # and a trainer nobody reads any more would block on its full pipe.
             st.running = False
+            _RUNS.pop(key, None)
             if proc is not None and proc.poll() is None:
                 proc.kill()
                 proc.wait()
@@ -213,28 +294,36 @@ class PA_OT_train(bpy.types.Operator):
         except RuntimeError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        st = context.scene.pa_train
-        if st.running:  # the panel hides Train then; the operator search does not
+        if is_running(context.scene):  # the panel hides Train then; the operator search does not
             self.report({"ERROR"}, "A training is already running in this scene: wait for it, or cancel it")
             return {"CANCELLED"}
         self._lines = queue.Queue()
+        self._begin(context.scene)
         try:
             self._next_process()
         except OSError as exc:
+            _RUNS.pop(self._key, None)
+            context.scene.pa_train.running = False
             self.report({"ERROR"}, f"Cannot start training with {self._cmds[0][0] if self._cmds else 'Python'}: {exc}")
             return {"CANCELLED"}
         _start(context)
-        st.running, st.progress, st.message = True, 0.0, "starting"
-        # The scene that trains: the user may switch scenes while it runs, and another scene's
-        # state (running unset) would read as Cancel.
-        self._scene = context.scene
         self._timer = context.window_manager.event_timer_add(0.25, window=context.window)
         context.window_manager.modal_handler_add(self)
         return {"RUNNING_MODAL"}
 
+    def _begin(self, scene):
+        """Register the run of ``scene`` (the user may switch scenes while it runs: the
+        training scene is the one looked up by this key on each tick, not the shown one)."""
+        self._key = scene.session_uid
+        run = _RUNS[self._key] = _Run(self._key)
+        _show(run, scene.pa_train)
+
     def _next_process(self):
         self._proc = _popen(self._cmds[0], self._env)
         self._cmds.pop(0)
+        run = _RUNS.get(getattr(self, "_key", None))
+        if run is not None:
+            run.proc = self._proc
         self._reader = threading.Thread(target=self._pump, args=(self._proc.stdout, self._lines), daemon=True)
         self._reader.start()
 
@@ -265,18 +354,31 @@ class PA_OT_train(bpy.types.Operator):
             self.report({"ERROR"}, f"Training stopped: {type(exc).__name__}: {exc}")
             return {"CANCELLED"}
 
+    def cancel(self, context):
+        # Blender ends the modal handler (Blender quits, the window closes): so does the trainer.
+        self._kill()
+        self._stop(context)
+
     def _tick(self, context):
-        scene = self._scene or context.scene
+        run = _RUNS.get(self._key)
+        if run is None or run.stopped:  # Cancel, or a file load (stop_all)
+            self._kill()
+            self._stop(context)
+            why = run.stopped if run is not None else "another file was opened"
+            self.report({"WARNING"}, "Training cancelled" if why == "cancelled" else f"Training stopped: {why}")
+            return {"CANCELLED"}
+        scene = _scene_by_key(self._key)
+        if scene is None:
+            self._kill()
+            self._stop(context)
+            self.report({"WARNING"}, "Training stopped: its scene was deleted")
+            return {"CANCELLED"}
         st = scene.pa_train
+        _show(run, st)  # an undo since the last tick put older values there
         self._drain(st)
         for area in context.screen.areas if context.screen else ():
             if area.type == "VIEW_3D":
                 area.tag_redraw()
-        if not st.running:  # the Cancel button clears it
-            self._kill()
-            self._stop(context)
-            self.report({"WARNING"}, "Training cancelled")
-            return {"CANCELLED"}
         rc = self._proc.poll()
         if rc is None:
             return {"PASS_THROUGH"}
@@ -299,6 +401,9 @@ class PA_OT_train(bpy.types.Operator):
     def _drain(self, st):
         while not self._lines.empty():
             self._progress(st, self._lines.get_nowait())
+        run = _RUNS.get(self._key)
+        if run is not None:
+            run.progress, run.message = st.progress, st.message
 
     def _kill(self):
         if self._proc is not None and self._proc.poll() is None:
@@ -313,10 +418,10 @@ class PA_OT_train(bpy.types.Operator):
         if self._timer is not None:
             context.window_manager.event_timer_remove(self._timer)
             self._timer = None
-        try:
-            (self._scene or context.scene).pa_train.running = False
-        except ReferenceError:  # the training scene was deleted meanwhile
-            pass
+        _RUNS.pop(self._key, None)
+        scene = _scene_by_key(self._key)
+        if scene is not None:  # None: the training scene was deleted meanwhile
+            scene.pa_train.running = False
 
 
 class PA_OT_train_cancel(bpy.types.Operator):
@@ -326,6 +431,9 @@ class PA_OT_train_cancel(bpy.types.Operator):
     bl_label = "Cancel Training"
 
     def execute(self, context):
+        run = _RUNS.get(context.scene.session_uid)
+        if run is not None:
+            run.stopped = "cancelled"  # the modal operator stops the trainer on its next tick
         context.scene.pa_train.running = False
         return {"FINISHED"}
 

@@ -45,8 +45,12 @@ class PA_PT_avatar(_Base, bpy.types.Panel):
         grid.label(text=f"{st.count:,} / {st.total:,}")
         grid.label(text="Size")
         grid.label(text=f"{st.megabytes:.2f} MB")
-        grid.label(text="Level reached")
-        grid.label(text=f"{max(st.level_reached, 0)} of {st.max_level}")
+        # In the depth legend's terms: depth below the template (coarse levels negative).
+        from .properties import coarse_levels
+
+        k = coarse_levels(st)
+        grid.label(text="Depth reached")
+        grid.label(text=f"{st.level_reached - k} of {st.max_level - k}" if st.level_reached >= 0 else "none")
         mod = obj.modifiers.get("PA Splats")
         if mod is not None and mod.node_group is not None:
             from .preview import input_identifier
@@ -99,7 +103,11 @@ class PA_PT_depth(_Base, bpy.types.Panel):
             text="Hide Depth Colours" if shown else "Colour by Depth",
             depress=shown,
         )
-        lay.prop(obj.pa_avatar, "level_only")
+        row = lay.row(align=True)
+        row.prop(obj.pa_avatar, "depth_only_on", text="Show depth only")
+        sub = row.row(align=True)
+        sub.active = obj.pa_avatar.depth_only_on
+        sub.prop(obj.pa_avatar, "depth_only", text="")
         legend = src.pa_mesh.depth_legend
         total = max(sum(item.faces for item in legend), 1)
         for item in legend:

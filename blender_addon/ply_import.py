@@ -25,7 +25,7 @@ from ..core.bridge.budget import fraction_count, typed_percent
 from ..core.bridge.splats import srgb_to_linear
 from ..core.bridge.transforms import Y_UP_TO_Z_UP, transform_gaussians
 from ..core.avatar.avatar import SH_C0
-from . import preview, sequence
+from . import preview, sequence, splat_look
 
 MARK = "pa_splat_ply"
 _F_DC = "pa_f_dc"
@@ -102,6 +102,7 @@ def _fill(context, me, name, g, n, rank, rgba, source_path):
     st.is_preview = True
     st.filepath = source_path
     st.max_level = 0
+    st.coarse_levels = 0
     st.budget = 100.0  # the update callback applies it (apply_budget below)
     apply_budget(obj)
     return obj
@@ -201,6 +202,9 @@ class PA_OT_import_splat_ply(bpy.types.Operator, ImportHelper):
             o.select_set(False)
         obj.select_set(True)
         context.view_layer.objects.active = obj
+        focal = splat_look.focal_warning(context.scene)  # sets the dilation's focal length
+        if focal:
+            self.report({"WARNING"}, f"{obj.name}: {focal}")
         bands = int(obj.get("pa_sh_bands", 0))
         self.report(
             {"INFO"},

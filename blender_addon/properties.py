@@ -20,6 +20,37 @@ def _level_only_changed(self, context):
     depth.set_level_only(self.id_data, self.level_only)
 
 
+def coarse_levels(state):
+    """How many coarse levels lie above the template in this preview's avatar: absolute level
+    = depth below the template + this (the depth legend counts depth; the "level" attribute
+    and ``level_only`` absolute levels). Previews saved before it was stored (-1) take it from
+    the levels and depths they stored."""
+    if state.coarse_levels >= 0:
+        return state.coarse_levels
+    src = state.source
+    if src is None:
+        return 0
+    return max(state.max_level - src.pa_mesh.depth_max_level, 0)
+
+
+def _get_depth_only(self):
+    return self.level_only - coarse_levels(self) if self.level_only >= 0 else 0
+
+
+def _set_depth_only(self, value):
+    k = coarse_levels(self)
+    self.level_only = max(int(value) + k, 0)  # its update callback applies the filter
+
+
+def _get_depth_only_on(self):
+    return self.level_only >= 0
+
+
+def _set_depth_only_on(self, value):
+    if bool(value) != (self.level_only >= 0):
+        self.level_only = coarse_levels(self) if value else -1  # on: the template's depth (0)
+
+
 def _bind_changed(self, context):
     from . import runtime
 
@@ -82,7 +113,27 @@ class PA_AvatarState(bpy.types.PropertyGroup):
         min=-1,
         default=-1,
         update=_level_only_changed,
-        description="Show only the Gaussians of this subdivision level (-1: all)",
+        description="Show only the Gaussians of this absolute level, coarse levels included (-1: all); "
+        "the panel shows it as depth_only, in the depth legend's terms",
+    )
+    # What the panel shows of level_only, in the depth legend's terms (not stored: level_only
+    # is, so files keep their meaning): the depth below the template, the coarse levels above
+    # it as negative depths.
+    depth_only_on: bpy.props.BoolProperty(
+        name="Show one depth only",
+        get=_get_depth_only_on,
+        set=_set_depth_only_on,
+        description="Show only the Gaussians of one subdivision depth (off: all)",
+    )
+    depth_only: bpy.props.IntProperty(
+        name="Depth",
+        get=_get_depth_only,
+        set=_set_depth_only,
+        description="The depth shown alone, counted as in the depth legend: 0 the template's Gaussians, "
+        "1 and more their subdivisions, -1 and less the coarse levels above the template",
+    )
+    coarse_levels: bpy.props.IntProperty(
+        default=-1, description="Coarse levels above the template in the avatar (-1: not stored, older file)"
     )
     bind_mode: bpy.props.EnumProperty(
         name="Follow",

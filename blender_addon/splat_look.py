@@ -230,10 +230,11 @@ def scene_camera(scene):
 
 def set_focal(scene, mat=None):
     """The scene camera's focal length in pixels, for the dilation in the material and in
-    the hull (it changes with the camera and the resolution: Splat Render Settings sets it
-    again). Returns it, or None where there is nothing to set or no perspective camera
-    (``scene_camera`` says why). With non-square pixels (fx ≠ fy) the dilation, isotropic in
-    world units, uses √(fx·fy): the rasteriser's dilated area."""
+    the hull (it changes with the camera and the resolution: set when a preview is made, before
+    every render and by Splat Render Settings). Returns it, or None where there is nothing to
+    set or no perspective camera (``scene_camera`` says why). With non-square pixels (fx ≠ fy)
+    the dilation, isotropic in world units, uses √(fx·fy): the rasteriser's dilated area. Writes
+    only a changed value (a write re-evaluates every preview)."""
     nodes = _value_nodes(FOCAL_NODE, mat)
     if not nodes:
         return None
@@ -244,8 +245,25 @@ def set_focal(scene, mat=None):
     fx, fy, _, _ = blender_intrinsics(**settings)
     f = math.sqrt(fx * fy)
     for node in nodes:
-        node.outputs[0].default_value = f
+        if abs(node.outputs[0].default_value - f) > 1e-4 * f:
+            node.outputs[0].default_value = f
     return f
+
+
+def focal_warning(scene):
+    """Set the splats' focal length from ``scene``'s camera; "" when set, else a warning saying
+    why the splats go without their dilation (the rasteriser's 0.3 px²) until it can be."""
+    if not _value_nodes(FOCAL_NODE):
+        return ""
+    try:
+        scene_camera(scene)
+    except ValueError as exc:
+        return (
+            f"splats drawn without their {EPS2D} px² dilation: {exc} (their focal length is set "
+            "from the scene camera when rendering, and by Splat Render Settings)"
+        )
+    set_focal(scene)
+    return ""
 
 
 def configure_scene(scene, transparent_bounces=512, min_transparent_bounces=None, as_trained=False):

@@ -57,8 +57,13 @@ def _():
     prefs.python_path = not_exec
     M["python_not_executable"] = [run_op(bpy.ops.progressive_avatars.train), st.running]
     prefs.python_path = ARGS["python"]
-    st.running = True  # a training already running in this scene (F3 still finds the operator)
+    # A training already running in this scene (F3 still finds the operator): a live run is the
+    # operator module's record (the scene's flag only mirrors it: undo and saved files restore it)
+    ops_train = sys.modules[PKG + ".blender_addon.operators_train"]
+    st.running = True
+    ops_train._RUNS[sc.session_uid] = ops_train._Run(sc.session_uid)
     M["second_training"] = [run_op(bpy.ops.progressive_avatars.train), st.running]
+    ops_train._RUNS.pop(sc.session_uid, None)
     st.running = False
     prefs.flame_model = ""
     res, mesh = import_mesh(ARGS["seq"])

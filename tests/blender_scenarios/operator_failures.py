@@ -138,12 +138,14 @@ class ModalTrain:
         self._out = os.path.join(out, "modal_run")  # the stand-in trainers write no avatar
         self._lines, self._timer, self._scene, self.reports = queue.Queue(), "timer", scene, []
         self.removed_timers = []
+        if hasattr(self, "_begin"):  # what invoke() does: the run, kept where undo leaves it
+            self._begin(scene)
 
     def report(self, kind, message):
         self.reports.append((sorted(kind)[0], message))
 
 
-for _name in ("modal", "_tick", "_drain", "_kill", "_stop", "_next_process"):
+for _name in ("modal", "_tick", "_drain", "_kill", "_stop", "_next_process", "_begin"):
     if _name in PA_OT_train.__dict__:  # (the old code had fewer)
         setattr(ModalTrain, _name, PA_OT_train.__dict__[_name])
 ModalTrain._pump, ModalTrain._progress = staticmethod(PA_OT_train._pump), staticmethod(PA_OT_train._progress)

@@ -1,0 +1,373 @@
+"""Blender session run by test_blender_undo.py (a real file so it can be read, linted and run by hand).
+
+What undo, redo and a file load take back, and what they must not: a training in progress
+(its trainer and its panel state), the 3D views' colour mode under depth colours; the splats'
+focal length (set with the preview and before each render); imports from Edit Mode or of a
+file with no faces; the depth filter in the depth legend's terms. Each step records what it
+saw; a step that raises records its traceback and the next one still runs. File loads last.
+"""
+
+import importlib, json, os, queue, subprocess, sys, time, traceback, types
+
+import stock_blender
+
+root, out, blocked = sys.argv[1], sys.argv[2], sys.argv[3].split(",")
+stock_blender.block(blocked)
+import bpy
+import numpy as np
+
+PKG = "pa_undo"
+stock_blender.load_extension(root, PKG)
+prefs = importlib.import_module(PKG + ".blender_addon.prefs")
+splat_look = importlib.import_module(PKG + ".blender_addon.splat_look")
+sequence_builder = importlib.import_module(PKG + ".blender_addon.sequence")
+transforms = importlib.import_module(PKG + ".core.bridge.transforms")
+reader = importlib.import_module(PKG + ".core.stream.reader")
+ops_train = importlib.import_module(PKG + ".blender_addon.operators_train")
+PA_OT_train = ops_train.PA_OT_train
+
+SEQ, STREAM = os.path.join(out, "seq.npz"), os.path.join(out, "avatar.pavs")
+COARSE_SEQ, COARSE = os.path.join(out, "coarse_seq.npz"), os.path.join(out, "coarse.pavs")
+SPLATS = os.path.join(out, "splats.ply")
+KINDS = ("objects", "meshes", "shape_keys", "actions", "materials", "node_groups")
+R = {}
+
+
+def inventory():
+    return {k: sorted(x.name for x in getattr(bpy.data, k)) for k in KINDS}
+
+
+def call(op, **kw):
+    """The operator's result, or the message it reported (background Blender raises it)."""
+    try:
+        return sorted(op(**kw))
+    except RuntimeError as exc:
+        return str(exc)
+
+
+def views():
+    return sorted(
+        {sp.shading.color_type for s in bpy.data.screens for a in s.areas for sp in a.spaces if sp.type == "VIEW_3D"}
+    )
+
+
+def set_views(color_type):
+    for s in bpy.data.screens:
+        for a in s.areas:
+            for sp in a.spaces:
+                if sp.type == "VIEW_3D":
+                    sp.shading.color_type = color_type
+
+
+def step(fn):
+    r = R[fn.__name__] = {}
+    try:
+        fn(r)
+    except Exception:
+        r["error"] = traceback.format_exc()
+    if bpy.context.mode != "OBJECT" and bpy.context.active_object is not None:
+        bpy.ops.object.mode_set(mode="OBJECT")
+    return fn
+
+
+def activate(obj, mode="OBJECT"):
+    if bpy.context.mode != "OBJECT":
+        bpy.ops.object.mode_set(mode="OBJECT")
+    for o in bpy.context.selected_objects:
+        o.select_set(False)
+    obj.select_set(True)
+    bpy.context.view_layer.objects.active = obj
+    if mode != "OBJECT":
+        bpy.ops.object.mode_set(mode=mode)
+
+
+def preview_of(mesh):
+    return next(c for c in mesh.children if c.pa_avatar.is_preview)
+
+
+class ModalTrain:
+    """PA_OT_train's modal path on a stand-in (timers never fire headless, so the test calls
+    modal() as the window manager would on each tick)."""
+
+    def __init__(self, script, scene):
+        self._cmds, self._env = [[sys.executable, os.path.join(out, script)]], None
+        self._out = os.path.join(out, "modal_run")
+        self._lines, self._timer, self.reports, self.removed_timers = queue.Queue(), "timer", [], []
+        self._scene = scene  # what the old code kept (a Scene reference)
+        if hasattr(self, "_begin"):
+            self._begin(scene)  # what invoke() does
+        else:
+            scene.pa_train.running = True
+        self._next_process()
+
+    def report(self, kind, message):
+        self.reports.append((sorted(kind)[0], message))
+
+    def tick(self):
+        wm = types.SimpleNamespace(event_timer_remove=self.removed_timers.append)
+        ctx = types.SimpleNamespace(scene=bpy.context.scene, screen=None, window_manager=wm)
+        return sorted(self.modal(ctx, types.SimpleNamespace(type="TIMER")))
+
+    def end(self):
+        if self._proc.poll() is None:
+            self._proc.kill()
+            self._proc.wait()
+
+
+for _name in ("modal", "_tick", "_drain", "_kill", "_stop", "_next_process", "_begin"):
+    if _name in PA_OT_train.__dict__:  # (the old code had fewer)
+        setattr(ModalTrain, _name, PA_OT_train.__dict__[_name])
+ModalTrain._pump, ModalTrain._progress = staticmethod(PA_OT_train._pump), staticmethod(PA_OT_train._progress)
+
+
+def wait_progress(op, scene_name, least, timeout=10.0):
+    t0 = time.time()
+    while time.time() - t0 < timeout:
+        if op.tick() != ["PASS_THROUGH"]:
+            return False
+        if bpy.data.scenes[scene_name].pa_train.progress >= least:
+            return True
+        time.sleep(0.05)
+    return False
+
+
+for ob in list(bpy.data.objects):
+    if ob.type != "CAMERA":
+        bpy.data.objects.remove(ob)
+bpy.ops.mesh.primitive_cube_add()
+CUBE = bpy.context.active_object.name
+SCENE = bpy.context.scene.name
+prefs.python_path = lambda context=None: sys.executable
+st = bpy.context.scene.pa_train
+st.data_dir, st.out_dir = out, os.path.join(out, "run")
+
+
+@step
+def train_survives_undo(r):
+    bpy.ops.ed.undo_push(message="before training")
+    op = ModalTrain("long_train.py", bpy.context.scene)
+    try:
+        r["started"] = wait_progress(op, SCENE, 2.0)
+        r["progress_before"] = bpy.data.scenes[SCENE].pa_train.progress
+        bpy.data.objects[CUBE].location.x += 1.0  # the user edits something meanwhile...
+        bpy.ops.ed.undo_push(message="move cube")
+        bpy.ops.ed.undo()  # ...and undoes that edit (the scene's properties go back too)
+        sc = bpy.data.scenes[SCENE]
+        r["running_after_undo"] = sc.pa_train.running
+        r["progress_after_undo"] = sc.pa_train.progress
+        r["ticks_after_undo"] = [op.tick() for _ in range(3)]
+        r["alive_after_undo"] = op._proc.poll() is None
+        r["reports_after_undo"] = list(op.reports)
+        r["progress_later"] = bpy.data.scenes[SCENE].pa_train.progress
+        bpy.ops.ed.undo_push(message="training goes on")
+        bpy.ops.ed.undo()  # a second undo, back to before the training started
+        r["running_after_second_undo"] = bpy.data.scenes[SCENE].pa_train.running
+        r["second_undo_tick"] = op.tick()
+        r["alive_after_second_undo"] = op._proc.poll() is None
+        # Train again in this scene: refused, one trainer at a time
+        prefs.user_train_script = lambda context=None: os.path.join(out, "long_train.py")
+        r["train_again"] = call(bpy.ops.progressive_avatars.train)
+        r["cancel"] = call(bpy.ops.progressive_avatars.train_cancel)
+        r["cancel_tick"] = op.tick()
+        r["reports"] = op.reports
+        time.sleep(0.2)
+        r["exit_after_cancel"] = op._proc.poll()
+        r["running_after_cancel"] = bpy.data.scenes[SCENE].pa_train.running
+        r["timers"] = op.removed_timers
+    finally:
+        op.end()
+
+
+MESH = None
+
+
+@step
+def depth_colours_undo(r):
+    global MESH
+    set_views("MATERIAL")  # the user's choice
+    r["import"] = call(bpy.ops.import_scene.progressive_avatars_sequence, filepath=SEQ)
+    MESH = bpy.context.active_object.name
+    r["load"] = call(bpy.ops.object.progressive_avatars_load, filepath=STREAM)
+    activate(preview_of(bpy.data.objects[MESH]))
+    bpy.ops.ed.undo_push(message="loaded")
+    r["show"] = call(bpy.ops.object.progressive_avatars_depth_colors)
+    r["views_shown"] = views()
+    bpy.ops.ed.undo_push(message="colour by depth")
+    bpy.ops.ed.undo()
+    mesh = bpy.data.objects[MESH]
+    r["shown_after_undo"] = mesh.pa_mesh.depth_shown
+    r["views_after_undo"] = views()
+    bpy.ops.ed.redo()
+    mesh = bpy.data.objects[MESH]
+    r["shown_after_redo"] = mesh.pa_mesh.depth_shown
+    r["views_after_redo"] = views()
+    activate(preview_of(mesh))
+    r["hide"] = call(bpy.ops.object.progressive_avatars_depth_colors)
+    r["views_after_hide"] = views()
+
+
+def camera_focal(scene):
+    _, settings = splat_look.scene_camera(scene)
+    fx, fy, _, _ = transforms.blender_intrinsics(**settings)
+    return float(np.sqrt(fx * fy))
+
+
+def focal_values():
+    mat = bpy.data.materials[splat_look.MATERIAL_NAME]
+    group = bpy.data.node_groups["PA Splats"] if "PA Splats" in bpy.data.node_groups else None
+    vals = [mat.node_tree.nodes[splat_look.FOCAL_NODE].outputs[0].default_value]
+    if group is not None and splat_look.FOCAL_NODE in group.nodes:
+        vals.append(group.nodes[splat_look.FOCAL_NODE].outputs[0].default_value)
+    return vals
+
+
+@step
+def splat_focal(r):
+    # The avatar was loaded (previous step) without Splat Render Settings ever running.
+    scene = bpy.context.scene
+    r["camera_focal"] = camera_focal(scene)
+    r["after_load"] = focal_values()
+    scene.render.resolution_percentage = 50  # the render's size changes after the load
+    r["camera_focal_half"] = camera_focal(scene)
+    ours = [h for h in bpy.app.handlers.render_pre if h.__module__.startswith(PKG)]
+    for handler in ours:  # what Blender runs before rendering each frame
+        handler(scene, None)
+    r["render_pre_handlers"] = len(ours)
+    r["after_render_pre"] = focal_values()
+    scene.render.resolution_percentage = 100
+    cam = scene.camera
+    scene.camera = None
+    warning = getattr(splat_look, "focal_warning", None)
+    r["warning_no_camera"] = warning(scene) if warning else "(no focal_warning)"
+    r["warning_with_camera"] = "x"
+    scene.camera = cam
+    r["warning_with_camera"] = warning(scene) if warning else "(no focal_warning)"
+
+
+@step
+def depth_only_in_legend_terms(r):
+    activate(bpy.data.objects[MESH])
+    r["import"] = call(bpy.ops.import_scene.progressive_avatars_sequence, filepath=COARSE_SEQ)
+    mesh = bpy.context.active_object
+    r["load"] = call(bpy.ops.object.progressive_avatars_load, filepath=COARSE)
+    pv = preview_of(mesh)
+    forest = reader.read_stream(COARSE).forest
+    k = int(forest.num_coarse_levels)
+    r["coarse_levels"] = k
+    r["legend"] = [[i.depth, i.faces] for i in mesh.pa_mesh.depth_legend]
+    levels = np.empty(len(pv.data.vertices), np.int32)
+    pv.data.attributes["level"].data.foreach_get("value", levels)
+
+    def shown():
+        ev = pv.evaluated_get(bpy.context.evaluated_depsgraph_get())
+        geo = ev.evaluated_geometry()  # (held: the point cloud is its)
+        ip = geo.instances_pointcloud()
+        return len(ip.points) if ip is not None else 0
+
+    r["all"], r["total"] = shown(), len(levels)
+    r["by_depth"] = []
+    for d in (0, 1, forest.max_depth, -1, -k):
+        pv.pa_avatar.depth_only = d  # in the legend's terms: depth below the template
+        r["by_depth"].append([d, shown(), int((levels - k == d).sum()), pv.pa_avatar.depth_only])
+    r["on"] = pv.pa_avatar.depth_only_on
+    r["level_only"] = pv.pa_avatar.level_only  # stored: the absolute level, as files had it
+    pv.pa_avatar.depth_only_on = False
+    r["off_shown"], r["off_level_only"] = shown(), pv.pa_avatar.level_only
+    # A file saved before: level_only absolute, no coarse_levels stored
+    pv.pa_avatar.coarse_levels = -1
+    pv.pa_avatar.level_only = k + 1
+    r["old_file_depth"] = pv.pa_avatar.depth_only
+    pv.pa_avatar.depth_only_on = False
+
+
+@step
+def import_from_edit_mode(r):
+    cube = bpy.data.objects[CUBE]
+    activate(cube, "EDIT")
+    r["result"] = call(bpy.ops.import_scene.progressive_avatars_sequence, filepath=SEQ)
+    r["not_in_object_mode"] = [o.name for o in bpy.data.objects if o.mode != "OBJECT"]
+    r["active"] = bpy.context.active_object.name
+    # A build that fails late: the scene as it was, the cube back in Edit Mode
+    activate(cube, "EDIT")
+    before = inventory()
+
+    def boom(*args, **kw):
+        raise RuntimeError("injected failure")
+
+    kept = sequence_builder.add_sequence_keys
+    sequence_builder.add_sequence_keys = boom
+    try:
+        r["failed"] = call(bpy.ops.import_scene.progressive_avatars_sequence, filepath=SEQ)
+    finally:
+        sequence_builder.add_sequence_keys = kept
+    r["failed_added"] = {k: v for k, v in inventory().items() if v != before[k]}
+    r["failed_mode"] = bpy.context.mode
+    r["failed_active"] = bpy.context.active_object.name
+
+
+@step
+def splat_ply_as_sequence(r):
+    before = inventory()
+    r["result"] = call(bpy.ops.import_scene.progressive_avatars_sequence, filepath=SPLATS)
+    r["added"] = {k: v for k, v in inventory().items() if v != before[k]}
+
+
+# -- file loads (the scene is replaced from here on) ----------------------------------------
+
+
+@step
+def file_load_ends_training(r):
+    scene = bpy.context.scene
+    op = ModalTrain("long_train.py", scene)
+    try:
+        r["started"] = wait_progress(op, SCENE, 2.0)
+        blend = os.path.join(out, "saved while training.blend")
+        bpy.ops.wm.save_as_mainfile(filepath=blend)  # Ctrl+S or autosave mid-run
+        bpy.ops.wm.open_mainfile(filepath=blend)
+        t0 = time.time()
+        while op._proc.poll() is None and time.time() - t0 < 10:
+            time.sleep(0.05)
+        r["exit"] = op._proc.poll()
+        st = bpy.context.scene.pa_train
+        r["running"], r["progress"], r["message"] = st.running, st.progress, st.message
+        try:
+            r["tick"] = op.tick()
+        except Exception as exc:
+            r["tick"] = f"raised {type(exc).__name__}: {exc}"
+        r["reports"] = op.reports
+        # Train in the reopened file: not refused as "already running"
+        prefs.python_path = lambda context=None: sys.executable
+        prefs.user_train_script = lambda context=None: os.path.join(out, "quick_train.py")
+        st.data_dir, st.out_dir = out, os.path.join(out, "run")
+        bpy.context.view_layer.objects.active = None  # no mesh to load the result onto
+        r["train"] = call(bpy.ops.progressive_avatars.train)
+        r["running_after_train"] = bpy.context.scene.pa_train.running
+    finally:
+        op.end()
+
+
+@step
+def depth_colours_reopened(r):
+    set_views("MATERIAL")
+    r["import"] = call(bpy.ops.import_scene.progressive_avatars_sequence, filepath=SEQ)
+    mesh = bpy.context.active_object
+    name = mesh.name
+    r["load"] = call(bpy.ops.object.progressive_avatars_load, filepath=STREAM)
+    activate(preview_of(mesh))
+    r["show"] = call(bpy.ops.object.progressive_avatars_depth_colors)
+    blend = os.path.join(out, "depth shown.blend")
+    bpy.ops.wm.save_as_mainfile(filepath=blend)
+    bpy.ops.wm.open_mainfile(filepath=blend)
+    mesh = bpy.data.objects[name]
+    r["shown_reopened"], r["views_reopened"] = mesh.pa_mesh.depth_shown, views()
+    bpy.ops.ed.undo_push(message="reopened")
+    activate(preview_of(mesh))
+    r["hide"] = call(bpy.ops.object.progressive_avatars_depth_colors)
+    bpy.ops.ed.undo_push(message="hidden")
+    r["views_hidden"] = views()
+    bpy.ops.ed.undo()  # back to shown: the views show depth colours again
+    r["shown_undo"], r["views_undo"] = bpy.data.objects[name].pa_mesh.depth_shown, views()
+
+
+R["blocked_loaded"] = stock_blender.loaded(blocked)
+print("PA_UNDO " + json.dumps(R))

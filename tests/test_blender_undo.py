@@ -1,0 +1,213 @@
+"""Undo, redo and file loads against what lives outside the scene's data, in a Blender that
+has nothing but Blender.
+
+One bpy session (tests/blender_scenarios/undo_and_reload.py, own BLENDER_USER_* folders as in
+test_blender_extension, plyfile/trimesh/PIL/scipy/torch/numba unimportable): a training in
+progress across undo and across saving and reopening the file, depth colours' view shading
+across undo/redo and reopening, the splats' focal length (dilation) without Splat Render
+Settings, imports from Edit Mode and of a splat PLY, and the depth filter in the legend's terms.
+"""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from tests.test_blender_extension import _bpy_dir, _clean_env, make_inputs
+
+pytestmark = pytest.mark.blender
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+BLOCKED = ("plyfile", "trimesh", "PIL", "scipy", "torch", "numba")
+SCENARIO = os.path.join(ROOT, "tests", "blender_scenarios", "undo_and_reload.py")  # run in place
+
+
+def _coarse_inputs(out):
+    """A small sphere sequence and a stream whose forest has coarse levels above the template."""
+    from progressive_avatars.core.avatar.avatar import Avatar
+    from progressive_avatars.core.stream.writer import write_stream
+    from progressive_avatars.core.synthetic.shapes import random_forest, sphere_mesh
+
+    rng = np.random.default_rng(3)
+    v, f = sphere_mesh(10, 14, radius=0.1)
+    np.savez(os.path.join(out, "coarse_seq.npz"), vertices=np.stack([v, v * 1.01]).astype(np.float32), faces=f)
+    forest = random_forest(f, rng, depth=3, frac=0.4, coarse_from=v, stand_ins=True)
+    assert forest.num_coarse_levels >= 2
+    av = Avatar.initial(forest)
+    av.d_log_scale[:] = -1.3
+    av.opacity_logit[:] = 1.0
+    write_stream(
+        os.path.join(out, "coarse.pavs"), av, importance=rng.random(forest.num_faces), quantize=False, vertices=v
+    )
+
+
+def _splat_ply(out):
+    from progressive_avatars.core.io.ply import write_ply
+
+    rng = np.random.default_rng(1)
+    n = 40
+    q = rng.normal(size=(n, 4))
+    write_ply(
+        os.path.join(out, "splats.ply"),
+        {
+            "means": rng.normal(0, 0.1, (n, 3)),
+            "quats": q / np.linalg.norm(q, axis=1, keepdims=True),
+            "scales": np.full((n, 3), 0.01),
+            "opacities": np.full(n, 0.8),
+            "colors": np.full((n, 3), 0.5),
+        },
+    )
+
+
+def _trainers(out, stream):
+    with open(os.path.join(out, "long_train.py"), "w") as fh:  # ~8 s unless stopped
+        fh.write(
+            textwrap.dedent("""
+            import time
+            for i in range(1, 81):
+                print(f'it {i}/80 loss 0.1', flush=True)
+                time.sleep(0.1)
+        """)
+        )
+    with open(os.path.join(out, "quick_train.py"), "w") as fh:
+        fh.write(
+            textwrap.dedent(f"""
+            import argparse, os, shutil
+            p = argparse.ArgumentParser(); p.add_argument('--data'); p.add_argument('--out')
+            a, _ = p.parse_known_args(); os.makedirs(a.out, exist_ok=True)
+            print('it 1/1 loss 0.1', flush=True)
+            shutil.copy({stream!r}, os.path.join(a.out, 'avatar.pavs'))
+        """)
+        )
+
+
+@pytest.fixture(scope="module")
+def rep(tmp_path_factory):
+    _bpy_dir()
+    tmp = str(tmp_path_factory.mktemp("blender_undo"))
+    out = os.path.join(tmp, "out")
+    os.makedirs(out)
+    _, stream, _, _ = make_inputs(out)
+    _coarse_inputs(out)
+    _splat_ply(out)
+    _trainers(out, stream)
+    proc = subprocess.run(
+        [sys.executable, SCENARIO, ROOT, out, ",".join(BLOCKED)],
+        capture_output=True,
+        text=True,
+        env=_clean_env(tmp),
+        timeout=300,
+    )
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("PA_UNDO ")]
+    if not lines:
+        pytest.fail("Blender session produced no report:\n" + proc.stdout[-3000:] + proc.stderr[-3000:])
+    r = json.loads(lines[-1][len("PA_UNDO ") :])
+    r["stdout"] = proc.stdout
+    assert not r["blocked_loaded"], r["blocked_loaded"]
+    shutil.rmtree(tmp, ignore_errors=True)
+    return r
+
+
+def _step(rep, name):
+    r = rep[name]
+    assert "error" not in r, r["error"]
+    return r
+
+
+def test_undo_during_training_keeps_the_trainer_and_its_panel(rep):
+    r = _step(rep, "train_survives_undo")
+    assert r["started"], r
+    # Undo put the scene back to before the training; the live run shows again at once
+    assert r["running_after_undo"] and r["progress_after_undo"] == r["progress_before"] > 0, r
+    assert r["ticks_after_undo"] == [["PASS_THROUGH"]] * 3, r
+    assert r["alive_after_undo"] and r["reports_after_undo"] == [], r
+    assert r["progress_later"] >= r["progress_before"], r
+    assert r["running_after_second_undo"] and r["second_undo_tick"] == ["PASS_THROUGH"], r
+    assert r["alive_after_second_undo"], r
+    assert "already running" in r["train_again"], r["train_again"]
+
+
+def test_cancel_still_stops_a_training_that_lived_through_undo(rep):
+    r = _step(rep, "train_survives_undo")
+    assert r["cancel"] == ["FINISHED"] and r["cancel_tick"] == ["CANCELLED"], r
+    assert r["reports"] == [["WARNING", "Training cancelled"]], r["reports"]
+    assert r["exit_after_cancel"] is not None, "the trainer still runs after Cancel"
+    assert not r["running_after_cancel"] and r["timers"] == ["timer"], r
+
+
+def test_a_file_saved_mid_training_reopens_not_running(rep):
+    r = _step(rep, "file_load_ends_training")
+    assert r["started"], r
+    assert not r["running"] and r["progress"] == 0.0, r
+    assert "saved while a training ran" in r["message"], r["message"]
+    assert r["train"] == ["FINISHED"], r["train"]  # not refused as "already running"
+    assert not r["running_after_train"]
+
+
+def test_a_file_load_ends_the_training_it_leaves(rep):
+    r = _step(rep, "file_load_ends_training")
+    assert r["exit"] is not None, "the trainer outlived the file it trained for"
+    assert r["tick"] == ["CANCELLED"], r["tick"]
+    assert r["reports"] == [["WARNING", "Training stopped: another file was opened"]], r["reports"]
+
+
+def test_undoing_depth_colours_restores_the_view_shading(rep):
+    r = _step(rep, "depth_colours_undo")
+    assert r["show"] == ["FINISHED"] and r["views_shown"] == ["VERTEX"], r
+    assert not r["shown_after_undo"] and r["views_after_undo"] == ["MATERIAL"], r
+    assert r["shown_after_redo"] and r["views_after_redo"] == ["VERTEX"], r
+    assert r["hide"] == ["FINISHED"] and r["views_after_hide"] == ["MATERIAL"], r
+
+
+def test_depth_colours_across_reopen_and_undo(rep):
+    r = _step(rep, "depth_colours_reopened")
+    assert r["shown_reopened"] and r["views_reopened"] == ["VERTEX"], r
+    assert r["hide"] == ["FINISHED"] and r["views_hidden"] == ["MATERIAL"], r
+    assert r["shown_undo"] and r["views_undo"] == ["VERTEX"], r
+
+
+def test_splat_focal_is_the_scene_cameras_without_splat_render_settings(rep):
+    r = _step(rep, "splat_focal")
+    f, half = r["camera_focal"], r["camera_focal_half"]
+    assert abs(half - f / 2) < 1e-3 * f
+    assert len(r["after_load"]) == 2 and all(abs(v - f) < 1e-3 * f for v in r["after_load"]), r
+    assert r["render_pre_handlers"] == 1
+    assert all(abs(v - half) < 1e-3 * half for v in r["after_render_pre"]), r  # the render's size
+    assert "no camera" in r["warning_no_camera"] and "dilation" in r["warning_no_camera"], r
+    assert r["warning_with_camera"] == "", r
+    assert "splat focal length not set" not in rep["stdout"].lower()
+
+
+def test_depth_only_counts_depth_as_the_legend_does(rep):
+    r = _step(rep, "depth_only_in_legend_terms")
+    k = r["coarse_levels"]
+    assert r["load"] == ["FINISHED"] and k >= 2, r
+    legend_depths = {d for d, _ in r["legend"]}
+    assert {0, 1} <= legend_depths, r["legend"]
+    assert 0 < r["all"] <= r["total"]  # (coarse stand-ins retire once what replaces them arrived)
+    for d, shown, want, read_back in r["by_depth"]:
+        assert want > 0, (d, r["by_depth"])
+        assert shown == want and read_back == d, (d, shown, want, read_back)
+    assert r["on"] and r["level_only"] == 0, r  # last asked: depth -k, the coarsest level (absolute 0)
+    assert r["off_shown"] == r["all"] and r["off_level_only"] == -1, r
+    assert r["old_file_depth"] == 1, r  # level_only stored absolute (k + 1): depth 1
+
+
+def test_import_from_edit_mode_leaves_no_mesh_in_edit_mode(rep):
+    r = _step(rep, "import_from_edit_mode")
+    assert r["result"] == ["FINISHED"], r["result"]
+    assert r["not_in_object_mode"] == [] and r["active"].startswith("seq"), r
+    assert "injected failure" in r["failed"], r["failed"]
+    assert r["failed_added"] == {} and r["failed_mode"] == "EDIT_MESH" and r["failed_active"] == "Cube", r
+
+
+def test_a_splat_ply_is_refused_as_a_sequence(rep):
+    r = _step(rep, "splat_ply_as_sequence")
+    assert "splats.ply" in r["result"] and "no faces" in r["result"], r["result"]
+    assert "3DGS" in r["result"] and "Traceback" not in r["result"], r["result"]
+    assert r["added"] == {}, r["added"]
