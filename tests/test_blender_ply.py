@@ -145,6 +145,18 @@ def test_export_writes_the_budget_in_rank_order_readable_by_plyfile(ply_session)
     np.testing.assert_allclose(world["x"] - 1.0, got["x"], atol=1e-6)
     np.testing.assert_allclose(world["y"] - 2.0, -got["z"], atol=1e-6)
     np.testing.assert_allclose(world["z"] - 3.0, got["y"], atol=1e-6)
+    # ... and every splat turned with it: world rotation = q_x(+90 degrees) * local rotation, same scales
+    from progressive_avatars.core.geometry.rotations import quat_multiply
+
+    def quats(a):
+        q = np.stack([a[f"rot_{k}"] for k in range(4)], 1).astype(np.float64)
+        return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+    turn = np.array([np.sqrt(0.5), np.sqrt(0.5), 0.0, 0.0])
+    want = quat_multiply(np.broadcast_to(turn, (len(got), 4)), quats(got))
+    np.testing.assert_allclose(np.abs(np.sum(quats(world) * want, axis=1)), 1.0, atol=1e-5)
+    for k in range(3):
+        np.testing.assert_allclose(world[f"scale_{k}"], got[f"scale_{k}"], atol=1e-5)
 
 
 def test_ascii_and_big_endian_plys_import_in_a_stock_blender(ply_session):
