@@ -47,6 +47,20 @@ def _clean_env(tmp):
     return env
 
 
+def run_scenario(script, args, tag, tmp):
+    """Run a Blender scenario file (tests/blender_scenarios) as a plain Python with bpy, in clean
+    Blender user folders under ``tmp``; its report is the JSON after ``tag`` on its last such
+    line (the test fails with the session's output when there is none)."""
+    proc = subprocess.run(
+        [sys.executable, script, *args], capture_output=True, text=True, env=_clean_env(tmp), timeout=300
+    )
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith(tag + " ")]
+    if not lines:
+        pytest.fail("Blender session produced no report:\n" + proc.stdout[-3000:] + proc.stderr[-3000:])
+    report = json.loads(lines[-1][len(tag) + 1 :])
+    return report, proc
+
+
 def make_inputs(folder):
     """A sphere sequence (mesh npz) and a stream written by core (its template = the mesh)."""
     from progressive_avatars.core.avatar.avatar import Avatar

@@ -7,15 +7,12 @@ Depth on a mesh edited to another face count. A failed operator must say what we
 naming the object, and leave the scene as it was.
 """
 
-import json
 import os
-import subprocess
-import sys
 import textwrap
 
 import pytest
 
-from tests.test_blender_extension import _bpy_dir, _clean_env, make_inputs, make_rig_inputs
+from tests.test_blender_extension import _bpy_dir, make_inputs, make_rig_inputs, run_scenario
 
 pytestmark = pytest.mark.blender
 
@@ -99,17 +96,7 @@ def rep(tmp_path_factory):
     _other_streams(stream, out)
     make_rig_inputs(out)
     _write_trainers(out, stream)
-    proc = subprocess.run(
-        [sys.executable, SCENARIO, ROOT, out, ",".join(BLOCKED)],
-        capture_output=True,
-        text=True,
-        env=_clean_env(tmp),
-        timeout=300,
-    )
-    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("PA_FAILURES ")]
-    if not lines:
-        pytest.fail("Blender session produced no report:\n" + proc.stdout[-3000:] + proc.stderr[-3000:])
-    r = json.loads(lines[-1][len("PA_FAILURES ") :])
+    r, _ = run_scenario(SCENARIO, [ROOT, out, ",".join(BLOCKED)], "PA_FAILURES", tmp)
     assert not r["blocked_loaded"], r["blocked_loaded"]
     return r
 

@@ -7,15 +7,12 @@ layout with one SH band), read back after export by plyfile in this process (a t
 reader).
 """
 
-import json
 import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
-from tests.test_blender_extension import _bpy_dir, _clean_env
+from tests.test_blender_extension import _bpy_dir, run_scenario
 
 pytestmark = pytest.mark.blender
 
@@ -73,17 +70,7 @@ def ply_session(tmp_path_factory):
     src = os.path.join(out, "splats.ply")
     write_ply(src, g)
     _foreign_copies(src, out)
-    proc = subprocess.run(
-        [sys.executable, SCENARIO, ROOT, src, out, ",".join(BLOCKED)],
-        capture_output=True,
-        text=True,
-        env=_clean_env(tmp),
-        timeout=300,
-    )
-    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("PA_PLY ")]
-    if not lines:
-        pytest.fail("Blender session produced no report:\n" + proc.stdout[-3000:] + proc.stderr[-3000:])
-    rep = json.loads(lines[-1][len("PA_PLY ") :])
+    rep, _ = run_scenario(SCENARIO, [ROOT, src, out, ",".join(BLOCKED)], "PA_PLY", tmp)
     assert not rep["errors"], rep["errors"][0]
     return {"rep": rep, "arrays": dict(np.load(os.path.join(out, "arrays.npz"))), "out": out, "src": src}
 

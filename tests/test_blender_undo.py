@@ -8,17 +8,14 @@ across undo/redo and reopening, the splats' focal length (dilation) without Spla
 Settings, imports from Edit Mode and of a splat PLY, and the depth filter in the legend's terms.
 """
 
-import json
 import os
 import shutil
-import subprocess
-import sys
 import textwrap
 
 import numpy as np
 import pytest
 
-from tests.test_blender_extension import _bpy_dir, _clean_env, make_inputs
+from tests.test_blender_extension import _bpy_dir, make_inputs, run_scenario
 
 pytestmark = pytest.mark.blender
 
@@ -96,17 +93,7 @@ def rep(tmp_path_factory):
     _coarse_inputs(out)
     _splat_ply(out)
     _trainers(out, stream)
-    proc = subprocess.run(
-        [sys.executable, SCENARIO, ROOT, out, ",".join(BLOCKED)],
-        capture_output=True,
-        text=True,
-        env=_clean_env(tmp),
-        timeout=300,
-    )
-    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("PA_UNDO ")]
-    if not lines:
-        pytest.fail("Blender session produced no report:\n" + proc.stdout[-3000:] + proc.stderr[-3000:])
-    r = json.loads(lines[-1][len("PA_UNDO ") :])
+    r, proc = run_scenario(SCENARIO, [ROOT, out, ",".join(BLOCKED)], "PA_UNDO", tmp)
     r["stdout"] = proc.stdout
     assert not r["blocked_loaded"], r["blocked_loaded"]
     shutil.rmtree(tmp, ignore_errors=True)

@@ -51,26 +51,8 @@ def shading():
     return [sp.shading.color_type for s in bpy.data.screens for a in s.areas for sp in a.spaces if sp.type == "VIEW_3D"]
 
 
-def step(fn):
-    r = R[fn.__name__] = {}
-    try:
-        fn(r)
-    except Exception:
-        r["error"] = traceback.format_exc()
-    if bpy.context.mode != "OBJECT" and bpy.context.active_object is not None:
-        bpy.ops.object.mode_set(mode="OBJECT")
-    return fn
-
-
-def activate(obj, mode="OBJECT"):
-    if bpy.context.mode != "OBJECT":
-        bpy.ops.object.mode_set(mode="OBJECT")
-    for o in bpy.context.selected_objects:
-        o.select_set(False)
-    obj.select_set(True)
-    bpy.context.view_layer.objects.active = obj
-    if mode != "OBJECT":
-        bpy.ops.object.mode_set(mode=mode)
+step = stock_blender.stepper(R)
+activate = stock_blender.activate
 
 
 for ob in list(bpy.data.objects):

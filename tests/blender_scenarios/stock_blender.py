@@ -35,3 +35,37 @@ def load_extension(root, package):
 def loaded(names):
     """The blocked modules that got imported anyway (must be none)."""
     return sorted(m for m in sys.modules if m.split(".")[0] in names)
+
+
+def stepper(results):
+    """A decorator that runs a scenario step at once, recording into ``results[step name]`` (its
+    traceback under "error" if it raised) and leaving Object Mode behind it."""
+    import traceback
+
+    import bpy
+
+    def step(fn):
+        r = results[fn.__name__] = {}
+        try:
+            fn(r)
+        except Exception:
+            r["error"] = traceback.format_exc()
+        if bpy.context.mode != "OBJECT" and bpy.context.active_object is not None:
+            bpy.ops.object.mode_set(mode="OBJECT")
+        return fn
+
+    return step
+
+
+def activate(obj, mode="OBJECT"):
+    """``obj`` alone selected and active, in ``mode``."""
+    import bpy
+
+    if bpy.context.mode != "OBJECT":
+        bpy.ops.object.mode_set(mode="OBJECT")
+    for o in bpy.context.selected_objects:
+        o.select_set(False)
+    obj.select_set(True)
+    bpy.context.view_layer.objects.active = obj
+    if mode != "OBJECT":
+        bpy.ops.object.mode_set(mode=mode)

@@ -59,26 +59,8 @@ def set_views(color_type):
                     sp.shading.color_type = color_type
 
 
-def step(fn):
-    r = R[fn.__name__] = {}
-    try:
-        fn(r)
-    except Exception:
-        r["error"] = traceback.format_exc()
-    if bpy.context.mode != "OBJECT" and bpy.context.active_object is not None:
-        bpy.ops.object.mode_set(mode="OBJECT")
-    return fn
-
-
-def activate(obj, mode="OBJECT"):
-    if bpy.context.mode != "OBJECT":
-        bpy.ops.object.mode_set(mode="OBJECT")
-    for o in bpy.context.selected_objects:
-        o.select_set(False)
-    obj.select_set(True)
-    bpy.context.view_layer.objects.active = obj
-    if mode != "OBJECT":
-        bpy.ops.object.mode_set(mode=mode)
+step = stock_blender.stepper(R)
+activate = stock_blender.activate
 
 
 def preview_of(mesh):
