@@ -606,6 +606,25 @@ def test_flame_mode_dataset(tmp_path, flame_model):
     np.testing.assert_allclose(ds.canonical_vertices, flame_forward(flame_model, **canon)[0], atol=1e-6)
     np.testing.assert_array_equal(ds.faces, flame_model.faces)
     np.testing.assert_array_equal(ds[0].mask, 1.0)  # no mask file, no alpha: everything is foreground
+    # A file without one of the parameters is refused, naming it (as zeros it moved the head
+    # silently: a missing rotation by ~10 cm); the offsets may be left out.
+    partial = ga_frame(prm, 1)
+    del partial["static_offset"]
+    np.savez(root / "flame_param" / "00001.npz", **partial)
+    Dataset(root, flame_model=flame_model).vertices_at(1)
+    for key in ("rotation", "shape", "expr", "jaw_pose"):
+        partial = ga_frame(prm, 1)
+        del partial[key]
+        np.savez(root / "flame_param" / "00001.npz", **partial)
+        with pytest.raises(DataError, match=rf"00001\.npz: FLAME parameters lack {key} "):
+            Dataset(root, flame_model=flame_model).vertices_at(1)
+
+
+def test_background_outside_0_1_is_refused(tmp_path):
+    root = tmp_path / "ds"
+    write_mesh_dataset(root, background=[255, 255, 255])  # 8-bit values: images would reach 255
+    with pytest.raises(DataError, match=r"transforms_train\.json: 'background' must be \[r,g,b\] in \[0,1\]"):
+        Dataset(root, "train")
 
 
 def test_flame_track_reads_parameters_without_a_model(tmp_path, flame_model):

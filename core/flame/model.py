@@ -633,8 +633,10 @@ def _coeffs(x, n_model: int, T: int, what: str) -> np.ndarray:
         raise ValueError(f"{what}: expected 1 or {T} rows of coefficients, got {x.shape[0]}")
     n = min(n_model, x.shape[1])
     if x.shape[1] > n_model and np.any(x[:, n_model:] != 0):
+        last = int(np.flatnonzero(np.any(x != 0, axis=0))[-1]) + 1
         raise ValueError(
-            f"{what} has {x.shape[1]} non-zero coefficients but the model has only {n_model} {what} components"
+            f"{what} has non-zero coefficients up to number {last} (of {x.shape[1]}) but the model has only "
+            f"{n_model} {what} components"
         )
     out[:, :n] = x[:, :n]
     return out

@@ -31,6 +31,7 @@ from .sequences import (
 )
 
 _IMAGE_EXTS = (".png", ".jpg", ".jpeg")
+_REQUIRED_FLAME = ("shape", "expr", "rotation", "neck_pose", "jaw_pose", "eyes_pose", "translation")
 
 
 @dataclass(frozen=True)
@@ -200,6 +201,8 @@ class Dataset:
             self.background = np.zeros(0, np.float32)
         if self.background.shape != (3,) or not np.all(np.isfinite(self.background)):
             raise DataError(f"{json_path}: 'background' must be [r,g,b], got {_show(bg)}")
+        if np.any(self.background < 0) or np.any(self.background > 1):
+            raise DataError(f"{json_path}: 'background' must be [r,g,b] in [0,1] (not 0..255), got {_show(bg)}")
 
         mesh_mode = "mesh_path" in _frame_object(rows[0], f"{json_path}: frames[0]")
         self.mode = "mesh" if mesh_mode else "flame"
@@ -229,7 +232,7 @@ class Dataset:
             if flame_model is None:
                 raise DataError(
                     f"{json_path}: FLAME-mode dataset (flame_param_path) needs a FLAME model file: "
-                    "set the FLAME model in the add-on preferences, or pass --flame-model"
+                    "set the FLAME model in the add-on preferences, or pass --flame-model (Dataset(..., flame_model=PATH) in Python)"
                 )
             self.flame_model = load_flame_model(flame_model)
             canon_path = os.path.join(self.root, "canonical_flame_param.npz")
@@ -343,6 +346,12 @@ class Dataset:
         d = _flame_keys(_npz(path))
         if not d:
             raise DataError(f"{path}: no FLAME parameters (expected keys {', '.join(_ALIASES)})")
+        missing = [k for k in _REQUIRED_FLAME if k not in d]
+        if missing:  # evaluated as zeros, they would move the head silently (a missing rotation: ~10 cm)
+            raise DataError(
+                f"{path}: FLAME parameters lack {', '.join(missing)} (each file needs "
+                f"{', '.join(_REQUIRED_FLAME)}; static_offset and dynamic_offset are optional)"
+            )
         refined = self._refined.get(ts)
         if refined is not None:
             d.update(refined)

@@ -62,7 +62,10 @@ class FlameTorch(torch.nn.Module):
         n = x.shape[1]
         if n > n_model:
             if bool((x[:, n_model:] != 0).any()):
-                raise ValueError(f"{name} has {n} non-zero coefficients but the model has only {n_model}")
+                last = int(torch.nonzero((x != 0).any(dim=0)).max()) + 1
+                raise ValueError(
+                    f"{name} has non-zero coefficients up to number {last} (of {n}) but the model has only {n_model}"
+                )
             x = x[:, :n_model]
         elif n < n_model:
             x = torch.cat([x, x.new_zeros((x.shape[0], n_model - n))], dim=1)
