@@ -644,6 +644,11 @@ def test_flame_track_reads_parameters_without_a_model(tmp_path, flame_model):
     for t in range(4):
         np.savez(fp / f"{t:05d}.npz", **ga_frame(prm, t))
     np.testing.assert_array_equal(read_flame_track(tmp_path / "ga").params["jaw_pose"], prm["jaw_pose"])
+    partial = ga_frame(prm, 2)
+    del partial["eyes_pose"]
+    np.savez(fp / "00002.npz", **partial)
+    with pytest.raises(DataError, match=r"00002\.npz: FLAME parameters lack eyes_pose "):
+        read_flame_track(tmp_path / "ga")
     np.savez(tmp_path / "mesh.npz", vertices=np.zeros((2, 3, 3)), faces=np.array([[0, 1, 2]]))
     with pytest.raises(DataError, match=r"mesh\.npz: holds meshes, not FLAME parameters"):
         read_flame_track(tmp_path / "mesh.npz")

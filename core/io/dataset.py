@@ -19,6 +19,7 @@ from ..flame.model import POSE_WIDTHS, load_flame_model
 from .safe_io import loads_json
 from .sequences import (
     _ALIASES,
+    check_frame_keys,
     _check_faces,
     _check_vertices,
     DataError,
@@ -31,7 +32,6 @@ from .sequences import (
 )
 
 _IMAGE_EXTS = (".png", ".jpg", ".jpeg")
-_REQUIRED_FLAME = ("shape", "expr", "rotation", "neck_pose", "jaw_pose", "eyes_pose", "translation")
 
 
 @dataclass(frozen=True)
@@ -346,12 +346,7 @@ class Dataset:
         d = _flame_keys(_npz(path))
         if not d:
             raise DataError(f"{path}: no FLAME parameters (expected keys {', '.join(_ALIASES)})")
-        missing = [k for k in _REQUIRED_FLAME if k not in d]
-        if missing:  # evaluated as zeros, they would move the head silently (a missing rotation: ~10 cm)
-            raise DataError(
-                f"{path}: FLAME parameters lack {', '.join(missing)} (each file needs "
-                f"{', '.join(_REQUIRED_FLAME)}; static_offset and dynamic_offset are optional)"
-            )
+        check_frame_keys(d, path)
         refined = self._refined.get(ts)
         if refined is not None:
             d.update(refined)

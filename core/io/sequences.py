@@ -189,6 +189,21 @@ _ALIASES = {
     "static_offset": ("static_offset",),
     "dynamic_offset": ("dynamic_offset",),
 }
+# What a per-frame FLAME parameter file (VHAP, GaussianAvatars) must hold; the offsets are optional.
+REQUIRED_FLAME_KEYS = ("shape", "expr", "rotation", "neck_pose", "jaw_pose", "eyes_pose", "translation")
+
+
+def check_frame_keys(d: dict, path: str) -> None:
+    """A per-frame FLAME parameter file holds every required key (as zeros a missing rotation
+    or shape would move the head silently, by up to 10 cm)."""
+    missing = [k for k in REQUIRED_FLAME_KEYS if k not in d]
+    if missing:
+        raise DataError(
+            f"{path}: FLAME parameters lack {', '.join(missing)} (each file needs "
+            f"{', '.join(REQUIRED_FLAME_KEYS)}; static_offset and dynamic_offset are optional)"
+        )
+
+
 _PER_FRAME = ("rotation", "translation", "neck_pose", "jaw_pose", "eyes_pose", "expr", "dynamic_offset")
 
 
@@ -230,6 +245,7 @@ def read_flame_param_folder(path, frames=None, flame_model=None, evaluate=True):
         d = _flame_keys(_npz(fp))
         if "expr" not in d and "shape" not in d:
             raise DataError(f"{fp}: no FLAME parameters (expected keys {', '.join(_ALIASES)})")
+        check_frame_keys(d, fp)
         for k in _ALIASES:
             params[k].append(d.get(k))
     names = [files[i] for i in sel.tolist()]
