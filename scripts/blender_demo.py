@@ -131,6 +131,18 @@ def _own_args():
     return sys.argv[sys.argv.index("--") + 1 :] if "--" in sys.argv else sys.argv[1:]
 
 
+def write_strip(result, path):
+    """The Cycles previews side by side, each labelled with its budget, Gaussians and megabytes."""
+    from PIL import Image
+
+    from progressive_avatars.core.evaluate.plots import labelled_strip
+
+    renders = sorted(result["renders"].items(), key=lambda kv: float(kv[0]))
+    panels = [np.asarray(Image.open(r["png"]).convert("RGBA")) for _, r in renders]
+    labels = [f"{float(b):g} %: {r['gaussians']:,} Gaussians, {r['mb']:.2f} MB" for b, r in renders]
+    return labelled_strip(path, panels, labels, f"Blender preview (Cycles) of {result['total']:,} Gaussians")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run")
@@ -191,6 +203,7 @@ def main(argv=None):
         return 1
     result = json.loads(lines[-1][len("PA_DEMO ") :])
     result["source"] = source
+    result["strip"] = write_strip(result, os.path.join(out, "strip.png"))
     with open(os.path.join(out, "demo.json"), "w") as fh:
         json.dump(result, fh, indent=1)
     print(json.dumps(result, indent=1))

@@ -1053,3 +1053,20 @@ def paper_table_markdown(r: dict) -> str:
         f"![{k}]({v})" for k, v in figs.items() if k.startswith(("strip_full", "paper_quality", "depth", "psnr_vs"))
     ]
     return "\n".join(lines) + "\n"
+
+
+def labelled_strip(path, panels, labels, title=None):
+    """Pictures side by side (RGB/RGBA arrays in [0,1] or uint8), each with its label above it
+    (budget, Gaussians, bytes: a strip readers can read without the caption)."""
+    plt = _plt()
+    h, w = np.asarray(panels[0]).shape[:2]
+    fig, axes = plt.subplots(1, len(panels), figsize=(2.4 * len(panels), 2.4 * h / w + 0.5), squeeze=False)
+    for ax, img, label in zip(axes[0], panels, labels):
+        img = np.asarray(img)
+        ax.imshow(img if img.dtype == np.uint8 else np.clip(img, 0, 1), interpolation="lanczos")
+        ax.set_title(label, fontsize=9)
+        ax.axis("off")
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return _save(fig, path)
