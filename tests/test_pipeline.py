@@ -552,3 +552,21 @@ def test_scores_have_their_known_values():
         assert out["coverage"] == pytest.approx(max(coverage - 1 / 96, 0.0))
         assert out["psnr"] == pytest.approx(20.0) and out["psnr_full_image"] == pytest.approx(8.8606, abs=1e-4)
         assert out["views"] == 2 and out["render_ms"] == pytest.approx(1.0)
+
+
+def test_curves_crossover_names_where_uniform_stops_leading():
+    """The paper table's sentence under the adaptive-vs-uniform plot: the largest count at which
+    uniform's seed mean is level with or above adaptive's (None: adaptive ahead throughout)."""
+    from progressive_avatars.core.evaluate.plots import curves_crossover
+
+    xs = [100, 1000, 10000, 100000]
+    curve = lambda ys: [{"gaussians": g, "psnr": y} for g, y in zip(xs, ys)]  # noqa: E731
+    curves = {
+        "adaptive": {0: curve([10, 20, 26, 28]), 1: curve([10, 20, 26, 28])},
+        "uniform": {0: curve([11, 21, 25, 27]), 1: curve([11, 21, 25, 27])},
+    }
+    lo, hi, last = curves_crossover(curves)
+    assert (lo, hi) == (100, 100000) and 1000 <= last < 10000  # the means cross between 1k and 10k
+    curves["uniform"] = {0: curve([9, 19, 25, 27])}
+    assert curves_crossover(curves)[2] is None
+    assert curves_crossover({"adaptive": curves["adaptive"]}) is None

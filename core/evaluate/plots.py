@@ -840,10 +840,38 @@ def full_resolution_strip(path, renderer, info, budgets, view_index=0):
     return atomic_save_image(sheet, path)
 
 
-def seed_curves_vs_gaussians(path, curves: dict):
+def _group_means(seeds: dict, xs: np.ndarray) -> np.ndarray:
+    """A group's mean PSNR over its seeds at counts ``xs`` (interpolated in log Gaussians)."""
+    return np.mean(
+        [
+            np.interp(np.log(xs), np.log([p["gaussians"] for p in pts]), [p["psnr"] for p in pts])
+            for pts in seeds.values()
+        ],
+        axis=0,
+    )
+
+
+def curves_crossover(curves: dict, a: str = "adaptive", b: str = "uniform"):
+    """(lo, hi, last): the Gaussian counts both groups' curves cover and the largest count in
+    that range where ``b``'s mean is level with or above ``a``'s (None: ``a`` ahead throughout);
+    None when the groups share no range."""
+    if a not in curves or b not in curves:
+        return None
+    every = [pts for group in (a, b) for pts in curves[group].values()]
+    lo = max(min(p["gaussians"] for p in pts) for pts in every)
+    hi = min(max(p["gaussians"] for p in pts) for pts in every)
+    if not hi > lo:
+        return None
+    xs = np.geomspace(lo, hi, 64)
+    behind = np.flatnonzero(_group_means(curves[b], xs) >= _group_means(curves[a], xs))
+    return int(lo), int(hi), (int(xs[behind[-1]]) if len(behind) else None)
+
+
+def seed_curves_vs_gaussians(path, curves: dict, views: int | None = None):
     """NVS PSNR against Gaussians rendered (stream prefixes) for groups of runs over seeds
     ({group: {seed: [{"gaussians", "psnr"}, ...]}}): each seed thin, and mean ± sd of the
-    seeds at the counts they share."""
+    seeds at the counts they share. ``views``: how many NVS views each point scores (the
+    label says it: a table scored on other views has other values)."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6.2, 3.8))
     for i, (group, seeds) in enumerate(curves.items()):
@@ -879,7 +907,7 @@ def seed_curves_vs_gaussians(path, curves: dict):
         )
     ax.set_xscale("log")
     ax.set_xlabel("Gaussians rendered (stream prefix, log)")
-    ax.set_ylabel("NVS PSNR in mask (dB)")
+    ax.set_ylabel("NVS PSNR in mask (dB)" + (f", {views} views" if views else ""))
     ax.set_title("Adaptive against uniform subdivision", fontsize=9)
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7)
@@ -1021,6 +1049,20 @@ def paper_table_markdown(r: dict) -> str:
         lines.append(f"| mean ± sd | | | | {vs['mean']:+.2f} ± {_fmt(vs['sd'], '.2f')} ({vs['n']} seeds) | |")
     else:
         lines.append("not run (no --uniform)")
+    cross = curves_crossover(r.get("quality_curves") or {})
+    if cross:
+        lo, hi, last = cross
+        on = f" on {r['quality_curves_views']} NVS views" if r.get("quality_curves_views") else ""
+        lines += [
+            "",
+            f"Along the streams (the plot{on}, so its values differ from the table's; means over the seeds, "
+            f"{lo:,} to {hi:,} Gaussians): "
+            + (
+                f"uniform is level with or above adaptive up to about {last:,} Gaussians, adaptive ahead above."
+                if last
+                else "adaptive is ahead at every count."
+            ),
+        ]
     lines += [
         "",
         "## Training",

@@ -373,6 +373,7 @@ def _paper_extras(args, report, streamed, info, rend, splits, data, progress, sc
             }
         )
     report["quality_curves"] = curves
+    report["quality_curves_views"] = curve_views
     if pairs:
         d = np.array([p["diff"] for p in pairs])
         report["adaptive_vs_uniform"] = {
@@ -384,7 +385,7 @@ def _paper_extras(args, report, streamed, info, rend, splits, data, progress, sc
         }
     if curves:
         figs["paper_quality_vs_gaussians"] = plots.seed_curves_vs_gaussians(
-            os.path.join(args.out, "paper_quality_vs_gaussians.png"), curves
+            os.path.join(args.out, "paper_quality_vs_gaussians.png"), curves, curve_views
         )
     # Training wall time and peak memory of every run (metrics log; scripts/train.py's resources.jsonl).
     runs_used = {"this run": args.run, **({"finest only": args.finest_only} if args.finest_only else {})}
