@@ -500,7 +500,11 @@ def test_done_when_checks_the_budget_table_and_names_the_curve_it_had():
     r["budgets"] = budgets(dict(flat, **{"50": 26.0}))  # 50 % a dB above 100 %
     d = done_when(r)["psnr_non_decreasing"]
     assert not d["met"] and abs(d["worst_drop"] - 1.0) < 1e-9 and d["curve_points"] == 1
-    assert _steps(d) == "the curve's 1 point(s)"
+    assert _steps(d, r["curve_nvs"]) == "the curve's 1 point(s)"
+    # A report from before the count was recorded: its own curve says (20 points were called 1 % steps)
+    curve = [{"percent": 5.0 * (i + 1)} for i in range(20)]
+    assert _steps({}, curve) == "the curve's 20 point(s) (5 % steps)"
+    assert _steps({}, [{"percent": float(p)} for p in range(1, 101)]) == "the curve in 1 % steps"
 
 
 @pytest.mark.slow  # a training run and a subprocess

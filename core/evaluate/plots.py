@@ -432,9 +432,15 @@ def _non_decreasing(values, slack) -> tuple:
     return drop <= slack, drop
 
 
-def _steps(d: dict) -> str:
-    n = d.get("curve_points", 100)
-    return "the curve in 1 % steps" if n == 100 else f"the curve's {n} point(s)"
+def _steps(d: dict, curve: list) -> str:
+    """The curve a criterion checked: its point count is in the criterion, or for reports from
+    before it was recorded, the report's own curve."""
+    n = d.get("curve_points", len(curve))
+    percents = [c.get("percent") for c in curve]
+    if n == len(curve) and percents == [float(p) for p in range(1, n + 1)]:
+        return "the curve in 1 % steps"
+    step = (100.0 / n) if n > 1 and percents == [100.0 * (i + 1) / n for i in range(n)] else None
+    return f"the curve's {n} point(s)" + (f" ({_percent(step)} % steps)" if step else "")
 
 
 def done_when(r: dict) -> dict:
@@ -595,8 +601,8 @@ def report_markdown(r: dict) -> str:
         lines += ["", "Issue 16 criteria on this run (and, where named, on its other seeds):", ""]
         names = {
             "coverage_from_2pct": lambda d: f"mask coverage ≥ 0.95 from 2 %: min {d['min']:.3f} at {d['at_percent']:g} %",
-            "psnr_non_decreasing": lambda d: f"NVS PSNR non-decreasing over the budget table and {_steps(d)} (0.05 dB slack): worst drop {d.get('worst_drop', d.get('worst_drop_db', 0.0)):.3f} dB",
-            "coverage_non_decreasing": lambda d: f"coverage non-decreasing over the budget table and {_steps(d)}: worst drop {d['worst_drop']:.4f}",
+            "psnr_non_decreasing": lambda d: f"NVS PSNR non-decreasing over the budget table and {_steps(d, curve)} (0.05 dB slack): worst drop {d.get('worst_drop', d.get('worst_drop_db', 0.0)):.3f} dB",
+            "coverage_non_decreasing": lambda d: f"coverage non-decreasing over the budget table and {_steps(d, curve)}: worst drop {d['worst_drop']:.4f}",
             "psnr_5_within_3db": lambda d: f"NVS PSNR at 5 % within 3 dB of 100 %: {d['gap_db']:.2f} dB below",
             "coarse_cost_100": lambda d: f"coarse levels cost ≤ 0.1 dB at 100 %: {d['cost_db']:+.3f} dB",
             "psnr_5_within_3db_every_seed": lambda d: "NVS PSNR at 5 % within 3 dB of 100 %, every seed's own stream: "
