@@ -822,7 +822,7 @@ def report_markdown(r: dict) -> str:
 def full_resolution_strip(path, renderer, info, budgets, view_index=0):
     """One view at each budget and the ground truth side by side at the dataset's own pixel
     size (no resampling), each under a one-line label."""
-    from PIL import Image, ImageDraw
+    from PIL import Image, ImageDraw, ImageFont
 
     view = int(renderer.views[min(view_index, len(renderer.views) - 1)])
     sample = renderer.dataset[view]
@@ -835,12 +835,19 @@ def full_resolution_strip(path, renderer, info, budgets, view_index=0):
     panels.append(sample.image)
     labels.append("ground truth")
     h, w = sample.image.shape[:2]
-    bar = 16
+    # Labels sized to the panels (the default 10 px font was ~3 px high once a 2,750 px sheet was
+    # shown at page width); Pillow's own scalable font, else its bitmap one.
+    size = max(10, w // 16)
+    try:
+        font = ImageFont.load_default(size=size)
+    except TypeError:  # Pillow < 10.1
+        font, size = ImageFont.load_default(), 10
+    bar = size + 8
     sheet = Image.new("RGB", (w * len(panels), h + bar), (255, 255, 255))
     draw = ImageDraw.Draw(sheet)
     for k, (im, label) in enumerate(zip(panels, labels)):
         sheet.paste(Image.fromarray(np.clip(np.round(np.asarray(im) * 255), 0, 255).astype(np.uint8)), (k * w, bar))
-        draw.text((k * w + 3, 2), label, fill=(0, 0, 0))
+        draw.text((k * w + 4, 3), label, fill=(0, 0, 0), font=font)
     from ..io.atomic import atomic_save_image
 
     return atomic_save_image(sheet, path)
