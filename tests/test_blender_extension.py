@@ -61,6 +61,13 @@ def run_scenario(script, args, tag, tmp):
     return report, proc
 
 
+def scenario_step(report, name):
+    """One step's record of a scenario report (run_scenario), failing with its traceback."""
+    r = report[name]
+    assert "error" not in r, r["error"]
+    return r
+
+
 def make_inputs(folder):
     """A sphere sequence (mesh npz) and a stream written by core (its template = the mesh)."""
     from progressive_avatars.core.avatar.avatar import Avatar

@@ -12,7 +12,7 @@ import textwrap
 
 import pytest
 
-from tests.test_blender_extension import _bpy_dir, make_inputs, make_rig_inputs, run_scenario
+from tests.test_blender_extension import _bpy_dir, make_inputs, make_rig_inputs, run_scenario, scenario_step
 
 pytestmark = pytest.mark.blender
 
@@ -101,14 +101,8 @@ def rep(tmp_path_factory):
     return r
 
 
-def _step(rep, name):
-    r = rep[name]
-    assert "error" not in r, r["error"]
-    return r
-
-
 def test_train_survives_a_log_line_that_is_not_utf8(rep):
-    r = _step(rep, "train_non_utf8")
+    r = scenario_step(rep, "train_non_utf8")
     assert r["first"] == ["FINISHED"], r["first"]
     assert not r["running"]
     assert r["message"] == "it 2/2 loss 0.05"
@@ -116,27 +110,27 @@ def test_train_survives_a_log_line_that_is_not_utf8(rep):
 
 
 def test_train_is_not_left_running_when_reading_its_output_fails(rep):
-    r = _step(rep, "train_reader_fails")
+    r = scenario_step(rep, "train_reader_fails")
     assert not r["running"]
     assert "reader failed" in r["result"]
 
 
 def test_modal_train_reader_survives_a_log_line_that_is_not_utf8(rep):
-    r = _step(rep, "train_modal_reader")
+    r = scenario_step(rep, "train_modal_reader")
     assert r["exit"] == 0, "the trainer blocked on a pipe nobody read"
     assert r["lines"] == 5002
     assert "caf\ufffd" in r["first"]
 
 
 def test_modal_train_reports_the_trainers_last_line(rep):
-    r = _step(rep, "train_modal_last_lines")
+    r = scenario_step(rep, "train_modal_last_lines")
     assert r["result"] == ["CANCELLED"]
     assert r["reports"] == [["ERROR", "Training failed (exit 3): ValueError: the last line says why"]], r["reports"]
     assert not r["running"] and r["timers"] == ["timer"]
 
 
 def test_modal_train_runs_on_while_another_scene_is_shown(rep):
-    r = _step(rep, "train_modal_other_scene")
+    r = scenario_step(rep, "train_modal_other_scene")
     assert r["exit"] == 0, "the training was stopped"
     assert all(kind != "WARNING" or "cancelled" not in msg for kind, msg in r["reports"]), r["reports"]
     assert r["last"] == ["CANCELLED"] and r["ticks"] > 1, r
@@ -147,7 +141,7 @@ def test_modal_train_runs_on_while_another_scene_is_shown(rep):
 
 
 def test_modal_train_failing_inside_modal_stops_cleanly(rep):
-    r = _step(rep, "train_modal_raises")
+    r = scenario_step(rep, "train_modal_raises")
     assert r["result"] == ["CANCELLED"], r["result"]
     assert r["reports"] == [["ERROR", "Training stopped: RuntimeError: reader failed"]], r["reports"]
     assert not r["running"] and r["timers"] == ["timer"]
@@ -155,13 +149,13 @@ def test_modal_train_failing_inside_modal_stops_cleanly(rep):
 
 
 def test_rig_import_from_edit_mode(rep):
-    r = _step(rep, "rig_in_edit_mode")
+    r = scenario_step(rep, "rig_in_edit_mode")
     assert r["result"] == ["FINISHED"], r["result"]
     assert r["groups"] > 0
 
 
 def test_failed_rig_import_leaves_the_scene_as_it_was(rep):
-    r = _step(rep, "rig_in_edit_mode")
+    r = scenario_step(rep, "rig_in_edit_mode")
     assert "Cannot import" in r["failed"] and "tracked_flame_params.npz" in r["failed"], r["failed"]
     assert "injected failure" in r["failed"] and "Traceback" not in r["failed"], r["failed"]
     assert r["failed_added"] == {}
@@ -170,13 +164,13 @@ def test_failed_rig_import_leaves_the_scene_as_it_was(rep):
 
 
 def test_failed_sequence_import_leaves_the_scene_as_it_was(rep):
-    r = _step(rep, "sequence_import_fails_late")
+    r = scenario_step(rep, "sequence_import_fails_late")
     assert "Cannot import" in r["result"] and "seq.npz" in r["result"] and "injected failure" in r["result"], r
     assert r["added"] == {} and r["range"] == [5, 9], r
 
 
 def test_budget_shows_what_a_viewer_of_the_typed_percent_sees(rep):
-    r = _step(rep, "budget_and_replaced_file")
+    r = scenario_step(rep, "budget_and_replaced_file")
     assert r["load"] == ["FINISHED"], r["load"]
     assert r["crossing"] > 0  # percents whose 32-bit value would cross a record boundary exist
     for p, count, shown, want in r["budget_counts"]:
@@ -184,7 +178,7 @@ def test_budget_shows_what_a_viewer_of_the_typed_percent_sees(rep):
 
 
 def test_a_replaced_avatar_file_is_not_mixed_with_the_preview(rep):
-    r = _step(rep, "budget_and_replaced_file")
+    r = scenario_step(rep, "budget_and_replaced_file")
     assert "live.pavs changed since this preview was loaded" in r["changed_status"], r["changed_status"]
     assert r["changed_count"] == 0 and r["changed_shown"] == 0
     assert "point count does not match" in r["shorter_status"] and r["shorter_shown"] == 0, r
@@ -192,13 +186,13 @@ def test_a_replaced_avatar_file_is_not_mixed_with_the_preview(rep):
 
 
 def test_load_avatar_refuses_a_mesh_in_edit_mode(rep):
-    r = _step(rep, "load_in_edit_mode")
+    r = scenario_step(rep, "load_in_edit_mode")
     assert "seq: leave Edit Mode first" in r["result"], r["result"]
     assert r["added"] == {} and r["attributes_kept"]
 
 
 def test_budget_slider_on_a_mesh_in_edit_mode(rep):
-    r = _step(rep, "bound_mesh_in_edit_mode")
+    r = scenario_step(rep, "bound_mesh_in_edit_mode")
     assert r["load"] == ["FINISHED"], r["load"]
     assert r["apply_budget"] == "ok", r["apply_budget"]
     for key in ("status_slider", "status", "status_grow"):
@@ -206,21 +200,21 @@ def test_budget_slider_on_a_mesh_in_edit_mode(rep):
 
 
 def test_depth_colours_refuse_a_mesh_in_edit_mode(rep):
-    r = _step(rep, "bound_mesh_in_edit_mode")
+    r = scenario_step(rep, "bound_mesh_in_edit_mode")
     assert "Colour by Depth: seq: leave Edit Mode first" in r["depth"], r["depth"]
     assert "Traceback" not in r["depth"]
     assert not r["depth_shown"] and r["depth_saved"] == "" and r["shading_kept"]
 
 
 def test_budget_slider_on_a_preview_in_edit_mode(rep):
-    r = _step(rep, "preview_in_edit_mode")
+    r = scenario_step(rep, "preview_in_edit_mode")
     assert r["preview_edit"] and not r["mesh_edit"]
     assert r["apply_budget"] == "ok", r["apply_budget"]
     assert r["status"].startswith(r["preview"] + " is in Edit Mode"), r["status"]
 
 
 def test_failed_depth_colours_change_nothing(rep):
-    r = _step(rep, "depth_on_edited_mesh")
+    r = scenario_step(rep, "depth_on_edited_mesh")
     assert not r["depth_shown"] and r["depth_saved"] == ""
     assert r["colour_attributes"] == [] and r["shading_kept"]
     assert r["result"].startswith("Error: Colour by Depth: seq: "), r["result"]

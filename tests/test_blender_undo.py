@@ -15,7 +15,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from tests.test_blender_extension import _bpy_dir, make_inputs, run_scenario
+from tests.test_blender_extension import _bpy_dir, make_inputs, run_scenario, scenario_step
 
 pytestmark = pytest.mark.blender
 
@@ -100,14 +100,8 @@ def rep(tmp_path_factory):
     return r
 
 
-def _step(rep, name):
-    r = rep[name]
-    assert "error" not in r, r["error"]
-    return r
-
-
 def test_undo_during_training_keeps_the_trainer_and_its_panel(rep):
-    r = _step(rep, "train_survives_undo")
+    r = scenario_step(rep, "train_survives_undo")
     assert r["started"], r
     # Undo put the scene back to before the training; the live run shows again at once
     assert r["running_after_undo"] and r["progress_after_undo"] == r["progress_before"] > 0, r
@@ -120,7 +114,7 @@ def test_undo_during_training_keeps_the_trainer_and_its_panel(rep):
 
 
 def test_cancel_still_stops_a_training_that_lived_through_undo(rep):
-    r = _step(rep, "train_survives_undo")
+    r = scenario_step(rep, "train_survives_undo")
     assert r["cancel"] == ["FINISHED"] and r["cancel_tick"] == ["CANCELLED"], r
     assert r["reports"] == [["WARNING", "Training cancelled"]], r["reports"]
     assert r["exit_after_cancel"] is not None, "the trainer still runs after Cancel"
@@ -128,7 +122,7 @@ def test_cancel_still_stops_a_training_that_lived_through_undo(rep):
 
 
 def test_a_file_saved_mid_training_reopens_not_running(rep):
-    r = _step(rep, "file_load_ends_training")
+    r = scenario_step(rep, "file_load_ends_training")
     assert r["started"], r
     assert not r["running"] and r["progress"] == 0.0, r
     assert "saved while a training ran" in r["message"], r["message"]
@@ -137,14 +131,14 @@ def test_a_file_saved_mid_training_reopens_not_running(rep):
 
 
 def test_a_file_load_ends_the_training_it_leaves(rep):
-    r = _step(rep, "file_load_ends_training")
+    r = scenario_step(rep, "file_load_ends_training")
     assert r["exit"] is not None, "the trainer outlived the file it trained for"
     assert r["tick"] == ["CANCELLED"], r["tick"]
     assert r["reports"] == [["WARNING", "Training stopped: another file was opened"]], r["reports"]
 
 
 def test_undoing_depth_colours_restores_the_view_shading(rep):
-    r = _step(rep, "depth_colours_undo")
+    r = scenario_step(rep, "depth_colours_undo")
     assert r["show"] == ["FINISHED"] and r["views_shown"] == ["VERTEX"], r
     assert not r["shown_after_undo"] and r["views_after_undo"] == ["MATERIAL"], r
     assert r["shown_after_redo"] and r["views_after_redo"] == ["VERTEX"], r
@@ -152,14 +146,14 @@ def test_undoing_depth_colours_restores_the_view_shading(rep):
 
 
 def test_depth_colours_across_reopen_and_undo(rep):
-    r = _step(rep, "depth_colours_reopened")
+    r = scenario_step(rep, "depth_colours_reopened")
     assert r["shown_reopened"] and r["views_reopened"] == ["VERTEX"], r
     assert r["hide"] == ["FINISHED"] and r["views_hidden"] == ["MATERIAL"], r
     assert r["shown_undo"] and r["views_undo"] == ["VERTEX"], r
 
 
 def test_splat_focal_is_the_scene_cameras_without_splat_render_settings(rep):
-    r = _step(rep, "splat_focal")
+    r = scenario_step(rep, "splat_focal")
     f, half = r["camera_focal"], r["camera_focal_half"]
     assert abs(half - f / 2) < 1e-3 * f
     assert len(r["after_load"]) == 2 and all(abs(v - f) < 1e-3 * f for v in r["after_load"]), r
@@ -171,7 +165,7 @@ def test_splat_focal_is_the_scene_cameras_without_splat_render_settings(rep):
 
 
 def test_depth_only_counts_depth_as_the_legend_does(rep):
-    r = _step(rep, "depth_only_in_legend_terms")
+    r = scenario_step(rep, "depth_only_in_legend_terms")
     k = r["coarse_levels"]
     assert r["load"] == ["FINISHED"] and k >= 2, r
     legend_depths = {d for d, _ in r["legend"]}
@@ -186,7 +180,7 @@ def test_depth_only_counts_depth_as_the_legend_does(rep):
 
 
 def test_import_from_edit_mode_leaves_no_mesh_in_edit_mode(rep):
-    r = _step(rep, "import_from_edit_mode")
+    r = scenario_step(rep, "import_from_edit_mode")
     assert r["result"] == ["FINISHED"], r["result"]
     assert r["not_in_object_mode"] == [] and r["active"].startswith("seq"), r
     assert "injected failure" in r["failed"], r["failed"]
@@ -194,7 +188,7 @@ def test_import_from_edit_mode_leaves_no_mesh_in_edit_mode(rep):
 
 
 def test_a_splat_ply_is_refused_as_a_sequence(rep):
-    r = _step(rep, "splat_ply_as_sequence")
+    r = scenario_step(rep, "splat_ply_as_sequence")
     assert "splats.ply" in r["result"] and "no faces" in r["result"], r["result"]
     assert "3DGS" in r["result"] and "Traceback" not in r["result"], r["result"]
     assert r["added"] == {}, r["added"]

@@ -39,12 +39,7 @@ def added(before):
     return {k: sorted(set(now[k]) ^ set(before[k])) for k in KINDS if now[k] != before[k]}
 
 
-def call(op, **kw):
-    """The operator's result, or the message it reported (background Blender raises it)."""
-    try:
-        return sorted(op(**kw))
-    except RuntimeError as exc:
-        return str(exc)
+call = stock_blender.call
 
 
 def shading():

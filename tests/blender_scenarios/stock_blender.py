@@ -69,3 +69,11 @@ def activate(obj, mode="OBJECT"):
     bpy.context.view_layer.objects.active = obj
     if mode != "OBJECT":
         bpy.ops.object.mode_set(mode=mode)
+
+
+def call(op, **kw):
+    """The operator's result, or the message it reported (background Blender raises it)."""
+    try:
+        return sorted(op(**kw))
+    except RuntimeError as exc:
+        return str(exc)

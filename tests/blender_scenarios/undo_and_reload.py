@@ -37,12 +37,7 @@ def inventory():
     return {k: sorted(x.name for x in getattr(bpy.data, k)) for k in KINDS}
 
 
-def call(op, **kw):
-    """The operator's result, or the message it reported (background Blender raises it)."""
-    try:
-        return sorted(op(**kw))
-    except RuntimeError as exc:
-        return str(exc)
+call = stock_blender.call
 
 
 def views():
