@@ -117,7 +117,7 @@ def test_run_paper_table_small(tmp_path):
     # full-resolution strips: 4 budgets and the ground truth at the dataset's pixel size
     for split in ("nvs", "nes"):
         with Image.open(report_dir / f"strip_full_{split}.png") as im:
-            assert im.size == (5 * 44, 64 + 16)
+            assert im.size[0] == 5 * 44 and 64 + 10 <= im.size[1] <= 64 + 24  # 44x64 panels under a label bar
     md = (report_dir / "paper_table.md").read_text()
     for text in (
         "## Table 1",
