@@ -502,6 +502,7 @@ def test_flame_refinement_learns_resumes_and_is_saved(tiny_dataset, tmp_path):
     # (training timesteps) on the refined meshes, the novel expressions as tracked.
     from progressive_avatars.core.io.dataset import Dataset
     from progressive_avatars.core.io.run import run_dataset
+    from progressive_avatars.core.io.sequences import DataError
 
     for split in ("val", "test"):
         posed = run_dataset(str(tmp_path / "full"), str(root), split, model_path)
@@ -514,6 +515,20 @@ def test_flame_refinement_learns_resumes_and_is_saved(tiny_dataset, tmp_path):
             else:
                 np.testing.assert_array_equal(posed.vertices_at(t), tracked.vertices_at(t))
     assert set(full.val.timesteps.tolist()) <= train_ts and not set(posed.timesteps.tolist()) & train_ts
+    # Another dataset's frames are not posed with this run's refinement (same ids, other frames)
+    import shutil
+
+    other = tmp_path / "other_data"
+    shutil.copytree(root, other)
+    posed = run_dataset(str(tmp_path / "full"), str(other), "val", model_path)
+    t = int(posed.timesteps[0])
+    np.testing.assert_array_equal(
+        posed.vertices_at(t), Dataset(str(other), "val", flame_model=model_path).vertices_at(t)
+    )
+    # A damaged refinement file is named
+    (tmp_path / "full" / "flame_refined.npz").write_bytes(b"PK\x03\x04 not a zip")
+    with pytest.raises(DataError, match=r"flame_refined\.npz: cannot read refined FLAME parameters"):
+        run_dataset(str(tmp_path / "full"), str(root), "val", model_path)
 
 
 def test_flame_refiner_starts_at_the_tracked_meshes(tiny_dataset, tmp_path):

@@ -9,6 +9,7 @@ through ``Dataset.sequence``; PIL is imported only where training and evaluation
 from __future__ import annotations
 
 import os
+import zipfile
 from collections import OrderedDict
 from dataclasses import dataclass
 
@@ -372,7 +373,9 @@ class Dataset:
                     raise DataError(f"{path}: not a refined-FLAME file (no {', '.join(missing)})")
                 d = {k: np.asarray(z[k], np.float64) for k in keys}
                 ts = np.asarray(z["timesteps"]).reshape(-1)
-        except (OSError, ValueError) as exc:
+        except DataError:
+            raise
+        except (OSError, ValueError, zipfile.BadZipFile) as exc:
             raise DataError(f"{path}: cannot read refined FLAME parameters ({exc})") from exc
         for k, v in d.items():
             if v.ndim != 2 or len(v) != len(ts) or not np.all(np.isfinite(v)):

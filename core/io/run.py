@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 
 import numpy as np
 
@@ -79,7 +80,16 @@ def run_dataset(run: str, data: str, split: str | None, flame_model: str | None 
     ds = Dataset(data, split, flame_model=flame_model, **options)
     path = os.path.join(run, "flame_refined.npz")
     if os.path.exists(path) and ds.mode == "flame":
-        ds.use_refined_flame(path)
+        cfg = run_config(run) or {}
+        trained_on = cfg.get("data")
+        if isinstance(trained_on, str) and os.path.realpath(trained_on) != os.path.realpath(data):
+            # Its timesteps are another dataset's: the same ids would pose other frames.
+            print(
+                f"note: {path} refines the frames of {trained_on}, not of {data}: they are posed as tracked",
+                file=sys.stderr,
+            )
+        else:
+            ds.use_refined_flame(path)
     return ds
 
 
