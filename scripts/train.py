@@ -48,7 +48,11 @@ def main(argv=None):
         type=float,
         help="last fraction of the iterations that supervises the finest level alone, the base faces kept as they are",
     )
-    ap.add_argument("--uniform", action="store_true", help="ablation: uniform subdivision to --max-depth")
+    ap.add_argument(
+        "--uniform",
+        action="store_true",
+        help="ablation: uniform subdivision to --max-depth (every face; --max-faces must hold them all)",
+    )
     ap.add_argument(
         "--level-weights",
         type=_weights,

@@ -1171,6 +1171,31 @@ def test_growth_leaves_out_faces_below_the_size_floor():
             config_for("tiny", split_min_px=bad)
 
 
+def test_uniform_runs_split_every_face_or_refuse_the_face_cap(tiny_dataset, tmp_path):
+    """--uniform is every template face split to --max-depth: a face cap too small for that is
+    refused before training (it cut the last split by face index, leaving template faces
+    0..k deeper than the rest, with no word); a cap that fits gives every face its children."""
+    from progressive_avatars.core.io.dataset import Dataset
+
+    from dataclasses import replace
+
+    f0 = len(Dataset(tiny_dataset, "train").faces)
+    base = config_for("tiny", uniform=True, max_depth=1, iterations=20, max_faces=10**6)
+    fresh = Trainer(tiny_dataset, str(tmp_path / "probe"), base, check_data=False)
+    need = fresh.model.forest.num_faces + 3 * f0  # the roots (coarse ones included) and 3 children each
+    with pytest.raises(ValueError, match=f"needs {need:,} faces.*--max-faces {need} or more"):
+        Trainer(tiny_dataset, str(tmp_path / "short"), replace(base, max_faces=need - 1))
+    assert not os.path.exists(tmp_path / "short" / "checkpoint.npz")
+    run = str(tmp_path / "fits")
+    Trainer(tiny_dataset, run, replace(base, max_faces=need), check_data=False).run(progress=False)
+    forest = Avatar.load(os.path.join(run, "avatar.npz")).forest
+    assert forest.num_faces == need
+    tmpl = forest.num_coarse + np.arange(f0)  # every template face has its three children
+    assert np.array_equal(
+        np.bincount(forest.parent[forest.parent >= 0], minlength=forest.num_faces)[tmpl], np.full(f0, 3)
+    )
+
+
 def test_trainer_measures_projected_sizes_and_growth_respects_the_floor(tiny_dataset, tmp_path):
     """The trainer's size record is each face's largest projected sigma (pixels) over the steps'
     views, from the Gaussians it rendered; a floor above every face stops growth, none lets it

@@ -455,6 +455,18 @@ def _check_same_data(out_dir: str, data_dir: str) -> None:
         )
 
 
+def _check_uniform_room(cfg: TrainConfig, template_faces: int, coarse_faces: int) -> None:
+    """A uniform run must fit every face to its depth under the face cap: the cap would cut
+    the last split by face index, leaving one block of the template deeper than the rest."""
+    need = coarse_faces + template_faces * (3 ** (cfg.max_depth + 1) - 1) // 2
+    if need > cfg.max_faces:
+        raise ValueError(
+            f"--uniform to depth {cfg.max_depth} needs {need:,} faces ({template_faces:,} template faces, "
+            f"each split {cfg.max_depth} times, and {coarse_faces:,} coarse ones), above --max-faces "
+            f"{cfg.max_faces:,}: pass --max-faces {need} or more, or a smaller --max-depth"
+        )
+
+
 def _cut_generator(seed: int) -> np.random.Generator:
     """The in-level prefix cuts' own generator. Cuts drawn from the views' generator shifted
     every later view draw, so runs of one seed with and without cuts saw different views and
@@ -584,6 +596,8 @@ class Trainer:
 
                 cf, counts = build_coarse(self.train.canonical_vertices, self.train.faces, config.coarse_levels)
                 coarse = (cf, counts, None) if counts else None
+            if config.uniform:
+                _check_uniform_room(config, len(self.train.faces), len(coarse[0]) if coarse else 0)
             self.model = TorchAvatar.from_template(
                 self.train.faces,
                 sh_degree=config.sh_degree,
