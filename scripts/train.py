@@ -215,8 +215,9 @@ def main(argv=None):
 def _train(args, cfg, dist, t0):
     import contextlib
 
+    from progressive_avatars.core.io.atomic import os_error_text
     from progressive_avatars.core.train.distributed import run_lock
-    from progressive_avatars.core.train.trainer import Trainer
+    from progressive_avatars.core.train.trainer import Trainer, kept_text
 
     who = f"rank {dist.rank}: " if dist.world_size > 1 else ""
     if dist.world_size > 1:
@@ -237,6 +238,7 @@ def _train(args, cfg, dist, t0):
                 progress=not args.no_progress,
                 dist=dist,
                 overwrite=args.overwrite,
+                coarse_mode_given=args.coarse_mode is not None,
             )
             if dist.is_main:
                 trainer.on_checkpoint = resources.write
@@ -246,7 +248,7 @@ def _train(args, cfg, dist, t0):
             print(f"error: {who}{exc}", file=sys.stderr)
             return 2
         except OSError as exc:
-            print(f"error: {who}{_os_error(exc)}", file=sys.stderr)
+            print(f"error: {who}{os_error_text(exc, args.out)}", file=sys.stderr)
             return 2
         except RuntimeError as exc:  # the run folder is locked by another training; ranks disagree
             print(f"error: {who}{_lost_peer(exc, args.out) or exc}", file=sys.stderr)
@@ -260,17 +262,14 @@ def _train(args, cfg, dist, t0):
             print(f"error: {who}{exc}", file=sys.stderr)
             return 3
         except OSError as exc:
-            print(
-                f"error: {who}{_os_error(exc)}; training stopped, the last checkpoint in {args.out} is kept "
-                "(free space, then --resume)",
-                file=sys.stderr,
-            )
+            kept = kept_text(args.out, trainer.checkpoint_iteration, dist.world_size > 1)
+            print(f"error: {who}{os_error_text(exc, args.out)}; training stopped, {kept}", file=sys.stderr)
             return 3
         except RuntimeError as exc:  # a rank died or hung (gloo), or the ranks' state diverged
             print(f"error: {who}{_lost_peer(exc, args.out, trainer.checkpoint_iteration) or exc}", file=sys.stderr)
             return 4
         except KeyboardInterrupt:
-            kept = _kept(args.out, trainer.checkpoint_iteration, dist.world_size > 1)
+            kept = kept_text(args.out, trainer.checkpoint_iteration, dist.world_size > 1)
             print(f"\nstopped (Ctrl-C) at iteration {trainer.iteration}; {kept}", file=sys.stderr)
             return 130
         except Exception as exc:
@@ -278,7 +277,7 @@ def _train(args, cfg, dist, t0):
             # (SystemError: "returned a result with an exception set", _Stopped as its context).
             if not _is_stop(exc):
                 raise
-            kept = _kept(args.out, trainer.checkpoint_iteration, True)
+            kept = kept_text(args.out, trainer.checkpoint_iteration, True)
             print(
                 f"error: {who}stopped by the launcher (SIGTERM: torchrun stops every process of the job when one "
                 f"fails, its report names the root cause, or when it is stopped itself); training stopped at "
@@ -318,28 +317,15 @@ def _lost_peer(exc: RuntimeError, out: str, checkpoint: int | None = None) -> st
     stopped answering (None for other errors)."""
     import torch.distributed as td
 
+    from progressive_avatars.core.train.trainer import kept_text
+
     text = str(exc).lower()
     peer = ("gloo", "nccl", "connection reset", "connection closed", "timed out", "timeout", "socket")
     if not (isinstance(exc, getattr(td, "DistError", ())) or any(w in text for w in peer)):
         return None
     first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-    kept = _kept(out, checkpoint, True)
+    kept = kept_text(out, checkpoint, True)
     return f"another process of this torchrun job died or stopped answering ({first}); training stopped, {kept}"
-
-
-def _kept(out, checkpoint, any_processes: bool) -> str:
-    """What a stopped run leaves to resume from."""
-    if checkpoint is None:
-        return "no checkpoint was written yet"
-    more = ", with any number of processes" if any_processes else ""
-    return f"the last checkpoint in {out} (iteration {checkpoint}) is kept; --resume continues from it{more}"
-
-
-def _os_error(exc: OSError) -> str:
-    import errno
-
-    what = {errno.ENOSPC: "disk full", errno.EDQUOT: "disk quota exceeded"}.get(exc.errno, type(exc).__name__)
-    return f"{what}: {exc.strerror or exc} ({exc.filename or 'writing the run folder'})"
 
 
 class _Resources:

@@ -168,6 +168,68 @@ def test_torn_metrics_line_and_stale_temps_do_not_block_resume(tiny_dataset, tmp
     assert live.exists()
 
 
+def test_a_refused_resume_changes_nothing_and_an_asked_coarse_mode_must_match(tiny_dataset, tmp_path, capsys):
+    """A resume refused for its settings left the run folder as it was, except that the log
+    lines past the checkpoint were already dropped; a --coarse-mode other than the run's was
+    silently replaced by the run's (only a mode not asked for takes the run's); --resume into
+    a folder without a checkpoint says that it starts a new run."""
+    from dataclasses import replace
+
+    cfg = config_for("tiny", iterations=6, checkpoint_every=4, eval_every=1000, log_every=1)
+    run = tmp_path / "run"
+    Trainer(tiny_dataset, str(run), cfg, check_data=False).run(progress=False, stop_after=4)
+    with open(run / "metrics.jsonl", "a") as fh:  # logged after the checkpoint, then killed
+        fh.write(json.dumps({"iteration": 5, "seconds": 1.0, "loss": 0.5}) + "\n")
+    before = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file() and p.name != ".train.lock"}
+    cumulative = replace(cfg, coarse_stand_ins=False, coarse_backdrop=False)
+    for other, kw, why in (
+        (replace(cfg, seed=5), {}, "seed 0 -> 5"),
+        (cumulative, dict(coarse_mode_given=True), "coarse_backdrop True -> False"),
+    ):
+        with pytest.raises(ValueError, match=why):
+            Trainer(tiny_dataset, str(run), other, resume=True, check_data=False, **kw)
+        after = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file() and p.name != ".train.lock"}
+        assert after == before
+    resumed = Trainer(tiny_dataset, str(run), cumulative, resume=True, check_data=False)  # mode not asked for
+    assert (resumed.cfg.coarse_stand_ins, resumed.cfg.coarse_backdrop) == (True, True)
+    assert [json.loads(ln)["iteration"] for ln in open(run / "metrics.jsonl")] == [1, 2, 3, 4]
+    capsys.readouterr()
+    Trainer(tiny_dataset, str(tmp_path / "typo"), cfg, resume=True, check_data=False)
+    assert "typo holds no checkpoint.npz: --resume starts a new run" in capsys.readouterr().err
+
+
+def test_a_failed_npz_write_keeps_the_old_file_names_it_and_closes_the_archive(tmp_path, monkeypatch):
+    """np.savez left its archive open when a write failed (a full disk): its finaliser later
+    failed on the closed file ("Exception ignored ... seek of closed file"), and the OSError
+    named no file (the write went through a handle)."""
+    import errno
+    import gc
+
+    path = tmp_path / "a.npz"
+    atomic.atomic_savez(path, x=np.arange(3))
+    before = path.read_bytes()
+    real, calls = np.lib.format.write_array, []
+
+    def full(fh, array, **kw):
+        calls.append(1)
+        if len(calls) == 2:
+            fh.write(b"partial")
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(fh, array, **kw)
+
+    monkeypatch.setattr(np.lib.format, "write_array", full)
+    stray = []
+    monkeypatch.setattr(sys, "unraisablehook", stray.append)
+    with pytest.raises(OSError) as err:
+        atomic.atomic_savez(path, x=np.arange(4), y=np.arange(5))
+    assert err.value.filename == str(path)
+    del err
+    gc.collect()
+    assert stray == [] and path.read_bytes() == before and os.listdir(tmp_path) == ["a.npz"]
+    with pytest.raises(ValueError, match="allow_pickle"):  # object arrays refused, as the readers refuse them
+        atomic.atomic_savez(tmp_path / "b.npz", x=np.array([{}, 1], dtype=object))
+
+
 def test_scale_overflow_stops_training_with_the_trainers_message(tiny_dataset, tmp_path):
     tr = Trainer(tiny_dataset, str(tmp_path / "r"), config_for("tiny", eval_every=1000), check_data=False)
     with torch.no_grad():
@@ -193,7 +255,9 @@ def test_train_script_reports_disk_full(tiny_dataset, tmp_path):
     ) % (os.path.join(ROOT, "scripts", "train.py"), tiny_dataset, str(tmp_path / "r"))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 3, out.stderr
-    assert "error: disk full: No space left on device" in out.stderr and "last checkpoint" in out.stderr
+    # The first checkpoint is the one that failed: nothing is kept (it used to say "the last checkpoint ... is kept").
+    assert "error: disk full: No space left on device" in out.stderr
+    assert "training stopped, no checkpoint was written yet" in out.stderr.strip().splitlines()[-1]
     assert "Traceback" not in out.stderr
 
 

@@ -1299,6 +1299,43 @@ def test_blender_train_job_refuses_a_finished_run(tiny_dataset, tiny_run, tmp_pa
     assert [json.loads(ln)["iteration"] for ln in open(run / "metrics.jsonl")][-1] == 2
 
 
+def test_blender_train_job_stops_with_one_line_and_resumes_an_unwritten_stream(
+    tiny_dataset, tiny_run, tmp_path, capsys, monkeypatch
+):
+    """Blender's Train (core/train/jobs.py) on a full disk: a raw traceback (exit 1) under the
+    progress bar, which the add-on then showed as the reason; a trained avatar whose stream was
+    not written was offered Overwrite Run (discarding it) where Resume writes the stream."""
+    import errno
+    import shutil
+
+    from progressive_avatars.core.stream import writer
+    from progressive_avatars.core.train import jobs
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device", "somewhere/checkpoint.npz")
+
+    args = ["train", "--data", tiny_dataset, "--preset", "tiny"]
+    with monkeypatch.context() as m:
+        m.setattr(Trainer, "run", full)
+        assert jobs.main(args + ["--out", str(tmp_path / "fresh")]) == 3
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last == (
+        "error: disk full: No space left on device (somewhere/checkpoint.npz); training stopped, "
+        "no checkpoint was written yet"
+    )
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)  # trained, stream not written
+    assert jobs.main(args + ["--out", str(run)]) == 2
+    assert "tick Resume to write it" in capsys.readouterr().err
+    with monkeypatch.context() as m:
+        m.setattr(writer, "write_stream", lambda path, *a, **k: full())
+        assert jobs.main(args + ["--out", str(run), "--resume"]) == 3
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith("error: disk full") and last.endswith("tick Resume to write its stream")
+    assert jobs.main(args + ["--out", str(run), "--resume"]) == 0
+    assert capsys.readouterr().out.strip().splitlines()[-1] == f"result: {run / 'avatar.pavs'}"
+
+
 def test_blender_train_job_stream_retires_stand_ins_by_region(tiny_dataset, tmp_path):
     """The stream Blender's Train writes (core/train/jobs.py) places each stand-in's retirement on
     the dataset's rest pose, as export.py and evaluate.py do: it used to be written without the

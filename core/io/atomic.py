@@ -55,18 +55,43 @@ def atomic_open(path, mode: str = "wb"):
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         if os.path.exists(tmp):
             os.remove(tmp)
+        if isinstance(exc, OSError) and exc.filename is None:
+            exc.filename = path  # a write through the handle names no file: say which one failed
         raise
 
 
 def atomic_savez(path, **arrays) -> None:
-    """np.savez, atomically (no pickle: object arrays are refused by the readers)."""
+    """np.savez, atomically (no pickle: object arrays are refused here, as the readers refuse
+    them). The archive is closed even when a write fails: np.savez leaves it open then, and
+    its finaliser later fails on the closed file with a stray "Exception ignored" traceback."""
+    import zipfile
+
     import numpy as np
 
     with atomic_open(path) as fh:
-        np.savez(fh, **arrays)
+        archive = zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED, allowZip64=True)
+        try:
+            for key, value in arrays.items():
+                with archive.open(f"{key}.npy", "w", force_zip64=True) as member:
+                    np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
+        except BaseException:
+            try:
+                archive.close()  # writes the directory, and fails again on a full disk
+            except Exception:
+                pass  # the first error is the one to report; close() has let go of the file
+            raise
+        archive.close()
+
+
+def os_error_text(exc: OSError, where: str = "writing the output") -> str:
+    """One line for a failed read or write: what went wrong and the file (else ``where``)."""
+    import errno
+
+    what = {errno.ENOSPC: "disk full", errno.EDQUOT: "disk quota exceeded"}.get(exc.errno, type(exc).__name__)
+    return f"{what}: {exc.strerror or exc} ({exc.filename if exc.filename is not None else where})"
 
 
 def image_format(path) -> str | None:

@@ -7,7 +7,8 @@ The Blender add-on runs this module from the extension's own folder (no checkout
 scripts/): it trains (RUN/avatar.npz, as scripts/train.py does) and then writes the
 importance-ordered stream RUN/avatar.pavs (as scripts/export.py --stream does), printing
 progress lines the add-on parses and, last, "result: RUN/avatar.pavs". Errors exit with code
-2 and one line naming the file or setting.
+2 (bad input or settings) or 3 (training or the export stopped: a full disk, NaN; what is kept
+to resume from is said) and one line naming the file or setting.
 """
 
 from __future__ import annotations
@@ -20,8 +21,9 @@ import sys
 def _train(args) -> int:
     import contextlib
 
+    from ..io.atomic import os_error_text
     from .distributed import run_lock
-    from .trainer import RunExistsError, Trainer, config_for
+    from .trainer import RunExistsError, Trainer, config_for, kept_text
 
     flame = os.path.abspath(args.flame_model) if args.flame_model else None
     if flame and not os.path.isfile(flame):
@@ -33,13 +35,19 @@ def _train(args) -> int:
             stack.enter_context(run_lock(args.out))  # one training per run folder (as scripts/train.py)
             trainer = Trainer(args.data, args.out, cfg, resume=args.resume, overwrite=args.overwrite)
         except RunExistsError as exc:
-            unfinished = not os.path.exists(os.path.join(args.out, "avatar.npz"))
+            trained = os.path.exists(os.path.join(args.out, "avatar.npz"))
+            unexported = trained and not args.no_export and not os.path.exists(os.path.join(args.out, "avatar.pavs"))
             if args.resume:
                 why = str(exc)
-            elif unfinished:  # cancelled or stopped: its checkpoint can go on
+            elif not trained:  # cancelled or stopped: its checkpoint can go on
                 why = (
                     f"{args.out} holds an unfinished training (checkpoint.npz): tick Resume to continue it, or "
                     "Overwrite Run to start over, or choose another Run folder (Training > Run)"
+                )
+            elif unexported:  # stopped while its stream was written: Overwrite would discard the avatar
+                why = (
+                    f"{args.out} holds a trained avatar whose stream (avatar.pavs) was not written: tick Resume to "
+                    "write it, or choose another Run folder (Training > Run)"
                 )
             else:
                 why = (
@@ -51,23 +59,37 @@ def _train(args) -> int:
         except (ValueError, FileNotFoundError, RuntimeError) as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
-        trainer.run(progress=True)
+        try:
+            trainer.run(progress=True)
+        except (FloatingPointError, OSError, KeyboardInterrupt) as exc:
+            # One line, last (the add-on reports the last line): not a traceback under a progress bar.
+            kept = kept_text(None, trainer.checkpoint_iteration, resume="Resume")  # short: the add-on shows 200 chars
+            what = os_error_text(exc, args.out) if isinstance(exc, OSError) else str(exc) or "stopped"
+            print(f"\nerror: {what}; training stopped, {kept}", file=sys.stderr)
+            return 130 if isinstance(exc, KeyboardInterrupt) else 3
     result = os.path.join(args.out, "avatar.npz")
     if not args.no_export:
         from ..io import run as runs
         from ..io.dataset import Dataset
         from ..stream.writer import write_stream
 
-        avatar = runs.load_run_avatar(args.out)
-        print("importance and stream", flush=True)
-        W = runs.run_importance(args.out, avatar, args.data, progress=True, flame_model=flame)
-        result = os.path.join(args.out, "avatar.pavs")
         try:
+            avatar = runs.load_run_avatar(args.out)
+            print("importance and stream", flush=True)
+            W = runs.run_importance(args.out, avatar, args.data, progress=True, flame_model=flame)
+            result = os.path.join(args.out, "avatar.pavs")
             rest = Dataset(args.data, None, flame_model=flame).canonical_vertices  # places the stand-ins' retirement
             write_stream(result, avatar, W, metadata={"run": os.path.abspath(args.out)}, drop_sh=True, vertices=rest)
         except ValueError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
+        except (OSError, KeyboardInterrupt) as exc:
+            what = os_error_text(exc, args.out) if isinstance(exc, OSError) else "stopped"
+            print(
+                f"\nerror: {what}; the trained avatar (avatar.npz) is kept: tick Resume to write its stream",
+                file=sys.stderr,
+            )
+            return 130 if isinstance(exc, KeyboardInterrupt) else 3
     print(f"result: {result}", flush=True)
     return 0
 

@@ -455,6 +455,16 @@ def _check_same_data(out_dir: str, data_dir: str) -> None:
         )
 
 
+def kept_text(out: str | None, checkpoint: int | None, any_processes: bool = False, resume: str = "--resume") -> str:
+    """What a stopped run leaves to resume from (the end of its error line); ``out`` None
+    leaves the folder out, ``resume`` names the way to continue (the add-on's Resume box)."""
+    if checkpoint is None:
+        return "no checkpoint was written yet"
+    more = ", with any number of processes" if any_processes else ""
+    where = f" in {out}" if out else ""
+    return f"the last checkpoint{where} (iteration {checkpoint}) is kept; {resume} continues from it{more}"
+
+
 def _check_uniform_room(cfg: TrainConfig, template_faces: int, coarse_faces: int) -> None:
     """A uniform run must fit every face to its depth under the face cap: the cap would cut
     the last split by face index, leaving one block of the template deeper than the rest."""
@@ -497,7 +507,11 @@ class Trainer:
         progress: bool = False,
         dist: Dist | None = None,
         overwrite: bool = False,
+        coarse_mode_given: bool = False,
     ):
+        """``coarse_mode_given``: the config's coarse mode was asked for (train.py --coarse-mode),
+        so a resume must match the run's; otherwise a resume takes the run's own mode (a run
+        trained before the preset's default changed resumes without naming it)."""
         self.data_dir, self.out_dir, self.cfg = data_dir, out_dir, config
         # A run folder that holds a checkpoint or a trained avatar is not started over by a
         # forgotten --resume: its first checkpoint would replace what hours of training made.
@@ -579,7 +593,8 @@ class Trainer:
                     f"{out_dir}: this run's coarse faces are stand-ins that leave; in-level prefix cuts need "
                     "cumulative or backdrop ones"
                 )
-            if f.num_coarse and (f.stand_ins, f.backdrop) != (config.coarse_stand_ins, config.coarse_backdrop):
+            mode = (f.stand_ins, f.backdrop)
+            if f.num_coarse and not coarse_mode_given and mode != (config.coarse_stand_ins, config.coarse_backdrop):
                 config = self.cfg = replace(
                     config, coarse_stand_ins=f.stand_ins, coarse_backdrop=f.backdrop
                 )  # its kind
@@ -590,6 +605,8 @@ class Trainer:
                 if note:
                     print(note, file=sys.stderr)
         else:
+            if resume and main:  # a mistyped --out would otherwise start hours of training without a word
+                print(f"note: {out_dir} holds no checkpoint.npz: --resume starts a new run", file=sys.stderr)
             coarse = None
             if config.coarse_levels:
                 from ..avatar.coarse import build_coarse
@@ -626,6 +643,8 @@ class Trainer:
                 )
             self._check_ranks_agree("parameters and optimiser state", self._state_digest())
         if main:
+            if self.checkpoint_iteration is not None:  # resumed
+                self._trim_log()
             with atomic_open(os.path.join(out_dir, "config.json"), "w") as fh:
                 json.dump(
                     {
@@ -1098,8 +1117,11 @@ class Trainer:
         if "cut_rng" in state:
             self.cut_rng.bit_generator.state = state["cut_rng"]
         self.recent_psnr = [float(x) for x in state.get("recent_psnr", [])]
-        # Drop log lines written after the checkpoint: they will be written again.
-        if self.dist.is_main and os.path.exists(self.log_path):
+
+    def _trim_log(self):
+        """Drop the log lines written after the checkpoint (they will be written again); only
+        once the resume is accepted: a refused one changes nothing in the run folder."""
+        if os.path.exists(self.log_path):
             with open(self.log_path) as fh:
                 lines = [ln.rstrip("\n") + "\n" for ln in fh if _log_iteration(ln) <= self.iteration]
             with atomic_open(self.log_path, "w") as fh:
@@ -1137,68 +1159,70 @@ class Trainer:
             dynamic_ncols=True,
             desc="train",
         )
-        recent = self.recent_psnr  # (restored on resume: the next log row averages the same steps)
-        while self.iteration < end:
-            t0 = time.perf_counter()
-            stats = self.step()
-            self.iteration += 1
-            it = self.iteration
-            grown, growth = 0, None
-            if self.growth.due(it):
-                grown = self._grow(it)
-                if self.dist.world_size > 1:  # the forest every rank holds after this growth step
-                    growth = {"split": grown, "forest_digest_by_rank": [f"{v:016x}" for v in self.forest_digests]}
-            self.elapsed += time.perf_counter() - t0
-            recent.append(stats["psnr"])
-            record = None
-            if it % c.log_every == 0 or it == c.iterations:
-                counts = self.model.forest.level_counts().tolist()
-                record = {
-                    "iteration": it,
-                    "seconds": round(self.elapsed, 3),
-                    "loss": stats["loss"],
-                    "train_psnr": float(np.mean(recent)),
-                    "faces": int(sum(counts)),
-                    "level_counts": counts,
-                }
-                recent.clear()
-            if main and (it % c.eval_every == 0 or it == c.iterations):
-                record = record or {"iteration": it, "seconds": round(self.elapsed, 3)}
-                record.update(self.evaluate(c.eval_views))
-            if growth:
-                record = record or {"iteration": it, "seconds": round(self.elapsed, 3)}
-                record["growth"] = growth
-            reset = self._reset_due(it)
-            if reset:  # after the evaluation, which shows what the iterations made; before the checkpoint
-                self.reset_opacity()
-                record = record or {"iteration": it, "seconds": round(self.elapsed, 3)}
-                record["opacity_reset"] = self.cfg.opacity_reset_to
-            if record and main:
-                self._log(record)
-                bar.set_postfix(
-                    loss=f"{stats['loss']:.4f}",
-                    psnr=f"{record.get('train_psnr', stats['psnr']):.2f}",
-                    levels="/".join(map(str, self.model.forest.level_counts())),
-                    refresh=False,
-                )
-            if grown and main:
-                bar.write(
-                    f"iteration {it}: split {grown} faces, depth cap {self.depth_cap(it)}, "
-                    f"{self.model.num_faces} Gaussians"
-                )
-            bar.update(1)
-            if it % c.checkpoint_every == 0 or it == end:
-                if self.dist.world_size > 1:
-                    self._fold_accumulators()
-                    self._check_ranks_agree("parameters and optimiser state", self._state_digest())
-                if main:
-                    self._save_checkpoint()
-                if self.dist.world_size > 1:  # the others learn that rank 0's save went through
-                    self.dist.broadcast_ints(np.array([it]) if main else None)
-                self.checkpoint_iteration = it
-                if main and self.on_checkpoint is not None:
-                    self.on_checkpoint(it)
-        bar.close()
+        try:  # the bar is closed before an error propagates: the error line comes after it, not under it
+            recent = self.recent_psnr  # (restored on resume: the next log row averages the same steps)
+            while self.iteration < end:
+                t0 = time.perf_counter()
+                stats = self.step()
+                self.iteration += 1
+                it = self.iteration
+                grown, growth = 0, None
+                if self.growth.due(it):
+                    grown = self._grow(it)
+                    if self.dist.world_size > 1:  # the forest every rank holds after this growth step
+                        growth = {"split": grown, "forest_digest_by_rank": [f"{v:016x}" for v in self.forest_digests]}
+                self.elapsed += time.perf_counter() - t0
+                recent.append(stats["psnr"])
+                record = None
+                if it % c.log_every == 0 or it == c.iterations:
+                    counts = self.model.forest.level_counts().tolist()
+                    record = {
+                        "iteration": it,
+                        "seconds": round(self.elapsed, 3),
+                        "loss": stats["loss"],
+                        "train_psnr": float(np.mean(recent)),
+                        "faces": int(sum(counts)),
+                        "level_counts": counts,
+                    }
+                    recent.clear()
+                if main and (it % c.eval_every == 0 or it == c.iterations):
+                    record = record or {"iteration": it, "seconds": round(self.elapsed, 3)}
+                    record.update(self.evaluate(c.eval_views))
+                if growth:
+                    record = record or {"iteration": it, "seconds": round(self.elapsed, 3)}
+                    record["growth"] = growth
+                reset = self._reset_due(it)
+                if reset:  # after the evaluation, which shows what the iterations made; before the checkpoint
+                    self.reset_opacity()
+                    record = record or {"iteration": it, "seconds": round(self.elapsed, 3)}
+                    record["opacity_reset"] = self.cfg.opacity_reset_to
+                if record and main:
+                    self._log(record)
+                    bar.set_postfix(
+                        loss=f"{stats['loss']:.4f}",
+                        psnr=f"{record.get('train_psnr', stats['psnr']):.2f}",
+                        levels="/".join(map(str, self.model.forest.level_counts())),
+                        refresh=False,
+                    )
+                if grown and main:
+                    bar.write(
+                        f"iteration {it}: split {grown} faces, depth cap {self.depth_cap(it)}, "
+                        f"{self.model.num_faces} Gaussians"
+                    )
+                bar.update(1)
+                if it % c.checkpoint_every == 0 or it == end:
+                    if self.dist.world_size > 1:
+                        self._fold_accumulators()
+                        self._check_ranks_agree("parameters and optimiser state", self._state_digest())
+                    if main:
+                        self._save_checkpoint()
+                    if self.dist.world_size > 1:  # the others learn that rank 0's save went through
+                        self.dist.broadcast_ints(np.array([it]) if main else None)
+                    self.checkpoint_iteration = it
+                    if main and self.on_checkpoint is not None:
+                        self.on_checkpoint(it)
+        finally:
+            bar.close()
         path = self.save_avatar() if main else os.path.join(self.out_dir, "avatar.npz")
         return {
             "avatar": path,
