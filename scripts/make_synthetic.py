@@ -27,7 +27,7 @@ import sys as _sys
 _sys.path.insert(0, _os.path.dirname(_os.path.abspath(__file__)))
 import _bootstrap
 
-from progressive_avatars.core.io.atomic import atomic_save_image, image_format
+from progressive_avatars.core.io.atomic import atomic_save_image, image_format, os_error_text
 from progressive_avatars.core.synthetic import dataset
 
 
@@ -128,7 +128,10 @@ def main(argv=None):
                 ap.error(f"{option} {path}: {why}")
     if os.path.lexists(args.out) and not os.path.isdir(args.out):
         ap.error(f"--out {args.out}: a file, not a dataset folder")
-    why = None if os.path.isdir(args.out) else _cannot_hold(args.out)
+    if os.path.isdir(args.out):
+        why = None if os.access(args.out, os.W_OK | os.X_OK) else "a folder this user cannot write into"
+    else:
+        why = _cannot_hold(args.out)
     if why:
         ap.error(f"--out {args.out}: {why}")
 
@@ -138,6 +141,9 @@ def main(argv=None):
         )
     except ValueError as exc:  # counts the generator refuses, before it writes anything
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # the folder cannot be written (the transforms come last: no dataset reads)
+        print(f"error: {os_error_text(exc, args.out)}", file=sys.stderr)
         return 2
     sheet = dataset.contact_sheet(args.out, os.path.join(args.out, "contact_sheet.png"))
     if args.contact_sheet:

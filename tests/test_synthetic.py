@@ -231,6 +231,14 @@ def test_make_synthetic_script_refuses_bad_counts(tmp_path):
         )
         assert out.returncode == 2 and says in out.stderr and "Traceback" not in out.stderr, (args, out.stderr)
         assert not (tmp_path / "d").exists()
+    if os.path.isdir("/proc/self"):  # a folder that cannot be made, though its parent looks writable to root
+        out = subprocess.run(
+            [sys.executable, script, "--out", "/proc/pa_dataset", "--quiet", "--resolution", "8"],
+            capture_output=True,
+            text=True,
+        )
+        assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+        assert out.stderr.strip().splitlines()[-1].startswith("error: FileNotFoundError: No such file or directory")
 
 
 def test_generation_checks_its_arguments_first_and_does_not_mix_datasets(tmp_path):
@@ -260,8 +268,36 @@ def test_generation_checks_its_arguments_first_and_does_not_mix_datasets(tmp_pat
     with unittest.mock.patch.object(dataset, "make_cameras", interrupted), pytest.raises(KeyboardInterrupt):
         dataset.make_dataset(out, overwrite=True, **kw)
     assert not any(n.startswith("transforms") for n in os.listdir(out))  # nothing that loads as a dataset
-    dataset.make_dataset(out, overwrite=True, **kw)
+    dataset.make_dataset(out, overwrite=True, **{**kw, "frames": 2})
     assert (out / "transforms_train.json").exists()
+    # A smaller dataset generated over it leaves none of the larger one's frames behind.
+    big = set(os.listdir(out / "images"))
+    dataset.make_dataset(out, overwrite=True, **kw)
+    small = set(os.listdir(out / "images"))
+    assert small < big and small == {p.name for p in (out / "fg_masks").iterdir()}
+    used = {f["file_path"] for split in ("train", "val", "test") for f in _frames(out, split)}
+    assert {f"images/{n}" for n in small} == used
+    # A folder of the user's own files is not written into (it replaced files of the same names).
+    mine = tmp_path / "mine"
+    (mine / "images").mkdir(parents=True)
+    (mine / "images" / "00000_00.png").write_bytes(b"the user's picture")
+    (mine / "notes.txt").write_text("keep")
+    for over in (False, True):
+        with pytest.raises(ValueError, match=r"holds files the generator did not write \(images, notes.txt\)"):
+            dataset.make_dataset(mine, overwrite=over, **kw)
+    os.remove(mine / "notes.txt")  # names like the generator's, but no generation began here
+    with pytest.raises(ValueError, match=r"did not write \(images\)"):
+        dataset.make_dataset(mine, **kw)
+    assert (mine / "images" / "00000_00.png").read_bytes() == b"the user's picture"
+    assert os.listdir(mine) == ["images"]
+    (out / "images" / "mine.png").write_bytes(b"x")  # beside a generation's own files
+    with pytest.raises(ValueError, match=r"did not write \(images/mine.png\)"):
+        dataset.make_dataset(out, overwrite=True, **kw)
+
+
+def _frames(out, split):
+    with open(out / f"transforms_{split}.json") as fh:
+        return json.load(fh)["frames"]
 
 
 def test_a_transforms_json_is_whole_or_absent(tmp_path):

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import time
 
 import numpy as np
@@ -98,6 +99,52 @@ def _write_timestep(job, s, f, stats):
         name = f"{T:05d}_{C:02d}.png"
         Image.fromarray(_to_u8(images[C]), "RGB").save(os.path.join(out, "images", name))
         Image.fromarray(_to_u8(masks[C]), "L").save(os.path.join(out, "fg_masks", name))
+
+
+# Everything the generator writes into its folder: the dataset files, the meshes and pictures.
+_GENERATED_TOP = {*_DATASET_FILES, "canonical_mesh.npz", "detail.npz", "contact_sheet.png"}
+_GENERATED_IN = {
+    "images": re.compile(r"\d{5}_\d{2}\.png"),
+    "fg_masks": re.compile(r"\d{5}_\d{2}\.png"),
+    "meshes": re.compile(r"\d{5}\.npz"),
+}
+
+
+_TEMPORARY = re.compile(r"\.\d+\.tmp$")  # an atomic write's temporary, left by a killed generation
+
+
+def _foreign_files(out: str) -> list[str]:
+    """The entries of ``out`` (relative paths) that the generator does not write; none for a
+    missing or empty folder, an earlier synthetic dataset or an interrupted generation."""
+    if not os.path.isdir(out):
+        return []
+    names = sorted(os.listdir(out))
+    if not {"canonical_mesh.npz", *_DATASET_FILES} & set(names):  # written first: else none of it is ours
+        return names
+    foreign = []
+    for name in names:
+        path = os.path.join(out, name)
+        if name in _GENERATED_IN and os.path.isdir(path):
+            pattern = _GENERATED_IN[name]
+            foreign += [f"{name}/{n}" for n in sorted(os.listdir(path)) if not pattern.fullmatch(n)]
+        elif not (_TEMPORARY.sub("", name) in _GENERATED_TOP and os.path.isfile(path)):
+            foreign.append(name)
+    return foreign
+
+
+def _remove_generated(out: str) -> None:
+    """Remove what an earlier generation wrote (the caller checked that nothing else is there)."""
+    if not os.path.isdir(out):
+        return
+    for name in os.listdir(out):
+        if _TEMPORARY.sub("", name) in _GENERATED_TOP and os.path.isfile(os.path.join(out, name)):
+            os.remove(os.path.join(out, name))
+    for sub, pattern in _GENERATED_IN.items():
+        folder = os.path.join(out, sub)
+        if os.path.isdir(folder):
+            for n in os.listdir(folder):
+                if pattern.fullmatch(n):
+                    os.remove(os.path.join(folder, n))
 
 
 def _timestep_from_job(step):
@@ -176,8 +223,15 @@ def make_dataset(
             f"{out} already holds a dataset ({', '.join(held)}): pass --overwrite to generate it again, "
             "or choose another --out"
         )
-    for name in held:
+    foreign = _foreign_files(out)
+    if foreign:  # the generator would write among them, and replace those with its own names
+        shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
+        raise ValueError(
+            f"{out} holds files the generator did not write ({shown}): choose an empty or new --out folder"
+        )
+    for name in held:  # the transforms first: an interrupted clean-up leaves no dataset that reads
         os.remove(os.path.join(out, name))
+    _remove_generated(out)  # an earlier (larger or interrupted) generation's frames would stay behind
     for sub in ("images", "fg_masks", "meshes"):
         os.makedirs(os.path.join(out, sub), exist_ok=True)
     if detail == "paper":
