@@ -258,8 +258,9 @@ def _train(args, cfg, dist, t0):
             return 143
         try:
             summary = trainer.run(progress=not args.no_progress)
-        except FloatingPointError as exc:  # NaN/inf: the message says training stopped, checkpoint kept
-            print(f"error: {who}{exc}", file=sys.stderr)
+        except FloatingPointError as exc:  # NaN/inf: the message says training stopped
+            kept = kept_text(args.out, trainer.checkpoint_iteration, dist.world_size > 1)
+            print(f"error: {who}{exc}, {kept}", file=sys.stderr)
             return 3
         except OSError as exc:
             kept = kept_text(args.out, trainer.checkpoint_iteration, dist.world_size > 1)

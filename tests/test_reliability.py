@@ -198,6 +198,31 @@ def test_a_refused_resume_changes_nothing_and_an_asked_coarse_mode_must_match(ti
     assert "typo holds no checkpoint.npz: --resume starts a new run" in capsys.readouterr().err
 
 
+def test_an_overflowing_optimiser_moment_stops_training_and_absurd_loss_weights_are_refused(tiny_dataset, tmp_path):
+    """A gradient above ~1e20 (a loss weight of 1e38 was accepted) overflowed Adam's second
+    moment to inf: every later step of those values was 0 and training went on frozen to exit 0
+    (only the parameters were checked); a weight of 1e-45 underflowed the loss to 0 alike."""
+    from progressive_avatars.core.train.adam import Adam
+
+    for compiled in (True, False):
+        p = torch.zeros(4, 3, requires_grad=True)
+        opt = Adam({"x": p}, {"x": 0.1})
+        p.grad = torch.full((4, 3), 0.5)
+        p.grad[2, 1] = 1e30  # squared: inf in float32
+        bad = opt.step({"x": p}) if compiled else opt._torch_step({"x": p}, None)
+        assert bad == ["x"] and not torch.isfinite(opt.v["x"]).all()
+    tr = Trainer(tiny_dataset, str(tmp_path / "r"), config_for("tiny", eval_every=1000), check_data=False)
+    tr.opt.v["f_dc"][5, 0] = float("inf")
+    with pytest.raises(FloatingPointError, match="second moment of f_dc overflowed.*training stopped"):
+        tr.step()
+    for option, value in (("level_weights", (1e38,)), ("level_weights", (1e-45, 1.0)), ("coarse_weight", 1e7)):
+        with pytest.raises(ValueError, match=r"must be 0 or in \[1e-06, 1e\+06\]"):
+            config_for("tiny", **{option: value})
+    with pytest.raises(ValueError, match="prefix cut weight"):
+        config_for("tiny", prefix_cut_weight=float("inf"))
+    config_for("tiny", level_weights=(0.0, 1e-6, 1e6), coarse_weight=0.0)
+
+
 def test_a_failed_npz_write_keeps_the_old_file_names_it_and_closes_the_archive(tmp_path, monkeypatch):
     """np.savez left its archive open when a write failed (a full disk): its finaliser later
     failed on the closed file ("Exception ignored ... seek of closed file"), and the OSError
@@ -234,9 +259,7 @@ def test_scale_overflow_stops_training_with_the_trainers_message(tiny_dataset, t
     tr = Trainer(tiny_dataset, str(tmp_path / "r"), config_for("tiny", eval_every=1000), check_data=False)
     with torch.no_grad():
         tr.model.params["d_log_scale"][3, 0] = 95.0  # exp overflows float32
-    with pytest.raises(
-        FloatingPointError, match="Gaussian scales became NaN/inf; training stopped, last checkpoint kept"
-    ):
+    with pytest.raises(FloatingPointError, match="Gaussian scales became NaN/inf; training stopped"):
         tr.step()
 
 

@@ -43,7 +43,8 @@ def adam_rows(ps, gs, ms, vs, c1, c2, neg_lrs, b1, one_b1, b2, one_b2, eps):
     1 - b2^t_i. The scalars come in the parameters' dtype, so float32 parameters are stepped in
     float32, with torch's operations in torch's order. One parallel pass for all of them (a
     pass per parameter woke the threads once per parameter). Returns per parameter the number
-    of non-finite values the step left in it."""
+    of non-finite values the step left in it or in its second moment (a gradient above ~1e20
+    overflows v to inf: every later step of that value is then 0, and training goes on frozen)."""
     n = ps[0].shape[0]
     blocks = (n + _ROWS - 1) // _ROWS
     bad = np.zeros((blocks, len(ps)), np.int64)
@@ -61,7 +62,7 @@ def adam_rows(ps, gs, ms, vs, c1, c2, neg_lrs, b1, one_b1, b2, one_b2, eps):
                     v[i, j] = vi
                     pi = p[i, j] + neg_lr * (mi / a) / (np.sqrt(vi / b) + eps)
                     p[i, j] = pi
-                    if not np.isfinite(pi):
+                    if not (np.isfinite(pi) and np.isfinite(vi)):  # an inf moment freezes the row silently
                         bad[blk, q] += 1
     return bad.sum(axis=0)
 
@@ -172,7 +173,7 @@ class Adam:
             lr = self.lrs[name] * (lr_scale or {}).get(name, 1.0)
             p.addcdiv_(m / c1.to(m.device).view(shape), denom, value=-lr)
             p.grad = None
-            finite[name] = torch.isfinite(p).all()
+            finite[name] = torch.isfinite(p).all() & torch.isfinite(v).all()
         if not finite:
             return []
         flags = torch.stack(list(finite.values())).tolist()  # one wait for a GPU, not one per parameter

@@ -65,7 +65,8 @@ def _train(args) -> int:
             # One line, last (the add-on reports the last line): not a traceback under a progress bar.
             kept = kept_text(None, trainer.checkpoint_iteration, resume="Resume")  # short: the add-on shows 200 chars
             what = os_error_text(exc, args.out) if isinstance(exc, OSError) else str(exc) or "stopped"
-            print(f"\nerror: {what}; training stopped, {kept}", file=sys.stderr)
+            stopped = "" if isinstance(exc, FloatingPointError) else "; training stopped"  # (its text says so)
+            print(f"\nerror: {what}{stopped}, {kept}", file=sys.stderr)
             return 130 if isinstance(exc, KeyboardInterrupt) else 3
     result = os.path.join(args.out, "avatar.npz")
     if not args.no_export:

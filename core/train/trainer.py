@@ -261,6 +261,15 @@ PRESETS = {
 }
 
 
+# Loss weights: beyond these the loss underflows to 0 (nothing trains) or the gradients
+# overflow the optimiser's float32 moments (everything freezes), both without an error.
+MIN_WEIGHT, MAX_WEIGHT = 1e-6, 1e6
+
+
+def _weight_ok(x: float) -> bool:
+    return x == 0 or MIN_WEIGHT <= x <= MAX_WEIGHT  # False for NaN and inf
+
+
 def config_for(preset: str, **overrides) -> TrainConfig:
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
@@ -270,16 +279,18 @@ def config_for(preset: str, **overrides) -> TrainConfig:
         cfg = replace(cfg, coarse_stand_ins=False, coarse_backdrop=False)
     elif cfg.coarse_backdrop:  # backdrop stand-ins are stand-ins
         cfg = replace(cfg, coarse_stand_ins=True)
-    if not (math.isfinite(cfg.coarse_weight) and cfg.coarse_weight >= 0):
-        raise ValueError(f"coarse weight must be finite and >= 0, got {cfg.coarse_weight}")
+    if not _weight_ok(cfg.coarse_weight):
+        raise ValueError(f"coarse weight must be 0 or in [{MIN_WEIGHT:g}, {MAX_WEIGHT:g}], got {cfg.coarse_weight}")
     if int(cfg.views_per_step) < 1:
         raise ValueError(f"views per step must be >= 1, got {cfg.views_per_step}")
     if int(cfg.iterations) < 0 or int(cfg.seed) < 0:
         raise ValueError(f"iterations and seed must be >= 0, got {cfg.iterations} and {cfg.seed}")
     if not (math.isfinite(cfg.image_cache_mb) and cfg.image_cache_mb >= 0):
         raise ValueError(f"image cache must be a finite number of MB >= 0, got {cfg.image_cache_mb}")
-    if not (math.isfinite(cfg.prefix_cut_weight) and cfg.prefix_cut_weight >= 0):
-        raise ValueError(f"prefix cut weight must be finite and >= 0, got {cfg.prefix_cut_weight}")
+    if not _weight_ok(cfg.prefix_cut_weight):
+        raise ValueError(
+            f"prefix cut weight must be 0 or in [{MIN_WEIGHT:g}, {MAX_WEIGHT:g}], got {cfg.prefix_cut_weight}"
+        )
     if int(cfg.prefix_cuts) < 0 or int(cfg.rank_every) < 1 or int(cfg.rank_views) < 1:
         raise ValueError(
             f"prefix cuts must be >= 0, rank_every and rank_views >= 1, got "
@@ -311,8 +322,8 @@ def config_for(preset: str, **overrides) -> TrainConfig:
             f"{cfg.opacity_reset_every} and {cfg.opacity_reset_to}"
         )
     w = tuple(float(x) for x in cfg.level_weights)
-    if any(not math.isfinite(x) or x < 0 for x in w) or (w and max(w) == 0):
-        raise ValueError(f"level weights must be finite, >= 0 and not all 0, got {list(w)}")
+    if not all(_weight_ok(x) for x in w) or (w and max(w) == 0):
+        raise ValueError(f"level weights must be 0 or in [{MIN_WEIGHT:g}, {MAX_WEIGHT:g}], not all 0, got {list(w)}")
     return replace(cfg, level_weights=w)
 
 
@@ -324,7 +335,7 @@ def level_weight(cfg: TrainConfig, level: int) -> float:
 def _check_finite(it: int, **tensors):
     for name, t in tensors.items():
         if t is not None and not all_finite(t):
-            raise FloatingPointError(f"iteration {it}: {name} became NaN/inf; training stopped, last checkpoint kept")
+            raise FloatingPointError(f"iteration {it}: {name} became NaN/inf; training stopped")
 
 
 def _log_iteration(line: str) -> float:
@@ -491,9 +502,7 @@ def _check_gaussians(it: int, g: dict):
         _check_finite(it, **{f"Gaussian {k}": v for k, v in g.items()})
         bad = g["scales"] <= 0
         if bool(bad.any()):
-            raise FloatingPointError(
-                f"iteration {it}: Gaussian scales underflowed to 0; training stopped, last checkpoint kept"
-            )
+            raise FloatingPointError(f"iteration {it}: Gaussian scales underflowed to 0; training stopped")
 
 
 class Trainer:
@@ -965,6 +974,10 @@ class Trainer:
                 p[name][:R] = rows
         for name in went_bad:
             _check_finite(it, **{name: p[name]})
+            raise FloatingPointError(
+                f"iteration {it}: the optimiser's second moment of {name} overflowed (a gradient above ~1e20: "
+                "a loss weight far too large?); training stopped"
+            )
         return {"loss": float(stats[0]), "psnr": float(stats[1])}
 
     def _average_gradients(self, stats: np.ndarray):
