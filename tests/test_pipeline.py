@@ -556,6 +556,16 @@ def test_scores_have_their_known_values():
         assert out["coverage"] == pytest.approx(max(coverage - 1 / 96, 0.0))
         assert out["psnr"] == pytest.approx(20.0) and out["psnr_full_image"] == pytest.approx(8.8606, abs=1e-4)
         assert out["views"] == 2 and out["render_ms"] == pytest.approx(1.0)
+    # A view whose mask is empty has no in-mask score: it read as 120 dB (and coverage 0) and
+    # lifted the means; now it is left out of them, and counted.
+    empty = np.zeros_like(mask)
+    assert np.isnan(metrics.psnr(rendered, truth, empty)) and np.isnan(metrics.ssim(rendered, truth, empty))
+    sr.dataset = [SimpleNamespace(image=truth, mask=mask), SimpleNamespace(image=truth, mask=empty)]
+    sr.render = lambda view, ids, with_alpha=False: (rendered, 0.001, np.ones((H, W), np.float32))
+    out = sr.score(np.arange(3))
+    assert out["psnr"] == pytest.approx(20.0) and out["coverage"] == pytest.approx(1.0)
+    assert out["views_with_empty_mask"] == 1 and out["psnr_full_image"] == pytest.approx(8.8606, abs=1e-4)
+    assert 0 < out["ssim"] < 1
 
 
 def test_curves_crossover_names_where_uniform_stops_leading():

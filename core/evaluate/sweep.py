@@ -79,16 +79,19 @@ class SplitRenderer:
                 ssim_m.append(metrics.ssim(image, s.image, s.mask))
                 ssim_w.append(metrics.ssim(image, s.image))
             inside = np.asarray(s.mask) >= 0.5
-            cov.append(float(np.count_nonzero(alpha[inside] >= 0.5)) / max(int(np.count_nonzero(inside)), 1))
+            n_in = int(np.count_nonzero(inside))
+            cov.append(float(np.count_nonzero(alpha[inside] >= 0.5)) / n_in if n_in else float("nan"))
             ms.append(seconds * 1e3)
         nan = float("nan")
+        # Views with an empty mask have no in-mask score: left out of the in-mask means.
         return {
-            "psnr": float(np.mean(psnr_m)),
-            "ssim": float(np.mean(ssim_m)) if ssim else nan,
+            "psnr": metrics.defined_mean(psnr_m),
+            "ssim": metrics.defined_mean(ssim_m) if ssim else nan,
             "psnr_full_image": float(np.mean(psnr_w)),
             "ssim_full_image": float(np.mean(ssim_w)) if ssim else nan,
-            "coverage": float(np.mean(cov)),
+            "coverage": metrics.defined_mean(cov),
             "views": len(self.views),
+            "views_with_empty_mask": int(np.count_nonzero(~np.isfinite(psnr_m))),
             "render_ms": float(np.median(ms)),
         }
 

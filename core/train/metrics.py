@@ -38,18 +38,34 @@ def ssim_map(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """PSNR (peak 1), in the mask when one is given: NaN for an empty mask, which has nothing
+    to score (it read as a perfect 120 dB and lifted every mean it went into)."""
     diff = (np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2
     if mask is None:
         mse = diff.mean()
     else:
         w = np.asarray(mask, np.float64)[..., None] * np.ones(diff.shape[-1])
-        mse = (diff * w).sum() / max(w.sum(), 1e-12)
+        if not w.sum() > 0:
+            return float("nan")
+        mse = (diff * w).sum() / w.sum()
     return float(10 * np.log10(1.0 / max(mse, 1e-12)))
 
 
 def ssim(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Mean SSIM, mask-weighted over the windows' centres when a mask is given: NaN when no
+    window centre lies in it."""
     m = ssim_map(a, b)
     if mask is None:
         return float(m.mean())
     crop = np.asarray(mask, np.float64)[5:-5, 5:-5]
-    return float((m * crop).sum() / max(crop.sum(), 1e-12))
+    if not crop.sum() > 0:
+        return float("nan")
+    return float((m * crop).sum() / crop.sum())
+
+
+def defined_mean(values) -> float:
+    """The mean of the values that are defined (views with nothing in their mask give NaN);
+    NaN when none is."""
+    v = np.asarray(values, np.float64)
+    v = v[np.isfinite(v)]
+    return float(v.mean()) if len(v) else float("nan")

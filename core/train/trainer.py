@@ -1007,7 +1007,7 @@ class Trainer:
     # -- evaluation -----------------------------------------------------------------------
     @torch.no_grad()
     def evaluate(self, n_views: int) -> dict:
-        from .metrics import psnr
+        from .metrics import defined_mean, psnr
 
         if self.val is None:
             return {}
@@ -1022,7 +1022,8 @@ class Trainer:
                 compute_contrib=False, behind=behind,
             )  # fmt: skip
             values.append(psnr(out.image.numpy(), s.image, s.mask))
-        return {"val_psnr": float(np.mean(values))}
+        score = defined_mean(values)  # views with an empty mask have no in-mask PSNR
+        return {"val_psnr": score} if np.isfinite(score) else {}
 
     # -- persistence ----------------------------------------------------------------------
     def _save_checkpoint(self):
