@@ -93,6 +93,37 @@ def test_every_broken_file_reported_before_training(data_copy, tmp_path):
     assert not (tmp_path / "run" / "checkpoint.npz").exists()
 
 
+def test_cameras_that_see_none_of_the_mesh_and_a_template_without_area_are_refused(data_copy, tmp_path):
+    """Cameras written in OpenCV axes (y, z flipped), or looking away, see nothing of the head:
+    training ran to the end (exit 0) with the untrained avatar; a canonical mesh collapsed to
+    a point trained likewise, its coarse levels silently dropped."""
+    tj = data_copy / "transforms_train.json"
+    frames = json.loads(tj.read_text())["frames"]
+
+    def opencv(d, which):
+        for i in which:
+            m = np.array(d["frames"][i]["transform_matrix"], float)
+            m[:3, 1:3] *= -1  # the OpenCV camera axes: y down, looking down +z
+            d["frames"][i]["transform_matrix"] = m.tolist()
+
+    _edit_json(tj, lambda d: opencv(d, [0]))
+    problems = dataset_problems(Dataset(data_copy, "train"), progress=False)
+    assert len(problems) == 1 and "1 frame(s) whose camera sees none of its timestep's mesh" in problems[0]
+    assert "frames[0] (00000_00.png); a camera looking away" in problems[0]
+    _edit_json(tj, lambda d: opencv(d, range(1, len(frames))))
+    with pytest.raises(
+        DataError, match=f"(?s)1 problem.*{len(frames)} frame\\(s\\) whose camera sees none.* and 8 more"
+    ):
+        Trainer(str(data_copy), str(tmp_path / "run"), config_for("tiny"))
+    assert not (tmp_path / "run" / "checkpoint.npz").exists()
+    _edit_json(tj, lambda d: opencv(d, range(len(frames))))  # back as they were
+    assert dataset_problems(Dataset(data_copy, "train"), progress=False) == []
+    canon = np.load(data_copy / "canonical_mesh.npz")
+    np.savez(data_copy / "canonical_mesh.npz", vertices=np.zeros_like(canon["vertices"]), faces=canon["faces"])
+    problems = dataset_problems(Dataset(data_copy, "train"), progress=False)
+    assert problems[0].endswith("the canonical mesh has no area (its vertices coincide or lie on one line)")
+
+
 def test_16bit_png_reads_as_its_values_not_white(data_copy):
     from PIL import Image
 

@@ -6,8 +6,9 @@ training run would meet a missing image, a truncated PNG or a NaN mesh hours in.
 :func:`validate_dataset` walks a split once (with a progress bar): it checks that every
 listed image and mask exists, decodes it and checks its size and pixel format (the loader's
 own check, ``dataset._to_8bit``), loads every timestep's mesh (vertex count, NaN, missing file),
-checks every camera (a rotation, finite intrinsics, principal point) and that timestep and
-camera indices are whole numbers. Problems are collected, not raised one by one; the
+checks every camera (a rotation, finite intrinsics, principal point, and that it sees some of
+its timestep's mesh), that the canonical mesh has an area, and that timestep and camera
+indices are whole numbers. Problems are collected, not raised one by one; the
 DataError lists each with its file and field.
 """
 
@@ -60,6 +61,24 @@ def camera_problems(cam, where: str) -> list:
     return out
 
 
+def sees_mesh(cam, vertices: np.ndarray) -> bool:
+    """Whether any vertex lies in front of ``cam`` and inside its image."""
+    uv, z = cam.project(np.asarray(vertices, np.float64))
+    with np.errstate(invalid="ignore"):
+        inside = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < cam.width) & (uv[..., 1] >= 0) & (uv[..., 1] < cam.height)
+    return bool(inside.any())
+
+
+def _template_problems(ds: Dataset) -> list:
+    """A canonical mesh with no area binds every Gaussian to a point or a line: training
+    then ends "successfully" with nothing learnt."""
+    v, f = np.asarray(ds.canonical_vertices, np.float64), ds.faces
+    area = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1).sum() / 2
+    if area > 0:
+        return []
+    return [f"{ds.root}: the canonical mesh has no area (its vertices coincide or lie on one line)"]
+
+
 def _image_problems(path: str, what: str, full: tuple, target: tuple, json_path: str) -> list:
     from PIL import Image
 
@@ -91,6 +110,8 @@ def dataset_problems(ds: Dataset, progress: bool = True, share: tuple[int, int] 
     if not 0 <= k < n:
         raise ValueError(f"dataset_problems: share must be (k, n) with 0 <= k < n, got {share}")
     problems = []
+    if k == 0 and ds.canonical_vertices is not None:
+        problems.extend(_template_problems(ds))
     rows = _frame_rows(ds) if k == 0 else []
     for i, fr in enumerate(rows):
         for key in ("timestep_index", "camera_index"):
@@ -103,12 +124,28 @@ def dataset_problems(ds: Dataset, progress: bool = True, share: tuple[int, int] 
             ds.vertices_at(ts)
         except (DataError, OSError, ValueError, KeyError) as exc:
             problems.append(f"{exc}" if os.sep in str(exc) else f"timestep {ts}: {exc}")
+    blind = []
     for info in tqdm(ds.frames[k::n], desc=f"checking {ds.split or 'all'} images", disable=not progress, leave=False):
-        problems.extend(camera_problems(info.camera, f"{ds.json_path}: frames[{info.index}]"))
+        bad_camera = camera_problems(info.camera, f"{ds.json_path}: frames[{info.index}]")
+        problems.extend(bad_camera)
+        if not bad_camera and ds.canonical_vertices is not None:
+            try:
+                verts = ds.vertices_at(info.timestep_index)  # (cached by the meshes' pass)
+            except (DataError, OSError, ValueError, KeyError):
+                verts = None  # reported there
+            if verts is not None and not sees_mesh(info.camera, verts):
+                blind.append(f"frames[{info.index}] ({os.path.basename(info.image_path)})")
         target = (info.camera.width, info.camera.height)
         problems.extend(_image_problems(info.image_path, "image", info.full_size, target, ds.json_path))
         if info.mask_path is not None:
             problems.extend(_image_problems(info.mask_path, "mask", info.full_size, target, ds.json_path))
+    if blind:  # one entry: a convention mistake makes every frame blind
+        shown = ", ".join(blind[:8]) + (f" and {len(blind) - 8} more" if len(blind) > 8 else "")
+        problems.append(
+            f"{ds.json_path}: {len(blind)} frame(s) whose camera sees none of its timestep's mesh (every vertex "
+            f"behind it or outside the image): {shown}; a camera looking away, or a transform_matrix in other "
+            "axes than OpenGL's (x right, y up, looking down -z; docs/DATASET.md)"
+        )
     return problems
 
 
