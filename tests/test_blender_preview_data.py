@@ -159,3 +159,21 @@ def test_preview_of_an_interleaved_stream_selects_by_stream_rank():
         np.testing.assert_allclose(np.sort(means[rows], 0), np.sort(part.gaussians(verts)["means"], 0), atol=1e-6)
         assert budget.level_reached(n) == part.forest.max_level == fo.level[ids].max()
         np.testing.assert_array_equal(depth_per_face(fo, F0, n), part.forest.depth_per_root())
+
+
+def test_budget_rounding_level_reached_and_depth_scale():
+    """What the slider shows beside the preview, by hand: percent of a count rounds (it
+    floored), bytes round, "level reached" is the level of the last record shown (it read
+    the next record's), and a .npz avatar's depth scale counts from the template, not from
+    its coarse levels."""
+    from progressive_avatars.core.bridge.budget import fraction_count
+    from tests.test_stream import make_avatar
+
+    assert fraction_count(3, 50.0) == 2 and fraction_count(1000, 33.35) == 334
+    b = Budget(4, np.array([0, 0, 1, 2], np.int8), 100)
+    assert [b.level_reached(n) for n in range(5)] == [-1, 0, 0, 1, 2]
+    assert Budget(3, np.zeros(3, np.int8), 1000).bytes_for_count(2) == 667
+    _, av, _ = make_avatar(3, coarse=True)
+    assert av.forest.num_coarse_levels > 0
+    f = av.forest
+    assert Budget.for_avatar(av, 1000).max_depth(f) == int(f.level.max()) - f.num_coarse_levels

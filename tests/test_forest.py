@@ -313,3 +313,23 @@ def test_backdrop_stand_ins_stay_behind_and_persist(tmp_path):
     assert back.backdrop and back.stand_ins and int(np.load(tmp_path / "bd.npz")["forest_version"]) == 5
     assert bd.prefix(N // 2).backdrop
     assert not Forest(f, backdrop=True).backdrop  # no stand-ins, no backdrop
+
+
+def test_coarse_levels_spread_sort_and_refuse_whole_fractions():
+    """The coarse levels' promises by hand: the spread order puts its first points in every
+    octant (plain Morton order fills one patch first), each level's rows come in that order,
+    the fractions may be given in any order (coarsest first either way), and a fraction of 1
+    is an error (it was skipped silently)."""
+    from progressive_avatars.core.avatar import coarse
+
+    g = np.stack(np.meshgrid(*[np.arange(8.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    first = g[coarse.spread_order(g)[:8]]
+    assert len({tuple(p) for p in (first >= 4).astype(int)}) == 8
+    v, f = sphere_mesh(12, 16)
+    cf, counts = coarse.build_coarse(v, f, (1 / 16, 1 / 32))
+    assert counts == coarse.build_coarse(v, f, (1 / 32, 1 / 16))[1] and counts[0] < counts[1]
+    starts = np.r_[0, np.cumsum(counts)]
+    for a, b in zip(starts[:-1], starts[1:]):
+        np.testing.assert_array_equal(coarse.spread_order(coarse.centroids(v, cf[a:b])), np.arange(b - a))
+    with pytest.raises(ValueError, match="fractions"):
+        coarse.build_coarse(v, f, (1.0,))

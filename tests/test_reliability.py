@@ -616,3 +616,40 @@ def test_evaluate_refuses_a_corrupt_test_image_before_rendering(run_copy, data_c
     ):
         build_report(_report_opts(run_copy, tmp_path / "out", data=str(data_copy)))
     assert os.listdir(tmp_path / "out") == [] and os.listdir(own_tmp) == []
+
+
+def test_atomic_writes_by_hand(tmp_path, monkeypatch):
+    """atomic_open's promises: Ctrl-C inside it leaves the old file and no temporary; the
+    temporary is named by the writer's pid and synced before the rename; another user's
+    temporary (its pid cannot be signalled) is kept; an extension PIL cannot write is refused
+    before anything is made."""
+    from PIL import Image
+
+    p = tmp_path / "a.bin"
+    p.write_bytes(b"old")
+    with pytest.raises(KeyboardInterrupt):
+        with atomic.atomic_open(p) as fh:
+            fh.write(b"new")
+            raise KeyboardInterrupt
+    assert os.listdir(tmp_path) == ["a.bin"] and p.read_bytes() == b"old"
+    seen, synced = [], []
+    real_replace, real_fsync = os.replace, os.fsync
+    monkeypatch.setattr(os, "replace", lambda a, b: (seen.append(a), real_replace(a, b)))
+    monkeypatch.setattr(os, "fsync", lambda fd: (synced.append(fd), real_fsync(fd)))
+    with atomic.atomic_open(p) as fh:
+        fh.write(b"x")
+    assert seen == [f"{p}.{os.getpid()}.tmp"] and len(synced) == 1 and p.read_bytes() == b"x"
+    monkeypatch.undo()
+    other = tmp_path / "a.bin.999999.tmp"
+    other.write_bytes(b"x")
+
+    def not_mine(pid, sig):
+        raise PermissionError
+
+    monkeypatch.setattr(os, "kill", not_mine)
+    assert atomic.clean_stale_temps(p) == [] and other.exists()
+    monkeypatch.undo()
+    assert atomic.image_format("x.psd") is None  # PIL reads PSD, cannot write it
+    with pytest.raises(ValueError, match="PIL can write"):
+        atomic.atomic_save_image(Image.new("RGB", (2, 2)), tmp_path / "x.psd")
+    assert not (tmp_path / "x.psd").exists()

@@ -778,6 +778,19 @@ def test_importance_per_level_is_measured_where_prefixes_show_it(tiny_run, tiny_
     level = av.forest.level
     assert len(np.unique(level)) >= 4  # coarse levels, template, grown levels
     assert av.forest.backdrop  # trained by default; read here as cumulative levels (every face in every render)
+    assert view_subset(10, 3).tolist() == [0, 4, 9] and view_subset(5, None).tolist() == [0, 1, 2, 3, 4]
+    # The whole avatar with its backdrop: the finished avatar's render, retired stand-ins behind.
+    backdrop = face_importance(av, ds, max_views=3, progress=False, per_level=False)
+    faces, behind = av.forest.render_set()
+    assert behind is not None and len(behind)
+    ev, bg = av.evaluator(), np.asarray(ds.background, np.float32)
+    by_hand = np.zeros(av.num_gaussians)
+    for i in view_subset(len(ds), 3):
+        info = ds.frame_info(int(i))
+        m, q, s = ev(ds.vertices_at(info.timestep_index))
+        o, c = sigmoid(av.opacity_logit)[faces], sh_to_rgb(av.f_dc)[faces]
+        by_hand[faces] += render_numpy(m[faces], q[faces], s[faces], o, c, info.camera, bg, behind=behind)[2]
+    np.testing.assert_allclose(backdrop, by_hand, rtol=1e-12)
     av.forest._set_stand_ins(False, None)
     per_level = face_importance(av, ds, max_views=3, progress=False, weighting="alpha")
     # With coarse stand-ins the finished avatar, whose render the whole-avatar importance
@@ -799,9 +812,8 @@ def test_importance_per_level_is_measured_where_prefixes_show_it(tiny_run, tiny_
     # default weighs each pixel by the error of the render of the levels below against the image.
     residual = face_importance(av, ds, max_views=3, progress=False)
     tl = av.forest.num_coarse_levels
-    ev = av.evaluator()
-    bg = np.asarray(ds.background, np.float32)
     by_hand, by_hand_res = np.zeros(av.num_gaussians), np.zeros(av.num_gaussians)
+    first_res = np.zeros(av.num_gaussians)  # level 0: weighted by its error against the background
     for i in view_subset(len(ds), 3):
         info = ds.frame_info(int(i))
         m, q, s = ev(ds.vertices_at(info.timestep_index))
@@ -813,6 +825,10 @@ def test_importance_per_level_is_measured_where_prefixes_show_it(tiny_run, tiny_
         err = np.abs(ds[int(i)].image.astype(np.float64) - below.astype(np.float64)).mean(-1)
         _, _, c = render_numpy(*args(sel), info.camera, bg, pixel_weight=err)
         by_hand_res[sel] += c
+        err0 = np.abs(ds[int(i)].image.astype(np.float64) - bg.astype(np.float64)).mean(-1)
+        sel0 = np.flatnonzero(level == 0)
+        first_res[sel0] += render_numpy(*args(sel0), info.camera, bg, pixel_weight=err0)[2]
+    np.testing.assert_allclose(residual[level == 0], first_res[level == 0], rtol=1e-9)
     own = level == tl
     np.testing.assert_allclose(per_level[own], by_hand[own], rtol=1e-12)
     np.testing.assert_allclose(residual[own], by_hand_res[own], rtol=1e-9)

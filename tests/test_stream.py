@@ -1501,3 +1501,100 @@ def test_root_orders():
     assert np.array_equal(stream_order(f, imp)[:R], np.arange(R))
     with pytest.raises(ValueError, match="importance"):
         root_keys(f, "importance")
+
+
+def test_root_order_without_vertices_is_the_forests_within_each_level():
+    """ "spatial" and "both" without a rest pose fall back to the forest's order inside each
+    root level (every other test passed vertices)."""
+    from progressive_avatars.core.stream.order import root_keys
+
+    _, av, imp = make_avatar(2, coarse=True)
+    f = av.forest
+    lv = f.level[: f.num_roots]
+    key = root_keys(f, "spatial")
+    for level in np.unique(lv):
+        np.testing.assert_array_equal(key[lv == level], np.arange(np.count_nonzero(lv == level)))
+    both = root_keys(f, "both", importance=imp)
+    np.testing.assert_array_equal(np.floor(both), np.floor(np.log2(key + 1.0)))
+
+
+def test_quantised_split_weights_that_both_round_up_read_back():
+    """Split logits (0, 0, -50) make the weights (0.5, 0.5, 0): both round up to 2048 of 4095,
+    and a writer that let them sum to 4096 made a block the reader refuses."""
+    verts, faces = sphere_mesh(3, 4)
+    forest = Forest(faces)
+    forest.split([0, 1])
+    N = forest.num_faces
+    forest.split_logits[:] = np.array([0.0, 0.0, -50.0])
+    av = Avatar(
+        forest, np.zeros((N, 3)), np.full((N, 3), -2.0), np.tile([1.0, 0, 0, 0], (N, 1)), np.zeros(N), np.zeros((N, 3))
+    )
+    out = read_stream(encode_stream(av))
+    assert np.allclose(out.forest.barycentrics(), av.forest.barycentrics(), atol=1 / 4095 + 1e-6)
+
+
+def test_outlier_escapes_follow_format_3_2():
+    """The escape rule of FORMAT.md 3.2 on hand-made columns: the small-stream fence (k =
+    (N-1)//2), the width floor (rounding noise escapes nothing), the farthest values first
+    when more than the cap lie outside the fences, and the 1 % trim of a long stream."""
+    from progressive_avatars.core.stream.format import max_exceptions
+    from progressive_avatars.core.stream.writer import _escapes
+
+    x = np.ones((10, 13))
+    x[:, 0] = np.arange(10.0)
+    assert _escapes(x)[:, 0].tolist() == [True] * 3 + [False] * 4 + [True] * 3
+    rng = np.random.default_rng(1)
+    x = rng.normal(size=(400, 13))
+    x[:, 4] = -2.0
+    x[:5, 4] += 1e-12
+    assert not _escapes(x).any()
+    x = np.random.default_rng(0).normal(size=(500, 13))
+    rows = np.random.default_rng(5).permutation(500)[:30].reshape(3, 10)
+    for c in range(3):  # ten outliers each at 100+, 200+ and 300+: more than the cap of 16
+        x[rows[c], c] = 100.0 * (c + 1) + np.arange(10)
+    esc = _escapes(x)
+    assert esc.sum() == max_exceptions(500) == 16
+    assert esc[:, 2].sum() == 10 and esc[:, 1].sum() == 6 and esc[:, 0].sum() == 0
+    x = np.random.default_rng(3).normal(size=(5000, 13))
+    x[:40, 0] = 1e6 + np.arange(40)  # more than the cap, fewer than 1 %
+    assert _escapes(x)[:, 0].sum() == max_exceptions(5000)
+
+
+def test_stand_ins_retire_after_their_regions_last_face_and_config_stays_out():
+    """A stand-in whose region's faces all have importance 0 (faces no view sees) retires
+    after the last of them (the writer crashed, or retired it at the first); one whose region
+    is empty after the whole template level; a v5 stream read back and written again keeps
+    its interleaved order; training settings ("config") stay out of the header."""
+    import progressive_avatars.core.avatar.coarse as coarse
+    from progressive_avatars.core.stream.writer import stand_in_retire
+
+    verts, av, imp = make_avatar(seed=4, n_lat=6, n_lon=9, depth=2, coarse=True, stand_ins=True)
+    f = av.forest
+    K, C = f.num_coarse_levels, f.num_coarse
+    tmpl = np.flatnonzero(f.level == K)
+    region = coarse.stand_in_regions(verts, f.coarse_faces, f.coarse_counts, f.template_faces[f.root_ref[tmpl] - C])
+    r = region[0, 0]
+    mine = tmpl[region[:, 0] == r]
+    zero = imp.copy()
+    zero[mine] = 0.0
+    s = np.arange(f.num_faces)  # level order as the stream order
+    assert stand_in_retire(f, s, verts, zero)[r] == mine.max()
+    real = coarse.stand_in_regions
+
+    def empty_first(*a):
+        out = real(*a)
+        out[out == 0] = 1  # coarse row 0's region holds no face
+        return out
+
+    try:
+        coarse.stand_in_regions = empty_first
+        assert stand_in_retire(f, s, verts, imp)[0] == tmpl.max()
+    finally:
+        coarse.stand_in_regions = real
+    verts, av, imp = make_avatar(seed=3, n_lat=6, n_lon=9, depth=3, coarse=True)
+    a = read_stream(encode_stream(av, imp, vertices=verts))
+    b = read_stream(encode_stream(a))
+    np.testing.assert_array_equal(b.forest.level[b.forest.stream_order()], a.forest.level[a.forest.stream_order()])
+    assert not np.array_equal(a.forest.level[a.forest.stream_order()], np.sort(a.forest.level))  # interleaved
+    av.meta = {"name": "x", "config": {"iterations": 5}}
+    assert "config" not in read_stream(encode_stream(av, imp)).meta

@@ -1427,3 +1427,35 @@ def test_training_processes_reuse_freed_memory_instead_of_faulting_it_in_again()
     if default < 100:  # e.g. transparent huge pages everywhere: few faults to save, nothing to test
         pytest.skip(f"glibc's defaults faulted only {default} pages here")
     assert retained < default / 10
+
+
+def test_growth_and_sampling_rules_by_hand():
+    """Growth's and sampled supervision's rules on hand-made cases: "sampled" is always the
+    finest and one coarser level; no leaf at the depth cap splits; with a zero threshold only
+    faces that had a gradient split; uniform growth ignores grow_to; the budget ends exactly on
+    its target; no growth step that fits gives last_step -1."""
+    from progressive_avatars.core.avatar.forest import Forest
+    from progressive_avatars.core.train.policies import Growth, Supervision
+    from tests.helpers import sphere_mesh
+
+    def growth(**kw):
+        a = dict(iterations=1000, max_depth=2, grow_every=100, grow_start=100, grow_stop=0.8, grad_threshold=0.1)
+        return Growth(**{**a, "max_faces": 10**6, **kw})
+
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        lv = Supervision("sampled").levels(3, rng)
+        assert len(lv) == 2 and lv[-1] == 3 and lv[0] < 3
+    _, faces = sphere_mesh(3, 4)
+    f = Forest(faces)
+    N = f.num_faces
+    some = np.zeros(N)
+    some[:3] = 1.0
+    assert growth(grad_threshold=0.0).pick(f, some, np.ones(N), it=800).tolist() == [0, 1, 2]
+    f.split(np.arange(N))
+    g = growth(max_depth=1)
+    assert g.depth_cap(800) == 1 and len(g.pick(f, np.full(f.num_faces, 10.0), np.ones(f.num_faces), it=800)) == 0
+    assert growth(uniform=True, grow_to=4.0, max_faces=5000).face_budget(100, 100) == 5000
+    g = growth(grow_to=20.0, max_faces=63)
+    assert g.face_budget(13, g.last_step) == 63
+    assert growth(iterations=50, grow_every=100, grow_start=0).last_step == -1
