@@ -333,3 +333,15 @@ def test_coarse_levels_spread_sort_and_refuse_whole_fractions():
         np.testing.assert_array_equal(coarse.spread_order(coarse.centroids(v, cf[a:b])), np.arange(b - a))
     with pytest.raises(ValueError, match="fractions"):
         coarse.build_coarse(v, f, (1.0,))
+
+
+def test_coarse_triangles_of_a_double_sided_surface_appear_once():
+    """A surface whose faces come twice (a folded or double-sided sheet: the same vertices,
+    opposite winding) gives each coarse triangle once, not a front and a back copy."""
+    from progressive_avatars.core.avatar import coarse
+
+    v, f = sphere_mesh(12, 16)
+    one = coarse.decimate(v, f, 40)
+    both = coarse.decimate(v, np.vstack([f, f[:, ::-1]]), 40)
+    keys = np.sort(both, axis=1)
+    assert len(np.unique(keys, axis=0)) == len(both) and len(both) == len(one)
