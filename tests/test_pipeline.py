@@ -584,3 +584,18 @@ def test_curves_crossover_names_where_uniform_stops_leading():
     curves["uniform"] = {0: curve([9, 19, 25, 27])}
     assert curves_crossover(curves)[2] is None
     assert curves_crossover({"adaptive": curves["adaptive"]}) is None
+
+
+def test_report_says_when_depth_has_no_rank_correlation():
+    """Every face at one depth (no growth) leaves Spearman's rho undefined: the report said
+    "Spearman ρ = nan"; it says why now, and prints the number otherwise."""
+    import json
+
+    from progressive_avatars.core.evaluate import plots
+
+    r = json.load(open(os.path.join(ROOT, "docs", "report_cpu", "report.json"), encoding="utf-8"))
+    line = [ln for ln in plots.report_markdown(r).splitlines() if ln.startswith("Depth follows detail")]
+    assert line and f"Spearman ρ = {r['depth_vs_detail']['spearman']:.3f};" in line[0]
+    r["depth_vs_detail"]["spearman"] = float("nan")
+    line = [ln for ln in plots.report_markdown(r).splitlines() if ln.startswith("Depth follows detail")]
+    assert "nan" not in line[0] and "no rank correlation (every face at one depth" in line[0]

@@ -804,9 +804,13 @@ def report_markdown(r: dict) -> str:
         lines.append("")
     if "depth_vs_detail" in r:
         d = r["depth_vs_detail"]
+        if np.isfinite(d["spearman"]):
+            rho = f"Spearman ρ = {d['spearman']:.3f}"
+        else:  # no rank correlation when every face is at one depth (no growth) or detail is flat
+            rho = "no rank correlation (every face at one depth, or the same detail everywhere)"
         lines += [
             "",
-            f"Depth follows detail: Spearman ρ = {d['spearman']:.3f}; mean depth on the most detailed quarter of "
+            f"Depth follows detail: {rho}; mean depth on the most detailed quarter of "
             f"faces {d['mean_depth_detailed_quartile']:.2f} vs smoothest quarter {d['mean_depth_smooth_quartile']:.2f}.",
         ]
     lines += ["", "## Figures", ""] + [f"![{k}]({v})" for k, v in r.get("figures", {}).items()]
