@@ -599,3 +599,18 @@ def test_report_says_when_depth_has_no_rank_correlation():
     r["depth_vs_detail"]["spearman"] = float("nan")
     line = [ln for ln in plots.report_markdown(r).splitlines() if ln.startswith("Depth follows detail")]
     assert "nan" not in line[0] and "no rank correlation (every face at one depth" in line[0]
+
+
+def test_report_says_how_many_views_had_an_empty_mask():
+    """Views with an empty mask are left out of the in-mask scores (core/evaluate/sweep.py); the
+    report says how many, and says nothing when there are none."""
+    import json
+
+    from progressive_avatars.core.evaluate import plots
+
+    r = json.load(open(os.path.join(ROOT, "docs", "report_cpu", "report.json"), encoding="utf-8"))
+    assert "empty foreground mask" not in plots.report_markdown(r)
+    for e in r["budgets"].values():
+        e["nes"]["views_with_empty_mask"] = 2
+    text = plots.report_markdown(r)
+    assert f"left out of the PSNR, SSIM and coverage above: 2 of {e['nes']['views']} NES views" in text

@@ -564,6 +564,15 @@ def report_markdown(r: dict) -> str:
             f"| {key} % | {e['gaussians']:,} | {e['bytes']:,} | {e['nvs']['psnr']:.2f} / {e['nvs']['ssim']:.3f} | "
             f"{e['nes']['psnr']:.2f} / {e['nes']['ssim']:.3f} |{c} {e['render_ms']:.1f} |"
         )
+    first = next(iter(r["budgets"].values()), {})
+    empty = {k: first.get(k, {}).get("views_with_empty_mask", 0) for k in ("nvs", "nes")}
+    if any(empty.values()):  # (the same views at every budget)
+        lines += [
+            "",
+            "Views with an empty foreground mask have no in-mask score and are left out of the PSNR, SSIM and "
+            "coverage above: "
+            + ", ".join(f"{n} of {first[k]['views']} {k.upper()} views" for k, n in empty.items() if n),
+        ]
     fh = r.get("first_head")
     if fh:
         lines += [
