@@ -1459,3 +1459,56 @@ def test_growth_and_sampling_rules_by_hand():
     g = growth(grow_to=20.0, max_faces=63)
     assert g.face_budget(13, g.last_step) == 63
     assert growth(iterations=50, grow_every=100, grow_start=0).last_step == -1
+
+
+def test_run_refused_before_training_when_its_disk_cannot_hold_it(
+    tiny_dataset, tiny_run, tmp_path, capsys, monkeypatch
+):
+    """A nearly full disk showed only at the first checkpoint, after up to checkpoint_every
+    iterations (hours at the paper's scale): refused before training now, naming what it needs;
+    a resume counts the outputs it replaces as free; the estimate holds a trained run's files."""
+    import collections
+    import runpy
+    import shutil
+
+    from progressive_avatars.core.train import trainer as T
+
+    saved = list(sys.path)
+    train_main = runpy.run_path(os.path.join(ROOT, "scripts", "train.py"), run_name="train_script")["main"]
+    sys.path[:] = saved
+
+    # The estimate covers what a trained run holds at its peak (the last checkpoint's temporary
+    # beside the previous one), without being wildly above it.
+    names = ("checkpoint.npz", "avatar.npz", "importance.npz", "importance_alpha.npz", "importance_whole.npz")
+    held = {n: os.path.getsize(os.path.join(tiny_run, n)) for n in names if os.path.exists(os.path.join(tiny_run, n))}
+    ckpt = np.load(os.path.join(tiny_run, "checkpoint.npz"))
+    faces = len(ckpt["forest_parent"])
+    width = sum(int(np.prod(ckpt[k].shape[1:])) for k in ckpt.files if k.startswith("param_"))
+    peak = 2 * held["checkpoint.npz"] + held["avatar.npz"] + 3 * 8 * faces + 25 * faces
+    assert peak <= T.run_bytes(faces, width) <= peak + 9 * 2**20
+    assert T._faces_bound(config_for("paper-cpu"), 10_000, 9_700, 10_000) == 170_000  # the face cap
+    assert T._faces_bound(config_for("tiny"), 100, 100, 100) == 100 + 100 * 12  # full depth 2
+    assert T._faces_bound(config_for("tiny", max_depth=0), 100, 100, 100) == 100
+
+    usage = collections.namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(10**9, 10**9, 2**20))
+    out = tmp_path / "run"
+    rc = train_main(["--data", tiny_dataset, "--out", str(out), "--preset", "tiny", "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and f"error: {out}: the disk has 1 MB free for this run, which needs about" in err
+    assert "free some space or train into another --out folder" in err
+    assert not any(p.name in ("config.json", "checkpoint.npz", "metrics.jsonl") for p in out.iterdir())
+    # A resume replaces its checkpoint and avatar: their space is the run's.
+    run = tmp_path / "resumed"
+    shutil.copytree(tiny_run, run)
+    need = T.run_bytes(T._faces_bound(config_for("tiny"), *_roots_template_faces(run)), width)
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(10**9, 10**9, need - sum(held.values()) + 1))
+    args = ["--data", tiny_dataset, "--out", str(run), "--preset", "tiny", "--no-progress", "--resume"]
+    assert train_main(args) == 0, capsys.readouterr().err
+
+
+def _roots_template_faces(run):
+    ckpt = np.load(os.path.join(run, "checkpoint.npz"))
+    template = len(ckpt["forest_template_faces"])
+    roots = template + len(ckpt["forest_coarse_faces"])
+    return roots, template, len(ckpt["forest_parent"])

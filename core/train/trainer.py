@@ -488,6 +488,50 @@ def _check_uniform_room(cfg: TrainConfig, template_faces: int, coarse_faces: int
         )
 
 
+class NoRoomError(ValueError):
+    """The run folder's disk cannot hold what the run will write."""
+
+
+def _faces_bound(cfg: TrainConfig, roots: int, template_faces: int, faces_now: int) -> int:
+    """The most faces this run can reach: growth's cap (``Growth.budget``'s target, or the
+    face cap) and full subdivision to ``max_depth``, whichever is fewer."""
+    full = roots + template_faces * (3 ** (cfg.max_depth + 1) - 3) // 2
+    cap = cfg.max_faces if cfg.uniform or cfg.grow_to <= 0 else min(cfg.max_faces, int(cfg.grow_to * roots))
+    return max(faces_now, min(full, cap))
+
+
+def run_bytes(faces: int, width: int) -> int:
+    """About the most disk a run of ``faces`` faces with ``width`` values each needs at once:
+    the last checkpoint's temporary beside the previous checkpoint (values and Adam moments in
+    float32, Adam steps and four float64 statistics, forest rows), the avatar, its three
+    importance files (float64) and its stream (~25 B a face), and 8 MB for logs."""
+    checkpoint = faces * (12 * width + 61)
+    return 2 * checkpoint + faces * (4 * width + 21) + faces * (25 + 24) + 8 * 2**20
+
+
+def _check_disk_room(out_dir: str, cfg: TrainConfig, model) -> None:
+    """Refuse a run whose checkpoints and avatar will not fit on the disk, before the hours of
+    training that would end in a full disk. The outputs already in the folder are replaced, so
+    their space counts as free."""
+    import shutil
+
+    f = model.forest
+    faces = _faces_bound(cfg, f.num_roots, len(f.template_faces), f.num_faces)
+    need = run_bytes(faces, sum(int(np.prod(t.shape[1:])) for t in model.params.values()))
+    held = sum(
+        os.path.getsize(os.path.join(out_dir, n))
+        for n in os.listdir(out_dir)
+        if n in _RUN_OUTPUTS or n.startswith("importance")
+    )
+    free = shutil.disk_usage(out_dir).free + held
+    if free < need:
+        raise NoRoomError(
+            f"{out_dir}: the disk has {free / 2**20:,.0f} MB free for this run, which needs about "
+            f"{need / 2**20:,.0f} MB (checkpoints and avatar of up to {faces:,} faces): free some space or "
+            "train into another --out folder"
+        )
+
+
 def _cut_generator(seed: int) -> np.random.Generator:
     """The in-level prefix cuts' own generator. Cuts drawn from the views' generator shifted
     every later view draw, so runs of one seed with and without cuts saw different views and
@@ -640,6 +684,8 @@ class Trainer:
             self.settings = run_settings(config)
             if main:  # --overwrite: the replaced run's files; else a log left by a kill before any checkpoint
                 _remove_run_outputs(out_dir, everything=overwrite)
+        if main:
+            _check_disk_room(out_dir, config, self.model)
         if self.dist.world_size > 1:
             # Same settings and start on every rank (template init or checkpoint), or stop before
             # any step: a rank started with another seed or batch would train something else.
