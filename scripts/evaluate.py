@@ -17,7 +17,7 @@ The report scores the stream it writes as RUN/avatar.pavs, replacing the run's s
 leaves out the template (the receiver has it, as it has the tracked mesh that drives the avatar;
 docs/FORMAT.md 2), so its budgets count what such a receiver is sent; export.py embeds the
 template by default (a file readable without the mesh), so the two write the same bytes only
-with --embed-template here. The report caches the importance ranking in RUN (importance*.npy,
+with --embed-template here. The report caches the importance ranking in RUN (importance*.npz,
 keyed on the avatar and the data); runs named by --finest-only, --multi-level, --adaptive and
 --uniform get theirs likewise. Evaluate a copy of a run you want left untouched.
 """

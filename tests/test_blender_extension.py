@@ -477,3 +477,27 @@ def test_url_streaming_keeps_the_verified_prefix(session):
     n = max(k for k in range(info.num_records + 1) if info.bytes_for_count(k) <= half)
     assert cut["result"] == ["FINISHED"] and cut["total"] == cut["instances"] == n > 0
     assert cut["file"] == info.bytes_for_count(n)
+
+
+def test_readme_names_the_add_on_controls_as_blender_shows_them():
+    """README's Blender paragraph named controls that do not exist under those names (Load avatar,
+    Train, Export PLY: the buttons read Load Progressive Avatar, Train Avatar, Export Splats PLY)."""
+    import ast
+    import re
+
+    labels = set()
+    for name in os.listdir(os.path.join(ROOT, "blender_addon")):
+        if name.endswith(".py"):
+            with open(os.path.join(ROOT, "blender_addon", name)) as fh:
+                tree = ast.parse(fh.read())
+            labels |= {
+                n.value.lower() for n in ast.walk(tree) if isinstance(n, ast.Constant) and isinstance(n.value, str)
+            }
+    with open(os.path.join(ROOT, "README.md")) as fh:
+        readme = fh.read()
+    start = readme.index("In the 3D view's sidebar")
+    paragraph = readme[start : readme.index("How the\nlook works", start)]
+    bold = re.findall(r"\*\*([^*]+)\*\*", paragraph)
+    menus = re.findall(r"File > Import > \*([^*]+)\*", paragraph)
+    assert len(bold) >= 7 and len(menus) == 2, (bold, menus)
+    assert [n for n in bold + menus if n.replace("\n", " ").lower() not in labels] == []

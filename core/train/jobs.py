@@ -105,7 +105,7 @@ def main(argv=None) -> int:
     t = sub.add_parser("train", help="train an avatar, then write its stream")
     t.add_argument("--data", required=True, help="dataset folder (transforms_train.json, ...)")
     t.add_argument("--out", required=True, help="run folder to write")
-    t.add_argument("--preset", default="cpu", help="tiny | cpu | paper (default cpu)")
+    t.add_argument("--preset", default="cpu", help="tiny | cpu | paper-cpu | paper (default cpu)")
     t.add_argument("--flame-model", help="your FLAME model file, for FLAME-mode datasets")
     t.add_argument("--iterations", type=int, default=0, help="override the preset's iterations (0: keep)")
     t.add_argument("--no-export", action="store_true", help="stop after training (RUN/avatar.npz)")
