@@ -177,3 +177,28 @@ def test_budget_rounding_level_reached_and_depth_scale():
     assert av.forest.num_coarse_levels > 0
     f = av.forest
     assert Budget.for_avatar(av, 1000).max_depth(f) == int(f.level.max()) - f.num_coarse_levels
+
+
+RAMP = np.array(
+    [[0.050, 0.030, 0.280], [0.150, 0.300, 0.620], [0.100, 0.600, 0.600], [0.450, 0.800, 0.300], [0.990, 0.900, 0.150]]
+)
+
+
+def test_depth_colours_hit_the_ramp_stops_and_clamp_beyond_the_top():
+    cols = depth_colors(np.array([0, 2, 4, 1, 9]), 4)
+    np.testing.assert_allclose(cols[:, :3], [RAMP[0], RAMP[2], RAMP[4], RAMP[1], RAMP[4]], atol=1e-6)
+    np.testing.assert_array_equal(cols[:, 3], 1.0)
+    # halfway between stops 1 and 2 (depth 3 of top 8: x = 1.5)
+    np.testing.assert_allclose(depth_colors(np.array([3]), 8)[0, :3], (RAMP[1] + RAMP[2]) / 2, atol=1e-6)
+
+
+def test_depth_colours_with_max_depth_zero_are_the_first_stop():
+    cols = depth_colors(np.array([0, 0]), 0)
+    np.testing.assert_allclose(cols[:, :3], [RAMP[0], RAMP[0]], atol=1e-6)
+
+
+def test_legend_of_nothing_arrived_still_lists_depth_zero():
+    legend = depth_legend(np.array([NOT_ARRIVED, NOT_ARRIVED, NOT_ARRIVED]))
+    assert [(d, n) for d, n, _ in legend] == [(NOT_ARRIVED, 3), (0, 0)]
+    np.testing.assert_allclose(legend[0][2], NOT_ARRIVED_COLOR[:3])
+    np.testing.assert_allclose(legend[1][2], RAMP[0], atol=1e-6)

@@ -6,6 +6,15 @@ import pytest
 from progressive_avatars.core.io import mesh_io
 from progressive_avatars.core.io.sequences import DataError, read_sequence
 from tests.helpers import sphere_mesh
+import struct
+from progressive_avatars.core.io.mesh_io import MeshFormatError, read_mesh
+from progressive_avatars.core.io.sequences import (
+    MeshSequence,
+    natural_key,
+    read_nersemble_tracking,
+    read_mesh_folder,
+    read_mesh_npz,
+)
 
 
 @pytest.mark.parametrize("kind", ["obj", "ply_binary", "ply_ascii"])
@@ -139,3 +148,132 @@ def test_mutated_obj_files_raise_only_format_errors(tmp_path):
             assert str(p) in str(exc)
             continue
         assert np.all(np.isfinite(mv)) and (len(mf) == 0 or (mf.min() >= 0 and mf.max() < len(mv)))
+
+
+def _ascii_ply(vertex_props, vertex_rows, face_rows):
+    head = ["ply", "format ascii 1.0", f"element vertex {len(vertex_rows)}"]
+    head += [f"property float {p}" for p in vertex_props]
+    head += [f"element face {len(face_rows)}", "property list uchar int vertex_indices", "end_header"]
+    return ("\n".join(head + vertex_rows + face_rows) + "\n").encode()
+
+
+def _binary_ply(fmt, verts, faces, end):
+    head = (
+        f"ply\nformat {fmt} 1.0\nelement vertex {len(verts)}\nproperty float x\nproperty float y\n"
+        f"property float z\nelement face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n"
+    ).encode()
+    body = b"".join(struct.pack(end + "fff", *v) for v in verts)
+    body += b"".join(struct.pack(end + "B" + "i" * len(f), len(f), *f) for f in faces)
+    return head + body
+
+
+V3 = [(0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 2.0, 0.0)]
+
+
+def test_ply_face_naming_one_past_the_last_vertex_is_refused(tmp_path):
+    p = tmp_path / "m.ply"
+    p.write_bytes(_ascii_ply("xyz", ["0 0 0", "1 0 0", "0 2 0"], ["3 0 1 3"]))
+    with pytest.raises(MeshFormatError, match="outside"):
+        read_mesh(p)
+
+
+def test_big_endian_binary_ply_reads_its_values(tmp_path):
+    p = tmp_path / "be.ply"
+    p.write_bytes(_binary_ply("binary_big_endian", V3, [(0, 1, 2)], ">"))
+    v, f = read_mesh(p)
+    np.testing.assert_array_equal(v, V3)
+    np.testing.assert_array_equal(f, [[0, 1, 2]])
+
+
+def test_ascii_ply_vertex_columns_follow_the_header_names(tmp_path):
+    p = tmp_path / "zyx.ply"
+    p.write_bytes(_ascii_ply(["nx", "z", "y", "x"], ["9 3 2 1", "9 6 5 4", "9 0 0 7"], ["3 0 1 2"]))
+    v, _ = read_mesh(p)
+    np.testing.assert_array_equal(v, [[1, 2, 3], [4, 5, 6], [7, 0, 0]])
+
+
+def test_ply_pentagon_is_refused(tmp_path):
+    p = tmp_path / "pent.ply"
+    p.write_bytes(_ascii_ply("xyz", ["0 0 0", "1 0 0", "0 2 0", "1 1 0", "2 2 0"], ["5 0 1 2 3 4"]))
+    with pytest.raises(MeshFormatError, match="5 corners"):
+        read_mesh(p)
+
+
+def test_binary_ply_one_byte_short_is_refused_by_name(tmp_path):
+    data = _binary_ply("binary_little_endian", V3, [], "<")
+    data = data.replace(b"element face 0\nproperty list uchar int vertex_indices\n", b"")
+    p = tmp_path / "short.ply"
+    p.write_bytes(data[:-1])
+    with pytest.raises(MeshFormatError, match="more than the file holds"):
+        read_mesh(p)
+
+
+def test_binary_ply_mixed_corner_counts_are_refused(tmp_path):
+    # Two rows of the same byte size whose counts differ (3 then 2).
+    data = _binary_ply("binary_little_endian", V3, [(0, 1, 2)], "<")
+    data = data.replace(b"element face 1", b"element face 2") + struct.pack("<Biii", 2, 0, 1, 2)
+    p = tmp_path / "mixed.ply"
+    p.write_bytes(data)
+    with pytest.raises(MeshFormatError, match="different corner counts"):
+        read_mesh(p)
+
+
+def test_ascii_ply_mixed_corner_counts_are_refused(tmp_path):
+    p = tmp_path / "mixed.ply"
+    p.write_bytes(_ascii_ply("xyz", ["0 0 0", "1 0 0", "0 2 0"], ["3 0 1 2", "2 0 1 2"]))
+    with pytest.raises(MeshFormatError, match="different corner counts"):
+        read_mesh(p)
+
+
+def test_obj_negative_indices_count_back_from_the_preceding_vertex_line(tmp_path):
+    p = tmp_path / "two.obj"
+    p.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf -1 -2 -3\nv 5 5 5\nv 6 5 5\nv 5 6 5\nf -3 -2 -1\n")
+    _, f = read_mesh(p)
+    np.testing.assert_array_equal(f, [[2, 1, 0], [3, 4, 5]])
+
+
+FACES = np.array([[0, 1, 2]])
+
+
+def _npz(tmp_path, T=3, **extra):
+    v = np.arange(T * 9, dtype=np.float32).reshape(T, 3, 3)
+    p = tmp_path / "m.npz"
+    np.savez(p, vertices=v, faces=FACES, **extra)
+    return p
+
+
+@pytest.mark.parametrize("frame", [3, -4])
+def test_frame_index_just_outside_the_sequence_is_refused(tmp_path, frame):
+    with pytest.raises(DataError, match="out of range"):
+        read_mesh_npz(_npz(tmp_path), frames=[frame])
+    assert read_mesh_npz(_npz(tmp_path), frames=[-3]).frame_ids.tolist() == [0]
+
+
+def test_fractional_float_frame_ids_fall_back_to_positions(tmp_path):
+    assert read_mesh_npz(_npz(tmp_path, frame_ids=np.array([2.5, 7.5, 9.25]))).frame_ids.tolist() == [0, 1, 2]
+    assert read_mesh_npz(_npz(tmp_path, frame_ids=np.array([4.0, 8.0, 12.0]))).frame_ids.tolist() == [4, 8, 12]
+
+
+def test_mesh_folder_ids_are_the_last_number_of_each_name(tmp_path):
+    for i in (10, 11):
+        (tmp_path / f"cam2_frame{i}.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    assert read_mesh_folder(tmp_path).frame_ids.tolist() == [10, 11]
+
+
+def test_natural_key_ignores_case():
+    assert sorted(["B1.obj", "a2.obj", "A10.obj"], key=natural_key) == ["a2.obj", "A10.obj", "B1.obj"]
+
+
+def test_nersemble_negative_scale_is_refused(tmp_path):
+    p = tmp_path / "track.npz"
+    np.savez(p, expression=np.zeros((2, 10)), shape=np.zeros((1, 300)), scale=np.array([-1.0]))
+    with pytest.raises(DataError, match="positive"):
+        read_nersemble_tracking(p, evaluate=False)
+
+
+def test_mesh_sequence_checks_faces_and_frame_ids():
+    v = np.zeros((2, 3, 3), np.float32)
+    with pytest.raises(DataError, match="outside"):
+        MeshSequence(np.array([[0, 1, 3]]), v, [0, 1])
+    with pytest.raises(DataError, match="frame ids"):
+        MeshSequence(FACES, v, [0, 1, 2])

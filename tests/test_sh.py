@@ -172,3 +172,94 @@ def test_training_with_sh_bands(tiny_dataset, tmp_path):
     assert res["ply_gaussians"] == part.num_gaussians < av.num_gaussians
     got = read_ply(tmp_path / "p.ply")
     np.testing.assert_allclose(got["colors"], sh_to_rgb(part.f_dc), atol=0.01)  # the stream quantises colour
+
+
+# The real spherical harmonics with the Condon-Shortley phase, m = -l..l, in Cartesian form on
+# the unit sphere, their constants written from their closed forms (not sh.py's decimals).
+PI = np.pi
+C0 = 1 / (2 * np.sqrt(PI))
+C1 = np.sqrt(3 / (4 * PI))
+C2 = [np.sqrt(15 / PI) / 2, -np.sqrt(15 / PI) / 2, np.sqrt(5 / PI) / 4, -np.sqrt(15 / PI) / 2, np.sqrt(15 / PI) / 4]
+C3 = [
+    -np.sqrt(35 / (2 * PI)) / 4,
+    np.sqrt(105 / PI) / 2,
+    -np.sqrt(21 / (2 * PI)) / 4,
+    np.sqrt(7 / PI) / 4,
+    -np.sqrt(21 / (2 * PI)) / 4,
+    np.sqrt(105 / PI) / 4,
+    -np.sqrt(35 / (2 * PI)) / 4,
+]
+
+
+def real_sh(deg, d):
+    """The basis [N, (deg+1)^2] at unit directions d [N,3]."""
+    x, y, z = d[:, 0], d[:, 1], d[:, 2]
+    xx, yy, zz = x * x, y * y, z * z
+    Y = [np.full_like(x, C0)]
+    if deg > 0:
+        Y += [-C1 * y, C1 * z, -C1 * x]
+    if deg > 1:
+        Y += [C2[0] * x * y, C2[1] * y * z, C2[2] * (2 * zz - xx - yy), C2[3] * x * z, C2[4] * (xx - yy)]
+    if deg > 2:
+        Y += [
+            C3[0] * y * (3 * xx - yy),
+            C3[1] * x * y * z,
+            C3[2] * y * (4 * zz - xx - yy),
+            C3[3] * z * (2 * zz - 3 * xx - 3 * yy),
+            C3[4] * x * (4 * zz - xx - yy),
+            C3[5] * z * (xx - yy),
+            C3[6] * x * (xx - 3 * yy),
+        ]
+    return np.stack(Y, 1)
+
+
+def eval_sh_reference(deg, coeffs, d):
+    """coeffs [N,3,16] (channel, coefficient)."""
+    Y = real_sh(deg, d)
+    return np.einsum("nk,nck->nc", Y, coeffs[:, :, : Y.shape[1]])
+
+
+@pytest.mark.parametrize("degree", [1, 2, 3])
+def test_sh_rgb_matches_the_real_harmonics_coefficient_by_coefficient(degree):
+    rng = np.random.default_rng(7)
+    d = rng.normal(size=(64, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    k = sh.num_rest(degree)
+    for j in range(k):  # one coefficient at a time: a wrong sign or slot shows on its own
+        dc = rng.normal(size=(64, 3))
+        rest = np.zeros((64, k, 3))
+        rest[:, j, :] = rng.normal(size=(64, 3))
+        coeffs = np.concatenate([dc[:, :, None], rest.transpose(0, 2, 1)], 2)  # [N,3,1+k]
+        coeffs = np.concatenate([coeffs, np.zeros((64, 3, 16 - coeffs.shape[2]))], 2)
+        want = eval_sh_reference(degree, coeffs, d) + 0.5
+        np.testing.assert_allclose(sh.sh_rgb(dc, rest, d, np.stack), want, atol=1e-12, err_msg=f"coefficient {j}")
+
+
+def test_basis_values_along_plus_y_by_hand():
+    # d = +y: x = z = 0, y = 1.
+    got = sh.rest_basis(np.array([[0.0, 1.0, 0.0]]), 3, np.stack)[0]
+    want = np.zeros(15)
+    want[0] = -C1  # -C1·y
+    want[5] = -C2[2]  # C2[2]·(2zz - xx - yy) = -C2[2]
+    want[7] = -C2[4]  # C2[4]·(xx - yy) = -C2[4]
+    want[8] = -C3[0]  # C3[0]·y·(3xx - yy) = -C3[0]
+    want[10] = -C3[2]  # C3[2]·y·(4zz - xx - yy) = -C3[2]
+    np.testing.assert_allclose(got, want, atol=1e-15)
+
+
+def test_basis_xyz_term_sign_by_hand():
+    d = np.array([[1.0, 1.0, 1.0]]) / np.sqrt(3.0)
+    got = sh.rest_basis(d, 3, np.stack)[0]
+    assert got[9] == pytest.approx(C3[1] / 3.0**1.5, rel=1e-12)  # C3[1]·x·y·z
+    assert got[11] == pytest.approx(C3[3] * (1 / 3**0.5) * (2 / 3 - 2.0), rel=1e-12)  # C3[3]·z·(2zz-3xx-3yy)
+
+
+def test_degree_above_the_stored_coefficients_uses_what_is_there():
+    rng = np.random.default_rng(1)
+    d = rng.normal(size=(10, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    dc, rest = rng.normal(size=(10, 3)), rng.normal(size=(10, 3, 3))
+    got = sh.sh_rgb(dc, rest, d, np.stack, degree=3)  # asks for 15, only 3 stored
+    x, y, z = d[:, :1], d[:, 1:2], d[:, 2:]
+    want = 0.5 + C0 * dc - C1 * y * rest[:, 0] + C1 * z * rest[:, 1] - C1 * x * rest[:, 2]
+    np.testing.assert_allclose(got, want, atol=1e-12)

@@ -12,6 +12,7 @@ from progressive_avatars.core.bridge.transforms import (
 )
 from progressive_avatars.core.geometry.camera import Camera
 from progressive_avatars.core.geometry.rotations import quat_to_rotmat
+import math
 
 
 def _gaussians(rng, n=200):
@@ -157,3 +158,53 @@ def test_blender_camera_round_trip_any_pixel_aspect(fx, fy, cx, cy, w, h):
     np.testing.assert_allclose([back.fx, back.fy, back.cx, back.cy], [fx, fy, cx, cy], rtol=1e-9)
     pts = np.random.default_rng(0).normal(0, 0.1, (10, 3))
     np.testing.assert_allclose(back.project(pts)[0], cam.project(pts)[0], atol=1e-6)
+
+
+def test_zero_sensor_and_zero_lens_are_refused():
+    with pytest.raises(ValueError, match="sensor"):
+        blender_intrinsics(50.0, 0.0, 64, 48)
+    with pytest.raises(ValueError, match="lens"):
+        blender_intrinsics(0.0, 36.0, 64, 48)
+
+
+def test_camera_from_a_scaled_blender_object_drops_the_scale():
+    # matrix_world = [Rz(90°) · diag(2, 3, 4) | (1, 2, 3)], not Z-up converted.
+    M = np.eye(4)
+    M[:3, :3] = np.array([[0, -1.0, 0], [1.0, 0, 0], [0, 0, 1.0]]) @ np.diag([2.0, 3.0, 4.0])
+    M[:3, 3] = [1.0, 2.0, 3.0]
+    cam = camera_from_blender(M, 50.0, 36.0, 0.0, 0.0, 64, 48, z_up=False)
+    # OpenGL c2w columns (0,1,0), (-1,0,0), (0,0,1) -> OpenCV (0,1,0), (1,0,0), (0,0,-1).
+    R = np.array([[0, 1.0, 0], [1.0, 0, 0], [0, 0, -1.0]])
+    np.testing.assert_allclose(cam.R, R, atol=1e-15)
+    np.testing.assert_allclose(cam.t, [-2.0, -1.0, 3.0], atol=1e-15)
+    assert cam.fx == pytest.approx(50.0 / 36.0 * 64)
+
+
+def test_round_trip_of_tall_pixels_on_a_landscape_image():
+    # fx/fy = 3: w = 320 >= h = 240 but w < 3·h, so AUTO fits the height (in pixel widths).
+    cam = Camera.look_at([0.2, 0.1, 0.7], [0, 0, 0], [0, 1, 0], 900.0, 300.0, 150.0, 110.0, 320, 240)
+    s = blender_camera(cam)
+    back = camera_from_blender(
+        s["matrix_world"],
+        s["lens"],
+        s["sensor_width"],
+        s["shift_x"],
+        s["shift_y"],
+        *s["resolution"],
+        sensor_fit=s["sensor_fit"],
+        pixel_aspect=s["pixel_aspect"],
+    )
+    np.testing.assert_allclose([back.fx, back.fy, back.cx, back.cy], [900.0, 300.0, 150.0, 110.0], rtol=1e-9)
+    assert s["lens"] == pytest.approx(900.0 / (3 * 240) * 36.0)
+
+
+def test_camera_from_a_turned_and_stretched_blender_object():
+    # matrix_world = [Rz(30°) · diag(2, 3, 4) | (1, 2, 3)]: column norms 2, 3, 4, row norms not.
+    c, s = math.cos(math.radians(30)), math.sin(math.radians(30))
+    M = np.eye(4)
+    M[:3, :3] = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]) @ np.diag([2.0, 3.0, 4.0])
+    M[:3, 3] = [1.0, 2.0, 3.0]
+    cam = camera_from_blender(M, 50.0, 36.0, 0.0, 0.0, 64, 48, z_up=False)
+    R = np.array([[c, s, 0], [s, -c, 0], [0, 0, -1.0]])
+    np.testing.assert_allclose(cam.R, R, atol=1e-15)
+    np.testing.assert_allclose(cam.t, [-(c + 2 * s), -(s - 2 * c), 3.0], atol=1e-14)
