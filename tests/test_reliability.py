@@ -152,19 +152,41 @@ def test_broken_val_split_is_an_error_not_dropped(data_copy, tmp_path):
 
 
 # -- training ---------------------------------------------------------------------------
-def test_resume_with_other_data_refused(tiny_dataset, tmp_path):
+def test_resume_with_other_data_refused(tiny_dataset, tmp_path, capsys):
+    """--resume continues on the training split the run started on, by content: a split edited
+    under the same folder (other frames, cameras, timesteps) was resumed silently, and a
+    byte-identical copy of the dataset elsewhere was refused."""
     from progressive_avatars.core.synthetic.dataset import make_dataset
 
     cfg = config_for("tiny", iterations=3, checkpoint_every=2, eval_every=1000, log_every=1)
     run = tmp_path / "run"
-    Trainer(tiny_dataset, str(run), cfg).run(progress=False)
+    data = tmp_path / "data"
+    shutil.copytree(tiny_dataset, data)
+    Trainer(str(data), str(run), cfg).run(progress=False)
     other = tmp_path / "other"
     make_dataset(str(other), resolution=24, cameras=3, sequences=3, frames=1, seed=5, progress=False)
-    with pytest.raises(ValueError, match="--resume with a different --data"):
+    with pytest.raises(
+        ValueError,
+        match=rf"transforms_train\.json is not the training split this run was started on \(trained on {data}\)",
+    ):
         Trainer(str(other), str(run), cfg, resume=True)
-    # Same path, contents replaced by another mesh: the checkpoint's template is checked too.
+    # The same folder, its split edited (a camera dropped): refused before any work.
+    saved = (data / "transforms_train.json").read_bytes()
+    _edit_json(
+        data / "transforms_train.json", lambda d: d.update(frames=[f for f in d["frames"] if f["camera_index"] != 1])
+    )
+    with pytest.raises(ValueError, match=r"is not the training split this run was started on: its frames, cameras"):
+        Trainer(str(data), str(run), cfg, resume=True)
+    (data / "transforms_train.json").write_bytes(saved)
+    # A copy of the dataset elsewhere resumes, with a note.
+    copy = tmp_path / "copy"
+    shutil.copytree(data, copy)
+    capsys.readouterr()
+    Trainer(str(copy), str(run), cfg, resume=True)
+    assert f"resuming on {copy}, a copy of {data} (the same training split)" in capsys.readouterr().err
+    # Same split, contents replaced by another mesh: the checkpoint's template is checked too.
     cfgj = run / "config.json"
-    _edit_json(cfgj, lambda d: d.update(data=str(other)))
+    other = copy
     os.remove(other / "canonical_mesh.npz")
     verts, faces = sphere_mesh(4, 5)
     np.savez(other / "canonical_mesh.npz", vertices=verts, faces=faces)

@@ -2,6 +2,7 @@ import json
 import os
 import subprocess
 import sys
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -529,6 +530,70 @@ def test_flame_refinement_learns_resumes_and_is_saved(tiny_dataset, tmp_path):
     (tmp_path / "full" / "flame_refined.npz").write_bytes(b"PK\x03\x04 not a zip")
     with pytest.raises(DataError, match=r"flame_refined\.npz: cannot read refined FLAME parameters"):
         run_dataset(str(tmp_path / "full"), str(root), "val", model_path)
+
+
+def test_flame_run_keeps_its_avatar_corrections_and_timesteps_together(tiny_dataset, tmp_path):
+    """A run stopped between writing avatar.npz and flame_refined.npz (or a resumed one, between
+    the new avatar and the old corrections) exported silently with frames posed unlike training
+    posed them; a checkpoint did not say which timesteps its corrections belong to; the ranks'
+    state digest left the corrections out."""
+    from progressive_avatars.core.io.run import run_dataset
+
+    root, model, model_path, timesteps, one = _flame_mode_dataset(tiny_dataset, tmp_path)
+    cfg = config_for(
+        "tiny",
+        iterations=8,
+        grow_every=4,
+        grow_start=4,
+        checkpoint_every=4,
+        eval_every=1000,
+        flame_model=model_path,
+        refine_flame=True,
+    )
+    run = tmp_path / "run"
+    tr = Trainer(str(root), str(run), cfg)
+    tr.run(progress=False)
+    with np.load(run / "flame_refined.npz") as z:
+        assert int(z["iteration"]) == 8
+    with np.load(run / "checkpoint.npz") as z:
+        ckpt = dict(z)
+    np.testing.assert_array_equal(ckpt["flame_timesteps"], tr.refiner.timesteps)
+    run_dataset(str(run), str(root), "val", model_path)  # the pair is whole
+    # The corrections of another iteration, or none, beside the avatar: refused, with the way out.
+    refined = dict(np.load(run / "flame_refined.npz"))
+    np.savez(run / "flame_refined.npz", **(refined | {"iteration": np.asarray(4)}))
+    with pytest.raises(ValueError, match=r"corrections of iteration 4, .*avatar\.npz is of iteration 8 .*--resume"):
+        run_dataset(str(run), str(root), "val", model_path)
+    os.remove(run / "flame_refined.npz")
+    with pytest.raises(ValueError, match=r"trained with --refine-flame but .*flame_refined\.npz is missing"):
+        run_dataset(str(run), str(root), "test", model_path)
+    # The checkpoint's corrections belong to its timesteps.
+    with pytest.raises(ValueError, match=r"corrections are for training timesteps \[.*\], the dataset's are"):
+        tr.refiner.load_state(ckpt | {"flame_timesteps": ckpt["flame_timesteps"][::-1] + 1}, "ckpt")
+    # The ranks compare the corrections too.
+    before = tr._state_digest()
+    with torch.no_grad():
+        tr.refiner.delta["expr"] += 0.5
+    assert tr._state_digest() != before
+
+
+def test_resume_note_compares_with_the_length_the_checkpoint_followed(tiny_dataset, tmp_path, capsys):
+    """The length note compared with config.json's, which a resume stopped before its first
+    checkpoint had rewritten: resuming the checkpoint with its own length said "instead of 100",
+    resuming with the aborted length said nothing. A changed batch said nothing."""
+    run = tmp_path / "run"
+    cfg = config_for("tiny", iterations=8, checkpoint_every=4, eval_every=10**6)
+    Trainer(tiny_dataset, str(run), cfg).run(progress=False, stop_after=4)
+    Trainer(tiny_dataset, str(run), replace(cfg, iterations=20), resume=True)  # killed before a checkpoint
+    assert json.loads((run / "config.json").read_text())["iterations"] == 20
+    capsys.readouterr()
+    Trainer(tiny_dataset, str(run), cfg, resume=True)
+    assert "instead of" not in capsys.readouterr().err
+    Trainer(tiny_dataset, str(run), replace(cfg, iterations=20), resume=True)
+    assert "resumed at iteration 4 with 20 iterations instead of 8" in capsys.readouterr().err
+    # Another batch (processes x views per step) is allowed, and said.
+    Trainer(tiny_dataset, str(run), replace(cfg, views_per_step=2), resume=True)
+    assert "resumed with 2 views per step (1 process(es) x 2) instead of the 1" in capsys.readouterr().err
 
 
 def test_flame_refiner_starts_at_the_tracked_meshes(tiny_dataset, tmp_path):

@@ -71,6 +71,40 @@ def run_flame_model(run: str, flame_model: str | None = None) -> str | None:
     return fm or None
 
 
+def _check_refined_pair(run: str, refined: str) -> None:
+    """avatar.npz and flame_refined.npz of one training: a run stopped between writing them
+    leaves one without the other, or another iteration's (a resumed run), and the frames would
+    be posed unlike training posed them."""
+    from .safe_io import check_npz
+
+    avatar = os.path.join(run, "avatar.npz")
+    try:
+        check_npz(avatar, allow_text=("meta_json",))
+        with np.load(avatar, allow_pickle=False) as z:
+            meta = json.loads(str(z["meta_json"])) if "meta_json" in z.files else {}
+        cfg = meta.get("config") or {}
+        trained = meta.get("iterations") if cfg.get("refine_flame") else None
+    except Exception:
+        return  # loading the avatar reports a damaged one
+    fix = "train.py --resume with the run's options writes both again"
+    if trained is None:
+        return
+    if not os.path.exists(refined):
+        raise ValueError(
+            f"{avatar} was trained with --refine-flame but {refined} is missing (the run stopped while saving): {fix}"
+        )
+    try:
+        with np.load(refined, allow_pickle=False) as z:
+            it = int(z["iteration"]) if "iteration" in z.files else None  # (older files: no record)
+    except Exception:
+        return  # use_refined_flame reports a damaged file
+    if it is not None and it != trained:
+        raise ValueError(
+            f"{refined} holds the FLAME corrections of iteration {it}, {avatar} is of iteration {trained} "
+            f"(the run stopped while saving): {fix}"
+        )
+
+
 def run_dataset(run: str, data: str, split: str | None, flame_model: str | None = None, **options):
     """A split of the run's data posed as the run was trained: after ``--refine-flame`` the
     timesteps it refined (the training ones, so the novel views too) take the refined FLAME
@@ -79,6 +113,8 @@ def run_dataset(run: str, data: str, split: str | None, flame_model: str | None 
 
     ds = Dataset(data, split, flame_model=flame_model, **options)
     path = os.path.join(run, "flame_refined.npz")
+    if ds.mode == "flame":
+        _check_refined_pair(run, path)
     if os.path.exists(path) and ds.mode == "flame":
         cfg = run_config(run) or {}
         trained_on = cfg.get("data")

@@ -114,7 +114,7 @@ class FlameRefiner:
 
     # -- persistence ------------------------------------------------------------------------
     def state(self) -> dict:
-        out = {}
+        out = {"flame_timesteps": self.timesteps.copy()}
         for i, k in enumerate(_DELTAS):
             out[f"flame_delta_{k}"] = self.delta[k].detach().numpy().copy()
             st = self.opt.state.get(self.delta[k], {})
@@ -125,6 +125,13 @@ class FlameRefiner:
         return out
 
     def load_state(self, d, source: str):
+        if "flame_timesteps" in d:
+            was = np.asarray(d["flame_timesteps"]).reshape(-1)
+            if not np.array_equal(was, self.timesteps):
+                raise ValueError(
+                    f"{source}: the FLAME corrections are for training timesteps {_ids(was)}, the dataset's are "
+                    f"{_ids(self.timesteps)}: resume on the dataset the run was started on"
+                )
         for k in _DELTAS:
             key = f"flame_delta_{k}"
             if key not in d:
@@ -157,3 +164,8 @@ class FlameRefiner:
         for k in _DELTAS:
             out[f"correction_{k}"] = self.delta[k].detach().numpy().copy()
         return out
+
+
+def _ids(timesteps: np.ndarray, shown: int = 8) -> str:
+    t = [int(x) for x in timesteps[:shown]]
+    return str(t)[:-1] + (f", ... ({len(timesteps)})]" if len(timesteps) > shown else "]")

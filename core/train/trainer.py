@@ -388,16 +388,19 @@ def _position_decay(cfg: TrainConfig, it: int) -> float:
     return cfg.lr_final_ratio ** (it / max(1, cfg.iterations))
 
 
-def _lengthened(out_dir: str, cfg: TrainConfig, iteration: int) -> str | None:
+def _lengthened(out_dir: str, cfg: TrainConfig, iteration: int, was: int | None = None) -> str | None:
     """A note when a resume changes the run's length: the schedules are fractions of it (the
     position learning rate's decay, growth's end and depth cap, the resets while it grows), so
     the rest of the run follows the new length's schedule from ``iteration`` on and the whole is
-    not the run a fresh start with that length would make."""
-    try:
-        with open(os.path.join(out_dir, "config.json"), encoding="utf-8") as fh:
-            was = int(json.load(fh)["iterations"])
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
+    not the run a fresh start with that length would make. ``was``: the length the checkpoint
+    was trained with (its state records it; older checkpoints: config.json's, which a resume
+    stopped before its first checkpoint has already rewritten)."""
+    if not isinstance(was, int) or isinstance(was, bool):
+        try:
+            with open(os.path.join(out_dir, "config.json"), encoding="utf-8") as fh:
+                was = int(json.load(fh)["iterations"])
+        except (OSError, ValueError, KeyError, TypeError):
+            return None
     if was == cfg.iterations:
         return None
     old, new = Growth.from_config(replace(cfg, iterations=was)).last, Growth.from_config(cfg).last
@@ -411,6 +414,19 @@ def _lengthened(out_dir: str, cfg: TrainConfig, iteration: int) -> str | None:
         f"note: {out_dir}: resumed at iteration {iteration} with {cfg.iterations} iterations instead of {was}: "
         f"the schedules follow the new length from here ({growth}; the position learning rate steps by "
         f"{decay:.2g}x), so the run is not what a fresh {cfg.iterations}-iteration run would be"
+    )
+
+
+def _rebatched(out_dir: str, was, world_size: int, views_per_step: int) -> str | None:
+    """A note when a resume changes the views each step averages over (processes x views per
+    step): allowed, as one process with twice the views is the same step as two processes, but
+    from here the run is not the one it was."""
+    now = world_size * views_per_step
+    if not isinstance(was, int) or isinstance(was, bool) or was == now:
+        return None
+    return (
+        f"note: {out_dir}: resumed with {now} views per step ({world_size} process(es) x {views_per_step}) "
+        f"instead of the {was} it was trained with: each step's gradient averages another batch from here"
     )
 
 
@@ -450,20 +466,49 @@ class RunExistsError(ValueError):
     """Training without resume into a run folder that holds a checkpoint or a trained avatar."""
 
 
-def _check_same_data(out_dir: str, data_dir: str) -> None:
-    """--resume must continue on the dataset the run was started on (config.json says which)."""
-    cfg = os.path.join(out_dir, "config.json")
+def _checkpoint_state(path: str) -> dict:
+    """A checkpoint's state record, read alone (empty when it cannot be: loading the checkpoint
+    reports the damage)."""
+    from ..io.safe_io import check_npz
+
     try:
-        with open(cfg, encoding="utf-8") as fh:
+        check_npz(path, allow_text=("state_json",))
+        with np.load(path, allow_pickle=False) as d:
+            state = json.loads(str(d["state_json"]))
+        return state if isinstance(state, dict) else {}
+    except Exception:
+        return {}
+
+
+def _check_same_data(out_dir: str, data_dir: str, state: dict) -> str | None:
+    """--resume must continue on the dataset the run was started on: the content of its training
+    split, which checkpoints record (older ones: the folder config.json names). A changed split
+    under the same folder would train other frames and put FLAME corrections on other timesteps;
+    a copy of the dataset elsewhere resumes, with the note this returns."""
+    try:
+        with open(os.path.join(out_dir, "config.json"), encoding="utf-8") as fh:
             was = json.load(fh).get("data")
     except (OSError, ValueError, AttributeError):
-        return  # no readable config: the checkpoint's template check below still applies
+        was = None  # no readable config: the checkpoint's template check still applies
+    was = was if isinstance(was, str) else None
     now = os.path.abspath(data_dir)
-    if was and os.path.realpath(was) != os.path.realpath(now):
+    moved = bool(was) and os.path.realpath(was) != os.path.realpath(now)
+    split = os.path.join(now, "transforms_train.json")
+    recorded = state.get("train_split")
+    if isinstance(recorded, str) and os.path.isfile(split):
+        if _file_digest(split) != recorded:
+            where = f" (trained on {was})" if moved else ""
+            raise ValueError(
+                f"{split} is not the training split this run was started on{where}: its frames, cameras or "
+                "timesteps changed; resume on the dataset the run was started on, or train into a new --out folder"
+            )
+        return f"note: {out_dir}: resuming on {now}, a copy of {was} (the same training split)" if moved else None
+    if moved:
         raise ValueError(
             f"{out_dir}: --resume with a different --data: this run was trained on {was}, not {now}; "
             "resume with the same --data, or train into a new --out folder"
         )
+    return None
 
 
 def kept_text(out: str | None, checkpoint: int | None, any_processes: bool = False, resume: str = "--resume") -> str:
@@ -589,8 +634,12 @@ class Trainer:
         self.growth = Growth.from_config(config)
         os.makedirs(out_dir, exist_ok=True)
         self.ckpt_path = os.path.join(out_dir, "checkpoint.npz")
+        moved, self.trained_iterations, batch = None, None, None
         if resume and os.path.exists(self.ckpt_path):
-            _check_same_data(out_dir, data_dir)
+            state = _checkpoint_state(self.ckpt_path)
+            moved = _check_same_data(out_dir, data_dir, state)
+            self.trained_iterations = state.get("iterations")  # the length its schedules followed
+            batch = state.get("effective_batch")
         self.train = Dataset(
             data_dir,
             "train",
@@ -599,6 +648,7 @@ class Trainer:
             flame_model=config.flame_model,
             cache_bytes=int(config.image_cache_mb * 2**20),
         )
+        self.train_split = _file_digest(self.train.json_path)
         # No validation split is fine; a broken one is an error, not silently dropped.
         if os.path.isfile(os.path.join(self.train.root, "transforms_val.json")):
             self.val = Dataset(
@@ -654,9 +704,14 @@ class Trainer:
             self.settings = run_settings(config)
             _check_same_settings(self.ckpt_path, self.run_settings, self.settings)
             if main:
-                note = _lengthened(out_dir, config, self.iteration)
-                if note:
-                    print(note, file=sys.stderr)
+                notes = (
+                    moved,
+                    _lengthened(out_dir, config, self.iteration, self.trained_iterations),
+                    _rebatched(out_dir, batch, self.dist.world_size, config.views_per_step),
+                )
+                for note in notes:
+                    if note:
+                        print(note, file=sys.stderr)
         else:
             if resume and main:  # a mistyped --out would otherwise start hours of training without a word
                 print(f"note: {out_dir} holds no checkpoint.npz: --resume starts a new run", file=sys.stderr)
@@ -771,6 +826,8 @@ class Trainer:
         arrays = [f.parent, f.slot, o.steps.numpy()]
         for name, t in sorted(self.model.params.items()):
             arrays += [t.detach().numpy(), o.m[name].numpy(), o.v[name].numpy()]
+        if self.refiner is not None:  # the FLAME corrections and their optimiser state
+            arrays += [np.asarray(v) for _, v in sorted(self.refiner.state().items())]
         return digest(*arrays)
 
     def _settings_digest(self, data_dir: str) -> int:
@@ -1096,6 +1153,9 @@ class Trainer:
                     "recent_psnr": list(self.recent_psnr),
                     "world_size": self.dist.world_size,
                     "settings": self.settings,
+                    "iterations": self.cfg.iterations,
+                    "effective_batch": self.dist.world_size * self.cfg.views_per_step,
+                    "train_split": self.train_split,
                 }
             )
         )
@@ -1200,9 +1260,10 @@ class Trainer:
             "train_seconds": self.elapsed,
             "config": asdict(self.cfg),
         }
+        if self.refiner is not None:  # first: the avatar, written last, marks the pair complete
+            refined = self.refiner.refined_arrays() | {"iteration": np.asarray(self.iteration, np.int64)}
+            atomic_savez(os.path.join(self.out_dir, "flame_refined.npz"), **refined)
         self.model.to_avatar(meta).save(path)
-        if self.refiner is not None:
-            atomic_savez(os.path.join(self.out_dir, "flame_refined.npz"), **self.refiner.refined_arrays())
         return path
 
     # -- loop -----------------------------------------------------------------------------
