@@ -634,11 +634,11 @@ class Trainer:
         self.growth = Growth.from_config(config)
         os.makedirs(out_dir, exist_ok=True)
         self.ckpt_path = os.path.join(out_dir, "checkpoint.npz")
-        moved, self.trained_iterations, batch = None, None, None
+        moved, trained, batch = None, None, None
         if resume and os.path.exists(self.ckpt_path):
             state = _checkpoint_state(self.ckpt_path)
             moved = _check_same_data(out_dir, data_dir, state)
-            self.trained_iterations = state.get("iterations")  # the length its schedules followed
+            trained = state.get("iterations")  # the length its schedules followed
             batch = state.get("effective_batch")
         self.train = Dataset(
             data_dir,
@@ -706,7 +706,7 @@ class Trainer:
             if main:
                 notes = (
                     moved,
-                    _lengthened(out_dir, config, self.iteration, self.trained_iterations),
+                    _lengthened(out_dir, config, self.iteration, trained),
                     _rebatched(out_dir, batch, self.dist.world_size, config.views_per_step),
                 )
                 for note in notes:
