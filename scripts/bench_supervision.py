@@ -101,6 +101,10 @@ def score(run: str, data: str, views: int) -> dict:
         row["supervision"] += f", prefix cuts {cfg['prefix_cuts']}"
     if cfg.get("split_min_px"):
         row["supervision"] += f", size floor {cfg['split_min_px']:g} px"
+    levels = cfg.get("coarse_levels") or []
+    row["coarse"] = [levels, bool(cfg.get("coarse_stand_ins")), bool(cfg.get("coarse_backdrop"))] if levels else []
+    if not levels:
+        row["supervision"] += ", no coarse levels"
     row["reset"] = int(cfg.get("opacity_reset_every") or 0)
     row["grown_until"] = _last_growth(run, int(float(cfg["grow_stop"]) * row["iterations"]))
     if row["reset"]:
@@ -135,7 +139,7 @@ def score_at_counts(run: str, data: str, views: int, counts) -> dict:
 
 def _recipe(row: dict) -> tuple:
     """What two runs must share to be paired as multi-level against finest-only."""
-    return row.get("reset", 0), row["iterations"], row.get("grown_until")
+    return row.get("reset", 0), row["iterations"], row.get("grown_until"), json.dumps(row.get("coarse"))
 
 
 def strip(runs_: dict, data: str, views: int, view: int, path: str):
@@ -165,6 +169,8 @@ def strip(runs_: dict, data: str, views: int, view: int, path: str):
         rows.append(np.concatenate([t[:h] for t in tiles], 1))
     w = min(r.shape[1] for r in rows)
     img = np.concatenate([r[:, :w] for r in rows], 0)
+    k = -(-200 // min(r.shape[0] for r in rows))  # small images' rows at least 200 px, pixels kept square
+    img = img.repeat(k, 0).repeat(k, 1)
     Image.fromarray((np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)).save(path, optimize=True)
 
 
@@ -229,7 +235,7 @@ def section(rows: dict, command: str, views: int, about: str = "", title: str = 
         lines += [
             "",
             "Multi-level minus each finest-only run at 35 % (issue 17's criterion: >= 5 dB), against the first "
-            "multi-level run of the same recipe (opacity reset, iterations, last growth):",
+            "multi-level run of the same recipe (opacity reset, iterations, last growth, coarse levels):",
             "",
         ]
         for name in names:
@@ -289,9 +295,15 @@ def main():
     command += " --about ..." if a.about else ""
     command += f" --strip {a.strip}" + (f" --strip-view {a.strip_view}" if a.strip_view != 3 else "") if a.strip else ""
     text = section(rows, command, a.views, a.about, a.title)
-    print(text)
     if a.strip:
         strip(paths, a.data, a.views, a.strip_view, a.strip)
+        rel = os.path.relpath(os.path.abspath(a.strip), os.path.join(ROOT, "docs"))
+        text += (
+            f"\n![NVS view {a.strip_view}, one row per run]({rel})\n\nOne row per run, in the table's order; columns: "
+            "10 % and 35 % of its version 5 stream, 35 % of its version 4 stream (every level whole first), 100 %; "
+            "the face below the eyes to the neck.\n"
+        )
+    print(text)
     if a.write:
         replace_section(os.path.join(ROOT, "docs", "BENCHMARKS.md"), a.title, text)
 

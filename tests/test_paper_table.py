@@ -166,13 +166,16 @@ def test_run_paper_table_small(tmp_path):
 
 def test_bench_supervision_pairs_like_recipes(monkeypatch):
     """bench_supervision's section compares finest-only runs of one recipe across lengths, and never
-    a reset run with a run without resets (the line went missing once the recipe joined the text)."""
+    a reset run with a run without resets (the line went missing once the recipe joined the text),
+    nor a run without coarse levels with one that has them."""
     monkeypatch.syspath_prepend(os.path.join(ROOT, "scripts"))
     import bench_supervision as bs
 
-    def row(mode, iters, reset, v5, v4):
+    def row(mode, iters, reset, v5, v4, coarse=([0.03, 0.06], False, False)):
         r = {"mode": mode, "iterations": iters, "reset": reset, "grown_until": 4000, "gaussians": 10}
-        r["supervision"] = mode + (f", opacity reset every {reset:,}" if reset else "")
+        r["coarse"] = list(coarse)
+        r["supervision"] = mode + ("" if coarse else ", no coarse levels")  # as score() words them
+        r["supervision"] += f", opacity reset every {reset:,}" if reset else ""
         r.update({f"v5_{b}": v5 for b in bs.BUDGETS}, v4_35=v4)
         r.update({f"nes_{b}": v5 for b in bs.BUDGETS})
         return r
@@ -182,6 +185,8 @@ def test_bench_supervision_pairs_like_recipes(monkeypatch):
         "fin 20k": row("finest", 20000, 1000, 26.0, 22.0),
         "fin 15k": row("finest", 15000, 1000, 25.5, 22.25),
         "fin 6k plain": row("finest", 6000, 0, 20.0, 10.0),
+        "fin 20k no coarse": row("finest", 20000, 1000, 26.0, 21.0, coarse=()),
+        "mls 20k no coarse": row("multi-level", 20000, 1000, 26.5, 25.0, coarse=()),
     }
     text = bs.section(rows, "cmd", 2)
     lengths = [line for line in text.splitlines() if line.startswith("Finest-only (")]
@@ -192,6 +197,7 @@ def test_bench_supervision_pairs_like_recipes(monkeypatch):
     ]
     assert "- fin 20k (against mls 20k): +1.00 dB (version 5), +4.50 dB (version 4)" in text
     assert "- fin 6k plain: no multi-level run of its recipe" in text
+    assert "- fin 20k no coarse (against mls 20k no coarse): +0.50 dB (version 5), +4.00 dB (version 4)" in text
 
 
 def test_bench_drops_a_superseded_report(tmp_path, monkeypatch):
