@@ -516,3 +516,296 @@ def test_an_error_or_redirect_whose_body_stalls_says_its_status(scripted, status
     _, url = scripted(script)
     res = H.fetch_stream(url, timeout=0.5)
     assert res.status == H.HTTP_ERROR and f"HTTP {status}" in res.message and "stalled" in res.message, str(res)
+
+
+RPB = 16  # records per block of the test stream
+R = 23  # quantised record size (FORMAT.md 3.1)
+
+
+@pytest.fixture(scope="module")
+def streams():
+    """Two same-size streams of one forest (the second with other colours: a re-export)."""
+    _, av, imp = make_avatar(11, n_lat=6, n_lon=10, depth=3)
+    other = Avatar(av.forest, av.d_mu, av.d_log_scale, av.d_rot, av.opacity_logit, av.f_dc + 0.5, meta=av.meta)
+    a = encode_stream(av, imp, records_per_block=RPB)
+    b = encode_stream(other, imp, records_per_block=RPB)
+    assert len(a) == len(b)
+    return a, b, read_stream(a)
+
+
+def _fields(data):
+    """header_size, num_records, records_per_block straight from the fixed header (FORMAT.md 2.1)."""
+    return (
+        int.from_bytes(data[12:16], "little"),
+        int.from_bytes(data[16:20], "little"),
+        int.from_bytes(data[26:28], "little"),
+    )
+
+
+def _count(data, k):
+    """FORMAT.md 6, count_for_bytes(k), written out from the document."""
+    hs, n, b = _fields(data)
+    if k < hs:
+        return 0
+    u, s = k - hs, b * R + 4
+    return min(n, (u // s) * b + min((u % s) // R, b))
+
+
+class _Handler(BaseHTTPRequestHandler):
+    protocol_version = "HTTP/1.1"
+
+    def log_message(self, *args):
+        pass
+
+    def do_GET(self):
+        srv = self.server
+        srv.count += 1
+        srv.ranges.append(self.headers.get("Range"))
+        srv.answer(self, srv.count)
+
+
+class _Quiet(ThreadingHTTPServer):
+    daemon_threads = True
+
+    def handle_error(self, request, client_address):
+        pass
+
+
+@pytest.fixture
+def server():
+    made = []
+
+    def start(answer):
+        httpd = _Quiet(("127.0.0.1", 0), _Handler)
+        httpd.answer, httpd.count, httpd.ranges = answer, 0, []
+        threading.Thread(target=httpd.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True).start()
+        made.append(httpd)
+        return httpd, f"http://127.0.0.1:{httpd.server_address[1]}/s.pavs"
+
+    yield start
+    for httpd in made:
+        httpd.shutdown()
+        httpd.server_close()
+
+
+def _reply(h, status, body=b"", headers=(), length=None):
+    h.send_response(status)
+    for k, v in headers:
+        h.send_header(k, v)
+    h.send_header("Content-Length", str(len(body) if length is None else length))
+    h.end_headers()
+    h.wfile.write(body)
+
+
+def _asked(h, size):
+    m = re.match(r"bytes=(\d+)-(\d*)", h.headers.get("Range") or "")
+    assert m, "every request of these tests is a range request"
+    first = int(m.group(1))
+    last = min(int(m.group(2)) if m.group(2) else size - 1, size - 1)
+    return first, last
+
+
+def _honest(data, headers=()):
+    def answer(h, n):
+        if not data or _asked(h, len(data))[0] >= len(data):
+            return _reply(h, 416, headers=[("Content-Range", f"bytes */{len(data)}"), *headers])
+        s, e = _asked(h, len(data))
+        _reply(h, 206, data[s : e + 1], [("Content-Range", f"bytes {s}-{e}/{len(data)}"), *headers])
+
+    return answer
+
+
+# -- Content-Range validation ----------------------------------------------------------------------
+
+
+def test_a_range_starting_elsewhere_than_asked_is_refused(streams, server):
+    """a 206 whose Content-Range starts 10 bytes after the requested start (its body the
+    file's bytes from there) must not be fed as if it started where asked."""
+    a = streams[0]
+
+    def answer(h, n):
+        s, e = _asked(h, len(a))
+        if n > 1:
+            s, e = s + 10, min(e + 10, len(a) - 1)
+        _reply(h, 206, a[s : e + 1], [("Content-Range", f"bytes {s}-{e}/{len(a)}")])
+
+    httpd, url = server(answer)
+    res = H.fetch_stream(url, chunk_size=1000, timeout=2, min_rate=None)
+    assert res.status == H.HTTP_ERROR and "unexpected Content-Range" in res.message, str(res)
+    assert res.requests == 2 and res.bytes_received == 1000
+
+
+def test_a_range_ending_at_the_size_is_past_the_end(streams, server):
+    """the last byte of a file of `size` bytes is size - 1: `bytes s-size/size` is invalid."""
+    a = streams[0]
+
+    def answer(h, n):
+        s, e = _asked(h, len(a))
+        if n == 1:
+            return _reply(h, 206, a[s : e + 1], [("Content-Range", f"bytes {s}-{e}/{len(a)}")])
+        _reply(h, 206, a[s:] + b"\0", [("Content-Range", f"bytes {s}-{len(a)}/{len(a)}")])
+
+    _, url = server(answer)
+    res = H.fetch_stream(url, chunk_size=1000, timeout=2, min_rate=None)
+    assert res.status == H.HTTP_ERROR and "unexpected Content-Range" in res.message, str(res)
+    assert res.requests == 2 and res.bytes_received == 1000
+
+
+def test_a_range_body_one_byte_short_is_a_cut(streams, server):
+    """a 206 body that ends one byte before its Content-Range says is a cut connection."""
+    a = streams[0]
+
+    def answer(h, n):
+        s, e = _asked(h, len(a))
+        body = a[s:e]  # one byte short of s..e, and the Content-Length says so
+        _reply(h, 206, body, [("Content-Range", f"bytes {s}-{e}/{len(a)}")])
+        h.close_connection = True
+
+    httpd, url = server(answer)
+    res = H.fetch_stream(url, chunk_size=1000, timeout=2, min_rate=None)
+    assert res.status == H.CUT and "ended after 999 of 1000 bytes" in res.message, str(res)
+    assert res.requests == httpd.count == 1 and res.bytes_received == 999
+
+
+def test_more_than_asked_is_not_fed_past_the_budget(streams, server):
+    """a server rounding every range up to 4 KiB blocks (some CDNs do): a byte budget holds."""
+    a, _, full = streams
+
+    def answer(h, n):
+        s, _ = _asked(h, len(a))
+        e = min((s // 4096 + 1) * 4096, len(a)) - 1
+        _reply(h, 206, a[s : e + 1], [("Content-Range", f"bytes {s}-{e}/{len(a)}")])
+
+    _, url = server(answer)
+    res = H.fetch_stream(url, chunk_size=700, read_size=256, timeout=2, max_bytes=1500, min_rate=None)
+    assert res.status == H.BUDGET and res.bytes_received == 1500, str(res)
+    n = _count(a, 1500)
+    assert n == 2 * RPB + (1500 - 530 - 2 * (RPB * R + 4)) // R == 41  # header 530 B, two whole blocks, 9 more
+    assert res.num_gaussians == n
+    assert_prefix(res.avatar(), full, n)
+
+
+# -- sizes and 416 ---------------------------------------------------------------------------------
+
+
+def test_an_empty_file_is_truncated_not_an_http_error(server):
+    """an honest server's 416 for an empty file (Content-Range `bytes */0`) at the first
+    request: the file ends inside the stream's header."""
+    httpd, url = server(_honest(b""))
+    res = H.fetch_stream(url, timeout=2, min_rate=None)
+    assert res.status == H.TRUNCATED, str(res)
+    assert "ends after 0 bytes, inside the stream's header" in res.message, res.message
+    assert res.http_status == 416 and res.requests == 1 and res.bytes_received == 0
+
+
+def test_a_file_replaced_by_one_of_another_size_is_changed(streams, server):
+    """without ETag or Last-Modified, the Content-Range size is the one sign of a replaced
+    file; a file that grew 16 bytes after the first request must not be stitched on."""
+    a, _, full = streams
+    grown = a + bytes(16)
+
+    def answer(h, n):
+        _honest(a if n == 1 else grown)(h, n)
+
+    _, url = server(answer)
+    res = H.fetch_stream(url, chunk_size=4000, timeout=2, min_rate=None)
+    assert res.status == H.CHANGED, str(res)
+    assert f"size {len(a)} -> {len(a) + 16}" in res.message, res.message
+    assert res.bytes_received == 4000 and res.keepable_gaussians == 0
+
+
+# -- redirects -------------------------------------------------------------------------------------
+
+
+def test_max_redirects_allows_exactly_that_many(streams, server):
+    """two redirects are fine with max_redirects=2 and one too many with max_redirects=1."""
+    a, _, full = streams
+
+    def answer(h, n):
+        if h.path == "/s.pavs":
+            return _reply(h, 302, headers=[("Location", "/hop.pavs")])
+        if h.path == "/hop.pavs":
+            return _reply(h, 302, headers=[("Location", "/real.pavs")])
+        _honest(a)(h, n)
+
+    _, url = server(answer)
+    res = H.fetch_stream(url, timeout=2, max_redirects=2, min_rate=None)
+    assert res.status == H.COMPLETE, str(res)
+    assert_prefix(res.avatar(), full, full.num_gaussians)
+    res = H.fetch_stream(url, timeout=2, max_redirects=1, min_rate=None)
+    assert res.status == H.HTTP_ERROR and "too many redirects" in res.message, str(res)
+    res = H.fetch_stream(url.replace("/s.pavs", "/real.pavs"), timeout=2, max_redirects=0, min_rate=None)
+    assert res.status == H.COMPLETE, str(res)
+
+
+# -- validators --------------------------------------------------------------------------------------
+
+
+def test_resume_with_a_last_modified_validator_rechecks_the_header(streams, server):
+    """Last-Modified has one-second resolution, so a file replaced within the same second
+    keeps it and If-Range still matches: a resume with it must re-read the header CRC."""
+    a, b, full_a = streams
+    stamp = "Mon, 23 Nov 2026 04:00:07 GMT"
+
+    def serving(data):
+        def answer(h, n):
+            if h.headers.get("If-Range") not in (None, stamp):
+                return _reply(h, 200, data, [("Last-Modified", stamp)])
+            _honest(data, headers=[("Last-Modified", stamp)])(h, n)
+
+        return answer
+
+    _, url_a = server(serving(a))
+    first = H.fetch_stream(url_a, percent=40, timeout=2, min_rate=None)
+    assert first.status == H.BUDGET and first.validator == stamp, str(first)
+    held = first.num_gaussians
+    _, url_b = server(serving(b))
+    res = H.fetch_stream(url_b, reader=first.reader, validator=first.validator, timeout=2, min_rate=None)
+    assert res.status == H.CHANGED and "header CRC differs" in res.message, str(res)
+    assert res.num_gaussians == held
+    assert_prefix(res.avatar(), full_a, held)
+
+
+# -- percent budget before the header --------------------------------------------------------------
+
+
+def test_percent_budget_takes_two_requests(streams, server):
+    """the fixed part gives the stream's size (FORMAT.md 6: H + N*R + 4*ceil(N/B), the last,
+    partial block has its CRC too): the second request then ends exactly at the budget."""
+    a, _, full = streams
+    hs, n, b = _fields(a)
+    assert n % b and hs + n * R + 4 * (-(-n // b)) == len(a)  # a partial last block
+    httpd, url = server(_honest(a))
+    res = H.fetch_stream(url, timeout=2, percent=99, min_rate=None)
+    want = 99 * len(a) // 100
+    assert res.status == H.BUDGET and res.bytes_received == want, str(res)
+    assert res.requests == 2 and httpd.ranges == ["bytes=0-63", f"bytes=64-{want - 1}"], httpd.ranges
+
+
+# -- minimum rate ----------------------------------------------------------------------------------
+
+
+def test_min_rate_is_bytes_per_second_not_per_window(streams, server):
+    """about 20 KB/s against min_rate=6000 bytes/s over 0.25 s windows is fast enough (each
+    window brings ~5 KB, above 6000 * 0.25 = 1500 bytes; per window, not per second, it would be too slow)."""
+    a, _, full = streams
+
+    def answer(h, n):
+        s, e = _asked(h, len(a))
+        body = a[s : e + 1]
+        h.send_response(206)
+        h.send_header("Content-Range", f"bytes {s}-{e}/{len(a)}")
+        h.send_header("Content-Length", str(len(body)))
+        h.end_headers()
+        try:
+            for i in range(0, len(body), 1000):
+                h.wfile.write(body[i : i + 1000])
+                h.wfile.flush()
+                time.sleep(0.05)
+        except OSError:
+            pass
+
+    _, url = server(answer)
+    res = H.fetch_stream(url, chunk_size=1 << 20, timeout=2, min_rate=6000, rate_window=0.25)
+    assert res.status == H.COMPLETE, str(res)
+    assert_prefix(res.avatar(), full, full.num_gaussians)

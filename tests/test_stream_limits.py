@@ -27,6 +27,9 @@ from progressive_avatars.core.stream.format import StreamError, StreamInfo, read
 from progressive_avatars.core.stream.reader import read_stream
 from progressive_avatars.core.stream.writer import build_stream, encode_stream, write_stream
 from tests.test_stream import make_avatar
+from progressive_avatars.core.stream.reader import StreamReader
+import math
+import os
 
 # The documented caps (FORMAT.md 2.1, 2.3): template faces and coarse triangles, levels (int8).
 MAX_ROOT_FACES = 1 << 24
@@ -337,3 +340,223 @@ def test_zlib_tables_must_be_complete_and_fill_their_bytes(tmp_path):
         p.write_bytes(F._encode_header(info, t, b"", c))
         with pytest.raises(StreamError, match=re.escape(f"{p}: {what}")):
             read_stream(p)
+
+
+R = 23
+
+
+def _crc8(data: bytes) -> int:
+    """CRC-8/SMBUS (FORMAT.md 5): poly 0x07, init 0, no reflection, xorout 0."""
+    c = 0
+    for byte in data:
+        c ^= byte
+        for _ in range(8):
+            c = ((c << 1) ^ 0x07) & 0xFF if c & 0x80 else (c << 1) & 0xFF
+    return c
+
+
+assert _crc8(b"123456789") == 0xF4  # the check value FORMAT.md 5 gives
+
+
+def _layout(data):
+    """(version, header_size, N, B, level_counts) from the fixed header (FORMAT.md 2.1)."""
+    version = struct.unpack_from("<H", data, 8)[0]
+    hs, n = struct.unpack_from("<II", data, 12)
+    b, levels = struct.unpack_from("<HH", data, 26)
+    fixed = {3: 60, 4: 64, 5: 64}[version]
+    counts = list(struct.unpack_from(f"<{levels}I", data, fixed))
+    return version, hs, n, b, counts
+
+
+def _offset(data, i):
+    _, hs, _, b, _ = _layout(data)
+    return hs + i * R + 4 * (i // b)
+
+
+def patch(data, i, edit):
+    """`data` with record i's bytes [0, 22) changed by edit(bytearray), its CRC-8 and its block's
+    CRC-32 recomputed (FORMAT.md 4: CRC-32 of u32(header_crc) || u32(block) || record bytes)."""
+    version, hs, n, b, _ = _layout(data)
+    out = bytearray(data)
+    blk = i // b
+    start = hs + blk * (b * R + 4)
+    nrec = min(b, n - blk * b)
+    hcrc = out[hs - 4 : hs]
+
+    def block_crc():
+        return struct.pack(
+            "<I", zlib.crc32(bytes(hcrc) + struct.pack("<I", blk) + bytes(out[start : start + nrec * R]))
+        )
+
+    assert block_crc() == out[start + nrec * R : start + nrec * R + 4]  # the helper agrees with the writer
+    o = _offset(data, i)
+    rec = bytearray(out[o : o + 22])
+    edit(rec)
+    out[o : o + 22] = rec
+    out[o + 22] = _crc8((struct.pack("<I", i) if version >= 3 else b"") + bytes(rec))
+    out[start + nrec * R : start + nrec * R + 4] = block_crc()
+    return bytes(out)
+
+
+def set_betas(b0, b1):
+    def edit(rec):
+        geo = int.from_bytes(rec[0:8], "little")
+        geo &= ~((0xFFF << 36) | (0xFFF << 48))
+        geo |= (b0 << 36) | (b1 << 48)
+        rec[0:8] = geo.to_bytes(8, "little")
+
+    return edit
+
+
+@pytest.fixture(scope="module")
+def plain():
+    """A stream without coarse levels (K = 0), written as version 5 and version 4."""
+    _, av, imp = make_avatar(11, n_lat=5, n_lon=7)
+    return {v: encode_stream(av, imp, records_per_block=16, version=v) for v in (4, 5)}
+
+
+@pytest.mark.parametrize("version", [4, 5])
+def test_split_codes_summing_to_4096_are_refused(plain, version):
+    """r2 (and its version 5 twin): beta0 + beta1 <= 4095 (FORMAT.md 3.1); 4096 leaves beta2 = -1."""
+    data = plain[version]
+    assert _layout(data)[0] == version
+    i = _layout(data)[2] - 5  # a deep record near the end
+    read_stream(data)  # untouched: fine
+    for b0, b1 in ((4095, 1), (1, 4095), (2048, 2048)):
+        with pytest.raises(StreamError, match=f"record {i} "):
+            read_stream(patch(data, i, set_betas(b0, b1)))
+    read_stream(patch(data, i, set_betas(4095, 0)))  # exactly 4095: accepted
+    read_stream(patch(data, i, set_betas(2048, 2047)))
+
+
+def test_a_parent_in_the_childs_own_level_is_refused_in_version_4(plain):
+    """before version 5 a non-root's parent lies in the previous level's index range
+    [starts[l-1], starts[l]) (FORMAT.md 3); the first record of the child's own level, index
+    starts[l], is one past it."""
+    data = plain[4]
+    _, _, n, _, counts = _layout(data)
+    assert len(counts) >= 3
+    s2 = counts[0] + counts[1]  # first record of level 2
+    j = s2 + 1
+
+    def edit(rec):
+        rec[12:15] = s2.to_bytes(3, "little")  # parent = s2 (keeps the slot)
+
+    bad = patch(data, j, edit)
+    with pytest.raises(StreamError, match=f"record {j} "):
+        read_stream(bad)
+    # A prefix ending just after it: not a shorter result, an error (FORMAT.md 4, rule 3).
+    r = StreamReader()
+    with pytest.raises(StreamError, match=f"record {j} "):
+        r.feed(bad[: _offset(bad, j) + R])
+    # The last record of the previous level, index s2 - 1, is a valid parent (a free slot of a
+    # level-1 record: no other rule refuses it).
+    used = set()
+    for k in range(s2, s2 + counts[2]):
+        o = _offset(data, k)
+        used.add(
+            (int.from_bytes(data[o + 12 : o + 15], "little"), (int.from_bytes(data[o : o + 8], "little") >> 60) & 3)
+        )
+    p, s = next((p, s) for p in range(s2 - 1, counts[0] - 1, -1) for s in range(3) if (p, s) not in used)
+    assert p >= counts[0]
+
+    def edit_ok(rec):
+        rec[12:15] = p.to_bytes(3, "little")
+        geo = int.from_bytes(rec[0:8], "little") & ~(3 << 60) | (s << 60)
+        rec[0:8] = geo.to_bytes(8, "little")
+
+    out = read_stream(patch(data, j, edit_ok))
+    assert out.num_gaussians == n
+
+
+f32 = np.float32
+
+
+def _record_split(avatar, i):
+    return avatar.forest.split_logits[avatar.forest.stream_order()[i]]
+
+
+@pytest.mark.parametrize("version", [4, 5])
+def test_split_code_zero_uses_the_2_pow_minus_20_floor(version):
+    """a zero barycentric code decodes as f32(ln(2^-20 / 4095)) (FORMAT.md 3.1), about -22.18."""
+    _, av, imp = make_avatar(11, n_lat=5, n_lon=7)
+    data = encode_stream(av, imp, records_per_block=16, version=version)
+    i = _layout(data)[2] - 3
+    floor = f32(math.log(2.0**-20 / 4095.0))
+    assert -22.19 < floor < -22.17
+    out = read_stream(patch(data, i, set_betas(4095, 0)))  # beta = (4095, 0, 0)
+    assert _record_split(out, i).tobytes() == np.array([0.0, floor, floor], f32).tobytes()
+    out = read_stream(patch(data, i, set_betas(0, 1365)))  # beta = (0, 1365, 2730)
+    want = [floor, f32(math.log(1365 / 4095)), f32(math.log(2730 / 4095))]
+    assert _record_split(out, i).tobytes() == np.array(want, f32).tobytes()
+
+
+V1 = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tests", "data", "stream_v1.pavs")
+
+
+def _v1_offset(data, i):
+    hs, _ = struct.unpack_from("<II", data, 12)
+    b = struct.unpack_from("<H", data, 26)[0]
+    return hs + i * 23 + 4 * (i // b)
+
+
+def _v1_patch(data, i, rot):
+    """Version 1 (FORMAT.md 7; the CRC-8 covers the record's own bytes): record i's u32 rot set."""
+
+    hs, n = struct.unpack_from("<II", data, 12)
+    b = struct.unpack_from("<H", data, 26)[0]
+    out = bytearray(data)
+    o = _v1_offset(data, i)
+    out[o + 8 : o + 12] = struct.pack("<I", rot)
+    out[o + 22] = _crc8(bytes(out[o : o + 22]))
+    blk = i // b
+    start = hs + blk * (b * 23 + 4)
+    nrec = min(b, n - blk * b)
+    end = start + nrec * 23
+    old = zlib.crc32(bytes(data[hs - 4 : hs]) + struct.pack("<I", blk) + bytes(data[start:end]))
+    assert struct.pack("<I", old) == data[end : end + 4]  # the block CRC rule holds for version 1 too
+    out[end : end + 4] = struct.pack(
+        "<I", zlib.crc32(bytes(out[hs - 4 : hs]) + struct.pack("<I", blk) + bytes(out[start:end]))
+    )
+    return bytes(out)
+
+
+def _v1_component(code):
+    lo32, step32 = f32(-1 / math.sqrt(2.0)), f32(math.sqrt(2.0) / 1023.0)
+    return f32(lo32 + f32(f32(code) * step32))
+
+
+@pytest.mark.parametrize("m", [0, 1, 2, 3])
+def test_version_1_rotation_whose_three_smallest_overflow_the_unit_norm(m):
+    """three components coded 1023 (each +1/sqrt(2)): 1 - (v0^2 + v1^2 + v2^2) < 0, and the
+    largest is sqrt(max(., 0)) = 0 (FORMAT.md 7), never NaN."""
+    data = open(V1, "rb").read()
+    assert struct.unpack_from("<H", data, 8)[0] == 1
+    i = 300
+    v = _v1_component(1023)
+    s = f32(f32(f32(v * v) + f32(v * v)) + f32(v * v))
+    assert f32(f32(1) - s) < 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a sqrt of a negative number warns: none may happen
+        out = read_stream(_v1_patch(data, i, 1023 | 1023 << 10 | 1023 << 20 | m << 30))
+    q = out.d_rot[out.forest.stream_order()[i]]
+    want = [v, v, v]
+    want.insert(m, f32(0))
+    assert q.tobytes() == np.array(want, f32).tobytes()
+
+
+@pytest.mark.parametrize("m", [0, 1, 2, 3])
+def test_version_1_largest_index_is_the_top_two_bits(m):
+    """bits 30-31 of rot name the largest component; bit 29 (the top bit of the third code)
+    is not part of it. Codes (0, 511, 1023): v = -1/sqrt(2) + q*sqrt(2)/1023."""
+    data = open(V1, "rb").read()
+    i = 301
+    codes = (0, 511, 1023)
+    out = read_stream(_v1_patch(data, i, codes[0] | codes[1] << 10 | codes[2] << 20 | m << 30))
+    q = out.d_rot[out.forest.stream_order()[i]]
+    v = [_v1_component(c) for c in codes]
+    s = f32(f32(f32(v[0] * v[0]) + f32(v[1] * v[1])) + f32(v[2] * v[2]))
+    w = np.sqrt(max(f32(f32(1) - s), f32(0)))
+    want = v[:]
+    want.insert(m, w)
+    assert q.tobytes() == np.array(want, f32).tobytes()
