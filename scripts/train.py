@@ -217,7 +217,7 @@ def _train(args, cfg, dist, t0):
 
     from progressive_avatars.core.io.atomic import os_error_text
     from progressive_avatars.core.train.distributed import run_lock
-    from progressive_avatars.core.train.trainer import Trainer, kept_text
+    from progressive_avatars.core.train.trainer import Trainer, kept_text, raised_from
 
     who = f"rank {dist.rank}: " if dist.world_size > 1 else ""
     if dist.world_size > 1:
@@ -269,14 +269,12 @@ def _train(args, cfg, dist, t0):
         except RuntimeError as exc:  # a rank died or hung (gloo), or the ranks' state diverged
             print(f"error: {who}{_lost_peer(exc, args.out, trainer.checkpoint_iteration) or exc}", file=sys.stderr)
             return 4
-        except KeyboardInterrupt:
-            kept = kept_text(args.out, trainer.checkpoint_iteration, dist.world_size > 1)
-            print(f"\nstopped (Ctrl-C) at iteration {trainer.iteration}; {kept}", file=sys.stderr)
-            return 130
         except Exception as exc:
-            # The handler's _Stopped raised while a compiled kernel ran reaches us wrapped
-            # (SystemError: "returned a result with an exception set", _Stopped as its context).
-            if not _is_stop(exc):
+            # Ctrl-C, or the handler's _Stopped, while a compiled kernel ran reaches us wrapped
+            # (SystemError: "returned a result with an exception set", the signal's as its context).
+            if raised_from(exc, KeyboardInterrupt):
+                return _stopped_by_ctrl_c(args, trainer, dist)
+            if not raised_from(exc, _Stopped):
                 raise
             kept = kept_text(args.out, trainer.checkpoint_iteration, True)
             print(
@@ -286,12 +284,23 @@ def _train(args, cfg, dist, t0):
                 file=sys.stderr,
             )
             return 143
-    summary["peak_rss_mb"] = _peak_rss_mb()
+        except KeyboardInterrupt:
+            return _stopped_by_ctrl_c(args, trainer, dist)
+        summary["peak_rss_mb"] = _peak_rss_mb()
+        if dist.is_main:
+            resources.write(summary["iterations"])  # under the run's lock, as everything written to RUN
     if not dist.is_main:
         return 0
-    resources.write(summary["iterations"])
     print(json.dumps(summary))
     return 0
+
+
+def _stopped_by_ctrl_c(args, trainer, dist) -> int:
+    from progressive_avatars.core.train.trainer import kept_text
+
+    kept = kept_text(args.out, trainer.checkpoint_iteration, dist.world_size > 1)
+    print(f"\nstopped (Ctrl-C) at iteration {trainer.iteration}; {kept}", file=sys.stderr)
+    return 130
 
 
 class _Stopped(Exception):
@@ -300,17 +309,6 @@ class _Stopped(Exception):
 
 def _stopped_by_launcher(signum, frame):
     raise _Stopped()
-
-
-def _is_stop(exc: BaseException) -> bool:
-    """Whether ``exc`` is _Stopped or was raised while handling one (its cause or context chain)."""
-    seen = set()
-    while exc is not None and id(exc) not in seen:
-        if isinstance(exc, _Stopped):
-            return True
-        seen.add(id(exc))
-        exc = exc.__cause__ or exc.__context__
-    return False
 
 
 def _lost_peer(exc: RuntimeError, out: str, checkpoint: int | None = None) -> str | None:

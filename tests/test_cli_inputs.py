@@ -332,3 +332,41 @@ def test_render_job_writes_its_image_atomically(tmp_path, monkeypatch):
     with pytest.raises(OSError):
         render_job(str(job), out)
     assert _intact(out, before)
+
+
+def test_evaluation_scores_the_stream_it_wrote_when_another_process_replaces_it(tiny_run, tmp_path, monkeypatch):
+    """evaluate.py wrote RUN/avatar.pavs and read it back: an export or another evaluation of the
+    same run replacing the file in between (run at once on one run) made the report describe the
+    other stream (its size, template embedded or not) under this one's options."""
+    import contextlib
+
+    from progressive_avatars.core.evaluate.report import ReportOptions, build_report
+    from progressive_avatars.core.io import atomic
+    from progressive_avatars.core.stream import writer
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    real = atomic.atomic_open
+
+    @contextlib.contextmanager
+    def and_then_an_export(path, *a, **k):
+        with real(path, *a, **k) as fh:
+            yield fh
+        if os.path.basename(path) == "avatar.pavs":  # another process's export lands right after
+            with open(path, "ab") as out:
+                out.write(b"\0" * 5000)
+
+    monkeypatch.setattr(atomic, "atomic_open", and_then_an_export)
+    monkeypatch.setattr(writer, "atomic_open", and_then_an_export)
+    opts = ReportOptions(
+        run=str(run),
+        out=str(tmp_path / "report"),
+        budgets=(100,),
+        strips=(100,),
+        views=1,
+        curve_points=4,
+        curve_views=1,
+        progress=False,
+    )
+    report = build_report(opts)
+    assert report["stream_bytes"] == os.path.getsize(run / "avatar.pavs") - 5000  # its own bytes, not the file's

@@ -370,6 +370,7 @@ def test_importance_cache_keyed_on_max_views(tiny_run, tiny_dataset, tmp_path, m
         if (run / n).exists():
             os.remove(run / n)
     av = runs.load_run_avatar(str(run))
+    shutil.copy2(run / "avatar.npz", tmp_path / "run_first_avatar.npz")
     calls = []
     real = importance.face_importance
     monkeypatch.setattr(importance, "face_importance", lambda *a, **k: calls.append(k["max_views"]) or real(*a, **k))
@@ -396,8 +397,19 @@ def test_importance_cache_keyed_on_max_views(tiny_run, tiny_dataset, tmp_path, m
     old = os.path.getmtime(run / "importance.npz") - 100
     os.utime(other, (old, old))
     shutil.copy2(other, run / "avatar.npz")
+    av2 = runs.load_run_avatar(str(run))  # (as every caller: the avatar of the file's bytes)
     w_other = runs.run_importance(str(run), av2, tiny_dataset, max_views=None, progress=False)
     assert calls == [None] and not np.array_equal(w_other, w_all)
+    # A training replacing avatar.npz while an evaluation measures the avatar it loaded before: the
+    # cache is filed under the loaded avatar's hash, not the new file's (whose next reader would
+    # get the old avatar's ranking).
+    calls.clear()
+    shutil.copy2(tmp_path / "run_first_avatar.npz", run / "avatar.npz")
+    w_race = runs.run_importance(str(run), av2, tiny_dataset, max_views=2, progress=False)
+    av1 = runs.load_run_avatar(str(run))
+    w_first = runs.run_importance(str(run), av1, tiny_dataset, max_views=2, progress=False)
+    assert calls == [2, 2] and not np.array_equal(w_race, w_first)
+    np.testing.assert_array_equal(w_first, w2)
     # The training split edited in place (frames dropped): measured again as well.
     data = tmp_path / "data"
     shutil.copytree(tiny_dataset, data)
@@ -675,3 +687,40 @@ def test_atomic_writes_by_hand(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="PIL can write"):
         atomic.atomic_save_image(Image.new("RGB", (2, 2)), tmp_path / "x.psd")
     assert not (tmp_path / "x.psd").exists()
+
+
+def test_export_and_evaluation_say_when_the_run_is_being_trained(tiny_run, tmp_path, capsys):
+    """During a run's first training, export/evaluate said "train with scripts/train.py first";
+    during a --resume they used the older avatar.npz without a word."""
+    from progressive_avatars.core.io import run as runs
+    from progressive_avatars.core.train.distributed import run_lock
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    fresh = tmp_path / "fresh"
+    fresh.mkdir()
+    code = (
+        "import sys, time\n"
+        "from progressive_avatars.core.train.distributed import run_lock\n"
+        "with run_lock(sys.argv[1]), run_lock(sys.argv[2]):\n"
+        "    print('locked', flush=True)\n"
+        "    time.sleep(60)\n"
+    )
+    p = subprocess.Popen([sys.executable, "-c", code, str(run), str(fresh)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert p.stdout.readline().strip() == "locked"
+        runs.load_run_avatar(str(run))
+        assert f"note: {run} is being trained (pid {p.pid} on " in capsys.readouterr().err
+        with pytest.raises(
+            FileNotFoundError, match=rf"no trained avatar yet: this run is being trained \(pid {p.pid} "
+        ):
+            runs.load_run_avatar(str(fresh))
+    finally:
+        p.kill()
+        p.wait()
+    runs.load_run_avatar(str(run))  # no training: no note; this process's own lock is not another's
+    with run_lock(str(run)):
+        runs.load_run_avatar(str(run))
+    assert "being trained" not in capsys.readouterr().err
+    with pytest.raises(FileNotFoundError, match="train with scripts/train.py first"):
+        runs.load_run_avatar(str(fresh))

@@ -1577,3 +1577,70 @@ def _roots_template_faces(run):
     template = len(ckpt["forest_template_faces"])
     roots = template + len(ckpt["forest_coarse_faces"])
     return roots, template, len(ckpt["forest_parent"])
+
+
+def test_ctrl_c_inside_a_compiled_kernel_stops_with_one_line(tiny_dataset, tmp_path, capsys, monkeypatch):
+    """Ctrl-C while numba ran a kernel reached train.py (and Blender's Train job) as a SystemError
+    with the KeyboardInterrupt as its context: a traceback instead of the "stopped (Ctrl-C)" line."""
+    import runpy
+
+    from progressive_avatars.core.train import jobs
+    from progressive_avatars.core.train.trainer import raised_from
+
+    def wrapped(*a, **k):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            raise SystemError("CPUDispatcher(<function raster_forward>) returned a result with an exception set")
+
+    try:
+        wrapped()
+    except SystemError as exc:
+        assert raised_from(exc, KeyboardInterrupt) and not raised_from(exc, FloatingPointError)
+    saved = list(sys.path)
+    train_main = runpy.run_path(os.path.join(ROOT, "scripts", "train.py"), run_name="train_script")["main"]
+    sys.path[:] = saved
+    monkeypatch.setattr(Trainer, "run", wrapped)
+    args = ["--data", tiny_dataset, "--preset", "tiny"]
+    assert train_main(args + ["--out", str(tmp_path / "a"), "--no-progress"]) == 130
+    err = capsys.readouterr().err
+    assert "stopped (Ctrl-C) at iteration 0; no checkpoint was written yet" in err and "Traceback" not in err
+    assert jobs.main(["train", *args, "--out", str(tmp_path / "b")]) == 130
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        "error: stopped; training stopped, no checkpoint was written yet"
+    )
+    # Other errors still surface as they are.
+    monkeypatch.setattr(Trainer, "run", lambda *a, **k: (_ for _ in ()).throw(SystemError("a real bug")))
+    with pytest.raises(SystemError, match="a real bug"):
+        jobs.main(["train", *args, "--out", str(tmp_path / "c")])
+
+
+def test_blender_train_job_exports_under_the_run_lock(tiny_dataset, tiny_run, tmp_path, monkeypatch):
+    """The Train job let go of RUN/.train.lock before its export: an Overwrite Run started then
+    emptied the folder under it and was left with this avatar's stream."""
+    import shutil
+
+    from progressive_avatars.core.io import run as runs
+    from progressive_avatars.core.train import jobs
+    from progressive_avatars.core.train.distributed import run_lock
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    for name in ("avatar.pavs", ".train.lock"):
+        if (run / name).exists():
+            os.remove(run / name)
+    seen = []
+    real = runs.run_importance
+
+    def importance(*a, **k):
+        try:
+            with run_lock(str(run)):
+                seen.append("free")
+        except RuntimeError as exc:
+            seen.append(str(exc))
+        return real(*a, **k)
+
+    monkeypatch.setattr(runs, "run_importance", importance)
+    assert jobs.main(["train", "--data", tiny_dataset, "--out", str(run), "--preset", "tiny", "--resume"]) == 0
+    assert len(seen) == 1 and "is being trained by another process" in seen[0]
+    assert (run / "avatar.pavs").exists()

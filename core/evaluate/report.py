@@ -25,7 +25,7 @@ from ..io import run as runs
 from ..io.safe_io import file_digest
 from ..stream.order import ROOT_ORDERS, root_keys, stream_order
 from ..stream.reader import read_stream
-from ..stream.writer import write_stream
+from ..stream.writer import build_stream, write_stream
 from ..train.policies import RESUMABLE
 from . import plots
 from .sweep import SplitRenderer, importance_only, random_within_levels
@@ -221,9 +221,8 @@ def _run_stream(run, data, progress, nvs_split):
 
     avatar = runs.load_run_avatar(run)
     W = runs.run_importance(run, avatar, data, progress=progress)
-    path = os.path.join(run, "avatar.pavs")
-    info = write_stream(
-        path,
+    raw, info = _write_stream_of_run(
+        os.path.join(run, "avatar.pavs"),
         avatar,
         W,
         quantize=True,
@@ -231,7 +230,19 @@ def _run_stream(run, data, progress, nvs_split):
         drop_sh=True,
         vertices=nvs_split.canonical_vertices,
     )
-    return read_stream(path), info
+    return read_stream(raw), info
+
+
+def _write_stream_of_run(path: str, avatar, W, **kwargs):
+    """(stream bytes, StreamInfo), the bytes also written to ``path`` (a run's avatar.pavs): what
+    the report scores and measures is these bytes, not the file read back, which an export or
+    another evaluation of the same run may have replaced in between."""
+    from ..io.atomic import atomic_open
+
+    raw, info = build_stream(avatar, W, **kwargs)
+    with atomic_open(path) as fh:
+        fh.write(raw)
+    return raw, info
 
 
 # What says how a run was trained, not only how long, logged or batched (the iterations have
@@ -566,7 +577,7 @@ def build_report(args: ReportOptions) -> dict:
             file=sys.stderr,
         )
     rest = splits["nvs"].canonical_vertices  # spread-out root order (core/avatar/coarse.py)
-    info = write_stream(
+    stream_bytes, info = _write_stream_of_run(
         stream_path,
         avatar,
         W,
@@ -581,10 +592,10 @@ def build_report(args: ReportOptions) -> dict:
     try:  # the scratch folder goes on every exit path (an error, Ctrl-C), not only on success
         lossless_path = os.path.join(scratch, "lossless.pavs")  # only to measure what quantisation costs
         write_stream(lossless_path, avatar, W, quantize=False, drop_sh=True, vertices=rest, root_order=args.root_order)
-        streamed = read_stream(stream_path, template_faces=splits["nvs"].faces)
+        streamed = read_stream(stream_bytes, template_faces=splits["nvs"].faces)
         exact = read_stream(lossless_path)
         order = info.order
-        total_bytes = os.path.getsize(stream_path)
+        total_bytes = len(stream_bytes)
 
         rend = {k: SplitRenderer(streamed, ds, args.views) for k, ds in splits.items()}
         report = {

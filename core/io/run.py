@@ -20,10 +20,49 @@ from .safe_io import file_digest
 
 
 def load_run_avatar(run: str) -> Avatar:
+    """RUN/avatar.npz, with the content hash of the bytes it was read from (``source_digest``):
+    what run_importance keys its cache on, so a training that replaces the file meanwhile cannot
+    file this avatar's importance under the new one's hash."""
     path = os.path.join(run, "avatar.npz")
+    holder = training_holder(run)
     if not os.path.exists(path):
+        if holder:
+            raise FileNotFoundError(f"{path}: no trained avatar yet: this run is being trained ({holder})")
         raise FileNotFoundError(f"{path}: no trained avatar in this run folder (train with scripts/train.py first)")
-    return Avatar.load(path)
+    for _ in range(3):
+        before = file_digest(path)
+        avatar = Avatar.load(path)
+        if file_digest(path) == before:  # (replaced between the two: read again)
+            avatar.source_digest = before
+            if holder:
+                it = avatar.meta.get("iterations")
+                print(
+                    f"note: {run} is being trained ({holder}): this uses its avatar.npz as it is now"
+                    + (f" ({it} iterations)" if isinstance(it, int) else ""),
+                    file=sys.stderr,
+                )
+            return avatar
+    raise ValueError(f"{path} changed each time it was read: a training is writing it; try again once it has finished")
+
+
+def training_holder(run: str) -> str | None:
+    """Who trains ``run`` now (the text of RUN/.train.lock while another process holds it,
+    core/train/distributed.run_lock), else None."""
+    path = os.path.join(run, ".train.lock")
+    try:
+        import fcntl
+    except ImportError:  # no flock (Windows): no lock to ask
+        return None
+    try:
+        with open(path) as fh:
+            try:
+                fcntl.flock(fh.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except OSError:
+                holder = fh.read().strip() or "another process"
+                return None if holder.startswith(f"pid {os.getpid()} ") else holder  # (this process's own)
+    except OSError:  # no lock file: never trained here
+        return None
+    return None
 
 
 def run_config(run: str) -> dict | None:
@@ -156,7 +195,7 @@ def run_importance(
         "data": os.path.abspath(data),
         "per_level": per_level,
         "weighting": weighting,
-        "avatar": file_digest(os.path.join(run, "avatar.npz")),
+        "avatar": getattr(avatar, "source_digest", None) or file_digest(os.path.join(run, "avatar.npz")),
         "train_split": file_digest(os.path.join(data, "transforms_train.json")),
         "flame_model": os.path.abspath(model) if model else None,
     }

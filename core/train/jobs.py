@@ -23,7 +23,7 @@ def _train(args) -> int:
 
     from ..io.atomic import os_error_text
     from .distributed import run_lock
-    from .trainer import RunExistsError, Trainer, config_for, kept_text
+    from .trainer import RunExistsError, Trainer, config_for, kept_text, raised_from
 
     flame = os.path.abspath(args.flame_model) if args.flame_model else None
     if flame and not os.path.isfile(flame):
@@ -61,13 +61,26 @@ def _train(args) -> int:
             return 2
         try:
             trainer.run(progress=True)
-        except (FloatingPointError, OSError, KeyboardInterrupt) as exc:
+        except (KeyboardInterrupt, Exception) as exc:
+            # Ctrl-C while a compiled kernel runs arrives wrapped (trainer.raised_from).
+            stop = raised_from(exc, KeyboardInterrupt)
+            if not (stop or isinstance(exc, (FloatingPointError, OSError))):
+                raise
             # One line, last (the add-on reports the last line): not a traceback under a progress bar.
             kept = kept_text(None, trainer.checkpoint_iteration, resume="Resume")  # short: the add-on shows 200 chars
-            what = os_error_text(exc, args.out) if isinstance(exc, OSError) else str(exc) or "stopped"
+            what = "stopped" if stop else os_error_text(exc, args.out) if isinstance(exc, OSError) else str(exc)
             stopped = "" if isinstance(exc, FloatingPointError) else "; training stopped"  # (its text says so)
             print(f"\nerror: {what}{stopped}, {kept}", file=sys.stderr)
-            return 130 if isinstance(exc, KeyboardInterrupt) else 3
+            return 130 if stop else 3
+        # The export holds the run's lock too: an Overwrite Run started meanwhile would empty the
+        # folder under it and be left with this avatar's stream.
+        return _export(args, flame)
+
+
+def _export(args, flame) -> int:
+    from ..io.atomic import os_error_text
+    from .trainer import raised_from
+
     result = os.path.join(args.out, "avatar.npz")
     if not args.no_export:
         from ..io import run as runs
@@ -84,13 +97,16 @@ def _train(args) -> int:
         except ValueError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
-        except (OSError, KeyboardInterrupt) as exc:
-            what = os_error_text(exc, args.out) if isinstance(exc, OSError) else "stopped"
+        except (KeyboardInterrupt, Exception) as exc:
+            stop = raised_from(exc, KeyboardInterrupt)  # (wrapped when a compiled kernel ran)
+            if not (stop or isinstance(exc, OSError)):
+                raise
+            what = "stopped" if stop else os_error_text(exc, args.out)
             print(
                 f"\nerror: {what}; the trained avatar (avatar.npz) is kept: tick Resume to write its stream",
                 file=sys.stderr,
             )
-            return 130 if isinstance(exc, KeyboardInterrupt) else 3
+            return 130 if stop else 3
     print(f"result: {result}", flush=True)
     return 0
 

@@ -511,6 +511,19 @@ def _check_same_data(out_dir: str, data_dir: str, state: dict) -> str | None:
     return None
 
 
+def raised_from(exc: BaseException, kind: type) -> bool:
+    """Whether ``exc`` is a ``kind`` or was raised while handling one: a signal's exception (Ctrl-C's
+    KeyboardInterrupt, torchrun's SIGTERM) raised while a compiled kernel runs reaches the caller
+    wrapped (SystemError: "returned a result with an exception set", the original as its context)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, kind):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
 def kept_text(out: str | None, checkpoint: int | None, any_processes: bool = False, resume: str = "--resume") -> str:
     """What a stopped run leaves to resume from (the end of its error line); ``out`` None
     leaves the folder out, ``resume`` names the way to continue (the add-on's Resume box)."""
