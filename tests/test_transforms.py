@@ -139,6 +139,8 @@ def test_blender_intrinsics_follow_the_sensor_fit_and_pixel_aspect():
         (600.0, 450.0, 130.0, 170.0, 240, 320),
         (450.0, 600.0, 130.0, 170.0, 240, 320),
         (300.0, 900.0, 100.0, 100.0, 320, 120),  # the height fits once the pixel aspect applies
+        # fx/fy = 3: w = 320 >= h = 240 but w < 3·h, so AUTO fits the height (in pixel widths)
+        (900.0, 300.0, 150.0, 110.0, 320, 240),
     ],
 )
 def test_blender_camera_round_trip_any_pixel_aspect(fx, fy, cx, cy, w, h):
@@ -180,22 +182,10 @@ def test_camera_from_a_scaled_blender_object_drops_the_scale():
     assert cam.fx == pytest.approx(50.0 / 36.0 * 64)
 
 
-def test_round_trip_of_tall_pixels_on_a_landscape_image():
+def test_lens_of_tall_pixels_on_a_landscape_image():
     # fx/fy = 3: w = 320 >= h = 240 but w < 3·h, so AUTO fits the height (in pixel widths).
     cam = Camera.look_at([0.2, 0.1, 0.7], [0, 0, 0], [0, 1, 0], 900.0, 300.0, 150.0, 110.0, 320, 240)
-    s = blender_camera(cam)
-    back = camera_from_blender(
-        s["matrix_world"],
-        s["lens"],
-        s["sensor_width"],
-        s["shift_x"],
-        s["shift_y"],
-        *s["resolution"],
-        sensor_fit=s["sensor_fit"],
-        pixel_aspect=s["pixel_aspect"],
-    )
-    np.testing.assert_allclose([back.fx, back.fy, back.cx, back.cy], [900.0, 300.0, 150.0, 110.0], rtol=1e-9)
-    assert s["lens"] == pytest.approx(900.0 / (3 * 240) * 36.0)
+    assert blender_camera(cam)["lens"] == pytest.approx(900.0 / (3 * 240) * 36.0)
 
 
 def test_camera_from_a_turned_and_stretched_blender_object():
