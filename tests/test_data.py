@@ -22,6 +22,8 @@ from progressive_avatars.core.io.sequences import (
 from progressive_avatars.core.flame.model import flame_forward, load_flame_model
 
 from tests.test_flame import N_EXPR, N_SHAPE, N_V, random_params, write_flame_pkl  # noqa: E402
+import math
+from progressive_avatars.core.io.validate import sees_mesh
 
 
 @pytest.fixture(scope="module")
@@ -819,3 +821,119 @@ def test_rgba_downscale_composites_before_shrinking(tmp_path):
     assert ds.images(-1)[0] is ds.images(0)[0] and ds.cached_bytes == full.nbytes + H * W * 4
     with pytest.raises(IndexError, match="frame 1 out of range"):
         ds.images(1)
+
+
+TRI = np.array([[-0.1, -0.1, -1.0], [0.1, -0.1, -1.0], [0.0, 0.1, -1.0]], np.float32)
+
+
+def write(root, frames, images=(), meta=None):
+    """A one-triangle mesh-mode dataset: ``frames`` (dicts completed with defaults), ``images``
+    {relative path: PIL image}."""
+    (root / "meshes").mkdir(parents=True, exist_ok=True)
+    (root / "images").mkdir(exist_ok=True)
+    np.savez(root / "canonical_mesh.npz", vertices=TRI, faces=np.array([[0, 1, 2]], np.int32))
+    np.savez(root / "meshes" / "00000.npz", vertices=TRI)
+    np.savez(root / "meshes" / "00001.npz", vertices=TRI * 1.1)
+    rows = []
+    for fr in frames:
+        row = {"file_path": "images/a.png", "transform_matrix": np.eye(4).tolist(), "timestep_index": 0}
+        row.update(camera_index=0, mesh_path="meshes/00000.npz")
+        row.update(fr)
+        rows.append(row)
+    for rel, im in dict(images).items():
+        im.save(root / rel)
+    (root / "transforms_train.json").write_text(json.dumps(dict(meta or {}, frames=rows)))
+    return root
+
+
+def test_camera_angle_x_is_the_horizontal_field_of_view(tmp_path):
+    # fov_x = 2 atan(0.5): fl_x = (w/2) / tan(fov_x/2) = 32 / 0.5 = 64 (not h-based 48); fl_y defaults to fl_x
+    root = write(tmp_path / "d", [{"camera_angle_x": 2 * math.atan(0.5), "w": 64, "h": 48}])
+    c = Dataset(root, "train").cameras[0]
+    assert c.fx == pytest.approx(64.0) and c.fy == pytest.approx(64.0)
+
+
+def test_principal_point_defaults_to_half_the_size_and_scales_with_downscale(tmp_path):
+    root = write(tmp_path / "d", [{"fl_x": 80.0, "fl_y": 90.0, "w": 64, "h": 48}])
+    c = Dataset(root, "train").cameras[0]
+    assert (c.cx, c.cy, c.width, c.height) == (32.0, 24.0, 64, 48)
+    c2 = Dataset(root, "train", downscale=2.0).cameras[0]
+    assert (c2.fx, c2.fy, c2.cx, c2.cy, c2.width, c2.height) == pytest.approx((40.0, 45.0, 16.0, 12.0, 32, 24))
+
+
+def test_transparent_pixels_take_the_datasets_background(tmp_path):
+    from PIL import Image
+
+    px = np.zeros((2, 3, 4), np.uint8)
+    px[:, 0] = (200, 40, 40, 255)  # opaque
+    px[:, 1] = (0, 0, 0, 0)  # transparent (black underneath, as exporters store it)
+    px[:, 2] = (100, 100, 100, 51)  # alpha 0.2
+    bg = [0.2, 0.4, 0.6]
+    root = write(tmp_path / "d", [{"fl_x": 5.0, "w": 3, "h": 2}], {"images/a.png": Image.fromarray(px, "RGBA")},
+                 {"background": bg})  # fmt: skip
+    s = Dataset(root, "train")[0]
+    np.testing.assert_allclose(s.image[0, 0], [200 / 255, 40 / 255, 40 / 255], atol=1e-6)
+    np.testing.assert_allclose(s.image[0, 1], bg, atol=1e-6)
+    a = 51 / 255
+    np.testing.assert_allclose(s.image[1, 2], 100 / 255 * a + np.array(bg) * (1 - a), atol=1e-6)
+    np.testing.assert_allclose(s.mask[0], [1.0, 0.0, a], atol=1e-6)
+
+
+def test_16bit_mask_values_round_to_the_nearest_8bit_level(tmp_path):
+    from PIL import Image
+
+    vals = np.array([[0, 200, 32896, 65535]], np.uint16)  # -> round(v*255/65535): 0, 1 (0.78), 128, 255
+    mask = Image.fromarray(vals)
+    assert mask.mode.startswith("I;16")
+    rgb = Image.new("RGB", (4, 1), (10, 20, 30))
+    root = write(tmp_path / "d", [{"fl_x": 5.0, "w": 4, "h": 1, "fg_mask_path": "images/m.png"}],
+                 {"images/a.png": rgb, "images/m.png": mask})  # fmt: skip
+    np.testing.assert_allclose(Dataset(root, "train")[0].mask[0], np.array([0, 1, 128, 255]) / 255, atol=1e-7)
+
+
+def test_downscaled_mask_is_box_filtered(tmp_path):
+    from PIL import Image
+
+    m = np.zeros((2, 4), np.uint8)
+    m[0, 0] = m[1, 0] = 255  # left 2x2 block half white; right block all white except one pixel
+    m[:, 2:] = 255
+    m[1, 3] = 0
+    root = write(tmp_path / "d", [{"fl_x": 5.0, "w": 4, "h": 2, "fg_mask_path": "images/m.png"}],
+                 {"images/a.png": Image.new("RGB", (4, 2)), "images/m.png": Image.fromarray(m, "L")})  # fmt: skip
+    mask = Dataset(root, "train", downscale=2.0)[0].mask
+    assert mask.shape == (1, 2)
+    np.testing.assert_allclose(mask[0], [0.5, 0.75], atol=1.01 / 255)  # block means, 8-bit rounded
+
+
+def test_frames_of_one_timestep_must_name_one_mesh(tmp_path):
+    frames = [
+        {"fl_x": 5.0, "w": 4, "h": 4},
+        {"fl_x": 5.0, "w": 4, "h": 4, "camera_index": 1, "mesh_path": "meshes/00001.npz"},
+    ]
+    root = write(tmp_path / "d", frames)
+    with pytest.raises(
+        DataError, match=r"frames\[1\]: timestep 0 refers to .*00001\.npz, an earlier frame to .*00000\.npz"
+    ):
+        Dataset(root, "train")
+
+
+def test_a_3x4_transform_matrix_reads_as_its_4x4(tmp_path):
+    # OpenGL c2w: camera at (0.1, 0.2, 0.3), rotated 90 degrees about y (looks down world -x)
+    c2w = np.array([[0, 0, 1, 0.1], [0, 1, 0, 0.2], [-1, 0, 0, 0.3], [0, 0, 0, 1]], float)
+    root = write(tmp_path / "d", [{"fl_x": 5.0, "w": 4, "h": 4, "transform_matrix": c2w[:3].tolist()}])
+    c = Dataset(root, "train").cameras[0]
+    # OpenCV w2c: R = (c2w_R @ diag(1,-1,-1)).T, t = -R @ centre
+    R = (c2w[:3, :3] @ np.diag([1.0, -1.0, -1.0])).T
+    np.testing.assert_allclose(c.R, R, atol=1e-12)
+    np.testing.assert_allclose(c.t, -R @ c2w[:3, 3], atol=1e-12)
+
+
+def test_sees_mesh_bounds_u_by_the_width_and_v_by_the_height():
+    # A wide image (100x20), identity pose, principal point (50, 10), f = 10: a point at camera
+    # (x, y, 1) lands on pixel (50 + 10x, 10 + 10y).
+    cam = Camera(np.eye(3), np.zeros(3), 10.0, 10.0, 50.0, 10.0, 100, 20)
+    assert sees_mesh(cam, np.array([[3.0, 0.0, 1.0]]))  # u = 80 (< 100, but > the height 20)
+    assert not sees_mesh(cam, np.array([[5.5, 0.0, 1.0]]))  # u = 105: right of the image
+    assert not sees_mesh(cam, np.array([[-5.5, 0.0, 1.0]]))  # u = -5: left of it
+    assert not sees_mesh(cam, np.array([[0.0, 1.5, 1.0]]))  # v = 25: below it
+    assert not sees_mesh(cam, np.array([[0.0, 0.0, -1.0]]))  # behind the camera

@@ -405,3 +405,78 @@ def test_flame_npz_with_string_members_still_loads(tmp_path):
     np.savez(p, **{k: np.asarray(v) for k, v in arrays.items()})
     m = load_flame_model(str(p))
     np.testing.assert_array_equal(m.v_template, arrays["v_template"])
+
+
+def _npz_of_raw(path, members):
+    """An npz whose members are raw bytes {name: npy bytes}, stored uncompressed."""
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as zf:
+        for name, data in members.items():
+            zf.writestr(name + ".npy", data)
+
+
+def _npy(arr, version=None):
+    buf = io.BytesIO()
+    np.lib.format.write_array(buf, arr, version=version, allow_pickle=False)
+    return buf.getvalue()
+
+
+def test_element_bounds_per_member_and_over_the_file(tmp_path):
+    p = tmp_path / "a.npz"
+    np.savez(p, a=np.zeros(10), b=np.zeros(8))
+    assert check_npz(str(p), max_elements=10, max_total=18) == {
+        "a": ((10,), np.dtype("f8")),
+        "b": ((8,), np.dtype("f8")),
+    }
+    with pytest.raises(ValueError, match=r"member 'a' declares 10 elements .*over the bound of 9"):
+        check_npz(str(p), max_elements=9)
+    with pytest.raises(ValueError, match=r"members declare 18 elements in all, over the bound of 17"):
+        check_npz(str(p), max_elements=10, max_total=17)
+
+
+def test_a_member_with_a_bad_crc_is_refused(tmp_path):
+    p = tmp_path / "a.npz"
+    a = np.arange(20000, dtype=np.float64)  # large: reading its header does not reach (and check) the end
+    np.savez(p, a=a)  # stored: the data bytes lie in the file as written
+    raw = bytearray(p.read_bytes())
+    at = raw.index(a[19000:19001].tobytes())
+    raw[at] ^= 0xFF
+    p.write_bytes(bytes(raw))
+    with pytest.raises(ValueError, match=r"member 'a' is damaged"):
+        check_npz(str(p))
+
+
+def test_structured_members_are_refused(tmp_path):
+    p = tmp_path / "a.npz"
+    np.savez(p, s=np.zeros(3, dtype=[("x", "f4"), ("y", "i4")]))
+    with pytest.raises(ValueError, match=r"member 's' has dtype .*only plain arrays"):
+        check_npz(str(p))
+
+
+def test_npy_version_3_headers_are_read(tmp_path):
+    p = tmp_path / "a.npz"
+    _npz_of_raw(p, {"a": _npy(np.arange(6, dtype=np.int32).reshape(2, 3), version=(3, 0))})
+    assert check_npz(str(p)) == {"a": ((2, 3), np.dtype("int32"))}
+
+
+def test_escaped_quotes_do_not_end_a_json_string():
+    text = '{"a": "x\\"[[[[", "b": [1]}'  # the string holds an escaped quote and four brackets
+    assert json_depth(text) == 2
+    assert loads_json(text) == {"a": 'x"[[[[', "b": [1]}
+
+
+def test_json_depth_limit_is_inclusive():
+    ok = "[" * MAX_JSON_DEPTH + "]" * MAX_JSON_DEPTH
+    assert json_depth(ok) == MAX_JSON_DEPTH and loads_json(ok) is not None
+    deep = "[" * (MAX_JSON_DEPTH + 1) + "]" * (MAX_JSON_DEPTH + 1)
+    with pytest.raises(
+        ValueError, match=rf"nested {MAX_JSON_DEPTH + 1} levels deep, over the limit of {MAX_JSON_DEPTH}"
+    ):
+        loads_json(deep, "x.json")
+
+
+def test_a_string_ending_in_an_escaped_backslash_ends_at_its_quote():
+    # ["x\\", "[[[["]: the first string is x\ ; the brackets are all inside the second string
+    assert json_depth('["x\\\\", "[[[["]') == 1
+    # ["\\", "]]", [[[1]]]]: four levels, none hidden by a mis-paired quote
+    text = '["\\\\", "]]", [[[1]]]]'
+    assert json_depth(text) == 4 and loads_json(text) == ["\\", "]]", [[[1]]]]

@@ -7,6 +7,9 @@ import sys
 
 import numpy as np
 import pytest
+from types import SimpleNamespace
+from progressive_avatars.core.evaluate.sweep import SplitRenderer, importance_only, paper_table, random_within_levels
+from tests.helpers import random_forest, sphere_mesh
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ENV = dict(os.environ, NUMBA_NUM_THREADS="1", OMP_NUM_THREADS="1")
@@ -614,3 +617,115 @@ def test_report_says_how_many_views_had_an_empty_mask():
         e["nes"]["views_with_empty_mask"] = 2
     text = plots.report_markdown(r)
     assert f"left out of the PSNR, SSIM and coverage above: 2 of {e['nes']['views']} NES views" in text
+
+
+def _renderer(**attrs):
+    sr = SplitRenderer.__new__(SplitRenderer)
+    for k, v in attrs.items():
+        setattr(sr, k, v)
+    return sr
+
+
+def test_first_n_records_are_the_first_n_faces_of_a_plain_forest():
+    verts, faces = sphere_mesh(6, 8)
+    forest = random_forest(faces, np.random.default_rng(0), depth=2)
+    sr = _renderer(avatar=SimpleNamespace(forest=forest))
+    for n in (0, 1, 7, len(faces), forest.num_faces):
+        np.testing.assert_array_equal(sr.first(n), np.arange(n))
+
+
+def test_first_n_records_of_a_backdrop_forest_are_n_faces_growing_by_prefix():
+    verts, faces = sphere_mesh(6, 8)
+    forest = random_forest(faces, np.random.default_rng(1), depth=2, coarse_from=verts, stand_ins=True)
+    forest._set_stand_ins(True, None, backdrop=True)
+    assert forest.backdrop
+    sr = _renderer(avatar=SimpleNamespace(forest=forest))
+    prev = np.zeros(0, np.int64)
+    for n in (1, 2, 5, 20, forest.num_faces - 1):
+        ids = sr.first(n)
+        assert len(ids) == n and len(np.unique(ids)) == n
+        assert set(prev.tolist()) <= set(ids.tolist())
+        prev = ids
+
+
+def test_an_empty_prefix_renders_the_background_with_zero_alpha():
+    cam = SimpleNamespace(width=4, height=3)
+    bg = np.array([0.2, 0.4, 0.6], np.float32)
+    forest = SimpleNamespace(render_set=lambda ids: (np.zeros(0, np.int64), None))
+    sr = _renderer(avatar=SimpleNamespace(forest=forest), bg=bg,
+                   dataset=SimpleNamespace(frame_info=lambda i: SimpleNamespace(camera=cam)))  # fmt: skip
+    image, seconds, alpha = sr.render(0, np.zeros(0, np.int64), with_alpha=True)
+    assert image.shape == (3, 4, 3) and alpha.shape == (3, 4) and seconds == 0.0
+    np.testing.assert_allclose(image, np.broadcast_to(bg, (3, 4, 3)))
+    assert not alpha.any()
+
+
+def test_in_mask_ssim_ignores_pixels_outside_the_mask():
+    # Identical in columns 0..19; the mask (columns 0..14) only holds 11x11 windows whose centre
+    # lies in columns 5..14, which see columns 0..19 alone: in-mask SSIM is exactly 1.
+    rng = np.random.default_rng(0)
+    truth = rng.random((30, 40, 3)).astype(np.float32)
+    rendered = truth.copy()
+    rendered[:, 20:] = rng.random((30, 20, 3))
+    mask = np.zeros((30, 40), np.float32)
+    mask[:, :15] = 1.0
+    sr = _renderer(views=[0], dataset=[SimpleNamespace(image=truth, mask=mask)],
+                   render=lambda v, ids, with_alpha=False: (rendered, 0.001, np.ones((30, 40), np.float32)))  # fmt: skip
+    out = sr.score(np.arange(1))
+    assert out["ssim"] == pytest.approx(1.0, abs=1e-9)
+    assert out["ssim_full_image"] < 0.9
+
+
+def test_full_image_psnr_is_the_mean_over_views():
+    # rendered black, truth a constant c: MSE c^2, PSNR -20 log10(c): 20 dB and 40 dB -> mean 30
+    H, W = 16, 16
+    black = np.zeros((H, W, 3), np.float32)
+    views = [
+        SimpleNamespace(image=np.full((H, W, 3), c, np.float32), mask=np.ones((H, W), np.float32)) for c in (0.1, 0.01)
+    ]
+    sr = _renderer(views=[0, 1], dataset=views, render=lambda v, ids, with_alpha=False: (black, 0.001, np.ones((H, W))))
+    out = sr.score(np.arange(1), ssim=False)
+    assert out["psnr_full_image"] == pytest.approx(30.0, abs=1e-4) and out["psnr"] == pytest.approx(30.0, abs=1e-4)
+
+
+def test_random_within_levels_shuffles_inside_levels_only():
+    level = np.array([2, 0, 1, 0, 2, 1, 0, 1, 2, 0])
+    order = random_within_levels(level, seed=3)
+    assert sorted(order.tolist()) == list(range(len(level)))
+    assert level[order].tolist() == sorted(level.tolist())  # parents (lower levels) first
+
+
+def test_importance_only_is_descending_importance_stable_on_ties():
+    assert importance_only(np.array([0.1, 0.5, 0.3, 0.5])).tolist() == [1, 3, 2, 0]
+
+
+def _report():
+    def split(p):
+        return {"psnr": p, "ssim": 0.5 + p / 100}
+
+    budgets = {k: {"nvs": split(p), "nes": split(p - 3), "gaussians": g, "bytes": g * 250, "render_ms": 4.0}
+               for k, p, g in (("5", 27.0, 100), ("25", 29.5, 300), ("50", 30.5, 600), ("100", 31.0, 1000))}  # fmt: skip
+    return {
+        "budgets": budgets,
+        "ablations": {
+            "random_order_25": {"ranked": {"psnr": 29.5}, "random": {"psnr": 28.5}},
+            "importance_only_50": {"levels_then_importance": {"psnr": 30.5}, "importance_only": {"psnr": 30.0}},
+            "level_prefixes": {"nvs": {"2": {"psnr": 27.0}}},
+        },
+        "first_head": {"coarse_levels": 2},
+        "level_counts": [10, 20, 70, 900],  # base = the coarse levels and the template: 100
+        "gaussians": 1000,
+        "base_bytes": 5000,
+        "stream_bytes": 250000,
+    }
+
+
+def test_paper_table_gaps_and_growth_by_hand():
+    out = paper_table(_report())
+    rows, checks = out["table1"], out["checks"]
+    assert rows["25"]["nvs_gap"] == pytest.approx(1.5) and rows["5"]["nes_gap"] == pytest.approx(4.0)
+    assert checks["NVS gap to 100 % at 25 % (dB)"]["ok"] is True  # 1.5 <= 1.5
+    assert checks["NVS gap to 100 % at 5 % (dB)"]["ok"] is False  # 4.0 > 3.0
+    g = checks["growth: all Gaussians / base"]
+    assert g["ours"] == pytest.approx(10.0) and g["ok"] is False  # 1000 / (10 + 20 + 70) < 12
+    assert checks["detail: NVS 100 % minus the base level alone (dB)"]["ours"] == pytest.approx(4.0)
