@@ -583,3 +583,77 @@ def test_binding_kernels_give_each_gradient_its_parameters_dtype():
     ref_out.scales.sum().backward()
     assert d_mu.grad.dtype == torch.float32 and d_ls64.grad.dtype == torch.float64
     assert torch.equal(d_ls64.grad, ref.grad)
+
+
+def _point_face_forest():
+    """Root (0, 1, 2); both splits put the point exactly on the parent's v0 (softmax of
+    (1000, 0, 0) is exactly (1, 0, 0) in float64): face 3 = (v0, v1, v0), and its slot-2 child
+    (face 8) = (k, i, p) = (v0, v0, v0), a face shrunk to one point under a proper root."""
+    f = Forest(np.array([[0, 1, 2]]))
+    f.split([0])
+    f.split([1])  # face 1 = slot 0 child: (v0, v1, p = v0)
+    f.split_logits[0] = f.split_logits[1] = [1000.0, 0.0, 0.0]
+    return f
+
+
+VERTS = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+
+
+def test_a_face_shrunk_to_a_point_keeps_the_minimum_scale():
+    """MIN_SCALE keeps such a Gaussian valid: its face scale is exactly MIN_SCALE (1e-10), never
+    0, in the face frames, the fused Gaussian evaluator and the training reference alike."""
+    f = _point_face_forest()
+    point = 6  # split([1]) appended faces 4, 5, 6: slots 0, 1, 2 of face 1
+    assert f.parent[point] == 1 and f.slot[point] == 2
+    np.testing.assert_allclose(f.vertex_weights()[point], [[1, 0, 0]] * 3, atol=0)
+    geo = binding.evaluate(f, VERTS)
+    assert geo.s[point] == np.float32(binding.MIN_SCALE)
+    n = f.num_faces
+    ev = binding.GaussianEvaluator(f, np.zeros((n, 3)), np.zeros((n, 3)), np.tile([1.0, 0, 0, 0], (n, 1)))
+    g = ev(VERTS.astype(np.float32))
+    np.testing.assert_array_equal(g.scales[point], np.float32(binding.MIN_SCALE))
+    tf = binding_torch.TorchForest(f)
+    _, _, s = tf.evaluate(torch.tensor(VERTS), tf.weights(torch.tensor(f.split_logits, dtype=torch.float64)))
+    assert float(s[point]) == pytest.approx(1e-10)
+
+
+@pytest.mark.parametrize("L", [1e20, 1e30])
+def test_float32_frames_of_huge_edges(L):
+    """e1 = (L, 0, 0), e2 = (0, L, 0) in float32, where L² overflows float32:
+    by hand x = (1, 0, 0), y = x × e2 / |x × e2| = (0, 0, 1), z = x × y = (0, -1, 0),
+    s = (|e1| + |z · e2|) / 2 = L (a vector normalised without scaling first would come out 0:
+    its length inf)."""
+    e1 = np.array([[L, 0, 0]], np.float32)
+    e2 = np.array([[0, L, 0]], np.float32)
+    r, s = binding.frames_from_edges(e1, e2)
+    np.testing.assert_allclose(r[0], [[1, 0, 0], [0, 0, -1], [0, 1, 0]], atol=1e-6)
+    np.testing.assert_allclose(s[0], L, rtol=1e-6)
+    t, r2, s2 = binding.face_frames(np.zeros(3, np.float32), e1[0], e2[0])
+    np.testing.assert_allclose(r2, r[0], atol=1e-6)
+    np.testing.assert_allclose(t, [L / 3, L / 3, 0], rtol=1e-6)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_torch_frames_of_degenerate_edges_have_finite_gradients(dtype):
+    """A zero first edge (x falls back to the second edge) and a flat face (e2 along e1: the
+    fallback normal) give finite frames and finite gradients: the masked-out branches must
+    not divide by a zero length (0 * inf = NaN through torch.where)."""
+    e1 = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], dtype=dtype, requires_grad=True)
+    e2 = torch.tensor([[0.0, 2.0, 0.0], [3.0, 0.0, 0.0]], dtype=dtype, requires_grad=True)
+    r, s = binding_torch.frames_from_edges(e1, e2)
+    assert torch.isfinite(r).all() and torch.isfinite(s).all()
+    # by hand: face 0 takes x = e2 / |e2| = (0, 1, 0); s = (0 + |z · e2|) / 2 with z ⟂ x: 0 -> 1e-10
+    np.testing.assert_allclose(r[0, :, 0].detach().numpy(), [0, 1, 0], atol=1e-6)
+    (r.sum() + s.sum()).backward()
+    assert torch.isfinite(e1.grad).all() and torch.isfinite(e2.grad).all()
+
+
+def test_torch_frames_project_x_into_the_given_normals_plane():
+    """With the root's normal given, x is e1's part in the plane (the out-of-plane part
+    rounding leaves is removed), so r stays orthonormal: e1 = (1, 0, 0.01), normal (0, 0, 2)
+    -> x = (1, 0, 0), y = (0, 0, 1), z = x × y = (0, -1, 0)."""
+    e1 = torch.tensor([[1.0, 0.0, 0.01]], dtype=torch.float64)
+    e2 = torch.tensor([[0.0, 1.0, 0.0]], dtype=torch.float64)
+    r, s = binding_torch.frames_from_edges(e1, e2, torch.tensor([[0.0, 0.0, 2.0]], dtype=torch.float64))
+    np.testing.assert_allclose(r[0].numpy(), [[1, 0, 0], [0, 0, -1], [0, 1, 0]], atol=1e-12)
+    np.testing.assert_allclose(r[0].T.numpy() @ r[0].numpy(), np.eye(3), atol=1e-12)

@@ -1,6 +1,7 @@
 """Sequence readers and the transforms_*.json dataset loader, on small files written here."""
 
 import json
+import math
 import os
 
 import numpy as np
@@ -8,6 +9,7 @@ import pytest
 
 from progressive_avatars.core.geometry.camera import Camera
 from progressive_avatars.core.io.dataset import Dataset
+from progressive_avatars.core.io.validate import sees_mesh
 from progressive_avatars.core.io.sequences import (
     DataError,
     MeshSequence,
@@ -22,8 +24,6 @@ from progressive_avatars.core.io.sequences import (
 from progressive_avatars.core.flame.model import flame_forward, load_flame_model
 
 from tests.test_flame import N_EXPR, N_SHAPE, N_V, random_params, write_flame_pkl  # noqa: E402
-import math
-from progressive_avatars.core.io.validate import sees_mesh
 
 
 @pytest.fixture(scope="module")

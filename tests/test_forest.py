@@ -1,3 +1,4 @@
+import signal
 import warnings
 
 import numpy as np
@@ -345,3 +346,58 @@ def test_coarse_triangles_of_a_double_sided_surface_appear_once():
     both = coarse.decimate(v, np.vstack([f, f[:, ::-1]]), 40)
     keys = np.sort(both, axis=1)
     assert len(np.unique(keys, axis=0)) == len(both) and len(both) == len(one)
+
+
+def _three_roots():
+    return np.array([[0, 1, 2], [0, 2, 3], [0, 3, 4]])
+
+
+def test_a_face_that_is_its_own_parent_is_refused():
+    """parent[i] == i is not 'a parent that precedes it': refused at once (it must not reach
+    the level loop, where level[i] = level[i] + 1 never settles)."""
+
+    def _hang(*_):
+        raise TimeoutError("Forest() did not return: a self-parent reached the level loop")
+
+    old = signal.signal(signal.SIGALRM, _hang)
+    signal.alarm(5)
+    try:
+        with pytest.raises(ValueError, match="parent that precedes it"):
+            Forest(_three_roots(), parent=[-1, -1, -1, 3], slot=[-1, -1, -1, 0])
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
+
+
+def test_prefix_renumbers_a_parent_that_is_the_first_non_root_face():
+    """Roots 1 and 2 arrive last; the prefix without them holds root 0, its children 3, 4, 5
+    and face 3's children 6, 7, 8. Renumbered roots-first, face 3 becomes face 1, so 6, 7, 8
+    (new 4, 5, 6) must name parent 1 (by hand: old parent 3 - (R - r) = 3 - 2)."""
+    f = Forest(_three_roots())
+    f.split([0])  # 3, 4, 5
+    f.split([3])  # 6, 7, 8 (children of the first non-root face, index R)
+    f.split_logits[:] = np.random.default_rng(1).normal(size=f.split_logits.shape)
+    g = Forest(f.template_faces, f.parent, f.slot, f.split_logits, root_rank=[0, 7, 8])
+    p = g.prefix(7)
+    np.testing.assert_array_equal(p.parent, [-1, 0, 0, 0, 1, 1, 1])
+    np.testing.assert_array_equal(p.slot, [-1, 0, 1, 2, 0, 1, 2])
+    np.testing.assert_array_equal(p.level, [0, 1, 1, 1, 2, 2, 2])
+    # Geometry: face 6 (slot 0 of face 3 = slot 0 of root 0) has vertices v0, v1 of face 3:
+    # root v0, root v1, and the split point's absolute weights softmax(logits[0]).
+    b0 = np.exp(f.split_logits[0].astype(np.float64))
+    b0 /= b0.sum()
+    W = p.vertex_weights()
+    np.testing.assert_allclose(W[4, 0], [1, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(W[4, 1], [0, 1, 0], atol=1e-12)
+    np.testing.assert_allclose(W[1, 2], b0, atol=1e-12)
+
+
+def test_root_rank_with_a_repeated_position_is_refused():
+    """Two roots at one stream position: not 'increasing' (a repeated rank once slipped into
+    the stream-order bookkeeping and failed later with a numpy broadcast error)."""
+    f = Forest(_three_roots())
+    f.split([0])
+    with pytest.raises(ValueError, match="increasing"):
+        Forest(f.template_faces, f.parent, f.slot, f.split_logits, root_rank=[0, 3, 3])
+    with pytest.raises(ValueError, match="increasing"):
+        Forest(_three_roots(), root_rank=[0, 1, 1])

@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 import torch
 
+from progressive_avatars.core.geometry.camera import Camera
 from progressive_avatars.core.geometry.rotations import (
     axis_angle_to_matrix,
     quat_normalize,
     quat_to_rotmat,
     rotmat_to_quat,
 )
-from progressive_avatars.core.geometry.camera import Camera
 
 
 def test_torch_zero_quaternion_stays_zero_with_finite_gradient():

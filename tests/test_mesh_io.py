@@ -1,20 +1,22 @@
 """core/io/mesh_io.py: numpy OBJ/PLY readers against trimesh (the reader they replace)."""
 
+import struct
+
 import numpy as np
 import pytest
 
 from progressive_avatars.core.io import mesh_io
-from progressive_avatars.core.io.sequences import DataError, read_sequence
-from tests.helpers import sphere_mesh
-import struct
 from progressive_avatars.core.io.mesh_io import MeshFormatError, read_mesh
 from progressive_avatars.core.io.sequences import (
+    DataError,
     MeshSequence,
     natural_key,
-    read_nersemble_tracking,
     read_mesh_folder,
     read_mesh_npz,
+    read_nersemble_tracking,
+    read_sequence,
 )
+from tests.helpers import sphere_mesh
 
 
 @pytest.mark.parametrize("kind", ["obj", "ply_binary", "ply_ascii"])

@@ -4,10 +4,11 @@ import json
 import os
 import subprocess
 import sys
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from types import SimpleNamespace
+
 from progressive_avatars.core.evaluate.sweep import SplitRenderer, importance_only, paper_table, random_within_levels
 from tests.helpers import random_forest, sphere_mesh
 

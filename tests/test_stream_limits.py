@@ -5,6 +5,8 @@ that decode beyond float32, more levels than int8 holds; and the JSON depth scan
 Each builds small data and runs in well under a second."""
 
 import copy
+import math
+import os
 import re
 import struct
 import threading
@@ -28,8 +30,6 @@ from progressive_avatars.core.stream.reader import read_stream
 from progressive_avatars.core.stream.writer import build_stream, encode_stream, write_stream
 from tests.test_stream import make_avatar
 from progressive_avatars.core.stream.reader import StreamReader
-import math
-import os
 
 # The documented caps (FORMAT.md 2.1, 2.3): template faces and coarse triangles, levels (int8).
 MAX_ROOT_FACES = 1 << 24

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from progressive_avatars.core.avatar.avatar import Avatar
+from progressive_avatars.core.train import losses, metrics
 from progressive_avatars.core.train.trainer import Adam, Trainer, config_for
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -1644,3 +1645,82 @@ def test_blender_train_job_exports_under_the_run_lock(tiny_dataset, tiny_run, tm
     assert jobs.main(["train", "--data", tiny_dataset, "--out", str(run), "--preset", "tiny", "--resume"]) == 0
     assert len(seen) == 1 and "is being trained by another process" in seen[0]
     assert (run / "avatar.pavs").exists()
+
+
+def test_infinite_gradients_are_reported_like_nan_ones():
+    """nonfinite_gradients flags +inf and -inf as well as NaN, on the compiled path (CPU,
+    contiguous, one dtype) and on the torch path (here: mixed dtypes)."""
+    p = {"a": torch.zeros(4000, 3, requires_grad=True), "b": torch.zeros(4000, requires_grad=True)}
+    opt = Adam(p, {"a": 0.1, "b": 0.1})
+    assert opt._compiled(p)
+    for bad in (float("inf"), float("-inf")):
+        p["a"].grad, p["b"].grad = torch.ones(4000, 3), torch.ones(4000)
+        p["a"].grad[1234, 2] = bad
+        assert opt.nonfinite_gradients(p) == ["a"]
+    q = {"a": torch.zeros(5, 3, dtype=torch.float64, requires_grad=True), "b": torch.zeros(5, requires_grad=True)}
+    ref = Adam(q, {"a": 0.1, "b": 0.1})
+    assert not ref._compiled(q)
+    q["a"].grad, q["b"].grad = torch.ones(5, 3, dtype=torch.float64), torch.ones(5)
+    q["b"].grad[4] = float("inf")
+    assert ref.nonfinite_gradients(q) == ["b"]
+
+
+def test_torch_step_reports_an_overflowed_second_moment_with_finite_parameters():
+    """A float32 gradient of 1e30 squares to inf: v = (1 - 0.999)·inf = inf, and the step
+    m̂ / (sqrt(v̂) + eps) = finite / inf = 0 leaves the parameter finite (and frozen). The step
+    must still name the parameter (its moment is no longer finite), on the torch path as on
+    the compiled one; a proper first step (steps = 1) so nothing else goes NaN."""
+    for compiled in (True, False):
+        p = torch.zeros(4, 3, requires_grad=True)
+        opt = Adam({"x": p}, {"x": 0.1})
+        p.grad = torch.full((4, 3), 0.5)
+        p.grad[2, 1] = 1e30
+        if compiled:
+            bad = opt.step({"x": p})
+        else:
+            opt.steps += 1
+            bad = opt._torch_step({"x": p}, None)
+        assert bad == ["x"]
+        assert torch.isfinite(p).all() and float(p.detach()[2, 1]) == 0.0
+        assert torch.isinf(opt.v["x"][2, 1])
+        # the other values took the first Adam step: exactly -lr · sign(g) (bias-corrected)
+        np.testing.assert_allclose(p.detach().numpy()[0], -0.1, rtol=1e-5)
+
+
+def test_photometric_torch_path_weights_l1_and_ssim():
+    """The composition taken off the fused kernels (here: float64 images) is
+    (1 - λ)·L1 + λ·(1 - SSIM) (DESIGN.md), L1 the mean absolute difference, SSIM the 11x11
+    window of core.train.metrics (numpy, float64)."""
+    rng = np.random.default_rng(3)
+    b = rng.uniform(0, 1, (16, 14, 3))
+    a = 0.5 * b + 0.5 * rng.uniform(0, 1, b.shape)
+    l1 = np.abs(a - b).mean()
+    s = metrics.ssim(a, b)
+    for lam in (0.2, 0.5):
+        got = float(losses.photometric(torch.tensor(a), torch.tensor(b), lam))
+        assert got == pytest.approx((1 - lam) * l1 + lam * (1 - s), rel=1e-9, abs=1e-12)
+    # float32 (fused) and float64 (torch) agree
+    fused = float(losses.photometric(torch.tensor(a, dtype=torch.float32), torch.tensor(b, dtype=torch.float32)))
+    assert fused == pytest.approx(0.8 * l1 + 0.2 * (1 - s), abs=2e-6)
+
+
+def test_photometric_passes_a_gradient_to_a_target_that_requires_one():
+    """A target that requires a gradient does not take the fused kernels (they give the target
+    none): with λ = 0 the loss is mean |a - b|, so d/db = -sign(a - b) / n (by hand)."""
+    rng = np.random.default_rng(4)
+    a = torch.tensor(rng.uniform(0, 1, (12, 13, 3)), dtype=torch.float32)
+    b = torch.tensor(rng.uniform(0, 1, (12, 13, 3)), dtype=torch.float32, requires_grad=True)
+    losses.photometric(a, b, 0.0).backward()
+    assert b.grad is not None
+    expected = -np.sign(a.numpy() - b.detach().numpy()) / a.numel()
+    np.testing.assert_allclose(b.grad.numpy(), expected, rtol=1e-6)
+
+
+def test_photometric_refuses_images_of_different_sizes():
+    """An image and a target of different sizes do not meet in the fused kernels (which index
+    the target by the image's rows unchecked): torch's size check refuses them."""
+    a = torch.rand(12, 12, 3)
+    with pytest.raises(RuntimeError):
+        losses.photometric(a, torch.rand(13, 12, 3))
+    with pytest.raises(RuntimeError):
+        losses.photometric(a, torch.rand(12, 14, 3))

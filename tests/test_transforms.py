@@ -1,6 +1,8 @@
 """core/bridge/transforms.py (numpy only): Gaussians carried by any object matrix, and Blender
 camera intrinsics for every sensor fit and pixel aspect."""
 
+import math
+
 import numpy as np
 import pytest
 
@@ -12,7 +14,6 @@ from progressive_avatars.core.bridge.transforms import (
 )
 from progressive_avatars.core.geometry.camera import Camera
 from progressive_avatars.core.geometry.rotations import quat_to_rotmat
-import math
 
 
 def _gaussians(rng, n=200):
