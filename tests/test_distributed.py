@@ -197,6 +197,16 @@ def test_run_folder_lock_and_rank_disagreement_errors(tmp_path):
         assert os.listdir(out) == [".train.lock"]
     with run_lock(out):  # released: the next training takes it
         pass
+    # A reader asking whether the run is being trained (a shared lock for a moment) does not
+    # refuse a training that starts meanwhile.
+    import fcntl
+    import threading
+
+    with open(os.path.join(out, ".train.lock")) as reader:
+        fcntl.flock(reader.fileno(), fcntl.LOCK_SH)
+        threading.Timer(0.3, fcntl.flock, (reader.fileno(), fcntl.LOCK_UN)).start()
+        with run_lock(out):
+            pass
     # A collective timeout that is not a positive number is refused before joining the job.
     env = dict(os.environ, WORLD_SIZE="2", RANK="0", LOCAL_WORLD_SIZE="2", MASTER_ADDR="127.0.0.1", MASTER_PORT="1")
     for bad in ("abc", "0", "-5", "nan"):

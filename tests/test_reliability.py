@@ -177,6 +177,11 @@ def test_resume_with_other_data_refused(tiny_dataset, tmp_path, capsys):
     )
     with pytest.raises(ValueError, match=r"is not the training split this run was started on: its frames, cameras"):
         Trainer(str(data), str(run), cfg, resume=True)
+    # Re-saved by another tool (indentation, key order): the same split, it resumes.
+    (data / "transforms_train.json").write_bytes(saved)
+    _edit_json(data / "transforms_train.json", lambda d: None)
+    assert (data / "transforms_train.json").read_bytes() != saved
+    Trainer(str(data), str(run), cfg, resume=True)
     (data / "transforms_train.json").write_bytes(saved)
     # A copy of the dataset elsewhere resumes, with a note.
     copy = tmp_path / "copy"

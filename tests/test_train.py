@@ -568,6 +568,11 @@ def test_flame_run_keeps_its_avatar_corrections_and_timesteps_together(tiny_data
     os.remove(run / "flame_refined.npz")
     with pytest.raises(ValueError, match=r"trained with --refine-flame but .*flame_refined\.npz is missing"):
         run_dataset(str(run), str(root), "test", model_path)
+    import shutil
+
+    other = tmp_path / "other_data"  # another dataset is posed as tracked: the pair is not needed there
+    shutil.copytree(root, other)
+    run_dataset(str(run), str(other), "val", model_path)
     # The checkpoint's corrections belong to its timesteps.
     with pytest.raises(ValueError, match=r"corrections are for training timesteps \[.*\], the dataset's are"):
         tr.refiner.load_state(ckpt | {"flame_timesteps": ckpt["flame_timesteps"][::-1] + 1}, "ckpt")
@@ -1564,6 +1569,16 @@ def test_run_refused_before_training_when_its_disk_cannot_hold_it(
     assert rc == 2 and f"error: {out}: the disk has 1 MB free for this run, which needs about" in err
     assert "free some space or train into another --out folder" in err
     assert not any(p.name in ("config.json", "checkpoint.npz", "metrics.jsonl") for p in out.iterdir())
+    # --overwrite refused for room leaves the run it would replace as it was.
+    kept = tmp_path / "kept"
+    shutil.copytree(tiny_run, kept)
+    before = {p.name: p.read_bytes() for p in kept.iterdir() if p.is_file()}
+    args = ["--data", tiny_dataset, "--out", str(kept), "--preset", "tiny", "--no-progress", "--overwrite"]
+    assert train_main(args) == 2 and "needs about" in capsys.readouterr().err
+    after = {p.name: p.read_bytes() for p in kept.iterdir() if p.is_file()}
+    assert {k: v for k, v in after.items() if k != ".train.lock"} == {
+        k: v for k, v in before.items() if k != ".train.lock"
+    }
     # A resume replaces its checkpoint and avatar: their space is the run's.
     run = tmp_path / "resumed"
     shutil.copytree(tiny_run, run)

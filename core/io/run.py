@@ -152,19 +152,19 @@ def run_dataset(run: str, data: str, split: str | None, flame_model: str | None 
 
     ds = Dataset(data, split, flame_model=flame_model, **options)
     path = os.path.join(run, "flame_refined.npz")
-    if ds.mode == "flame":
-        _check_refined_pair(run, path)
-    if os.path.exists(path) and ds.mode == "flame":
-        cfg = run_config(run) or {}
-        trained_on = cfg.get("data")
-        if isinstance(trained_on, str) and os.path.realpath(trained_on) != os.path.realpath(data):
-            # Its timesteps are another dataset's: the same ids would pose other frames.
+    if ds.mode != "flame":
+        return ds
+    trained_on = (run_config(run) or {}).get("data")
+    if isinstance(trained_on, str) and os.path.realpath(trained_on) != os.path.realpath(data):
+        if os.path.exists(path):  # its timesteps are another dataset's: the same ids would pose other frames
             print(
                 f"note: {path} refines the frames of {trained_on}, not of {data}: they are posed as tracked",
                 file=sys.stderr,
             )
-        else:
-            ds.use_refined_flame(path)
+        return ds
+    _check_refined_pair(run, path)
+    if os.path.exists(path):
+        ds.use_refined_flame(path)
     return ds
 
 

@@ -176,6 +176,22 @@ def _set_threads(torch_threads: int | None, numba_threads: int | None) -> None:
         numba.set_num_threads(min(int(numba_threads), numba.config.NUMBA_NUM_THREADS))
 
 
+def _flock_within(fh, fcntl, seconds: float) -> None:
+    """The exclusive lock, retried for ``seconds``: a reader asking whether the run is being trained
+    (core/io/run.training_holder) holds a shared lock for a moment, which must not refuse a start."""
+    import time
+
+    end = time.monotonic() + seconds
+    while True:
+        try:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return
+        except OSError:
+            if time.monotonic() >= end:
+                raise
+            time.sleep(0.05)
+
+
 @contextmanager
 def run_lock(out_dir: str):
     """Hold RUN/.train.lock for the body: a second training of the same run folder (another
@@ -191,7 +207,7 @@ def run_lock(out_dir: str):
     fh = open(path, "a+")
     try:
         try:
-            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+            _flock_within(fh, fcntl, 1.0)
         except OSError:
             fh.seek(0)
             holder = fh.read().strip() or "unknown"

@@ -466,6 +466,19 @@ class RunExistsError(ValueError):
     """Training without resume into a run folder that holds a checkpoint or a trained avatar."""
 
 
+def _split_digest(path: str) -> str:
+    """A training split's content: its JSON re-written canonically (keys sorted, no spaces), so a
+    split only re-saved by another tool still resumes; the file's bytes when it is not JSON."""
+    import hashlib
+
+    try:
+        with open(path, encoding="utf-8") as fh:
+            text = json.dumps(json.load(fh), sort_keys=True, separators=(",", ":"))
+    except (OSError, ValueError):
+        return _file_digest(path)
+    return "json-sha256:" + hashlib.sha256(text.encode()).hexdigest()
+
+
 def _checkpoint_state(path: str) -> dict:
     """A checkpoint's state record, read alone (empty when it cannot be: loading the checkpoint
     reports the damage)."""
@@ -496,7 +509,7 @@ def _check_same_data(out_dir: str, data_dir: str, state: dict) -> str | None:
     split = os.path.join(now, "transforms_train.json")
     recorded = state.get("train_split")
     if isinstance(recorded, str) and os.path.isfile(split):
-        if _file_digest(split) != recorded:
+        if _split_digest(split) != recorded:
             where = f" (trained on {was})" if moved else ""
             raise ValueError(
                 f"{split} is not the training split this run was started on{where}: its frames, cameras or "
@@ -576,11 +589,13 @@ def _check_disk_room(out_dir: str, cfg: TrainConfig, model) -> None:
     f = model.forest
     faces = _faces_bound(cfg, f.num_roots, len(f.template_faces), f.num_faces)
     need = run_bytes(faces, sum(int(np.prod(t.shape[1:])) for t in model.params.values()))
-    held = sum(
-        os.path.getsize(os.path.join(out_dir, n))
-        for n in os.listdir(out_dir)
-        if n in _RUN_OUTPUTS or n.startswith("importance")
-    )
+    held = 0
+    for n in os.listdir(out_dir):
+        if n in _RUN_OUTPUTS or (n.startswith("importance") and n.endswith((".npz", ".npy", ".json"))):
+            try:
+                held += os.path.getsize(os.path.join(out_dir, n))
+            except OSError:  # replaced or removed meanwhile (an evaluation writing its cache)
+                pass
     free = shutil.disk_usage(out_dir).free + held
     if free < need:
         raise NoRoomError(
@@ -661,7 +676,7 @@ class Trainer:
             flame_model=config.flame_model,
             cache_bytes=int(config.image_cache_mb * 2**20),
         )
-        self.train_split = _file_digest(self.train.json_path)
+        self.train_split = _split_digest(self.train.json_path)
         # No validation split is fine; a broken one is an error, not silently dropped.
         if os.path.isfile(os.path.join(self.train.root, "transforms_val.json")):
             self.val = Dataset(
@@ -717,6 +732,7 @@ class Trainer:
             self.settings = run_settings(config)
             _check_same_settings(self.ckpt_path, self.run_settings, self.settings)
             if main:
+                _check_disk_room(out_dir, config, self.model)
                 notes = (
                     moved,
                     _lengthened(out_dir, config, self.iteration, trained),
@@ -750,10 +766,9 @@ class Trainer:
             self.elapsed = 0.0
             self._reset_accumulators()
             self.settings = run_settings(config)
-            if main:  # --overwrite: the replaced run's files; else a log left by a kill before any checkpoint
-                _remove_run_outputs(out_dir, everything=overwrite)
-        if main:
-            _check_disk_room(out_dir, config, self.model)
+            if main:  # the room first: a refused --overwrite leaves the replaced run as it was
+                _check_disk_room(out_dir, config, self.model)
+                _remove_run_outputs(out_dir, everything=overwrite)  # else a log left by a kill before any checkpoint
         if self.dist.world_size > 1:
             # Same settings and start on every rank (template init or checkpoint), or stop before
             # any step: a rank started with another seed or batch would train something else.
