@@ -3,9 +3,11 @@ each one is refused or handled with a clear message before work is wasted."""
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
+import threading
 
 import numpy as np
 import pytest
@@ -212,15 +214,17 @@ def test_torn_metrics_line_and_stale_temps_do_not_block_resume(tiny_dataset, tmp
     # A checkpoint write killed mid-way left its pid-named temporary (pid of a dead process).
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
-    stale = run / f"checkpoint.npz.{dead.pid}.tmp"
+    stale = run / f"checkpoint.npz.{dead.pid}-3.tmp"
+    older = run / f"checkpoint.npz.{dead.pid}.tmp"  # the name before per-write numbers
     stale.write_bytes(b"partial")
+    older.write_bytes(b"partial")
     resumed = Trainer(tiny_dataset, str(run), cfg, resume=True)
     assert resumed.iteration == 4
     resumed.run(progress=False)
     rows = [json.loads(line)["iteration"] for line in open(run / "metrics.jsonl")]
     assert rows == list(range(1, 7))
-    assert not stale.exists()
-    live = run / f"checkpoint.npz.{os.getpid()}.tmp"  # a live writer's temporary is never touched
+    assert not stale.exists() and not older.exists()
+    live = run / f"checkpoint.npz.{os.getpid()}-0.tmp"  # a live writer's temporary is never touched
     live.write_bytes(b"x")
     atomic.clean_stale_temps(run / "checkpoint.npz")
     assert live.exists()
@@ -659,7 +663,8 @@ def test_evaluate_refuses_a_corrupt_test_image_before_rendering(run_copy, data_c
 
 def test_atomic_writes_by_hand(tmp_path, monkeypatch):
     """atomic_open's promises: Ctrl-C inside it leaves the old file and no temporary; the
-    temporary is named by the writer's pid and synced before the rename; another user's
+    temporary is named by the writer's pid and the write's number (two threads writing one path
+    at once each have their own) and synced before the rename; another user's
     temporary (its pid cannot be signalled) is kept; an extension PIL cannot write is refused
     before anything is made."""
     from PIL import Image
@@ -677,8 +682,28 @@ def test_atomic_writes_by_hand(tmp_path, monkeypatch):
     monkeypatch.setattr(os, "fsync", lambda fd: (synced.append(fd), real_fsync(fd)))
     with atomic.atomic_open(p) as fh:
         fh.write(b"x")
-    assert seen == [f"{p}.{os.getpid()}.tmp"] and len(synced) == 1 and p.read_bytes() == b"x"
+    assert len(seen) == 1 and re.fullmatch(re.escape(f"{p}.{os.getpid()}-") + r"\d+\.tmp", seen[0]), seen
+    assert len(synced) == 1 and p.read_bytes() == b"x"
     monkeypatch.undo()
+    # Two threads writing one path at once: each its own temporary, and the file is one of theirs.
+    inside, errors = threading.Barrier(2), []
+
+    def write(data):
+        try:
+            with atomic.atomic_open(p) as fh:
+                fh.write(data[:4])
+                inside.wait(timeout=10)  # both temporaries open now
+                fh.write(data[4:])
+        except Exception as exc:
+            errors.append(exc)
+
+    threads = [threading.Thread(target=write, args=(bytes([k]) * 100_000,)) for k in (1, 2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == [] and p.read_bytes() in (bytes([1]) * 100_000, bytes([2]) * 100_000)
+    assert os.listdir(tmp_path) == ["a.bin"]
     other = tmp_path / "a.bin.999999.tmp"
     other.write_bytes(b"x")
 

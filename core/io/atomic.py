@@ -5,8 +5,12 @@ A crash or an exception mid-write leaves the previous file intact (and no tempor
 
 from __future__ import annotations
 
+import itertools
 import os
 from contextlib import contextmanager
+
+# Each write's own temporary: two threads of one process writing one path must not share one.
+_WRITES = itertools.count()
 
 
 def _pid_alive(pid: int) -> bool:
@@ -20,8 +24,9 @@ def _pid_alive(pid: int) -> bool:
 
 
 def clean_stale_temps(path) -> list:
-    """Remove ``path.<pid>.tmp`` files left by writers that were killed (their pid is gone);
-    returns the removed paths. A live writer's temporary is never touched."""
+    """Remove ``path.<pid>-<n>.tmp`` (and older ``path.<pid>.tmp``) files left by writers that were
+    killed (their pid is gone); returns the removed paths. A live writer's temporary is never
+    touched."""
     path = os.fspath(path)
     folder, base = os.path.split(os.path.abspath(path))
     removed = []
@@ -32,7 +37,7 @@ def clean_stale_temps(path) -> list:
     for name in names:
         if not (name.startswith(base + ".") and name.endswith(".tmp")):
             continue
-        pid = name[len(base) + 1 : -4]
+        pid = name[len(base) + 1 : -4].split("-")[0]
         if pid.isdigit() and int(pid) != os.getpid() and not _pid_alive(int(pid)):
             try:
                 os.remove(os.path.join(folder, name))
@@ -48,7 +53,7 @@ def atomic_open(path, mode: str = "wb"):
     Temporaries of earlier writers of `path` that were killed (pid gone) are removed first."""
     path = os.fspath(path)
     clean_stale_temps(path)
-    tmp = f"{path}.{os.getpid()}.tmp"
+    tmp = f"{path}.{os.getpid()}-{next(_WRITES)}.tmp"
     try:
         with open(tmp, mode) as fh:
             yield fh

@@ -110,7 +110,7 @@ _GENERATED_IN = {
 }
 
 
-_TEMPORARY = re.compile(r"\.\d+\.tmp$")  # an atomic write's temporary, left by a killed generation
+_TEMPORARY = re.compile(r"\.\d+(-\d+)?\.tmp$")  # an atomic write's temporary, left by a killed generation
 
 
 def _foreign_files(out: str) -> list[str]:
