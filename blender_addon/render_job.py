@@ -35,6 +35,7 @@ class RenderWorker:
         env = training_tier.runner_env(cache_dir)
         self.messages = queue.Queue()
         self.ready = None  # None: starting; True: warm; False: failed (see .error)
+        self.compiling = False  # while starting: its warm-up compiles the kernels (a first run)
         self.error = ""
         self.started = time.perf_counter()
         self.proc = subprocess.Popen(
@@ -88,6 +89,8 @@ class RenderWorker:
             elif "ready" in msg:
                 self.ready = bool(msg["ready"])
                 self.error = msg.get("error", "")
+            elif "starting" in msg:
+                self.compiling = bool(msg.get("compiling"))
             elif "id" in msg:
                 self.inbox.setdefault(msg["id"], []).append(msg)
 
@@ -201,6 +204,8 @@ class RenderJob:
                 self._send()
                 if self.state == "failed":
                     return self.state
+            elif w.compiling:
+                self.message = "starting the renderer: compiling its kernels (once for this version)"
         for msg in w.inbox.pop(self.id, []) if self.id is not None else ():
             if "error" in msg:
                 self._fail(msg["error"])

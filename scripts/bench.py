@@ -5,8 +5,9 @@
 Sections: forest (evaluation speed, float32 precision), render (CPU rasteriser against the
 dense reference), train (training iteration, f6907ae against this tree), data (loading), data_gen (synthetic dataset),
 data_gen_paper (the paper-scale one, extrapolated from a reduced run), stream (bytes, decode
-speed), blender (import, slider, frame change), and the training/evaluation figures read
-from an evaluation report folder written by scripts/evaluate.py.
+speed), blender (import, slider, frame change), compile (a first run's kernel compilation), and
+the training/evaluation figures read from an evaluation report folder written by
+scripts/evaluate.py.
 """
 
 import argparse
@@ -19,7 +20,7 @@ import traceback
 
 import _bootstrap
 
-SECTIONS = ["forest", "render", "train", "data", "data_gen", "data_gen_paper", "stream", "blender"]
+SECTIONS = ["forest", "render", "train", "data", "data_gen", "data_gen_paper", "stream", "blender", "compile"]
 ORDER = SECTIONS + ["gpu"]
 
 
@@ -50,6 +51,7 @@ HEADINGS = {  # how each section's heading starts, to read the current page back
     "data_gen_paper": "## Paper-scale synthetic dataset generation",
     "gpu": "## GPU:",
     "train": "## Training iteration:",
+    "compile": "## First-run kernel compilation",
     "quant": "## Robust quantisation",  # scripts/bench_quant.py, included with --section quant=FILE
     # bench_render.py --against COMMIT --run RUN, with --section raster_levels=FILE (before the next: same prefix)
     "raster_levels": "## Rasteriser kernels, every level",

@@ -230,6 +230,16 @@ def test_store_image_holds_premultiplied_linear_colour_and_a_linear_background(t
 
 
 @pytest.mark.slow
+def _wait_seeing(job, timeout):
+    """RenderJob.wait, recording every message the job showed on the way (``job.seen``)."""
+    job.seen, end = [], time.perf_counter() + timeout
+    while job.poll() not in ("done", "failed", "cancelled") and time.perf_counter() < end:
+        if job.message not in job.seen:
+            job.seen.append(job.message)
+        time.sleep(0.02)
+    return job.state
+
+
 def test_worker_renders_once_warm_returns_at_once_and_cancels(tmp_path, no_workers):
     from progressive_avatars.core.render.rasterize import render_numpy
 
@@ -240,7 +250,9 @@ def test_worker_renders_once_warm_returns_at_once_and_cancels(tmp_path, no_worke
     returned = time.perf_counter() - t
     assert returned < 1.0  # the operator gets control back while the worker starts
     assert first.state == "starting" and first.poll() in ("starting", "rendering")
-    assert first.wait(timeout=900) == "done", first.message  # a cold compile on a loaded machine
+    # A cold compile on a loaded machine takes minutes: the job says why it waits.
+    assert _wait_seeing(first, 900) == "done", first.message
+    assert "starting the renderer: compiling its kernels (once for this version)" in first.seen, first.seen
     first_s = time.perf_counter() - t
     t = time.perf_counter()
     second = render_job.RenderJob(sys.executable, arrays, cache_dir=cache)
@@ -278,7 +290,8 @@ def test_worker_renders_once_warm_returns_at_once_and_cancels(tmp_path, no_worke
     assert not worker.alive()
     again = render_job.RenderJob(sys.executable, arrays, cache_dir=cache)
     assert again.worker is not worker
-    assert again.wait(timeout=200) == "done", again.message
+    assert _wait_seeing(again, 200) == "done", again.message
+    assert not [m for m in again.seen if "compiling" in m], again.seen  # a new worker, the kernels cached
     np.testing.assert_array_equal(again.rgba, second.rgba)
 
 

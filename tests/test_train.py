@@ -1739,3 +1739,27 @@ def test_photometric_refuses_images_of_different_sizes():
         losses.photometric(a, torch.rand(13, 12, 3))
     with pytest.raises(RuntimeError):
         losses.photometric(a, torch.rand(12, 14, 3))
+
+
+def test_a_first_iteration_that_compiles_says_so_in_the_progress_line(tiny_dataset, tmp_path, monkeypatch, capsys):
+    """On a machine's first run of a version the first iteration compiles the kernels for
+    minutes while the bar (the line the Blender add-on shows) sat at 0 % without a word."""
+    from progressive_avatars.core.train import trainer as trainer_module
+
+    probe = "from progressive_avatars.core.train.trainer import kernels_uncached as k; print(k())"
+    empty = tmp_path / "numba_cache"
+    empty.mkdir()
+    cold = subprocess.run(
+        [sys.executable, "-c", probe], env={**os.environ, "NUMBA_CACHE_DIR": str(empty)}, capture_output=True, text=True
+    )
+    assert cold.stdout.split() == ["True"], cold.stderr
+    assert not [n for _, _, names in os.walk(empty) for n in names]  # asking compiles nothing
+    # This process has run the kernels (the fixture trained): cached.
+    assert trainer_module.kernels_uncached() is False
+    cfg = config_for("tiny", iterations=2, eval_every=1000)
+    for uncached in (True, False):
+        monkeypatch.setattr(trainer_module, "kernels_uncached", lambda: uncached)
+        Trainer(tiny_dataset, str(tmp_path / f"run{uncached}"), cfg).run(progress=True)
+        err = capsys.readouterr().err
+        assert ("compiling the kernels" in err) is uncached, err
+        assert err.rstrip().splitlines()[-1].lstrip("\r").startswith("train: 100%"), err  # said only while compiling

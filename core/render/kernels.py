@@ -176,6 +176,16 @@ def _prefetch(typingctx, arr, index):
     return types.void(arr, index), codegen
 
 
+def uncached(*kernels) -> bool:
+    """Whether any of these compiled kernels is missing from numba's cache (none compiled for
+    this source and numba version yet), so that its first call compiles it. Asking compiles
+    nothing. False where numba's cache cannot be inspected (its internals changed)."""
+    try:
+        return any(not k._cache._cache_file._load_index() for k in kernels)  # an empty index: compiles
+    except Exception:
+        return False
+
+
 @njit(cache=True)
 def _prefetch_splat(splats, ids, k, first, end):
     """Prefetch the first two lines of the splat row of pair k (all of it with up to three

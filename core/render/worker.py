@@ -6,9 +6,10 @@ another interpreter. Starting one per render pays the interpreter, torch and num
 alive between renders and warms the kernels once, before its first job arrives.
 
 Protocol (JSON lines): the client writes ``{"id": k, "job": npz, "out": npy}`` per render
-(the npz as ``core.bridge.render_job`` reads it); the worker answers with ``{"ready": ...}``
-once, then per job ``{"id": k, "stage": name, "progress": p}`` lines and a final
-``{"id": k, "done": true, "seconds": s}`` or ``{"id": k, "error": message}``. End of input
+(the npz as ``core.bridge.render_job`` reads it); the worker answers with
+``{"starting": true, "compiling": bool}`` (whether its warm-up compiles the kernels) and
+``{"ready": ...}`` once, then per job ``{"id": k, "stage": name, "progress": p}`` lines and a
+final ``{"id": k, "done": true, "seconds": s}`` or ``{"id": k, "error": message}``. End of input
 ends the worker. Cancelling a render is killing the process: a running kernel cannot be
 interrupted, and a fresh worker starts from the on-disk kernel cache.
 """
@@ -57,6 +58,10 @@ def serve(inp=None, out=None) -> int:
     out = out or sys.stdout
     t0 = time.perf_counter()
     try:
+        from . import kernels
+
+        # Before a warm-up that compiles for minutes the first time: the add-on says why it waits.
+        _say(out, starting=True, compiling=kernels.uncached(kernels.raster_forward))
         warm_up()
     except Exception as exc:  # no numba/torch, broken install: say so, then exit
         _say(out, ready=False, error=f"{type(exc).__name__}: {exc}")

@@ -524,6 +524,16 @@ def _check_same_data(out_dir: str, data_dir: str, state: dict) -> str | None:
     return None
 
 
+def kernels_uncached() -> bool:
+    """Whether training's compiled kernels are missing from numba's cache, so that the first
+    iteration compiles them: on a machine's first run of a version that takes minutes
+    (docs/BENCHMARKS.md, "First-run kernel compilation"), while the progress shows 0 %."""
+    from ..render import kernels
+    from . import binding_kernels
+
+    return kernels.uncached(kernels.raster_forward, kernels.raster_backward, binding_kernels.bind_backward)
+
+
 def raised_from(exc: BaseException, kind: type) -> bool:
     """Whether ``exc`` is a ``kind`` or was raised while handling one: a signal's exception (Ctrl-C's
     KeyboardInterrupt, torchrun's SIGTERM) raised while a compiled kernel runs reaches the caller
@@ -1301,18 +1311,24 @@ class Trainer:
 
         c, main = self.cfg, self.dist.is_main
         end = c.iterations if stop_after is None else min(c.iterations, self.iteration + stop_after)
+        # Said in the bar, whose line is what the Blender add-on shows: a first iteration that
+        # compiles would otherwise sit at 0 % for minutes without a word.
+        cold = progress and main and self.iteration < end and kernels_uncached()
         bar = tqdm(
             total=c.iterations,
             initial=self.iteration,
             disable=not (progress and main),
             dynamic_ncols=True,
-            desc="train",
+            desc="train (compiling the kernels, once for this version)" if cold else "train",
         )
         try:  # the bar is closed before an error propagates: the error line comes after it, not under it
             recent = self.recent_psnr  # (restored on resume: the next log row averages the same steps)
             while self.iteration < end:
                 t0 = time.perf_counter()
                 stats = self.step()
+                if cold:
+                    bar.set_description("train", refresh=False)
+                    cold = False
                 self.iteration += 1
                 it = self.iteration
                 grown, growth = 0, None
