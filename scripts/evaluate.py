@@ -125,6 +125,7 @@ def main(argv=None):
 
     from progressive_avatars.core.evaluate import plots
     from progressive_avatars.core.evaluate.report import ReportOptions, build_report
+    from progressive_avatars.core.io.run import FolderBusyError
 
     def percents(option, text):
         try:
@@ -159,7 +160,7 @@ def main(argv=None):
             command=shlex.join(["python", "scripts/evaluate.py"] + (sys.argv[1:] if argv is None else argv)),
         )
         report = build_report(opts)
-    except (ValueError, FileNotFoundError) as exc:
+    except (ValueError, FileNotFoundError, FolderBusyError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # disk full, permission denied, ...: the report files written before are kept

@@ -8,6 +8,7 @@ import shutil
 import subprocess
 import sys
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -754,3 +755,92 @@ def test_export_and_evaluation_say_when_the_run_is_being_trained(tiny_run, tmp_p
     assert "being trained" not in capsys.readouterr().err
     with pytest.raises(FileNotFoundError, match="train with scripts/train.py first"):
         runs.load_run_avatar(str(fresh))
+
+
+def test_folder_lock_refuses_a_second_holder_and_a_removed_lock_is_not_held_twice(tmp_path, monkeypatch):
+    """folder_lock (a training's run folder, an evaluation's report folder): a second holder is
+    refused naming the first; with ``remove`` the file goes at release, and a holder that waited on
+    the removed file must take the new one, or two holders would hold two files at once."""
+    from progressive_avatars.core.io.run import FolderBusyError, folder_lock
+
+    def busy(holder):
+        return f"held by {holder}"
+
+    folder = str(tmp_path / "out")
+    with folder_lock(folder, ".lock", busy, remove=True):
+        assert open(os.path.join(folder, ".lock")).read().startswith(f"pid {os.getpid()} ")
+        with pytest.raises(FolderBusyError, match=rf"held by pid {os.getpid()} on "):
+            with folder_lock(folder, ".lock", busy, remove=True):
+                pass
+    assert os.listdir(folder) == []
+    # A waiter (retrying for its second) gets the lock when the holder lets go and removes the file.
+    first_in, first_out, order, errors = threading.Event(), threading.Event(), [], []
+
+    def hold(name, wait=None):
+        try:
+            with folder_lock(folder, ".lock", busy, remove=True):
+                order.append(name)
+                first_in.set()
+                if wait:
+                    first_out.wait(timeout=10)
+                else:  # the waiter holds it now: nobody else may
+                    with pytest.raises(FolderBusyError):
+                        with folder_lock(folder, ".lock", busy, remove=True):
+                            order.append("third")
+        except Exception as exc:
+            errors.append(exc)
+
+    a = threading.Thread(target=hold, args=("first", True))
+    a.start()
+    assert first_in.wait(timeout=10)
+    b = threading.Thread(target=hold, args=("second",))
+    b.start()
+    time.sleep(0.3)  # b retries on the first holder's file
+    first_out.set()
+    a.join()
+    b.join()
+    assert errors == [] and order == ["first", "second"] and os.listdir(folder) == []
+    # The holder removing the file between a waiter's open and its lock: the waiter locked a file
+    # no longer there, and a third process would then lock a new one beside it.
+    import fcntl
+
+    real_flock, removed = fcntl.flock, []
+
+    def removed_first(fd, op):
+        if not removed:
+            removed.append(fd)
+            os.remove(os.path.join(folder, ".lock"))
+        return real_flock(fd, op)
+
+    open(os.path.join(folder, ".lock"), "w").close()
+    monkeypatch.setattr(fcntl, "flock", removed_first)
+    with folder_lock(folder, ".lock", busy, remove=True):
+        monkeypatch.setattr(fcntl, "flock", real_flock)
+        assert removed and os.listdir(folder) == [".lock"]
+        with pytest.raises(FolderBusyError):
+            with folder_lock(folder, ".lock", busy, remove=True):
+                pass
+    with folder_lock(folder, ".lock", busy):  # without remove (a run's .train.lock) the file stays
+        pass
+    assert os.listdir(folder) == [".lock"]
+
+
+@pytest.mark.slow  # an evaluation of the tiny run
+def test_a_second_evaluation_into_one_folder_is_refused(run_copy, tmp_path, monkeypatch, capsys):
+    """Two evaluations writing one --out at once mixed their report files; the second is refused
+    (exit 2, naming the first) and the folder keeps the first's files."""
+    import runpy
+
+    from progressive_avatars.core.io.run import folder_lock
+
+    monkeypatch.setattr(sys, "path", list(sys.path))  # the script puts its folder on sys.path
+    main = runpy.run_path(os.path.join(ROOT, "scripts", "evaluate.py"), run_name="evaluate_script")["main"]
+
+    out = tmp_path / "report"
+    out.mkdir()
+    (out / "report.json").write_text("{}")
+    with folder_lock(str(out), ".evaluate.lock", str, remove=True):  # the first evaluation, at work
+        rc = main(["--run", str(run_copy), "--out", str(out), "--views", "2", "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and f"{out} is being written by another evaluation (pid {os.getpid()} on " in err, err
+    assert sorted(os.listdir(out)) == ["report.json"] and (out / "report.json").read_text() == "{}"

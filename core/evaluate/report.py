@@ -561,7 +561,18 @@ def build_report(args: ReportOptions) -> dict:
     splits = {"nvs": runs.run_dataset(args.run, data, "val", fm), "nes": runs.run_dataset(args.run, data, "test", fm)}
     for ds in splits.values():
         ds.check_same_mesh(avatar.forest.template_faces, f"the template of {args.run}'s avatar")
-    os.makedirs(args.out, exist_ok=True)  # only for a run that loads: a mistyped --run leaves no folder
+
+    # Only for a run that loads: a mistyped --run leaves no folder. Two evaluations writing one
+    # folder at once would leave a report beside the other's pictures and curves.
+    def busy(holder):
+        return f"{args.out} is being written by another evaluation ({holder}): wait for it, or choose another --out"
+
+    with runs.folder_lock(args.out, ".evaluate.lock", busy, remove=True):
+        return _evaluate_into(args, t_start, budgets, avatar, data, fm, splits)
+
+
+def _evaluate_into(args: ReportOptions, t_start, budgets, avatar, data, fm, splits) -> dict:
+    """build_report's work once its inputs are loaded and checked, with ``args.out`` held."""
     strips = [float(b) for b in args.strips]
     progress = args.progress
     # Everything read later is checked now, before minutes of rendering: every image, mask, mesh

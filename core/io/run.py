@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import sys
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -63,6 +64,63 @@ def training_holder(run: str) -> str | None:
     except OSError:  # no lock file: never trained here
         return None
     return None
+
+
+class FolderBusyError(RuntimeError):
+    """Another process holds a folder's lock (folder_lock): a training of the run, an evaluation
+    writing the report folder."""
+
+
+@contextmanager
+def folder_lock(folder: str, name: str, busy, remove: bool = False):
+    """Hold FOLDER/NAME (the kernel's flock, so a killed holder leaves no stale lock) for the body,
+    the file naming this process; held by another process, FolderBusyError(busy(its text)). The
+    exclusive lock is retried for a second: a reader asking who holds it (training_holder) takes
+    a shared lock for a moment, which must not refuse a start. ``remove``: the file goes when the
+    body ends (a holder that waited on the removed file takes the new one). No flock (Windows):
+    no lock."""
+    import time
+
+    os.makedirs(folder, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:
+        yield
+        return
+    path = os.path.join(folder, name)
+    end = time.monotonic() + 1.0
+    while True:
+        fh = open(path, "a+")
+        try:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            if time.monotonic() >= end:
+                fh.seek(0)
+                holder = fh.read().strip() or "unknown"
+                fh.close()
+                raise FolderBusyError(busy(holder)) from None
+            fh.close()
+            time.sleep(0.05)
+            continue
+        try:
+            if os.stat(path).st_ino == os.fstat(fh.fileno()).st_ino:
+                break
+        except FileNotFoundError:
+            pass
+        fh.close()  # locked a file its holder had removed meanwhile
+    try:
+        fh.seek(0)
+        fh.truncate()
+        fh.write(f"pid {os.getpid()} on {os.uname().nodename if hasattr(os, 'uname') else 'this host'}\n")
+        fh.flush()
+        yield
+    finally:
+        if remove:
+            try:
+                os.remove(path)  # while still held: nobody can hold it as it goes
+            except OSError:
+                pass
+        fh.close()
 
 
 def run_config(run: str) -> dict | None:

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import hashlib
 import os
-from contextlib import contextmanager
 
 import numpy as np
 
@@ -176,50 +175,18 @@ def _set_threads(torch_threads: int | None, numba_threads: int | None) -> None:
         numba.set_num_threads(min(int(numba_threads), numba.config.NUMBA_NUM_THREADS))
 
 
-def _flock_within(fh, fcntl, seconds: float) -> None:
-    """The exclusive lock, retried for ``seconds``: a reader asking whether the run is being trained
-    (core/io/run.training_holder) holds a shared lock for a moment, which must not refuse a start."""
-    import time
-
-    end = time.monotonic() + seconds
-    while True:
-        try:
-            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-            return
-        except OSError:
-            if time.monotonic() >= end:
-                raise
-            time.sleep(0.05)
-
-
-@contextmanager
 def run_lock(out_dir: str):
     """Hold RUN/.train.lock for the body: a second training of the same run folder (another
     process, another torchrun job without a shared rendezvous) fails at once instead of writing
     over this one. The lock is the kernel's (flock), so a killed holder leaves no stale lock."""
-    os.makedirs(out_dir, exist_ok=True)
-    path = os.path.join(out_dir, ".train.lock")
-    try:
-        import fcntl
-    except ImportError:  # no flock (Windows): no lock
-        yield
-        return
-    fh = open(path, "a+")
-    try:
-        try:
-            _flock_within(fh, fcntl, 1.0)
-        except OSError:
-            fh.seek(0)
-            holder = fh.read().strip() or "unknown"
-            raise RuntimeError(
-                f"{out_dir} is being trained by another process ({holder}); two trainings must not write "
-                "one run folder: wait for it, stop it, or choose another --out (several processes of one job: "
-                "start them with torchrun)"
-            ) from None
-        fh.seek(0)
-        fh.truncate()
-        fh.write(f"pid {os.getpid()} on {os.uname().nodename if hasattr(os, 'uname') else 'this host'}\n")
-        fh.flush()
-        yield
-    finally:
-        fh.close()
+    from ..io.run import folder_lock
+
+    return folder_lock(
+        out_dir,
+        ".train.lock",
+        lambda holder: (
+            f"{out_dir} is being trained by another process ({holder}); two trainings must not write one run "
+            "folder: wait for it, stop it, or choose another --out (several processes of one job: start them "
+            "with torchrun)"
+        ),
+    )
