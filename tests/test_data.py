@@ -685,6 +685,32 @@ def test_camera_problems_name_values_that_would_project_garbage():
         assert len(problems) == 1 and what.strip() in problems[0], (what, problems)
 
 
+def test_validate_checks_each_camera_once_and_names_every_frame(tmp_path):
+    """dataset_problems checks each camera once, however many frames share it (16,000 frames:
+    1.1 s -> 0.01 s, review_loops_work/bench_validate_cameras.py), and lists for every frame the
+    strings camera_problems gives it, in frame order, in every share."""
+    from progressive_avatars.core.io.validate import camera_problems, dataset_problems
+
+    root = tmp_path / "ds"
+    write_mesh_dataset(root)
+
+    def spoil(m):
+        for fr in m["frames"]:
+            if fr["camera_index"] == 1:  # a scaled matrix: not a rotation
+                fr["transform_matrix"] = (2 * np.array(fr["transform_matrix"])).tolist()
+        m["frames"][2]["cx"] = math.inf  # one frame of camera 0: a camera of its own
+
+    edit_json(root, "train", spoil)
+    ds = Dataset(root)
+    assert len({id(f.camera) for f in ds.frames}) == 3
+    for k, n in ((0, 1), (1, 2)):
+        want = [p for f in ds.frames[k::n] for p in camera_problems(f.camera, f"{ds.json_path}: frames[{f.index}]")]
+        got = [
+            p for p in dataset_problems(ds, progress=False, share=(k, n)) if p.startswith(f"{ds.json_path}: frames[")
+        ]
+        assert got == want and len(want) == (4 if n == 1 else 3), got
+
+
 def test_cameras_read_without_geometry(tiny_dataset, tmp_path):
     """A camera import needs neither the canonical mesh nor (FLAME mode) a FLAME model."""
     import shutil
@@ -937,3 +963,29 @@ def test_sees_mesh_bounds_u_by_the_width_and_v_by_the_height():
     assert not sees_mesh(cam, np.array([[-5.5, 0.0, 1.0]]))  # u = -5: left of it
     assert not sees_mesh(cam, np.array([[0.0, 1.5, 1.0]]))  # v = 25: below it
     assert not sees_mesh(cam, np.array([[0.0, 0.0, -1.0]]))  # behind the camera
+
+
+def test_frames_of_one_camera_share_the_camera_built_from_their_values(tmp_path):
+    """A camera is built once per distinct set of values (matrix and intrinsics), not per frame:
+    each frame's camera is the one its own row gives, bit for bit, at every downscale; a frame
+    whose values differ (one number, or 1 against 1.0 written) gets its own."""
+    root = tmp_path / "ds"
+    write_mesh_dataset(root)
+
+    def vary(m):  # camera 0 at timesteps 1 and 2
+        at = {(f["timestep_index"], f["camera_index"]): f for f in m["frames"]}
+        at[1, 0]["fl_x"] *= 1 + 2**-40
+        at[2, 0]["w"] = float(at[2, 0]["w"])  # the same size, written as 64.0
+
+    edit_json(root, "train", vary)
+    rows = json.loads((root / "transforms_train.json").read_text())
+    for downscale in (1.0, 2.0):
+        ds = Dataset(root, downscale=downscale)
+        for f, row in zip(ds.frames, rows["frames"]):
+            own, size = ds._camera(row, rows, "")
+            own = own if downscale == 1.0 else own.scaled(1.0 / downscale)
+            assert size == f.full_size
+            for name in ("R", "t", "fx", "fy", "cx", "cy", "width", "height"):
+                assert np.array_equal(getattr(own, name), getattr(f.camera, name)), name
+        n_cams = len({f.camera_index for f in ds.frames})
+        assert len({id(f.camera) for f in ds.frames}) == n_cams + 2

@@ -45,19 +45,24 @@ _MAX_ABS = 1e30  # beyond it a camera value means nothing (and overflows float32
 def camera_problems(cam, where: str) -> list:
     """What makes ``cam`` project garbage (empty when nothing): a rotation part that is not a
     rotation, intrinsics that are not finite (camera_angle_x 0 gives fx = inf), absurd values."""
+    return [f"{where}: {p}" for p in _camera_faults(cam)]
+
+
+def _camera_faults(cam) -> list:
+    """camera_problems without the place (a camera's, whichever frames it serves)."""
     out = []
     R = np.asarray(cam.R)
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or abs(np.linalg.det(R) - 1.0) > 1e-3:
         out.append(
-            f"{where}: transform_matrix: the rotation part is not a rotation (det {np.linalg.det(R):.3g}; "
+            f"transform_matrix: the rotation part is not a rotation (det {np.linalg.det(R):.3g}; "
             "an all-zero or scaled matrix?)"
         )
     if np.abs(np.asarray(cam.t)).max() > _MAX_ABS:
-        out.append(f"{where}: transform_matrix: the camera is placed beyond ±{_MAX_ABS:g}")
+        out.append(f"transform_matrix: the camera is placed beyond ±{_MAX_ABS:g}")
     for name in ("fx", "fy", "cx", "cy"):
         v = getattr(cam, name)
         if not np.isfinite(v) or abs(v) > _MAX_ABS:
-            out.append(f"{where}: {'principal point' if name[0] == 'c' else 'focal length'} {name} is {v}")
+            out.append(f"{'principal point' if name[0] == 'c' else 'focal length'} {name} is {v}")
     return out
 
 
@@ -125,8 +130,12 @@ def dataset_problems(ds: Dataset, progress: bool = True, share: tuple[int, int] 
         except (DataError, OSError, ValueError, KeyError) as exc:
             problems.append(f"{exc}" if os.sep in str(exc) else f"timestep {ts}: {exc}")
     blind = []
+    faults = {}  # per camera: the frames of one camera share it (Dataset), 16 in a 16-camera split
     for info in tqdm(ds.frames[k::n], desc=f"checking {ds.split or 'all'} images", disable=not progress, leave=False):
-        bad_camera = camera_problems(info.camera, f"{ds.json_path}: frames[{info.index}]")
+        cam_faults = faults.get(id(info.camera))
+        if cam_faults is None:
+            cam_faults = faults[id(info.camera)] = _camera_faults(info.camera)
+        bad_camera = [f"{ds.json_path}: frames[{info.index}]: {p}" for p in cam_faults]
         problems.extend(bad_camera)
         if not bad_camera and ds.canonical_vertices is not None:
             try:
