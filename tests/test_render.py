@@ -863,6 +863,11 @@ def test_pixel_weighted_contribution_is_the_colour_gradient():
     np.testing.assert_allclose(weighted, col.grad[:, 0].numpy(), rtol=1e-6, atol=1e-9 * weighted.max())
     with pytest.raises(ValueError, match="pixel_weight"):
         render_numpy(means, quats, scales, opac, colors, cam, pixel_weight=np.ones((3, 3)))
+    # With weights or without, one compiled compositing kernel: the omitted weight argument was
+    # another signature, and a first run compiled the whole kernel twice.
+    from progressive_avatars.core.render import kernels as rk
+
+    assert {str(sig[15]) for sig in rk.raster_forward.signatures} == {"array(float64, 2d, C)"}
 
 
 def test_float32_inputs_are_read_in_place_and_give_the_float64_gradients_rounded_once():

@@ -323,6 +323,9 @@ def _cpu_forward(
     tile_start, ids = rk.bin_tiles(splats, row_of, tiles_x, tiles_y)
     n_chunks = numba.get_num_threads()
     image = np.empty((len(upto), H, W, n_ch), dtype)
+    # Always an array (empty: no weights): an omitted argument is another signature, and numba
+    # compiled the whole compositing kernel a second time for it on a first run.
+    weight = np.zeros((0, 0)) if pixel_weight is None else np.ascontiguousarray(pixel_weight, np.float64)
     while True:
         bufs = (
             _record_buffers.take(W * H, len(upto), n_chunks)
@@ -343,7 +346,7 @@ def _cpu_forward(
             upto,
             n_chunks,
             *bufs,
-            *(() if pixel_weight is None else (pixel_weight,)),
+            weight,
             image=image,
             contrib=with_contrib,
             last_from=rk.LEVEL_NONE if last_from is None else int(last_from),
