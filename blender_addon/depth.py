@@ -43,17 +43,26 @@ def apply_depth(obj, forest, count=None, max_level=None):
     if attr is not None and (attr.domain != "FACE" or attr.data_type != "INT"):
         me.attributes.remove(attr)
         attr = None
+    changed = attr is None
     if attr is None:
         attr = me.attributes.new(DEPTH_ATTR, "INT", "FACE")
-    attr.data.foreach_set("value", depth)
+    else:
+        old = np.empty(len(depth), np.int32)
+        attr.data.foreach_get("value", old)
+        changed = not np.array_equal(old, depth)
+    # Written only when it changes: a write tags the mesh, which then re-evaluates (every shape
+    # key, the armature) at each step of the budget slider.
+    if changed:
+        attr.data.foreach_set("value", depth)
     state = obj.pa_mesh
+    changed |= state.depth_max_level != top  # the colour scale
     state.depth_max_level = top
     legend = state.depth_legend
     legend.clear()
     for d, n, rgb in depth_legend(depth, top):
         item = legend.add()
         item.depth, item.faces, item.color = d, n, rgb
-    if state.depth_shown:
+    if state.depth_shown and (changed or me.color_attributes.get(COLOR_ATTR) is None):
         _write_colors(me, depth, top)
         me.update()  # redraw; otherwise no tag: a slider move must not re-evaluate the mesh
     return depth

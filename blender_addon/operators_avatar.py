@@ -307,7 +307,7 @@ def current_gaussians(context, obj, world=True):
     count = e.budget.count_for_slider(obj.pa_avatar.budget)
     if not runtime.refresh(obj, context.evaluated_depsgraph_get(), count):
         raise RuntimeError(obj.pa_avatar.status)
-    ev = e.evaluator
+    ev = e.placed  # its outputs hold the first e.valid >= count Gaussians on this frame
     # the faces of stream positions 0..count-1, less coarse stand-ins whose region has arrived,
     # or, for backdrop stand-ins, with those behind the rest (Forest.render_set)
     faces, behind = e.avatar.forest.render_set(e.face_at[:count], records=count)

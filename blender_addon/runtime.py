@@ -34,12 +34,18 @@ class _Entry:
         self.order = preview_order(self.avatar)  # face of each preview point
         self.point_of_face = np.argsort(self.order)
         self.face_at = self.avatar.forest.stream_order()  # face of each stream position
-        self.evaluator = None
+        self.evaluator = None  # the Gaussians of the last count a frame change showed
+        self.full = None  # every Gaussian's: what a budget raised past the placed points evaluates
+        self.placed = None  # the evaluator whose outputs hold the placed points
         self.n_vertices = int(self.avatar.forest.template_faces.max()) + 1
-        self.valid = 0  # preview points whose positions match the last evaluated frame
-        self.frame_key = None
+        self.valid = 0  # preview points (by stream rank) placed on the vertices of frame_key
+        self.frame_key = None  # the mesh vertices the placed points were evaluated on
 
     def evaluator_for(self, count):
+        if count >= self.avatar.num_gaussians:
+            if self.full is None:
+                self.full = splat_evaluator(self.avatar, None, self.weights, self.order)
+            return self.full
         if self.evaluator is None or self.evaluator.n != count:
             self.evaluator = splat_evaluator(self.avatar, count, self.weights, self.order)
         return self.evaluator
@@ -116,7 +122,7 @@ def forget(obj=None):
 def invalidate():
     """Keep decoded avatars but treat every preview point as needing evaluation."""
     for e in _cache.values():
-        e.valid = 0
+        e.valid, e.frame_key = 0, None
 
 
 def previews(scene):
@@ -210,9 +216,10 @@ def shape_key_vertices(source, depsgraph):
     return out.astype(np.float32).reshape(-1, 3), ""
 
 
-def refresh(obj, depsgraph, count=None):
-    """Re-evaluate the first ``count`` Gaussians on the mesh's current evaluated shape and
-    write positions, rotations and scales. Returns False (and sets status) when it cannot."""
+def refresh(obj, depsgraph, count=None, upto=None):
+    """Show the first ``count`` Gaussians placed on the mesh's current evaluated shape,
+    evaluating (positions, rotations, scales) the first ``upto`` (default ``count``) unless
+    they already sit on these very vertices. Returns False (and sets status) when it cannot."""
     state = obj.pa_avatar
     e = entry(obj)
     src = state.source
@@ -247,12 +254,17 @@ def refresh(obj, depsgraph, count=None):
         e.valid = 0
         return False
     preview.set_count(obj, count)
-    means, quats, scales = e.evaluator_for(count)(verts)
-    me.attributes["position"].data.foreach_set("vector", means.ravel())
-    me.attributes["rotation"].data.foreach_set("value", quats.ravel())
-    me.attributes["scale"].data.foreach_set("vector", scales.ravel())
-    me.update()
-    e.valid = count
+    # Points already placed on these very vertices stay: a budget step writes the mesh's depth
+    # attribute, which re-evaluates the mesh and calls here again, and must not re-bind (and
+    # rewrite) every Gaussian for a frame that did not move.
+    if e.valid < count or e.frame_key is None or not np.array_equal(verts, e.frame_key):
+        ev = e.evaluator_for(max(count, upto or 0))
+        means, quats, scales = ev(verts)
+        me.attributes["position"].data.foreach_set("vector", means.ravel())
+        me.attributes["rotation"].data.foreach_set("value", quats.ravel())
+        me.attributes["scale"].data.foreach_set("vector", scales.ravel())
+        me.update()
+        e.valid, e.placed, e.frame_key = ev.n, ev, verts
     if state.status:
         state.status = ""
     return True
@@ -274,9 +286,9 @@ def apply_budget(obj, context=None, depsgraph=None):
     state.megabytes = b.bytes_for_count(count) / 1e6
     state.level_reached = b.level_reached(count)
     preview.set_count(obj, count)
-    if count > e.valid:
+    if count > e.valid:  # every Gaussian, so that scrubbing on at this frame evaluates nothing more
         context = context or bpy.context
-        refresh(obj, depsgraph or context.evaluated_depsgraph_get(), count)
+        refresh(obj, depsgraph or context.evaluated_depsgraph_get(), count, upto=b.total)
     src = state.source
     if src is not None and src.type == "MESH":  # depth (and its colours) follow what the budget shows
         from . import depth

@@ -192,3 +192,14 @@ def test_a_splat_ply_is_refused_as_a_sequence(rep):
     assert "splats.ply" in r["result"] and "no faces" in r["result"], r["result"]
     assert "3DGS" in r["result"] and "Traceback" not in r["result"], r["result"]
     assert r["added"] == {}, r["added"]
+
+
+def test_budget_steps_bind_no_placed_point_again(rep):
+    r = scenario_step(rep, "budget_steps_keep_placed_points")
+    assert r["load"] == ["FINISHED"] and r["depth_changes"] >= 2, r  # the steps rewrote the depth attribute
+    assert r["down"] == [], r  # no Gaussian evaluated: all placed at this frame
+    assert r["up"] == [r["total"]], r  # once, every Gaussian; the later steps show them
+    assert r["frame"] == [r["count_50"]] and 0 < r["count_50"] < r["total"], r  # a frame: what it shows
+    assert r["after_undo"] == [50.0, r["frame_at"]], r
+    for key in ("misplaced_up", "misplaced_frame", "misplaced_undo"):
+        assert r[key] < 1e-6, (key, r[key])

@@ -238,9 +238,12 @@ def _():
     res, m = import_mesh(ARGS["seq"])
     bpy.context.view_layer.objects.active = m
     out["no_file"] = run_op(bpy.ops.object.progressive_avatars_load, filepath="")
-    # The mesh deleted at 25 %, then the slider raised: only placed Gaussians are drawn.
+    # The mesh deleted at 25 %, then the slider raised: only placed Gaussians are drawn. (A load
+    # places every Gaussian; a frame change those it shows.)
     run_op(bpy.ops.object.progressive_avatars_load, filepath=ARGS["full"], budget=25.0)
     pv = preview_of(m)
+    sc = bpy.context.scene
+    sc.frame_set(sc.frame_start + 1 if sc.frame_current == sc.frame_start else sc.frame_start)
     shown = instances(pv)
     bpy.data.objects.remove(m)
     pv.pa_avatar.budget = 100.0

@@ -258,6 +258,97 @@ def depth_only_in_legend_terms(r):
 
 
 @step
+def budget_steps_keep_placed_points(r):
+    """The budget slider at a frame whose points are placed binds none of them again (each step
+    wrote the mesh's depth attribute; the mesh's re-evaluation called the frame handler, which
+    bound and wrote every shown Gaussian again: 0.2-0.4 s a step at the paper's scale). Raised
+    past them, after a frame change and after an undo, every shown point sits where a fresh
+    evaluation of that frame puts it."""
+    runtime = importlib.import_module(PKG + ".blender_addon.runtime")
+    binding = importlib.import_module(PKG + ".core.avatar.binding")
+    splats = importlib.import_module(PKG + ".core.bridge.splats")
+    activate(bpy.data.objects[MESH])
+    r["import"] = call(bpy.ops.import_scene.progressive_avatars_sequence, filepath=SEQ)
+    mesh = bpy.context.active_object
+    name = mesh.name
+    r["load"] = call(bpy.ops.object.progressive_avatars_load, filepath=STREAM, budget=100.0)
+    pv = preview_of(mesh)
+    scene = bpy.context.scene
+    dg = bpy.context.evaluated_depsgraph_get
+    r["total"] = pv.pa_avatar.total
+
+    def misplaced(pv, mesh):
+        """Largest distance of a shown point from a fresh evaluation of this frame."""
+        e = runtime.entry(pv)
+        fresh = splats.splat_evaluator(e.avatar, None, None, e.order)
+        want = fresh(runtime.source_vertices(mesh, dg())).means
+        me = pv.data
+        pos = np.empty(len(me.vertices) * 3, np.float32)
+        me.attributes["position"].data.foreach_get("vector", pos)
+        rank = np.empty(len(me.vertices), np.int32)
+        me.attributes["rank"].data.foreach_get("value", rank)
+        shown = rank < pv.pa_avatar.count
+        return float(np.abs(pos.reshape(-1, 3)[shown] - want[shown]).max())
+
+    calls = []  # the Gaussians each evaluation of this preview's evaluators placed (other previews': not)
+    real = binding.GaussianEvaluator.__call__
+    uid = pv.session_uid
+
+    def counted(ev, verts):
+        e = runtime._cache.get(uid)
+        if e is not None and (ev is e.evaluator or ev is getattr(e, "full", None)):
+            calls.append(ev.n)
+        return real(ev, verts)
+
+    binding.GaussianEvaluator.__call__ = counted
+    depth = []
+
+    def step_to(budget):
+        pv.pa_avatar.budget = budget
+        dg()
+        a = np.empty(len(mesh.data.polygons), np.int32)
+        mesh.data.attributes["pa_depth"].data.foreach_get("value", a)
+        depth.append(a.tolist())
+
+    try:
+        dg()
+        calls.clear()
+        for b in (90.0, 70.0, 40.0, 10.0):  # down: every point it shows is placed already
+            step_to(b)
+        r["down"] = list(calls)
+        r["depth_changes"] = sum(a != b for a, b in zip(depth, depth[1:]))
+        r["count_10"] = pv.pa_avatar.count
+        scene.frame_set(scene.frame_current + 1)  # places the 10 % it shows
+        dg()
+        calls.clear()
+        for b in (30.0, 60.0, 100.0):  # up past them: the first step places every Gaussian
+            step_to(b)
+        r["up"] = list(calls)
+        r["misplaced_up"] = misplaced(pv, mesh)
+        step_to(50.0)
+        r["count_50"] = pv.pa_avatar.count
+        calls.clear()
+        scene.frame_set(scene.frame_current + 2)
+        dg()
+        r["frame"], r["frame_at"] = list(calls), scene.frame_current
+        r["misplaced_frame"] = misplaced(pv, mesh)
+        bpy.ops.ed.undo_push(message="frame +2")
+        step_to(20.0)
+        bpy.ops.ed.undo_push(message="budget 20")
+        scene.frame_set(scene.frame_current + 3)
+        bpy.ops.ed.undo_push(message="frame +3")
+        bpy.ops.ed.undo()
+        bpy.ops.ed.undo()  # budget 50 at frame +2, the points as that step saved them
+        mesh, scene = bpy.data.objects[name], bpy.context.scene
+        pv = preview_of(mesh)
+        dg()
+        r["after_undo"] = [pv.pa_avatar.budget, scene.frame_current]
+        r["misplaced_undo"] = misplaced(pv, mesh)
+    finally:
+        binding.GaussianEvaluator.__call__ = real
+
+
+@step
 def import_from_edit_mode(r):
     cube = bpy.data.objects[CUBE]
     activate(cube, "EDIT")
