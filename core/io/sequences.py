@@ -417,13 +417,13 @@ def read_mesh_npz(path, frames=None) -> MeshSequence:
     return MeshSequence(d["faces"], _check_vertices(v[sel], path), ids, None, path)
 
 
-def _load_mesh_file(path: str):
+def _load_mesh_file(path: str, reuse: dict | None = None):
     from .mesh_io import read_mesh  # numpy readers: no trimesh inside Blender
 
     if not os.path.isfile(path):
         raise MissingFileError(f"{path}: file not found")
     try:
-        return read_mesh(path)
+        return read_mesh(path, reuse)
     except (ValueError, OSError) as exc:
         msg = str(exc)
         raise DataError(msg if path in msg else f"{path}: cannot read mesh ({msg})") from exc
@@ -438,9 +438,10 @@ def read_mesh_folder(path, frames=None) -> MeshSequence:
         raise DataError(f"{path}: no .obj or .ply files")
     sel = _select(len(files), frames, path)
     verts, faces = [], None
+    reuse = {}  # OBJ frames with the first one's face lines are not parsed again
     for i in sel.tolist():  # one file per asked frame
         fp = os.path.join(path, files[i])
-        v, f = _load_mesh_file(fp)
+        v, f = _load_mesh_file(fp, reuse)
         if faces is None:
             faces = f
         elif v.shape[0] != verts[0].shape[0]:
