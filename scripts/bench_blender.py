@@ -152,7 +152,8 @@ bpy.context.evaluated_depsgraph_get()
 frames = iter(range(sc.frame_start + 1, sc.frame_end))
 R["frame_set"] = timed(lambda: sc.frame_set(next(frames)))
 dg = bpy.context.evaluated_depsgraph_get()
-R["handler"] = timed(lambda: runtime.refresh(pv, dg))
+# The handler keeps points already placed on these vertices: forgotten first, so that it places them.
+R["handler"] = timed(lambda: (runtime.invalidate(), runtime.refresh(pv, dg)))
 frames = iter(range(sc.frame_start + 20, sc.frame_end))
 R["frame_set_eval"] = timed(lambda: (sc.frame_set(next(frames)), bpy.context.evaluated_depsgraph_get()))
 pv.hide_viewport = True
@@ -231,7 +232,9 @@ def run(quick: bool = False) -> str:
     out.append(f"| load avatar ({r['gaussians']:,} Gaussians, decode + preview + depth) | {r['load_s']:.2f} s | |")
     out.append(f"| budget slider: set property (update → modifier input) | {ms(r['slider_set'])} ms | ≤ 10 ms |")
     out.append(f"| budget slider + Geometry Nodes re-evaluation | {ms(r['slider_set_eval'])} ms | |")
-    out.append(f"| frame change handler alone (evaluated mesh → forest → attributes) | {ms(r['handler'])} ms | |")
+    out.append(
+        f"| frame change handler alone (evaluated mesh → forest → attributes; nothing placed before) | {ms(r['handler'])} ms | |"
+    )
     out.append(f"| frame change: `frame_set` (shape keys + handler) | {ms(r['frame_set'])} ms | ≤ 30 ms |")
     out.append(f"| frame change + Geometry Nodes re-evaluation | {ms(r['frame_set_eval'])} ms | |")
     out.append(f"| frame change, mesh only (preview hidden, budget 0) | {ms(r['frame_set_mesh_only'])} ms | |")

@@ -22,7 +22,7 @@ import sys as _sys
 _sys.path.insert(0, _os.path.dirname(_os.path.abspath(__file__)))
 import _bootstrap
 
-from bench_common import header
+from bench_common import header, load_average
 
 
 def _train(data: str, out: str, cache: str, iterations: int) -> tuple[float, str]:
@@ -41,6 +41,7 @@ def run(quick: bool = False) -> str:
     from progressive_avatars.core.synthetic import dataset
 
     iterations = 6
+    load0 = load_average()
     with tempfile.TemporaryDirectory(prefix="pa_bench_compile_") as tmp:
         data = os.path.join(tmp, "data")
         dataset.make_dataset(data, progress=False, resolution=64, cameras=4, sequences=2, frames=2)
@@ -59,6 +60,9 @@ def run(quick: bool = False) -> str:
         "empty numba cache, as on a new machine, after an upgrade or in a newly installed Blender extension "
         "(its processes keep their own cache). Wall seconds include starting Python, importing torch and "
         'loading the dataset. The progress line says "compiling the kernels" only when they are not cached.',
+        "",
+        f"Load average (1 / 5 / 15 min) at the start: {load0}; at the end: {load_average()} (2 cores: other work "
+        "on the machine slows every row).",
         "",
         "| numba cache | wall s | progress line says it compiles |",
         "|---|---|---|",
