@@ -720,6 +720,27 @@ def test_atomic_writes_by_hand(tmp_path, monkeypatch):
     assert not (tmp_path / "x.psd").exists()
 
 
+def test_stale_temporary_cleanup_takes_only_the_names_atomic_open_gives(tmp_path):
+    """clean_stale_temps removes path.<pid>.tmp and path.<pid>-<n>.tmp of a dead pid, nothing
+    else: since per-write numbers it split at the first "-" and took any path.<digits>-<text>.tmp
+    (a user's "report.json.2024-01-01.tmp", a temporary of a path named "report.json.7-x") for a
+    dead writer's."""
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    p = tmp_path / "report.json"
+    ours = [f"report.json.{dead.pid}.tmp", f"report.json.{dead.pid}-12.tmp"]
+    others = [
+        f"report.json.{dead.pid}-backup.tmp",
+        f"report.json.{dead.pid}-2024-01-01.tmp",
+        f"report.json.{dead.pid}-.tmp",
+        f"report.json.{dead.pid}-x.{dead.pid}-0.tmp",  # a temporary of "report.json.<pid>-x"
+    ]
+    for name in ours + others:
+        (tmp_path / name).write_bytes(b"x")
+    assert sorted(atomic.clean_stale_temps(p)) == sorted(str(tmp_path / n) for n in ours)
+    assert sorted(os.listdir(tmp_path)) == sorted(others)
+
+
 def test_export_and_evaluation_say_when_the_run_is_being_trained(tiny_run, tmp_path, capsys):
     """During a run's first training, export/evaluate said "train with scripts/train.py first";
     during a --resume they used the older avatar.npz without a word."""

@@ -7,10 +7,14 @@ from __future__ import annotations
 
 import itertools
 import os
+import re
 from contextlib import contextmanager
 
 # Each write's own temporary: two threads of one process writing one path must not share one.
 _WRITES = itertools.count()
+# What follows ``path.`` in a temporary's name: the writer's pid, and its write number (none in
+# the names before per-write numbers). Nothing else: another file is never taken for one.
+_TEMP_PART = re.compile(r"([0-9]+)(?:-[0-9]+)?")
 
 
 def _pid_alive(pid: int) -> bool:
@@ -37,8 +41,9 @@ def clean_stale_temps(path) -> list:
     for name in names:
         if not (name.startswith(base + ".") and name.endswith(".tmp")):
             continue
-        pid = name[len(base) + 1 : -4].split("-")[0]
-        if pid.isdigit() and int(pid) != os.getpid() and not _pid_alive(int(pid)):
+        part = _TEMP_PART.fullmatch(name[len(base) + 1 : -4])
+        pid = int(part[1]) if part else None
+        if pid is not None and pid != os.getpid() and not _pid_alive(pid):
             try:
                 os.remove(os.path.join(folder, name))
                 removed.append(os.path.join(folder, name))
