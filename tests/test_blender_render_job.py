@@ -229,7 +229,6 @@ def test_store_image_holds_premultiplied_linear_colour_and_a_linear_background(t
     np.testing.assert_allclose(over[..., 3], 1.0)
 
 
-@pytest.mark.slow
 def _wait_seeing(job, timeout):
     """RenderJob.wait, recording every message the job showed on the way (``job.seen``)."""
     job.seen, end = [], time.perf_counter() + timeout
@@ -240,6 +239,7 @@ def _wait_seeing(job, timeout):
     return job.state
 
 
+@pytest.mark.slow
 def test_worker_renders_once_warm_returns_at_once_and_cancels(tmp_path, no_workers):
     from progressive_avatars.core.render.rasterize import render_numpy
 
@@ -595,3 +595,12 @@ def test_render_splats_frames_like_blender_and_draws_the_world(tmp_path):
     expected = A @ cov(g["quats"], g["scales"]) @ A.T
     got = cov(sent["mirror|quats"], sent["mirror|scales"])
     np.testing.assert_allclose(got, expected, atol=1e-6 * np.abs(expected).max())
+
+
+def test_the_cold_compiling_worker_test_is_marked_slow():
+    """It waits up to 900 s for a worker compiling its kernels from an empty cache: when a helper
+    was put between it and its @pytest.mark.slow, the mark went to the helper and the quick loop
+    (-m "not slow") ran it."""
+    marks = [m.name for m in getattr(test_worker_renders_once_warm_returns_at_once_and_cancels, "pytestmark", [])]
+    assert "slow" in marks, marks
+    assert not hasattr(_wait_seeing, "pytestmark")
