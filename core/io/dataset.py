@@ -261,6 +261,7 @@ class Dataset:
             geo[ts] = gpath
             cams.setdefault(info.camera_index, info.camera)
             frames.append(info)
+        del self._made_cameras  # (one entry per distinct camera; the frames hold theirs)
         problems = list(dict.fromkeys(problems))  # a bad top-level fallback is listed once
         if len(problems) == 1:
             raise DataError(problems[0])

@@ -1313,7 +1313,9 @@ class Trainer:
         end = c.iterations if stop_after is None else min(c.iterations, self.iteration + stop_after)
         # Said in the bar, whose line is what the Blender add-on shows: a first iteration that
         # compiles would otherwise sit at 0 % for minutes without a word.
-        cold = progress and main and self.iteration < end and kernels_uncached()
+        # (On CUDA gsplat renders the steps: the CPU kernels compile later, if at all.)
+        on_cpu = all(t.device.type == "cpu" for t in self.model.params.values())
+        cold = progress and main and on_cpu and self.iteration < end and kernels_uncached()
         bar = tqdm(
             total=c.iterations,
             initial=self.iteration,
