@@ -7,6 +7,7 @@ from scipy.spatial.transform import Rotation
 
 from progressive_avatars.core.avatar import binding
 from progressive_avatars.core.avatar.forest import Forest
+from progressive_avatars.core.geometry.rotations import quat_rows
 from progressive_avatars.core.train import binding_torch
 from tests.helpers import depth6_precision, random_forest, sphere_mesh
 
@@ -134,6 +135,26 @@ def test_quaternion_conventions_against_scipy():
     Rf = binding.quat_to_rotmat(flip)
     for conv in (binding.rotmat_to_quat, lambda m: binding_torch.rotmat_to_quat(torch.tensor(m)).numpy()):
         np.testing.assert_allclose(binding.quat_to_rotmat(conv(Rf)), Rf, atol=1e-10)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_root_quaternions_are_quat_rows_bit_for_bit(dtype):
+    """The evaluator's root quaternions (pivot by comparisons, one-hot pick) are quat_rows' own
+    bits on rotation matrices: every Shepperd pivot, ties between pivots (90 and 180 degree
+    turns), w near 0, and the identity."""
+    rng = np.random.default_rng(4)
+    q = rng.normal(size=(2000, 4))
+    q[:300, 0] = 0  # half turns: pivots 1-3 tie with or beat 1 + trace
+    q[300:400, 1:] = 0  # the identity
+    q[400:500] = np.sign(rng.normal(size=(100, 4))) * (rng.random((100, 4)) < 0.5)  # 90-degree turns
+    q[400:500, 0] += 1e-3
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    m = binding.quat_to_rotmat(q).astype(dtype)
+    R = [[np.ascontiguousarray(m[:, i, j]) for j in range(3)] for i in range(3)]
+    want = quat_rows(R)
+    got = binding._root_quats(R, np.empty((4, len(q)), dtype))
+    np.testing.assert_array_equal(got, want)
+    assert got.dtype == dtype
 
 
 def test_compose_matches_independent_covariance_construction():
