@@ -113,6 +113,35 @@ def test_gaussian_evaluator_matches_compose_in_any_row_layout():
         binding.GaussianEvaluator(forest, d_mu, d_ls, d_rot, ids=ids[:2], rows=[4, 4])
 
 
+def test_threaded_gaussian_evaluator_gives_the_same_bits():
+    """Face chunks split between threads (each with its own scratch) give the bits of one
+    thread, in the grouped layout (slices), spread-out rows (staging and reorder) and with a
+    collapsed root (the general path after the chunks); below THREADED_MIN faces the default
+    chunking keeps to the calling thread."""
+    rng = np.random.default_rng(21)
+    verts, faces = sphere_mesh(7, 9)
+    verts = verts + rng.normal(0, 0.01, verts.shape)
+    verts[faces[5, 2]] = verts[faces[5, 0]]
+    forest = random_forest(faces, rng, depth=3, logit_scale=2.0)
+    N = forest.num_faces
+    d_mu, d_ls, d_rot = rng.normal(0, 0.5, (N, 3)), rng.normal(-1, 0.3, (N, 3)), rng.normal(size=(N, 4))
+    ids = rng.permutation(N)[: N // 2]
+    rows = rng.choice(3 * N, len(ids), replace=False)
+    v32 = verts.astype(np.float32)
+    for case_ids, case_rows, cap in [(binding.root_grouped(forest), None, None), (ids, rows, 3 * N)]:
+        one = binding.GaussianEvaluator(forest, d_mu, d_ls, d_rot, ids=case_ids, rows=case_rows, capacity=cap, chunk=40)
+        want = [x.copy() for x in one(v32)]
+        for threads in (2, 3):
+            ev = binding.GaussianEvaluator(
+                forest, d_mu, d_ls, d_rot, ids=case_ids, rows=case_rows, capacity=cap, chunk=40, threads=threads
+            )
+            assert ev.threads == threads
+            for _ in range(2):  # buffers reused
+                for got, w in zip(ev(v32), want):
+                    np.testing.assert_array_equal(got, w)
+    assert binding.GaussianEvaluator(forest, d_mu, d_ls, d_rot, threads=2).threads == 1  # N < THREADED_MIN
+
+
 def test_quaternion_conventions_against_scipy():
     rng = np.random.default_rng(2)
     q = rng.normal(size=(200, 4))

@@ -116,11 +116,19 @@ class Avatar:
     def subset(self, ids) -> dict:
         return {name: getattr(self, name)[ids] for name in PARAM_NAMES}
 
-    def evaluator(self, ids=None, weights=None, capacity=None, rows=None) -> binding.GaussianEvaluator:
+    def evaluator(self, ids=None, weights=None, capacity=None, rows=None, threads=1) -> binding.GaussianEvaluator:
         """A per-frame evaluator of this avatar's Gaussians (faces `ids`, default all; output
-        rows `rows`, default 0..n-1)."""
+        rows `rows`, default 0..n-1; `threads`: GaussianEvaluator's)."""
         return binding.GaussianEvaluator(
-            self.forest, self.d_mu, self.d_log_scale, self.d_rot, ids=ids, weights=weights, capacity=capacity, rows=rows
+            self.forest,
+            self.d_mu,
+            self.d_log_scale,
+            self.d_rot,
+            ids=ids,
+            weights=weights,
+            capacity=capacity,
+            rows=rows,
+            threads=threads,
         )
 
     def gaussians(self, vertices: np.ndarray, ids=None, weights=None, camera_center=None) -> dict:
