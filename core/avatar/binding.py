@@ -430,12 +430,15 @@ class GaussianEvaluator(_PlaneEvaluator):
         self._targets = [_as_run(self.rows[sl]) for sl, _ in self._chunks]
         self._reorder = None
         if not all(isinstance(t, slice) for t in self._targets):
-            # Spread-out rows (e.g. forest order): chunks write to staging arrays in evaluation
-            # order, then one row gather per output puts them in place (3x cheaper than
-            # scattering rows chunk by chunk).
+            # Spread-out rows (e.g. forest order, or the Blender layout below 100 %: its rows of
+            # the shown ranks): chunks write to staging arrays in evaluation order, then each
+            # output takes its rows in one move of whole 12/16-byte records (_move_records).
             perm = np.argsort(self.rows, kind="stable")
+            if np.array_equal(perm, np.arange(n)):
+                perm = None  # already in row order (the Blender layout's subsets)
+            dest = _as_run(self.rows if perm is None else self.rows[perm])
             stage = (np.empty((n, 3), np.float32), np.empty((n, 4), np.float32), np.empty((n, 3), np.float32))
-            self._reorder = (perm, _as_run(self.rows[perm]), stage)
+            self._reorder = (perm, dest, stage)
             self._targets = [sl for sl, _ in self._chunks]
         sel = given[order]
         self.d_mu = np.ascontiguousarray(np.asarray(d_mu)[sel].T, np.float32)
@@ -482,10 +485,7 @@ class GaussianEvaluator(_PlaneEvaluator):
         if self._reorder is not None:
             perm, dest, stage = self._reorder
             for src, out in zip(stage, (self.means, self.quats, self.scales)):
-                if isinstance(dest, slice):
-                    np.take(src, perm, axis=0, out=out[dest])
-                else:
-                    out[dest] = src[perm]
+                _move_records(src, perm, out, dest)
         bad = self._bad_rows(good)
         if bad is not None:
             base, e1, e2, eps = self._exact(bad)
@@ -638,6 +638,21 @@ def _face_pool(workers):
                 _POOL[1].shutdown(wait=False)  # its running chunks finish; new ones go to the larger pool
             _POOL = (workers, ThreadPoolExecutor(workers, thread_name_prefix="pa-faces"))
         return _POOL[1]
+
+
+def _move_records(src, perm, out, dest):
+    """out[dest] = src[perm] (perm None: src) for C-contiguous [n,w] arrays, moving each row as one
+    w-float record: numpy's row indexing copies a row float by float (41k of 171k rows, three
+    outputs: 3.2 ms as [n,w] floats, 0.5 ms as records)."""
+    rec = np.dtype((np.void, src.shape[1] * src.itemsize))
+    s, o = src.view(rec).reshape(-1), out.view(rec).reshape(-1)
+    if isinstance(dest, slice):
+        if perm is None:
+            o[dest] = s
+        else:
+            np.take(s, perm, out=o[dest])
+    else:
+        o[dest] = s if perm is None else s[perm]
 
 
 def _as_run(rows):
