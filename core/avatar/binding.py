@@ -385,8 +385,8 @@ class GaussianEvaluator(_PlaneEvaluator):
     bits are those of one thread (each face's arithmetic does not depend on its chunk). With
     the default chunk size such an evaluator of at least THREADED_MIN faces takes two chunks
     a thread: every pass then runs long enough between GIL hand-overs, where 32k-face chunks
-    spent the gain on them (2 threads on this 2-vCPU machine, 171k faces: ~20 % less time
-    with 43k-face chunks, none with 32k). Fewer faces run on the calling thread alone.
+    spent the gain on them (old against new in the commit that added the threads). Fewer faces
+    run on the calling thread alone.
     """
 
     ROOT_ROWS = 19  # the 15 plane rows, then the root frame's quaternion (wxyz)
@@ -590,8 +590,8 @@ def _root_quats(R, out):
     """quat_rows(R) into out [4,F], for the root frames: the same arithmetic, so the same bits
     for rotation matrices (where every candidate is finite), with the pivot found by comparisons
     and each component picked by a one-hot product. numpy's argmax along the short axis,
-    take_along_axis, where, choose and take each cost more than the whole arithmetic: quat_rows
-    took 1.5-2 ms of a frame on 14k roots, this 0.4-0.5 ms."""
+    take_along_axis, where, choose and take each cost more than the whole arithmetic, a few
+    times this function's time on the roots of a paper-scale avatar."""
     tr = R[0][0] + R[1][1] + R[2][2]
     piv0 = 1 + tr
     piv1 = 1 + R[0][0] - R[1][1] - R[2][2]
@@ -642,8 +642,7 @@ def _face_pool(workers):
 
 def _move_records(src, perm, out, dest):
     """out[dest] = src[perm] (perm None: src) for C-contiguous [n,w] arrays, moving each row as one
-    w-float record: numpy's row indexing copies a row float by float (41k of 171k rows, three
-    outputs: 3.2 ms as [n,w] floats, 0.5 ms as records)."""
+    w-float record: numpy's row indexing copies a row float by float, several times slower."""
     rec = np.dtype((np.void, src.shape[1] * src.itemsize))
     s, o = src.view(rec).reshape(-1), out.view(rec).reshape(-1)
     if isinstance(dest, slice):

@@ -61,8 +61,8 @@ def static_attributes(avatar: Avatar, order=None) -> dict:
     }
 
 
-# Threads of the frame handler's evaluator (GaussianEvaluator's threads): two measured 20-25 %
-# faster than one at 171k-201k Gaussians on a 2-vCPU machine; more were not measured.
+# Threads of the frame handler's evaluator (GaussianEvaluator's threads): two were faster than
+# one at the paper's scale (old against new in the commit that added them); more were not measured.
 PREVIEW_THREADS = min(2, os.cpu_count() or 1)
 
 
