@@ -246,6 +246,9 @@ def refresh(obj, depsgraph, count=None, upto=None):
     if obj.data.is_editmode:  # its points live in the edit mesh then, which has no attributes to write
         state.status = f"{obj.name} is in Edit Mode: its Gaussians follow the mesh again once you leave it"
         preview.set_count(obj, min(count, e.valid))  # never points it has not placed
+        # Leaving Edit Mode writes the edit mesh's points back as they were: placed anew then
+        # (handlers.on_depsgraph_update), whichever frame it left on.
+        e.frame_key = None
         return False
     me = obj.data
     if len(me.vertices) != e.avatar.num_gaussians:  # hidden, not left standing where they were

@@ -213,6 +213,13 @@ def test_budget_slider_on_a_preview_in_edit_mode(rep):
     assert r["status"].startswith(r["preview"] + " is in Edit Mode"), r["status"]
 
 
+def test_a_frame_changed_in_edit_mode_is_placed_on_leaving_it(rep):
+    r = scenario_step(rep, "frame_change_in_edit_mode")
+    assert r["frames_differ"] > 1e-3, r  # the two frames put the Gaussians in different places
+    assert r["after_edit"] < 1e-6, r
+    assert r["status"] == "", r["status"]
+
+
 def test_failed_depth_colours_change_nothing(rep):
     r = scenario_step(rep, "depth_on_edited_mesh")
     assert not r["depth_shown"] and r["depth_saved"] == ""

@@ -349,6 +349,31 @@ def preview_in_edit_mode(r):
 
 
 @step
+def frame_change_in_edit_mode(r):
+    pv = next(c for c in MESH.children if c.pa_avatar.is_preview)
+    scene = bpy.context.scene
+    activate(pv)
+    pv.pa_avatar.budget = 100.0
+
+    def placed():
+        a = np.empty(len(pv.data.vertices) * 3, np.float32)
+        pv.data.attributes["position"].data.foreach_get("vector", a)
+        return a
+
+    f0, f1 = scene.frame_start, scene.frame_start + 2
+    scene.frame_set(f1)
+    want = placed()  # frame f1's positions, placed in Object Mode
+    scene.frame_set(f0)
+    r["frames_differ"] = float(np.abs(placed() - want).max())
+    activate(pv, "EDIT")
+    scene.frame_set(f1)  # its points live in the edit mesh now: nothing can be written
+    activate(pv)  # leaving Edit Mode writes the edit mesh back: frame f0's positions
+    bpy.context.view_layer.update()
+    r["after_edit"] = float(np.abs(placed() - want).max())
+    r["status"] = pv.pa_avatar.status
+
+
+@step
 def depth_on_edited_mesh(r):
     pv = next(c for c in MESH.children if c.pa_avatar.is_preview)
     MESH.pa_mesh.depth_shown, MESH.pa_mesh.depth_saved = False, ""  # whatever an earlier step left
