@@ -20,6 +20,17 @@ from ..render.kernels import _PARALLEL  # only explicit prange loops run in para
 _ROWS = 2048  # rows per parallel work item
 
 
+@njit(cache=True)
+def _column_sums(bad):
+    # Not bad.sum(axis=0): numba's axis reduction compiles its bounds-check message formatting,
+    # seconds of a first run for a sum over a few dozen blocks.
+    out = np.zeros(bad.shape[1], np.int64)
+    for blk in range(bad.shape[0]):
+        for q in range(bad.shape[1]):
+            out[q] += bad[blk, q]
+    return out
+
+
 @njit(parallel=_PARALLEL, cache=True)
 def count_nonfinite(arrays):
     """NaN and inf values in each of a tuple of [N, K] arrays of N rows (one parallel pass)."""
@@ -33,7 +44,7 @@ def count_nonfinite(arrays):
                 for j in range(a.shape[1]):
                     if not np.isfinite(a[i, j]):
                         bad[blk, q] += 1
-    return bad.sum(axis=0)
+    return _column_sums(bad)
 
 
 @njit(parallel=_PARALLEL, cache=True)
@@ -64,7 +75,7 @@ def adam_rows(ps, gs, ms, vs, c1, c2, neg_lrs, b1, one_b1, b2, one_b2, eps):
                     p[i, j] = pi
                     if not (np.isfinite(pi) and np.isfinite(vi)):  # an inf moment freezes the row silently
                         bad[blk, q] += 1
-    return bad.sum(axis=0)
+    return _column_sums(bad)
 
 
 def _bias_corrections(t: np.ndarray, b1: float, b2: float, dtype=np.float32):
