@@ -8,6 +8,7 @@ import threading
 import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
+import numpy as np
 import pytest
 
 from progressive_avatars.core.stream import http as H
@@ -809,3 +810,188 @@ def test_min_rate_is_bytes_per_second_not_per_window(streams, server):
     res = H.fetch_stream(url, chunk_size=1 << 20, timeout=2, min_rate=6000, rate_window=0.25)
     assert res.status == H.COMPLETE, str(res)
     assert_prefix(res.avatar(), full, full.num_gaussians)
+
+
+# -- a same-size replacement within the Last-Modified second ---------------------------------------
+# Python's http.server (and others) send Last-Modified only: a file replaced by one of the same
+# size within the same second keeps both the validator and the size, so If-Range cannot tell.
+
+STAMP = "Mon, 23 Nov 2026 04:00:07 GMT"
+H0, S0 = 530, RPB * R + 4  # the test stream's header size and block size (with its CRC)
+
+
+@pytest.fixture(scope="module")
+def same_header(streams):
+    """A third same-size stream whose header is byte-identical to streams' first (other opacities:
+    they are coded without a range in the header, FORMAT.md 3.1), its records different."""
+    _, av, imp = make_avatar(11, n_lat=6, n_lon=10, depth=3)
+    other = Avatar(av.forest, av.d_mu, av.d_log_scale, av.d_rot, -av.opacity_logit, av.f_dc, meta=av.meta)
+    c = encode_stream(other, imp, records_per_block=RPB)
+    a = streams[0]
+    assert _fields(a)[0] == H0 and len(c) == len(a) and c[:H0] == a[:H0] and c[H0 + 2 * S0 :] != a[H0 + 2 * S0 :]
+    return c
+
+
+def _replaced(old, new, after, cut=None):
+    """Last-Modified only, always the same: `old` for the first `after` requests, `new` from then on.
+    cut: the request whose body stops after that many bytes (the connection then closes)."""
+
+    def answer(h, n):
+        data = old if n <= after else new
+        if cut is not None and n == cut[0]:
+            s, e = _asked(h, len(data))
+            _reply(
+                h,
+                206,
+                data[s : s + cut[1]],
+                [("Content-Range", f"bytes {s}-{e}/{len(data)}"), ("Last-Modified", STAMP)],
+                length=e - s + 1,
+            )
+            h.close_connection = True
+            return
+        _honest(data, headers=[("Last-Modified", STAMP)])(h, n)
+
+    return answer
+
+
+def test_replaced_mid_download_other_header_is_changed_not_corrupt(streams, server):
+    """The new file's first bytes complete a block begun with the old file's: its CRC-32 (seeded
+    with the old header's CRC) fails. That is a replacement, not damaged bytes."""
+    a, b, full_a = streams
+    _, url = server(_replaced(a, b, after=1))
+    res = H.fetch_stream(url, chunk_size=1500, timeout=2, min_rate=None)
+    assert res.status == H.CHANGED, str(res)
+    assert url in res.message and "discard" in res.message, res.message
+    assert res.keepable_gaussians == 0
+
+
+@pytest.mark.parametrize("end", ["budget", "cut"])
+def test_replaced_between_responses_before_a_block_completes_is_changed(streams, server, end):
+    """The old file's bytes end at a block boundary; the new file's records of the next block each
+    pass their own CRC-8 and no block CRC-32 follows (a budget, a cut): they were kept, decoded
+    with the old header's ranges, a silently mixed avatar."""
+    a, b, full_a = streams
+    first = H0 + 2 * S0  # two whole blocks: request 2 starts block 2
+    _, url = server(_replaced(a, b, after=1, cut=(2, 10 * R) if end == "cut" else None))
+    kw = {"max_bytes": first + 10 * R} if end == "budget" else {}
+    res = H.fetch_stream(url, chunk_size=first, timeout=2, min_rate=None, **kw)
+    assert res.status == H.CHANGED, str(res)
+    assert res.keepable_gaussians == 0
+
+
+def test_replaced_mid_download_same_header_is_changed(streams, same_header, server):
+    """A byte-identical header: the block the replacement fell into mixes both files' bytes and
+    fails its CRC-32; re-reading the header cannot tell, the block's bytes on the server can."""
+    a, _, full_a = streams
+    _, url = server(_replaced(a, same_header, after=1))
+    res = H.fetch_stream(url, chunk_size=1500, timeout=2, min_rate=None)
+    assert res.status == H.CHANGED, str(res)
+    assert res.keepable_gaussians == 0
+
+
+def test_replaced_same_header_inside_the_last_block_is_changed(streams, same_header, server):
+    """A byte-identical header and the replacement between two records of the last, incomplete
+    block: each record passes its CRC-8, no block CRC-32 covers them."""
+    a, _, full_a = streams
+    first = H0 + 2 * S0 + 5 * R
+    _, url = server(_replaced(a, same_header, after=1))
+    res = H.fetch_stream(url, chunk_size=first, max_bytes=first + 5 * R, timeout=2, min_rate=None)
+    assert res.status == H.CHANGED, str(res)
+
+
+def test_replaced_same_header_at_a_block_boundary_is_undetectable(streams, same_header, server):
+    """The documented limit: a byte-identical header and the replacement exactly between two
+    blocks. Every block verifies against the header; nothing received differs from the server's
+    file in the block being received. Only a strong ETag rules this out."""
+    a, _, full_a = streams
+    first = H0 + 2 * S0
+    _, url = server(_replaced(a, same_header, after=1))
+    res = H.fetch_stream(url, chunk_size=first, max_bytes=first + 10 * R, timeout=2, min_rate=None)
+    assert res.status == H.BUDGET, str(res)
+    full_c = read_stream(same_header)
+    assert_prefix(res.reader.avatar(2 * RPB), full_a, 2 * RPB)  # the old file's blocks 0-1
+    np.testing.assert_array_equal(res.avatar().opacity_logit[2 * RPB :], full_c.opacity_logit[2 * RPB : 2 * RPB + 10])
+
+
+@pytest.mark.parametrize("budget", [True, False], ids=["budget", "to-the-end"])
+def test_resume_into_a_same_header_replacement_is_changed(streams, same_header, server, budget):
+    """A reader stopped inside a block, resumed against a replacement with a byte-identical header:
+    the header CRC check passes, and the new records either complete the old block (its CRC-32
+    fails: 'corrupt') or each pass their CRC-8 inside it (a silently mixed avatar)."""
+    a, _, full_a = streams
+    held = H0 + 2 * S0 + 5 * R
+    _, url_a = server(_replaced(a, a, after=1))
+    first = H.fetch_stream(url_a, max_bytes=held, timeout=2, min_rate=None)
+    assert first.status == H.BUDGET and first.validator == STAMP, str(first)
+    _, url_c = server(_replaced(same_header, same_header, after=1))
+    kw = {"max_bytes": held + 5 * R} if budget else {}
+    res = H.fetch_stream(url_c, reader=first.reader, validator=first.validator, timeout=2, min_rate=None, **kw)
+    assert res.status == H.CHANGED, str(res)
+    assert res.keepable_gaussians == 0
+
+
+def test_replaced_inside_the_header_is_changed(streams, server):
+    """Requests smaller than the header: its first bytes from the old file, the rest from the new
+    one. The assembled header fails its CRC-32: the header bytes on the server tell why."""
+    a, b, _ = streams
+    _, url = server(_replaced(a, b, after=1))
+    res = H.fetch_stream(url, chunk_size=300, timeout=2, min_rate=None)
+    assert res.status == H.CHANGED, str(res)
+
+
+def test_records_the_end_check_cannot_tie_are_not_kept(streams, server):
+    """The last response brought records of a block it did not complete, and re-reading the
+    server's bytes fails (503 from the third request on): they are not kept. With the server
+    answering, two small re-reads tie them; with a strong ETag none is needed."""
+    a, _, full_a = streams
+    first = H0 + 2 * S0
+    kw = {"chunk_size": first, "max_bytes": first + 10 * R, "timeout": 2, "min_rate": None}
+
+    def busy(h, n):
+        if n > 2:
+            return _reply(h, 503, b"busy")
+        _honest(a, headers=[("Last-Modified", STAMP)])(h, n)
+
+    _, url = server(busy)
+    res = H.fetch_stream(url, **kw)
+    assert res.status == H.BUDGET and res.num_gaussians == 2 * RPB + 10, str(res)
+    assert res.keepable_gaussians == 2 * RPB and res.unconfirmed == 10
+    assert "10 Gaussians" in res.message and url in res.message and "not kept" in res.message, res.message
+    _, url = server(_honest(a, headers=[("Last-Modified", STAMP)]))
+    res = H.fetch_stream(url, **kw)
+    assert res.status == H.BUDGET and res.keepable_gaussians == 2 * RPB + 10 and res.requests == 4, str(res)
+    assert_prefix(res.avatar(), full_a, 2 * RPB + 10)
+    _, url = server(_honest(a, headers=[("ETag", '"v1"')]))
+    res = H.fetch_stream(url, **kw)
+    assert res.status == H.BUDGET and res.keepable_gaussians == 2 * RPB + 10 and res.requests == 2, str(res)
+
+
+def test_corruption_across_responses_stays_corrupt(streams, server):
+    """A damaged byte in a later response, no strong ETag: the re-reads find the server's file as
+    received, so it is 'corrupt' (the verified prefix kept), not 'changed'."""
+    a, _, full_a = streams
+    bad = bytearray(a)
+    bad[H0 + 3 * S0 + 5] ^= 0x55  # block 3
+    _, url = server(_honest(bytes(bad), headers=[("Last-Modified", STAMP)]))
+    res = H.fetch_stream(url, chunk_size=1500, timeout=2, min_rate=None)
+    assert res.status == H.CORRUPT and "block 3" in res.message, str(res)
+    assert res.keepable_gaussians == res.num_gaussians == 3 * RPB
+    assert_prefix(res.avatar(), full_a, 3 * RPB)
+
+
+def test_resume_check_reads_a_header_crc_split_between_pieces(streams, server):
+    """A resume against a server that ignores Range re-reads the held prefix; the header CRC's 4
+    bytes fell across two pieces of it and were compared in neither: the replaced file's records
+    went on to be decoded with the old header."""
+    a, b, full_a = streams
+
+    def whole(data):
+        return lambda h, n: _reply(h, 200, data, [("Last-Modified", STAMP)])
+
+    _, url_a = server(whole(a))
+    first = H.fetch_stream(url_a, percent=40, timeout=2, min_rate=None)
+    assert first.status == H.BUDGET and first.validator == STAMP, str(first)
+    _, url_b = server(whole(b))
+    res = H.fetch_stream(url_b, reader=first.reader, validator=first.validator, read_size=H0 - 2, timeout=2)
+    assert res.status == H.CHANGED and "header CRC differs" in res.message, str(res)
+    assert_prefix(res.avatar(), full_a, first.num_gaussians)

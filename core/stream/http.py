@@ -73,6 +73,10 @@ def _split_url(url):
     return parts, None
 
 
+def _request_path(parts) -> str:
+    return (parts.path or "/") + (f"?{parts.query}" if parts.query else "")
+
+
 def _check_args(timeout, chunk_size, read_size, max_bytes, percent, max_redirects, headers, validator):
     """Raise ValueError for arguments no download can honour (they would otherwise fail deep in
     http.client or socket and come back as a misleading status, or be silently ignored)."""
@@ -128,6 +132,9 @@ class FetchResult:
     # The server's validator for the file (strong ETag, else Last-Modified): pass it back as
     # `validator=` when resuming with the same reader so a replaced file is detected.
     validator: str | None = None
+    # Verified Gaussians at the end that could not be tied to the file the header came from (no
+    # strong ETag, no block CRC-32 over them, and re-reading the server's bytes failed): not kept.
+    unconfirmed: int = 0
 
     @property
     def ok(self) -> bool:
@@ -144,8 +151,9 @@ class FetchResult:
     @property
     def keepable_gaussians(self) -> int:
         """The verified Gaussians a caller may keep: none when the file changed on the server
-        mid-download (what arrived is a prefix of the old file, not of the one at the URL now)."""
-        return 0 if self.status == CHANGED else self.reader.num_gaussians
+        mid-download (what arrived is a prefix of the old file, not of the one at the URL now),
+        and not the `unconfirmed` ones at the end."""
+        return 0 if self.status == CHANGED else self.reader.num_gaussians - self.unconfirmed
 
     def avatar(self):
         return self.reader.avatar()
@@ -258,9 +266,18 @@ def fetch_stream(
     that lacks its header rather than overshoot). Range requests carry If-Range with the file's
     ETag or Last-Modified (`validator` to resume an earlier fetch): if the file changes on the
     server the result is "changed" and the bytes received belong to the old file: discard them.
-    A resumed reader without a strong ETag (none, or a Last-Modified, which has one-second
-    resolution) first re-reads the 4 bytes of the header's CRC-32: another file there is
-    "changed" too. A body sent with a Content-Encoding other than identity is an "http_error"
+    Without a strong ETag (none, or a Last-Modified, which has one-second resolution) a file
+    replaced by one of the same size within that second passes If-Range and the size check, so
+    the server's bytes are compared with what this fetch holds: a resumed reader first re-reads
+    the 4 bytes of the header's CRC-32; a verification failure whose bytes came in more than
+    one response, and an end (budget, cancel, cut, ...) leaving verified records that neither
+    the header nor a block CRC-32 in their own response tied to the header's file, re-read the
+    header's CRC and the bytes received since the last verified block. Any difference is
+    "changed"; a re-read that fails leaves those records out of keepable_gaussians
+    (`unconfirmed`). Undetectable: a replacement whose header is byte-identical, falling exactly
+    between two blocks received (every block verifies against the header, and the incomplete
+    one holds only the new file's bytes): the avatar mixes the two files' records. Only a strong
+    ETag rules it out. A body sent with a Content-Encoding other than identity is an "http_error"
     naming it. The minimum rate counts every byte read, a held prefix re-read included.
     A file on the server shorter than its header announces ends "truncated" (its verified
     prefix kept; resuming cannot help). A URL, or a redirect's, without a host, with a bad port
@@ -291,7 +308,18 @@ def fetch_stream(
     h0 = reader.header
     verify = h0 is not None and reader.bytes_received >= h0.header_size and not _strong(validator)
     crc_at = h0.header_size - 4 if verify else 0
-    crc_want = struct.pack("<I", h0.header_crc) if verify else b""
+    resumed = reader.bytes_received > 0
+    # What the server's bytes are compared with (see replaced): the header's CRC, and the bytes
+    # received since the last block boundary the reader verified (`tail`, at stream offset
+    # tail_at[0]; a resumed reader's own included), whose records no block CRC-32 has tied yet.
+    tail = bytearray(reader.pending_bytes)
+    tail_at = [reader.bytes_received - len(tail)]
+    # One response is one version of the file: the records of a response that completed the
+    # header or a block are tied to the header's file (`sure`: how many records are); those of
+    # one that did neither are re-checked at the end (settle).
+    sure = [reader.num_gaussians]
+    resp_from = [0]  # reader.bytes_received when the current response began
+    tied = [False]  # the current response completed the header or a block, or re-read the header CRC
     bad_url = "bad URL"  # how an unusable target is named: the caller's URL, or a redirect's
 
     def limit() -> int | None:
@@ -344,18 +372,85 @@ def fetch_stream(
                 + 4 * -(-f["num_records"] // f["records_per_block"])
             )
 
-    def header_replaced(data, at) -> bool:
-        """Set CHANGED when `data` (at stream offset `at`) shows another header CRC than the one
-        the resumed reader decoded its records with."""
-        got = bytes(data[max(crc_at - at, 0) : max(crc_at + 4 - at, 0)])
-        if len(got) < 4 or got == crc_want:
-            return False
-        res.status = CHANGED
-        res.message = (
-            f"the file on the server changed since the earlier fetch (its header CRC differs); the "
-            f"{reader.bytes_received} bytes received belong to the old file: discard them"
-        )
-        return True
+    def replaced(data, at) -> bool:
+        """Set CHANGED when `data`, the server's bytes at stream offset `at`, differ from those
+        held there: the header CRC the reader decoded its records with, or `tail`. (Compared
+        byte by byte where they overlap: a piece may hold part of either.)"""
+        h = reader.header
+        held = [] if h is None else [(h.header_size - 4, struct.pack("<I", h.header_crc), "header CRC differs")]
+        held.append((tail_at[0], tail, "bytes {}..{} differ from those received"))
+        for lo, ref, what in held:
+            a, b = max(lo, at), min(lo + len(ref), at + len(data))
+            if a < b and bytes(data[a - at : b - at]) != ref[a - lo : b - lo]:
+                res.status = CHANGED
+                res.message = (
+                    f"the file at {target} changed {'since the earlier fetch' if resumed else 'mid-download'} "
+                    f"(its {what.format(a, b - 1)}; same size{' and validator' if res.validator else ''}, so "
+                    f"If-Range could not tell); the {reader.bytes_received} bytes received are not all "
+                    "the file's now there: discard them"
+                )
+                return True
+        return False
+
+    def reread(lo, size) -> bytes | None:
+        """The server's `size` bytes at stream offset `lo` now: one range request without
+        If-Range, on a new connection. None when no usable answer came; a changed validator or
+        file size sets CHANGED (and gives None)."""
+        parts, problem = _split_url(target)
+        if problem or dog.reason:  # a deadline passed or the server is too slow: no more requests
+            return None
+        cls = http.client.HTTPSConnection if parts.scheme == "https" else http.client.HTTPConnection
+        c = cls(parts.hostname, parts.port, timeout=dog.remaining(timeout))
+        hdrs = {"Accept-Encoding": "identity", **(headers or {}), "Range": f"bytes={lo}-{lo + size - 1}"}
+        try:
+            c.request("GET", _request_path(parts), headers=hdrs)
+            res.requests += 1
+            resp = c.getresponse()
+            m = _CONTENT_RANGE.match(resp.getheader("Content-Range") or "")
+            if resp.status != 206 or not m or int(m.group(1)) != lo or int(m.group(2)) < lo + size - 1:
+                return None
+            if (resp.getheader("Content-Encoding") or "identity").strip().lower() != "identity":
+                return None
+            if changed(resp, "validator") or (m.group(3) != "*" and resized(int(m.group(3)))):
+                return None
+            got = resp.read(size)
+            wire[0] += len(got)
+            return got if len(got) == size else None
+        except (OSError, http.client.HTTPException):
+            return None
+        finally:
+            c.close()
+
+    def settle():
+        """Run before a result is returned (see the docstring): re-read the header CRC and `tail`
+        when the end leaves received bytes untied to one file."""
+        n = reader.num_gaussians
+        if _strong(res.validator) or res.status in (COMPLETE, CHANGED, REFUSED):
+            return
+        if n <= sure[0] and not (res.status == CORRUPT and resp_from[0] > 0):
+            return  # (a failure inside the one response that brought every byte is corruption)
+        was = res.message if res.status == CORRUPT else ""
+        h = reader.header
+        for lo, size in ([(h.header_size - 4, 4)] if h is not None else []) + [(tail_at[0], len(tail))]:
+            if size == 0:
+                continue
+            got = reread(lo, size)
+            if got is None or replaced(got, lo):
+                break
+        else:
+            sure[0] = n  # the server holds what arrived: a corrupt file stays "corrupt"
+            return
+        if res.status == CHANGED:
+            if was:
+                res.message += f" (what arrived failed verification: {was})"
+            return
+        res.unconfirmed = n - sure[0]
+        if res.unconfirmed:
+            note = (
+                f"{res.unconfirmed} Gaussians at the end, in no block verified in their response, could "
+                f"not be checked against the file at {target} (no strong ETag; re-reading it failed): not kept"
+            )
+            res.message = f"{res.message}; {note}" if res.message else note
 
     def feed(data, at) -> bool:
         """Take the bytes at stream offset `at`: note the fixed part, feed the reader what it
@@ -368,6 +463,7 @@ def fetch_stream(
             return True
         if skip > 0:
             data = data[skip:]
+        tail.extend(data)
         try:
             new = reader.feed(data)
         except StreamError:
@@ -377,6 +473,17 @@ def fetch_stream(
             return False
         except Exception as exc:  # a caller's StreamReader subclass failing (e.g. its own file)
             raise _CallerError(exc) from None
+        h = reader.header
+        if h is not None:
+            H, S = h.header_size, h.block_bytes
+            blocks = (reader.bytes_received - H) // S  # whole blocks received (each verified)
+            tied[0] = tied[0] or resp_from[0] < H or blocks > (resp_from[0] - H) // S
+            if tied[0]:
+                sure[0] = reader.num_gaussians
+            cut = min(H + blocks * S, reader.bytes_received)
+            if cut > tail_at[0]:
+                del tail[: cut - tail_at[0]]
+                tail_at[0] = cut
         if on_chunk is not None:
             try:
                 go = on_chunk(reader, new)
@@ -442,7 +549,7 @@ def fetch_stream(
             if problem:
                 res.status, res.message = HTTP_ERROR, f"{bad_url} {target!r}: {problem}"
                 break
-            path = (parts.path or "/") + (f"?{parts.query}" if parts.query else "")
+            path = _request_path(parts)
             start = crc_at if verify else len(head) if need_head() else reader.bytes_received
             if use_ranges and total_seen is not None and start >= total_seen:
                 # Content-Range gave the file's size and every byte of it arrived: asking for
@@ -542,6 +649,7 @@ def fetch_stream(
                         break
                     total_seen = size
                 res.used_ranges = True
+                resp_from[0], tied[0] = reader.bytes_received, False
                 # A server may send more than asked (a CDN rounding ranges up to its blocks):
                 # only the requested bytes are fed, so a budget holds; the rest stays unread.
                 want = min(last, end) - start + 1
@@ -551,10 +659,10 @@ def fetch_stream(
                     piece = resp.read1(min(read_size, want - got))
                     if not piece:
                         break
-                    if verify and header_replaced(piece, start + got):
-                        return _done(res, conn, t0, dog)
+                    if replaced(piece, start + got):  # held bytes re-read: the resume check, the fixed part
+                        return _done(res, conn, t0, dog, settle)
                     if not feed(piece, start + got):
-                        return _done(res, conn, t0, dog)
+                        return _done(res, conn, t0, dog, settle)
                     got += len(piece)
                 if got < want:
                     res.status, res.message = CUT, f"range response ended after {got} of {want} bytes"
@@ -585,16 +693,19 @@ def fetch_stream(
                 # the fixed part) and read the rest incrementally on this one response.
                 res.used_ranges = False
                 use_ranges = False
+                resp_from[0], tied[0] = reader.bytes_received, False
                 pos = 0
                 while pos < reader.bytes_received:
                     dropped = resp.read1(min(read_size, reader.bytes_received - pos))  # counted as it arrives
                     if not dropped:
                         break
                     wire[0] += len(dropped)
-                    if verify and header_replaced(dropped, pos):
-                        return _done(res, conn, t0, dog)
+                    if replaced(dropped, pos):
+                        return _done(res, conn, t0, dog, settle)
                     take_head(dropped, pos)
                     pos += len(dropped)
+                # the held header CRC and tail compared equal: this response is of the header's file
+                tied[0] = reader.header is not None and pos >= reader.bytes_received
                 verify = False
                 while pos >= reader.bytes_received:
                     if finished():
@@ -605,7 +716,7 @@ def fetch_stream(
                     if not piece:
                         break
                     if not feed(piece, pos):
-                        return _done(res, conn, t0, dog)
+                        return _done(res, conn, t0, dog, settle)
                     pos += len(piece)
                 done = finished()
                 if done:
@@ -639,14 +750,16 @@ def fetch_stream(
         # Raised here, outside the handler, so what the caller sees is their exception with
         # its own traceback, nothing of fetch_stream's chained onto it.
         raise caller_error
-    return _done(res, conn, t0, dog)
+    return _done(res, conn, t0, dog, settle)
 
 
-def _done(res: FetchResult, conn, t0: float, dog: _Watchdog) -> FetchResult:
+def _done(res: FetchResult, conn, t0: float, dog: _Watchdog, settle=None) -> FetchResult:
     dog.stop()
     if dog.reason and res.status not in (COMPLETE, BUDGET, CANCELLED, CHANGED, TRUNCATED):
         res.status, res.message = dog.reason, dog.message  # what woke the read, not the cut it caused
     if conn is not None:
         conn.close()
+    if settle is not None:
+        settle()  # after the connection is closed and the status is known; may make requests
     res.seconds = time.monotonic() - t0
     return res

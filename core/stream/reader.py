@@ -210,6 +210,14 @@ class StreamReader:
         return self.header is not None and self._block >= self.header.num_blocks
 
     @property
+    def pending_bytes(self) -> bytes:
+        """The bytes received after the last boundary the reader verified: the header so far while
+        it is incomplete, then the current block's (its records may have passed their CRC-8s, the
+        block's CRC-32 has not). A downloader compares them with the source's bytes to tell a
+        replaced file from damaged bytes (core/stream/http.py)."""
+        return bytes(self._pending)
+
+    @property
     def template_faces(self):
         if self._given_template is not None:
             return self._given_template
