@@ -23,6 +23,7 @@ from progressive_avatars.core.io.sequences import (
 )
 from progressive_avatars.core.flame.model import flame_forward, load_flame_model
 
+from tests.helpers import sphere_mesh
 from tests.test_flame import N_EXPR, N_SHAPE, N_V, random_params, write_flame_pkl  # noqa: E402
 
 
@@ -110,6 +111,95 @@ def test_flame_param_folder(tmp_path, flame_model):
         read_flame_param_folder(fp, frames=[4], flame_model=flame_model)
     with pytest.raises(DataError, match="need a FLAME model"):
         read_flame_param_folder(fp, frames=[0])
+
+
+def _recorder():
+    calls = []
+    return calls, lambda done, total: calls.append((done, total))
+
+
+def _to_the_end(calls):
+    """A reader's progress calls: one total, done rising one step at a time or more, the last (total, total)."""
+    assert calls, "no progress reported"
+    total = calls[0][1]
+    assert all(t == total for _, t in calls), calls
+    done = [d for d, _ in calls]
+    assert done == sorted(set(done)) and done[0] > 0 and done[-1] == total, calls
+    return done
+
+
+def _obj_folder(d, frames):
+    v, f = sphere_mesh(4, 6)
+    d.mkdir()
+    faces = "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in f)
+    for t in range(frames):
+        (d / f"frame{t}.obj").write_text("".join(f"v {x} {y} {z}\n" for x, y, z in v * (1 + t)) + faces)
+
+
+def test_folder_readers_report_progress_per_file(tmp_path, flame_model, monkeypatch):
+    # A 1000-frame folder reads for seconds (Blender's importer shows it): one call per file
+    # read (and per chunk of frames FLAME evaluates), ending at (total, total).
+    _obj_folder(tmp_path / "obj", 5)
+    calls, progress = _recorder()
+    seq = read_mesh_folder(tmp_path / "obj", progress=progress)
+    assert calls == [(t, 5) for t in range(1, 6)]
+    np.testing.assert_array_equal(seq.vertices, read_mesh_folder(tmp_path / "obj").vertices)  # as without
+    calls.clear()
+    read_sequence(tmp_path / "obj", frames=[3, 1], progress=progress)
+    assert calls == [(1, 2), (2, 2)]
+    (tmp_path / "obj" / "frame3.obj").write_text("v 1 2\n")
+    calls.clear()
+    with pytest.raises(DataError, match=r"frame3\.obj"):
+        read_sequence(tmp_path / "obj", progress=progress)
+    assert calls == [(1, 5), (2, 5), (3, 5)]  # the files before the broken one
+
+    prm = random_params(5, seed=12)
+    fp = tmp_path / "ga" / "flame_param"
+    fp.mkdir(parents=True)
+    for t in range(5):
+        np.savez(fp / f"{t:05d}.npz", **ga_frame(prm, t))
+    calls.clear()
+    seq = read_flame_param_folder(tmp_path / "ga", flame_model=flame_model, progress=progress)
+    assert calls == [(1, 10), (2, 10), (3, 10), (4, 10), (5, 10), (10, 10)]  # 5 files, one chunk of 5 frames
+    np.testing.assert_array_equal(seq.vertices, read_sequence(tmp_path / "ga", flame_model=flame_model).vertices)
+    from progressive_avatars.core.flame import model as flame_module
+
+    monkeypatch.setattr(flame_module, "_CHUNK", 2)
+    calls.clear()
+    read_sequence(tmp_path / "ga", flame_model=flame_model, progress=progress)
+    assert _to_the_end(calls) == [1, 2, 3, 4, 5, 7, 9, 10]  # then chunks of 2, 2 and 1 frames
+    calls.clear()
+    from progressive_avatars.core.io.sequences import read_flame_track
+
+    read_flame_track(tmp_path / "ga", frames=[4, 0, 2], progress=progress)  # nothing evaluated
+    assert calls == [(1, 3), (2, 3), (3, 3)]
+
+
+def test_single_file_and_dataset_readers_report_progress(tmp_path, flame_model):
+    calls, progress = _recorder()
+    prm = random_params(3, seed=13)
+    np.savez(tmp_path / "tracked.npz", **prm)
+    read_sequence(tmp_path / "tracked.npz", flame_model=flame_model, progress=progress)
+    assert calls == [(1, 4), (4, 4)]  # the file, then its 3 frames evaluated
+    np.savez(tmp_path / "nersemble.npz", **_nersemble(prm))
+    from progressive_avatars.core.io.sequences import read_flame_track
+
+    for path in (tmp_path / "nersemble.npz", tmp_path / "tracked.npz"):
+        calls.clear()
+        read_sequence(path, frames=[2], flame_model=flame_model, progress=progress)
+        assert calls == [(1, 2), (2, 2)], path
+        calls.clear()
+        read_flame_track(path, progress=progress)  # the file, nothing evaluated
+        assert calls == [(1, 1)], path
+    np.savez(tmp_path / "mesh.npz", vertices=np.zeros((2, 3, 3)), faces=np.array([[0, 1, 2]]))
+    calls.clear()
+    read_sequence(tmp_path / "mesh.npz", progress=progress)
+    assert calls == [(1, 1)]
+    root = tmp_path / "ds"
+    write_mesh_dataset(root, timesteps=(0, 1, 2, 3))
+    calls.clear()
+    read_sequence(root, progress=progress)
+    assert calls == [(1, 4), (2, 4), (3, 4), (4, 4)]  # one per timestep's geometry
 
 
 def test_vhap_tracked_matches_per_frame(tmp_path, flame_model):

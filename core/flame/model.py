@@ -23,6 +23,7 @@ import io
 import os
 import pickle
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -786,12 +787,15 @@ def flame_forward(
     dynamic_offset=None,
     pose=None,
     dtype=np.float32,
+    *,
+    progress: Callable[[int, int], None] | None = None,
 ) -> np.ndarray:
     """FLAME vertices [T,V,3] for T frames (computed in float64, returned as ``dtype``).
 
     shape [S] or [1|T,S]; expr [1|T,E]; rotation, neck_pose, jaw_pose, translation [1|T,3]
     (axis-angle); eyes_pose [1|T,6]; static_offset [1,V,3]; dynamic_offset [1|T,V,3].
     Missing parameters are zero. Fewer coefficients than the model has are zero-padded.
+    ``progress(done, T)``, when given, is called after each chunk of frames evaluated.
     """
     T, betas, full, transl, offsets = prepare_params(
         model, shape, expr, rotation, neck_pose, jaw_pose, eyes_pose, translation, static_offset, dynamic_offset, pose
@@ -801,4 +805,6 @@ def flame_forward(
         e = min(T, s + _CHUNK)
         off = None if offsets is None else (offsets if offsets.shape[0] == 1 else offsets[s:e])
         out[s:e] = _skin_chunk(model, betas[s:e], full[s:e], transl[s:e], off)
+        if progress is not None:
+            progress(e, T)
     return out

@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import zipfile
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -543,14 +544,16 @@ class Dataset:
         for i in range(len(self)):
             yield self[i]
 
-    def sequence(self, frames=None) -> MeshSequence:
+    def sequence(self, frames=None, *, progress: Callable[[int, int], None] | None = None) -> MeshSequence:
         """The split's geometry as a MeshSequence over its sorted timesteps (``frames``:
-        positions in ``self.timesteps``; None = all)."""
+        positions in ``self.timesteps``; None = all). ``progress(done, total)`` is called after
+        each timestep's geometry (as core/io/sequences.py's readers call it)."""
         ts = self.timesteps[_select(len(self.timesteps), frames, self.json_path)]
         # One mesh file (or one FLAME evaluation) per timestep, each cached.
-        verts = (
-            np.stack([self.vertices_at(t) for t in ts.tolist()])
-            if len(ts)
-            else np.zeros((0, self.n_vertices, 3), np.float32)
-        )
+        rows = []
+        for j, t in enumerate(ts.tolist()):
+            rows.append(self.vertices_at(t))
+            if progress is not None:
+                progress(j + 1, len(ts))
+        verts = np.stack(rows) if rows else np.zeros((0, self.n_vertices, 3), np.float32)
         return MeshSequence(self.faces, verts, ts, None, self.json_path)

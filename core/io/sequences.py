@@ -8,6 +8,14 @@ Sequence readers turn the tracked-geometry formats users have into one ``MeshSeq
 - mesh npz (``vertices`` [T,V,3] + ``faces``), a folder of OBJ/PLY frames (core/io/mesh_io.py),
 - a dataset root (``transforms_*.json``): its tracked geometry, through ``dataset.Dataset``.
 
+Every reader takes ``progress``, a callable or None (the default: nothing is called). A
+1000-frame folder takes seconds (Blender's importer shows its progress), so the readers call
+``progress(done, total)`` after each step: a file read, or a chunk of frames evaluated by FLAME
+(:func:`flame_forward`'s chunks). ``total`` is fixed for the call, ``done`` grows, and on success
+the last call is ``(total, total)``: per-frame folders make one step per file (a FLAME folder
+evaluated: as many again for its frames), one file one step (a FLAME file evaluated: one more
+per frame). A selection of no frames from a folder makes no steps and no call.
+
 Blender tier: numpy only (this module runs inside Blender).
 """
 
@@ -15,6 +23,7 @@ from __future__ import annotations
 
 import os
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -217,14 +226,16 @@ def _flame_keys(d: dict) -> dict:
     return out
 
 
-def _evaluate_flame(params: dict, model: FlameModel, source: str) -> np.ndarray:
+def _evaluate_flame(params: dict, model: FlameModel, source: str, progress=None) -> np.ndarray:
     try:
-        return flame_forward(model, **params)
+        return flame_forward(model, **params, progress=progress)
     except ValueError as exc:
         raise DataError(f"{source}: {exc}") from exc
 
 
-def read_flame_param_folder(path, frames=None, flame_model=None, evaluate=True):
+def read_flame_param_folder(
+    path, frames=None, flame_model=None, evaluate=True, *, progress: Callable[[int, int], None] | None = None
+):
     """GaussianAvatars/VHAP per-frame FLAME parameters: ``path/*.npz`` (or ``path/flame_param/*.npz``).
 
     Each file holds translation (1,3), rotation (1,3), neck_pose (1,3), jaw_pose (1,3),
@@ -239,8 +250,10 @@ def read_flame_param_folder(path, frames=None, flame_model=None, evaluate=True):
         raise DataError(f"{folder}: no .npz FLAME parameter files")
     model = _need_model(flame_model, folder) if evaluate else None
     sel = _select(len(files), frames, folder)
+    n = len(sel)
+    total = 2 * n if evaluate else n  # each file read, then each frame evaluated
     params = {k: [] for k in _ALIASES}
-    for i in sel.tolist():  # one small file per asked frame; the FLAME evaluation below is batched
+    for j, i in enumerate(sel.tolist()):  # one small file per asked frame; the FLAME evaluation below is batched
         fp = os.path.join(folder, files[i])
         d = _flame_keys(_npz(fp))
         if "expr" not in d and "shape" not in d:
@@ -248,6 +261,8 @@ def read_flame_param_folder(path, frames=None, flame_model=None, evaluate=True):
         check_frame_keys(d, fp)
         for k in _ALIASES:
             params[k].append(d.get(k))
+        if progress is not None:
+            progress(j + 1, total)
     names = [files[i] for i in sel.tolist()]
     stacked = {}
     for k, vals in params.items():
@@ -276,11 +291,12 @@ def read_flame_param_folder(path, frames=None, flame_model=None, evaluate=True):
     ids = _ids_from(names, len(sel))
     if not evaluate:
         return FlameTrack(stacked, ids, folder)
-    verts = _evaluate_flame(stacked, model, folder) if len(sel) else np.zeros((0, model.n_vertices, 3), np.float32)
+    evaluated = None if progress is None else (lambda done, _: progress(n + done, total))
+    verts = _evaluate_flame(stacked, model, folder, evaluated) if n else np.zeros((0, model.n_vertices, 3), np.float32)
     return MeshSequence(model.faces, verts, ids, stacked, folder)
 
 
-def _read_flame_stacked(path: str, d: dict, frames, flame_model, frame_key: str | None, evaluate=True):
+def _read_flame_stacked(path: str, d: dict, frames, flame_model, frame_key: str | None, evaluate=True, progress=None):
     p = _flame_keys(d)
     per_frame = [k for k in _PER_FRAME if k in p and p[k].ndim >= 2]
     if not per_frame:
@@ -297,17 +313,25 @@ def _read_flame_stacked(path: str, d: dict, frames, flame_model, frame_key: str 
     for k, v in p.items():
         params[k] = v[sel] if k in per_frame and v.shape[0] == T else v
     ids = _ids_from(d.get(frame_key) if frame_key else None, T, path, frame_key)[sel]
+    total = 1 + len(sel) if evaluate else 1  # the file, then each frame evaluated
+    if progress is not None:
+        progress(1, total)
     if not evaluate:
         return FlameTrack(params, ids, path)
-    verts = _evaluate_flame(params, model, path) if len(sel) else np.zeros((0, model.n_vertices, 3), np.float32)
+    evaluated = None if progress is None else (lambda done, _: progress(1 + done, total))
+    verts = (
+        _evaluate_flame(params, model, path, evaluated) if len(sel) else np.zeros((0, model.n_vertices, 3), np.float32)
+    )
     return MeshSequence(model.faces, verts, ids, params, path)
 
 
-def read_vhap_tracked(path, frames=None, flame_model=None, evaluate=True):
+def read_vhap_tracked(
+    path, frames=None, flame_model=None, evaluate=True, *, progress: Callable[[int, int], None] | None = None
+):
     """VHAP ``tracked_flame_params_*.npz``: rotation, translation, neck_pose, jaw_pose (T,3),
     eyes_pose (T,6), shape (300), expr (T,100), static_offset (1,V,3), optional timestep_id."""
     path = os.fspath(path)
-    return _read_flame_stacked(path, _npz(path), frames, flame_model, "timestep_id", evaluate)
+    return _read_flame_stacked(path, _npz(path), frames, flame_model, "timestep_id", evaluate, progress)
 
 
 def _euler_xyz(angles: np.ndarray) -> np.ndarray:
@@ -321,7 +345,9 @@ def _euler_xyz(angles: np.ndarray) -> np.ndarray:
     return rx @ ry @ rz
 
 
-def read_nersemble_tracking(path, frames=None, flame_model=None, evaluate=True):
+def read_nersemble_tracking(
+    path, frames=None, flame_model=None, evaluate=True, *, progress: Callable[[int, int], None] | None = None
+):
     """NeRSemble benchmark FLAME tracking npz: shape (1,300), expression (T,100), jaw, neck
     (T,3), eyes (T,6), rotation (T,3, Euler XYZ), rotation_matrices (T,3,3), translation (T,3),
     scale, frames (T,). FLAME is evaluated without global rotation/translation; the head is
@@ -392,15 +418,23 @@ def read_nersemble_tracking(path, frames=None, flame_model=None, evaluate=True):
             f"worst |R^T R - I| entry {off:.2g}"
         )
     ids = _ids_from(d.get("frames"), T, path, "frames")[sel]
+    total = 1 + len(sel) if evaluate else 1  # the file, then each frame evaluated
+    if progress is not None:
+        progress(1, total)
     if not evaluate:
         return FlameTrack(dict(params, rotation_matrices=R, translation=t, scale=scale), ids, path)
-    local = _evaluate_flame(params, model, path).astype(np.float64) if len(sel) else np.zeros((0, model.n_vertices, 3))
+    evaluated = None if progress is None else (lambda done, _: progress(1 + done, total))
+    local = (
+        _evaluate_flame(params, model, path, evaluated).astype(np.float64)
+        if len(sel)
+        else np.zeros((0, model.n_vertices, 3))
+    )
     verts = scale * np.einsum("tab,tvb->tva", R, local) + t[:, None, :]
     params.update(rotation_matrices=R, translation=t, scale=scale)
     return MeshSequence(model.faces, verts, ids, params, path)
 
 
-def read_mesh_npz(path, frames=None) -> MeshSequence:
+def read_mesh_npz(path, frames=None, *, progress: Callable[[int, int], None] | None = None) -> MeshSequence:
     """Mesh npz: ``vertices`` [T,V,3] (or [V,3], one frame), ``faces`` [F,3], optional ``frame_ids``."""
     path = os.fspath(path)
     d = _npz(path)
@@ -414,7 +448,10 @@ def read_mesh_npz(path, frames=None) -> MeshSequence:
     sel = _select(v.shape[0], frames, path)
     key = "frame_ids" if "frame_ids" in d else "frames"
     ids = _ids_from(d.get(key), v.shape[0], path, key)[sel]
-    return MeshSequence(d["faces"], _check_vertices(v[sel], path), ids, None, path)
+    seq = MeshSequence(d["faces"], _check_vertices(v[sel], path), ids, None, path)
+    if progress is not None:
+        progress(1, 1)
+    return seq
 
 
 def _load_mesh_file(path: str, reuse: dict | None = None):
@@ -429,7 +466,7 @@ def _load_mesh_file(path: str, reuse: dict | None = None):
         raise DataError(msg if path in msg else f"{path}: cannot read mesh ({msg})") from exc
 
 
-def read_mesh_folder(path, frames=None) -> MeshSequence:
+def read_mesh_folder(path, frames=None, *, progress: Callable[[int, int], None] | None = None) -> MeshSequence:
     """A folder of per-frame OBJ/PLY meshes with identical topology, in natural name order.
     Faces come from the first frame read; only the asked files are opened."""
     path = os.fspath(path)
@@ -439,7 +476,7 @@ def read_mesh_folder(path, frames=None) -> MeshSequence:
     sel = _select(len(files), frames, path)
     verts, faces = [], None
     reuse = {}  # OBJ frames with the first one's face lines are not parsed again
-    for i in sel.tolist():  # one file per asked frame
+    for j, i in enumerate(sel.tolist()):  # one file per asked frame
         fp = os.path.join(path, files[i])
         v, f = _load_mesh_file(fp, reuse)
         if faces is None:
@@ -449,6 +486,8 @@ def read_mesh_folder(path, frames=None) -> MeshSequence:
         elif f.shape != faces.shape or not np.array_equal(f, faces):
             raise DataError(f"{fp}: faces differ from {files[sel[0]]}: frames must share one topology")
         verts.append(_check_vertices(v, fp))
+        if progress is not None:
+            progress(j + 1, len(sel))
     if not verts:
         v0, faces = _load_mesh_file(os.path.join(path, files[0]))
         verts_arr = np.zeros((0, v0.shape[0], 3), np.float32)
@@ -458,10 +497,14 @@ def read_mesh_folder(path, frames=None) -> MeshSequence:
     return MeshSequence(faces, verts_arr, ids, None, path)
 
 
-def _read_mesh_npz_folder(path: str, files: list, frames) -> MeshSequence:
+def _read_mesh_npz_folder(path: str, files: list, frames, progress=None) -> MeshSequence:
     """A folder of mesh npz files, one frame each ([V,3] or [1,V,3] vertices), in name order."""
     sel = _select(len(files), frames, path)
-    parts = [read_mesh_npz(os.path.join(path, files[i])) for i in sel.tolist()]  # one file per frame
+    parts = []
+    for j, i in enumerate(sel.tolist()):  # one file per frame
+        parts.append(read_mesh_npz(os.path.join(path, files[i])))
+        if progress is not None:
+            progress(j + 1, len(sel))
     if not parts:
         first = read_mesh_npz(os.path.join(path, files[0]))
         return MeshSequence(first.faces, first.vertices[:0], np.zeros(0, np.int64), None, path)
@@ -479,19 +522,22 @@ def _read_mesh_npz_folder(path: str, files: list, frames) -> MeshSequence:
     return MeshSequence(parts[0].faces, verts, _ids_from([files[i] for i in sel.tolist()], len(sel)), None, path)
 
 
-def read_sequence(path, frames=None, flame_model=None) -> MeshSequence:
+def read_sequence(
+    path, frames=None, flame_model=None, *, progress: Callable[[int, int], None] | None = None
+) -> MeshSequence:
     """Read any supported sequence format, detected from the path and the keys it holds.
 
     ``frames``: positions (0-based, in file/sequence order) to read; None reads all.
     ``flame_model``: path to the user's FLAME model or a FlameModel (FLAME formats only).
+    ``progress``: called with (done, total) as the reading goes (the module's docstring).
     """
-    return _read(path, frames, flame_model, True)
+    return _read(path, frames, flame_model, True, progress)
 
 
-def read_flame_track(path, frames=None) -> FlameTrack:
+def read_flame_track(path, frames=None, *, progress: Callable[[int, int], None] | None = None) -> FlameTrack:
     """The FLAME parameters of a VHAP, GaussianAvatars (flame_param folder) or NeRSemble
     tracking file, unevaluated; a clear error for mesh sequences and datasets."""
-    return _read(path, frames, None, False)
+    return _read(path, frames, None, False, progress)
 
 
 def _not_flame(path):
@@ -501,7 +547,7 @@ def _not_flame(path):
     )
 
 
-def _read(path, frames, flame_model, evaluate):
+def _read(path, frames, flame_model, evaluate, progress=None):
     path = os.fspath(path)
     if not os.path.exists(path):
         raise MissingFileError(f"{path}: file or folder not found")
@@ -517,7 +563,7 @@ def _read(path, frames, flame_model, evaluate):
                 split = None if js == "transforms.json" else js[len("transforms_") : -len(".json")]
                 from .dataset import Dataset  # dataset.py builds on this module's readers
 
-                return Dataset(path, split, flame_model=flame_model).sequence(frames)
+                return Dataset(path, split, flame_model=flame_model).sequence(frames, progress=progress)
         npz = sorted((n for n in names if n.endswith(".npz")), key=natural_key)
         if (
             npz
@@ -526,13 +572,13 @@ def _read(path, frames, flame_model, evaluate):
         ):
             if not evaluate:
                 _not_flame(path)
-            return _read_mesh_npz_folder(path, npz, frames)
+            return _read_mesh_npz_folder(path, npz, frames, progress)
         if os.path.isdir(os.path.join(path, "flame_param")) or npz:
-            return read_flame_param_folder(path, frames, flame_model, evaluate)
+            return read_flame_param_folder(path, frames, flame_model, evaluate, progress=progress)
         if any(n.lower().endswith(_MESH_EXTS) for n in names):
             if not evaluate:
                 _not_flame(path)
-            return read_mesh_folder(path, frames)
+            return read_mesh_folder(path, frames, progress=progress)
         raise DataError(f"{path}: folder holds neither flame_param/ or *.npz FLAME parameters nor .obj/.ply frames")
     low = path.lower()
     if not evaluate and low.endswith(_MESH_EXTS):
@@ -540,19 +586,22 @@ def _read(path, frames, flame_model, evaluate):
     if low.endswith(_MESH_EXTS):
         v, f = _load_mesh_file(path)
         sel = _select(1, frames, path)
-        return MeshSequence(
+        seq = MeshSequence(
             f, _check_vertices(v, path)[None][sel], _ids_from([os.path.basename(path)], 1)[sel], None, path
         )
+        if progress is not None:
+            progress(1, 1)
+        return seq
     if low.endswith(".npz"):
         d = _npz(path)
         if "vertices" in d:
             if not evaluate:
                 _not_flame(path)
-            return read_mesh_npz(path, frames)
+            return read_mesh_npz(path, frames, progress=progress)
         if "expression" in d and ("rotation_matrices" in d or "jaw" in d):
-            return read_nersemble_tracking(path, frames, flame_model, evaluate)
+            return read_nersemble_tracking(path, frames, flame_model, evaluate, progress=progress)
         if _flame_keys(d):
-            return _read_flame_stacked(path, d, frames, flame_model, "timestep_id", evaluate)
+            return _read_flame_stacked(path, d, frames, flame_model, "timestep_id", evaluate, progress)
         raise DataError(
             f"{path}: unrecognised npz (keys {sorted(d)}): expected a mesh npz (vertices, faces), "
             "VHAP/GaussianAvatars FLAME parameters or a NeRSemble FLAME tracking file"
