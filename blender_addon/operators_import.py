@@ -8,6 +8,27 @@ from bpy_extras.io_utils import ImportHelper
 from . import prefs, sequence
 
 
+# Blender's cursor progress turns the cursor into a four-digit counter, 0 to 9999 over
+# progress_begin's range (10000 wraps to 0000): over this range it reads the percent in its
+# top row and hundredths below.
+CURSOR_RANGE = 10000
+
+
+def cursor_progress(wm):
+    """A reader's ``progress(done, total)`` shown as Blender's cursor progress (begun over
+    0..CURSOR_RANGE), updated once per percent at most; 100 % shows as 99.99."""
+    shown = -1
+
+    def progress(done, total):
+        nonlocal shown
+        percent = 100 * done // total if total > 0 else 100
+        if percent != shown:
+            shown = percent
+            wm.progress_update(min(100 * percent, CURSOR_RANGE - 1))
+
+    return progress
+
+
 class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
     """Import a tracked FLAME or mesh sequence as one mesh with a shape key per frame"""
 
@@ -52,6 +73,16 @@ class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
     )
 
     def execute(self, context):
+        # A 1000-frame folder reads for seconds with the UI frozen: the cursor shows how far
+        # (core's readers call back per file); ended on every path, an exception's included.
+        wm = context.window_manager
+        wm.progress_begin(0, CURSOR_RANGE)
+        try:
+            return self._import(context, cursor_progress(wm))
+        finally:
+            wm.progress_end()
+
+    def _import(self, context, progress):
         from ..core.io import sequences
         from ..core.flame import model as flame
         from ..core.flame import rig as flame_rig
@@ -71,13 +102,13 @@ class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
         try:
             rig = None
             if self.as_rig:
-                seq = sequences.read_flame_track(path)
+                seq = sequences.read_flame_track(path, progress=progress)
                 try:
                     rig = flame_rig.build_flame_rig(flame.load_flame_model(model), seq.params)
                 except ValueError as exc:  # parameters that do not fit the model
                     raise sequences.DataError(f"{path}: {exc}") from exc
             else:
-                seq = sequences.read_sequence(path, flame_model=model)
+                seq = sequences.read_sequence(path, flame_model=model, progress=progress)
         except Exception as exc:  # the readers' messages name the file and the problem
             self.report({"ERROR"}, f"Cannot read sequence: {exc}")
             return {"CANCELLED"}

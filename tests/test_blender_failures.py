@@ -70,6 +70,30 @@ def _write_trainers(out, stream):
         )
 
 
+def _write_frame_folders(out, params_path, seq_path):
+    """obj_frames/: 250 OBJ frames of the sequence's mesh; obj_broken/: 8 of them, the 4th no
+    mesh; ga/flame_param/: the tracked parameters as one GaussianAvatars npz per frame."""
+    import numpy as np
+
+    with np.load(seq_path) as z:
+        v, f = z["vertices"][0], z["faces"]
+    faces = "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in f.tolist())
+    for folder, frames in (("obj_frames", 250), ("obj_broken", 8)):
+        os.makedirs(os.path.join(out, folder))
+        for t in range(frames):
+            text = "".join(f"v {x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in (v * (1 + 0.001 * t)).tolist()) + faces
+            if folder == "obj_broken" and t == 3:
+                text = "this is not an obj file\nv 1 2\n"
+            with open(os.path.join(out, folder, f"frame_{t:04d}.obj"), "w") as fh:
+                fh.write(text)
+    with np.load(params_path) as z:
+        prm = {k: z[k] for k in z.files}
+    os.makedirs(os.path.join(out, "ga", "flame_param"))
+    for t in range(len(prm["expr"])):
+        frame = {k: (v if k in ("shape", "static_offset") else v[t : t + 1]) for k, v in prm.items()}
+        np.savez(os.path.join(out, "ga", "flame_param", f"{t:05d}.npz"), **frame)
+
+
 def _other_streams(stream, out):
     """The same Gaussians in another order (reordered.pavs), and the first 60 % (shorter.pavs)."""
     import numpy as np
@@ -92,9 +116,10 @@ def rep(tmp_path_factory):
     tmp = str(tmp_path_factory.mktemp("blender_failures"))
     out = os.path.join(tmp, "out")
     os.makedirs(out)
-    _, stream, _, _ = make_inputs(out)
+    seq, stream, _, _ = make_inputs(out)
     _other_streams(stream, out)
-    make_rig_inputs(out)
+    _, params = make_rig_inputs(out)
+    _write_frame_folders(out, params, seq)
     _write_trainers(out, stream)
     r, _ = run_scenario(SCENARIO, [ROOT, out, ",".join(BLOCKED)], "PA_FAILURES", tmp)
     assert not r["blocked_loaded"], r["blocked_loaded"]
@@ -163,10 +188,44 @@ def test_failed_rig_import_leaves_the_scene_as_it_was(rep):
     assert r["failed_active"] == r["cube"] and r["failed_selected"] == [r["cube"]]
 
 
+def _updates(calls):
+    """The values shown, checked to be one begin ... one end around them: the cursor's counter
+    over 0..10000, in whole percents (x 100) up to 9999 (100 %: 10000 would show as 0000)."""
+    assert calls[:1] == [["begin", 0, 10000]] and calls[-1:] == [["end"]], calls
+    assert [c[0] for c in calls[1:-1]] == ["update"] * (len(calls) - 2), calls
+    values = [c[1] for c in calls[1:-1]]
+    assert values == sorted(values) and len(set(values)) == len(values), values
+    assert all(v % 100 == 0 or v == 9999 for v in values), values
+    return values
+
+
 def test_failed_sequence_import_leaves_the_scene_as_it_was(rep):
     r = scenario_step(rep, "sequence_import_fails_late")
     assert "Cannot import" in r["result"] and "seq.npz" in r["result"] and "injected failure" in r["result"], r
     assert r["added"] == {} and r["range"] == [5, 9], r
+    assert _updates(r["progress"]) == [9999], r["progress"]  # read (one file), then ended on the failure
+
+
+def test_sequence_import_shows_its_progress(rep):
+    r = scenario_step(rep, "import_progress_shown")
+    assert r["obj"] == ["FINISHED"] and r["obj_frames"] == 250, r
+    values = _updates(r["obj_progress"])
+    # 250 files read: once per percent at most, up to 100 % (then ended)
+    assert values[-1] == 9999 and 50 < len(values) <= 101, values
+    assert r["rig"] == ["FINISHED"], r["rig"]
+    values = _updates(r["rig_progress"])  # one file per frame of the flame_param folder
+    assert values == [1200, 2500, 3700, 5000, 6200, 7500, 8700, 9999], values
+
+
+def test_failed_sequence_import_ends_its_progress(rep):
+    r = scenario_step(rep, "import_progress_shown")
+    assert "Cannot read sequence" in r["broken"] and "frame_0003.obj" in r["broken"], r["broken"]
+    assert r["broken_added"] == {} and r["broken_range"] == [5, 9], r
+    assert _updates(r["broken_progress"]) == [1200, 2500, 3700], r["broken_progress"]  # 3 of 8 files read
+    # an exception out of the operator: Blender reports it; the progress ended all the same
+    assert "injected failure" in r["raised"], r["raised"]
+    assert r["raised_added"] == {}, r["raised_added"]
+    assert _updates(r["raised_progress"])[-1] == 9999, r["raised_progress"]
 
 
 def test_budget_shows_what_a_viewer_of_the_typed_percent_sees(rep):

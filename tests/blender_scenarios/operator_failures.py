@@ -2,7 +2,8 @@
 
 Operators driven into their failure paths (a trainer's non-UTF-8 log, Edit Mode, an edited
 mesh): each step records what the operator reported and what it left in the scene; a step
-that raises records its traceback and the next one still runs.
+that raises records its traceback and the next one still runs. The sequence import's cursor
+progress is recorded on its way through and out of them (and through a plain import).
 """
 
 import importlib, json, os, queue, subprocess, sys, time, traceback, types
@@ -22,10 +23,13 @@ rig_builder = importlib.import_module("pa_fail.blender_addon.rig")
 preview = importlib.import_module("pa_fail.blender_addon.preview")
 sequence_builder = importlib.import_module("pa_fail.blender_addon.sequence")
 PA_OT_train = importlib.import_module("pa_fail.blender_addon.operators_train").PA_OT_train
+PA_OT_import_sequence = importlib.import_module("pa_fail.blender_addon.operators_import").PA_OT_import_sequence
 
 SEQ, STREAM = os.path.join(out, "seq.npz"), os.path.join(out, "avatar.pavs")
 OTHER, SHORTER = os.path.join(out, "reordered.pavs"), os.path.join(out, "shorter.pavs")
 MODEL, PARAMS = os.path.join(out, "flame_model.npz"), os.path.join(out, "tracked_flame_params.npz")
+OBJ_FRAMES, OBJ_BROKEN = os.path.join(out, "obj_frames"), os.path.join(out, "obj_broken")  # test_blender_failures
+FLAME_FOLDER = os.path.join(out, "ga")  # ga/flame_param/*.npz, one file per frame of PARAMS
 KINDS = ("objects", "meshes", "armatures", "actions", "shape_keys", "node_groups", "materials", "images")
 R = {}
 
@@ -48,6 +52,53 @@ def shading():
 
 step = stock_blender.stepper(R)
 activate = stock_blender.activate
+
+
+class RecordingWindowManager:
+    """The window manager, its progress calls recorded on the way (RNA functions cannot be
+    replaced on the type or the instance, so the operator is handed this one)."""
+
+    def __init__(self, wm, calls):
+        self._wm, self._calls = wm, calls
+
+    def progress_begin(self, low, high):
+        self._calls.append(["begin", low, high])
+        self._wm.progress_begin(low, high)
+
+    def progress_update(self, value):
+        self._calls.append(["update", value])
+        self._wm.progress_update(value)
+
+    def progress_end(self):
+        self._calls.append(["end"])
+        self._wm.progress_end()
+
+    def __getattr__(self, name):
+        return getattr(self._wm, name)
+
+
+class ContextWith:
+    """Blender's context with another window manager."""
+
+    def __init__(self, context, window_manager):
+        self._context, self.window_manager = context, window_manager
+
+    def __getattr__(self, name):
+        return getattr(self._context, name)
+
+
+def import_progress(**kw):
+    """The sequence import's result and the progress calls it made on the window manager."""
+    calls, kept = [], PA_OT_import_sequence.execute
+
+    def execute(self, context):
+        return kept(self, ContextWith(context, RecordingWindowManager(context.window_manager, calls)))
+
+    PA_OT_import_sequence.execute = execute
+    try:
+        return call(bpy.ops.import_scene.progressive_avatars_sequence, **kw), calls
+    finally:
+        PA_OT_import_sequence.execute = kept
 
 
 for ob in list(bpy.data.objects):
@@ -292,11 +343,37 @@ def sequence_import_fails_late(r):
     kept = sequence_builder.add_sequence_keys
     sequence_builder.add_sequence_keys = boom
     try:
-        r["result"] = call(bpy.ops.import_scene.progressive_avatars_sequence, filepath=SEQ)
+        r["result"], r["progress"] = import_progress(filepath=SEQ)
     finally:
         sequence_builder.add_sequence_keys = kept
     r["added"] = added(before)
     r["range"] = [scene.frame_start, scene.frame_end]
+
+
+@step
+def import_progress_shown(r):
+    # Imports of frame folders: the cursor counts the files read and is put back at the end.
+    scene = bpy.context.scene
+    r["obj"], r["obj_progress"] = import_progress(filepath=OBJ_FRAMES)
+    r["obj_frames"] = bpy.context.active_object.pa_mesh.num_frames
+    r["rig"], r["rig_progress"] = import_progress(filepath=FLAME_FOLDER, as_rig=True, flame_model=MODEL)
+    # A frame that cannot be read: the import stops there, adds nothing and ends the progress.
+    scene.frame_start, scene.frame_end = 5, 9
+    before = inventory()
+    r["broken"], r["broken_progress"] = import_progress(filepath=OBJ_BROKEN)
+    r["broken_added"], r["broken_range"] = added(before), [scene.frame_start, scene.frame_end]
+
+    # An exception no handler expects (here: from the face check) still ends the progress.
+    def boom(*args):
+        raise RuntimeError("injected failure")
+
+    kept = sequence_builder.face_problem
+    sequence_builder.face_problem = boom
+    try:
+        r["raised"], r["raised_progress"] = import_progress(filepath=OBJ_FRAMES)
+    finally:
+        sequence_builder.face_problem = kept
+    r["raised_added"] = added(before)
 
 
 @step
