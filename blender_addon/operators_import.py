@@ -8,15 +8,9 @@ from bpy_extras.io_utils import ImportHelper
 from . import prefs, sequence
 
 
-# Blender's cursor progress turns the cursor into a four-digit counter, 0 to 9999 over
-# progress_begin's range (10000 wraps to 0000): over this range it reads the percent in its
-# top row and hundredths below.
-CURSOR_RANGE = 10000
-
-
 def cursor_progress(wm):
-    """A reader's ``progress(done, total)`` shown as Blender's cursor progress (begun over
-    0..CURSOR_RANGE), updated once per percent at most; 100 % shows as 99.99."""
+    """A reader's ``progress(done, total)`` shown as Blender's cursor progress, begun over 0..100
+    (progress_begin takes a maximum of at most 9998), updated once per percent at most."""
     shown = -1
 
     def progress(done, total):
@@ -24,7 +18,7 @@ def cursor_progress(wm):
         percent = 100 * done // total if total > 0 else 100
         if percent != shown:
             shown = percent
-            wm.progress_update(min(100 * percent, CURSOR_RANGE - 1))
+            wm.progress_update(percent)
 
     return progress
 
@@ -76,7 +70,7 @@ class PA_OT_import_sequence(bpy.types.Operator, ImportHelper):
         # A 1000-frame folder reads for seconds with the UI frozen: the cursor shows how far
         # (core's readers call back per file); ended on every path, an exception's included.
         wm = context.window_manager
-        wm.progress_begin(0, CURSOR_RANGE)
+        wm.progress_begin(0, 100)
         try:
             return self._import(context, cursor_progress(wm))
         finally:

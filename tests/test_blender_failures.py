@@ -189,13 +189,13 @@ def test_failed_rig_import_leaves_the_scene_as_it_was(rep):
 
 
 def _updates(calls):
-    """The values shown, checked to be one begin ... one end around them: the cursor's counter
-    over 0..10000, in whole percents (x 100) up to 9999 (100 %: 10000 would show as 0000)."""
-    assert calls[:1] == [["begin", 0, 10000]] and calls[-1:] == [["end"]], calls
+    """The percents shown, checked to be one begin over 0..100 (progress_begin's maximum is at
+    most 9998) ... one end around them, whole and rising."""
+    assert calls[:1] == [["begin", 0, 100]] and calls[-1:] == [["end"]], calls
     assert [c[0] for c in calls[1:-1]] == ["update"] * (len(calls) - 2), calls
     values = [c[1] for c in calls[1:-1]]
     assert values == sorted(values) and len(set(values)) == len(values), values
-    assert all(v % 100 == 0 or v == 9999 for v in values), values
+    assert all(isinstance(v, int) and 0 <= v <= 100 for v in values), values
     return values
 
 
@@ -203,7 +203,7 @@ def test_failed_sequence_import_leaves_the_scene_as_it_was(rep):
     r = scenario_step(rep, "sequence_import_fails_late")
     assert "Cannot import" in r["result"] and "seq.npz" in r["result"] and "injected failure" in r["result"], r
     assert r["added"] == {} and r["range"] == [5, 9], r
-    assert _updates(r["progress"]) == [9999], r["progress"]  # read (one file), then ended on the failure
+    assert _updates(r["progress"]) == [100], r["progress"]  # read (one file), then ended on the failure
 
 
 def test_sequence_import_shows_its_progress(rep):
@@ -211,21 +211,21 @@ def test_sequence_import_shows_its_progress(rep):
     assert r["obj"] == ["FINISHED"] and r["obj_frames"] == 250, r
     values = _updates(r["obj_progress"])
     # 250 files read: once per percent at most, up to 100 % (then ended)
-    assert values[-1] == 9999 and 50 < len(values) <= 101, values
+    assert values[-1] == 100 and 50 < len(values) <= 101, values
     assert r["rig"] == ["FINISHED"], r["rig"]
     values = _updates(r["rig_progress"])  # one file per frame of the flame_param folder
-    assert values == [1200, 2500, 3700, 5000, 6200, 7500, 8700, 9999], values
+    assert values == [12, 25, 37, 50, 62, 75, 87, 100], values
 
 
 def test_failed_sequence_import_ends_its_progress(rep):
     r = scenario_step(rep, "import_progress_shown")
     assert "Cannot read sequence" in r["broken"] and "frame_0003.obj" in r["broken"], r["broken"]
     assert r["broken_added"] == {} and r["broken_range"] == [5, 9], r
-    assert _updates(r["broken_progress"]) == [1200, 2500, 3700], r["broken_progress"]  # 3 of 8 files read
+    assert _updates(r["broken_progress"]) == [12, 25, 37], r["broken_progress"]  # 3 of 8 files read
     # an exception out of the operator: Blender reports it; the progress ended all the same
     assert "injected failure" in r["raised"], r["raised"]
     assert r["raised_added"] == {}, r["raised_added"]
-    assert _updates(r["raised_progress"])[-1] == 9999, r["raised_progress"]
+    assert _updates(r["raised_progress"])[-1] == 100, r["raised_progress"]
 
 
 def test_budget_shows_what_a_viewer_of_the_typed_percent_sees(rep):
