@@ -995,3 +995,29 @@ def test_resume_check_reads_a_header_crc_split_between_pieces(streams, server):
     res = H.fetch_stream(url_b, reader=first.reader, validator=first.validator, read_size=H0 - 2, timeout=2)
     assert res.status == H.CHANGED and "header CRC differs" in res.message, str(res)
     assert_prefix(res.avatar(), full_a, first.num_gaussians)
+
+
+def test_the_end_check_keeps_to_the_deadline(streams, server):
+    """The re-reads at the end are part of the download: a server dripping their response headers
+    (each byte well inside the socket timeout) is stopped by the deadline like any other request,
+    and the records they were to tie are not kept."""
+    a, _, full_a = streams
+    first = H0 + 2 * S0
+
+    def answer(h, n):
+        if n <= 2:
+            return _honest(a, headers=[("Last-Modified", STAMP)])(h, n)
+        for ch in b"HTTP/1.1 206 Partial Content\r\nX-Filler: " + b"x" * 200:
+            try:
+                h.wfile.write(bytes([ch]))
+                h.wfile.flush()
+            except OSError:
+                return
+            time.sleep(0.05)
+
+    _, url = server(answer)
+    t = time.monotonic()
+    res = H.fetch_stream(url, chunk_size=first, max_bytes=first + 10 * R, timeout=2, deadline=1.0, min_rate=None)
+    took = time.monotonic() - t
+    assert took < 2.0, (took, str(res))
+    assert res.status == H.BUDGET and res.keepable_gaussians == 2 * RPB and res.unconfirmed == 10, str(res)

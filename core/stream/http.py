@@ -401,6 +401,7 @@ def fetch_stream(
             return None
         cls = http.client.HTTPSConnection if parts.scheme == "https" else http.client.HTTPConnection
         c = cls(parts.hostname, parts.port, timeout=dog.remaining(timeout))
+        dog.conn = c  # the deadline and the minimum rate hold for it too (a dripping answer)
         hdrs = {"Accept-Encoding": "identity", **(headers or {}), "Range": f"bytes={lo}-{lo + size - 1}"}
         try:
             c.request("GET", _request_path(parts), headers=hdrs)
@@ -446,9 +447,10 @@ def fetch_stream(
             return
         res.unconfirmed = n - sure[0]
         if res.unconfirmed:
+            why = f"re-reading it failed: {dog.message}" if dog.reason else "re-reading it failed"
             note = (
                 f"{res.unconfirmed} Gaussians at the end, in no block verified in their response, could "
-                f"not be checked against the file at {target} (no strong ETag; re-reading it failed): not kept"
+                f"not be checked against the file at {target} (no strong ETag; {why}): not kept"
             )
             res.message = f"{res.message}; {note}" if res.message else note
 
@@ -754,12 +756,14 @@ def fetch_stream(
 
 
 def _done(res: FetchResult, conn, t0: float, dog: _Watchdog, settle=None) -> FetchResult:
-    dog.stop()
     if dog.reason and res.status not in (COMPLETE, BUDGET, CANCELLED, CHANGED, TRUNCATED):
         res.status, res.message = dog.reason, dog.message  # what woke the read, not the cut it caused
     if conn is not None:
         conn.close()
     if settle is not None:
-        settle()  # after the connection is closed and the status is known; may make requests
+        # After the connection is closed and the status is known; its requests are the
+        # download's too, so the watchdog (deadline, minimum rate) still runs.
+        settle()
+    dog.stop()
     res.seconds = time.monotonic() - t0
     return res
