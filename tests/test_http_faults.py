@@ -1021,3 +1021,21 @@ def test_the_end_check_keeps_to_the_deadline(streams, server):
     took = time.monotonic() - t
     assert took < 2.0, (took, str(res))
     assert res.status == H.BUDGET and res.keepable_gaussians == 2 * RPB and res.unconfirmed == 10, str(res)
+
+
+def test_an_end_check_redirected_to_a_bad_host_is_a_status_not_an_exception(streams, server):
+    """Records left untied, then a redirect to a host name IDNA cannot encode: the transfer ends
+    as an http_error naming it, and the end check's own request to that host must not raise."""
+    a, _, full_a = streams
+    bad = "http://" + "a" * 64 + ".example/s.pavs"
+
+    def answer(h, n):
+        # 100-byte requests: the 6th completes the header (at 530), the 7th only brings records
+        if n <= 7:
+            return _honest(a, headers=[("Last-Modified", STAMP)])(h, n)
+        _reply(h, 302, headers=[("Location", bad)])
+
+    _, url = server(answer)
+    res = H.fetch_stream(url, chunk_size=100, timeout=2, min_rate=None)
+    assert res.status == H.HTTP_ERROR and bad in res.message, str(res)
+    assert res.keepable_gaussians == res.num_gaussians - res.unconfirmed < res.num_gaussians, str(res)

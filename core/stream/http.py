@@ -417,7 +417,7 @@ def fetch_stream(
             got = resp.read(size)
             wire[0] += len(got)
             return got if len(got) == size else None
-        except (OSError, http.client.HTTPException):
+        except (OSError, http.client.HTTPException, ValueError):  # ValueError: a host IDNA cannot encode
             return None
         finally:
             c.close()
