@@ -1039,3 +1039,28 @@ def test_an_end_check_redirected_to_a_bad_host_is_a_status_not_an_exception(stre
     res = H.fetch_stream(url, chunk_size=100, timeout=2, min_rate=None)
     assert res.status == H.HTTP_ERROR and bad in res.message, str(res)
     assert res.keepable_gaussians == res.num_gaussians - res.unconfirmed < res.num_gaussians, str(res)
+
+
+@pytest.mark.parametrize("more", [0, 3], ids=["no-byte", "three-records"])
+def test_a_resume_keeps_the_records_the_earlier_end_check_could_not_tie_unconfirmed(streams, server, more):
+    """An earlier fetch left 10 records untied (its re-reads failed: 503). A resume that brings no
+    byte, or 3 more records of the same block, while the server's re-reads still fail must not
+    report those 10 keepable: neither this fetch nor the earlier one tied them to the header."""
+    a, _, full_a = streams
+    first = H0 + 2 * S0
+
+    def busy(h, n):
+        if n > 2:
+            return _reply(h, 503, b"busy")
+        _honest(a, headers=[("Last-Modified", STAMP)])(h, n)
+
+    _, url = server(busy)
+    res = H.fetch_stream(url, chunk_size=first, max_bytes=first + 10 * R, timeout=2, min_rate=None)
+    assert res.status == H.BUDGET and res.keepable_gaussians == 2 * RPB and res.unconfirmed == 10, str(res)
+    # the resume: its header CRC check and `more` records answered, the re-reads not
+    _, url2 = server(lambda h, n: busy(h, n) if (n <= 1 or (more and n == 2)) else _reply(h, 503, b"busy"))
+    kw = {"max_bytes": first + (10 + more) * R, "chunk_size": more * R} if more else {}
+    res2 = H.fetch_stream(url2, reader=res.reader, validator=res.validator, timeout=2, min_rate=None, **kw)
+    assert res2.status == (H.BUDGET if more else H.HTTP_ERROR), str(res2)
+    assert res2.num_gaussians == 2 * RPB + 10 + more, str(res2)
+    assert res2.keepable_gaussians == 2 * RPB and res2.unconfirmed == 10 + more, str(res2)

@@ -134,6 +134,7 @@ class FetchResult:
     validator: str | None = None
     # Verified Gaussians at the end that could not be tied to the file the header came from (no
     # strong ETag, no block CRC-32 over them, and re-reading the server's bytes failed): not kept.
+    # The reader remembers them (reader.unconfirmed): a resume with it checks them again.
     unconfirmed: int = 0
 
     @property
@@ -316,8 +317,9 @@ def fetch_stream(
     tail_at = [reader.bytes_received - len(tail)]
     # One response is one version of the file: the records of a response that completed the
     # header or a block are tied to the header's file (`sure`: how many records are); those of
-    # one that did neither are re-checked at the end (settle).
-    sure = [reader.num_gaussians]
+    # one that did neither are re-checked at the end (settle). A resumed reader's last records
+    # that an earlier fetch could not tie (reader.unconfirmed) are not tied yet either.
+    sure = [reader.num_gaussians - getattr(reader, "unconfirmed", 0)]
     resp_from = [0]  # reader.bytes_received when the current response began
     tied = [False]  # the current response completed the header or a block, or re-read the header CRC
     bad_url = "bad URL"  # how an unusable target is named: the caller's URL, or a redirect's
@@ -764,6 +766,7 @@ def _done(res: FetchResult, conn, t0: float, dog: _Watchdog, settle=None) -> Fet
         # After the connection is closed and the status is known; its requests are the
         # download's too, so the watchdog (deadline, minimum rate) still runs.
         settle()
+        res.reader.unconfirmed = res.unconfirmed  # for a resume with this reader (see sure)
     dog.stop()
     res.seconds = time.monotonic() - t0
     return res

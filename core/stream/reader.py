@@ -198,6 +198,9 @@ class StreamReader:
         self._block = 0  # index of the first block whose CRC-32 is not yet verified
         self.error: Exception | None = None
         self.bytes_received = 0
+        # The last records a downloader could not tie to the file the header came from (set by
+        # core/stream/http.py's fetch_stream, FetchResult.unconfirmed): a resume re-checks them.
+        self.unconfirmed = 0
         self._lut_cache = None
 
     # -- public state --------------------------------------------------------------------
