@@ -82,9 +82,9 @@ def unpack(payload: str, user_dir: str) -> str:
                         raise ValueError(f"{payload}: unexpected member {name!r}")
                 z.extractall(tmp)
             open(os.path.join(tmp, _DONE), "w").close()
-            if os.path.isdir(dest):  # an incomplete earlier attempt
+            if os.path.isdir(dest) and not os.path.isfile(os.path.join(dest, _DONE)):  # an incomplete earlier attempt
                 shutil.rmtree(dest, ignore_errors=True)
-            os.replace(tmp, dest)
+            os.replace(tmp, dest)  # fails onto a folder another process completed meanwhile: kept
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             if not os.path.isfile(os.path.join(dest, _DONE)):  # another process may have won the race
