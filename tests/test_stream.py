@@ -31,7 +31,7 @@ from progressive_avatars.core.stream.format import (
 from progressive_avatars.core.stream.order import interleaved_order, root_keys, stream_order
 from progressive_avatars.core.stream import reader as stream_reader
 from progressive_avatars.core.stream.reader import StreamReader, read_stream
-from progressive_avatars.core.stream.writer import encode_stream, write_stream
+from progressive_avatars.core.stream.writer import build_stream, encode_stream, write_stream
 from progressive_avatars.core.avatar.avatar import SH_C0, Avatar, sigmoid, sh_to_rgb
 from progressive_avatars.core.avatar.forest import Forest
 from tests.helpers import random_forest, sphere_mesh
@@ -337,8 +337,9 @@ def test_stream_order_levels_then_importance():
     assert np.array_equal(o, np.lexsort((np.arange(f.num_faces), f.level)))
     with pytest.raises(ValueError, match="NaN"):
         stream_order(f, np.full(f.num_faces, np.nan))
-    with pytest.raises(ValueError, match="values"):
-        stream_order(f, imp[:-1])
+    for wrong in (imp[:-1], np.r_[imp, 0.5]):  # one value too few, one too many
+        with pytest.raises(ValueError, match="values"):
+            stream_order(f, wrong)
 
 
 def _capped_greedy(forest, imp):
@@ -478,6 +479,43 @@ def test_interleaved_order_sends_a_worthless_parent_with_its_valuable_children()
     assert np.flatnonzero(old == p)[0] > 0.9 * f.num_faces  # the capped order sent it last
 
 
+def _two_root_forest():
+    """Two template faces (no coarse levels: the template level is the lead); face 0 split into
+    2, 3, 4, face 2 into 5, 6, 7, face 1 into 8, 9, 10 (level 1 after level 2 in index order),
+    face 6 into 11, 12, 13."""
+    f = Forest(np.array([[0, 1, 2], [0, 2, 3]], np.int32))
+    for p in (0, 2, 1, 6):
+        f.split([p])
+    assert f.level.tolist() == [0, 0, 1, 1, 1, 2, 2, 2, 1, 1, 1, 3, 3, 3]
+    return f
+
+
+def test_interleaved_order_units_by_hand():
+    """Horn's rule worked by hand (FORMAT.md 1, order.py's docstring) on a 14-face forest.
+    Face 6 (3) takes child 11 (4 beats 3; 12's 1 does not beat 7/2). Face 2 (0) takes 6's unit
+    (7/2), then 7 (3 * 3 > 7), not 5 (1 * 4 < 10): unit 2 = {2, 6, 11, 7} at 10/4. Inside it the
+    merged children by descending ratio, depth first: 2, 6, 11, 7 (not 2, 6, 7, 11). Units then
+    by descending ratio: 7's done, 5 and 12 at 1 (the shallower first), the level-1 faces at 0.5,
+    13 at 0.1."""
+    f = _two_root_forest()
+    imp = np.array([9, 9, 0, 0.5, 0.5, 1, 3, 3, 0.5, 0.5, 0.5, 4, 1, 0.1])
+    assert interleaved_order(f, imp).tolist() == [0, 1, 2, 6, 11, 7, 5, 12, 3, 4, 8, 9, 10, 13]
+    # The lead (here the template level) by the root key asked for, as stream_order's roots.
+    assert interleaved_order(f, imp, np.array([1.0, 0.0])).tolist()[:2] == [1, 0]
+    # Importance below zero counts as none: a face at -50 still goes with its valuable children.
+    neg = imp.copy()
+    neg[2] = -50.0
+    assert interleaved_order(f, neg).tolist() == interleaved_order(f, imp).tolist()
+
+
+def test_interleaved_order_of_equal_importance_is_level_by_level():
+    """No child beats its parent's unit when every face is worth the same (a tie is not a
+    merge), so every face is its own unit and ties go shallower first, then by index: level by
+    level, although faces 8-10 (level 1) have higher indices than 5-7 (level 2)."""
+    f = _two_root_forest()
+    assert interleaved_order(f, np.ones(f.num_faces)).tolist() == [0, 1, 2, 3, 4, 8, 9, 10, 5, 6, 7, 11, 12, 13]
+
+
 # -- round trips --------------------------------------------------------------------------
 def test_lossless_roundtrip_is_exact(tmp_path):
     verts, av, imp = make_avatar(1)
@@ -494,6 +532,28 @@ def test_lossless_roundtrip_is_exact(tmp_path):
     np.testing.assert_array_equal(out.forest.split_logits, ref.split_logits)
     np.testing.assert_array_equal(out.forest.template_faces, av.forest.template_faces)
     assert out.meta["stream"]["records"] == av.num_gaussians and out.meta["name"] == "test"
+
+
+def test_interleaved_coarse_stream_maps_faces_and_sorts_its_coarse_table():
+    """With coarse levels a version 5 stream sends template faces after deeper ones; the
+    reader gives the roots first: build_stream's ``.order`` maps each decoded face to the
+    avatar's (lossless: equal values). Writers sort each coarse level's rows by (a, b, c)
+    (FORMAT.md 2.3)."""
+    verts, av, imp = make_avatar(3, coarse=True)
+    data, info = build_stream(av, imp, quantize=False, vertices=verts)
+    out = read_stream(data)
+    assert not np.array_equal(info.order, info.stream_order)  # interleaved: roots not all first
+    for n in PARAMS:
+        np.testing.assert_array_equal(getattr(out, n), getattr(av, n)[info.order], err_msg=n)
+    np.testing.assert_array_equal(out.forest.level, av.forest.level[info.order])
+    a, unsorted = 0, 0
+    for count in info.level_counts[: info.num_coarse_levels]:
+        rows = [tuple(r) for r in read_header(data).coarse_faces[a : a + count].tolist()]
+        own = [tuple(r) for r in av.forest.coarse_faces[a : a + count].tolist()]
+        assert rows == sorted(own)
+        unsorted += own != rows
+        a += count
+    assert a == av.forest.num_coarse and unsorted  # the forest's own rows were not in that order
 
 
 def test_quantised_roundtrip_error_bounds(tmp_path):
@@ -1518,6 +1578,32 @@ def test_root_order_without_vertices_is_the_forests_within_each_level():
     np.testing.assert_array_equal(np.floor(both), np.floor(np.log2(key + 1.0)))
 
 
+def test_root_orders_by_hand():
+    """Four template faces whose centroids lie on a line at x = 3, 0, 2, 1 (the forest's order,
+    not a spread one). spatial: the curve positions 0..3 (x order: faces 1, 3, 2, 0) in
+    bit-reversed order 0, 2, 1, 3 (core/avatar/coarse.py: spread_order) = faces 1, 2, 3, 0.
+    both: the forest's order's dyadic blocks [0], [1, 2], [3], each by descending importance,
+    whatever the importance's scale (a trained face's sum of alpha * T runs to hundreds).
+    forest: None (the forest's order), with or without importance. Unknown names and "both"
+    without importance are refused."""
+    x = np.array([3.0, 0.0, 2.0, 1.0])
+    verts = np.concatenate([np.stack([x - 0.1, 0 * x, 0 * x], 1), np.stack([x + 0.1, 0 * x, 0 * x], 1)])
+    verts = np.concatenate([verts, np.stack([x, 0 * x + 0.1, 0 * x], 1)])
+    f = Forest(np.stack([np.arange(4), 4 + np.arange(4), 8 + np.arange(4)], 1).astype(np.int32))
+    imp = np.array([5.0, 10.0, 20.0, 40.0]) * 30
+    assert stream_order(f, imp, root_keys(f, "spatial", imp, verts)).tolist() == [1, 2, 3, 0]
+    assert stream_order(f, imp, root_keys(f, "both", imp)).tolist() == [0, 2, 1, 3]
+    assert stream_order(f, imp, root_keys(f, "importance", imp)).tolist() == [3, 2, 1, 0]
+    assert root_keys(f, "forest") is None and root_keys(f, "forest", imp, verts) is None
+    # The writer's default with the rest pose alone ("auto" without importance): spatial.
+    assert build_stream(Avatar.initial(f), vertices=verts)[1].stream_order.tolist() == [1, 2, 3, 0]
+    assert build_stream(Avatar.initial(f))[1].stream_order.tolist() == [0, 1, 2, 3]
+    with pytest.raises(ValueError, match="root order must be one of"):
+        root_keys(f, "spiral", imp, verts)
+    with pytest.raises(ValueError, match="'both' needs the faces' importance"):
+        root_keys(f, "both")
+
+
 def test_quantised_split_weights_that_both_round_up_read_back():
     """Split logits (0, 0, -50) make the weights (0.5, 0.5, 0): both round up to 2048 of 4095,
     and a writer that let them sum to 4096 made a block the reader refuses."""
@@ -1579,6 +1665,9 @@ def test_stand_ins_retire_after_their_regions_last_face_and_config_stays_out():
     zero[mine] = 0.0
     s = np.arange(f.num_faces)  # level order as the stream order
     assert stand_in_retire(f, s, verts, zero)[r] == mine.max()
+    # by default the cumulative stand-ins' rule (FORMAT.md 2.4: 95 % of the importance, 80 % of the area)
+    np.testing.assert_array_equal(stand_in_retire(f, s, verts, imp), stand_in_retire(f, s, verts, imp, (0.95, 0.8)))
+    assert not np.array_equal(stand_in_retire(f, s, verts, imp, (0.8, 0.95)), stand_in_retire(f, s, verts, imp))
     real = coarse.stand_in_regions
 
     def empty_first(*a):
