@@ -1,5 +1,7 @@
 """core/bridge/ (budget, splats, depth, transforms): the numpy side of the Blender preview (no bpy needed)."""
 
+import os
+
 import numpy as np
 
 from progressive_avatars.core.avatar import binding
@@ -202,3 +204,120 @@ def test_legend_of_nothing_arrived_still_lists_depth_zero():
     assert [(d, n) for d, n, _ in legend] == [(NOT_ARRIVED, 3), (0, 0)]
     np.testing.assert_allclose(legend[0][2], NOT_ARRIVED_COLOR[:3])
     np.testing.assert_allclose(legend[1][2], RAMP[0], atol=1e-6)
+
+
+def _stream_file(tmp_path):
+    """A version 5 stream with coarse levels, in blocks of 8 records, written to a file; its
+    header's sizes (FORMAT.md 6)."""
+    from progressive_avatars.core.stream.format import read_header
+    from progressive_avatars.core.stream.writer import write_stream
+    from tests.test_stream import make_avatar
+
+    verts, av, imp = make_avatar(3, coarse=True)
+    path = tmp_path / "a.pavs"
+    write_stream(str(path), av, imp, records_per_block=8, vertices=verts)
+    h = read_header(str(path))
+    return av, path, h
+
+
+def test_budget_of_a_stream_follows_its_bytes_and_header(tmp_path):
+    """Budget.for_avatar from a stream file (load_avatar): a percent is the records wholly in
+    floor(p/100 x total) bytes, n records take H + n R + 4 floor((n-1)/B) bytes (FORMAT.md 6,
+    by hand), the level reached after n records is the deepest among them in stream order (a
+    version 5 stream sends deeper faces before the last template faces), and a cut file keeps
+    the header's depth scale and never counts records it does not hold."""
+    from fractions import Fraction
+
+    from progressive_avatars.core.bridge.budget import load_avatar
+    from progressive_avatars.core.stream.reader import read_stream
+
+    av, path, h = _stream_file(tmp_path)
+    H, R, B, N, K = h.header_size, h.record_size, h.records_per_block, h.num_records, h.num_coarse_levels
+    S = B * R + 4
+    total = H + N * R + 4 * -(-N // B)
+    assert os.path.getsize(path) == total and N == av.num_gaussians and K > 0
+    full, budget = load_avatar(str(path))
+
+    def by_hand(p):
+        k = int(Fraction(p) * total // 100)
+        return 0 if k < H else min(N, (k - H) // S * B + min((k - H) % S // R, B))
+
+    for p in (0.5, 1.0, 10.0, 25.0, 50.0, 99.0, 100.0):
+        assert budget.count_for_percent(p) == by_hand(p), p
+    assert budget.count_for_percent(10.0) != round(N * 0.1)  # not the fraction of Gaussians
+    assert budget.count_for_percent(150.0) == N and budget.count_for_percent(-5.0) == 0
+    for n in (1, B, B + 1, N):
+        assert budget.bytes_for_count(n) == H + n * R + 4 * ((n - 1) // B), n
+    lead = int(np.sum(av.forest.level < K))
+    data = path.read_bytes()
+    for n in range(lead - 1, lead + 12):  # past the lead: template faces and their children mix
+        assert budget.level_reached(n) == read_stream(data, max_gaussians=n).forest.max_level, n
+    assert budget.level_reached(lead + 11) > K  # some deeper face arrived before the template level was whole
+    assert budget.max_level() == av.forest.max_level and budget.max_depth() == av.forest.max_level - K
+
+    # The coarse levels only: the avatar holds levels 0..K-1, the header knows the whole depth.
+    cut = tmp_path / "cut.pavs"
+    cut.write_bytes(data[: H + lead * R + 4 * ((lead - 1) // B)])
+    part, b = load_avatar(str(cut))
+    assert part.num_gaussians == b.total == lead and part.forest.max_level == K - 1
+    assert b.count_for_percent(100.0) == b.count_for_percent(150.0) == lead  # not the header's N
+    assert b.count_for_percent(0.0) == b.count_for_percent(-5.0) == 0
+    assert b.max_level() == av.forest.max_level and b.max_depth() == av.forest.max_level - K
+
+
+def test_budget_slider_reads_the_typed_percent():
+    """A FloatProperty keeps 0.35 as 0.3499999940...: 0.35 % of 1000 Gaussians is 3.5, which
+    rounds to 4, as a viewer given "0.35" shows; the 32-bit value would show 3. Percents
+    outside [0, 100] are clamped."""
+    from progressive_avatars.core.bridge.budget import fraction_count, typed_percent
+
+    assert typed_percent(np.float32(16.1)) == 16.1 and typed_percent(np.float32(0.35)) == 0.35
+    b = Budget(1000, np.zeros(1000, np.int8), 5000)
+    assert b.count_for_slider(np.float32(0.35)) == 4 and b.count_for_percent(float(np.float32(0.35))) == 3
+    assert fraction_count(10, -50.0) == 0 and fraction_count(10, 250.0) == 10
+
+
+def test_load_avatar_and_check_mesh_refuse_what_does_not_fit(tmp_path):
+    """load_avatar's refusals name the file and say what is wrong (a missing or empty file, a
+    foreign file, a stream cut inside its header or before its first record); check_mesh takes
+    the avatar's own template (its largest index + 1 vertices exactly) and refuses a mesh with
+    fewer vertices, other faces (.npz), or another template (a stream's hash)."""
+    from progressive_avatars.core.bridge.budget import check_mesh, load_avatar
+    from progressive_avatars.core.stream.format import TemplateMismatch
+
+    av, path, h = _stream_file(tmp_path)
+    data = path.read_bytes()
+    with pytest.raises(FileNotFoundError, match="nope.pavs: file not found"):
+        load_avatar(str(tmp_path / "nope.pavs"))
+    (tmp_path / "empty.pavs").write_bytes(b"")
+    with pytest.raises(ValueError, match=r"empty.pavs: the file is empty \(0 bytes\)"):
+        load_avatar(str(tmp_path / "empty.pavs"))
+    (tmp_path / "foreign.pavs").write_bytes(b"GIF89a" + bytes(100))
+    with pytest.raises(ValueError, match="foreign.pavs: not a ProgressiveAvatars stream or avatar .npz"):
+        load_avatar(str(tmp_path / "foreign.pavs"))
+    (tmp_path / "head.pavs").write_bytes(data[: h.header_size // 2])
+    with pytest.raises(ValueError, match="no Gaussian arrived"):
+        load_avatar(str(tmp_path / "head.pavs"))
+    (tmp_path / "first.pavs").write_bytes(data[: h.header_size + h.record_size - 1])
+    with pytest.raises(
+        ValueError,
+        match=f"first.pavs: the stream holds no complete Gaussian record.*byte {h.header_size + h.record_size}",
+    ):
+        load_avatar(str(tmp_path / "first.pavs"))
+
+    faces = av.forest.template_faces
+    full, budget = load_avatar(str(path))
+    check_mesh(full, budget, faces)  # its own template: largest index + 1 vertices
+    fewer = faces.copy()
+    fewer[fewer == faces.max()] = 0
+    with pytest.raises(ValueError, match="vertices in use; the avatar's template needs"):
+        check_mesh(full, budget, fewer)
+    with pytest.raises(TemplateMismatch):
+        check_mesh(full, budget, faces[::-1].copy())
+    npz = tmp_path / "a.npz"
+    av.save(str(npz))
+    plain, pb = load_avatar(str(npz))
+    assert pb.info is None and pb.total == av.num_gaussians
+    check_mesh(plain, pb, faces)
+    with pytest.raises(ValueError, match="are not the avatar's template"):
+        check_mesh(plain, pb, faces[::-1].copy())
