@@ -1532,6 +1532,41 @@ def test_growth_and_sampling_rules_by_hand():
     assert growth(iterations=50, grow_every=100, grow_start=0).last_step == -1
 
 
+def test_growth_settings_are_checked_and_gradients_averaged():
+    """Impossible growth settings are errors when the policy is made (grow_every 0 would divide
+    by zero at the first step; grow_stop is a fraction of the run; a negative threshold splits
+    every face); grow_to 1 is a factor (no growth past the base). A face's gradient is its mean
+    over the steps that saw it (a face seen often is not split for its sum), and a face whose
+    projected size is exactly split_min_px reaches it."""
+    from progressive_avatars.core.avatar.forest import Forest
+    from progressive_avatars.core.train.policies import Growth
+    from tests.helpers import sphere_mesh
+
+    kw = dict(iterations=1000, max_depth=2, grow_every=100, grow_start=100, grow_stop=0.8, grad_threshold=0.4)
+    for bad, match in (
+        (dict(grow_every=0), "grow_every >= 1"),
+        (dict(max_depth=-1), "max_depth >= 0"),
+        (dict(max_faces=-1), "max_faces >= 0"),
+        (dict(grow_stop=1.5), "grow_stop in"),
+        (dict(grow_stop=-0.1), "grow_stop in"),
+        (dict(grad_threshold=-0.1), "grad_threshold"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            Growth(**{**kw, "max_faces": 1000, **bad})
+    assert Growth(**kw, max_faces=1000, grow_to=1.0).face_budget(100, 500) == 100
+    _, faces = sphere_mesh(3, 4)
+    f = Forest(faces)
+    N = f.num_faces
+    grad_sum, grad_count = np.zeros(N), np.ones(N)
+    grad_sum[:4], grad_count[:4] = [3.0, 0.5, 0.45, 0.9], [10, 1, 1, 3]  # means 0.3, 0.5, 0.45, 0.3
+    g = Growth(**kw, max_faces=10**6)
+    assert g.pick(f, grad_sum, grad_count, it=200).tolist() == [1, 2]
+    size = np.full(N, 1.0)
+    size[1] = 2.0
+    held = Growth(**kw, max_faces=10**6, min_px=2.0).pick(f, grad_sum, grad_count, it=200, size_px=size)
+    assert held.tolist() == [1]
+
+
 def test_run_refused_before_training_when_its_disk_cannot_hold_it(
     tiny_dataset, tiny_run, tmp_path, capsys, monkeypatch
 ):

@@ -68,3 +68,26 @@ def test_log_rows_average_the_same_steps_across_a_resume(tiny_dataset, tmp_path)
     full, part = rows("full"), rows("part")
     assert sorted(full) == sorted(part) == [10, 20]
     np.testing.assert_allclose(part[20], full[20], atol=1e-3)  # steps 11-20, not 16-20 alone
+
+
+def test_depth_cap_rises_from_one_to_max_depth_between_grow_start_and_stop():
+    """Depth d opens (d - 1) / max_depth of the way from grow_start (100) to the end of the
+    growth window (grow_stop x iterations = 500): depth 2 from 233.3, depth 3 from 366.7."""
+    g = Growth(
+        iterations=1000, max_depth=3, grow_every=1, grow_start=100, grow_stop=0.5, grad_threshold=0.0, max_faces=10**6
+    )
+    caps = {it: g.depth_cap(it) for it in (0, 100, 233, 234, 366, 367, 500, 900)}
+    assert caps == {0: 1, 100: 1, 233: 1, 234: 2, 366: 2, 367: 3, 500: 3, 900: 3}
+
+
+def test_uniform_growth_starts_at_once():
+    """Uniform growth (the ablation) ignores grow_start: due at every multiple of grow_every in
+    the window, its last step the last of them; adaptive growth starting after the window never
+    grows."""
+    kw = dict(
+        iterations=100, max_depth=2, grow_every=10, grow_start=200, grow_stop=0.5, grad_threshold=0.0, max_faces=10**6
+    )
+    uniform = Growth(uniform=True, **kw)
+    assert [it for it in range(1, 101) if uniform.due(it)] == [10, 20, 30, 40, 50] and uniform.last_step == 50
+    adaptive = Growth(**kw)
+    assert not any(adaptive.due(it) for it in range(1, 101)) and adaptive.last_step == -1
