@@ -70,10 +70,8 @@ class Budget:
         return self.count_for_percent(typed_percent(value))
 
     def bytes_for_count(self, count: int) -> int:
-        info = self.info
-        for name in ("bytes_for_count", "size_for_count"):
-            if info is not None and hasattr(info, name):
-                return int(getattr(info, name)(int(count)))
+        if self.info is not None and hasattr(self.info, "bytes_for_count"):
+            return int(self.info.bytes_for_count(int(count)))
         return int(round(self.file_bytes * count / max(self.total, 1)))
 
     def level_reached(self, count: int) -> int:
