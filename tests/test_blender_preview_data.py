@@ -321,3 +321,148 @@ def test_load_avatar_and_check_mesh_refuse_what_does_not_fit(tmp_path):
     check_mesh(plain, pb, faces)
     with pytest.raises(ValueError, match="are not the avatar's template"):
         check_mesh(plain, pb, faces[::-1].copy())
+
+
+def test_srgb_to_linear_by_hand():
+    """The sRGB decoding curve (IEC 61966-2-1): linear c / 12.92 up to 0.04045, then
+    ((c + 0.055) / 1.055) ** 2.4, out-of-range values clamped to [0, 1] first."""
+    from progressive_avatars.core.bridge.splats import srgb_to_linear
+
+    c = np.array([-0.3, 0.0, 0.02, 0.04045, 0.5, 1.0, 1.5])
+    want = [0.0, 0.0, 0.02 / 12.92, 0.04045 / 12.92, 0.21404114, 1.0, 1.0]  # (0.555 / 1.055) ** 2.4
+    np.testing.assert_allclose(srgb_to_linear(c), want, rtol=1e-6, atol=1e-9)
+
+
+def _stand_in_avatar(seed=6):
+    """A trained-like avatar whose coarse faces are stand-ins (retire positions from a stream),
+    with activations and colours spread as training leaves them."""
+    from progressive_avatars.core.stream.reader import read_stream
+    from progressive_avatars.core.stream.writer import encode_stream
+
+    rng = np.random.default_rng(seed)
+    v, f = sphere_mesh(10, 14, radius=0.1)
+    forest = random_forest(f, rng, depth=3, frac=0.4, coarse_from=v, stand_ins=True)
+    av = Avatar.initial(forest)
+    N = forest.num_faces
+    av.opacity_logit[:] = rng.normal(1.5, 1.5, N)
+    av.f_dc[:] = rng.normal(0, 1.2, (N, 3))  # some channels below 0 after the DC term: clamped
+    av.d_mu[:] = rng.normal(0, 0.2, (N, 3))
+    full = read_stream(encode_stream(av, rng.random(N), quantize=False, vertices=v))
+    assert full.forest.stand_ins and full.forest.retire is not None
+    return full, v
+
+
+def test_static_attributes_by_hand_and_retire_as_the_modifier_reads_it():
+    """static_attributes at the preview's root-grouped points: opacity = sigmoid(logit),
+    colour = sRGB-decoded 0.5 + C0 * DC (clamped at 0), alpha 1, the level and stream rank of
+    each point's face, and retire = shown_until + 1 for stand-ins, 0 (never) for every other
+    point. The modifier shows a point while rank < Count and not (retire > 0 and Count >=
+    retire): at every count that is the forest's drawn set of that stream prefix."""
+    from progressive_avatars.core.bridge.splats import static_attributes
+
+    full, _ = _stand_in_avatar()
+    fo = full.forest
+    order = preview_order(full)
+    st = static_attributes(full, order)
+    np.testing.assert_allclose(st["opacity"], 1 / (1 + np.exp(-full.opacity_logit[order])), rtol=1e-6)
+    dc = np.clip(0.5 + 0.28209479177387814 * full.f_dc[order], 0, 1)
+    lin = np.where(dc <= 0.04045, dc / 12.92, ((dc + 0.055) / 1.055) ** 2.4)
+    rgba = st["color"].reshape(-1, 4)
+    assert len(rgba) == full.num_gaussians and (dc == 0).any() and (dc > 0.5).any()
+    np.testing.assert_allclose(rgba[:, :3], lin, rtol=1e-5, atol=1e-7)
+    np.testing.assert_array_equal(rgba[:, 3], 1.0)
+    np.testing.assert_array_equal(st["level"], fo.level[order])
+    np.testing.assert_array_equal(st["rank"], fo.stream_rank()[order])
+    K = fo.num_coarse_levels
+    coarse = fo.level[order] < K
+    assert coarse.any() and (st["retire"][coarse] > 0).all() and (st["retire"][~coarse] == 0).all()
+    for n in sorted(
+        {
+            1,
+            int(st["retire"][coarse].min()) - 1,
+            int(st["retire"][coarse].min()),
+            int(np.median(st["retire"][coarse])),
+            int(st["retire"].max()),
+            full.num_gaussians,
+        }
+    ):
+        shown = (st["rank"] < n) & ~((st["retire"] > 0) & (n >= st["retire"]))
+        np.testing.assert_array_equal(
+            np.sort(order[shown]), np.sort(fo.drawn(fo.stream_ids(n), records=n)), err_msg=str(n)
+        )
+
+
+def test_preview_order_groups_points_by_root_and_the_evaluator_cuts_exactly_count():
+    """preview_order lays the points out by root face (stable: face order within a root), so
+    at full budget the evaluator writes them without a scatter; a budget of n evaluates exactly
+    the faces of the first n stream records, and every other point keeps what its row held."""
+    full, v = _stand_in_avatar(7)
+    fo = full.forest
+    order = preview_order(full)
+    assert np.array_equal(np.sort(order), np.arange(full.num_gaussians))
+    assert (np.diff(fo.root[order]) >= 0).all()
+    same_root = np.diff(fo.root[order]) == 0
+    assert (np.diff(order)[same_root] > 0).all()
+    assert splat_evaluator(full, None, fo.weights(), order)._reorder is None  # the point order: no scatter
+    rank = fo.stream_rank()[order]
+    for n in (1, fo.num_roots // 2, full.num_gaussians - 1):
+        ev = splat_evaluator(full, n, fo.weights(), order)
+        assert ev.n == n
+        means, quats, scales = ev(v.astype(np.float32))
+        np.testing.assert_allclose(
+            means[rank < n], full.gaussians(v.astype(np.float32), ids=order[rank < n])["means"], atol=1e-6
+        )
+        np.testing.assert_array_equal(means[rank >= n], 0.0)  # not evaluated: as made
+        np.testing.assert_array_equal(quats[rank >= n], np.tile([1.0, 0, 0, 0], ((rank >= n).sum(), 1)))
+
+
+def test_depth_scale_legend_and_corners_at_their_edges():
+    """Without max_depth the ramp spans the deepest depth given (one level: its two ends);
+    per_corner repeats each face's own row; a legend's scale below 0 still lists depth 0; a
+    negative record count shows nothing arrived."""
+    np.testing.assert_allclose(depth_colors(np.array([0, 1]))[:, :3], [RAMP[0], RAMP[4]], atol=1e-6)
+    np.testing.assert_allclose(depth_colors(np.array([2, 0, 1]))[:, :3], [RAMP[4], RAMP[0], RAMP[2]], atol=1e-6)
+    rows = np.arange(4)[:, None] * np.ones((1, 4))
+    np.testing.assert_array_equal(per_corner(rows, [3, 4, 3, 5])[:, 0], [0] * 3 + [1] * 4 + [2] * 3 + [3] * 5)
+    legend = depth_legend(np.full(3, NOT_ARRIVED), -1)
+    assert [(d, n) for d, n, _ in legend] == [(NOT_ARRIVED, 3), (0, 0)]
+    np.testing.assert_allclose(legend[1][2], RAMP[0], atol=1e-6)
+    rng = np.random.default_rng(8)
+    av, _ = _avatar(rng)
+    F0 = av.forest.num_roots
+    np.testing.assert_array_equal(depth_per_face(av.forest, F0, -1), np.full(F0, NOT_ARRIVED))
+
+
+def test_preview_threads_at_full_scale_give_the_bits_of_one_thread():
+    """The preview's default evaluator (PREVIEW_THREADS) on at least THREADED_MIN faces: the
+    calling thread and a pool thread take two chunks of ~n/4 faces each, every thread with its
+    own scratch rows, and the outputs are bit for bit one thread's, frame after frame; one face
+    fewer stays on the calling thread. Chunks this long are where threads sharing scratch rows
+    would overwrite each other's passes (the threaded test with 40-face chunks cannot show it)."""
+    from progressive_avatars.core.avatar.binding import GaussianEvaluator
+
+    rng = np.random.default_rng(9)
+    v, f = sphere_mesh(24, 40, radius=0.1)
+    forest = random_forest(f, rng, depth=3, frac=1.0)
+    N = forest.num_faces
+    assert N > GaussianEvaluator.THREADED_MIN
+    av = Avatar.initial(forest)
+    av.d_mu[:] = rng.normal(0, 0.3, (N, 3))
+    av.d_log_scale[:] = rng.normal(-4, 0.3, (N, 3))
+    av.d_rot[:] = rng.normal(size=(N, 4))
+    w, order = forest.weights(), preview_order(av)
+    frames = [(v * s).astype(np.float32) for s in (1.0, 1.1)]
+    ref = av.gaussians(frames[1], ids=order)["means"]
+    for count, threads, chunks in (
+        (GaussianEvaluator.THREADED_MIN - 1, 1, 2),
+        (GaussianEvaluator.THREADED_MIN, 2, 4),
+        (None, 2, 4),
+    ):
+        one = splat_evaluator(av, count, w, order, threads=1)
+        two = splat_evaluator(av, count, w, order, threads=2)
+        assert (two.threads, len(two._chunks)) == (threads, chunks), count
+        for verts in frames * 3:  # a race need not show on every frame
+            want = [x.copy() for x in one(verts)]
+            for got, x in zip(two(verts), want):
+                np.testing.assert_array_equal(got, x)
+    np.testing.assert_allclose(two(frames[1]).means, ref, atol=1e-6)

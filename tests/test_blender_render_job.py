@@ -323,6 +323,31 @@ def test_job_draws_retired_backdrop_stand_ins_behind_and_a_ply_leaves_them_out(t
     assert without_behind(g) == (g, 0)
 
 
+def test_job_renders_from_its_own_camera_and_clamps_negative_colours(tmp_path):
+    """The job's camera is the one the add-on saved (rotation, fx != fy, off-centre principal
+    point, width x height) and its colours are clamped at 0 as 3DGS clamps SH colours: the image
+    is render_numpy's of that camera built here and of max(colours, 0)."""
+    from progressive_avatars.core.bridge.render_job import render_job as run_job
+    from progressive_avatars.core.geometry.camera import Camera
+    from progressive_avatars.core.render.rasterize import render_numpy
+
+    _, arrays = _job_arrays(n=1500, size=(64, 48), seed=6)
+    cam = Camera.look_at([0.35, 0.2, 0.45], [0, 0, 0], [0, 1, 0], 90.0, 120.0, 30.0, 22.0, 64, 48)
+    arrays.update(R=cam.R, t=cam.t, intr=np.array([90.0, 120.0, 30.0, 22.0]), size=np.array([64, 48]))
+    arrays["colors"] = arrays["colors"] * 1.6 - 0.5  # a third of the channels below 0
+    np.savez(tmp_path / "job.npz", **arrays)
+    run_job(str(tmp_path / "job.npz"), str(tmp_path / "out.npy"))
+    got = np.load(tmp_path / "out.npy")
+    keys = ("means", "quats", "scales", "opacities")
+    bg = np.zeros(3, np.float32)
+    image, alpha, _ = render_numpy(*(arrays[k] for k in keys), np.maximum(arrays["colors"], 0), cam, bg)
+    assert got.shape == (48, 64, 4) and (alpha > 0.5).mean() > 0.1
+    np.testing.assert_allclose(got[..., :3], image, atol=1e-6)
+    np.testing.assert_allclose(got[..., 3], alpha, atol=1e-6)
+    unclamped = render_numpy(*(arrays[k] for k in keys), arrays["colors"], cam, bg)[0]
+    assert np.abs(unclamped - image).max() > 0.05  # the clamp mattered
+
+
 _CALL_KERNEL = """import importlib, importlib.util, sys
 import numpy as np
 root, name = sys.argv[1], sys.argv[2]

@@ -203,3 +203,22 @@ def test_budget_steps_bind_no_placed_point_again(rep):
     assert r["after_undo"] == [50.0, r["frame_at"]], r
     for key in ("misplaced_up", "misplaced_frame", "misplaced_undo"):
         assert r[key] < 1e-6, (key, r[key])
+
+
+def test_shape_keys_only_mixes_relative_keys_as_blender_does(rep):
+    r = scenario_step(rep, "shape_keys_mixed_as_blender_mixes_them")
+    assert r["problem"] == "" and r["basis_vs_blender"] > 0.01, r  # the keys moved the mesh
+    assert r["hand_vs_blender"] < 1e-6 and r["vs_blender"] < 1e-6 and r["vs_hand"] < 1e-6, r
+    assert r["vertex_group"][0] and "'a' is limited to a vertex group" in r["vertex_group"][1], r
+    assert r["absolute"][0] and "absolute shape keys" in r["absolute"][1], r
+
+
+def test_points_not_placed_stay_hidden(rep):
+    r = scenario_step(rep, "unplaced_points_stay_hidden")
+    assert r["load"] == ["FINISHED"] and 0 < r["count_20"] < r["count_90"], r
+    assert r["shown_20"] == r["count_20"], r
+    assert r["shown_edit"] == r["count_20"] and "Edit Mode" in r["status_edit"], r  # the 20 % placed
+    assert r["shown_after"] == r["count_90"], r
+    n = r["vertices"]
+    assert r["refresh_short"] is False and r["shown_short"] == 0, r
+    assert r["status_short"].endswith(f"has {n - 1} vertices; the avatar needs {n}"), r

@@ -349,6 +349,94 @@ def budget_steps_keep_placed_points(r):
 
 
 @step
+def unplaced_points_stay_hidden(r):
+    """Points the preview has not placed are never shown: raised in Edit Mode (nothing can be
+    written) the budget shows only the points the last frame placed, all of them once it is left;
+    a bound mesh with one vertex fewer than the avatar's template hides every point and says so."""
+    import bmesh
+
+    runtime = importlib.import_module(PKG + ".blender_addon.runtime")
+    preview = importlib.import_module(PKG + ".blender_addon.preview")
+    activate(bpy.data.objects[CUBE])
+    r["import"] = call(bpy.ops.import_scene.progressive_avatars_sequence, filepath=SEQ)
+    mesh = bpy.context.active_object
+    r["load"] = call(bpy.ops.object.progressive_avatars_load, filepath=STREAM, budget=100.0)
+    pv = preview_of(mesh)
+    scene = bpy.context.scene
+    mod = pv.modifiers[preview.MODIFIER_NAME]
+    key = preview.input_identifier(mod.node_group, "Count")
+    pv.pa_avatar.budget = 20.0
+    scene.frame_set(scene.frame_current + 1)  # places the 20 % it shows
+    bpy.context.evaluated_depsgraph_get()
+    r["count_20"], r["shown_20"] = pv.pa_avatar.count, mod[key]
+    activate(pv, "EDIT")
+    pv.pa_avatar.budget = 90.0
+    r["count_90"], r["shown_edit"], r["status_edit"] = pv.pa_avatar.count, mod[key], pv.pa_avatar.status
+    activate(pv)
+    bpy.context.evaluated_depsgraph_get()
+    r["shown_after"] = mod[key]
+    # One vertex fewer than the template: 'Shape keys only' reads the mesh's own vertices.
+    mesh.shape_key_clear()
+    pv.pa_avatar.bind_mode = "SHAPE_KEYS"
+    r["vertices"] = len(mesh.data.vertices)
+    bm = bmesh.new()
+    bm.from_mesh(mesh.data)
+    bm.verts.ensure_lookup_table()
+    bm.verts.remove(bm.verts[-1])
+    bm.to_mesh(mesh.data)
+    bm.free()
+    mesh.data.update()
+    r["refresh_short"] = runtime.refresh(pv, bpy.context.evaluated_depsgraph_get())
+    r["status_short"], r["shown_short"] = pv.pa_avatar.status, mod[key]
+    bpy.data.objects.remove(pv)
+    bpy.data.objects.remove(mesh)
+
+
+@step
+def shape_keys_mixed_as_blender_mixes_them(r):
+    """'Shape keys only' mixes the mesh's relative keys as Blender does: each key's offset from
+    its own relative key (not always the basis) times its evaluated value, muted and zero keys
+    left out. Blender's evaluated mesh (no modifiers) is the reference, and so is that sum by
+    hand; keys limited to a vertex group and absolute keys are refused with their reason."""
+    runtime = importlib.import_module(PKG + ".blender_addon.runtime")
+    bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=2)
+    obj = bpy.context.active_object
+    n = len(obj.data.vertices)
+    rng = np.random.default_rng(4)
+    basis = obj.shape_key_add(name="Basis", from_mix=False)
+    co = {"Basis": np.empty(n * 3, np.float32)}
+    basis.data.foreach_get("co", co["Basis"])
+    keys = {}
+    for name, value, rel in (("a", 0.5, "Basis"), ("b", 0.25, "a"), ("muted", 0.7, "Basis"), ("off", 0.0, "Basis")):
+        kb = keys[name] = obj.shape_key_add(name=name, from_mix=False)
+        co[name] = co["Basis"] + rng.normal(0, 0.05, n * 3).astype(np.float32)
+        kb.data.foreach_set("co", co[name])
+        kb.value, kb.relative_key = value, obj.data.shape_keys.key_blocks[rel]
+    keys["muted"].mute = True
+    dg = bpy.context.evaluated_depsgraph_get()
+    got, problem = runtime.shape_key_vertices(obj, dg)
+    want = runtime.source_vertices(obj, dg)  # Blender's own mix
+    by_hand = (co["Basis"] + 0.5 * (co["a"] - co["Basis"]) + 0.25 * (co["b"] - co["a"])).reshape(-1, 3)
+    r["problem"] = problem
+    r["vs_blender"] = float(np.abs(got - want).max())
+    r["vs_hand"] = float(np.abs(got - by_hand).max())
+    r["hand_vs_blender"] = float(np.abs(by_hand - want).max())
+    r["basis_vs_blender"] = float(np.abs(co["Basis"].reshape(-1, 3) - want).max())
+
+    def refused():  # [no vertices returned, the reason]
+        verts, why = runtime.shape_key_vertices(obj, bpy.context.evaluated_depsgraph_get())
+        return [verts is None, why]
+
+    obj.vertex_groups.new(name="half")
+    keys["a"].vertex_group = "half"
+    r["vertex_group"] = refused()
+    keys["a"].vertex_group = ""
+    obj.data.shape_keys.use_relative = False
+    r["absolute"] = refused()
+    bpy.data.objects.remove(obj)
+
+
+@step
 def import_from_edit_mode(r):
     cube = bpy.data.objects[CUBE]
     activate(cube, "EDIT")
