@@ -839,6 +839,18 @@ def test_importance_per_level_is_measured_where_prefixes_show_it(tiny_run, tiny_
         face_importance(av, ds, max_views=1, progress=False, weighting="bogus")
 
 
+def test_view_subset_takes_the_nearest_view_to_each_even_step():
+    """max_views of n views: the views nearest to max_views evenly spaced points from the first
+    view to the last (not the ones below them), every view when max_views reaches n."""
+    from progressive_avatars.core.render.importance import view_subset
+
+    # 11 views, 4 of them: points 0, 10/3, 20/3, 10 -> nearest views 0, 3, 7, 10 (6 is below 6.67).
+    assert view_subset(11, 4).tolist() == [0, 3, 7, 10]
+    # 9 views, 4: points 0, 8/3, 16/3, 8 -> 0, 3, 5, 8 (2 and 5 would be the views below).
+    assert view_subset(9, 4).tolist() == [0, 3, 5, 8]
+    assert view_subset(4, 4).tolist() == view_subset(4, 9).tolist() == view_subset(4, None).tolist() == [0, 1, 2, 3]
+
+
 def test_pixel_weighted_contribution_is_the_colour_gradient():
     """contrib with pixel weights w is sum_p w_p alpha T per Gaussian: the gradient of
     sum_p w_p image_p with respect to a Gaussian's colour (the backward, an independent path)."""
