@@ -314,6 +314,13 @@ def test_a_failed_npz_write_keeps_the_old_file_names_it_and_closes_the_archive(t
     del err
     gc.collect()
     assert stray == [] and path.read_bytes() == before and os.listdir(tmp_path) == ["a.npz"]
+    # As np.savez writes it (not savez_compressed): members stored, read back as written.
+    import zipfile
+
+    with zipfile.ZipFile(path) as z:
+        assert [(i.filename, i.compress_type) for i in z.infolist()] == [("x.npy", zipfile.ZIP_STORED)]
+    with np.load(path) as z:
+        assert z["x"].tolist() == [0, 1, 2]
     with pytest.raises(ValueError, match="allow_pickle"):  # object arrays refused, as the readers refuse them
         atomic.atomic_savez(tmp_path / "b.npz", x=np.array([{}, 1], dtype=object))
 
@@ -680,11 +687,13 @@ def test_atomic_writes_by_hand(tmp_path, monkeypatch):
     seen, synced = [], []
     real_replace, real_fsync = os.replace, os.fsync
     monkeypatch.setattr(os, "replace", lambda a, b: (seen.append(a), real_replace(a, b)))
-    monkeypatch.setattr(os, "fsync", lambda fd: (synced.append(fd), real_fsync(fd)))
+    # What fsync finds in the file: the bytes written, flushed out of Python's buffer first
+    # (else the sync made durable an empty file and the rename put it in place unsynced).
+    monkeypatch.setattr(os, "fsync", lambda fd: (synced.append(os.fstat(fd).st_size), real_fsync(fd)))
     with atomic.atomic_open(p) as fh:
         fh.write(b"x")
     assert len(seen) == 1 and re.fullmatch(re.escape(f"{p}.{os.getpid()}-") + r"\d+\.tmp", seen[0]), seen
-    assert len(synced) == 1 and p.read_bytes() == b"x"
+    assert synced == [1] and p.read_bytes() == b"x"
     monkeypatch.undo()
     # Two threads writing one path at once: each its own temporary, and the file is one of theirs.
     inside, errors = threading.Barrier(2), []
@@ -718,6 +727,27 @@ def test_atomic_writes_by_hand(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="PIL can write"):
         atomic.atomic_save_image(Image.new("RGB", (2, 2)), tmp_path / "x.psd")
     assert not (tmp_path / "x.psd").exists()
+    # An upper-case extension names its format as Image.save(path) reads it.
+    assert atomic.image_format("shot.PNG") == "PNG" and atomic.image_format("shot.Jpg") == "JPEG"
+    atomic.atomic_save_image(Image.new("RGB", (2, 2), (10, 200, 30)), tmp_path / "shot.BMP")
+    with Image.open(tmp_path / "shot.BMP") as im:
+        assert im.format == "BMP" and im.getpixel((1, 1)) == (10, 200, 30)
+
+
+def test_os_error_text_says_what_failed_and_where():
+    """One line per failed write: a full disk and an exceeded quota in words, any other error by
+    its type; the file the error names, else the place the caller gives."""
+    import errno
+
+    text = atomic.os_error_text
+    assert text(OSError(errno.ENOSPC, "No space left on device", "out/a.npz")) == (
+        "disk full: No space left on device (out/a.npz)"
+    )
+    assert text(OSError(errno.EDQUOT, "Disk quota exceeded"), "the run folder") == (
+        "disk quota exceeded: Disk quota exceeded (the run folder)"
+    )
+    assert text(OSError(errno.EACCES, "Permission denied", "r/x")) == "PermissionError: Permission denied (r/x)"
+    assert text(OSError("odd")) == "OSError: odd (writing the output)"  # no errno, no strerror: the message
 
 
 def test_stale_temporary_cleanup_takes_only_the_names_atomic_open_gives(tmp_path):
@@ -734,6 +764,8 @@ def test_stale_temporary_cleanup_takes_only_the_names_atomic_open_gives(tmp_path
         f"report.json.{dead.pid}-2024-01-01.tmp",
         f"report.json.{dead.pid}-.tmp",
         f"report.json.{dead.pid}-x.{dead.pid}-0.tmp",  # a temporary of "report.json.<pid>-x"
+        f"report.json_{dead.pid}.tmp",  # another path's ("report.json_<pid>"), not "report.json."
+        f"report.json.{dead.pid}.bak",  # not a temporary: ".tmp" ends every one
     ]
     for name in ours + others:
         (tmp_path / name).write_bytes(b"x")
