@@ -428,8 +428,12 @@ def test_importance_cache_keyed_on_max_views(tiny_run, tiny_dataset, tmp_path, m
     assert calls == [2, 2] and not np.array_equal(w_race, w_first)
     np.testing.assert_array_equal(w_first, w2)
     # The training split edited in place (frames dropped): measured again as well.
+    # A copy of the dataset elsewhere (the same training split file, its images possibly not):
+    # keyed on the data folder too, so measured on the copy (the cache holds av1's 2-view one).
     data = tmp_path / "data"
     shutil.copytree(tiny_dataset, data)
+    runs.run_importance(str(run), av1, str(data), max_views=2, progress=False)
+    assert calls == [2, 2, 2]
     runs.run_importance(str(run), av2, str(data), max_views=None, progress=False)
     calls.clear()
     meta = json.loads((data / "transforms_train.json").read_text())
@@ -606,7 +610,9 @@ def test_run_config_errors_name_the_file_and_damaged_importance_cache_is_recompu
         key = z["key"]
     np.savez(cache, W=np.zeros(3), key=key)  # the right key beside an array of another avatar
     np.testing.assert_array_equal(runs.run_importance(str(run_copy), av, tiny_dataset, max_views=2, progress=False), w)
-    assert len(calls) == 5
+    np.savez(cache, W=np.ones(len(w), np.int64), key=key)  # one per face, but not importances
+    np.testing.assert_array_equal(runs.run_importance(str(run_copy), av, tiny_dataset, max_views=2, progress=False), w)
+    assert len(calls) == 6
 
 
 @pytest.mark.slow  # evaluations of the tiny run
@@ -808,6 +814,94 @@ def test_export_and_evaluation_say_when_the_run_is_being_trained(tiny_run, tmp_p
     assert "being trained" not in capsys.readouterr().err
     with pytest.raises(FileNotFoundError, match="train with scripts/train.py first"):
         runs.load_run_avatar(str(fresh))
+
+
+def test_training_holder_is_the_lock_held_exclusively_by_another(tmp_path):
+    """Who trains a run: the text of RUN/.train.lock while another open file holds it exclusively
+    ("another process" when the holder has not written its name yet); another reader asking at
+    the same moment (a shared lock) is no training, nor is a finished training's text."""
+    import fcntl
+
+    from progressive_avatars.core.io.run import training_holder
+
+    run = tmp_path / "run"
+    run.mkdir()
+    assert training_holder(str(run)) is None  # never trained here
+    lock = run / ".train.lock"
+    lock.write_text("pid 1 on elsewhere\n")  # a finished training's
+    assert training_holder(str(run)) is None
+    with open(lock) as reader:  # an export asking at the same moment
+        fcntl.flock(reader.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+        assert training_holder(str(run)) is None
+    with open(lock) as trainer:
+        fcntl.flock(trainer.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        assert training_holder(str(run)) == "pid 1 on elsewhere"
+    lock.write_text("")
+    with open(lock) as trainer:  # locked, its name not written yet
+        fcntl.flock(trainer.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        assert training_holder(str(run)) == "another process"
+
+
+def test_load_run_avatar_reads_again_a_file_replaced_while_it_was_read(run_copy, tmp_path, monkeypatch):
+    """A training saving avatar.npz while an export reads it: the avatar is read again, and its
+    source_digest is the sha256 of the bytes it was read from (what the importance cache keys
+    on); a file replaced during each of three reads is refused, naming it."""
+    import hashlib
+
+    from progressive_avatars.core.io import run as runs
+
+    path = run_copy / "avatar.npz"
+    newer = Avatar.load(str(path))
+    newer.opacity_logit[:] += 1.0
+    newer.save(str(tmp_path / "newer.npz"))
+    older, newer_file = tmp_path / "older.npz", tmp_path / "newer.npz"
+    shutil.copy2(path, older)
+    real_load, reads = Avatar.load, []
+
+    def load_while_replaced(p, saves):
+        av = real_load(p)
+        reads.append(p)
+        if len(reads) <= len(saves):  # a training's save lands during this read
+            shutil.copy2(saves[len(reads) - 1], path)
+        return av
+
+    monkeypatch.setattr(Avatar, "load", lambda p: load_while_replaced(p, [newer_file]))
+    av = runs.load_run_avatar(str(run_copy))
+    assert len(reads) == 2 and np.array_equal(av.opacity_logit, newer.opacity_logit)
+    assert av.source_digest == "sha256:" + hashlib.sha256(newer_file.read_bytes()).hexdigest()
+    reads.clear()
+    monkeypatch.setattr(Avatar, "load", lambda p: load_while_replaced(p, [older, newer_file, older]))
+    with pytest.raises(ValueError, match=r"avatar\.npz changed each time it was read: a training is writing it"):
+        runs.load_run_avatar(str(run_copy))
+    assert len(reads) == 3
+
+
+def test_run_config_entries_of_the_wrong_kind_are_refused_naming_the_file(tmp_path):
+    """config.json's "data" and "flame_model": an empty or non-text dataset folder and a
+    non-text model path are refused naming the file; an empty model path is none; an
+    unreadable config.json (a folder) is a ValueError naming it, not a raw OSError."""
+    from progressive_avatars.core.io import run as runs
+
+    run = tmp_path / "run"
+    run.mkdir()
+    cfg = run / "config.json"
+    for data, shown in (("", "''"), (5, "5"), (None, "None")):
+        cfg.write_text(json.dumps({"data": data}))
+        with pytest.raises(ValueError, match=rf'config\.json: "data" is {shown}, not a dataset folder; pass --data'):
+            runs.run_data_dir(str(run))
+    cfg.write_text(json.dumps({"flame_model": 3}))
+    with pytest.raises(ValueError, match=r'config\.json: "flame_model" is 3, not a file path'):
+        runs.run_flame_model(str(run))
+    assert runs.run_flame_model(str(run), "given.pkl") == "given.pkl"  # given: the config is not read
+    cfg.write_text(json.dumps({"flame_model": ""}))
+    assert runs.run_flame_model(str(run)) is None
+    cfg.write_text(json.dumps({"flame_model": "flame2023.pkl"}))
+    assert runs.run_flame_model(str(run)) == "flame2023.pkl"
+    os.remove(cfg)
+    assert runs.run_flame_model(str(run)) is None and runs.run_config(str(run)) is None
+    cfg.mkdir()
+    with pytest.raises(ValueError, match=r"config\.json: cannot be read \(Is a directory\)"):
+        runs.run_config(str(run))
 
 
 def test_folder_lock_refuses_a_second_holder_and_a_removed_lock_is_not_held_twice(tmp_path, monkeypatch):

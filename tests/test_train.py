@@ -533,7 +533,7 @@ def test_flame_refinement_learns_resumes_and_is_saved(tiny_dataset, tmp_path):
         run_dataset(str(tmp_path / "full"), str(root), "val", model_path)
 
 
-def test_flame_run_keeps_its_avatar_corrections_and_timesteps_together(tiny_dataset, tmp_path):
+def test_flame_run_keeps_its_avatar_corrections_and_timesteps_together(tiny_dataset, tmp_path, monkeypatch):
     """A run stopped between writing avatar.npz and flame_refined.npz (or a resumed one, between
     the new avatar and the old corrections) exported silently with frames posed unlike training
     posed them; a checkpoint did not say which timesteps its corrections belong to; the ranks'
@@ -560,14 +560,39 @@ def test_flame_run_keeps_its_avatar_corrections_and_timesteps_together(tiny_data
         ckpt = dict(z)
     np.testing.assert_array_equal(ckpt["flame_timesteps"], tr.refiner.timesteps)
     run_dataset(str(run), str(root), "val", model_path)  # the pair is whole
-    # The corrections of another iteration, or none, beside the avatar: refused, with the way out.
+    # Importance is measured on the refined meshes, so its cache is keyed on the corrections:
+    # others (here the head moved 2 cm), measured again.
+    from progressive_avatars.core.io import run as runs
+    from progressive_avatars.core.render import importance
+
+    calls, real = [], importance.face_importance
+    monkeypatch.setattr(importance, "face_importance", lambda *a, **k: calls.append(1) or real(*a, **k))
+    av = runs.load_run_avatar(str(run))
+    w = runs.run_importance(str(run), av, str(root), max_views=1, progress=False)
     refined = dict(np.load(run / "flame_refined.npz"))
+    np.savez(run / "flame_refined.npz", **(refined | {"translation": refined["translation"] + 0.02}))
+    moved = runs.run_importance(str(run), av, str(root), max_views=1, progress=False)
+    assert len(calls) == 2 and not np.array_equal(moved, w)
+    # The corrections of another iteration, or none, beside the avatar: refused, with the way out.
     np.savez(run / "flame_refined.npz", **(refined | {"iteration": np.asarray(4)}))
     with pytest.raises(ValueError, match=r"corrections of iteration 4, .*avatar\.npz is of iteration 8 .*--resume"):
         run_dataset(str(run), str(root), "val", model_path)
     os.remove(run / "flame_refined.npz")
     with pytest.raises(ValueError, match=r"trained with --refine-flame but .*flame_refined\.npz is missing"):
         run_dataset(str(run), str(root), "test", model_path)
+    link = tmp_path / "data_link"  # the run's own data through another path: checked alike
+    os.symlink(root, link)
+    with pytest.raises(ValueError, match=r"flame_refined\.npz is missing"):
+        run_dataset(str(run), str(link), "val", model_path)
+    # A file written before corrections recorded their iteration is taken as the avatar's.
+    np.savez(run / "flame_refined.npz", **{k: v for k, v in refined.items() if k != "iteration"})
+    run_dataset(str(run), str(root), "val", model_path)
+    # An avatar trained without --refine-flame needs no corrections beside it.
+    os.remove(run / "flame_refined.npz")
+    plain = Avatar.load(str(run / "avatar.npz"))
+    plain.meta["config"]["refine_flame"] = False
+    plain.save(str(run / "avatar.npz"))
+    run_dataset(str(run), str(root), "val", model_path)
     import shutil
 
     other = tmp_path / "other_data"  # another dataset is posed as tracked: the pair is not needed there
