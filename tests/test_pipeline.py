@@ -468,25 +468,90 @@ def test_report_is_a_library_function(tiny_run, tmp_path):
     same report files the script does."""
     from progressive_avatars.core.evaluate.report import ReportOptions, build_report
 
+    import shutil
+
     with pytest.raises(ValueError, match="budgets"):
         build_report(ReportOptions(run=tiny_run, out=str(tmp_path / "bad"), budgets=(0, 100)))
+    for kw, says in (
+        (dict(views=0), "views, curve points and curve views must be >= 1"),
+        (dict(curve_views=0), "views, curve points and curve views must be >= 1"),
+        (dict(strips=(-1,)), "strip budgets"),
+        (dict(paper_table=True, multi_level=tiny_run), "--multi-level"),  # without --finest-only
+    ):
+        with pytest.raises(ValueError, match=says):
+            build_report(ReportOptions(run=tiny_run, out=str(tmp_path / "bad"), **kw))
+    assert not (tmp_path / "bad").exists()
+    # A compared run whose log ends 3 dB lower: the time-to-PSNR target is one both runs reach.
+    low = tmp_path / "low"
+    shutil.copytree(tiny_run, low)
+    rows = [json.loads(ln) for ln in open(os.path.join(tiny_run, "metrics.jsonl"))]
+    with open(low / "metrics.jsonl", "w") as fh:
+        for row in rows:
+            fh.write(json.dumps({**row, "val_psnr": row["val_psnr"] - 3} if "val_psnr" in row else row) + "\n")
     out = tmp_path / "lib"
     out.mkdir()
     rep = build_report(
         ReportOptions(
             run=tiny_run,
             out=str(out),
-            budgets=(100,),
-            strips=(100,),
+            budgets=(50, 100),
+            strips=(0, 100),  # a 0 % strip (nothing arrived yet) is allowed
             views=1,
             curve_points=2,
             curve_views=1,
+            compare=(f"low={low}",),
             progress=False,
         )
     )
     assert rep["budgets"]["100"]["gaussians"] == rep["gaussians"] > 0
     assert json.load(open(out / "report.json"))["budgets"]["100"]["gaussians"] == rep["gaussians"]
     assert (out / "report.md").read_text().startswith("#")
+    # Its numbers by hand, from what they are defined as.
+    total, n, counts = rep["stream_bytes"], rep["gaussians"], rep["level_counts"]
+    assert total == os.path.getsize(os.path.join(tiny_run, "avatar.pavs")) and rep["bytes_per_gaussian"] == total / n
+    # Every record: the whole stream but its last block's CRC (bytes_for_count, the fewest bytes
+    # holding the records: header + n records + the CRCs of the blocks before the last record's).
+    assert rep["budgets"]["100"]["bytes"] == total - 4
+    assert rep["budgets"]["50"]["bytes"] <= total / 2 < total
+    assert [c["percent"] for c in rep["curve_nvs"]] == [50.0, 100.0]
+    assert rep["curve_nvs"][-1]["gaussians"] == n and rep["curve_nvs"][-1]["bytes"] == total - 4
+    fh = rep["first_head"]
+    for r in (1, 10, 100):  # bytes * 8 bits at r Mbit/s
+        assert fh[f"head_seconds_{r}mbit"] == pytest.approx(fh["head_bytes"] * 8 / (r * 1e6), rel=1e-12)
+        assert fh[f"base_seconds_{r}mbit"] == pytest.approx(fh["base_bytes"] * 8 / (r * 1e6), rel=1e-12)
+    K = fh["coarse_levels"]
+    assert K >= 1
+    # The root-order cuts: a quarter and a half into each root level (coarse levels, template).
+    cuts = {}
+    for lv in range(K + 1):
+        for frac, name in ((0.25, "25%"), (0.5, "50%")):
+            cuts[f"level {lv} + {name}"] = sum(counts[:lv]) + max(1, int(frac * counts[lv]))
+    assert rep["ablations"]["root_order"]["cuts"] == cuts
+    q = rep["ablations"]["quantisation_100"]
+    assert q["psnr_loss_db"] == q["float32"]["psnr"] - q["quantised"]["psnr"]  # what quantising costs
+    assert q["bytes_quantised"] == total < q["bytes_float32"]
+    assert q["quantised"]["psnr"] == rep["budgets"]["100"]["nvs"]["psnr"]  # the streamed avatar, whole
+    d = rep["ablations"]["single_asset_vs_discrete"]
+    assert d["discrete_sum_bytes"] == rep["budgets"]["50"]["bytes"] + rep["budgets"]["100"]["bytes"]
+    # Level prefixes: every face of the levels up to each (the backdrop keeps retired stand-ins),
+    # the last one the whole avatar.
+    lp = rep["ablations"]["level_prefixes"]
+    assert list(lp["counts"].values()) == np.cumsum(counts).tolist()
+    assert lp["nvs"][len(counts) - 1]["psnr"] == rep["budgets"]["100"]["nvs"]["psnr"]
+    assert lp["nvs"][0]["psnr"] < lp["nvs"][len(counts) - 1]["psnr"]
+    # The random-order ablation: the first 25 % of the Gaussians in a seed-0 random order inside
+    # each level, scored like every set (the stream the report wrote, its NVS views).
+    from progressive_avatars.core.io.dataset import Dataset
+    from progressive_avatars.core.stream.reader import read_stream
+
+    val = Dataset(json.load(open(os.path.join(tiny_run, "config.json")))["data"], "val")
+    nvs = SplitRenderer(read_stream(os.path.join(tiny_run, "avatar.pavs"), template_faces=val.faces), val, 1)
+    ro = rep["ablations"]["random_order_25"]
+    assert ro["gaussians"] == rep["ablations"]["interleaved_order"]["25"]["gaussians"]
+    by_hand = random_within_levels(nvs.avatar.forest.level, seed=0)[: ro["gaussians"]]
+    assert ro["random"]["psnr"] == nvs.score(np.sort(by_hand))["psnr"]
+    finals = [max(r["val_psnr"] for r in rows if "val_psnr" in r)]
+    assert rep["time_to_psnr"]["target"] == pytest.approx(finals[0] - 3 - 0.5, abs=1e-9)
 
 
 def test_done_when_checks_the_budget_table_and_names_the_curve_it_had():
