@@ -16,7 +16,7 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from ..avatar.avatar import PARAM_NAMES, Avatar
+from ..avatar.avatar import Avatar
 from .safe_io import file_digest
 
 
@@ -282,13 +282,3 @@ def run_importance(
 
     atomic_savez(path, W=W, key=np.array(json.dumps(key, sort_keys=True)))
     return W
-
-
-def reordered(avatar: Avatar, order: np.ndarray) -> Avatar:
-    """The avatar with faces permuted (new face i = old face order[i])."""
-    return Avatar(
-        avatar.forest.reorder(order),
-        *(getattr(avatar, n)[order] for n in PARAM_NAMES),
-        meta=avatar.meta,
-        f_rest=avatar.f_rest[order],
-    )
