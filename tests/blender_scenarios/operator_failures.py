@@ -6,7 +6,7 @@ that raises records its traceback and the next one still runs. The sequence impo
 progress is recorded on its way through and out of them (and through a plain import).
 """
 
-import importlib, json, os, queue, subprocess, sys, time, traceback, types
+import contextlib, importlib, json, os, queue, subprocess, sys, time, traceback, types
 
 import stock_blender
 
@@ -85,6 +85,21 @@ class ContextWith:
 
     def __getattr__(self, name):
         return getattr(self._context, name)
+
+
+@contextlib.contextmanager
+def failing(module, name):
+    """``module.name`` raising RuntimeError("injected failure") meanwhile."""
+
+    def boom(*args, **kw):
+        raise RuntimeError("injected failure")
+
+    kept = getattr(module, name)
+    setattr(module, name, boom)
+    try:
+        yield
+    finally:
+        setattr(module, name, kept)
 
 
 def import_progress(**kw):
@@ -334,18 +349,11 @@ def rig_in_edit_mode(r):
 @step
 def sequence_import_fails_late(r):
     # A plain (shape-key) import whose build fails after the mesh exists takes it all back.
-    def boom(*args, **kw):
-        raise RuntimeError("injected failure")
-
     scene = bpy.context.scene
     scene.frame_start, scene.frame_end = 5, 9
     before = inventory()
-    kept = sequence_builder.add_sequence_keys
-    sequence_builder.add_sequence_keys = boom
-    try:
+    with failing(sequence_builder, "add_sequence_keys"):
         r["result"], r["progress"] = import_progress(filepath=SEQ)
-    finally:
-        sequence_builder.add_sequence_keys = kept
     r["added"] = added(before)
     r["range"] = [scene.frame_start, scene.frame_end]
 
@@ -364,15 +372,8 @@ def import_progress_shown(r):
     r["broken_added"], r["broken_range"] = added(before), [scene.frame_start, scene.frame_end]
 
     # An exception no handler expects (here: from the face check) still ends the progress.
-    def boom(*args):
-        raise RuntimeError("injected failure")
-
-    kept = sequence_builder.face_problem
-    sequence_builder.face_problem = boom
-    try:
+    with failing(sequence_builder, "face_problem"):
         r["raised"], r["raised_progress"] = import_progress(filepath=OBJ_FRAMES)
-    finally:
-        sequence_builder.face_problem = kept
     r["raised_added"] = added(before)
 
 
