@@ -50,7 +50,7 @@ def on_depsgraph_update(scene, depsgraph):
     sources = {o.pa_avatar.source for o in runtime.previews(scene)} & changed
     # A preview left Edit Mode: its points are the ones it entered with, whatever frame it is now.
     for obj in runtime.previews(scene):
-        e = runtime.entry(obj) if obj.original in changed and not obj.data.is_editmode else None
+        e = runtime.cached(obj) if obj.original in changed and not obj.data.is_editmode else None
         if e is not None and e.frame_key is None and obj.pa_avatar.source is not None:
             sources.add(obj.pa_avatar.source)
     if sources:

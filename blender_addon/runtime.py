@@ -98,6 +98,11 @@ def entry(obj):
     return e
 
 
+def cached(obj):
+    """The preview's cache entry if it has one, loading nothing (for handlers that only look)."""
+    return _cache.get(obj.session_uid)
+
+
 def prime(obj, path, avatar, budget):
     """Cache an avatar the caller has just read, so it is not decoded twice."""
     _drop_dead()
