@@ -353,3 +353,21 @@ def test_torch_gradients_finite_and_correct(model_and_arrays):
     zero = torch.zeros(1, 3, dtype=torch.float64, requires_grad=True)
     layer(rotation=zero, neck_pose=zero).sum().backward()
     assert torch.isfinite(zero.grad).all()
+
+
+def test_one_frame_in_any_of_its_documented_forms(model_and_arrays):
+    m, _ = model_and_arrays
+    rng = np.random.default_rng(9)
+    eyes, jaw = rng.normal(size=6), rng.normal(size=3)
+    want = flame_forward(m, eyes_pose=eyes[None], jaw_pose=jaw[None], dtype=np.float64)
+    assert want.shape == (1, N_V, 3)
+    # [2,3] eyes and [J,3] poses were read as 2 and J frames of the wrong width.
+    np.testing.assert_array_equal(flame_forward(m, eyes_pose=eyes.reshape(2, 3), jaw_pose=jaw, dtype=np.float64), want)
+    full = np.concatenate([np.zeros(6), jaw, eyes]).reshape(N_J, 3)
+    np.testing.assert_array_equal(flame_forward(m, pose=full, dtype=np.float64), want)
+    # A [V,3] dynamic offset is one frame (it gave V copies of it).
+    off = rng.normal(size=(N_V, 3))
+    got = flame_forward(m, dynamic_offset=off, dtype=np.float64)
+    np.testing.assert_allclose(got, (m.v_template + off)[None], rtol=0, atol=1e-12)
+    # An empty pose array is no pose.
+    np.testing.assert_array_equal(flame_forward(m, jaw_pose=np.array([])), flame_forward(m))

@@ -708,11 +708,18 @@ def prepare_params(
         "pose": pose,
         "dynamic_offset": dynamic_offset,
     }
+    # The frame count is read the way _pose and _offset read each array: one frame's worth of
+    # pose values ([2,3] eyes, [J,3] pose) and a [V,3] dynamic offset are one frame, not 2, J or V.
+    widths = dict(POSE_WIDTHS, translation=3, pose=3 * J)
     arrays = {}
     for k, v in raw.items():
         if v is not None:
             v = np.asarray(v, np.float64)
-            arrays[k] = v.reshape(1, -1) if v.ndim <= 1 else v
+            if v.ndim <= 1 or v.size == widths.get(k):
+                v = v.reshape(1, -1)
+            elif k == "dynamic_offset":
+                v = v.reshape((-1,) + v.shape[-2:])
+            arrays[k] = v
     T = _frames_of(arrays)
     betas = np.concatenate(
         [
