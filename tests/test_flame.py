@@ -355,6 +355,105 @@ def test_torch_gradients_finite_and_correct(model_and_arrays):
     assert torch.isfinite(zero.grad).all()
 
 
+# ---------------------------------------------------------------------------- closed-form checks
+
+
+def two_joint_arm():
+    """A 4-vertex arm small enough to pose by hand: a root joint at vertex a = (0,0,0) and a
+    child joint at b = (1,0,0), each regressed from its one vertex; a, b follow the root and
+    c = (2,0,0), d = (2,1,0) the child (one-hot weights). The shape component moves b by +x and
+    c by +z, the expression component d by +y. Two pose correctives on the child's features
+    (R - I) row-major: d.x += 0.5 (R-I)[0,1] and c.z += 0.25 (R-I)[1,0]."""
+    V = 4
+    shapedirs = np.zeros((V, 3, 2))
+    shapedirs[1, 0, 0] = shapedirs[2, 2, 0] = 1.0
+    shapedirs[3, 1, 1] = 1.0
+    posedirs = np.zeros((V, 3, 9))
+    posedirs[3, 0, 1] = 0.5
+    posedirs[2, 2, 3] = 0.25
+    return fl.FlameModel(
+        v_template=np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [2, 1, 0]]),
+        faces=np.array([[0, 1, 2], [1, 2, 3]]),
+        shapedirs=shapedirs,
+        posedirs=posedirs,
+        J_regressor=np.eye(2, V),
+        weights=np.array([[1.0, 0], [1, 0], [0, 1], [0, 1]]),
+        parents=np.array([-1, 0]),
+        n_shape=1,
+    )
+
+
+def test_two_joint_arm_posed_by_hand():
+    arm = two_joint_arm()
+    q = np.pi / 2  # about z: (x, y, z) -> (-y, x, z); R - I = [[-1,-1,0],[1,-1,0],[0,0,0]]
+    pose = np.array(
+        [
+            [0, 0, 0, 0, 0, q],  # child only: c, d swing about b, both correctives on
+            [0, 0, q, 0, 0, 0],  # root only: rigid about a; the root is no corrective feature
+            [0, 0, q, 0, 0, q],  # both, then translated (after skinning, so not rotated)
+            [0, 0, 0, 0, 0, q],  # child, with the shape moving its joint b to (3,0,0)
+        ]
+    )
+    got = flame_forward(
+        arm,
+        pose=pose,
+        shape=[[0], [0], [0], [2]],
+        translation=[[0, 0, 0], [0, 0, 0], [0.5, 0, -1], [0, 0, 0]],
+        dtype=np.float64,
+    )
+    want = [
+        [[0, 0, 0], [1, 0, 0], [1, 1, 0.25], [0, 0.5, 0]],
+        [[0, 0, 0], [0, 1, 0], [0, 2, 0], [-1, 2, 0]],
+        [[0.5, 0, -1], [0.5, 1, -1], [-0.5, 1, -0.75], [0, 0, -1]],
+        [[0, 0, 0], [3, 0, 0], [3, -1, 2.25], [2, -1.5, 0]],
+    ]
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+    # A static offset is part of the rest shape, so it moves the joints like the shape does.
+    offset = np.zeros((1, 4, 3))
+    offset[0, 1, 0] = offset[0, 2, 2] = 2.0
+    np.testing.assert_allclose(
+        flame_forward(arm, pose=pose[3], static_offset=offset, dtype=np.float64)[0], want[3], rtol=0, atol=1e-12
+    )
+    # Zero pose: template plus blendshapes plus both offsets.
+    dyn = np.full((1, 4, 3), 0.125)
+    rest = flame_forward(
+        arm, pose=np.zeros(6), shape=[0.5], expr=[-3], static_offset=offset, dynamic_offset=dyn, dtype=np.float64
+    )
+    np.testing.assert_allclose(
+        rest[0], [[0.125] * 3, [3.625, 0.125, 0.125], [2.125, 0.125, 2.625], [2.125, -1.875, 0.125]], rtol=0, atol=1e-12
+    )
+    with pytest.raises(ValueError, match="has 2 joints, not FLAME's 5"):
+        flame_forward(arm, jaw_pose=[0, 0, q])
+
+
+def test_chunks_keep_their_frames_offsets_and_report_progress(monkeypatch):
+    monkeypatch.setattr(fl, "_CHUNK", 2)
+    arm = two_joint_arm()
+    dyn = np.zeros((5, 4, 3))
+    dyn[:, 3, 2] = np.arange(5)
+    calls = []
+    got = flame_forward(
+        arm, pose=np.zeros(6), dynamic_offset=dyn, dtype=np.float64, progress=lambda *a: calls.append(a)
+    )
+    assert calls == [(2, 5), (4, 5), (5, 5)]
+    np.testing.assert_allclose(got[:, 3], [[2, 1, t] for t in range(5)], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got[:, :3], np.broadcast_to(arm.v_template[:3], (5, 3, 3)), rtol=0, atol=1e-12)
+
+
+def test_rodrigues_of_known_axis_angles():
+    c, s = np.cos(0.09), np.sin(0.09)  # small enough to tempt a series, large enough to need the exact form
+    n = np.array([1.0, 1.0, 0.0]) / np.sqrt(2)
+    r = np.array([[np.pi / 2, 0, 0], [0, np.pi / 2, 0], [0, 0, np.pi / 2], [0, 0, 0.09], np.pi * n])
+    want = [
+        [[1, 0, 0], [0, 0, -1], [0, 1, 0]],
+        [[0, 0, 1], [0, 1, 0], [-1, 0, 0]],
+        [[0, -1, 0], [1, 0, 0], [0, 0, 1]],
+        [[c, -s, 0], [s, c, 0], [0, 0, 1]],
+        2 * np.outer(n, n) - np.eye(3),  # a half turn about n
+    ]
+    np.testing.assert_allclose(fl.axis_angle_to_matrix(r), want, rtol=0, atol=1e-15)
+
+
 def test_one_frame_in_any_of_its_documented_forms(model_and_arrays):
     m, _ = model_and_arrays
     rng = np.random.default_rng(9)
@@ -371,3 +470,99 @@ def test_one_frame_in_any_of_its_documented_forms(model_and_arrays):
     np.testing.assert_allclose(got, (m.v_template + off)[None], rtol=0, atol=1e-12)
     # An empty pose array is no pose.
     np.testing.assert_array_equal(flame_forward(m, jaw_pose=np.array([])), flame_forward(m))
+
+
+def test_offsets_checked(model_and_arrays):
+    m, _ = model_and_arrays
+    two = dict(expr=np.zeros((2, N_EXPR)))
+    with pytest.raises(ValueError, match=r"static_offset: expected \[1\|T,50,3\], got \(3, 50, 3\)"):
+        flame_forward(m, static_offset=np.zeros((3, N_V, 3)), **two)
+    bad = np.zeros((1, N_V, 3))
+    bad[0, 7, 1] = np.nan
+    with pytest.raises(ValueError, match="FLAME offsets contain NaN"):
+        flame_forward(m, static_offset=bad)
+
+
+# ---------------------------------------------------------------------------- model arrays
+
+
+def _model(**override):
+    return fl._model_from_mapping(dict(make_flame_arrays(), **override), "test.pkl", N_SHAPE)
+
+
+def _nan_at(key):
+    a = np.array(make_flame_arrays()[key], np.float64)
+    a.flat[a.size // 2] = np.nan
+    return a
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        (dict(kintree_table=np.array([[-1, 0, 2, 1, 1], [0, 1, 2, 3, 4]])), "parents must precede"),
+        (dict(kintree_table=np.array([[-1, 0, -1, 1, 1], [0, 1, 2, 3, 4]])), "parents must precede"),
+        (dict(kintree_table=np.zeros((3, N_J), np.int64)), r"kintree_table must be \[2,J\]"),
+        (dict(f=np.array([[0, 1, N_V]])), "faces index outside"),
+        (dict(f=np.array([[0, -1, 2]])), "faces index outside"),
+        (dict(weights=np.ones((N_V, N_J + 1))), r"weights must be \[50,5\]"),
+        (dict(weights=_nan_at("weights")), "weights contains NaN"),
+        (dict(posedirs=_nan_at("posedirs")), "posedirs contains NaN"),
+        (dict(shapedirs=_nan_at("shapedirs")), "shapedirs contains NaN"),
+        (dict(J_regressor=_nan_at("J_regressor")), "J_regressor contains NaN"),
+    ],
+    ids=[
+        "self-parent",
+        "negative-parent",
+        "kintree-3-rows",
+        "face-V",
+        "face-negative",
+        "weights-J",
+        "nan-weights",
+        "nan-posedirs",
+        "nan-shapedirs",
+        "nan-regressor",
+    ],
+)
+def test_inconsistent_model_arrays_refused(override, message):
+    with pytest.raises(FlameModelError, match=r"test\.pkl: .*" + message):
+        _model(**override)
+
+
+def test_other_array_layouts_read_alike():
+    a = make_flame_arrays()
+    P = 9 * (N_J - 1)
+    m = _model(
+        shapedirs=a["shapedirs"].reshape(N_V * 3, -1),  # [V*3,K], vertex-major
+        posedirs=a["posedirs"].reshape(N_V * 3, P).T,  # [P,V*3], the transpose some exports keep
+        kintree_table=a["kintree_table"][:, [3, 0, 4, 2, 1]],  # columns in any order
+    )
+    np.testing.assert_array_equal(m.shapedirs, a["shapedirs"])
+    np.testing.assert_array_equal(m.posedirs, a["posedirs"])
+    np.testing.assert_array_equal(m.parents, PARENTS)
+    neg = fl._model_from_mapping(make_flame_arrays(), "test.pkl", -2)
+    assert (neg.n_shape, neg.n_expr) == (0, N_SHAPE + N_EXPR)
+
+
+def test_pickled_fortran_arrays_and_duplicate_sparse_entries(tmp_path):
+    a = make_flame_arrays()
+    d = dict(a, shapedirs=np.asfortranarray(a["shapedirs"]), weights=np.asfortranarray(a["weights"]))
+    # scipy keeps repeated COO entries and sums them when densifying.
+    rows, cols = [0, 0, 1, 2, 3, 4, 4], [5, 5, 6, 7, 8, 9, 1]
+    d["J_regressor"] = sp.coo_matrix(([0.25, 0.5, 1.0, 1.0, 1.0, 0.5, 0.5], (rows, cols)), shape=(N_J, N_V))
+    jr = np.zeros((N_J, N_V))
+    jr[0, 5], jr[1, 6], jr[2, 7], jr[3, 8], jr[4, 9], jr[4, 1] = 0.75, 1, 1, 1, 0.5, 0.5
+    for protocol in (2, 5):
+        p = tmp_path / f"f{protocol}.pkl"
+        p.write_bytes(pickle.dumps(d, protocol=protocol))
+        m = load_flame_model(str(p), n_shape=N_SHAPE)
+        np.testing.assert_array_equal(m.shapedirs, a["shapedirs"])
+        np.testing.assert_array_equal(m.weights, a["weights"])
+        np.testing.assert_array_equal(m.J_regressor, jr)
+
+
+@pytest.mark.parametrize("top", [[1, 2], 5, None])
+def test_pickle_that_is_not_a_dict_refused(tmp_path, top):
+    p = tmp_path / "list.pkl"
+    p.write_bytes(pickle.dumps(top, protocol=2))
+    with pytest.raises(FlameModelError, match=r"list\.pkl: expected a dict of arrays"):
+        load_flame_model(str(p))

@@ -42,8 +42,17 @@ def test_nersemble_placement_and_scaled_keys():
         1.7 * np.einsum("tab,tvb->tva", R, flame_forward(MODEL, **local, dtype=np.float64))
         + prm["translation"][:, None]
     )
+    # NeRSemble files hold the placement twice (Euler rotation and rotation_matrices): FLAME's own
+    # rotation stays zero, or the head would be turned by it on top of the placement.
     rig = build_flame_rig(
-        MODEL, dict(local, rotation_matrices=R, translation=prm["translation"], scale=np.array([[1.7]]))
+        MODEL,
+        dict(
+            local,
+            rotation=prm["rotation"],
+            rotation_matrices=R,
+            translation=prm["translation"],
+            scale=np.array([[1.7]]),
+        ),
     )
     np.testing.assert_allclose(rig.vertices(), want, atol=1e-12)
     np.testing.assert_allclose(rig.scales[:, 0], 1.7)
@@ -106,3 +115,40 @@ def test_rig_refuses_what_blender_cannot_hold(key, value):
     prm[key] = np.full_like(prm[key], value)
     with np.errstate(all="ignore"), pytest.raises(ValueError, match="not finite numbers a rig can hold"):
         build_flame_rig(MODEL, prm)
+
+
+def test_pose_keys_named_row_then_column():
+    """A jaw turned 90 degrees about z: R - I = [[-1,-1,0],[1,-1,0],[0,0,0]], so the key named
+    pose_jaw_01 (row 0, column 1) holds -1 and pose_jaw_10 holds +1."""
+    prm = dict(jaw_pose=[[0, 0, np.pi / 2]])
+    rig = build_flame_rig(MODEL, prm)
+    names = rig.pose_key_names()
+    assert names[9:18] == [f"pose_jaw_{a}{b}" for a in range(3) for b in range(3)]
+    values = dict(zip(names, rig.pose_values[0]))
+    assert [values[f"pose_jaw_{ab}"] for ab in ("00", "01", "02", "10", "11", "12", "20", "21", "22")] == pytest.approx(
+        [-1, -1, 0, 1, -1, 0, 0, 0, 0], abs=1e-15
+    )
+    assert values["pose_neck_01"] == 0.0 and values["pose_eye_1_22"] == 0.0
+
+
+def test_per_frame_static_offset_refused():
+    prm = random_params(3, seed=9)
+    prm["static_offset"] = np.repeat(prm["static_offset"], 3, axis=0)
+    prm["static_offset"][2, 0, 0] += 1e-3
+    with pytest.raises(ValueError, match="per-frame offsets cannot be carried by a rig"):
+        build_flame_rig(MODEL, prm)
+
+
+def test_overflowing_keys_refused_even_where_nothing_else_overflows():
+    # An expression direction that moves no joint: only its scaled shape key leaves float32.
+    arrays = make_flame_arrays(seed=5)
+    arrays["shapedirs"][arrays["J_regressor"].any(axis=0), :, -1] = 0.0
+    still_joints = _model_from_mapping(arrays, "test model", N_SHAPE)
+    expr = np.zeros((1, N_EXPR))
+    expr[0, -1] = 1e42
+    with pytest.raises(ValueError, match="expression shapes that are not finite numbers"):
+        build_flame_rig(still_joints, dict(expr=expr))
+    # A placement scale beyond float32 whose translation keeps the root bone's location at 0.
+    s, j0 = 1e39, MODEL.J_regressor[0] @ MODEL.v_template
+    with pytest.raises(ValueError, match="bone scales that are not finite numbers"):
+        build_flame_rig(MODEL, dict(rotation_matrices=np.eye(3)[None], scale=s, translation=(1 - s) * j0[None]))
