@@ -336,6 +336,42 @@ def test_torch_agrees_with_numpy_float32(model_and_arrays):
     np.testing.assert_allclose(layer().numpy()[0], m.v_template, atol=1e-6)
 
 
+def test_torch_counts_frames_as_numpy_does(model_and_arrays):
+    """One frame's pose in its [2,3] / [J,3] form and a [V,3] dynamic offset are one frame in
+    the torch twin too (it returned 2, J or V copies where flame_forward returns one)."""
+    torch = pytest.importorskip("torch")
+    from progressive_avatars.core.train.flame_torch import FlameTorch
+
+    m, _ = model_and_arrays
+    layer = FlameTorch(m, dtype=torch.float64)
+    rng = np.random.default_rng(11)
+    eyes, jaw, off = rng.normal(size=(2, 3)), rng.normal(size=3), rng.normal(size=(N_V, 3))
+    full = np.concatenate([np.zeros(6), jaw, eyes.ravel()]).reshape(N_J, 3)
+    for kw in (dict(eyes_pose=eyes, jaw_pose=jaw), dict(pose=full), dict(dynamic_offset=off)):
+        want = flame_forward(m, **kw, dtype=np.float64)
+        got = layer(**{k: torch.as_tensor(v) for k, v in kw.items()}).numpy()
+        assert got.shape == want.shape == (1, N_V, 3), (list(kw), got.shape)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+    # Beside two-frame parameters one frame's [6] eyes and [V,3] offset broadcast; [2,3] eyes are
+    # two frames of the wrong width there (both refuse); two frames of offsets do not fit three.
+    two = dict(expr=rng.normal(size=(2, N_EXPR)), eyes_pose=eyes.ravel(), dynamic_offset=off)
+    np.testing.assert_allclose(
+        layer(**{k: torch.as_tensor(v) for k, v in two.items()}).numpy(),
+        flame_forward(m, **two, dtype=np.float64),
+        rtol=0,
+        atol=1e-9,
+    )
+    two["eyes_pose"] = eyes
+    with pytest.raises(ValueError, match="eyes_pose: expected 6 values per frame"):
+        flame_forward(m, **two)
+    with pytest.raises(ValueError, match="eyes_pose: expected 6 values per frame"):
+        layer(**{k: torch.as_tensor(v) for k, v in two.items()})
+    with pytest.raises(ValueError, match="disagree on the number of frames"):
+        layer(
+            expr=torch.zeros(3, N_EXPR, dtype=torch.float64), dynamic_offset=torch.zeros(2, N_V, 3, dtype=torch.float64)
+        )
+
+
 def test_torch_gradients_finite_and_correct(model_and_arrays):
     torch = pytest.importorskip("torch")
     from progressive_avatars.core.train.flame_torch import FlameTorch

@@ -47,7 +47,17 @@ class FlameTorch(torch.nn.Module):
     def _rows(self, x, T, width, name):
         if x is None:
             return self.v_template.new_zeros((T, width))
-        x = torch.as_tensor(x, dtype=self.v_template.dtype, device=self.v_template.device).reshape(-1, width)
+        x = torch.as_tensor(x, dtype=self.v_template.dtype, device=self.v_template.device)
+        if not x.numel():
+            x = x.new_zeros((1, width))
+        # Rows are frames, as flame_forward reads them (model._pose): one frame may be [6], [2,3]
+        # or [J,3], but beside T = 2 frames a [2,3] eyes_pose is two frames of the wrong width.
+        if x.dim() <= 1 or (x.numel() == width and x.shape[0] != T):
+            x = x.reshape(1, -1)
+        else:
+            x = x.reshape(x.shape[0], -1)
+        if x.shape[1] != width:
+            raise ValueError(f"{name}: expected {width} values per frame, got shape {tuple(x.shape)}")
         if x.shape[0] not in (1, T):
             raise ValueError(f"{name}: expected 1 or {T} rows of {width}, got {tuple(x.shape)}")
         return x.expand(T, width)
@@ -86,24 +96,29 @@ class FlameTorch(torch.nn.Module):
     ) -> torch.Tensor:
         """Vertices [T,V,3]; same parameters and broadcasting as ``flame.flame_forward``."""
         V, J = self.n_vertices, self.n_joints
+        # Frames counted as flame_forward counts them: one frame's worth of pose values ([2,3]
+        # eyes, [J,3] pose) and a [V,3] dynamic offset are one frame, not 2, J or V.
         T = 1
-        for name, x, w in (
-            ("shape", shape, self.n_shape),
-            ("expr", expr, self.n_expr),
+        for name, x, one_frame in (
+            ("shape", shape, None),
+            ("expr", expr, None),
             ("rotation", rotation, 3),
             ("neck_pose", neck_pose, 3),
             ("jaw_pose", jaw_pose, 3),
             ("eyes_pose", eyes_pose, 6),
             ("translation", translation, 3),
             ("pose", pose, 3 * J),
+            ("dynamic_offset", dynamic_offset, 3 * V),
         ):
-            if x is not None and torch.as_tensor(x).dim() >= 2 and torch.as_tensor(x).shape[0] != 1:
-                n = torch.as_tensor(x).shape[0]
-                if T not in (1, n):
-                    raise ValueError(f"FLAME parameters disagree on the number of frames ({name}: {n} vs {T})")
-                T = n
-        if dynamic_offset is not None and torch.as_tensor(dynamic_offset).dim() == 3:
-            T = max(T, torch.as_tensor(dynamic_offset).shape[0])
+            if x is None:
+                continue
+            x = torch.as_tensor(x)
+            if x.dim() < 2 or x.shape[0] == 1 or x.numel() == one_frame:
+                continue
+            n = x.shape[0]
+            if T not in (1, n):
+                raise ValueError(f"FLAME parameters disagree on the number of frames ({name}: {n} vs {T})")
+            T = n
         betas = torch.cat(
             [self._coeffs(shape, self.n_shape, T, "shape"), self._coeffs(expr, self.n_expr, T, "expression")], dim=1
         )
