@@ -550,7 +550,12 @@ def _model_from_mapping(d: dict, source: str, n_shape: int | None) -> FlameModel
         kt = _to_array(d["kintree_table"], source, "kintree_table")
         if kt.ndim != 2 or kt.shape[0] != 2:
             raise FlameModelError(f"{source}: kintree_table must be [2,J], got {kt.shape}")
-        # Row 0 holds parents (root: uint32 max or -1), row 1 joint ids in order.
+        # Row 0 holds parents (root: uint32 max or -1), row 1 joint ids in any order.
+        if not np.array_equal(np.sort(kt[1]), np.arange(kt.shape[1])):
+            raise FlameModelError(
+                f"{source}: kintree_table's second row must number the joints 0..{kt.shape[1] - 1} once each, "
+                f"got {kt[1].tolist()}"
+            )
         order = np.argsort(kt[1])
         parents = kt[0][order].astype(np.int64)
     else:
