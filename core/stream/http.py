@@ -374,22 +374,29 @@ def fetch_stream(
                 + 4 * -(-f["num_records"] // f["records_per_block"])
             )
 
-    def replaced(data, at) -> bool:
+    def replaced(data, at, whole=False) -> bool:
         """Set CHANGED when `data`, the server's bytes at stream offset `at`, differ from those
         held there: the header CRC the reader decoded its records with, or `tail`. (Compared
-        byte by byte where they overlap: a piece may hold part of either.)"""
+        byte by byte where they overlap: a piece may hold part of either.) `whole`: `data` comes
+        from a 200 answer, the server sending the file from its start (it ignores ranges)."""
         h = reader.header
         held = [] if h is None else [(h.header_size - 4, struct.pack("<I", h.header_crc), "header CRC differs")]
         held.append((tail_at[0], tail, "bytes {}..{} differ from those received"))
         for lo, ref, what in held:
             a, b = max(lo, at), min(lo + len(ref), at + len(data))
             if a < b and bytes(data[a - at : b - at]) != ref[a - lo : b - lo]:
+                same = f"same size{' and validator' if res.validator else ''}"
+                why = (
+                    f"{same}; the server ignores ranges and sent it again"
+                    if whole
+                    else f"{same}, so If-Range could not tell"
+                )
                 res.status = CHANGED
                 res.message = (
-                    f"the file at {target} changed {'since the earlier fetch' if resumed else 'mid-download'} "
-                    f"(its {what.format(a, b - 1)}; same size{' and validator' if res.validator else ''}, so "
-                    f"If-Range could not tell); the {reader.bytes_received} bytes received are not all "
-                    "the file's now there: discard them"
+                    f"the file at {target} changed "
+                    f"{'since the earlier fetch or during this one' if resumed else 'mid-download'} "
+                    f"(its {what.format(a, b - 1)}; {why}); the {reader.bytes_received} bytes received are not "
+                    "all the file's now there: discard them"
                 )
                 return True
         return False
@@ -704,7 +711,7 @@ def fetch_stream(
                     if not dropped:
                         break
                     wire[0] += len(dropped)
-                    if replaced(dropped, pos):
+                    if replaced(dropped, pos, whole=True):
                         return _done(res, conn, t0, dog, settle)
                     take_head(dropped, pos)
                     pos += len(dropped)
