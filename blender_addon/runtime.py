@@ -221,6 +221,16 @@ def shape_key_vertices(source, depsgraph):
     return out.astype(np.float32).reshape(-1, 3), ""
 
 
+def own_mesh(obj):
+    """The preview's mesh, made its own first if another preview shares it (Alt+D, obj.copy()).
+    Each preview writes every point of its mesh for its own budget, frame and bound mesh: on a
+    shared mesh the last writer's points would show in both."""
+    me = obj.data
+    if me.users > 1 and any(o != obj and o.data == me and o.pa_avatar.is_preview for o in bpy.data.objects):
+        obj.data = me = me.copy()
+    return me
+
+
 def refresh(obj, depsgraph, count=None, upto=None):
     """Show the first ``count`` Gaussians placed on the mesh's current evaluated shape,
     evaluating (positions, rotations, scales) the first ``upto`` (default ``count``) unless
@@ -266,6 +276,7 @@ def refresh(obj, depsgraph, count=None, upto=None):
     # attribute, which re-evaluates the mesh and calls here again, and must not re-bind (and
     # rewrite) every Gaussian for a frame that did not move.
     if e.valid < count or e.frame_key is None or not np.array_equal(verts, e.frame_key):
+        me = own_mesh(obj)
         ev = e.evaluator_for(max(count, upto or 0))
         means, quats, scales = ev(verts)
         me.attributes["position"].data.foreach_set("vector", means.ravel())

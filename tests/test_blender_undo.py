@@ -222,3 +222,11 @@ def test_points_not_placed_stay_hidden(rep):
     n = r["vertices"]
     assert r["refresh_short"] is False and r["shown_short"] == 0, r
     assert r["status_short"].endswith(f"has {n - 1} vertices; the avatar needs {n}"), r
+
+
+def test_linked_duplicates_show_their_own_points(rep):
+    r = scenario_step(rep, "linked_duplicates_show_their_own_points")
+    assert r["load"] == ["FINISHED"] and r["shared"], r
+    for key in ("after_frame", "after_undo"):
+        *misplaced, meshes = r[key]
+        assert max(misplaced) < 1e-6 and meshes == 3, (key, r[key])

@@ -22,6 +22,8 @@ prefs = importlib.import_module(PKG + ".blender_addon.prefs")
 splat_look = importlib.import_module(PKG + ".blender_addon.splat_look")
 sequence_builder = importlib.import_module(PKG + ".blender_addon.sequence")
 transforms = importlib.import_module(PKG + ".core.bridge.transforms")
+splats = importlib.import_module(PKG + ".core.bridge.splats")
+runtime = importlib.import_module(PKG + ".blender_addon.runtime")
 reader = importlib.import_module(PKG + ".core.stream.reader")
 ops_train = importlib.import_module(PKG + ".blender_addon.operators_train")
 PA_OT_train = ops_train.PA_OT_train
@@ -60,6 +62,21 @@ activate = stock_blender.activate
 
 def preview_of(mesh):
     return next(c for c in mesh.children if c.pa_avatar.is_preview)
+
+
+def misplaced(pv, mesh=None):
+    """Largest distance of a point the preview shows from a fresh evaluation of this frame on
+    ``mesh`` (default its bound mesh), in the mesh's space."""
+    e = runtime.entry(pv)
+    fresh = splats.splat_evaluator(e.avatar, None, None, e.order)
+    want = fresh(runtime.source_vertices(mesh or pv.pa_avatar.source, bpy.context.evaluated_depsgraph_get())).means
+    me = pv.data
+    pos = np.empty(len(me.vertices) * 3, np.float32)
+    me.attributes["position"].data.foreach_get("vector", pos)
+    rank = np.empty(len(me.vertices), np.int32)
+    me.attributes["rank"].data.foreach_get("value", rank)
+    shown = rank < pv.pa_avatar.count
+    return float(np.abs(pos.reshape(-1, 3)[shown] - want[shown]).max())
 
 
 class ModalTrain:
@@ -264,9 +281,7 @@ def budget_steps_keep_placed_points(r):
     bound and wrote every shown Gaussian again: 0.2-0.4 s a step at the paper's scale). Raised
     past them, after a frame change and after an undo, every shown point sits where a fresh
     evaluation of that frame puts it."""
-    runtime = importlib.import_module(PKG + ".blender_addon.runtime")
     binding = importlib.import_module(PKG + ".core.avatar.binding")
-    splats = importlib.import_module(PKG + ".core.bridge.splats")
     activate(bpy.data.objects[MESH])
     r["import"] = call(bpy.ops.import_scene.progressive_avatars_sequence, filepath=SEQ)
     mesh = bpy.context.active_object
@@ -276,19 +291,6 @@ def budget_steps_keep_placed_points(r):
     scene = bpy.context.scene
     dg = bpy.context.evaluated_depsgraph_get
     r["total"] = pv.pa_avatar.total
-
-    def misplaced(pv, mesh):
-        """Largest distance of a shown point from a fresh evaluation of this frame."""
-        e = runtime.entry(pv)
-        fresh = splats.splat_evaluator(e.avatar, None, None, e.order)
-        want = fresh(runtime.source_vertices(mesh, dg())).means
-        me = pv.data
-        pos = np.empty(len(me.vertices) * 3, np.float32)
-        me.attributes["position"].data.foreach_get("vector", pos)
-        rank = np.empty(len(me.vertices), np.int32)
-        me.attributes["rank"].data.foreach_get("value", rank)
-        shown = rank < pv.pa_avatar.count
-        return float(np.abs(pos.reshape(-1, 3)[shown] - want[shown]).max())
 
     calls = []  # the Gaussians each evaluation of this preview's evaluators placed (other previews': not)
     real = binding.GaussianEvaluator.__call__
@@ -466,6 +468,47 @@ def splat_ply_as_sequence(r):
     before = inventory()
     r["result"] = call(bpy.ops.import_scene.progressive_avatars_sequence, filepath=SPLATS)
     r["added"] = {k: v for k, v in inventory().items() if v != before[k]}
+
+
+@step
+def linked_duplicates_show_their_own_points(r):
+    """Alt+D of a preview shares its mesh: at another budget, or with the head it was duplicated
+    with deformed otherwise (its own modifier), each preview shows its own Gaussians on its own
+    mesh at this frame; and again after undo takes the duplicates back to sharing."""
+    activate(bpy.data.objects[CUBE])
+    r["import"] = call(bpy.ops.import_scene.progressive_avatars_sequence, filepath=SEQ)
+    mesh = bpy.context.active_object
+    r["load"] = call(bpy.ops.object.progressive_avatars_load, filepath=STREAM, budget=100.0)
+    pv = preview_of(mesh)
+    scene = bpy.context.scene
+    activate(pv)
+    bpy.ops.object.duplicate(linked=True)
+    dup = bpy.context.active_object
+    r["shared"] = dup.data == pv.data
+    activate(mesh)
+    pv.select_set(True)
+    bpy.ops.object.duplicate(linked=True)  # the head and its preview
+    head2 = bpy.context.active_object
+    pv2 = preview_of(head2)
+    head2.modifiers.new("Displace", "DISPLACE").strength = 0.05
+    names = [o.name for o in (pv, dup, pv2)]
+    heads = [head2.name, mesh.name]
+    bpy.ops.ed.undo_push(message="linked duplicates")
+    dup.pa_avatar.budget = 20.0
+    scene.frame_set(scene.frame_current + 1)
+
+    def check():
+        objs = [bpy.data.objects[n] for n in names]
+        return [misplaced(o) for o in objs] + [len({o.data.name for o in objs})]
+
+    r["after_frame"] = check()
+    bpy.ops.ed.undo_push(message="frame")
+    bpy.ops.ed.undo()
+    scene = bpy.context.scene
+    scene.frame_set(scene.frame_current + 1)
+    r["after_undo"] = check()
+    for name in names + heads:
+        bpy.data.objects.remove(bpy.data.objects[name])
 
 
 # -- file loads (the scene is replaced from here on) ----------------------------------------
