@@ -1,5 +1,7 @@
 """Keep previews in step with their meshes: new frame, mesh edits, file loads."""
 
+import os
+
 import bpy
 from bpy.app.handlers import persistent
 
@@ -85,8 +87,6 @@ def on_save_pre(filepath, *_args):
     _relocated.clear()
     if not filepath or not bpy.context.preferences.filepaths.use_relative_paths:
         return
-    import os
-
     start = os.path.dirname(os.path.abspath(filepath))
     for obj in bpy.data.objects:
         st = obj.pa_avatar
@@ -102,19 +102,26 @@ def on_save_pre(filepath, *_args):
             st.filepath = rel
 
 
-@persistent
-def on_save_post(*_args):
-    _relocated.clear()
-
-
-@persistent
-def on_save_fail(*_args):
-    for obj, old in _relocated:  # the file was not written: paths stay relative to the old one
+def _put_back():
+    for obj, old in _relocated:
         try:
             obj.pa_avatar.filepath = old
         except ReferenceError:
             pass
     _relocated.clear()
+
+
+@persistent
+def on_save_post(filepath="", *_args):
+    # Save Copy wrote another file and this one stays open: its paths stay relative to this one.
+    if filepath and os.path.normcase(os.path.abspath(filepath)) != os.path.normcase(os.path.abspath(bpy.data.filepath)):
+        _put_back()
+    _relocated.clear()
+
+
+@persistent
+def on_save_fail(*_args):
+    _put_back()  # the file was not written: paths stay relative to the old one
 
 
 @persistent

@@ -230,3 +230,11 @@ def test_linked_duplicates_show_their_own_points(rep):
     for key in ("after_frame", "after_undo"):
         *misplaced, meshes = r[key]
         assert max(misplaced) < 1e-6 and meshes == 3, (key, r[key])
+
+
+def test_save_copy_keeps_the_open_files_avatar_paths(rep):
+    r = scenario_step(rep, "save_copy_keeps_avatar_paths")
+    assert r["paths"][0].startswith("//") and r["paths"][1] == r["paths"][0], r
+    for key in ("here", "copy"):
+        status, misplaced = r[key]
+        assert status == "" and misplaced < 1e-6, (key, r[key])

@@ -568,5 +568,29 @@ def depth_colours_reopened(r):
     r["shown_undo"], r["views_undo"] = bpy.data.objects[name].pa_mesh.depth_shown, views()
 
 
+@step
+def save_copy_keeps_avatar_paths(r):
+    """Save Copy into another folder writes the avatar path relative to the copy and leaves the
+    open file's own: the preview still finds its avatar here after the cache is gone (as after
+    any file load), and in the copy."""
+    pv = next(o for o in bpy.data.objects if o.pa_avatar.is_preview)
+    name, stored = pv.name, pv.pa_avatar.filepath
+    copy = os.path.join(out, "copies", "deeper", "copy.blend")
+    os.makedirs(os.path.dirname(copy), exist_ok=True)
+    bpy.ops.wm.save_as_mainfile(filepath=copy, copy=True)
+    r["paths"] = [stored, pv.pa_avatar.filepath]
+
+    def placed():
+        runtime.forget()
+        scene = bpy.context.scene
+        scene.frame_set(scene.frame_current + 1)
+        pv = bpy.data.objects[name]
+        return [pv.pa_avatar.status, misplaced(pv) if runtime.entry(pv) else None]
+
+    r["here"] = placed()
+    bpy.ops.wm.open_mainfile(filepath=copy)
+    r["copy"] = placed()
+
+
 R["blocked_loaded"] = stock_blender.loaded(blocked)
 print("PA_UNDO " + json.dumps(R))
