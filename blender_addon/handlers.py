@@ -90,9 +90,12 @@ def on_save_pre(filepath, *_args):
     start = os.path.dirname(os.path.abspath(filepath))
     for obj in bpy.data.objects:
         st = obj.pa_avatar
-        if not st.is_preview or not st.filepath:
+        # Linked and overridden previews keep paths relative to their library, as Blender does.
+        if not st.is_preview or not st.filepath or runtime.path_library(obj) is not None:
             continue
-        path = runtime.resolve(st.filepath)
+        path = runtime.avatar_path(obj)
+        if os.path.isfile(path):
+            st.filepath_absolute = path
         try:
             rel = "//" + os.path.relpath(path, start).replace(os.sep, "/")
         except ValueError:  # another drive

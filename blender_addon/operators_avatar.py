@@ -148,6 +148,7 @@ def load_avatar_onto(context, mesh_obj, path, budget=100.0):
         state = obj.pa_avatar
         state.is_preview = True
         state.filepath = stored_path(abspath)
+        state.filepath_absolute = abspath
         state.file_signature = signature
         state.source = mesh_obj
         state.max_level = budget_info.max_level()

@@ -157,6 +157,10 @@ class PA_AvatarState(bpy.types.PropertyGroup):
     )
     template_vertices: bpy.props.IntProperty(description="Vertex count of the mesh the avatar was bound to")
     template_faces: bpy.props.IntProperty(description="Face count of the mesh the avatar was bound to")
+    filepath_absolute: bpy.props.StringProperty(
+        description="The avatar file's absolute path when it was loaded or last saved: where Avatar points "
+        "once appended or made local from a .blend in another folder leaves its relative path pointing nowhere"
+    )
     file_signature: bpy.props.StringProperty(
         description="Size and hash of the avatar file when it was loaded: the preview's saved per-point "
         "attributes are that file's"

@@ -59,8 +59,30 @@ def file_signature(path) -> str:
     return f"{os.path.getsize(path)}:{file_digest(path)}"
 
 
-def resolve(path) -> str:
-    return os.path.normpath(bpy.path.abspath(path)) if path else ""
+def resolve(path, library=None) -> str:
+    return os.path.normpath(bpy.path.abspath(path, library=library)) if path else ""
+
+
+def path_library(obj):
+    """The library an object's "//" paths are relative to: its own when it is linked, its
+    reference's when it is a library override, None (the open file) when it is local."""
+    if obj.library is not None:
+        return obj.library
+    ov = obj.override_library
+    ref = ov.reference if ov is not None else None
+    return ref.library if ref is not None else None
+
+
+def avatar_path(obj) -> str:
+    """The preview's avatar file. Blender rebases its own relative paths when data is appended
+    or made local from a .blend in another folder, but not an add-on's: the stored "//" path is
+    then relative to that file, and the absolute path stored beside it still finds the avatar."""
+    state = obj.pa_avatar
+    path = resolve(state.filepath, path_library(obj))
+    fallback = state.filepath_absolute
+    if path and not os.path.isfile(path) and fallback and os.path.isfile(fallback):
+        return os.path.normpath(fallback)
+    return path
 
 
 def entry(obj):
@@ -68,7 +90,7 @@ def entry(obj):
     if obj.get("pa_splat_ply"):  # static PLY splats (ply_import): nothing to evaluate
         return None
     state = obj.pa_avatar
-    path = resolve(state.filepath)
+    path = avatar_path(obj)
     key = obj.session_uid
     e = _cache.get(key)
     if e is not None and e.path == path:

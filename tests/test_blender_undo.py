@@ -238,3 +238,12 @@ def test_save_copy_keeps_the_open_files_avatar_paths(rep):
     for key in ("here", "copy"):
         status, misplaced = r[key]
         assert status == "" and misplaced < 1e-6, (key, r[key])
+
+
+def test_an_appended_preview_finds_its_avatar(rep):
+    r = scenario_step(rep, "previews_from_another_blend")
+    assert r["load"] == ["FINISHED"] and r["library_path"] == "//assets/avatar.pavs", r
+    for key in ("appended", "appended_reopened"):
+        status, shown, misplaced = r[key]
+        assert status == "" and shown > 0 and misplaced < 1e-6, (key, r[key])
+    assert r["appended_path"] == "//../../library/assets/avatar.pavs", r  # relative to the file it is in now

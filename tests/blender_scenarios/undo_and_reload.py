@@ -7,7 +7,7 @@ file with no faces; the depth filter in the depth legend's terms. Each step reco
 saw; a step that raises records its traceback and the next one still runs. File loads last.
 """
 
-import importlib, json, os, queue, subprocess, sys, time, traceback, types
+import importlib, json, os, queue, shutil, subprocess, sys, time, traceback, types
 
 import stock_blender
 
@@ -24,6 +24,7 @@ sequence_builder = importlib.import_module(PKG + ".blender_addon.sequence")
 transforms = importlib.import_module(PKG + ".core.bridge.transforms")
 splats = importlib.import_module(PKG + ".core.bridge.splats")
 runtime = importlib.import_module(PKG + ".blender_addon.runtime")
+preview = importlib.import_module(PKG + ".blender_addon.preview")
 reader = importlib.import_module(PKG + ".core.stream.reader")
 ops_train = importlib.import_module(PKG + ".blender_addon.operators_train")
 PA_OT_train = ops_train.PA_OT_train
@@ -64,6 +65,12 @@ def preview_of(mesh):
     return next(c for c in mesh.children if c.pa_avatar.is_preview)
 
 
+def shown_count(pv):
+    """The Gaussians the preview's modifier shows (its Count input)."""
+    mod = pv.modifiers[preview.MODIFIER_NAME]
+    return mod[preview.input_identifier(mod.node_group, "Count")]
+
+
 def misplaced(pv, mesh=None):
     """Largest distance of a point the preview shows from a fresh evaluation of this frame on
     ``mesh`` (default its bound mesh), in the mesh's space."""
@@ -75,8 +82,8 @@ def misplaced(pv, mesh=None):
     me.attributes["position"].data.foreach_get("vector", pos)
     rank = np.empty(len(me.vertices), np.int32)
     me.attributes["rank"].data.foreach_get("value", rank)
-    shown = rank < pv.pa_avatar.count
-    return float(np.abs(pos.reshape(-1, 3)[shown] - want[shown]).max())
+    shown = rank < shown_count(pv)
+    return float(np.abs(pos.reshape(-1, 3)[shown] - want[shown]).max(initial=0.0))
 
 
 class ModalTrain:
@@ -590,6 +597,48 @@ def save_copy_keeps_avatar_paths(r):
     r["here"] = placed()
     bpy.ops.wm.open_mainfile(filepath=copy)
     r["copy"] = placed()
+
+
+@step
+def previews_from_another_blend(r):
+    """A head and its preview saved (Relative Paths) beside their avatar, then appended into a
+    file saved in another folder: the appended preview finds its avatar (its "//" path was the
+    library's) and keeps it once saved and reopened."""
+    lib_dir = os.path.join(out, "library")
+    os.makedirs(os.path.join(lib_dir, "assets"), exist_ok=True)
+    avatar = os.path.join(lib_dir, "assets", "avatar.pavs")
+    shutil.copy(STREAM, avatar)
+    bpy.ops.wm.read_homefile(use_empty=True)
+    r["import"] = call(bpy.ops.import_scene.progressive_avatars_sequence, filepath=SEQ)
+    mesh = bpy.context.active_object
+    r["load"] = call(bpy.ops.object.progressive_avatars_load, filepath=avatar, budget=60.0)
+    names = [preview_of(mesh).name, mesh.name]
+    library = os.path.join(lib_dir, "head.blend")
+    bpy.ops.wm.save_as_mainfile(filepath=library)
+    r["library_path"] = bpy.data.objects[names[0]].pa_avatar.filepath
+    shot = os.path.join(out, "shots", "deeper", "shot.blend")
+    os.makedirs(os.path.dirname(shot), exist_ok=True)
+    bpy.ops.wm.read_homefile(use_empty=True)
+    bpy.ops.wm.save_as_mainfile(filepath=shot)
+
+    def bring(link):
+        with bpy.data.libraries.load(library, link=link) as (_, data):
+            data.objects = list(names)
+        for ob in data.objects:
+            bpy.context.scene.collection.objects.link(ob)
+        return data.objects[0]
+
+    def shown(pv):
+        scene = bpy.context.scene
+        scene.frame_set(scene.frame_current + 1)
+        return [pv.pa_avatar.status, shown_count(pv), misplaced(pv) if runtime.entry(pv) else None]
+
+    r["appended"] = shown(bring(link=False))
+    bpy.ops.wm.save_mainfile()
+    bpy.ops.wm.open_mainfile(filepath=shot)
+    appended = bpy.data.objects[names[0]]
+    r["appended_path"] = appended.pa_avatar.filepath
+    r["appended_reopened"] = shown(appended)
 
 
 R["blocked_loaded"] = stock_blender.loaded(blocked)
