@@ -20,11 +20,17 @@ LEVEL_MODIFIER = "PA Level"
 LEVEL_GROUP = "PA Level Filter"
 
 
-def require_object_mode(obj):
-    """Raise ValueError naming ``obj`` when its mesh is in Edit Mode: the edit mesh then holds
-    the attributes, and theirs have no rows to read or write."""
+def require_writable(obj):
+    """Raise ValueError naming ``obj`` when its mesh's attributes or its depth legend cannot be
+    written: in Edit Mode (the edit mesh then holds the attributes, and theirs have no rows to
+    read or write), or linked from a library (a library override included)."""
     if obj.type == "MESH" and obj.data.is_editmode:
         raise ValueError(f"{obj.name}: leave Edit Mode first")
+    if obj.library or obj.override_library or (obj.data is not None and obj.data.library):
+        raise ValueError(
+            f"{obj.name} comes from a linked library: Blender keeps its mesh as the library has it. "
+            "Make it local (Object > Relations > Make Local > Selected Objects and Data)"
+        )
 
 
 def apply_depth(obj, forest, count=None, max_level=None):
@@ -32,7 +38,7 @@ def apply_depth(obj, forest, count=None, max_level=None):
     None): the attribute, the legend and, while they are shown, the colours. ``max_level``:
     the whole avatar's deepest subdivision depth below the template (the colour scale; default
     the forest's). Raises ValueError naming ``obj`` before changing anything when it cannot."""
-    require_object_mode(obj)
+    require_writable(obj)
     me = obj.data
     top = forest.max_depth if max_level is None else max(int(max_level), forest.max_depth)
     try:

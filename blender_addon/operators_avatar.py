@@ -126,7 +126,7 @@ def load_avatar_onto(context, mesh_obj, path, budget=100.0):
 
     Everything that can fail on the file runs before the scene is touched; should building
     the preview fail anyway, whatever it made is removed and the previous preview stays."""
-    depth.require_object_mode(mesh_obj)
+    depth.require_writable(mesh_obj)
     abspath = runtime.resolve(path)
     faces = mesh_faces(mesh_obj.data)
     avatar, budget_info = load_avatar(abspath, faces)
@@ -232,7 +232,7 @@ class PA_OT_load_avatar(bpy.types.Operator, ImportHelper):
             return {"CANCELLED"}
         try:
             note = ""
-            depth.require_object_mode(mesh_obj)  # before a download it could not use
+            depth.require_writable(mesh_obj)  # before a download it could not use
             if self.url:
                 path, note = _fetch(self.url, mesh_faces(mesh_obj.data))
             obj = load_avatar_onto(context, mesh_obj, path, self.budget)
@@ -277,7 +277,7 @@ class PA_OT_depth_colors(bpy.types.Operator):
             self.report({"ERROR"}, f"{obj.name}: its mesh was deleted; load the avatar onto a mesh again")
             return {"CANCELLED"}
         try:  # hiding writes the mesh's attributes too
-            depth.require_object_mode(src)
+            depth.require_writable(src)
         except ValueError as exc:
             self.report({"ERROR"}, f"Colour by Depth: {exc}")
             return {"CANCELLED"}

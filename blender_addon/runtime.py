@@ -244,11 +244,13 @@ def shape_key_vertices(source, depsgraph):
 
 
 def own_mesh(obj):
-    """The preview's mesh, made its own first if another preview shares it (Alt+D, obj.copy()).
-    Each preview writes every point of its mesh for its own budget, frame and bound mesh: on a
-    shared mesh the last writer's points would show in both."""
+    """The preview's mesh, made its own first if another preview shares it (Alt+D, obj.copy())
+    or it is linked from a library (a library override's mesh: Blender drops writes to linked
+    data). Each preview writes every point of its mesh for its own budget, frame and bound
+    mesh: on a shared mesh the last writer's points would show in both."""
     me = obj.data
-    if me.users > 1 and any(o != obj and o.data == me and o.pa_avatar.is_preview for o in bpy.data.objects):
+    shared = me.users > 1 and any(o != obj and o.data == me and o.pa_avatar.is_preview for o in bpy.data.objects)
+    if shared or me.library is not None:
         obj.data = me = me.copy()
     return me
 
@@ -286,6 +288,15 @@ def refresh(obj, depsgraph, count=None, upto=None):
         # Leaving Edit Mode writes the edit mesh's points back as they were: placed anew then
         # (handlers.on_depsgraph_update), whichever frame it left on.
         e.frame_key = None
+        return False
+    if obj.library is not None:  # its points are the library's, saved at another frame
+        state.status = (
+            f"{obj.name} is linked from {obj.library.name}: its Gaussians cannot follow {src.name} here. "
+            "Make it local (Object > Relations > Make Local > Selected Objects and Data) or add a library "
+            "override (Object > Library Override > Make)"
+        )
+        preview.set_count(obj, 0)
+        e.valid = 0
         return False
     me = obj.data
     if len(me.vertices) != e.avatar.num_gaussians:  # hidden, not left standing where they were
@@ -331,7 +342,8 @@ def apply_budget(obj, context=None, depsgraph=None):
         context = context or bpy.context
         refresh(obj, depsgraph or context.evaluated_depsgraph_get(), count, upto=b.total)
     src = state.source
-    if src is not None and src.type == "MESH":  # depth (and its colours) follow what the budget shows
+    # depth (and its colours) follow what the budget shows; a linked preview's status says why it shows nothing
+    if src is not None and src.type == "MESH" and obj.library is None:
         from . import depth
 
         try:

@@ -247,3 +247,15 @@ def test_an_appended_preview_finds_its_avatar(rep):
         status, shown, misplaced = r[key]
         assert status == "" and shown > 0 and misplaced < 1e-6, (key, r[key])
     assert r["appended_path"] == "//../../library/assets/avatar.pavs", r  # relative to the file it is in now
+
+
+def test_a_linked_preview_says_it_cannot_follow_and_an_overridden_one_follows(rep):
+    r = scenario_step(rep, "previews_from_another_blend")
+    status, shown, _ = r["linked"]
+    assert "is linked from head.blend" in status and "Make Local" in status and shown == 0, r["linked"]
+    status, shown, misplaced = r["overridden"]
+    assert status == "" and shown > 0 and misplaced < 1e-6, r["overridden"]
+    status = r["overridden_budget_status"]  # the head's depth cannot be written: said, not raised
+    assert status.startswith("Depth not shown:") and "linked library" in status, status
+    _, shown, misplaced = r["overridden_budget"]
+    assert 0 < shown < r["overridden"][1] and misplaced < 1e-6, r["overridden_budget"]

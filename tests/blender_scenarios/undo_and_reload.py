@@ -601,9 +601,11 @@ def save_copy_keeps_avatar_paths(r):
 
 @step
 def previews_from_another_blend(r):
-    """A head and its preview saved (Relative Paths) beside their avatar, then appended into a
-    file saved in another folder: the appended preview finds its avatar (its "//" path was the
-    library's) and keeps it once saved and reopened."""
+    """A head and its preview saved (Relative Paths) beside their avatar, then appended, linked
+    and overridden into a file saved in another folder: the appended preview finds its avatar
+    (its "//" path was the library's) and keeps it once saved and reopened; the linked one
+    shows nothing and says why (Blender keeps a linked mesh as the library has it); the
+    overridden one follows its head, at another budget too."""
     lib_dir = os.path.join(out, "library")
     os.makedirs(os.path.join(lib_dir, "assets"), exist_ok=True)
     avatar = os.path.join(lib_dir, "assets", "avatar.pavs")
@@ -639,6 +641,14 @@ def previews_from_another_blend(r):
     appended = bpy.data.objects[names[0]]
     r["appended_path"] = appended.pa_avatar.filepath
     r["appended_reopened"] = shown(appended)
+    linked = bring(link=True)
+    r["linked"] = shown(linked)
+    linked.override_hierarchy_create(bpy.context.scene, bpy.context.view_layer)
+    overridden = next(ob for ob in bpy.data.objects if ob.override_library and ob.pa_avatar.is_preview)
+    r["overridden"] = shown(overridden)
+    overridden.pa_avatar.budget = 30.0
+    r["overridden_budget_status"] = overridden.pa_avatar.status
+    r["overridden_budget"] = shown(overridden)
 
 
 R["blocked_loaded"] = stock_blender.loaded(blocked)
