@@ -18,9 +18,12 @@ def _update_scene(scene, depsgraph, only_sources=None):
     try:
         for obj in runtime.previews(scene):
             src = obj.pa_avatar.source
-            if src is None or (only_sources is not None and src.original not in only_sources):
+            if only_sources is not None and (src is None or src.original not in only_sources):
                 continue
             try:
+                if src is None:  # its mesh was deleted: refresh says so, and shows only points it placed
+                    runtime.refresh(obj, depsgraph)
+                    continue
                 e = runtime.entry(obj)
                 if e is None:
                     continue

@@ -259,3 +259,11 @@ def test_a_linked_preview_says_it_cannot_follow_and_an_overridden_one_follows(re
     assert status.startswith("Depth not shown:") and "linked library" in status, status
     _, shown, misplaced = r["overridden_budget"]
     assert 0 < shown < r["overridden"][1] and misplaced < 1e-6, r["overridden_budget"]
+
+
+def test_a_deleted_mesh_is_said_on_frame_change(rep):
+    r = scenario_step(rep, "deleted_mesh_said_on_frame_change")
+    status, shown, count = r["removed"]
+    assert status == "No mesh bound" and shown == count > 0, r  # all placed at load: still shown
+    status, same_mesh, misplaced = r["undone"]
+    assert status == "" and same_mesh and misplaced < 1e-6, r

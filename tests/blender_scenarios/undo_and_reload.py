@@ -518,6 +518,31 @@ def linked_duplicates_show_their_own_points(r):
         bpy.data.objects.remove(bpy.data.objects[name])
 
 
+@step
+def deleted_mesh_said_on_frame_change(r):
+    """The bound mesh removed under its preview (Outliner > Delete): a frame change says so
+    (the frame handler skipped the preview, silent until the budget moved) and shows only the
+    points placed before; undo brings the mesh back and the points follow it again."""
+    activate(bpy.data.objects[CUBE])
+    r["import"] = call(bpy.ops.import_scene.progressive_avatars_sequence, filepath=SEQ)
+    mesh = bpy.context.active_object
+    r["load"] = call(bpy.ops.object.progressive_avatars_load, filepath=STREAM, budget=100.0)
+    pv = preview_of(mesh)
+    names = [pv.name, mesh.name]
+    bpy.ops.ed.undo_push(message="loaded")
+    bpy.data.objects.remove(mesh)
+    bpy.ops.ed.undo_push(message="mesh removed")
+    scene = bpy.context.scene
+    scene.frame_set(scene.frame_current + 1)
+    r["removed"] = [pv.pa_avatar.status, shown_count(pv), pv.pa_avatar.count]
+    bpy.ops.ed.undo()
+    pv, scene = bpy.data.objects[names[0]], bpy.context.scene
+    scene.frame_set(scene.frame_current + 1)
+    r["undone"] = [pv.pa_avatar.status, pv.pa_avatar.source.name == names[1], misplaced(pv)]
+    for name in names:
+        bpy.data.objects.remove(bpy.data.objects[name])
+
+
 # -- file loads (the scene is replaced from here on) ----------------------------------------
 
 
