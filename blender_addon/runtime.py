@@ -317,9 +317,26 @@ def refresh(obj, depsgraph, count=None, upto=None):
         me.attributes["scale"].data.foreach_set("vector", scales.ravel())
         me.update()
         e.valid, e.placed, e.frame_key = ev.n, ev, verts
-    if state.status:
-        state.status = ""
+    apart = placement_problem(obj, src, depsgraph)
+    if state.status != apart:
+        state.status = apart
     return True
+
+
+def placement_problem(obj, src, depsgraph):
+    """Why the preview draws its Gaussians away from its mesh, or "". They are placed in the
+    mesh's space and drawn in the preview's, one space while it is parented to the mesh and
+    untransformed; Apply Scale/Rotation on the mesh (Blender keeps children where they were by
+    giving them the transform applied), re-parenting or moving the preview tell them apart."""
+    here = np.array(obj.evaluated_get(depsgraph).matrix_world)
+    there = np.array(src.evaluated_get(depsgraph).matrix_world)
+    if np.allclose(here, there, rtol=1e-5, atol=1e-6):
+        return ""
+    return (
+        f"{obj.name} is not where {src.name} is (its own transform or parent): its Gaussians are drawn away from "
+        f"the mesh. To put them back, parent it to {src.name} without inverse (Object > Parent) and clear its "
+        "transform (Object > Clear > All)"
+    )
 
 
 def apply_budget(obj, context=None, depsgraph=None):

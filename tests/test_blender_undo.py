@@ -267,3 +267,14 @@ def test_a_deleted_mesh_is_said_on_frame_change(rep):
     assert status == "No mesh bound" and shown == count > 0, r  # all placed at load: still shown
     status, same_mesh, misplaced = r["undone"]
     assert status == "" and same_mesh and misplaced < 1e-6, r
+
+
+def test_a_preview_left_apart_from_its_mesh_says_so(rep):
+    r = scenario_step(rep, "apply_transform_on_the_mesh")
+    assert r["load"] == ["FINISHED"] and r["apply"] == ["FINISHED"], r
+    for key in ("applied", "other_parent"):
+        status, apart, misplaced = r[key]  # placed on the mesh, drawn elsewhere
+        assert apart and "is not where seq" in status and misplaced < 1e-6, (key, r[key])
+    for key in ("undone", "cleared"):
+        status, apart, misplaced = r[key]
+        assert not apart and status == "" and misplaced < 1e-6, (key, r[key])

@@ -543,6 +543,45 @@ def deleted_mesh_said_on_frame_change(r):
         bpy.data.objects.remove(bpy.data.objects[name])
 
 
+@step
+def apply_transform_on_the_mesh(r):
+    """Apply Rotation & Scale on the bound mesh leaves the preview its old transform (Blender
+    keeps children in place), drawing the Gaussians, placed in the mesh's new space, away from
+    it: the status says so, and no longer once undone or once the preview's transform is
+    cleared; a preview parented to something else says so too."""
+    activate(bpy.data.objects[CUBE])
+    r["import"] = call(bpy.ops.import_scene.progressive_avatars_sequence, filepath=SEQ)
+    mesh = bpy.context.active_object
+    mesh.scale = (2.0, 2.0, 2.0)
+    r["load"] = call(bpy.ops.object.progressive_avatars_load, filepath=STREAM, budget=100.0)
+    names = [preview_of(mesh).name, mesh.name]
+    bpy.ops.ed.undo_push(message="loaded")
+    r["apply"] = call(bpy.ops.object.transform_apply, location=False, rotation=True, scale=True)
+    bpy.ops.ed.undo_push(message="applied")
+
+    def state():
+        scene = bpy.context.scene
+        scene.frame_set(scene.frame_current + 1)
+        pv, mesh = (bpy.data.objects[n] for n in names)
+        apart = not np.allclose(np.array(pv.matrix_world), np.array(mesh.matrix_world), atol=1e-6)
+        return [pv.pa_avatar.status, apart, misplaced(pv)]
+
+    r["applied"] = state()
+    bpy.ops.ed.undo()
+    r["undone"] = state()
+    bpy.ops.ed.redo()
+    pv = bpy.data.objects[names[0]]
+    pv.matrix_basis.identity()  # Object > Clear > All
+    r["cleared"] = state()
+    elsewhere = bpy.data.objects.new("Elsewhere", None)
+    elsewhere.location.z = 1.0
+    bpy.context.scene.collection.objects.link(elsewhere)
+    pv.parent = elsewhere
+    r["other_parent"] = state()
+    for name in names + [elsewhere.name]:
+        bpy.data.objects.remove(bpy.data.objects[name])
+
+
 # -- file loads (the scene is replaced from here on) ----------------------------------------
 
 
