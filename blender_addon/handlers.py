@@ -86,15 +86,20 @@ _relocated = []  # (object, previous path) while a save is under way
 @persistent
 def on_save_pre(filepath, *_args):
     """Store avatar paths relative to the .blend being written ("//..."), as Blender does for
-    its own file paths when Relative Paths is on, so a moved project keeps its avatars."""
+    its own file paths when Relative Paths is on, so a moved project keeps its avatars. Paths
+    relative already follow the file into another folder whatever the preference, as Save As
+    remaps Blender's own."""
     _relocated.clear()
-    if not filepath or not bpy.context.preferences.filepaths.use_relative_paths:
+    if not filepath:
         return
+    relative = bpy.context.preferences.filepaths.use_relative_paths
     start = os.path.dirname(os.path.abspath(filepath))
     for obj in bpy.data.objects:
         st = obj.pa_avatar
         # Linked and overridden previews keep paths relative to their library, as Blender does.
         if not st.is_preview or not st.filepath or runtime.path_library(obj) is not None:
+            continue
+        if not relative and not st.filepath.startswith("//"):
             continue
         path = runtime.avatar_path(obj)
         if os.path.isfile(path):

@@ -110,10 +110,10 @@ def _remove_new(before):
 
 
 def stored_path(path):
-    """The path to store: relative to the .blend ("//...") once it is saved, so a moved
-    project keeps its avatars; absolute otherwise."""
+    """The path to store: relative to the .blend ("//...") once it is saved and Relative Paths
+    is on (Preferences > File Paths), so a moved project keeps its avatars; absolute otherwise."""
     path = runtime.resolve(path)
-    if bpy.data.filepath:
+    if bpy.data.filepath and bpy.context.preferences.filepaths.use_relative_paths:
         try:
             return bpy.path.relpath(path)
         except ValueError:  # another drive (Windows)

@@ -278,3 +278,11 @@ def test_a_preview_left_apart_from_its_mesh_says_so(rep):
     for key in ("undone", "cleared"):
         status, apart, misplaced = r[key]
         assert not apart and status == "" and misplaced < 1e-6, (key, r[key])
+
+
+def test_relative_paths_off_stores_absolute_and_still_remaps_relative_ones(rep):
+    r = scenario_step(rep, "relative_paths_off")
+    assert r["load_True"] == r["load_False"] == ["FINISHED"], r
+    relative, absolute = r["stored"]
+    assert relative == "//../avatar.pavs" and os.path.isabs(absolute) and not absolute.startswith("//"), r["stored"]
+    assert r["reopened"] == [["//../../avatar.pavs", ""], [absolute, ""]], r["reopened"]

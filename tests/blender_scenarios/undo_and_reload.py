@@ -715,5 +715,31 @@ def previews_from_another_blend(r):
     r["overridden_budget"] = shown(overridden)
 
 
+@step
+def relative_paths_off(r):
+    """Relative Paths off (Preferences > File Paths): Load Avatar stores the absolute path, and
+    a path stored relative before (the preference on then) follows the file saved into another
+    folder, as Save As remaps Blender's own; reopened, both previews find their avatar."""
+    filepaths = bpy.context.preferences.filepaths
+    bpy.ops.wm.read_homefile(use_empty=True)
+    folder = os.path.join(out, "prefs")
+    os.makedirs(os.path.join(folder, "deeper"), exist_ok=True)
+    bpy.ops.wm.save_as_mainfile(filepath=os.path.join(folder, "one.blend"))
+    names = []
+    for relative in (True, False):
+        filepaths.use_relative_paths = relative
+        r[f"import_{relative}"] = call(bpy.ops.import_scene.progressive_avatars_sequence, filepath=SEQ)
+        r[f"load_{relative}"] = call(bpy.ops.object.progressive_avatars_load, filepath=STREAM)
+        names.append(preview_of(bpy.context.active_object).name)
+    r["stored"] = [bpy.data.objects[n].pa_avatar.filepath for n in names]
+    two = os.path.join(folder, "deeper", "two.blend")
+    bpy.ops.wm.save_as_mainfile(filepath=two)
+    bpy.ops.wm.open_mainfile(filepath=two)
+    filepaths.use_relative_paths = True
+    scene = bpy.context.scene
+    scene.frame_set(scene.frame_current + 1)
+    r["reopened"] = [[pv.pa_avatar.filepath, pv.pa_avatar.status] for pv in (bpy.data.objects[n] for n in names)]
+
+
 R["blocked_loaded"] = stock_blender.loaded(blocked)
 print("PA_UNDO " + json.dumps(R))
