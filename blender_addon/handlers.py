@@ -149,6 +149,23 @@ def on_undo_redo(*_args):
 
 
 @persistent
+def on_blend_import(context):
+    """Appended previews: their "//" avatar path was relative to the .blend they came from;
+    rebase it here, as Blender rebases its own paths on append (files saved before
+    filepath_absolute existed have nothing else to find their avatar by)."""
+    from .operators_avatar import stored_path
+
+    for item in context.import_items:
+        obj, lib = item.id, item.source_library
+        if item.append_action not in ("MAKE_LOCAL", "COPY_LOCAL") or not isinstance(obj, bpy.types.Object):
+            continue
+        st = obj.pa_avatar
+        if st.is_preview and st.filepath.startswith("//") and lib is not None:
+            path = runtime.resolve(st.filepath, lib)
+            st.filepath, st.filepath_absolute = stored_path(path), path
+
+
+@persistent
 def on_render_pre(scene, *_args):
     """The splats' dilation needs the focal length of the camera and resolution rendered now."""
     from . import splat_look
@@ -171,7 +188,11 @@ _HANDLERS = (
     (bpy.app.handlers.load_post, on_load_post),
     (bpy.app.handlers.save_pre, on_save_pre),
     (bpy.app.handlers.save_post, on_save_post),
-) + (((bpy.app.handlers.save_post_fail, on_save_fail),) if hasattr(bpy.app.handlers, "save_post_fail") else ())
+)
+_HANDLERS += ((bpy.app.handlers.save_post_fail, on_save_fail),) if hasattr(bpy.app.handlers, "save_post_fail") else ()
+_HANDLERS += (
+    ((bpy.app.handlers.blend_import_post, on_blend_import),) if hasattr(bpy.app.handlers, "blend_import_post") else ()
+)
 
 
 def register():

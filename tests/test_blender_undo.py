@@ -243,7 +243,7 @@ def test_save_copy_keeps_the_open_files_avatar_paths(rep):
 def test_an_appended_preview_finds_its_avatar(rep):
     r = scenario_step(rep, "previews_from_another_blend")
     assert r["load"] == ["FINISHED"] and r["library_path"] == "//assets/avatar.pavs", r
-    for key in ("appended", "appended_reopened"):
+    for key in ("appended", "appended_older", "appended_reopened"):
         status, shown, misplaced = r[key]
         assert status == "" and shown > 0 and misplaced < 1e-6, (key, r[key])
     assert r["appended_path"] == "//../../library/assets/avatar.pavs", r  # relative to the file it is in now

@@ -667,9 +667,10 @@ def save_copy_keeps_avatar_paths(r):
 def previews_from_another_blend(r):
     """A head and its preview saved (Relative Paths) beside their avatar, then appended, linked
     and overridden into a file saved in another folder: the appended preview finds its avatar
-    (its "//" path was the library's) and keeps it once saved and reopened; the linked one
-    shows nothing and says why (Blender keeps a linked mesh as the library has it); the
-    overridden one follows its head, at another budget too."""
+    (its "//" path was the library's), also from a file saved before filepath_absolute, and
+    keeps it once saved and reopened; the linked one shows nothing and says why (Blender keeps
+    a linked mesh as the library has it); the overridden one follows its head, at another
+    budget too."""
     lib_dir = os.path.join(out, "library")
     os.makedirs(os.path.join(lib_dir, "assets"), exist_ok=True)
     avatar = os.path.join(lib_dir, "assets", "avatar.pavs")
@@ -682,13 +683,16 @@ def previews_from_another_blend(r):
     library = os.path.join(lib_dir, "head.blend")
     bpy.ops.wm.save_as_mainfile(filepath=library)
     r["library_path"] = bpy.data.objects[names[0]].pa_avatar.filepath
+    older = os.path.join(lib_dir, "older.blend")  # as saved before the absolute path was stored
+    bpy.data.objects[names[0]].pa_avatar.filepath_absolute = ""
+    bpy.data.libraries.write(older, {bpy.data.objects[n] for n in names})
     shot = os.path.join(out, "shots", "deeper", "shot.blend")
     os.makedirs(os.path.dirname(shot), exist_ok=True)
     bpy.ops.wm.read_homefile(use_empty=True)
     bpy.ops.wm.save_as_mainfile(filepath=shot)
 
-    def bring(link):
-        with bpy.data.libraries.load(library, link=link) as (_, data):
+    def bring(link, blend=library):
+        with bpy.data.libraries.load(blend, link=link) as (_, data):
             data.objects = list(names)
         for ob in data.objects:
             bpy.context.scene.collection.objects.link(ob)
@@ -700,6 +704,7 @@ def previews_from_another_blend(r):
         return [pv.pa_avatar.status, shown_count(pv), misplaced(pv) if runtime.entry(pv) else None]
 
     r["appended"] = shown(bring(link=False))
+    r["appended_older"] = shown(bring(link=False, blend=older))
     bpy.ops.wm.save_mainfile()
     bpy.ops.wm.open_mainfile(filepath=shot)
     appended = bpy.data.objects[names[0]]
