@@ -46,18 +46,28 @@ def on_frame_change(scene, depsgraph):
 def on_depsgraph_update(scene, depsgraph):
     if _busy:
         return
-    changed = set()
+    changed, moved = set(), set()
     for upd in depsgraph.updates:
-        if upd.is_updated_geometry and isinstance(upd.id, bpy.types.Object):
-            changed.add(upd.id.original)
-    if not changed:
+        if isinstance(upd.id, bpy.types.Object):
+            if upd.is_updated_geometry:
+                changed.add(upd.id.original)
+            if upd.is_updated_transform:
+                moved.add(upd.id.original)
+    if not changed and not moved:
         return
     sources = {o.pa_avatar.source for o in runtime.previews(scene)} & changed
-    # A preview left Edit Mode: its points are the ones it entered with, whatever frame it is now.
     for obj in runtime.previews(scene):
-        e = runtime.cached(obj) if obj.original in changed and not obj.data.is_editmode else None
-        if e is not None and e.frame_key is None and obj.pa_avatar.source is not None:
-            sources.add(obj.pa_avatar.source)
+        src, e = obj.pa_avatar.source, runtime.cached(obj)
+        if src is None or e is None:
+            continue
+        # A preview left Edit Mode: its points are the ones it entered with, whatever frame it is now.
+        if obj.original in changed and not obj.data.is_editmode and e.frame_key is None:
+            sources.add(src)
+        if obj.original in moved:  # moved or re-parented: whether it still draws on the mesh, said at once
+            try:
+                runtime.placement_status(obj, depsgraph)
+            except Exception as exc:  # a handler must never break an edit
+                obj.pa_avatar.status = f"Preview update failed: {exc}"
     if sources:
         _update_scene(scene, depsgraph, sources)
 

@@ -330,13 +330,25 @@ def placement_problem(obj, src, depsgraph):
     giving them the transform applied), re-parenting or moving the preview tell them apart."""
     here = np.array(obj.evaluated_get(depsgraph).matrix_world)
     there = np.array(src.evaluated_get(depsgraph).matrix_world)
-    if np.allclose(here, there, rtol=1e-5, atol=1e-6):
-        return ""
+    return "" if np.allclose(here, there, rtol=1e-5, atol=1e-6) else _apart(obj, src)
+
+
+def _apart(obj, src):
     return (
         f"{obj.name} is not where {src.name} is (its own transform or parent): its Gaussians are drawn away from "
         f"the mesh. To put them back, parent it to {src.name} without inverse (Object > Parent) and clear its "
         "transform (Object > Clear > All)"
     )
+
+
+def placement_status(obj, depsgraph):
+    """After the preview moved: say whether it still draws its Gaussians on its mesh, placing
+    nothing (another problem's status stands)."""
+    state, src = obj.pa_avatar, obj.pa_avatar.source
+    if state.status in ("", _apart(obj, src)):
+        problem = placement_problem(obj, src, depsgraph)
+        if state.status != problem:
+            state.status = problem
 
 
 def apply_budget(obj, context=None, depsgraph=None):

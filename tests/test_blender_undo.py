@@ -278,6 +278,7 @@ def test_a_preview_left_apart_from_its_mesh_says_so(rep):
     for key in ("undone", "cleared"):
         status, apart, misplaced = r[key]
         assert not apart and status == "" and misplaced < 1e-6, (key, r[key])
+    assert r["other_parent_at_once"] == r["other_parent"][0], r
 
 
 def test_relative_paths_off_stores_absolute_and_still_remaps_relative_ones(rep):

@@ -577,6 +577,8 @@ def apply_transform_on_the_mesh(r):
     elsewhere.location.z = 1.0
     bpy.context.scene.collection.objects.link(elsewhere)
     pv.parent = elsewhere
+    bpy.context.evaluated_depsgraph_get()  # no frame change: the depsgraph handler says it
+    r["other_parent_at_once"] = pv.pa_avatar.status
     r["other_parent"] = state()
     for name in names + [elsewhere.name]:
         bpy.data.objects.remove(bpy.data.objects[name])
