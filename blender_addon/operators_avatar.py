@@ -138,7 +138,8 @@ def load_avatar_onto(context, mesh_obj, path, budget=100.0):
     count = budget_info.count_for_slider(budget)
     depth_per_face(avatar.forest, len(faces), count)  # raises before any change
     static = static_attributes(avatar, preview_order(avatar))
-    old = [c for c in mesh_obj.children if c.pa_avatar.is_preview]
+    # Its previews, parented to it or not (after Clear Parent one is still bound and drawing).
+    old = [o for o in bpy.data.objects if o.pa_avatar.is_preview and o.pa_avatar.source == mesh_obj and not o.library]
     name = f"{mesh_obj.name}_splats"
     before = _snapshot()
     saved_depth = _save_depth(mesh_obj)

@@ -279,6 +279,9 @@ def test_a_preview_left_apart_from_its_mesh_says_so(rep):
         status, apart, misplaced = r[key]
         assert not apart and status == "" and misplaced < 1e-6, (key, r[key])
     assert r["other_parent_at_once"] == r["other_parent"][0], r
+    assert r["reload"] == ["FINISHED"], r
+    bound, children = r["bound_after_reload"]
+    assert len(bound) == 1 and bound == children, r["bound_after_reload"]  # the re-parented one replaced
 
 
 def test_relative_paths_off_stores_absolute_and_still_remaps_relative_ones(rep):

@@ -580,7 +580,14 @@ def apply_transform_on_the_mesh(r):
     bpy.context.evaluated_depsgraph_get()  # no frame change: the depsgraph handler says it
     r["other_parent_at_once"] = pv.pa_avatar.status
     r["other_parent"] = state()
-    for name in names + [elsewhere.name]:
+    # Load Avatar on the mesh replaces its preview, parented to it or not (Clear Parent left it bound
+    # and drawing: a second preview was added beside it).
+    mesh = bpy.data.objects[names[1]]
+    activate(mesh)
+    r["reload"] = call(bpy.ops.object.progressive_avatars_load, filepath=STREAM, budget=100.0)
+    bound = [o.name for o in bpy.data.objects if o.pa_avatar.is_preview and o.pa_avatar.source == mesh]
+    r["bound_after_reload"] = [bound, [c.name for c in mesh.children]]
+    for name in bound + [names[1], elsewhere.name]:
         bpy.data.objects.remove(bpy.data.objects[name])
 
 
