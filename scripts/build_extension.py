@@ -46,9 +46,15 @@ def main(argv=None):
         if os.path.lexists(folder):
             ap.error(f"--out {args.out}: {folder} is a file, not a folder")
         folder = os.path.dirname(folder)
+    if args.blender_ext and not os.path.isfile(args.blender_ext):
+        ap.error(
+            f"--blender-ext {args.blender_ext}: not a file (Blender's is its scripts/addons_core/bl_pkg/cli/blender_ext.py)"
+        )
     tool = args.blender_ext or bpy_blender_ext()
-    if not tool or not os.path.isfile(tool):
-        raise SystemExit("blender_ext.py not found: pass --blender-ext (Blender's scripts/addons_core/bl_pkg/cli/)")
+    if not tool:
+        ap.error(
+            "blender_ext.py not found (no bpy module here): pass --blender-ext (Blender's scripts/addons_core/bl_pkg/cli/)"
+        )
     try:
         print(build_extension(_bootstrap.ROOT, args.out, tool))
     except OSError as exc:  # e.g. a full disk or no permission: a message, not a traceback

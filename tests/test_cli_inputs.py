@@ -239,6 +239,18 @@ def test_build_extension_refuses_an_out_that_is_a_file(tmp_path, capsys):
         assert rc == 2 and f"error: --out {out}: {afile} is a file, not a folder" in err, err
 
 
+def test_build_extension_names_a_missing_blender_ext(tmp_path, capsys):
+    """A --blender-ext path that is not a file is named (it said "blender_ext.py not found: pass
+    --blender-ext" to a user who had passed it, and exited 1 without "error:")."""
+    main = _script("build_extension.py")["main"]
+    missing = tmp_path / "blender" / "blender_ext.py"
+    for tool in (missing, tmp_path):  # no such file; a folder
+        rc = _exit_code(lambda: main(["--out", str(tmp_path / "dist"), "--blender-ext", str(tool)]))
+        err = capsys.readouterr().err
+        assert rc == 2 and f"error: --blender-ext {tool}: not a file" in err, err
+    assert not (tmp_path / "dist").exists()
+
+
 def test_splat_look_refuses_size_below_1_and_removes_blenders_user_folder(tmp_path, own_tmp, capsys, monkeypatch):
     g = _script("splat_look.py")
     out = tmp_path / "look"
