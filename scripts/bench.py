@@ -1,6 +1,10 @@
 """Run the benchmarks and write docs/BENCHMARKS.md. Every figure there comes from here.
 
     python scripts/bench.py [--quick] [--only forest,render,...] [--report runs/report_cpu]
+    python scripts/bench.py --only none --report DIR    # only add (or replace) a report's section
+    python scripts/bench.py --only none --drop DIR      # only take a superseded report's section out
+
+Without --only every section below is measured again first.
 
 Sections: forest (evaluation speed, float32 precision), render (CPU rasteriser against the
 dense reference), train (training iteration, f6907ae against this tree), data (loading), data_gen (synthetic dataset),
@@ -112,7 +116,21 @@ def main(argv=None):
     args = ap.parse_args(_bootstrap.script_args() if argv is None else argv)
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
     wanted = SECTIONS if not args.only else [s.strip() for s in args.only.split(",") if s.strip() not in ("", "none")]
+    # Mistakes are refused before any benchmark runs (the whole set takes hours).
+    unknown = [s for s in wanted if s not in SECTIONS]
+    if unknown:
+        ap.error(f"--only {args.only}: no section {', '.join(unknown)} (sections: {','.join(SECTIONS)}, or none)")
+    for rep in args.report:
+        if not os.path.isfile(os.path.join(rep, "report.json")):
+            ap.error(f"--report {rep}: no report.json there (scripts/evaluate.py --out {rep} writes one)")
+    for spec in args.section:
+        name, _, path = spec.partition("=")
+        if not name or not os.path.isfile(path):
+            ap.error(f"--section {spec}: NAME=FILE with an existing FILE")
     parts = read_sections(args.out)  # sections not re-measured now are kept as they are
+    for rep in args.drop:
+        if "report:" + rep not in parts:
+            ap.error(f"--drop {rep}: {args.out} has no section from {rep}/report.json")
     # The training section sets the process's malloc as training processes run (bench_train.run):
     # it runs last so that no other section is measured under that setting.
     for name in sorted(wanted, key=lambda n: n == "train"):
@@ -126,8 +144,7 @@ def main(argv=None):
     for rep in args.report:
         parts["report:" + rep] = report_section(rep)
     for rep in args.drop:
-        if parts.pop("report:" + rep, None) is None:
-            ap.error(f"--drop {rep}: {args.out} has no section from {rep}/report.json")
+        parts.pop("report:" + rep, None)
     for spec in args.section:
         name, _, path = spec.partition("=")
         with open(path) as fh:

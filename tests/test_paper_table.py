@@ -221,3 +221,24 @@ def test_bench_drops_a_superseded_report(tmp_path, monkeypatch):
     with pytest.raises(SystemExit):
         bench.main(["--only", "none", "--drop", "docs/missing", "--out", str(page)])
     assert page.read_text() == before
+
+
+def test_bench_refuses_unknown_sections_and_missing_reports(tmp_path, monkeypatch, capsys):
+    """A misspelt --only section, a --report folder without report.json and a --section file that
+    is not there are refused before anything runs, the page left as it was (the section was written
+    as "benchmark failed" with a traceback; the report was skipped without a word)."""
+    monkeypatch.syspath_prepend(os.path.join(ROOT, "scripts"))
+    import bench
+
+    page = tmp_path / "B.md"
+    page.write_text("# Benchmarks\n\nintro\n")
+    before = page.read_text()
+    for args, says in (
+        (["--only", "bogus"], "--only bogus: no section bogus"),
+        (["--only", "none", "--report", str(tmp_path / "nothere")], "no report.json"),
+        (["--only", "none", "--section", f"gpu={tmp_path / 'gpu.md'}"], "--section gpu="),
+    ):
+        with pytest.raises(SystemExit) as exc:
+            bench.main(args + ["--out", str(page)])
+        assert exc.value.code == 2 and says in capsys.readouterr().err
+        assert page.read_text() == before
