@@ -1,9 +1,9 @@
 """Render Splats, before and after the persistent worker: seconds per render of one frame.
 
-    python scripts/bench_render_job.py --gaussians G.npz [--repeat 2] [--out JSON]
+    python scripts/bench_render_job.py --gaussians G.npz [--out JSON] [--doc docs/BLENDER_SPLATS.md]
 
 G.npz holds a render job as the add-on writes it (camera R t intr size, means quats scales
-opacities colors; scripts/splat_look.py leaves one, gaussians.npz). Measured, interleaved:
+opacities colors; scripts/splat_look.py leaves one, OUT/new/gaussians.npz). Measured, interleaved:
 - old: what the operator did before, one interpreter per render (python -c loader ROOT job
   out, which imports torch and the kernels each time), first with an empty numba cache (a
   fresh install: kernels compile) then with the cache it left (every later click);
