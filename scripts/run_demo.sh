@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The main job on the embedded default: synthetic head -> trained avatar -> stream -> report.
 # Creates the project's virtual environment on first use. Outputs go to runs/ (git-ignored).
-#   PRESET=tiny bash scripts/run_demo.sh   # a smoke run instead of the cpu preset's few minutes
+#   PRESET=tiny bash scripts/run_demo.sh   # a smoke run instead of the cpu preset's ~10 minutes
 # DATA, RUN and REPORT may name other folders; relative ones are taken from where you run it.
 set -euo pipefail
 here=$(pwd)
