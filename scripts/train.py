@@ -213,19 +213,40 @@ def main(argv=None):
 
 
 def _train(args, cfg, dist, t0):
+    who = f"rank {dist.rank}: " if dist.world_size > 1 else ""
+    if dist.world_size > 1:
+        import signal
+
+        signal.signal(signal.SIGTERM, _stopped_by_launcher)
+    resources = _Resources(args.out, t0)
+    made = dist.is_main and not _os.path.exists(args.out)
+    try:
+        return _train_locked(args, cfg, dist, resources, who)
+    finally:
+        if made:
+            _remove_unstarted(args.out)
+
+
+def _remove_unstarted(out):
+    """A run folder this invocation made and never started (bad --data, a refused setting): gone
+    again, rather than left holding only its lock file."""
+    try:
+        if set(_os.listdir(out)) <= {".train.lock"}:
+            if _os.path.exists(_os.path.join(out, ".train.lock")):
+                _os.remove(_os.path.join(out, ".train.lock"))
+            _os.rmdir(out)
+    except OSError:
+        pass
+
+
+def _train_locked(args, cfg, dist, resources, who):
     import contextlib
 
     from progressive_avatars.core.io.atomic import os_error_text
     from progressive_avatars.core.train.distributed import run_lock
     from progressive_avatars.core.train.trainer import Trainer, kept_text, raised_from
 
-    who = f"rank {dist.rank}: " if dist.world_size > 1 else ""
-    if dist.world_size > 1:
-        import signal
-
-        signal.signal(signal.SIGTERM, _stopped_by_launcher)
     trainer = None
-    resources = _Resources(args.out, t0)
     with contextlib.ExitStack() as stack:
         try:
             if dist.is_main:  # the writer of RUN holds its lock for the whole run

@@ -292,6 +292,11 @@ def test_bad_preset_and_data_errors(tmp_path):
         text=True,
     )
     assert out.returncode == 2 and "error:" in out.stderr and "nope" in out.stderr
+    assert not (tmp_path / "r").exists()  # the run folder it made is gone again, not left holding a lock file
+    (tmp_path / "kept").mkdir()  # a folder the user made stays
+    cmd = [sys.executable, os.path.join(ROOT, "scripts", "train.py"), "--data", str(tmp_path / "nope")]
+    out = subprocess.run(cmd + ["--out", str(tmp_path / "kept"), "--preset", "tiny"], capture_output=True, text=True)
+    assert out.returncode == 2 and (tmp_path / "kept").is_dir(), out.stderr
 
 
 def test_regularisers_have_the_papers_values():
