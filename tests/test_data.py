@@ -483,6 +483,8 @@ def test_dataset_bad_inputs(tmp_path):
     write_mesh_dataset(root)
     with pytest.raises(MissingFileError, match=r"transforms_val\.json: split 'val' not found"):
         Dataset(root, "val")
+    with pytest.raises(MissingFileError, match=r"transforms\.json: the whole-sequence file \(no split asked for\)"):
+        Dataset(root, None)  # it said "split 'None' not found"
     (root / "transforms_test.json").write_text(json.dumps({"frames": []}))
     with pytest.raises(DataError, match=r"transforms_test\.json: no frames"):
         Dataset(root, "test")

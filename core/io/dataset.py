@@ -186,7 +186,8 @@ class Dataset:
                 if os.path.isdir(self.root)
                 else []
             )
-            raise MissingFileError(f"{json_path}: split '{split}' not found (present: {have or 'none'})")
+            what = "the whole-sequence file (no split asked for)" if split is None else f"split '{split}'"
+            raise MissingFileError(f"{json_path}: {what} not found (present: {have or 'none'})")
         self.json_path = json_path
         try:
             with open(json_path, "rb") as f:
