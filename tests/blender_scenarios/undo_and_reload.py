@@ -65,6 +65,15 @@ def preview_of(mesh):
     return next(c for c in mesh.children if c.pa_avatar.is_preview)
 
 
+def head_with_preview(r, stream=STREAM, budget=100.0):
+    """The sequence imported (onto the active object's place) and ``stream`` loaded onto it at
+    ``budget``: (mesh, preview); the operators' results in r["import"], r["load"]."""
+    r["import"] = call(bpy.ops.import_scene.progressive_avatars_sequence, filepath=SEQ)
+    mesh = bpy.context.active_object
+    r["load"] = call(bpy.ops.object.progressive_avatars_load, filepath=stream, budget=budget)
+    return mesh, preview_of(mesh)
+
+
 def shown_count(pv):
     """The Gaussians the preview's modifier shows (its Count input)."""
     mod = pv.modifiers[preview.MODIFIER_NAME]
@@ -290,11 +299,8 @@ def budget_steps_keep_placed_points(r):
     evaluation of that frame puts it."""
     binding = importlib.import_module(PKG + ".core.avatar.binding")
     activate(bpy.data.objects[MESH])
-    r["import"] = call(bpy.ops.import_scene.progressive_avatars_sequence, filepath=SEQ)
-    mesh = bpy.context.active_object
+    mesh, pv = head_with_preview(r)
     name = mesh.name
-    r["load"] = call(bpy.ops.object.progressive_avatars_load, filepath=STREAM, budget=100.0)
-    pv = preview_of(mesh)
     scene = bpy.context.scene
     dg = bpy.context.evaluated_depsgraph_get
     r["total"] = pv.pa_avatar.total
@@ -367,10 +373,7 @@ def unplaced_points_stay_hidden(r):
     runtime = importlib.import_module(PKG + ".blender_addon.runtime")
     preview = importlib.import_module(PKG + ".blender_addon.preview")
     activate(bpy.data.objects[CUBE])
-    r["import"] = call(bpy.ops.import_scene.progressive_avatars_sequence, filepath=SEQ)
-    mesh = bpy.context.active_object
-    r["load"] = call(bpy.ops.object.progressive_avatars_load, filepath=STREAM, budget=100.0)
-    pv = preview_of(mesh)
+    mesh, pv = head_with_preview(r)
     scene = bpy.context.scene
     mod = pv.modifiers[preview.MODIFIER_NAME]
     key = preview.input_identifier(mod.node_group, "Count")
@@ -483,10 +486,7 @@ def linked_duplicates_show_their_own_points(r):
     with deformed otherwise (its own modifier), each preview shows its own Gaussians on its own
     mesh at this frame; and again after undo takes the duplicates back to sharing."""
     activate(bpy.data.objects[CUBE])
-    r["import"] = call(bpy.ops.import_scene.progressive_avatars_sequence, filepath=SEQ)
-    mesh = bpy.context.active_object
-    r["load"] = call(bpy.ops.object.progressive_avatars_load, filepath=STREAM, budget=100.0)
-    pv = preview_of(mesh)
+    mesh, pv = head_with_preview(r)
     scene = bpy.context.scene
     activate(pv)
     bpy.ops.object.duplicate(linked=True)
@@ -524,10 +524,7 @@ def deleted_mesh_said_on_frame_change(r):
     (the frame handler skipped the preview, silent until the budget moved) and shows only the
     points placed before; undo brings the mesh back and the points follow it again."""
     activate(bpy.data.objects[CUBE])
-    r["import"] = call(bpy.ops.import_scene.progressive_avatars_sequence, filepath=SEQ)
-    mesh = bpy.context.active_object
-    r["load"] = call(bpy.ops.object.progressive_avatars_load, filepath=STREAM, budget=100.0)
-    pv = preview_of(mesh)
+    mesh, pv = head_with_preview(r)
     names = [pv.name, mesh.name]
     bpy.ops.ed.undo_push(message="loaded")
     bpy.data.objects.remove(mesh)
@@ -685,10 +682,8 @@ def previews_from_another_blend(r):
     avatar = os.path.join(lib_dir, "assets", "avatar.pavs")
     shutil.copy(STREAM, avatar)
     bpy.ops.wm.read_homefile(use_empty=True)
-    r["import"] = call(bpy.ops.import_scene.progressive_avatars_sequence, filepath=SEQ)
-    mesh = bpy.context.active_object
-    r["load"] = call(bpy.ops.object.progressive_avatars_load, filepath=avatar, budget=60.0)
-    names = [preview_of(mesh).name, mesh.name]
+    mesh, pv = head_with_preview(r, avatar, 60.0)
+    names = [pv.name, mesh.name]
     library = os.path.join(lib_dir, "head.blend")
     bpy.ops.wm.save_as_mainfile(filepath=library)
     r["library_path"] = bpy.data.objects[names[0]].pa_avatar.filepath
