@@ -645,6 +645,24 @@ def test_flame_refiner_starts_at_the_tracked_meshes(tiny_dataset, tmp_path):
         np.testing.assert_allclose(refiner.vertices(t).detach().numpy(), ds.vertices_at(t), atol=2e-6)
 
 
+def test_flame_corrections_step_at_their_own_learning_rates(tiny_dataset, tmp_path):
+    """Adam's first step moves every value by its learning rate (the gradient's sign times lr):
+    expression, pose and translation by the rates given for each."""
+    from progressive_avatars.core.io.dataset import Dataset
+    from progressive_avatars.core.train.flame_refine import FlameRefiner
+
+    root, _, model_path, _, _ = _flame_mode_dataset(tiny_dataset, tmp_path)
+    refiner = FlameRefiner(
+        Dataset(str(root), "train", flame_model=model_path),
+        {"flame_expr": 1e-3, "flame_pose": 2e-5, "flame_translation": 3e-6},
+    )
+    for k in ("expr", "pose", "translation"):
+        refiner.delta[k].grad = torch.ones_like(refiner.delta[k])
+    refiner.step()
+    for k, lr in (("expr", 1e-3), ("pose", 2e-5), ("translation", 3e-6)):
+        np.testing.assert_allclose(refiner.delta[k].detach().numpy(), -lr, rtol=1e-5, err_msg=k)
+
+
 def test_paper_cpu_preset_schedule_and_bounded_cache():
     """paper-cpu: depth 4 reached while growth still runs, a growth budget that ends at 16.7-18x
     the paper-scale head's base (8192 template + 758 coarse faces) within max_faces, a bounded
@@ -1473,6 +1491,20 @@ def test_config_refuses_negative_counts_and_caches():
         with pytest.raises(ValueError, match="image cache must be"):
             config_for("tiny", image_cache_mb=mb)
     assert config_for("tiny", iterations=0, image_cache_mb=0).iterations == 0  # untrained avatar, no cache: allowed
+    # refused up front: rank_every 0 divides by zero at the first cut, views_per_step 0 averages no views
+    for bad, match in (
+        (dict(rank_every=0), "rank_every and rank_views >= 1"),
+        (dict(rank_views=0), "rank_every and rank_views >= 1"),
+        (dict(prefix_cuts=-1), "prefix cuts must be >= 0"),
+        (dict(backdrop_cuts=-1), "backdrop cuts must be >= 0"),
+        (dict(views_per_step=0), "views per step must be >= 1"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            config_for("tiny", **bad)
+    # backdrop stand-ins are stand-ins; without coarse levels there is neither
+    assert config_for("tiny", coarse_stand_ins=False).coarse_stand_ins
+    cfg = config_for("tiny", coarse_levels=())
+    assert not cfg.coarse_stand_ins and not cfg.coarse_backdrop
 
 
 def test_blender_training_job_resumes_a_cancelled_run(tiny_dataset, tmp_path, capsys):
