@@ -1498,6 +1498,10 @@ def test_config_refuses_negative_counts_and_caches():
         (dict(prefix_cuts=-1), "prefix cuts must be >= 0"),
         (dict(backdrop_cuts=-1), "backdrop cuts must be >= 0"),
         (dict(views_per_step=0), "views per step must be >= 1"),
+        (dict(log_every=0), "intervals must be >= 1"),  # a ZeroDivisionError at the first iteration
+        (dict(eval_every=0), "intervals must be >= 1"),
+        (dict(checkpoint_every=0), "intervals must be >= 1"),
+        (dict(eval_views=-1), "evaluation views >= 0"),  # a linspace error at the first evaluation
     ):
         with pytest.raises(ValueError, match=match):
             config_for("tiny", **bad)

@@ -283,6 +283,12 @@ def config_for(preset: str, **overrides) -> TrainConfig:
         raise ValueError(f"coarse weight must be 0 or in [{MIN_WEIGHT:g}, {MAX_WEIGHT:g}], got {cfg.coarse_weight}")
     if int(cfg.views_per_step) < 1:
         raise ValueError(f"views per step must be >= 1, got {cfg.views_per_step}")
+    if min(int(cfg.log_every), int(cfg.eval_every), int(cfg.checkpoint_every)) < 1 or int(cfg.eval_views) < 0:
+        # (a 0 interval divided by zero at the first iteration, negative views failed at the first evaluation)
+        raise ValueError(
+            f"log, evaluation and checkpoint intervals must be >= 1 and evaluation views >= 0, got "
+            f"{cfg.log_every}, {cfg.eval_every}, {cfg.checkpoint_every} and {cfg.eval_views}"
+        )
     if int(cfg.iterations) < 0 or int(cfg.seed) < 0:
         raise ValueError(f"iterations and seed must be >= 0, got {cfg.iterations} and {cfg.seed}")
     if not (math.isfinite(cfg.image_cache_mb) and cfg.image_cache_mb >= 0):
