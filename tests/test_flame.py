@@ -370,6 +370,13 @@ def test_torch_counts_frames_as_numpy_does(model_and_arrays):
         layer(
             expr=torch.zeros(3, N_EXPR, dtype=torch.float64), dynamic_offset=torch.zeros(2, N_V, 3, dtype=torch.float64)
         )
+    # Offsets in any other layout are refused by both, not re-cut into [T,V,3] by the torch twin.
+    for name, bad in (("dynamic_offset", np.zeros((2, N_V * 3))), ("static_offset", np.zeros(N_V * 3))):
+        kw = dict(expr=np.zeros((2, N_EXPR)), **{name: bad})
+        with pytest.raises(ValueError, match=rf"{name}: expected \[1\|T,{N_V},3\]"):
+            flame_forward(m, **kw)
+        with pytest.raises(ValueError, match=rf"{name}: expected \[1\|T,{N_V},3\]"):
+            layer(**{k: torch.as_tensor(v) for k, v in kw.items()})
 
 
 def test_torch_gradients_finite_and_correct(model_and_arrays):

@@ -142,7 +142,9 @@ class FlameTorch(torch.nn.Module):
         for name, off in (("static_offset", static_offset), ("dynamic_offset", dynamic_offset)):
             if off is not None:
                 off = torch.as_tensor(off, dtype=v_shaped.dtype, device=v_shaped.device)
-                off = off.reshape((-1, V, 3)) if off.numel() % (V * 3) == 0 else off
+                # Read as flame_forward reads offsets (leading axes folded into frames, nothing
+                # re-cut): a flat [T,V*3] layout is refused there, so here too.
+                off = off.reshape((-1,) + tuple(off.shape[-2:])) if off.dim() >= 2 else off
                 if off.dim() != 3 or off.shape[1:] != (V, 3) or off.shape[0] not in (1, T):
                     raise ValueError(f"{name}: expected [1|T,{V},3], got {tuple(off.shape)}")
                 v_shaped = v_shaped + off
