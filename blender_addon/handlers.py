@@ -58,12 +58,15 @@ def on_depsgraph_update(scene, depsgraph):
     sources = {o.pa_avatar.source for o in runtime.previews(scene)} & changed
     for obj in runtime.previews(scene):
         src, e = obj.pa_avatar.source, runtime.cached(obj)
-        if src is None or e is None:
+        if src is None:
             continue
         # A preview left Edit Mode: its points are the ones it entered with, whatever frame it is now.
-        if obj.original in changed and not obj.data.is_editmode and e.frame_key is None:
+        if e is not None and obj.original in changed and not obj.data.is_editmode and e.frame_key is None:
             sources.add(src)
-        if obj.original in moved:  # moved or re-parented: whether it still draws on the mesh, said at once
+        # It or its mesh moved, or it was re-parented: whether it still draws on the mesh, said at
+        # once (a preview not parented to its mesh stays put when the mesh moves), decoded avatar
+        # or not (none yet after a file load).
+        if obj.original in moved or src in moved:
             try:
                 runtime.placement_status(obj, depsgraph)
             except Exception as exc:  # a handler must never break an edit

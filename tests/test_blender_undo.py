@@ -290,3 +290,13 @@ def test_relative_paths_off_stores_absolute_and_still_remaps_relative_ones(rep):
     relative, absolute = r["stored"]
     assert relative == "//../avatar.pavs" and os.path.isabs(absolute) and not absolute.startswith("//"), r["stored"]
     assert r["reopened"] == [["//../../avatar.pavs", ""], [absolute, ""]], r["reopened"]
+
+
+def test_moving_the_head_of_an_unparented_preview_says_at_once_that_they_are_apart(rep):
+    r = scenario_step(rep, "preview_unparented_from_its_head")
+    name = r["found"][1]
+    # moved, back, rotated, back, parented in place, its parent moved, back
+    assert [apart for _, apart in r["moves"]] == [True, False, True, False, False, True, False], r["moves"]
+    assert [apart for _, apart in r["moves_uncached"]] == [True, False], r["moves_uncached"]
+    for status, apart in r["moves"] + r["moves_uncached"]:
+        assert (f"{name} is not where seq" in status) == apart and (status == "") == (not apart), r

@@ -27,6 +27,8 @@ runtime = importlib.import_module(PKG + ".blender_addon.runtime")
 preview = importlib.import_module(PKG + ".blender_addon.preview")
 reader = importlib.import_module(PKG + ".core.stream.reader")
 ops_train = importlib.import_module(PKG + ".blender_addon.operators_train")
+ops_avatar = importlib.import_module(PKG + ".blender_addon.operators_avatar")
+panels = importlib.import_module(PKG + ".blender_addon.panels")
 PA_OT_train = ops_train.PA_OT_train
 
 SEQ, STREAM = os.path.join(out, "seq.npz"), os.path.join(out, "avatar.pavs")
@@ -586,6 +588,52 @@ def apply_transform_on_the_mesh(r):
     r["bound_after_reload"] = [bound, [c.name for c in mesh.children]]
     for name in bound + [names[1], elsewhere.name]:
         bpy.data.objects.remove(bpy.data.objects[name])
+
+
+@step
+def preview_unparented_from_its_head(r):
+    """Clear Parent (Keep Transform) leaves a preview bound to its head and drawing, no longer
+    its child: with the head selected the panel and operators still find the preview, and
+    moving or rotating the head alone (or through its own parent) says at once, no frame
+    change, that the Gaussians are drawn away from it, and no longer once it is back."""
+    activate(bpy.data.objects[CUBE])
+    mesh, pv = head_with_preview(r)
+    activate(pv)
+    r["clear"] = call(bpy.ops.object.parent_clear, type="CLEAR_KEEP_TRANSFORM")
+    activate(mesh)
+    found = ops_avatar.preview_of(bpy.context)
+    r["found"] = [pv.parent is None, pv.name, found.name if found is not None else None]
+    r["polls"] = [
+        panels.PA_PT_avatar.poll(bpy.context),
+        panels.PA_PT_depth.poll(bpy.context),
+        bpy.ops.object.progressive_avatars_depth_colors.poll(),
+        bpy.ops.export_scene.progressive_avatars_ply.poll(),
+    ]
+    carrier = bpy.data.objects.new("Carrier", None)
+    bpy.context.scene.collection.objects.link(carrier)
+
+    def moved(how):  # [status, drawn away from the head by their world matrices]
+        how()
+        bpy.context.evaluated_depsgraph_get()  # the depsgraph handler, no frame change
+        apart = not np.allclose(np.array(pv.matrix_world), np.array(mesh.matrix_world), atol=1e-6)
+        return [pv.pa_avatar.status, apart]
+
+    r["moves"] = [
+        moved(lambda: setattr(mesh.location, "x", 0.05)),
+        moved(lambda: setattr(mesh.location, "x", 0.0)),
+        moved(lambda: setattr(mesh.rotation_euler, "z", 0.3)),
+        moved(lambda: setattr(mesh.rotation_euler, "z", 0.0)),
+        moved(lambda: setattr(mesh, "parent", carrier)),  # the carrier at the origin: nothing moves
+        moved(lambda: setattr(carrier.location, "z", 0.1)),
+        moved(lambda: setattr(carrier.location, "z", 0.0)),
+    ]
+    runtime.forget()  # as after a file load: no decoded avatar until a frame or budget change
+    r["moves_uncached"] = [
+        moved(lambda: setattr(mesh.location, "x", 0.05)),
+        moved(lambda: setattr(mesh.location, "x", 0.0)),
+    ]
+    for ob in (pv, mesh, carrier):
+        bpy.data.objects.remove(ob)
 
 
 # -- file loads (the scene is replaced from here on) ----------------------------------------
