@@ -30,10 +30,7 @@ def preview_of(context):
         return None
     if obj.pa_avatar.is_preview:
         return obj
-    for child in obj.children:
-        if child.pa_avatar.is_preview:
-            return child
-    return None
+    return next(iter(runtime.bound_previews(obj)), None)
 
 
 def orphan_depth_mesh(context):
@@ -138,8 +135,8 @@ def load_avatar_onto(context, mesh_obj, path, budget=100.0):
     count = budget_info.count_for_slider(budget)
     depth_per_face(avatar.forest, len(faces), count)  # raises before any change
     static = static_attributes(avatar, preview_order(avatar))
-    # Its previews, parented to it or not (after Clear Parent one is still bound and drawing).
-    old = [o for o in bpy.data.objects if o.pa_avatar.is_preview and o.pa_avatar.source == mesh_obj and not o.library]
+    # Replaced: every preview bound to it that can be removed (a linked one cannot).
+    old = [o for o in runtime.bound_previews(mesh_obj) if not o.library]
     name = f"{mesh_obj.name}_splats"
     before = _snapshot()
     saved_depth = _save_depth(mesh_obj)

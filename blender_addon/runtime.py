@@ -156,6 +156,12 @@ def previews(scene):
     return [o for o in scene.objects if o.pa_avatar.is_preview and o.type == "MESH"]
 
 
+def bound_previews(mesh):
+    """The previews bound to ``mesh``, parented to it or not: Clear Parent leaves a preview
+    bound and drawing, so its mesh's panel, Load Avatar and depth colours still find it."""
+    return [o for o in bpy.data.objects if o.pa_avatar.is_preview and o.pa_avatar.source == mesh]
+
+
 def source_vertices(source, depsgraph):
     """Evaluated vertices of the bound mesh (shape keys, armatures, sculpt all applied)."""
     src_eval = source.evaluated_get(depsgraph)

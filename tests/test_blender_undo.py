@@ -292,6 +292,14 @@ def test_relative_paths_off_stores_absolute_and_still_remaps_relative_ones(rep):
     assert r["reopened"] == [["//../../avatar.pavs", ""], [absolute, ""]], r["reopened"]
 
 
+def test_the_head_finds_its_preview_after_clear_parent(rep):
+    r = scenario_step(rep, "preview_unparented_from_its_head")
+    assert r["load"] == ["FINISHED"] and r["clear"] == ["FINISHED"], r
+    unparented, name, found = r["found"]
+    assert unparented and found == name, r["found"]  # the head selected: its preview's panel
+    assert r["polls"] == [True] * 4, r["polls"]  # Avatar and Depth panels, Colour by Depth, Export PLY
+
+
 def test_moving_the_head_of_an_unparented_preview_says_at_once_that_they_are_apart(rep):
     r = scenario_step(rep, "preview_unparented_from_its_head")
     name = r["found"][1]
