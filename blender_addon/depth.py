@@ -33,11 +33,22 @@ def require_writable(obj):
         )
 
 
-def apply_depth(obj, forest, count=None, max_level=None):
+def depth_owner(obj):
+    """The preview whose depth the mesh ``obj`` shows (attribute, legend, colours), or None
+    when none is recorded or it is no longer a preview bound to ``obj`` (deleted, rebound).
+    A mesh has one set of face colours: two previews bound to it (two avatars, Alt+D) at two
+    budgets would otherwise overwrite each other's depth at each budget move. (Renamed, it is
+    no longer recorded: the next budget moved takes the depth over.)"""
+    pv = bpy.data.objects.get(obj.pa_mesh.depth_preview)
+    return pv if pv is not None and pv.pa_avatar.is_preview and pv.pa_avatar.source == obj else None
+
+
+def apply_depth(obj, forest, count=None, max_level=None, preview=None):
     """Write the depth of each face of ``obj`` over the first ``count`` Gaussians (all if
-    None): the attribute, the legend and, while they are shown, the colours. ``max_level``:
-    the whole avatar's deepest subdivision depth below the template (the colour scale; default
-    the forest's). Raises ValueError naming ``obj`` before changing anything when it cannot."""
+    None): the attribute, the legend and, while they are shown, the colours; ``preview``, the
+    preview they are of, becomes the mesh's depth_owner. ``max_level``: the whole avatar's
+    deepest subdivision depth below the template (the colour scale; default the forest's).
+    Raises ValueError naming ``obj`` before changing anything when it cannot."""
     require_writable(obj)
     me = obj.data
     top = forest.max_depth if max_level is None else max(int(max_level), forest.max_depth)
@@ -61,6 +72,8 @@ def apply_depth(obj, forest, count=None, max_level=None):
     if changed:
         attr.data.foreach_set("value", depth)
     state = obj.pa_mesh
+    if preview is not None and state.depth_preview != preview.name:
+        state.depth_preview = preview.name
     changed |= state.depth_max_level != top  # the colour scale
     state.depth_max_level = top
     legend = state.depth_legend
@@ -143,10 +156,10 @@ def after_load():
     sync_views()
 
 
-def show_colors(context, obj, forest, count=None, max_level=None):
+def show_colors(context, obj, forest, count=None, max_level=None, preview=None):
     """Depth colours on: remember the mesh's active/render colours and every 3D view's colour
-    mode, then show the depth colours of the first ``count`` Gaussians there (Solid mode,
-    Attribute colour)."""
+    mode, then show the depth colours of the first ``count`` Gaussians (of ``preview``) there
+    (Solid mode, Attribute colour). Already on, they show ``preview``'s depth instead."""
     state, me = obj.pa_mesh, obj.data
     was_shown = state.depth_shown
     if not was_shown:
@@ -160,7 +173,7 @@ def show_colors(context, obj, forest, count=None, max_level=None):
         )
     # The depth first: when it cannot be computed (an edited mesh), the toggle and the saved
     # colours and shading must stay as they were.
-    depth = apply_depth(obj, forest, count, max_level)
+    depth = apply_depth(obj, forest, count, max_level, preview)
     if not was_shown:
         state.depth_saved = saved
         state.depth_shown = True

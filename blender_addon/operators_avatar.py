@@ -30,7 +30,8 @@ def preview_of(context):
         return None
     if obj.pa_avatar.is_preview:
         return obj
-    return next(iter(runtime.bound_previews(obj)), None)
+    owner = depth.depth_owner(obj)  # of several bound to it, the one its depth legend describes
+    return owner if owner is not None else next(iter(runtime.bound_previews(obj)), None)
 
 
 def orphan_depth_mesh(context):
@@ -155,7 +156,7 @@ def load_avatar_onto(context, mesh_obj, path, budget=100.0):
         state.template_faces = len(mesh_obj.data.polygons)
         runtime.prime(obj, abspath, avatar, budget_info)
         state.budget = budget  # its update callback sets the count, readouts and evaluates the frame
-        depth.apply_depth(mesh_obj, avatar.forest, state.count, budget_info.max_depth(avatar.forest))
+        depth.apply_depth(mesh_obj, avatar.forest, state.count, budget_info.max_depth(avatar.forest), obj)
     except BaseException:
         if obj is not None:
             runtime.forget(obj)
@@ -174,6 +175,7 @@ def load_avatar_onto(context, mesh_obj, path, budget=100.0):
                 bpy.data.node_groups.remove(ng)
     obj.name = name
     obj.data.name = name
+    mesh_obj.pa_mesh.depth_preview = obj.name  # the mesh's depth is its: recorded again under its own name
     splat_look.set_focal(context.scene)  # the dilation's focal length, from the scene camera
     return obj
 
@@ -252,7 +254,7 @@ class PA_OT_load_avatar(bpy.types.Operator, ImportHelper):
 class PA_OT_depth_colors(bpy.types.Operator):
     """Show or hide the mesh's faces coloured by the avatar's subdivision depth at the current
     budget (faces without a Gaussian yet in their own colour); hiding restores your colours
-    and shading"""
+    and shading. Shown for another preview of the same mesh, they switch to this one's"""
 
     bl_idname = "object.progressive_avatars_depth_colors"
     bl_label = "Colour by Depth"
@@ -279,7 +281,8 @@ class PA_OT_depth_colors(bpy.types.Operator):
         except ValueError as exc:
             self.report({"ERROR"}, f"Colour by Depth: {exc}")
             return {"CANCELLED"}
-        if src.pa_mesh.depth_shown:
+        # Shown for another preview bound to the mesh: they switch to this one's.
+        if src.pa_mesh.depth_shown and depth.depth_owner(src) in (None, obj):
             depth.hide_colors(context, src)
             return {"FINISHED"}
         e = runtime.entry(obj)
@@ -287,7 +290,9 @@ class PA_OT_depth_colors(bpy.types.Operator):
             self.report({"ERROR"}, obj.pa_avatar.status or "Avatar not available")
             return {"CANCELLED"}
         try:
-            depth.show_colors(context, src, e.avatar.forest, obj.pa_avatar.count, e.budget.max_depth(e.avatar.forest))
+            depth.show_colors(
+                context, src, e.avatar.forest, obj.pa_avatar.count, e.budget.max_depth(e.avatar.forest), obj
+            )
         except ValueError as exc:
             self.report({"ERROR"}, f"Colour by Depth: {exc}")
             return {"CANCELLED"}

@@ -2,7 +2,7 @@
 
 import bpy
 
-from . import operators_avatar
+from . import depth, operators_avatar
 
 CATEGORY = "Progressive Avatars"  # the sidebar tab, as the README names it
 
@@ -96,7 +96,8 @@ class PA_PT_depth(_Base, bpy.types.Panel):
         if src is None:
             lay.label(text="The preview's mesh was deleted", icon="ERROR")
             return
-        shown = src.pa_mesh.depth_shown
+        owner = depth.depth_owner(src)
+        shown = src.pa_mesh.depth_shown and owner in (None, obj)  # else the button shows this one's
         lay.operator(
             "object.progressive_avatars_depth_colors",
             icon="COLOR",
@@ -108,6 +109,8 @@ class PA_PT_depth(_Base, bpy.types.Panel):
         sub = row.row(align=True)
         sub.active = obj.pa_avatar.depth_only_on
         sub.prop(obj.pa_avatar, "depth_only", text="")
+        if owner is not None and owner != obj:  # another preview bound to the mesh
+            lay.label(text=f"Depth of {owner.name} at {owner.pa_avatar.budget:.1f} %", icon="INFO")
         legend = src.pa_mesh.depth_legend
         total = max(sum(item.faces for item in legend), 1)
         for item in legend:

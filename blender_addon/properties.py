@@ -74,6 +74,12 @@ class PA_MeshState(bpy.types.PropertyGroup):
     num_frames: bpy.props.IntProperty(name="Frames")
     depth_legend: bpy.props.CollectionProperty(type=PA_LegendItem)
     depth_max_level: bpy.props.IntProperty()
+    # A name, not a pointer: a pointer would keep a deleted preview alive as an orphan (its
+    # user) and bring it along whenever the mesh is appended.
+    depth_preview: bpy.props.StringProperty(
+        description="The preview whose budget the depth attribute, legend and colours describe "
+        "(one of the previews bound to this mesh)"
+    )
     depth_shown: bpy.props.BoolProperty(name="Depth colours shown", default=False)
     depth_saved: bpy.props.StringProperty(description="Colour and shading settings to restore (JSON)")
 

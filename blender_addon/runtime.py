@@ -12,7 +12,7 @@ import numpy as np
 from ..core.bridge.budget import load_avatar
 from ..core.bridge.splats import preview_order, splat_evaluator
 from ..core.io.safe_io import file_digest
-from . import preview
+from . import depth, preview
 
 
 def mesh_faces(me):
@@ -377,11 +377,10 @@ def apply_budget(obj, context=None, depsgraph=None):
         context = context or bpy.context
         refresh(obj, depsgraph or context.evaluated_depsgraph_get(), count, upto=b.total)
     src = state.source
-    # depth (and its colours) follow what the budget shows; a linked preview's status says why it shows nothing
-    if src is not None and src.type == "MESH" and obj.library is None:
-        from . import depth
-
+    # depth (and its colours) follow what the budget shows, of the one preview the mesh's depth
+    # describes (the first moved when none does); a linked preview's status says why it shows nothing
+    if src is not None and src.type == "MESH" and obj.library is None and depth.depth_owner(src) in (None, obj):
         try:
-            depth.apply_depth(src, e.avatar.forest, count, b.max_depth(e.avatar.forest))
+            depth.apply_depth(src, e.avatar.forest, count, b.max_depth(e.avatar.forest), obj)
         except ValueError as exc:  # the mesh was edited to another face count, or is in Edit Mode
             state.status = f"Depth not shown: {exc}"

@@ -308,3 +308,22 @@ def test_moving_the_head_of_an_unparented_preview_says_at_once_that_they_are_apa
     assert [apart for _, apart in r["moves_uncached"]] == [True, False], r["moves_uncached"]
     for status, apart in r["moves"] + r["moves_uncached"]:
         assert (f"{name} is not where seq" in status) == apart and (status == "") == (not apart), r
+
+
+def test_two_previews_on_one_head_show_the_depth_of_one_and_say_which(rep):
+    r = scenario_step(rep, "two_previews_on_one_head")
+    pv, dup = r["names"]
+    assert r["load"] == ["FINISHED"] and r["depths_differ"], r  # 100 % and 20 % colour faces differently
+    # [depth is pv's, is dup's, legend is pv's, is dup's, depth_preview, shown]
+    assert r["dup_moved"] == [True, False, True, False, pv, False], r  # the Alt+D copy's budget: not its
+    assert r["head_panel"] == pv, r
+    assert f"Depth of {pv} at 100.0 %" in r["dup_panel"] and "[Colour by Depth]" in r["dup_panel"], r["dup_panel"]
+    assert r["show_dup"] == ["FINISHED"] and r["shown_dup"] == [False, True, False, True, dup, True], r
+    assert r["pv_moved"] == [False, True, False, True, dup, True], r  # pv at 60 %: dup's stays shown
+    assert f"Depth of {dup} at 20.0 %" in r["pv_panel"] and "[Colour by Depth]" in r["pv_panel"], r["pv_panel"]
+    assert r["show_pv"] == ["FINISHED"] and r["shown_pv"] == [True, False, True, False, pv, True], r  # switched
+    assert r["hide"] == ["FINISHED"] and r["hidden"][4:] == [pv, False], r
+    assert r["after_delete"] == [False, True, False, True, dup, False], r
+    # Load Avatar over a preview: the new one, made beside it under another name, then renamed
+    reload, made_as, named, recorded = r["reloaded"]
+    assert reload == [["FINISHED"]] * 2 and made_as != named and recorded == named, r["reloaded"]

@@ -29,6 +29,7 @@ reader = importlib.import_module(PKG + ".core.stream.reader")
 ops_train = importlib.import_module(PKG + ".blender_addon.operators_train")
 ops_avatar = importlib.import_module(PKG + ".blender_addon.operators_avatar")
 panels = importlib.import_module(PKG + ".blender_addon.panels")
+core_depth = importlib.import_module(PKG + ".core.bridge.depth")
 PA_OT_train = ops_train.PA_OT_train
 
 SEQ, STREAM = os.path.join(out, "seq.npz"), os.path.join(out, "avatar.pavs")
@@ -633,6 +634,105 @@ def preview_unparented_from_its_head(r):
         moved(lambda: setattr(mesh.location, "x", 0.0)),
     ]
     for ob in (pv, mesh, carrier):
+        bpy.data.objects.remove(ob)
+
+
+class Layout:
+    """What a panel's draw() puts in its layout: label texts, operator buttons as [text]."""
+
+    def __init__(self):
+        self.log = []
+
+    def row(self, **_kw):
+        return self
+
+    def label(self, text="", **_kw):
+        self.log.append(text)
+
+    def operator(self, _idname, text="", **_kw):
+        self.log.append(f"[{text}]")
+        return types.SimpleNamespace()
+
+    def prop(self, *_args, **_kw):
+        pass
+
+
+def depth_panel():
+    lay = Layout()
+    panels.PA_PT_depth.draw(types.SimpleNamespace(layout=lay), bpy.context)
+    return lay.log
+
+
+@step
+def two_previews_on_one_head(r):
+    """Two previews bound to one head (Alt+D) at two budgets: the head's one set of depth
+    faces, legend and colours stays the depth of one preview, the one Load Avatar made or
+    Colour by Depth last chose, whatever the other's budget does; the panel names it when
+    the other is selected, Colour by Depth there shows the other's depth instead of hiding;
+    with the chosen one deleted, the next budget moved takes the depth over."""
+    activate(bpy.data.objects[CUBE])
+    mesh, pv = head_with_preview(r)
+    activate(pv)
+    bpy.ops.object.duplicate(linked=True)
+    dup = bpy.context.active_object
+    forest = reader.read_stream(STREAM).forest
+    r["names"] = [pv.name, dup.name]
+
+    def head():  # [depth is pv's, depth is dup's, legend matches pv's, dup's, depth_preview, shown]
+        me = mesh.data
+        got = np.empty(len(me.polygons), np.int32)
+        me.attributes["pa_depth"].data.foreach_get("value", got)
+        legend = {i.depth: i.faces for i in mesh.pa_mesh.depth_legend if i.faces}
+        out = []
+        for o in (pv, dup):
+            want = core_depth.depth_per_face(forest, len(me.polygons), o.pa_avatar.count) if o else None
+            out.append(o is not None and np.array_equal(got, want))
+        for o in (pv, dup):
+            want = core_depth.depth_per_face(forest, len(me.polygons), o.pa_avatar.count) if o else None
+            d, n = np.unique(want, return_counts=True) if o else ([], [])
+            out.append(o is not None and legend == dict(zip(d.tolist(), n.tolist())))
+        return out + [getattr(mesh.pa_mesh, "depth_preview", None), mesh.pa_mesh.depth_shown]
+
+    dup.pa_avatar.budget = 20.0
+    r["counts"] = [pv.pa_avatar.count, dup.pa_avatar.count]
+    r["depths_differ"] = not np.array_equal(
+        *(core_depth.depth_per_face(forest, len(mesh.data.polygons), n) for n in r["counts"])
+    )
+    r["dup_moved"] = head()
+    activate(mesh)
+    r["head_panel"] = ops_avatar.preview_of(bpy.context).name
+    activate(dup)
+    r["dup_panel"] = depth_panel()
+    r["show_dup"] = call(bpy.ops.object.progressive_avatars_depth_colors)
+    r["shown_dup"] = head()
+    pv.pa_avatar.budget = 60.0
+    r["pv_moved"] = head()
+    activate(pv)
+    r["pv_panel"] = depth_panel()
+    r["show_pv"] = call(bpy.ops.object.progressive_avatars_depth_colors)
+    r["shown_pv"] = head()
+    r["hide"] = call(bpy.ops.object.progressive_avatars_depth_colors)
+    r["hidden"] = head()
+    bpy.data.objects.remove(pv)
+    pv = None
+    dup.pa_avatar.budget = 50.0
+    r["after_delete"] = head()
+    activate(mesh)
+    made = []
+    kept = preview.create_preview_object
+
+    def create(*args):
+        made.append(kept(*args).name)
+        return bpy.data.objects[made[-1]]
+
+    preview.create_preview_object = create
+    try:  # the second over the first, named as the head's preview is
+        reload = [call(bpy.ops.object.progressive_avatars_load, filepath=STREAM) for _ in range(2)]
+    finally:
+        preview.create_preview_object = kept
+    new = runtime.bound_previews(mesh)
+    r["reloaded"] = [reload, made[-1] if made else None, new[0].name, getattr(mesh.pa_mesh, "depth_preview", None)]
+    for ob in new + [mesh]:
         bpy.data.objects.remove(ob)
 
 
