@@ -17,7 +17,7 @@ def _update_scene(scene, depsgraph, only_sources=None):
     _busy = True
     try:
         for obj in runtime.previews(scene):
-            src = obj.pa_avatar.source
+            src = runtime.bound_mesh(obj)
             if only_sources is not None and (src is None or src.original not in only_sources):
                 continue
             try:
@@ -55,11 +55,12 @@ def on_depsgraph_update(scene, depsgraph):
                 moved.add(upd.id.original)
     if not changed and not moved:
         return
-    sources = {o.pa_avatar.source for o in runtime.previews(scene)} & changed
-    for obj in runtime.previews(scene):
-        src, e = obj.pa_avatar.source, runtime.cached(obj)
+    bound = [(o, runtime.bound_mesh(o)) for o in runtime.previews(scene)]
+    sources = {src for _, src in bound} & changed
+    for obj, src in bound:
         if src is None:
             continue
+        e = runtime.cached(obj)
         # A preview left Edit Mode: its points are the ones it entered with, whatever frame it is now.
         if e is not None and obj.original in changed and not obj.data.is_editmode and e.frame_key is None:
             sources.add(src)

@@ -20,7 +20,7 @@ from . import ADDON_PACKAGE, depth, prefs, preview, runtime, splat_look
 def _mesh_target(context):
     obj = context.active_object
     if obj is not None and obj.pa_avatar.is_preview:
-        obj = obj.pa_avatar.source
+        obj = runtime.bound_mesh(obj)
     return obj if obj is not None and obj.type == "MESH" else None
 
 
@@ -272,7 +272,7 @@ class PA_OT_depth_colors(bpy.types.Operator):
             self.report({"ERROR"}, f"{obj.name}: PLY splats carry no subdivision depth; load an avatar onto a mesh")
             return {"CANCELLED"}
         # No preview: it was deleted while the colours were shown, and they can still go.
-        src = obj.pa_avatar.source if obj is not None else orphan_depth_mesh(context)
+        src = runtime.bound_mesh(obj) if obj is not None else orphan_depth_mesh(context)
         if src is None or src.type != "MESH":
             self.report({"ERROR"}, f"{obj.name}: its mesh was deleted; load the avatar onto a mesh again")
             return {"CANCELLED"}

@@ -23,7 +23,7 @@ import threading
 
 import bpy
 
-from . import prefs, training_tier
+from . import prefs, runtime, training_tier
 from ..core.bridge import payload
 
 _PERCENT = re.compile(r"(\d+(?:\.\d+)?)\s*%")
@@ -132,7 +132,7 @@ def _start(context):
     st = context.scene.pa_train
     obj = context.active_object
     if obj is not None and obj.pa_avatar.is_preview:
-        obj = obj.pa_avatar.source
+        obj = runtime.bound_mesh(obj)
     st.target = obj if obj is not None and obj.type == "MESH" else None
 
 

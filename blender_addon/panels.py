@@ -2,7 +2,7 @@
 
 import bpy
 
-from . import depth, operators_avatar
+from . import depth, operators_avatar, runtime
 
 CATEGORY = "Progressive Avatars"  # the sidebar tab, as the README names it
 
@@ -92,7 +92,7 @@ class PA_PT_depth(_Base, bpy.types.Panel):
             lay.label(text="The avatar preview was deleted", icon="ERROR")
             lay.operator("object.progressive_avatars_depth_colors", icon="COLOR", text="Hide Depth Colours")
             return
-        src = obj.pa_avatar.source
+        src = runtime.bound_mesh(obj)
         if src is None:
             lay.label(text="The preview's mesh was deleted", icon="ERROR")
             return

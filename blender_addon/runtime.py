@@ -156,6 +156,14 @@ def previews(scene):
     return [o for o in scene.objects if o.pa_avatar.is_preview and o.type == "MESH"]
 
 
+def bound_mesh(obj):
+    """The mesh the preview ``obj`` is bound to, or None once it is deleted. Delete in the 3D
+    View only unlinks it from its collections while the preview's pointer to it (a user) keeps
+    it in the file's data: shown and evaluated by no scene, it is no mesh to follow."""
+    src = obj.pa_avatar.source
+    return src if src is not None and src.users_collection else None
+
+
 def bound_previews(mesh):
     """The previews bound to ``mesh``, parented to it or not: Clear Parent leaves a preview
     bound and drawing, so its mesh's panel, Load Avatar and depth colours still find it."""
@@ -267,7 +275,7 @@ def refresh(obj, depsgraph, count=None, upto=None):
     they already sit on these very vertices. Returns False (and sets status) when it cannot."""
     state = obj.pa_avatar
     e = entry(obj)
-    src = state.source
+    src = bound_mesh(obj)
     if e is None or src is None or src.type != "MESH":
         if src is None:
             state.status = "No mesh bound"
@@ -376,7 +384,7 @@ def apply_budget(obj, context=None, depsgraph=None):
     if count > e.valid:  # every Gaussian, so that scrubbing on at this frame evaluates nothing more
         context = context or bpy.context
         refresh(obj, depsgraph or context.evaluated_depsgraph_get(), count, upto=b.total)
-    src = state.source
+    src = bound_mesh(obj)
     # depth (and its colours) follow what the budget shows, of the one preview the mesh's depth
     # describes (the first moved when none does); a linked preview's status says why it shows nothing
     if src is not None and src.type == "MESH" and obj.library is None and depth.depth_owner(src) in (None, obj):

@@ -269,6 +269,18 @@ def test_a_deleted_mesh_is_said_on_frame_change(rep):
     assert status == "" and same_mesh and misplaced < 1e-6, r
 
 
+def test_a_mesh_deleted_in_the_3d_view_is_said_deleted(rep):
+    r = scenario_step(rep, "deleted_mesh_said_on_frame_change")
+    assert r["delete"] == ["FINISHED"], r
+    kept, status, shown, count, panel, colour = r["deleted"]
+    assert kept, r  # the orphan Blender keeps for the preview's pointer: not a mesh to follow
+    assert status == "No mesh bound" and shown == count > 0, r
+    assert panel == ["The preview's mesh was deleted"], panel
+    assert "its mesh was deleted" in colour, colour  # Colour by Depth: nothing painted on the orphan
+    status, misplaced = r["delete_undone"]
+    assert status == "" and misplaced < 1e-6, r
+
+
 def test_a_preview_left_apart_from_its_mesh_says_so(rep):
     r = scenario_step(rep, "apply_transform_on_the_mesh")
     assert r["load"] == ["FINISHED"] and r["apply"] == ["FINISHED"], r

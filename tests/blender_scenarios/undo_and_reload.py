@@ -98,6 +98,32 @@ def misplaced(pv, mesh=None):
     return float(np.abs(pos.reshape(-1, 3)[shown] - want[shown]).max(initial=0.0))
 
 
+class Layout:
+    """What a panel's draw() puts in its layout: label texts, operator buttons as [text]."""
+
+    def __init__(self):
+        self.log = []
+
+    def row(self, **_kw):
+        return self
+
+    def label(self, text="", **_kw):
+        self.log.append(text)
+
+    def operator(self, _idname, text="", **_kw):
+        self.log.append(f"[{text}]")
+        return types.SimpleNamespace()
+
+    def prop(self, *_args, **_kw):
+        pass
+
+
+def depth_panel():
+    lay = Layout()
+    panels.PA_PT_depth.draw(types.SimpleNamespace(layout=lay), bpy.context)
+    return lay.log
+
+
 class ModalTrain:
     """PA_OT_train's modal path on a stand-in (timers never fire headless, so the test calls
     modal() as the window manager would on each tick)."""
@@ -539,6 +565,26 @@ def deleted_mesh_said_on_frame_change(r):
     pv, scene = bpy.data.objects[names[0]], bpy.context.scene
     scene.frame_set(scene.frame_current + 1)
     r["undone"] = [pv.pa_avatar.status, pv.pa_avatar.source.name == names[1], misplaced(pv)]
+    # Delete in the 3D View (X) unlinks the mesh from its collections only: the preview's
+    # pointer to it (a user) keeps it in the file's data, shown and evaluated by no scene.
+    bpy.ops.ed.undo_push(message="frame")
+    activate(bpy.data.objects[names[1]])
+    r["delete"] = call(bpy.ops.object.delete)
+    bpy.ops.ed.undo_push(message="mesh deleted")
+    scene.frame_set(scene.frame_current + 1)
+    activate(pv)
+    r["deleted"] = [
+        names[1] in bpy.data.objects,
+        pv.pa_avatar.status,
+        shown_count(pv),
+        pv.pa_avatar.count,
+        depth_panel(),
+        call(bpy.ops.object.progressive_avatars_depth_colors),
+    ]
+    bpy.ops.ed.undo()
+    pv, scene = bpy.data.objects[names[0]], bpy.context.scene
+    scene.frame_set(scene.frame_current + 1)
+    r["delete_undone"] = [pv.pa_avatar.status, misplaced(pv)]
     for name in names:
         bpy.data.objects.remove(bpy.data.objects[name])
 
@@ -635,32 +681,6 @@ def preview_unparented_from_its_head(r):
     ]
     for ob in (pv, mesh, carrier):
         bpy.data.objects.remove(ob)
-
-
-class Layout:
-    """What a panel's draw() puts in its layout: label texts, operator buttons as [text]."""
-
-    def __init__(self):
-        self.log = []
-
-    def row(self, **_kw):
-        return self
-
-    def label(self, text="", **_kw):
-        self.log.append(text)
-
-    def operator(self, _idname, text="", **_kw):
-        self.log.append(f"[{text}]")
-        return types.SimpleNamespace()
-
-    def prop(self, *_args, **_kw):
-        pass
-
-
-def depth_panel():
-    lay = Layout()
-    panels.PA_PT_depth.draw(types.SimpleNamespace(layout=lay), bpy.context)
-    return lay.log
 
 
 @step
