@@ -30,6 +30,8 @@ def _update_scene(scene, depsgraph, only_sources=None):
                 count = e.budget.count_for_slider(obj.pa_avatar.budget)
                 if count != obj.pa_avatar.count:  # an animated budget moves without the update callback
                     runtime.apply_budget(obj, depsgraph=depsgraph)
+                elif e.depth_failed:  # not written while the mesh was in Edit Mode; refresh clears the status
+                    runtime.write_depth(obj, e, count)
                 runtime.refresh(obj, depsgraph, count)
             except Exception as exc:  # a handler must never break playback
                 obj.pa_avatar.status = f"Preview update failed: {exc}"

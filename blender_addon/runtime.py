@@ -40,6 +40,7 @@ class _Entry:
         self.n_vertices = int(self.avatar.forest.template_faces.max()) + 1
         self.valid = 0  # preview points (by stream rank) placed on the vertices of frame_key
         self.frame_key = None  # the mesh vertices the placed points were evaluated on
+        self.depth_failed = False  # its depth could not be written on the mesh (Edit Mode): retried
 
     def evaluator_for(self, count):
         if count >= self.avatar.num_gaussians:
@@ -384,11 +385,18 @@ def apply_budget(obj, context=None, depsgraph=None):
     if count > e.valid:  # every Gaussian, so that scrubbing on at this frame evaluates nothing more
         context = context or bpy.context
         refresh(obj, depsgraph or context.evaluated_depsgraph_get(), count, upto=b.total)
+    write_depth(obj, e, count)
+
+
+def write_depth(obj, e, count):
+    """The mesh's depth (and its colours) for what the budget shows, ``count`` Gaussians of the
+    preview ``obj`` (cache entry ``e``), when the mesh's depth describes it (or none: the first
+    moved takes it); a linked preview's status says why it shows nothing."""
     src = bound_mesh(obj)
-    # depth (and its colours) follow what the budget shows, of the one preview the mesh's depth
-    # describes (the first moved when none does); a linked preview's status says why it shows nothing
     if src is not None and src.type == "MESH" and obj.library is None and depth.depth_owner(src) in (None, obj):
         try:
-            depth.apply_depth(src, e.avatar.forest, count, b.max_depth(e.avatar.forest), obj)
+            depth.apply_depth(src, e.avatar.forest, count, e.budget.max_depth(e.avatar.forest), obj)
+            e.depth_failed = False
         except ValueError as exc:  # the mesh was edited to another face count, or is in Edit Mode
-            state.status = f"Depth not shown: {exc}"
+            obj.pa_avatar.status = f"Depth not shown: {exc}"
+            e.depth_failed = True

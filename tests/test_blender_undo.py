@@ -281,6 +281,14 @@ def test_a_mesh_deleted_in_the_3d_view_is_said_deleted(rep):
     assert status == "" and misplaced < 1e-6, r
 
 
+def test_depth_is_written_once_the_mesh_leaves_edit_mode(rep):
+    r = scenario_step(rep, "depth_written_after_edit_mode")
+    count, total = r["counts"]
+    assert r["load"] == ["FINISHED"] and 0 < count < total, r
+    assert r["in_edit"].startswith("Depth not shown:") and "leave Edit Mode first" in r["in_edit"], r
+    assert r["after"] == ["", True, True], r  # the 20 % depth and legend (the 100 % ones stayed)
+
+
 def test_a_preview_left_apart_from_its_mesh_says_so(rep):
     r = scenario_step(rep, "apply_transform_on_the_mesh")
     assert r["load"] == ["FINISHED"] and r["apply"] == ["FINISHED"], r

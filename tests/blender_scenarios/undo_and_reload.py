@@ -590,6 +590,29 @@ def deleted_mesh_said_on_frame_change(r):
 
 
 @step
+def depth_written_after_edit_mode(r):
+    """The budget moved while the mesh is in Edit Mode: its depth cannot be written then (the
+    status says so); once it leaves Edit Mode the depth and legend are the budget's, not the
+    previous one's under a status gone empty."""
+    activate(bpy.data.objects[CUBE])
+    mesh, pv = head_with_preview(r)
+    activate(mesh, "EDIT")
+    pv.pa_avatar.budget = 20.0
+    r["in_edit"] = pv.pa_avatar.status
+    activate(mesh)
+    bpy.context.evaluated_depsgraph_get()  # the depsgraph handler
+    want = core_depth.depth_per_face(reader.read_stream(STREAM).forest, len(mesh.data.polygons), pv.pa_avatar.count)
+    got = np.empty(len(mesh.data.polygons), np.int32)
+    mesh.data.attributes["pa_depth"].data.foreach_get("value", got)
+    d, n = np.unique(want, return_counts=True)
+    legend = {i.depth: i.faces for i in mesh.pa_mesh.depth_legend if i.faces}
+    r["after"] = [pv.pa_avatar.status, bool(np.array_equal(got, want)), legend == dict(zip(d.tolist(), n.tolist()))]
+    r["counts"] = [pv.pa_avatar.count, pv.pa_avatar.total]
+    for ob in (pv, mesh):
+        bpy.data.objects.remove(ob)
+
+
+@step
 def apply_transform_on_the_mesh(r):
     """Apply Rotation & Scale on the bound mesh leaves the preview its old transform (Blender
     keeps children in place), drawing the Gaussians, placed in the mesh's new space, away from
