@@ -168,6 +168,10 @@ def bound_mesh(obj):
 def bound_previews(mesh):
     """The previews bound to ``mesh``, parented to it or not: Clear Parent leaves a preview
     bound and drawing, so its mesh's panel, Load Avatar and depth colours still find it."""
+    # A preview's pointer is a user of its mesh: a mesh used by its collections alone has none,
+    # and the panels ask this of every selected mesh at each redraw (a scan of every object).
+    if mesh is None or mesh.users <= len(mesh.users_collection):
+        return []
     return [o for o in bpy.data.objects if o.pa_avatar.is_preview and o.pa_avatar.source == mesh]
 
 
