@@ -2,7 +2,7 @@
 
 import bpy
 
-from . import depth, operators_avatar, runtime
+from . import depth, operators_avatar, ply_import, runtime
 
 CATEGORY = "Progressive Avatars"  # the sidebar tab, as the README names it
 
@@ -91,6 +91,9 @@ class PA_PT_depth(_Base, bpy.types.Panel):
         if obj is None:
             lay.label(text="The avatar preview was deleted", icon="ERROR")
             lay.operator("object.progressive_avatars_depth_colors", icon="COLOR", text="Hide Depth Colours")
+            return
+        if ply_import.is_splat_ply(obj):  # bound to no mesh by nature, not deleted
+            lay.label(text="PLY splats carry no subdivision depth", icon="INFO")
             return
         src = runtime.bound_mesh(obj)
         if src is None:

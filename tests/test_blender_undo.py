@@ -194,6 +194,12 @@ def test_a_splat_ply_is_refused_as_a_sequence(rep):
     assert r["added"] == {}, r["added"]
 
 
+def test_depth_panel_of_ply_splats_says_they_have_no_depth(rep):
+    r = scenario_step(rep, "depth_panel_of_ply_splats")
+    assert r["result"] == ["FINISHED"], r
+    assert r["panel"] == ["PLY splats carry no subdivision depth"], r["panel"]
+
+
 def test_budget_steps_bind_no_placed_point_again(rep):
     r = scenario_step(rep, "budget_steps_keep_placed_points")
     assert r["load"] == ["FINISHED"] and r["depth_changes"] >= 2, r  # the steps rewrote the depth attribute

@@ -510,6 +510,18 @@ def splat_ply_as_sequence(r):
 
 
 @step
+def depth_panel_of_ply_splats(r):
+    """A PLY splat object has no mesh to colour: the depth panel says so (it said the preview's
+    mesh was deleted)."""
+    before = set(bpy.data.objects)
+    r["result"] = call(bpy.ops.import_scene.progressive_avatars_splat_ply, filepath=SPLATS)
+    (splats,) = set(bpy.data.objects) - before
+    activate(splats)
+    r["panel"] = depth_panel()
+    bpy.data.objects.remove(splats)
+
+
+@step
 def linked_duplicates_show_their_own_points(r):
     """Alt+D of a preview shares its mesh: at another budget, or with the head it was duplicated
     with deformed otherwise (its own modifier), each preview shows its own Gaussians on its own
