@@ -252,7 +252,8 @@ def _ply_header(count, fmt="binary_little_endian"):
 
 
 @pytest.mark.parametrize("use_plyfile", [True, False])
-@pytest.mark.parametrize("count", ["1e12", "1000000000000", "-5"])
+# 200 rows of 12 bytes need 2400 bytes: more than the 1200 there, though not more rows
+@pytest.mark.parametrize("count", ["1e12", "1000000000000", "-5", "200"])
 def test_ply_huge_or_malformed_vertex_count_refused(tmp_path, monkeypatch, use_plyfile, count):
     if not use_plyfile:
         import builtins
@@ -284,6 +285,16 @@ def test_ply_real_file_and_huge_quaternions_still_read(tmp_path):
     write_ply(str(p), g)
     back = read_ply(str(p))
     np.testing.assert_allclose(back["quats"], np.tile([2**-0.5, 0, 2**-0.5, 0], (n, 1)), atol=1e-6)
+    # Another tool's double-precision fields: a quaternion whose squared norm overflows float64
+    from plyfile import PlyData, PlyElement
+
+    v = PlyData.read(str(p))["vertex"].data
+    rows = np.zeros(n, [(name, "<f8" if name.startswith("rot_") else "<f4") for name in v.dtype.names])
+    for name in v.dtype.names:
+        rows[name] = v[name]
+    rows["rot_0"] = rows["rot_2"] = 1e200
+    PlyData([PlyElement.describe(rows, "vertex")]).write(str(p))
+    np.testing.assert_allclose(read_ply(str(p))["quats"], np.tile([2**-0.5, 0, 2**-0.5, 0], (n, 1)), atol=1e-6)
 
 
 def test_json_depth_bounded_without_recursion():

@@ -74,20 +74,31 @@ def test_read_ply_roundtrip(tmp_path, gaussians, monkeypatch):
 
 
 def test_extreme_values_stay_finite(tmp_path):
+    """Opacities 0 and 1, scale 0 and a zero or unnormalised quaternion are written as finite
+    fields and unit quaternions, as a third-party reader (plyfile here) sees the file: other
+    viewers take the logit and the rotation as stored (an inf logit or a zero quaternion is a
+    NaN splat there). Opacities just inside (0, 1) keep their value."""
+    from plyfile import PlyData
+
     g = {
-        "means": np.zeros((2, 3)),
-        "quats": np.zeros((2, 4)),
-        "scales": np.array([[0.0, 1, 1], [1, 1, 1]]),
-        "opacities": np.array([0.0, 1.0]),
-        "colors": np.array([[0, 0, 0], [1, 1, 1.0]]),
+        "means": np.zeros((4, 3)),
+        "quats": np.array([[0.0, 0, 0, 0], [0, 3, 4, 0], [2, 0, 0, 0], [1, 0, 0, 0]]),
+        "scales": np.array([[0.0, 1, 1], [1, 1, 1], [1, 1, 1], [1, 1, 1]]),
+        "opacities": np.array([0.0, 1.0, 1e-5, 0.99999]),
+        "colors": np.array([[0, 0, 0], [1, 1, 1.0], [0, 0, 0], [0, 0, 0]]),
     }
     p = tmp_path / "e.ply"
     P.write_ply(p, g)
+    raw = PlyData.read(str(p))["vertex"].data
+    assert all(np.all(np.isfinite(raw[name])) for name in raw.dtype.names)
+    q = np.stack([raw[f"rot_{k}"] for k in range(4)], 1)
+    np.testing.assert_allclose(q, [[1, 0, 0, 0], [0, 0.6, 0.8, 0], [1, 0, 0, 0], [1, 0, 0, 0]], atol=1e-7)
     back = P.read_ply(p)
     assert all(np.all(np.isfinite(v)) for v in back.values())
     np.testing.assert_allclose(back["quats"][0], [1, 0, 0, 0])
+    np.testing.assert_allclose(back["opacities"][2:], [1e-5, 0.99999], rtol=1e-6, atol=1e-9)
     with pytest.raises(ValueError, match="NaN"):
-        P.write_ply(p, dict(g, means=np.full((2, 3), np.nan)))
+        P.write_ply(p, dict(g, means=np.full((4, 3), np.nan)))
     with pytest.raises(ValueError, match="misses"):
         P.write_ply(p, {"means": np.zeros((1, 3))})
 
@@ -103,16 +114,24 @@ def test_write_is_atomic(tmp_path, gaussians, monkeypatch):
 
 
 @pytest.mark.parametrize(
-    "field, value", [("x", np.nan), ("scale_1", 200.0), ("scale_0", np.inf), ("opacity", np.nan), ("f_dc_2", -np.inf)]
+    "field, value",
+    [
+        ("x", np.nan),
+        ("scale_1", 200.0),
+        ("scale_0", np.inf),
+        ("opacity", np.nan),
+        ("f_dc_2", -np.inf),
+        ("f_rest_4", np.nan),
+    ],
 )
 def test_non_finite_splats_are_refused(tmp_path, gaussians, monkeypatch, field, value):
-    """Another tool's PLY with one NaN position or a log-scale whose exp overflows float32 is
-    refused naming the file, the vertex and the field, on both readers (Blender has no plyfile):
-    one such splat poisons a preview, a render or an export."""
+    """Another tool's PLY with one NaN position, SH coefficient or a log-scale whose exp overflows
+    float32 is refused naming the file, the vertex and the field, on both readers (Blender has no
+    plyfile): one such splat poisons a preview, a render or an export."""
     from plyfile import PlyData
 
     p = tmp_path / "g.ply"
-    P.write_ply(p, gaussians)
+    P.write_ply(p, dict(gaussians, sh_rest=np.zeros((len(gaussians["means"]), 2, 3))))
     ply = PlyData.read(str(p), mmap=False)
     ply["vertex"].data[field][7] = value
     ply.write(str(p))
@@ -125,6 +144,16 @@ def test_non_finite_splats_are_refused(tmp_path, gaussians, monkeypatch, field, 
     ply["vertex"].data["opacity"][7] = np.inf  # a saturated logit is a valid opacity of 1
     ply.write(str(p))
     assert P.read_ply(p)["opacities"][7] == 1.0
+
+
+@pytest.mark.parametrize("k_rest", [0, 3])
+def test_splat_ply_bytes_is_the_written_file_size(tmp_path, gaussians, k_rest):
+    """The size the Blender budget slider shows is that of the file write_ply writes."""
+    n = 7
+    g = {k: v[:n] for k, v in gaussians.items()}
+    g["sh_rest"] = np.zeros((n, k_rest, 3))
+    P.write_ply(tmp_path / "s.ply", g)
+    assert P.splat_ply_bytes(n, k_rest) == os.path.getsize(tmp_path / "s.ply")
 
 
 def test_bad_files_are_refused(tmp_path):
