@@ -417,6 +417,38 @@ def test_binding_kernels_degenerate_roots_stay_finite():
     assert all(torch.isfinite(p.grad).all() for p in inputs)
 
 
+@pytest.mark.parametrize("gap", [30.0, 60.0])
+def test_binding_kernels_tiny_faces_pass_no_geometry_gradient(gap):
+    """Split points e^-gap from v1 at two levels: face 5 = (v1, p, p') has edges ~e^-gap. At
+    gap 30 (1e-13 m) its first edge is proper but its scale sits at the MIN_SCALE clamp, so its
+    scale's gradient reaches no vertex or split logit; at gap 60 (1e-26 m <= MIN_EDGE) its edge
+    has no direction and none of its outputs does (only its residuals learn). The finiteness
+    test above missed a 1/|e1| ~ 1e26 gradient through such a face."""
+    from progressive_avatars.core.train import binding_kernels
+
+    f = Forest(np.array([[0, 1, 2]]))
+    f.split([0])
+    f.split([1])
+    assert f.parent[5] == 1 and f.slot[5] == 1 and f.parent[1] == 0 and f.slot[1] == 0
+    f.split_logits[:] = 0.0
+    f.split_logits[0] = f.split_logits[1] = [0.0, gap, 0.0]
+    rng = np.random.default_rng(18)
+    inputs = _kernel_inputs(f, VERTS + rng.normal(0, 0.1, (3, 3)), rng)
+    out = binding_kernels.FaceBinding(f).gaussians(*inputs)
+    np.testing.assert_allclose(
+        out.scales[5].detach().numpy(), binding.MIN_SCALE * np.exp(inputs[3][5].detach().numpy())
+    )
+    cot = torch.zeros(f.num_faces, 10, dtype=torch.float64)
+    cot[5] = torch.tensor(rng.normal(size=10))
+    if gap == 30.0:
+        cot[5, :7] = 0.0  # the scales alone: the means and rotation turn with the proper edge
+    (torch.cat([out.means, out.quats, out.scales], 1) * cot).sum().backward()
+    assert torch.all(inputs[0].grad == 0) and torch.all(inputs[1].grad == 0)
+    np.testing.assert_allclose(inputs[3].grad[5].numpy(), cot[5, 7:].numpy() * out.scales[5].detach().numpy())
+    if gap == 60.0:
+        assert torch.all(inputs[2].grad[5] != 0) and torch.all(inputs[4].grad[5] != 0)
+
+
 @pytest.mark.parametrize("height", [1e-2, 1e-8, 0.0])
 def test_training_and_inference_agree_on_a_collapsing_float32_root(height):
     """A template triangle flattening to a line in some frame (float32 vertices, as datasets
@@ -517,10 +549,36 @@ def test_training_and_inference_agree_on_faces_with_a_vanishing_first_edge(gap, 
     assert np.abs(np.abs((qa * qb).sum(1)) - 1).max() < 1e-4
 
 
+def test_training_and_inference_agree_on_a_sub_femtometre_root():
+    """A root with a proper first edge (3e-15 m > MIN_EDGE), not flat for its size, but a normal
+    |e1 x e2| = 9e-31 <= MIN_EDGE² (the second edge is 3e-16 m): both sides call it degenerate
+    and take the general frame. Without the MIN_EDGE² bound training framed it by its normal
+    while inference did not: rotations 0.1 apart in |q·q'|."""
+    from progressive_avatars.core.avatar.avatar import Avatar
+    from progressive_avatars.core.train.binding_kernels import FaceBinding
+
+    forest = Forest(np.array([[0, 1, 2]], np.int32))
+    forest.split(forest.split([0]).ravel())
+    N = forest.num_faces
+    rng = np.random.default_rng(0)
+    forest.split_logits[:] = rng.normal(0, 0.5, (N, 3))
+    av = Avatar.initial(forest)
+    av.d_mu[:] = rng.normal(0, 0.3, (N, 3))
+    av.d_rot[:] = rng.normal(0, 1, (N, 4))
+    V = np.array([[0, 0, 0], [3e-15, 0, 0], [0, 1.8e-16, 2.4e-16]], np.float32)
+    inf = binding.GaussianEvaluator(forest, av.d_mu, av.d_log_scale, av.d_rot)(V)
+    t = torch.tensor
+    tr = FaceBinding(forest).gaussians(t(V), t(forest.split_logits), t(av.d_mu), t(av.d_log_scale), t(av.d_rot))
+    np.testing.assert_array_equal(tr.scales.numpy(), np.float32(binding.MIN_SCALE))  # every face is clamped
+    assert np.abs(inf.means[:N] - tr.means.numpy()).max() < 1e-6 * binding.MIN_SCALE
+    qa, qb = inf.quats[:N].astype(np.float64), tr.quats.numpy().astype(np.float64)
+    assert np.abs(np.abs((qa * qb).sum(1)) - 1).max() < 1e-5
+
+
 def test_zero_and_tiny_rotation_residuals_match_inference():
     """d_rot of 0 (the face's own frame) or of norm ~1e-30 (its direction): the training kernel
-    gives inference's unit quaternions and finite gradients (it used to give a zero or ~1e-18
-    quaternion, which the rasteriser refuses)."""
+    gives inference's unit quaternions and finite gradients, none for the zero residual (it used
+    to give a zero or ~1e-18 quaternion, which the rasteriser refuses)."""
     from progressive_avatars.core.avatar.avatar import Avatar
     from progressive_avatars.core.train.binding_kernels import FaceBinding
 
@@ -536,6 +594,8 @@ def test_zero_and_tiny_rotation_residuals_match_inference():
         np.testing.assert_allclose(g.quats[0].detach().numpy(), want, atol=1e-6)
         (g.quats * torch.tensor([0.1, 0.2, 0.3, 0.4])).sum().backward()
         assert torch.isfinite(d_rot.grad).all()
+        if not any(d):  # no direction to differentiate: no gradient (a 1/1e-12 one would swamp the rest)
+            assert torch.all(d_rot.grad == 0)
 
 
 def test_binding_kernels_deterministic_across_thread_counts():
