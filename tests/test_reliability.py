@@ -473,6 +473,18 @@ def test_quaternions_of_extreme_norm_normalise_to_their_rotation(norm):
     assert np.array_equal(quat_normalize(np.zeros((1, 4))), [[1.0, 0, 0, 0]])  # only exact zero: identity
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_torch_zero_quaternion_stays_zero_with_a_finite_gradient(dtype):
+    """The torch path's documented promise: an exactly zero quaternion stays zero (the identity
+    rotation downstream) and its gradient is finite (it was inf: 1/tiny times 1/1e-12)."""
+    q = torch.zeros(2, 4, dtype=dtype, requires_grad=True)
+    u = quat_normalize_torch(q)
+    (u * torch.tensor([1.0, 2.0, 3.0, 4.0], dtype=dtype)).sum().backward()
+    assert torch.equal(u.detach(), torch.zeros(2, 4, dtype=dtype))
+    # At zero u = q / 1e-12 (the norm's floor): the gradient is the weights over 1e-12.
+    np.testing.assert_allclose(q.grad.numpy(), np.tile([1e12, 2e12, 3e12, 4e12], (2, 1)), rtol=1e-6)
+
+
 @pytest.mark.parametrize("unit", [1e12, 1e-12])
 def test_numpy_evaluator_matches_torch_at_absurd_unit_scales(unit):
     """The numpy evaluator pre-scales root edges and normals before squaring, like the torch

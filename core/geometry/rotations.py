@@ -39,7 +39,8 @@ def quat_normalize(q):
     (which quat_to_rotmat maps to the identity) with a finite gradient."""
     if _is_torch(q):
         torch = _torch()
-        m = q.detach().abs().amax(-1, keepdim=True).clamp_min(torch.finfo(q.dtype).tiny)
+        m = q.detach().abs().amax(-1, keepdim=True)
+        m = torch.where(m > 0, m, torch.ones_like(m))  # not a tiny floor: 1/tiny overflows the gradient
         u = q / m
         return u / torch.linalg.vector_norm(u, dim=-1, keepdim=True).clamp_min(1e-12)
     q = np.asarray(q)
