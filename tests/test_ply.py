@@ -101,6 +101,19 @@ def test_extreme_values_stay_finite(tmp_path):
         P.write_ply(p, dict(g, means=np.full((4, 3), np.nan)))
     with pytest.raises(ValueError, match="misses"):
         P.write_ply(p, {"means": np.zeros((1, 3))})
+    # Finite in float64 but not in the file's float32: refused, the file as it was.
+    before = p.read_bytes()
+    g["f_dc"] = (g["colors"] - 0.5) / P.SH_C0
+    for key, column, field, value in (
+        ("means", 1, "y", 1e39),
+        ("scales", 2, "scale_2", 1e39),
+        ("f_dc", 0, "f_dc_0", -1e39),
+    ):
+        arr = np.array(g[key], np.float64)
+        arr[1, column] = value
+        with pytest.raises(ValueError, match=rf"write_ply: {field} exceeds float32's range"):
+            P.write_ply(p, dict(g, **{key: arr}))
+        assert p.read_bytes() == before
 
 
 def test_write_is_atomic(tmp_path, gaussians, monkeypatch):

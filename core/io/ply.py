@@ -86,16 +86,23 @@ def _rows(gaussians: dict) -> np.ndarray:
     a = np.clip(opac, _EPS, 1 - _EPS)
     K = rest.shape[1]
     rows = np.zeros(n, np.dtype([(name, "<f4") for name in _properties(K)]))
-    for c in range(3):
-        for k in range(K):
-            rows[f"f_rest_{c * K + k}"] = rest[:, k, c]
-    for k, c in enumerate("xyz"):
-        rows[c] = means[:, k]
-        rows[f"scale_{k}"] = np.log(np.maximum(scales[:, k], 1e-30))
-        rows[f"f_dc_{k}"] = f_dc[:, k]
+    with np.errstate(over="ignore"):  # checked below, by field
+        for c in range(3):
+            for k in range(K):
+                rows[f"f_rest_{c * K + k}"] = rest[:, k, c]
+        for k, c in enumerate("xyz"):
+            rows[c] = means[:, k]
+            rows[f"scale_{k}"] = np.log(np.maximum(scales[:, k], 1e-30))
+            rows[f"f_dc_{k}"] = f_dc[:, k]
     rows["opacity"] = np.log(a / (1 - a))
     for k in range(4):
         rows[f"rot_{k}"] = quats[:, k]
+    # Finite in float64 is not finite in the file's float32 (a mean of 1e39 was written as inf,
+    # a scale of 1e39 as a log-scale that read_ply, as other readers, refuses).
+    for name in rows.dtype.names:
+        col = rows[name].astype(np.float64)
+        if not np.all(np.isfinite(col)) or (name.startswith("scale_") and np.any(col > _MAX_LOG_SCALE)):
+            raise ValueError(f"write_ply: {name} exceeds float32's range (|value| above 3.4e38)")
     return rows
 
 
