@@ -16,11 +16,11 @@ OUT=runs
 source scripts/_train_many.sh
 [ -f "$DATA/transforms_train.json" ] || $PY scripts/make_synthetic.py --out "$DATA"
 mkdir -p runs
-train "avatar_$PRESET" & train uniform_d2 --uniform --max-depth 2 --max-faces 1000000 & wait
-train finest_only --supervision finest & train sampled --supervision sampled & wait
-train uniform_d3 --uniform --max-depth 3 --max-faces 1000000 & train seed1 --seed 1 & wait
+train "avatar_$PRESET" & train uniform_d2 --uniform --max-depth 2 --max-faces 1000000 & wait_all
+train finest_only --supervision finest & train sampled --supervision sampled & wait_all
+train uniform_d3 --uniform --max-depth 3 --max-faces 1000000 & train seed1 --seed 1 & wait_all
 train uniform_d2_sampled --uniform --max-depth 2 --max-faces 1000000 --supervision sampled & \
-  train all_eps4e-4 --grad-threshold 4e-4 & wait
+  train all_eps4e-4 --grad-threshold 4e-4 & wait_all
 train sampled_eps4e-4 --supervision sampled --grad-threshold 4e-4
 $PY scripts/evaluate.py --run "$MAIN" --out "runs/report_$PRESET" --no-progress \
   --compare adaptive_seed1=runs/seed1 --name adaptive \

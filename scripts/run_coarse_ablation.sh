@@ -19,24 +19,24 @@ OUT=runs/coarse
 source scripts/_train_many.sh
 [ -f "$DATA/transforms_train.json" ] || $PY scripts/make_synthetic.py --out "$DATA" --template-subdivisions 3 --quiet
 mkdir -p "$OUT"
-train adaptive & train uniform_d2 --uniform --max-depth 2 --max-faces 1000000 & wait
-train uniform_d3 --uniform --max-depth 3 --max-faces 1000000 & train adaptive_seed1 --seed 1 & wait
-train finest_only --supervision finest & train adaptive_eps1e-4 --grad-threshold 1e-4 & wait
-train adaptive_w0.1 --level-weights 0.1,0.1,0.1,1 & train adaptive_w0.3 --level-weights 0.3,0.3,0.3,1 & wait
+train adaptive & train uniform_d2 --uniform --max-depth 2 --max-faces 1000000 & wait_all
+train uniform_d3 --uniform --max-depth 3 --max-faces 1000000 & train adaptive_seed1 --seed 1 & wait_all
+train finest_only --supervision finest & train adaptive_eps1e-4 --grad-threshold 1e-4 & wait_all
+train adaptive_w0.1 --level-weights 0.1,0.1,0.1,1 & train adaptive_w0.3 --level-weights 0.3,0.3,0.3,1 & wait_all
 train uniform_d2_w0.3 --uniform --max-depth 2 --max-faces 1000000 --level-weights 0.3,0.3,1 & \
-  train uniform_d3_w0.3 --uniform --max-depth 3 --max-faces 1000000 --level-weights 0.3,0.3,0.3,1 & wait
+  train uniform_d3_w0.3 --uniform --max-depth 3 --max-faces 1000000 --level-weights 0.3,0.3,0.3,1 & wait_all
 # Seeds 1 and 2 of the three w = 0.3 runs: the spread between seeds, against which the
 # adaptive/uniform differences are read.
 for s in 1 2; do
   train adaptive_w0.3_seed$s --seed $s --level-weights 0.3,0.3,0.3,1 & \
-    train uniform_d3_w0.3_seed$s --seed $s --uniform --max-depth 3 --max-faces 1000000 --level-weights 0.3,0.3,0.3,1 & wait
+    train uniform_d3_w0.3_seed$s --seed $s --uniform --max-depth 3 --max-faces 1000000 --level-weights 0.3,0.3,0.3,1 & wait_all
 done
 train uniform_d2_w0.3_seed1 --seed 1 --uniform --max-depth 2 --max-faces 1000000 --level-weights 0.3,0.3,1 & \
-  train uniform_d2_w0.3_seed2 --seed 2 --uniform --max-depth 2 --max-faces 1000000 --level-weights 0.3,0.3,1 & wait
+  train uniform_d2_w0.3_seed2 --seed 2 --uniform --max-depth 2 --max-faces 1000000 --level-weights 0.3,0.3,1 & wait_all
 # Half the growth threshold at w = 0.3, seeds 0-2: a second point on adaptive's
 # quality-vs-Gaussians curve, still well under uniform depth 3's count.
 W3="--grad-threshold 1e-4 --level-weights 0.3,0.3,0.3,1"
-train adaptive_w0.3_eps1e-4 $W3 & train adaptive_w0.3_eps1e-4_seed1 --seed 1 $W3 & wait
+train adaptive_w0.3_eps1e-4 $W3 & train adaptive_w0.3_eps1e-4_seed1 --seed 1 $W3 & wait_all
 train adaptive_w0.3_eps1e-4_seed2 --seed 2 $W3
 $PY scripts/evaluate.py --run "$OUT/adaptive" --out runs/report_coarse --no-progress \
   --compare adaptive_seed1="$OUT/adaptive_seed1" --compare adaptive_eps1e-4="$OUT/adaptive_eps1e-4" \

@@ -16,9 +16,9 @@ source scripts/_train_many.sh
   $PY scripts/make_synthetic.py --out "$DATA" --template-subdivisions 3 --resolution 256 --quiet
 mkdir -p "$OUT"
 W="--level-weights 0.3,0.3,0.3,1"
-train adaptive_w0.3 $W & train uniform_d3_w0.3 --uniform --max-depth 3 --max-faces 1000000 $W & wait
+train adaptive_w0.3 $W & train uniform_d3_w0.3 --uniform --max-depth 3 --max-faces 1000000 $W & wait_all
 train uniform_d2_w0.3 --uniform --max-depth 2 --max-faces 1000000 --level-weights 0.3,0.3,1 & \
-  train adaptive_w0.3_seed1 --seed 1 $W & wait
+  train adaptive_w0.3_seed1 --seed 1 $W & wait_all
 $PY scripts/evaluate.py --run "$OUT/adaptive_w0.3" --out runs/report_coarse256 --no-progress \
   --compare adaptive_w0.3_seed1="$OUT/adaptive_w0.3_seed1" \
   --compare uniform_d2_w0.3="$OUT/uniform_d2_w0.3" --compare uniform_d3_w0.3="$OUT/uniform_d3_w0.3" \
