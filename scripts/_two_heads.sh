@@ -1,5 +1,11 @@
 # Sourced by the issue-16 studies (run_prefix_study.sh, run_backdrop_study.sh) after they set
 # OUT: the environment, both synthetic heads, and the run helpers they share.
+# They train train.py's default (cpu) preset, which the sections they write say: a PRESET asked
+# for (a smoke run) is refused, not ignored for hours of runs that then rewrite docs/.
+if [ "${PRESET:-cpu}" != cpu ]; then
+  echo "$0: no PRESET here (the cpu preset only); BENCHMARKS=FILE and REPORTS=DIR write elsewhere than docs/" >&2
+  exit 2
+fi
 bash scripts/setup_env.sh
 PY=.venv/bin/python
 DATA=${DATA:-runs/synthetic}

@@ -8,6 +8,9 @@
 # Outputs under runs/coarse256/; a finished run is skipped, an interrupted one resumes.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# The report's text and the level weights below are the cpu preset's: another PRESET (a smoke
+# run) is refused, not ignored for hours.
+[ "${PRESET:-cpu}" = cpu ] || { echo "$0: no PRESET here (the cpu preset only)" >&2; exit 2; }
 PRESET=cpu
 DATA=${DATA:-runs/synthetic_coarse256}
 OUT=runs/coarse256
