@@ -20,7 +20,7 @@ mkdir -p "$OUT/default" "$OUT/coarse"
 train() {  # data, run folder, extra args...
   local data=$1 run=$2; shift 2
   [ -f "$run/avatar.npz" ] ||
-    $PY scripts/train.py --data "$data" --out "$run" --resume --no-progress "$@" > "$run.log" 2>&1 ||
+    $PY scripts/train.py --data "$data" --out "$run" --resume --no-progress "$@" >> "$run.log" 2>&1 ||
     { echo "$run: training ended with exit $?, $run.log ends:" >&2; tail -n 5 "$run.log" >&2; return 1; }
 }
 name() {  # base name, seed: NAME for seed 0, NAME_seed<k> otherwise (evaluate.py's grouping)

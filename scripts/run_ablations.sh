@@ -32,4 +32,6 @@ $PY scripts/evaluate.py --run "$MAIN" --out "runs/report_$PRESET" --no-progress 
   --compare uniform_d2_sampled="$OUT/uniform_d2_sampled" \
   --compare finest_only="$OUT/finest_only" --compare sampled="$OUT/sampled" \
   --compare all_eps4e-4="$OUT/all_eps4e-4" --compare sampled_eps4e-4="$OUT/sampled_eps4e-4"
+# The report rewrote MAIN/avatar.pavs without the template; run_demo.sh leaves it self-contained.
+$PY scripts/export.py --run "$MAIN" --stream "$MAIN/avatar.pavs"
 echo "report: runs/report_$PRESET/report.md"
