@@ -431,6 +431,8 @@ def test_zero_size_image_and_bad_options_raise():
         render(**_bad(), backend="vulkan")
     with pytest.raises(ValueError, match="near must be"):
         render(**_bad(), near=0.0)
+    with pytest.raises(ValueError, match="eps2d must be"):
+        render(**_bad(), eps2d=-0.1)
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="needs CUDA"):
             render(**_bad(), backend="gsplat")
