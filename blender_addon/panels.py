@@ -112,8 +112,12 @@ class PA_PT_depth(_Base, bpy.types.Panel):
         sub = row.row(align=True)
         sub.active = obj.pa_avatar.depth_only_on
         sub.prop(obj.pa_avatar, "depth_only", text="")
+        recorded = src.pa_mesh.depth_preview
         if owner is not None and owner != obj:  # another preview bound to the mesh
             lay.label(text=f"Depth of {owner.name} at {owner.pa_avatar.budget:.1f} %", icon="INFO")
+        elif owner is None and recorded and recorded != obj.name and len(src.pa_mesh.depth_legend):
+            # Its preview deleted, renamed or rebound: the legend is still its until a budget moves.
+            lay.label(text=f"Depth of {recorded}, not a preview of this mesh now: move a budget", icon="INFO")
         legend = src.pa_mesh.depth_legend
         total = max(sum(item.faces for item in legend), 1)
         for item in legend:

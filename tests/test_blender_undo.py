@@ -349,7 +349,10 @@ def test_two_previews_on_one_head_show_the_depth_of_one_and_say_which(rep):
     assert f"Depth of {dup} at 20.0 %" in r["pv_panel"] and "[Colour by Depth]" in r["pv_panel"], r["pv_panel"]
     assert r["show_pv"] == ["FINISHED"] and r["shown_pv"] == [True, False, True, False, pv, True], r  # switched
     assert r["hide"] == ["FINISHED"] and r["hidden"][4:] == [pv, False], r
+    # The chosen one deleted: its legend is said to be a gone preview's until a budget moves
+    assert f"Depth of {pv}, not a preview of this mesh now: move a budget" in r["orphan_panel"], r["orphan_panel"]
     assert r["after_delete"] == [False, True, False, True, dup, False], r
+    assert not any(t.startswith("Depth of") for t in r["taken_panel"]), r["taken_panel"]
     # Load Avatar over a preview: the new one, made beside it under another name, then renamed
     reload, made_as, named, recorded = r["reloaded"]
     assert reload == [["FINISHED"]] * 2 and made_as != named and recorded == named, r["reloaded"]

@@ -770,7 +770,10 @@ def two_previews_on_one_head(r):
     r["hidden"] = head()
     bpy.data.objects.remove(pv)
     pv = None
+    activate(dup)
+    r["orphan_panel"] = depth_panel()
     dup.pa_avatar.budget = 50.0
+    r["taken_panel"] = depth_panel()
     r["after_delete"] = head()
     activate(mesh)
     made = []
